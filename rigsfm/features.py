@@ -1,0 +1,116 @@
+"""Stage 2: SIFT features and matching with geometric verification.
+
+Wide images always get features. Narrow images stay featureless unless ``narrow_features`` (their view
+is homogeneous by design; features there only cost time and add outliers). Work already in the database
+(keypoints of an image, a verified pair) is kept, so an interrupted run resumes where it stopped.
+"""
+
+from __future__ import annotations
+
+import itertools
+import logging
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import pycolmap
+
+from rigsfm.inputs import ImageEntry
+
+logger = logging.getLogger(__name__)
+
+Progress = Callable[[int, int], None]
+
+
+@dataclass(kw_only=True)
+class MatchingOptions:
+    max_ratio: float = 0.8  # Lowe's ratio test
+    cross_check: bool = True  # mutual nearest neighbours
+    max_num_features: int = 8192
+    rig_verification: bool = False  # verify pairs with the rigs' generalized relative pose
+    narrow_features: bool = False
+    max_error_px: float = 4.0  # RANSAC threshold of the two-view geometry
+    num_threads: int = -1
+
+
+def featured_images(images: Sequence[ImageEntry], options: MatchingOptions) -> list[ImageEntry]:
+    return [e for e in images if e.sensor == "wide" or options.narrow_features]
+
+
+def extract_features(
+    database_path: Path,
+    image_dir: Path,
+    images: Sequence[ImageEntry],
+    options: MatchingOptions,
+    progress: Progress | None = None,
+    batch_size: int = 2,
+) -> int:
+    """Extract SIFT for every image that has no keypoints yet; returns how many were extracted."""
+    with pycolmap.Database.open(database_path) as database:
+        ids = {image.name: image.image_id for image in database.read_all_images()}
+        todo = [
+            e.name for e in featured_images(images, options) if not database.exists_keypoints(ids[e.name])
+        ]
+    extraction = pycolmap.FeatureExtractionOptions(num_threads=options.num_threads, use_gpu=False)
+    extraction.sift.max_num_features = options.max_num_features
+    for start in range(0, len(todo), batch_size):
+        batch = todo[start : start + batch_size]
+        pycolmap.extract_features(
+            database_path,
+            image_dir,
+            image_names=batch,
+            camera_mode=pycolmap.CameraMode.PER_IMAGE,
+            extraction_options=extraction,
+        )
+        if progress:
+            progress(start + len(batch), len(todo))
+    logger.info("Extracted features for %d images (%d already done)", len(todo), len(images) - len(todo))
+    return len(todo)
+
+
+def image_pairs(images: Sequence[ImageEntry], options: MatchingOptions) -> list[tuple[str, str]]:
+    """Every pair of featured images, except two images of the same frame without narrow features."""
+    featured = featured_images(images, options)
+    return [
+        (a.name, b.name)
+        for a, b in itertools.combinations(featured, 2)
+        if not (a.rig == b.rig and a.frame == b.frame and not options.narrow_features)
+    ]
+
+
+def match_features(
+    database_path: Path,
+    images: Sequence[ImageEntry],
+    options: MatchingOptions,
+    pairs_path: Path,
+    progress: Progress | None = None,
+    batch_size: int = 6,
+) -> int:
+    """Match and verify every pair not verified yet; returns how many pairs were matched now."""
+    with pycolmap.Database.open(database_path) as database:
+        ids = {image.name: image.image_id for image in database.read_all_images()}
+        todo = [
+            (a, b) for a, b in image_pairs(images, options) if not database.exists_two_view_geometry(ids[a], ids[b])
+        ]
+    matching = pycolmap.FeatureMatchingOptions(
+        num_threads=options.num_threads, use_gpu=False, rig_verification=options.rig_verification
+    )
+    matching.sift.max_ratio = options.max_ratio
+    matching.sift.cross_check = options.cross_check
+    verification = pycolmap.TwoViewGeometryOptions()
+    verification.ransac.max_error = options.max_error_px
+    verification.ransac.random_seed = 0
+    for start in range(0, len(todo), batch_size):
+        batch = todo[start : start + batch_size]
+        pairs_path.write_text("".join(f"{a} {b}\n" for a, b in batch))
+        pycolmap.match_image_pairs(
+            database_path,
+            matching_options=matching,
+            pairing_options=pycolmap.ImportedPairingOptions(match_list_path=pairs_path),
+            verification_options=verification,
+        )
+        if progress:
+            progress(start + len(batch), len(todo))
+    pairs_path.unlink(missing_ok=True)
+    logger.info("Matched %d image pairs", len(todo))
+    return len(todo)

@@ -1,0 +1,199 @@
+"""``rigsfm run``: validate, database, features, mapping, rig constraints, export — in one workspace."""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+import pycolmap
+
+import rigsfm
+from rigsfm.database import create_database
+from rigsfm.errors import ReconstructionError
+from rigsfm.export import write_model, write_narrow_poses, write_points_ply
+from rigsfm.features import MatchingOptions, extract_features, match_features
+from rigsfm.inputs import ImageEntry, scan_images
+from rigsfm.io import write_json_atomic
+from rigsfm.mapping import MappingOptions, run_mapping
+from rigsfm.rig_constraint import RigConstraintOptions, RigConstraintResult, ScaleSource, apply_rig_constraints
+from rigsfm.rigs import RigCalibration, load_rigs
+from rigsfm.scale_file import ScaleSpec, load_scale
+from rigsfm.workspace import Workspace, colmap_log_to
+
+logger = logging.getLogger(__name__)
+
+Progress = Callable[[str, int, int], None]
+
+
+@dataclass(kw_only=True)
+class RunOptions:
+    matching: MatchingOptions = field(default_factory=MatchingOptions)
+    mapping: MappingOptions = field(default_factory=MappingOptions)
+    rig_constraint: RigConstraintOptions = field(default_factory=RigConstraintOptions)
+    overwrite: bool = False
+
+
+@dataclass(frozen=True)
+class Inputs:
+    image_dir: Path
+    rigs: list[RigCalibration]
+    images: list[ImageEntry]
+    scale: ScaleSpec | None
+
+
+@dataclass
+class RunResult:
+    workspace: Workspace
+    reconstruction: pycolmap.Reconstruction
+    summary: dict
+
+
+def load_inputs(image_dir: Path, rigs_path: Path, scale_path: Path | None = None) -> Inputs:
+    """Validate every input before any heavy work; raises ``InputError`` naming file and fix."""
+    rigs = load_rigs(rigs_path)
+    images = scan_images(image_dir, rigs)
+    scale = load_scale(scale_path, images) if scale_path is not None else None
+    return Inputs(Path(image_dir), rigs, images, scale)
+
+
+class _Timings(dict):
+    @contextlib.contextmanager
+    def stage(self, name: str) -> Iterator[None]:
+        start = time.perf_counter()
+        try:
+            yield
+        finally:
+            self[name] = round(time.perf_counter() - start, 3)
+            logger.info("Stage %s took %.1f s", name, self[name])
+
+
+def reprojection_errors(reconstruction: pycolmap.Reconstruction) -> dict[str, dict]:
+    """Per camera (``<rig>/<sensor>``): mean and RMS reprojection error over its observations."""
+    per_camera: dict[str, list[np.ndarray]] = {}
+    for image in reconstruction.images.values():
+        if not image.has_pose:
+            continue
+        observed = [p for p in image.points2D if p.has_point3D()]
+        key = image.name.rsplit("/", 1)[0]
+        per_camera.setdefault(key, [])
+        if not observed:
+            continue
+        xyz = np.array([reconstruction.points3D[p.point3D_id].xyz for p in observed])
+        xy = np.array([p.xy for p in observed])
+        camera = reconstruction.cameras[image.camera_id]
+        projected = np.asarray(camera.img_from_cam(image.cam_from_world() * xyz))
+        per_camera[key].append(np.linalg.norm(projected - xy, axis=1))
+    table = {}
+    for key, errors in sorted(per_camera.items()):
+        e = np.concatenate(errors) if errors else np.zeros(0)
+        table[key] = {
+            "observations": int(e.size),
+            "mean_px": float(e.mean()) if e.size else None,
+            "rms_px": float(np.sqrt(np.mean(e**2))) if e.size else None,
+        }
+    return table
+
+
+def registration_counts(reconstruction: pycolmap.Reconstruction, images: list[ImageEntry]) -> tuple[dict, list[str]]:
+    registered = {im.name for im in reconstruction.images.values() if im.has_pose}
+    counts = {}
+    for sensor in ("wide", "narrow"):
+        names = [e.name for e in images if e.sensor == sensor]
+        counts[sensor] = {"registered": sum(n in registered for n in names), "total": len(names)}
+    return counts, sorted(e.name for e in images if e.name not in registered)
+
+
+def build_summary(inputs: Inputs, options: RunOptions, result: RigConstraintResult, timings: dict) -> dict:
+    reconstruction = result.reconstruction
+    counts, unregistered = registration_counts(reconstruction, inputs.images)
+    metric = result.scale_source != ScaleSource.NONE
+    warnings = []
+    if not metric:
+        warnings.append("NOT METRIC: no scale.yaml and no observations in narrow images; units are arbitrary")
+    if unregistered:
+        warnings.append(f"{len(unregistered)} image(s) not registered: {', '.join(unregistered[:5])}")
+    return {
+        "rigsfm_version": rigsfm.__version__,
+        "pycolmap_version": pycolmap.__version__,
+        "inputs": {
+            "images": str(inputs.image_dir),
+            "num_rigs": len(inputs.rigs),
+            "scale_file": str(inputs.scale.path) if inputs.scale else None,
+        },
+        "options": {
+            "matching": asdict(options.matching),
+            "mapping": {k: str(v) for k, v in asdict(options.mapping).items()},
+            "rig_constraint": asdict(options.rig_constraint),
+        },
+        "metric": metric,
+        "scale": {
+            "source": str(result.scale_source),
+            "metres_per_mapping_unit": result.scale.metres_per_unit if result.scale else None,
+            "measurements": result.scale.residuals() if result.scale else [],
+        },
+        "registered": counts,
+        "unregistered": unregistered,
+        "num_points3D": reconstruction.num_points3D(),
+        "mean_reprojection_error_px": result.mean_reprojection_error_px,
+        "reprojection_error": reprojection_errors(reconstruction),
+        "timings_s": dict(timings),
+        "warnings": warnings,
+    }
+
+
+def run(
+    image_dir: Path,
+    rigs_path: Path,
+    out: Path,
+    scale_path: Path | None = None,
+    options: RunOptions | None = None,
+    progress: Progress | None = None,
+) -> RunResult:
+    """The whole pipeline; every artifact lands in ``out`` (see :class:`Workspace`)."""
+    options = options or RunOptions()
+    timings = _Timings()
+    with timings.stage("validate"):
+        inputs = load_inputs(image_dir, rigs_path, scale_path)
+    workspace = Workspace(Path(out))
+    workspace.prepare(overwrite=options.overwrite)
+
+    def report(stage: str) -> Callable[[int, int], None] | None:
+        return (lambda done, total: progress(stage, done, total)) if progress else None
+
+    num_wide = sum(e.sensor == "wide" for e in inputs.images)
+    with colmap_log_to(workspace.colmap_log):
+        with timings.stage("database"):
+            create_database(workspace.database, inputs.rigs, inputs.images)
+        with timings.stage("features"):
+            extract_features(workspace.database, inputs.image_dir, inputs.images, options.matching,
+                             report("features"))
+        with timings.stage("matching"):
+            match_features(workspace.database, inputs.images, options.matching,
+                           workspace.root / "pairs.txt", report("matching"))
+        with timings.stage("mapping"):
+            done = [0]
+
+            def on_registered() -> None:
+                done[0] += 1
+                if progress:
+                    progress("mapping", min(done[0], num_wide), num_wide)
+
+            mapped = run_mapping(workspace.database, inputs.image_dir, workspace.mapping, options.mapping,
+                                 num_wide, on_registered)
+        with timings.stage("rig_constraint"):
+            result = apply_rig_constraints(mapped, inputs.rigs, inputs.scale, options.rig_constraint)
+        metric = result.scale_source != ScaleSource.NONE
+        with timings.stage("export"):
+            write_model(result.reconstruction, workspace.sparse, overwrite=True)
+            write_narrow_poses(result.reconstruction, workspace.narrow_poses, metric=metric, overwrite=True)
+            write_points_ply(result.reconstruction, workspace.points_ply, overwrite=True)
+    summary = build_summary(inputs, options, result, timings)
+    write_json_atomic(workspace.summary, summary)
+    if summary["registered"]["wide"]["registered"] < 2:
+        raise ReconstructionError("fewer than two wide images were registered")
+    return RunResult(workspace, result.reconstruction, summary)

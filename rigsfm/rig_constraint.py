@@ -1,0 +1,156 @@
+"""Stage 4: hold every E^sl fixed, bring the network to metric scale, re-run bundle adjustment.
+
+The scale trap: without observations in the narrow images, the mapped world has arbitrary units while
+E^sl is metric, and ``Reconstruction.transform(Sim3d)`` scales every ``sensor_from_rig`` too. So: scale
+the world to metric first, then restore E^sl (and the calibrated intrinsics) from rigs.yaml, then adjust
+with both held constant. Narrow poses then follow as ``narrow_from_wide * wide_from_world``.
+"""
+
+from __future__ import annotations
+
+import enum
+import logging
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import pycolmap
+
+from rigsfm.errors import ReconstructionError
+from rigsfm.rigs import RigCalibration
+from rigsfm.scale import ScaleEstimate, estimate_scale
+from rigsfm.scale_file import ScaleSpec
+
+logger = logging.getLogger(__name__)
+
+
+class ScaleSource(enum.StrEnum):
+    MEASUREMENTS = "measurements"  # scale.yaml
+    NARROW_BASELINES = "narrow_baselines"  # metric E^sl with observations in narrow images
+    NONE = "none"  # arbitrary units
+
+
+@dataclass(kw_only=True)
+class RigConstraintOptions:
+    loss: str = "CAUCHY"  # pycolmap.LossFunctionType name
+    loss_scale_px: float = 1.0
+    max_reprojection_error_px: float = 4.0
+    max_iterations: int = 200
+
+
+@dataclass
+class RigConstraintResult:
+    reconstruction: pycolmap.Reconstruction
+    scale_source: ScaleSource
+    scale: ScaleEstimate | None
+    mean_reprojection_error_px: float
+
+
+def _sensor_of(reconstruction: pycolmap.Reconstruction, image: pycolmap.Image) -> tuple[str, str]:
+    rig_name, sensor, _ = image.name.split("/", 2)
+    return rig_name, sensor
+
+
+def restore_calibration(reconstruction: pycolmap.Reconstruction, rigs: Sequence[RigCalibration]) -> None:
+    """Reset every camera's intrinsics and every narrow ``sensor_from_rig`` to the rigs.yaml values."""
+    by_name = {rig.name: rig for rig in rigs}
+    for image in reconstruction.images.values():
+        rig_name, sensor = _sensor_of(reconstruction, image)
+        calibration = by_name[rig_name]
+        camera = reconstruction.cameras[image.camera_id]
+        camera.params = calibration.camera(sensor).params
+        if sensor == "narrow":
+            rig = reconstruction.rig(reconstruction.frame(image.frame_id).rig_id)
+            rig.set_sensor_from_rig(camera.sensor_id, calibration.narrow_from_wide)
+
+
+def has_narrow_observations(reconstruction: pycolmap.Reconstruction) -> bool:
+    return any(
+        image.has_pose and image.num_points3D > 0 and "/narrow/" in image.name
+        for image in reconstruction.images.values()
+    )
+
+
+def constrained_bundle_adjustment(
+    reconstruction: pycolmap.Reconstruction, options: RigConstraintOptions, *, fix_scale: bool
+) -> float:
+    """BA over rig poses and points; intrinsics and E^sl constant; robust loss. Returns mean error (px)."""
+    ba = pycolmap.BundleAdjustmentOptions(
+        refine_focal_length=False,
+        refine_principal_point=False,
+        refine_extra_params=False,
+        refine_sensor_from_rig=False,
+        refine_rig_from_world=True,
+        refine_points3D=True,
+        print_summary=False,
+    )
+    ba.ceres.loss_function_type = pycolmap.LossFunctionType.__members__[options.loss]
+    ba.ceres.loss_function_scale = options.loss_scale_px
+    ba.ceres.use_gpu = False
+    solver = ba.ceres.solver_options
+    solver.max_num_iterations = options.max_iterations
+    solver.function_tolerance = 1e-12
+    solver.gradient_tolerance = 1e-12
+    solver.parameter_tolerance = 1e-12
+    config = pycolmap.BundleAdjustmentConfig()
+    for image_id in reconstruction.reg_image_ids():
+        config.add_image(image_id)
+    for camera_id in reconstruction.cameras:
+        config.set_constant_cam_intrinsics(camera_id)
+    for rig in reconstruction.rigs.values():
+        for sensor_id in rig.non_ref_sensors:
+            config.set_constant_sensor_from_rig_pose(sensor_id)
+    frame_ids = sorted(reconstruction.reg_frame_ids())
+    if fix_scale:
+        config.fix_gauge(pycolmap.BundleAdjustmentGauge.TWO_CAMS_FROM_WORLD)
+    else:  # scale comes from the metric narrow baselines: fix only a rigid motion (one frame)
+        config.set_constant_rig_from_world_pose(frame_ids[0])
+    summary = pycolmap.create_default_bundle_adjuster(ba, config, reconstruction).solve()
+    if not summary.is_solution_usable():
+        raise ReconstructionError(f"bundle adjustment with fixed rigs failed: {summary.brief_report()}")
+    return float(reconstruction.compute_mean_reprojection_error())
+
+
+def filter_outliers(reconstruction: pycolmap.Reconstruction, max_error_px: float) -> int:
+    manager = pycolmap.ObservationManager(reconstruction)
+    return manager.filter_all_points3D(max_error_px, 0.5)
+
+
+def apply_rig_constraints(
+    mapped: pycolmap.Reconstruction,
+    rigs: Sequence[RigCalibration],
+    scale_spec: ScaleSpec | None,
+    options: RigConstraintOptions | None = None,
+) -> RigConstraintResult:
+    """Return a metric reconstruction (a new object) with E^sl and intrinsics exactly as calibrated."""
+    options = options or RigConstraintOptions()
+    reconstruction = pycolmap.Reconstruction(mapped)
+    if reconstruction.num_reg_frames() < 2:
+        raise ReconstructionError("fewer than two rigs were registered; nothing to calibrate")
+    narrow_observed = has_narrow_observations(reconstruction)
+    scale = None
+    if scale_spec is not None:
+        source = ScaleSource.MEASUREMENTS
+        # Iterate: scale world (this also scales sensor_from_rig), restore E^sl, adjust, re-measure.
+        for _ in range(3):
+            scale = estimate_scale(reconstruction, scale_spec)
+            factor = scale.metres_per_unit
+            reconstruction.transform(pycolmap.Sim3d(factor, pycolmap.Rotation3d(), np.zeros(3)))
+            restore_calibration(reconstruction, rigs)
+            cost = constrained_bundle_adjustment(reconstruction, options, fix_scale=True)
+            filter_outliers(reconstruction, options.max_reprojection_error_px)
+            if abs(factor - 1.0) < 1e-9:
+                break
+        scale = estimate_scale(reconstruction, scale_spec)
+    elif narrow_observed:
+        source = ScaleSource.NARROW_BASELINES
+        restore_calibration(reconstruction, rigs)
+        cost = constrained_bundle_adjustment(reconstruction, options, fix_scale=False)
+    else:
+        source = ScaleSource.NONE
+        logger.warning("No scale file and no narrow observations: the result is NOT metric")
+        restore_calibration(reconstruction, rigs)
+        cost = constrained_bundle_adjustment(reconstruction, options, fix_scale=True)
+    filter_outliers(reconstruction, options.max_reprojection_error_px)
+    cost = constrained_bundle_adjustment(reconstruction, options, fix_scale=source != ScaleSource.NARROW_BASELINES)
+    return RigConstraintResult(reconstruction, source, scale, cost)

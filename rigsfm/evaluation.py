@@ -1,0 +1,97 @@
+"""Accuracy against ground truth, and the oracle that defines the accuracy limit.
+
+The oracle is bundle adjustment started from the ground-truth poses with the *same* observations
+(tracks) and the *same* calibration file as the run, intrinsics and E^sl held fixed: the best any
+pipeline can do given the image noise and the calibration errors.
+"""
+
+from __future__ import annotations
+
+import itertools
+from collections.abc import Sequence
+
+import numpy as np
+import pycolmap
+
+from rigsfm.conventions import rotation_angle_deg
+from rigsfm.rig_constraint import RigConstraintOptions, constrained_bundle_adjustment, restore_calibration
+from rigsfm.rigs import RigCalibration
+
+
+def _posed(reconstruction: pycolmap.Reconstruction, sensor: str) -> dict[str, pycolmap.Image]:
+    return {
+        im.name: im for im in reconstruction.images.values() if im.has_pose and im.name.split("/")[1] == sensor
+    }
+
+
+def _angle_between(a: np.ndarray, b: np.ndarray) -> float:
+    cos = np.dot(a, b) / (np.linalg.norm(a) * np.linalg.norm(b))
+    return float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))))
+
+
+def compare_to_ground_truth(estimate: pycolmap.Reconstruction, truth: pycolmap.Reconstruction) -> dict:
+    """Gauge-free errors of the narrow cameras: pairwise relative rotation, translation direction,
+    centre distance (metric), plus the registration rate."""
+    est, gt = _posed(estimate, "narrow"), _posed(truth, "narrow")
+    names = sorted(set(est) & set(gt))
+    rot, direction, distance = [], [], []
+    for i, j in itertools.combinations(names, 2):
+        e = est[j].cam_from_world() * est[i].cam_from_world().inverse()
+        g = gt[j].cam_from_world() * gt[i].cam_from_world().inverse()
+        rot.append(rotation_angle_deg(e.rotation.matrix(), g.rotation.matrix()))
+        direction.append(_angle_between(e.translation, g.translation))
+        g_dist = np.linalg.norm(g.translation)
+        distance.append(100.0 * (np.linalg.norm(e.translation) - g_dist) / g_dist)
+
+    def stats(values: list[float]) -> dict:
+        v = np.abs(np.asarray(values, dtype=np.float64))
+        return {"median": float(np.median(v)), "max": float(v.max())} if v.size else {"median": None, "max": None}
+
+    return {
+        "narrow_registered": len(names),
+        "narrow_total": len(gt),
+        "pairs": len(rot),
+        "relative_rotation_deg": stats(rot),
+        "translation_direction_deg": stats(direction),
+        "distance_error_percent": stats(distance),
+    }
+
+
+def wide_distance_error_percent(estimate: pycolmap.Reconstruction, truth: pycolmap.Reconstruction, a: str,
+                                b: str) -> float:
+    """Metric error of the distance between two cameras (e.g. the rangefinder pair), in percent."""
+    def dist(rec: pycolmap.Reconstruction) -> float:
+        return float(np.linalg.norm(rec.find_image_with_name(a).projection_center()
+                                    - rec.find_image_with_name(b).projection_center()))
+
+    return 100.0 * (dist(estimate) - dist(truth)) / dist(truth)
+
+
+def oracle(estimate: pycolmap.Reconstruction, truth: pycolmap.Reconstruction, rigs: Sequence[RigCalibration],
+           options: RigConstraintOptions | None = None) -> pycolmap.Reconstruction:
+    """Bundle adjustment from ground-truth poses with the estimate's observations and calibration."""
+    options = options or RigConstraintOptions()
+    rec = pycolmap.Reconstruction(estimate)
+    for frame_id in rec.reg_frame_ids():
+        frame = rec.frame(frame_id)
+        ref_image = next(rec.image(d.id) for d in frame.image_ids if rec.image(d.id).is_ref_in_frame())
+        truth_image = truth.find_image_with_name(ref_image.name)
+        frame.rig_from_world = truth.frame(truth_image.frame_id).rig_from_world
+    restore_calibration(rec, rigs)
+    for point3D_id in list(rec.point3D_ids()):
+        point = rec.points3D[point3D_id]
+        poses, rays = [], []
+        for element in point.track.elements:
+            image = rec.images[element.image_id]
+            camera = rec.cameras[image.camera_id]
+            xy = image.points2D[element.point2D_idx].xy
+            ray = np.asarray(camera.cam_ray_from_img(np.asarray([xy]))).reshape(3)
+            poses.append(image.cam_from_world().matrix())
+            rays.append(ray / np.linalg.norm(ray))
+        xyz = pycolmap.triangulate_multi_view_point(poses, np.asarray(rays))
+        if xyz is None:
+            rec.delete_point3D(point3D_id)
+        else:
+            point.xyz = np.asarray(xyz).reshape(3)
+    constrained_bundle_adjustment(rec, options, fix_scale=True)
+    return rec

@@ -17,7 +17,7 @@ from rigsfm.features import MatchingOptions
 from rigsfm.mapping import Mapper, MappingOptions
 from rigsfm.pipeline import RunOptions, run
 
-app = typer.Typer(add_completion=False, no_args_is_help=True, help=__doc__)
+app = typer.Typer(add_completion=False, no_args_is_help=True)
 console = Console()
 err_console = Console(stderr=True)
 
@@ -107,5 +107,6 @@ def run_command(
     print_summary(result.summary, out)
 
 
+@app.callback()
 def main() -> None:
-    app()
+    """rigsfm: metric calibration of hybrid (wide + narrow) stereo-rig networks."""

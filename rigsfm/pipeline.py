@@ -133,7 +133,8 @@ def build_summary(inputs: Inputs, options: RunOptions, result: RigConstraintResu
         "metric": metric,
         "scale": {
             "source": str(result.scale_source),
-            "metres_per_mapping_unit": result.scale.metres_per_unit if result.scale else None,
+            "metres_per_mapping_unit": result.metres_per_mapping_unit,
+            "relative_sigma_percent": result.scale.relative_sigma_percent if result.scale else None,
             "measurements": result.scale.residuals() if result.scale else [],
         },
         "registered": counts,

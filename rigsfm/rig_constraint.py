@@ -42,7 +42,8 @@ class RigConstraintOptions:
 class RigConstraintResult:
     reconstruction: pycolmap.Reconstruction
     scale_source: ScaleSource
-    scale: ScaleEstimate | None
+    scale: ScaleEstimate | None  # measurements against the final model
+    metres_per_mapping_unit: float | None
     mean_reprojection_error_px: float
 
 
@@ -89,9 +90,9 @@ def constrained_bundle_adjustment(
     ba.ceres.use_gpu = False
     solver = ba.ceres.solver_options
     solver.max_num_iterations = options.max_iterations
-    solver.function_tolerance = 1e-12
-    solver.gradient_tolerance = 1e-12
-    solver.parameter_tolerance = 1e-12
+    solver.function_tolerance = 1e-9
+    solver.gradient_tolerance = 1e-10
+    solver.parameter_tolerance = 1e-9
     config = pycolmap.BundleAdjustmentConfig()
     for image_id in reconstruction.reg_image_ids():
         config.add_image(image_id)
@@ -128,29 +129,29 @@ def apply_rig_constraints(
     if reconstruction.num_reg_frames() < 2:
         raise ReconstructionError("fewer than two rigs were registered; nothing to calibrate")
     narrow_observed = has_narrow_observations(reconstruction)
-    scale = None
+    scale, metres_per_unit = None, None
     if scale_spec is not None:
         source = ScaleSource.MEASUREMENTS
-        # Iterate: scale world (this also scales sensor_from_rig), restore E^sl, adjust, re-measure.
-        for _ in range(3):
-            scale = estimate_scale(reconstruction, scale_spec)
-            factor = scale.metres_per_unit
-            reconstruction.transform(pycolmap.Sim3d(factor, pycolmap.Rotation3d(), np.zeros(3)))
-            restore_calibration(reconstruction, rigs)
-            cost = constrained_bundle_adjustment(reconstruction, options, fix_scale=True)
-            filter_outliers(reconstruction, options.max_reprojection_error_px)
-            if abs(factor - 1.0) < 1e-9:
-                break
+        # Scale the world (this also scales sensor_from_rig), restore E^sl, adjust with the scale held
+        # by the gauge, drop outliers; re-measure and repeat until the scale and the inliers settle.
         scale = estimate_scale(reconstruction, scale_spec)
-    elif narrow_observed:
-        source = ScaleSource.NARROW_BASELINES
-        restore_calibration(reconstruction, rigs)
-        cost = constrained_bundle_adjustment(reconstruction, options, fix_scale=False)
+        metres_per_unit = 1.0
+        for _ in range(3):
+            metres_per_unit *= scale.metres_per_unit
+            reconstruction.transform(pycolmap.Sim3d(scale.metres_per_unit, pycolmap.Rotation3d(), np.zeros(3)))
+            restore_calibration(reconstruction, rigs)
+            error = constrained_bundle_adjustment(reconstruction, options, fix_scale=True)
+            removed = filter_outliers(reconstruction, options.max_reprojection_error_px)
+            scale = estimate_scale(reconstruction, scale_spec)
+            if removed == 0 and abs(scale.metres_per_unit - 1.0) < 1e-7:
+                break
     else:
-        source = ScaleSource.NONE
-        logger.warning("No scale file and no narrow observations: the result is NOT metric")
+        source = ScaleSource.NARROW_BASELINES if narrow_observed else ScaleSource.NONE
+        if source == ScaleSource.NONE:
+            logger.warning("No scale file and no narrow observations: the result is NOT metric")
         restore_calibration(reconstruction, rigs)
-        cost = constrained_bundle_adjustment(reconstruction, options, fix_scale=True)
-    filter_outliers(reconstruction, options.max_reprojection_error_px)
-    cost = constrained_bundle_adjustment(reconstruction, options, fix_scale=source != ScaleSource.NARROW_BASELINES)
-    return RigConstraintResult(reconstruction, source, scale, cost)
+        for _ in range(2):
+            error = constrained_bundle_adjustment(reconstruction, options, fix_scale=source == ScaleSource.NONE)
+            if filter_outliers(reconstruction, options.max_reprojection_error_px) == 0:
+                break
+    return RigConstraintResult(reconstruction, source, scale, metres_per_unit, error)

@@ -1,7 +1,14 @@
-"""Metric scale from scale.yaml: a least-squares scale factor over every measurement, with residuals."""
+"""Metric scale from scale.yaml: a weighted least-squares scale factor over every measurement.
+
+Each measurement i gives a model length L_i for a true length M_i. Its uncertainty combines the
+measurement's own ``sigma`` with the model length's uncertainty (for a known length: the pixel noise
+of its end points propagated through triangulation). The scale minimises sum(w_i (s L_i - M_i)^2),
+w_i = 1 / sigma_i^2, and its standard uncertainty is 1 / sqrt(sum(w_i L_i^2)).
+"""
 
 from __future__ import annotations
 
+import itertools
 import logging
 from dataclasses import dataclass
 
@@ -22,12 +29,19 @@ class Measurement:
     label: str
     meters: float
     model_length: float
+    sigma: float  # of the true length (metres)
+    model_sigma: float = 0.0  # of the model length (model units)
 
 
 @dataclass(frozen=True)
 class ScaleEstimate:
     metres_per_unit: float
+    sigma: float  # standard uncertainty of metres_per_unit
     measurements: tuple[Measurement, ...]
+
+    @property
+    def relative_sigma_percent(self) -> float:
+        return 100.0 * self.sigma / self.metres_per_unit
 
     def residuals(self) -> list[dict]:
         """Per measurement: the metric length after scaling, and its error in metres and percent."""
@@ -42,6 +56,7 @@ class ScaleEstimate:
                     "reconstructed_meters": scaled,
                     "residual_meters": scaled - m.meters,
                     "residual_percent": 100.0 * (scaled - m.meters) / m.meters,
+                    "sigma_meters": float(np.hypot(m.sigma, self.metres_per_unit * m.model_sigma)),
                 }
             )
         return rows
@@ -79,40 +94,54 @@ def triangulate_observed_point(reconstruction: pycolmap.Reconstruction, observat
     return None if point is None else np.asarray(point).reshape(3)
 
 
-def known_length_in_model(reconstruction: pycolmap.Reconstruction, item: KnownLength) -> float:
-    ends = []
-    for end in ("a", "b"):
-        point = triangulate_observed_point(
-            reconstruction, [(o.image, getattr(o, end)) for o in item.observations]
-        )
-        if point is None:
-            raise ReconstructionError(
-                f"known length of {item.meters} m: fewer than two of its images were registered; "
-                "observe it in other images or remove it from scale.yaml"
-            )
-        ends.append(point)
-    return float(np.linalg.norm(ends[0] - ends[1]))
+def known_length_in_model(reconstruction: pycolmap.Reconstruction, item: KnownLength,
+                          pixel_sigma: float) -> tuple[float, float]:
+    """The object's length in model units and its uncertainty from ``pixel_sigma`` on every end point."""
+
+    def length(observations) -> float:
+        ends = []
+        for end in (0, 1):
+            point = triangulate_observed_point(reconstruction, [(name, ab[end]) for name, ab in observations])
+            if point is None:
+                raise ReconstructionError(
+                    f"known length of {item.meters} m: fewer than two of its images were registered; "
+                    "observe it in other images or remove it from scale.yaml"
+                )
+            ends.append(point)
+        return float(np.linalg.norm(ends[0] - ends[1]))
+
+    observations = [(o.image, [np.array(o.a), np.array(o.b)]) for o in item.observations]
+    nominal = length(observations)
+    variance = 0.0
+    for k, end, axis in itertools.product(range(len(observations)), (0, 1), (0, 1)):
+        shifted = [(name, [xy.copy() for xy in ab]) for name, ab in observations]
+        shifted[k][1][end][axis] += pixel_sigma
+        variance += (length(shifted) - nominal) ** 2
+    return nominal, float(np.sqrt(variance))
 
 
 def estimate_scale(reconstruction: pycolmap.Reconstruction, spec: ScaleSpec) -> ScaleEstimate:
-    """Metres per model unit minimising the sum of squared *relative* errors of all measurements."""
+    """Metres per model unit from every measurement, weighted by its uncertainty."""
     measurements = []
     for d in spec.camera_distances:
         length = float(np.linalg.norm(camera_centre(reconstruction, d.a) - camera_centre(reconstruction, d.b)))
-        measurements.append(Measurement("camera_distance", f"{d.a} - {d.b}", d.meters, length))
+        measurements.append(Measurement("camera_distance", f"{d.a} - {d.b}", d.meters, length, d.sigma))
     for i, item in enumerate(spec.known_lengths):
+        length, model_sigma = known_length_in_model(reconstruction, item, spec.pixel_sigma)
         measurements.append(
-            Measurement("known_length", f"known_length[{i}]", item.meters, known_length_in_model(reconstruction, item))
+            Measurement("known_length", f"known_length[{i}]", item.meters, length, item.sigma, model_sigma)
         )
     lengths = np.array([m.model_length for m in measurements])
     meters = np.array([m.meters for m in measurements])
     if np.any(lengths <= 1e-12):
         raise ReconstructionError("a scale measurement has zero length in the model (same camera twice?)")
-    # minimise sum((s * L_i - M_i) / M_i)^2  =>  s = sum(L_i / M_i) / sum((L_i / M_i)^2)
-    ratio = lengths / meters
-    scale = float(np.sum(ratio) / np.sum(ratio**2))
-    estimate = ScaleEstimate(scale, tuple(measurements))
+    first_guess = float(np.median(meters / lengths))
+    sigmas = np.array([np.hypot(m.sigma, first_guess * m.model_sigma) for m in measurements])
+    weights = 1.0 / sigmas**2
+    scale = float(np.sum(weights * lengths * meters) / np.sum(weights * lengths**2))
+    sigma = float(1.0 / np.sqrt(np.sum(weights * lengths**2)))
+    estimate = ScaleEstimate(scale, sigma, tuple(measurements))
     for row in estimate.residuals():
-        logger.info("Scale %s: %.4f m vs %.4f m (%+.3f %%)", row["label"], row["reconstructed_meters"],
-                    row["meters"], row["residual_percent"])
+        logger.info("Scale %s: %.4f m vs %.4f m (%+.3f %%, sigma %.4f m)", row["label"], row["reconstructed_meters"],
+                    row["meters"], row["residual_percent"], row["sigma_meters"])
     return estimate

@@ -8,6 +8,9 @@ known_length:
       - {image: rig01/wide/frame0000.png, a: [x, y], b: [x, y]}    # COLMAP pixels
       - {image: rig02/wide/frame0000.png, a: [x, y], b: [x, y]}
 ```
+Each measurement may carry ``sigma`` (metres, its standard uncertainty; default 0.01 for a camera
+distance, 0.002 for a known length); the pixel observations of known lengths have ``pixel_sigma``
+(top level, default 0.5 px). Measurements are weighted by their total uncertainty.
 A camera in ``camera_distance`` is ``<rig>/<sensor>`` (the camera's centre, averaged over its frames)
 or a full image name ``<rig>/<sensor>/<frame file>``.
 """
@@ -25,11 +28,17 @@ from rigsfm.inputs import ImageEntry
 from rigsfm.io import load_yaml_or_json
 
 
+DEFAULT_DISTANCE_SIGMA = 0.01
+DEFAULT_LENGTH_SIGMA = 0.002
+DEFAULT_PIXEL_SIGMA = 0.5
+
+
 @dataclass(frozen=True)
 class CameraDistance:
     a: str
     b: str
     meters: float
+    sigma: float = DEFAULT_DISTANCE_SIGMA
 
 
 @dataclass(frozen=True)
@@ -43,6 +52,7 @@ class LengthObservation:
 class KnownLength:
     meters: float
     observations: tuple[LengthObservation, ...]
+    sigma: float = DEFAULT_LENGTH_SIGMA
 
 
 @dataclass(frozen=True)
@@ -50,16 +60,21 @@ class ScaleSpec:
     path: Path
     camera_distances: tuple[CameraDistance, ...]
     known_lengths: tuple[KnownLength, ...]
+    pixel_sigma: float = DEFAULT_PIXEL_SIGMA
+
+
+def _positive(value, where: str) -> float:
+    try:
+        number = float(value)
+    except (TypeError, ValueError) as e:
+        raise InputError(f"{where} must be a number, got {value!r}") from e
+    if not np.isfinite(number) or number <= 0:
+        raise InputError(f"{where} must be positive, got {value}")
+    return number
 
 
 def _meters(value, where: str) -> float:
-    try:
-        meters = float(value)
-    except (TypeError, ValueError) as e:
-        raise InputError(f"{where}: 'meters' must be a number") from e
-    if not np.isfinite(meters) or meters <= 0:
-        raise InputError(f"{where}: 'meters' must be positive, got {value}")
-    return meters
+    return _positive(value, f"{where}: 'meters'")
 
 
 def _pixel(value, where: str) -> tuple[float, float]:
@@ -76,9 +91,12 @@ def load_scale(path: Path, images: Sequence[ImageEntry]) -> ScaleSpec:
     """Read scale.yaml and check every camera and image it names exists in the image folder."""
     path = Path(path)
     data = load_yaml_or_json(path, "scale")
-    unknown = set(data) - {"camera_distance", "known_length"}
+    unknown = set(data) - {"camera_distance", "known_length", "pixel_sigma"}
     if unknown:
-        raise InputError(f"{path}: unknown key(s) {', '.join(sorted(unknown))}; use camera_distance, known_length")
+        raise InputError(
+            f"{path}: unknown key(s) {', '.join(sorted(unknown))}; use camera_distance, known_length, pixel_sigma"
+        )
+    pixel_sigma = _positive(data.get("pixel_sigma", DEFAULT_PIXEL_SIGMA), f"{path}: pixel_sigma")
     image_names = {entry.name for entry in images}
     camera_names = {f"{entry.rig}/{entry.sensor}" for entry in images}
 
@@ -95,7 +113,8 @@ def load_scale(path: Path, images: Sequence[ImageEntry]) -> ScaleSpec:
                 )
         if item["a"] == item["b"]:
             raise InputError(f"{where}: a and b are the same camera")
-        distances.append(CameraDistance(str(item["a"]), str(item["b"]), _meters(item["meters"], where)))
+        sigma = _positive(item.get("sigma", DEFAULT_DISTANCE_SIGMA), f"{where}: sigma")
+        distances.append(CameraDistance(str(item["a"]), str(item["b"]), _meters(item["meters"], where), sigma))
 
     lengths = []
     for i, item in enumerate(data.get("known_length") or []):
@@ -114,8 +133,9 @@ def load_scale(path: Path, images: Sequence[ImageEntry]) -> ScaleSpec:
             )
         if len({o.image for o in observations}) < 2:
             raise InputError(f"{where}: needs the object's two ends seen in at least two different images")
-        lengths.append(KnownLength(_meters(item["meters"], where), tuple(observations)))
+        sigma = _positive(item.get("sigma", DEFAULT_LENGTH_SIGMA), f"{where}: sigma")
+        lengths.append(KnownLength(_meters(item["meters"], where), tuple(observations), sigma))
 
     if not distances and not lengths:
         raise InputError(f"{path}: no measurement; give camera_distance and/or known_length entries")
-    return ScaleSpec(path, tuple(distances), tuple(lengths))
+    return ScaleSpec(path, tuple(distances), tuple(lengths), pixel_sigma)

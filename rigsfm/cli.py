@@ -107,6 +107,53 @@ def run_command(
     print_summary(result.summary, out)
 
 
+def print_accuracy(accuracy: dict) -> None:
+    table = Table(title="accuracy against ground truth (narrow cameras)")
+    table.add_column("metric")
+    table.add_column("rigsfm median / max", justify="right")
+    table.add_column("oracle median / max", justify="right")
+    run_, limit = accuracy["narrow"], accuracy["oracle_narrow"]
+    for key, label in (("relative_rotation_deg", "pairwise rotation error (deg)"),
+                       ("translation_direction_deg", "translation direction error (deg)"),
+                       ("distance_error_percent", "centre distance error (%)")):
+        table.add_row(label, f"{run_[key]['median']:.4f} / {run_[key]['max']:.4f}",
+                      f"{limit[key]['median']:.4f} / {limit[key]['max']:.4f}")
+    centre, centre_limit = accuracy["narrow_centre_error_mm"], accuracy["oracle_narrow_centre_error_mm"]
+    if centre["median"] is not None:
+        table.add_row("narrow centre error (mm)", f"{centre['median']:.1f} / {centre['max']:.1f}",
+                      f"{centre_limit['median']:.1f} / {centre_limit['max']:.1f}")
+    table.add_row("narrow registered", f"{run_['registered']}/{run_['total']}",
+                  f"{limit['registered']}/{limit['total']}")
+    console.print(table)
+
+
+@app.command("demo")
+@fail_cleanly
+def demo_command(
+    out: Annotated[Path, typer.Argument(help="folder for the rendered scene, the run and accuracy.json")],
+    num_rigs: Annotated[int, typer.Option("--num-rigs", min=2)] = 8,
+    arc_deg: Annotated[float, typer.Option("--arc-deg", help="angular span of the rigs; 360 = full circle")] = 360.0,
+    image_scale: Annotated[float, typer.Option("--image-scale", help="0.5 renders 812x617 images")] = 1.0,
+    exact_calibration: Annotated[bool, typer.Option("--exact-calibration", help="no calibration errors")] = False,
+    mapper: Annotated[Mapper, typer.Option("--mapper")] = Mapper.INCREMENTAL,
+    seed: Annotated[int, typer.Option("--seed")] = 0,
+    overwrite: Annotated[bool, typer.Option("--overwrite")] = False,
+) -> None:
+    """Render a synthetic full circle of hybrid rigs, reconstruct it, and print accuracy vs ground truth."""
+    from rigsfm.demo import run_demo
+    from rigsfm.synth.scene import SceneOptions
+
+    scene = SceneOptions(num_rigs=num_rigs, arc_deg=arc_deg, image_scale=image_scale, seed=seed,
+                         calibration_noise=not exact_calibration)
+    options = RunOptions(mapping=MappingOptions(mapper=mapper, seed=seed), overwrite=overwrite)
+    with Progress(TextColumn("{task.description:<15}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
+                  console=console) as progress:
+        result = run_demo(out, scene, options, progress=StageProgress(progress))
+    print_summary(result.run.summary, out / "run")
+    print_accuracy(result.accuracy)
+    console.print(f"scene: {out / 'scene'}   result: {out / 'run'}   accuracy: {out / 'accuracy.json'}")
+
+
 @app.callback()
 def main() -> None:
     """rigsfm: metric calibration of hybrid (wide + narrow) stereo-rig networks."""

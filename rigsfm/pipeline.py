@@ -186,6 +186,8 @@ def run(
 
             mapped = run_mapping(workspace.database, inputs.image_dir, workspace.mapping, options.mapping,
                                  num_wide, on_registered)
+            if progress:
+                progress("mapping", mapped.num_reg_frames(), num_wide)
         with timings.stage("rig_constraint"):
             result = apply_rig_constraints(mapped, inputs.rigs, inputs.scale, options.rig_constraint)
         metric = result.scale_source != ScaleSource.NONE

@@ -1,0 +1,167 @@
+"""Every class of bad input gives one clear error naming the file and the fix, and writes nothing."""
+
+import copy
+import json
+
+import cv2
+import numpy as np
+import pytest
+import yaml
+from typer.testing import CliRunner
+
+from rigsfm.cli import app
+from rigsfm.errors import InputError
+from rigsfm.pipeline import load_inputs
+
+W, H = 64, 48
+CAMERA = {"model": "PINHOLE", "width": W, "height": H, "params": [50.0, 50.0, 32.0, 24.0]}
+RIG = {
+    "name": "rig01",
+    "sensors": {"wide": CAMERA, "narrow": CAMERA},
+    "narrow_from_wide": {"rotation": np.eye(3).tolist(), "translation": [0.06, 0.0, 0.0]},
+}
+
+
+def make_inputs(root, rigs=("rig01", "rig02"), size=(W, H)):
+    images = root / "images"
+    rng = np.random.default_rng(0)
+    for rig in rigs:
+        for sensor in ("wide", "narrow"):
+            (images / rig / sensor).mkdir(parents=True)
+            cv2.imwrite(str(images / rig / sensor / "f0.png"),
+                        rng.integers(0, 255, (size[1], size[0]), dtype=np.uint8))
+    data = {"units": "meters", "rigs": [dict(copy.deepcopy(RIG), name=r) for r in rigs]}
+    rigs_path = root / "rigs.yaml"
+    rigs_path.write_text(yaml.safe_dump(data))
+    return images, rigs_path, data
+
+
+def write_rigs(path, data):
+    path.write_text(yaml.safe_dump(data))
+
+
+def expect(tmp_path, match, images, rigs_path, scale=None):
+    with pytest.raises(InputError, match=match):
+        load_inputs(images, rigs_path, scale)
+
+
+def test_valid_inputs_load(tmp_path):
+    images, rigs_path, _ = make_inputs(tmp_path)
+    inputs = load_inputs(images, rigs_path)
+    assert sorted(e.name for e in inputs.images) == [
+        "rig01/narrow/f0.png", "rig01/wide/f0.png", "rig02/narrow/f0.png", "rig02/wide/f0.png"]
+
+
+def test_json_calibration_is_accepted(tmp_path):
+    images, rigs_path, data = make_inputs(tmp_path)
+    json_path = tmp_path / "rigs.json"
+    json_path.write_text(json.dumps(data))
+    assert len(load_inputs(images, json_path).rigs) == 2
+
+
+def test_rig_without_images(tmp_path):
+    images, rigs_path, data = make_inputs(tmp_path)
+    data["rigs"].append(dict(copy.deepcopy(RIG), name="rig03"))
+    write_rigs(rigs_path, data)
+    expect(tmp_path, r"rig rig03 .* has no folder", images, rigs_path)
+
+
+def test_folder_without_rig(tmp_path):
+    images, rigs_path, data = make_inputs(tmp_path)
+    data["rigs"] = data["rigs"][:1]
+    write_rigs(rigs_path, data)
+    expect(tmp_path, r"folder\(s\) rig02 have no rig in the calibration file", images, rigs_path)
+
+
+def test_rig_folder_without_wide_images(tmp_path):
+    images, rigs_path, _ = make_inputs(tmp_path)
+    cv2.imwrite(str(images / "rig02" / "narrow" / "f1.png"), np.zeros((H, W), np.uint8))
+    expect(tmp_path, r"rig02/narrow/f1.png has no wide image of the same name", images, rigs_path)
+    (images / "rig02" / "narrow" / "f1.png").unlink()
+    (images / "rig02" / "wide" / "f0.png").unlink()
+    expect(tmp_path, r"rig rig02 has no wide images", images, rigs_path)
+
+
+def test_image_size_contradicts_calibration(tmp_path):
+    images, rigs_path, _ = make_inputs(tmp_path)
+    cv2.imwrite(str(images / "rig02" / "wide" / "f0.png"), np.zeros((H, W + 2), np.uint8))
+    expect(tmp_path, rf"rig02/wide/f0.png is {W + 2}x{H} but .* calibrated for {W}x{H}", images, rigs_path)
+
+
+@pytest.mark.parametrize("rotation,match", [
+    ([[1, 0, 0], [0, 1, 0], [0, 0.01, 1]], "not orthonormal"),
+    ([[1, 0, 0], [0, 1, 0], [0, 0, -1]], "det = -1"),
+    ([[1, 0], [0, 1]], "must be 3x3"),
+])
+def test_rotation_that_is_not_a_rotation(tmp_path, rotation, match):
+    images, rigs_path, data = make_inputs(tmp_path)
+    data["rigs"][1]["narrow_from_wide"]["rotation"] = rotation
+    write_rigs(rigs_path, data)
+    expect(tmp_path, rf"rig rig02 narrow_from_wide: .*{match}", images, rigs_path)
+
+
+def test_unknown_camera_model(tmp_path):
+    images, rigs_path, data = make_inputs(tmp_path)
+    data["rigs"][0]["sensors"]["wide"] = dict(CAMERA, model="PINHOL")
+    write_rigs(rigs_path, data)
+    expect(tmp_path, r"rig rig01 sensor wide: unknown camera model 'PINHOL'; use one of .*PINHOLE", images, rigs_path)
+
+
+def test_wrong_parameter_count(tmp_path):
+    images, rigs_path, data = make_inputs(tmp_path)
+    data["rigs"][0]["sensors"]["narrow"] = dict(CAMERA, model="OPENCV")
+    write_rigs(rigs_path, data)
+    expect(tmp_path, r"sensor narrow: camera model OPENCV takes 8 params .* got 4", images, rigs_path)
+
+
+def test_corrupt_image(tmp_path):
+    images, rigs_path, _ = make_inputs(tmp_path)
+    (images / "rig01" / "narrow" / "f0.png").write_bytes(b"\x89PNG\r\n\x1a\n not really a png")
+    expect(tmp_path, r"rig01/narrow/f0.png: cannot be read as an image", images, rigs_path)
+
+
+def test_malformed_yaml(tmp_path):
+    images, rigs_path, _ = make_inputs(tmp_path)
+    rigs_path.write_text("rigs: [unclosed")
+    expect(tmp_path, r"rigs.yaml: not valid YAML/JSON", images, rigs_path)
+
+
+def test_scale_observation_naming_a_missing_image(tmp_path):
+    images, rigs_path, _ = make_inputs(tmp_path)
+    scale = tmp_path / "scale.yaml"
+    scale.write_text(yaml.safe_dump({"known_length": [{"meters": 2.0, "observations": [
+        {"image": "rig01/wide/f0.png", "a": [1, 2], "b": [3, 4]},
+        {"image": "rig02/wide/f9.png", "a": [1, 2], "b": [3, 4]}]}]}))
+    expect(tmp_path, r"scale.yaml: known_length\[0\].observations\[1\]: image 'rig02/wide/f9.png' is not in",
+           images, rigs_path, scale)
+
+
+def test_scale_distance_naming_a_missing_camera(tmp_path):
+    images, rigs_path, _ = make_inputs(tmp_path)
+    scale = tmp_path / "scale.yaml"
+    scale.write_text(yaml.safe_dump({"camera_distance": [{"a": "rig01/wide", "b": "rig07/wide", "meters": 3}]}))
+    expect(tmp_path, r"camera_distance\[0\]: b = 'rig07/wide' names no camera", images, rigs_path, scale)
+
+
+def test_cli_prints_one_red_line_and_leaves_no_output(tmp_path):
+    images, rigs_path, data = make_inputs(tmp_path)
+    data["rigs"][1]["narrow_from_wide"]["rotation"] = [[1, 0, 0], [0, 1, 0], [0, 0, -1]]
+    write_rigs(rigs_path, data)
+    out = tmp_path / "out"
+    result = CliRunner().invoke(app, ["run", str(images), "--rigs", str(rigs_path), "--out", str(out)])
+    assert result.exit_code == 1
+    lines = [line for line in result.output.splitlines() if line.strip()]
+    assert len(lines) == 1 and lines[0].startswith("error:") and "det = -1" in lines[0], result.output
+    assert "Traceback" not in result.output
+    assert not out.exists()
+
+
+def test_cli_never_overwrites_a_result(tmp_path):
+    images, rigs_path, _ = make_inputs(tmp_path)
+    out = tmp_path / "out"
+    (out / "sparse").mkdir(parents=True)
+    (out / "summary.json").write_text("{}")
+    result = CliRunner().invoke(app, ["run", str(images), "--rigs", str(rigs_path), "--out", str(out)])
+    assert result.exit_code == 1
+    assert "already holds a result" in result.output and "--overwrite" in result.output
+    assert (out / "summary.json").read_text() == "{}"

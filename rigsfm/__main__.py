@@ -1,0 +1,3 @@
+from rigsfm.cli import app
+
+app(prog_name="rigsfm")

@@ -12,8 +12,7 @@ from pathlib import Path
 
 from rigsfm.evaluation import centre_errors_mm, compare_to_ground_truth, oracle
 from rigsfm.io import write_json_atomic
-from rigsfm.pipeline import Progress, RunOptions, RunResult, run
-from rigsfm.rigs import load_rigs
+from rigsfm.pipeline import Progress, RunOptions, RunResult, load_inputs, run
 from rigsfm.synth.dataset import SyntheticDataset, render_dataset
 from rigsfm.synth.scene import SceneOptions
 
@@ -30,8 +29,8 @@ class DemoResult:
 def score(result: RunResult, dataset: SyntheticDataset) -> dict:
     """Accuracy of a run on a rendered dataset, next to the oracle's."""
     truth = dataset.load_ground_truth()
-    rigs = load_rigs(dataset.rigs)
-    limit = oracle(result.reconstruction, truth, rigs)
+    inputs = load_inputs(dataset.images, dataset.rigs, dataset.scale)
+    limit = oracle(result.reconstruction, truth, inputs.rigs, inputs.scale)
     return {
         "narrow": compare_to_ground_truth(result.reconstruction, truth, "narrow"),
         "wide": compare_to_ground_truth(result.reconstruction, truth, "wide"),

@@ -14,8 +14,9 @@ import numpy as np
 import pycolmap
 
 from rigsfm.conventions import rotation_angle_deg
-from rigsfm.rig_constraint import RigConstraintOptions, constrained_bundle_adjustment, restore_calibration
+from rigsfm.rig_constraint import RigConstraintOptions, apply_rig_constraints, restore_calibration
 from rigsfm.rigs import RigCalibration
+from rigsfm.scale_file import ScaleSpec
 
 
 def _posed(reconstruction: pycolmap.Reconstruction, sensor: str) -> dict[str, pycolmap.Image]:
@@ -91,9 +92,9 @@ def wide_distance_error_percent(estimate: pycolmap.Reconstruction, truth: pycolm
 
 
 def oracle(estimate: pycolmap.Reconstruction, truth: pycolmap.Reconstruction, rigs: Sequence[RigCalibration],
-           options: RigConstraintOptions | None = None) -> pycolmap.Reconstruction:
-    """Bundle adjustment from ground-truth poses with the estimate's observations and calibration."""
-    options = options or RigConstraintOptions()
+           scale_spec: ScaleSpec | None = None, options: RigConstraintOptions | None = None) -> pycolmap.Reconstruction:
+    """The rig-constraint stage started from ground-truth poses, with the estimate's observations, the
+    same calibration file and the same scale measurements."""
     rec = pycolmap.Reconstruction(estimate)
     for frame_id in rec.reg_frame_ids():
         frame = rec.frame(frame_id)
@@ -116,5 +117,4 @@ def oracle(estimate: pycolmap.Reconstruction, truth: pycolmap.Reconstruction, ri
             rec.delete_point3D(point3D_id)
         else:
             point.xyz = np.asarray(xyz).reshape(3)
-    constrained_bundle_adjustment(rec, options, fix_scale=True)
-    return rec
+    return apply_rig_constraints(rec, rigs, scale_spec, options).reconstruction

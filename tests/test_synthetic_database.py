@@ -43,7 +43,7 @@ def test_rig_network_matches_ground_truth_and_oracle(tmp_path, num_rigs, mapper)
         np.testing.assert_allclose(narrow.cam_from_world().matrix(), composed.matrix(), atol=1e-9)
 
     metrics = compare_to_ground_truth(rec, net.ground_truth)
-    limit = compare_to_ground_truth(oracle(rec, net.ground_truth, net.rigs), net.ground_truth)
+    limit = compare_to_ground_truth(oracle(rec, net.ground_truth, net.rigs, spec), net.ground_truth)
     assert metrics["registered"] == num_rigs
     # Within 10 % of the accuracy limit (plus a floor for numerically tiny limits).
     assert metrics["relative_rotation_deg"]["max"] <= 1.1 * limit["relative_rotation_deg"]["max"] + 1e-3

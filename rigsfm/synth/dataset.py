@@ -1,0 +1,217 @@
+"""Write a whole synthetic dataset: images, rigs.yaml (+ exact), scale.yaml and the ground truth.
+
+```
+OUT/
+  images/rig01/wide/frame0000.png, images/rig01/narrow/frame0000.png, ...
+  rigs.yaml          the calibration a user would have (perturbed if calibration_noise)
+  rigs_exact.yaml    the exact calibration used for rendering
+  scale.yaml         camera_distance (rig01 to the farthest rig) + known_length (a 2 m bar)
+  scene.yaml         the SceneOptions and the bar's world end points, for reference
+  ground_truth/      pycolmap.Reconstruction (binary): cameras, rigs, frames, images; no points
+```
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+import logging
+import shutil
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pycolmap
+import yaml
+
+from rigsfm.errors import WorkspaceError
+from rigsfm.io import write_text_atomic
+from rigsfm.rigs import write_rigs
+from rigsfm.synth.cameras import RigTruth, make_rigs, user_calibration
+from rigsfm.synth.render import project, render_clean, to_uint8, visible
+from rigsfm.synth.scene import Arena, Bar, SceneOptions, build_arena
+
+logger = logging.getLogger(__name__)
+
+SENSORS = ("wide", "narrow")
+
+
+@dataclass(frozen=True)
+class SyntheticDataset:
+    """Paths of a rendered dataset (see the module docstring for the layout)."""
+
+    root: Path
+    images: Path
+    rigs: Path
+    rigs_exact: Path
+    scale: Path
+    ground_truth: Path
+    options: SceneOptions
+    image_names: tuple[str, ...]
+
+    def load_ground_truth(self) -> pycolmap.Reconstruction:
+        return pycolmap.Reconstruction(str(self.ground_truth))
+
+
+def image_name(rig: str, sensor: str, frame: int) -> str:
+    """Image name relative to ``images/``, as in the ground truth: ``rig01/wide/frame0000.png``."""
+    return f"{rig}/{sensor}/frame{frame:04d}.png"
+
+
+def choose_bar(arena: Arena, first: RigTruth, second: RigTruth) -> Bar:
+    """A bar on the textured ground, fully visible in both wide images, as long in pixels as possible."""
+    opt = arena.options
+    radii = np.linspace(opt.centre_radius + 1.5, opt.wall_radius - 1.5, 10)
+    angles = np.radians(np.arange(0.0, 360.0, 3.0))
+    headings = np.radians([0.0, 45.0, 90.0, 135.0])
+    r, phi, heading = (g.ravel() for g in np.meshgrid(radii, angles, headings, indexing="ij"))
+    mid = np.stack([r * np.cos(phi), r * np.sin(phi), np.zeros_like(r)], axis=1)
+    tangent = np.stack([-np.sin(phi + heading), np.cos(phi + heading), np.zeros_like(r)], axis=1)
+    a, b = mid - tangent * opt.bar_length / 2, mid + tangent * opt.bar_length / 2
+    ring = Bar(np.zeros(3), np.zeros(3)).ring_radius
+    ok = np.ones(len(mid), dtype=bool)
+    for end in (a, b):
+        ok &= np.hypot(end[:, 0], end[:, 1]) > opt.centre_radius + 1.2 + ring
+        ok &= np.hypot(end[:, 0], end[:, 1]) < opt.wall_radius - 1.0
+    for obj in (*arena.pillars, *arena.boxes):
+        reach = getattr(obj, "radius", None) or float(np.hypot(*obj.half_size[:2]))
+        for p in (a, mid, b):
+            ok &= np.hypot(p[:, 0] - obj.x, p[:, 1] - obj.y) > reach + ring + 0.5
+    score = np.full(len(mid), np.inf)
+    for rig in (first, second):
+        cam, pose = rig.wide, rig.wide_from_world
+        margin = 0.06 * cam.width
+        for p in (a, mid, b, a - tangent * ring, b + tangent * ring):
+            ok &= visible(arena, cam, pose, p, margin)
+        length = np.linalg.norm(project(cam, pose, a) - project(cam, pose, b), axis=1)
+        score = np.minimum(score, np.nan_to_num(length, nan=0.0))
+    if not np.any(ok):
+        raise RuntimeError(f"no place for the known-length bar visible in {first.name} and {second.name}")
+    best = int(np.argmax(np.where(ok, score, -1.0)))
+    logger.info(
+        "bar at r=%.1f m, azimuth %.0f deg, %.0f px long", r[best], np.degrees(phi[best]), score[best]
+    )
+    return Bar(a[best], b[best])
+
+
+def ground_truth_reconstruction(rigs: list[RigTruth], frames_per_rig: int) -> pycolmap.Reconstruction:
+    """Exact cameras, one pycolmap.Rig per rig (wide = reference sensor), frames and images."""
+    rec = pycolmap.Reconstruction()
+    frame_id = image_id = 0
+    for index, truth in enumerate(rigs):
+        sensor_ids = {}
+        for offset, sensor in enumerate(SENSORS):
+            camera = copy.copy(truth.wide if sensor == "wide" else truth.narrow)
+            camera.camera_id = 2 * index + 1 + offset
+            rec.add_camera(camera)
+            sensor_ids[sensor] = pycolmap.sensor_t(pycolmap.SensorType.CAMERA, camera.camera_id)
+        rig = pycolmap.Rig(rig_id=index + 1)
+        rig.add_ref_sensor(sensor_ids["wide"])
+        rig.add_sensor(sensor_ids["narrow"], truth.narrow_from_wide)
+        rec.add_rig(rig)
+        for frame_index in range(frames_per_rig):
+            frame_id += 1
+            frame = pycolmap.Frame(frame_id=frame_id, rig_id=rig.rig_id, rig_from_world=truth.wide_from_world)
+            images = []
+            for sensor in SENSORS:
+                image_id += 1
+                sensor_id = sensor_ids[sensor]
+                images.append(
+                    pycolmap.Image(
+                        image_id=image_id,
+                        name=image_name(truth.name, sensor, frame_index),
+                        camera_id=sensor_id.id,
+                        frame_id=frame_id,
+                    )
+                )
+                frame.add_data_id(pycolmap.data_t(sensor_id, image_id))
+            rec.add_frame(frame)
+            for image in images:
+                rec.add_image(image)
+    return rec
+
+
+def _scale_yaml(rigs: list[RigTruth], bar: Bar, first: RigTruth, second: RigTruth) -> str:
+    far = max(rigs[1:], key=lambda rig: float(np.linalg.norm(rig.centre() - rigs[0].centre())))
+    observations = []
+    for rig in (first, second):
+        a, b = project(rig.wide, rig.wide_from_world, np.stack([bar.a, bar.b]))
+        observations.append(
+            {"image": image_name(rig.name, "wide", 0), "a": [float(v) for v in a], "b": [float(v) for v in b]}
+        )
+    data = {
+        "camera_distance": [
+            {
+                "a": f"{rigs[0].name}/wide",
+                "b": f"{far.name}/wide",
+                "meters": float(np.linalg.norm(far.centre() - rigs[0].centre())),
+            }
+        ],
+        "known_length": [{"meters": bar.length, "observations": observations}],
+    }
+    return yaml.safe_dump(data, sort_keys=False, default_flow_style=None, width=120)
+
+
+def _prepare(out_dir: Path, overwrite: bool) -> None:
+    if out_dir.exists() and any(out_dir.iterdir()):
+        if not overwrite:
+            raise WorkspaceError(f"{out_dir} is not empty: pass overwrite=True (--overwrite) to replace it")
+        for name in ("images", "ground_truth"):
+            shutil.rmtree(out_dir / name, ignore_errors=True)
+    out_dir.mkdir(parents=True, exist_ok=True)
+
+
+def render_dataset(
+    out_dir: Path, options: SceneOptions | None = None, *, overwrite: bool = False
+) -> SyntheticDataset:
+    """Render the arena seen by every rig and write the dataset described in the module docstring."""
+    options = options or SceneOptions()
+    out_dir = Path(out_dir)
+    _prepare(out_dir, overwrite)
+    start = time.perf_counter()
+    arena = build_arena(options)
+    rigs = make_rigs(options)
+    first, second = rigs[0], rigs[1]
+    bar = choose_bar(arena, first, second)
+    arena = arena.with_bar(bar)
+
+    names = []
+    for index, truth in enumerate(rigs):
+        for s, sensor in enumerate(SENSORS):
+            camera = truth.wide if sensor == "wide" else truth.narrow
+            pose = truth.wide_from_world if sensor == "wide" else truth.narrow_from_world
+            clean = render_clean(arena, camera, pose)
+            for frame in range(options.frames_per_rig):
+                rng = np.random.default_rng([options.seed, 41, index, s, frame])
+                name = image_name(truth.name, sensor, frame)
+                path = out_dir / "images" / name
+                path.parent.mkdir(parents=True, exist_ok=True)
+                if not cv2.imwrite(str(path), to_uint8(clean, rng, options.noise_sigma)):
+                    raise OSError(f"could not write {path}")
+                names.append(name)
+        logger.info("rendered %s (%d/%d)", truth.name, index + 1, len(rigs))
+
+    write_rigs(out_dir / "rigs.yaml", user_calibration(rigs, options), overwrite=True)
+    write_rigs(out_dir / "rigs_exact.yaml", [rig.calibration() for rig in rigs], overwrite=True)
+    write_text_atomic(out_dir / "scale.yaml", _scale_yaml(rigs, bar, first, second))
+    scene = {
+        "options": dataclasses.asdict(options),
+        "bar": {"a": [float(v) for v in bar.a], "b": [float(v) for v in bar.b]},
+    }
+    write_text_atomic(out_dir / "scene.yaml", yaml.safe_dump(scene, sort_keys=False, default_flow_style=None))
+    gt_dir = out_dir / "ground_truth"
+    gt_dir.mkdir(parents=True, exist_ok=True)
+    ground_truth_reconstruction(rigs, options.frames_per_rig).write(str(gt_dir))
+    logger.info("wrote %d images to %s in %.1f s", len(names), out_dir, time.perf_counter() - start)
+    return SyntheticDataset(
+        out_dir,
+        out_dir / "images",
+        out_dir / "rigs.yaml",
+        out_dir / "rigs_exact.yaml",
+        out_dir / "scale.yaml",
+        gt_dir,
+        options,
+        tuple(names),
+    )

@@ -1,0 +1,245 @@
+"""Calibration boards: the ``board.yaml`` spec, corner detection, and diagnosis of a wrong spec.
+
+Corner identifiers are the link between views: for a chessboard the id of inner corner (col, row) is
+``row * cols + col`` (OpenCV's ``findChessboardCorners`` order); for ChArUco it is OpenCV's ChArUco corner
+id. ``BoardSpec.object_points()[ids]`` gives the board coordinates (metres, z = 0) of detected corners,
+so partial views (ChArUco seen by a narrow camera) need no special handling downstream.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from rigsfm.errors import InputError
+from rigsfm.io import load_yaml_or_json
+
+logger = logging.getLogger(__name__)
+
+BOARD_TYPES = ("chessboard", "charuco")
+ARUCO_DICTIONARIES = tuple(
+    name for name in dir(cv2.aruco) if name.startswith("DICT_") and name == name.upper()
+)
+MIN_CORNERS = 6  # fewer corners than this in one view are not used for calibration
+DETECTION_MAX_SIDE = 2000  # chessboards are searched on a downscaled copy of larger images
+
+
+@dataclass(frozen=True)
+class BoardSpec:
+    """A planar calibration board; lengths in metres. ``cols x rows`` is ``inner_corners`` or ``squares``."""
+
+    type: str
+    square: float
+    inner_corners: tuple[int, int] | None = None  # chessboard: inner corners (cols, rows)
+    squares: tuple[int, int] | None = None  # charuco: squares (cols, rows)
+    marker: float | None = None  # charuco: marker side
+    dictionary: str | None = None  # charuco: e.g. DICT_5X5_100
+    legacy_pattern: bool = False  # charuco boards printed with OpenCV < 4.6 and an even row count
+
+    @property
+    def corner_grid(self) -> tuple[int, int]:
+        """(cols, rows) of the inner-corner grid."""
+        if self.type == "chessboard":
+            return self.inner_corners  # type: ignore[return-value]
+        return (self.squares[0] - 1, self.squares[1] - 1)  # type: ignore[index]
+
+    def object_points(self) -> np.ndarray:
+        """(N, 3) board coordinates of every corner, indexed by corner id."""
+        if self.type == "charuco":
+            return np.asarray(self.charuco_board().getChessboardCorners(), dtype=np.float64).reshape(-1, 3)
+        cols, rows = self.corner_grid
+        grid = np.mgrid[0:cols, 0:rows].T.reshape(-1, 2).astype(np.float64) * self.square
+        return np.hstack([grid, np.zeros((len(grid), 1))])
+
+    def charuco_board(self) -> cv2.aruco.CharucoBoard:
+        dictionary = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, self.dictionary))
+        board = cv2.aruco.CharucoBoard(tuple(self.squares), self.square, self.marker, dictionary)
+        board.setLegacyPattern(self.legacy_pattern)
+        return board
+
+    def describe(self) -> str:
+        if self.type == "chessboard":
+            return f"chessboard, {self.inner_corners[0]}x{self.inner_corners[1]} inner corners, {self.square} m squares"
+        return (f"ChArUco {self.squares[0]}x{self.squares[1]} squares, {self.square} m squares, "
+                f"{self.marker} m markers, {self.dictionary}" + (", legacy pattern" if self.legacy_pattern else ""))
+
+
+def _pair(value, key: str, where: str, minimum: int) -> tuple[int, int]:
+    if not isinstance(value, (list, tuple)) or len(value) != 2:
+        raise InputError(f"{where}: '{key}' must be a list of two integers [cols, rows], got {value!r}")
+    try:
+        pair = (int(value[0]), int(value[1]))
+    except (TypeError, ValueError) as e:
+        raise InputError(f"{where}: '{key}' must be two integers, got {value!r}") from e
+    if min(pair) < minimum or pair[0] != value[0] or pair[1] != value[1]:
+        raise InputError(f"{where}: '{key}' must be integers >= {minimum}, got {value!r}")
+    return pair
+
+
+def _length(data: dict, key: str, where: str) -> float:
+    value = data.get(key)
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not np.isfinite(value) or value <= 0:
+        raise InputError(f"{where}: '{key}' must be a positive length in metres, got {value!r}")
+    if value > 1.0:
+        raise InputError(f"{where}: '{key}' = {value} looks like millimetres; board lengths are in metres")
+    return float(value)
+
+
+def board_spec_from_dict(data: dict, where: str = "board spec") -> BoardSpec:
+    """Validate a board description (the content of ``board.yaml``)."""
+    if not isinstance(data, dict):
+        raise InputError(f"{where}: expected a mapping with 'type' and the board dimensions")
+    kind = str(data.get("type", "")).lower()
+    if kind not in BOARD_TYPES:
+        raise InputError(f"{where}: 'type' must be one of {', '.join(BOARD_TYPES)}, got {data.get('type')!r}")
+    square = _length(data, "square", where)
+    if kind == "chessboard":
+        if "inner_corners" not in data:
+            raise InputError(f"{where}: a chessboard needs 'inner_corners: [cols, rows]' (squares minus one)")
+        return BoardSpec(type=kind, square=square, inner_corners=_pair(data["inner_corners"], "inner_corners", where, 2))
+    for key in ("squares", "marker", "dictionary"):
+        if key not in data:
+            raise InputError(f"{where}: a charuco board needs 'squares', 'square', 'marker' and 'dictionary'")
+    squares = _pair(data["squares"], "squares", where, 2)
+    marker = _length(data, "marker", where)
+    if marker >= square:
+        raise InputError(f"{where}: 'marker' ({marker} m) must be smaller than 'square' ({square} m)")
+    dictionary = str(data["dictionary"]).upper()
+    if not dictionary.startswith("DICT_"):
+        dictionary = "DICT_" + dictionary
+    if dictionary not in ARUCO_DICTIONARIES:
+        raise InputError(f"{where}: unknown ArUco dictionary {data['dictionary']!r}; use e.g. DICT_5X5_100")
+    spec = BoardSpec(type=kind, square=square, squares=squares, marker=marker, dictionary=dictionary,
+                     legacy_pattern=bool(data.get("legacy_pattern", False)))
+    n_markers = squares[0] * squares[1] // 2
+    available = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, dictionary)).bytesList.shape[0]
+    if n_markers > available:
+        raise InputError(f"{where}: a {squares[0]}x{squares[1]} ChArUco board needs {n_markers} markers but "
+                         f"{dictionary} has only {available}; check 'squares' and 'dictionary'")
+    return spec
+
+
+def load_board_spec(path: Path) -> BoardSpec:
+    return board_spec_from_dict(load_yaml_or_json(Path(path), "board"), str(path))
+
+
+@dataclass
+class Detection:
+    """Corners of the board found in one image: ids and OpenCV pixel coordinates (N, 2)."""
+
+    ids: np.ndarray
+    image_points: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.ids)
+
+
+def read_gray(path: Path) -> np.ndarray:
+    image = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+    if image is None:
+        raise InputError(f"cannot read image {path}; is it a valid image file?")
+    return image
+
+
+def _subpix_window(corners: np.ndarray, grid: tuple[int, int]) -> int:
+    pts = corners.reshape(grid[1], grid[0], 2)
+    spacing = min(np.linalg.norm(np.diff(pts, axis=1), axis=2).min(), np.linalg.norm(np.diff(pts, axis=0), axis=2).min())
+    return int(np.clip(round(0.4 * spacing), 3, 11))
+
+
+def find_chessboard(gray: np.ndarray, grid: tuple[int, int], fast: bool = False) -> np.ndarray | None:
+    """Inner corners (N, 2) of a ``grid = (cols, rows)`` chessboard, sub-pixel refined, or None."""
+    scale = min(1.0, DETECTION_MAX_SIDE / max(gray.shape))
+    small = gray if scale == 1.0 else cv2.resize(gray, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
+    flags = cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE | (cv2.CALIB_CB_FAST_CHECK if fast else 0)
+    found, corners = cv2.findChessboardCorners(small, grid, flags=flags)
+    if not found:
+        return None
+    corners = corners.reshape(-1, 2).astype(np.float64)
+    if scale != 1.0:
+        corners = (corners + 0.5) / scale - 0.5
+    win = _subpix_window(corners, grid)
+    criteria = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 30, 0.01)
+    refined = cv2.cornerSubPix(gray, corners.astype(np.float32).reshape(-1, 1, 2), (win, win), (-1, -1), criteria)
+    return refined.reshape(-1, 2).astype(np.float64)
+
+
+class BoardDetector:
+    """Detects one board spec in grayscale images."""
+
+    def __init__(self, spec: BoardSpec):
+        self.spec = spec
+        if spec.type == "charuco":
+            self.board = spec.charuco_board()
+            self.detector = cv2.aruco.CharucoDetector(self.board)
+
+    def detect(self, gray: np.ndarray) -> Detection | None:
+        if self.spec.type == "chessboard":
+            corners = find_chessboard(gray, self.spec.corner_grid)
+            if corners is None:
+                return None
+            return Detection(ids=np.arange(len(corners)), image_points=corners)
+        corners, ids, _, _ = self.detector.detectBoard(gray)
+        if ids is None or len(ids) < MIN_CORNERS:
+            return None
+        ids = ids.reshape(-1).astype(np.int64)
+        if self.board.checkCharucoCornersCollinear(ids.reshape(-1, 1).astype(np.int32)):
+            return None
+        order = np.argsort(ids)
+        return Detection(ids=ids[order], image_points=corners.reshape(-1, 2).astype(np.float64)[order])
+
+    def detect_markers(self, gray: np.ndarray) -> np.ndarray:
+        """ArUco marker ids seen in the image (charuco only); used to diagnose a wrong spec."""
+        _, _, _, marker_ids = self.detector.detectBoard(gray)
+        return np.zeros(0, np.int64) if marker_ids is None else marker_ids.reshape(-1)
+
+
+def _probe_images(paths: list[Path], count: int = 4) -> list[np.ndarray]:
+    step = max(1, len(paths) // count)
+    return [read_gray(p) for p in paths[::step][:count]]
+
+
+def diagnose_no_detection(spec: BoardSpec, paths: list[Path], where: str) -> InputError:
+    """An error explaining why ``spec`` was found in none of ``paths``, with a corrected spec if one fits."""
+    images = _probe_images(paths)
+    base = f"{where}: the board ({spec.describe()}) was found in none of the {len(paths)} images"
+    if spec.type == "chessboard":
+        cols, rows = spec.inner_corners
+        candidates = [(cols - 1, rows - 1), (cols + 1, rows + 1), (cols - 1, rows), (cols, rows - 1),
+                      (cols + 1, rows), (cols, rows + 1), (cols - 2, rows - 2)]
+        for grid in candidates:
+            if min(grid) >= 2 and any(find_chessboard(im, grid, fast=True) is not None for im in images):
+                return InputError(f"{base}, but a chessboard with inner_corners [{grid[0]}, {grid[1]}] was found: "
+                                  "fix 'inner_corners' in board.yaml (count inner corners = squares - 1)")
+        return InputError(f"{base}; check 'inner_corners' ([cols, rows], squares - 1) and that the whole "
+                          "board is visible, sharp and well lit")
+    detector = BoardDetector(spec)
+    markers = np.concatenate([detector.detect_markers(im) for im in images])
+    if len(markers) == 0:
+        for name in ARUCO_DICTIONARIES:
+            if name == spec.dictionary:
+                continue
+            other = BoardSpec(type="charuco", square=spec.square, squares=spec.squares, marker=spec.marker,
+                              dictionary=name)
+            try:
+                if any(len(BoardDetector(other).detect_markers(im)) >= 4 for im in images[:2]):
+                    return InputError(f"{base}: no {spec.dictionary} markers were detected, but {name} markers "
+                                      f"were; fix 'dictionary' in board.yaml")
+            except cv2.error:
+                continue
+        return InputError(f"{base}: no {spec.dictionary} markers were detected at all; check 'dictionary' "
+                          "and that the images show the board sharply")
+    n_markers = spec.squares[0] * spec.squares[1] // 2
+    if markers.max() >= n_markers:
+        return InputError(f"{base}: markers with ids up to {int(markers.max())} were seen but a "
+                          f"{spec.squares[0]}x{spec.squares[1]} board has ids 0..{n_markers - 1}; fix 'squares'")
+    legacy = BoardSpec(**{**spec.__dict__, "legacy_pattern": not spec.legacy_pattern})
+    if any(BoardDetector(legacy).detect(im) is not None for im in images):
+        return InputError(f"{base}: {spec.dictionary} markers were detected and the corners match with "
+                          f"legacy_pattern: {str(legacy.legacy_pattern).lower()}; set that in board.yaml")
+    return InputError(f"{base}: {len(markers)} {spec.dictionary} markers were detected but no ChArUco corners "
+                      "could be interpolated; check 'squares', 'square' and 'marker' in board.yaml")

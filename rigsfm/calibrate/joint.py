@@ -1,0 +1,146 @@
+"""Joint refinement: both cameras' intrinsics, E^sl and every board pose, over *all* views.
+
+``stereoCalibrate`` with free intrinsics only sees the views both cameras share, where the wide camera
+sees the board small and central, so it tends to spoil the wide distortion. Here every view of either
+camera contributes (board pose in the wide frame; the narrow camera sees it through E^sl), so the wide
+periphery stays constrained and the narrow principal point, which on its own trades off against each
+view's rotation, is tied to the wide camera through the rigid E^sl. Sparse finite-difference
+Levenberg-Marquardt-like trust region (scipy ``least_squares``) on the pixel reprojection errors.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from scipy.optimize import least_squares
+from scipy.sparse import lil_matrix
+
+from rigsfm.calibrate.intrinsics import CameraCalibration
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass
+class JointFit:
+    K_wide: np.ndarray
+    dist_wide: np.ndarray
+    K_narrow: np.ndarray
+    dist_narrow: np.ndarray
+    R: np.ndarray
+    T: np.ndarray
+    rms_wide: float  # over all wide views
+    rms_narrow: float  # over all narrow views
+    rms_common: float  # over the views both cameras saw
+    per_view: dict[str, tuple[float, float]]  # common view -> (wide RMS, narrow RMS)
+    std: np.ndarray  # std dev of fx, fy, cx, cy (wide) then (narrow), px
+    condition: float  # of the column-scaled normal matrix
+
+
+def _n_dist(cam: CameraCalibration) -> int:
+    return 5 if cam.model == "FULL_OPENCV" else 4
+
+
+def _intr(cam: CameraCalibration, K: np.ndarray, dist: np.ndarray) -> np.ndarray:
+    return np.concatenate([[K[0, 0], K[1, 1], K[0, 2], K[1, 2]], np.ravel(dist)[: _n_dist(cam)]])
+
+
+def _unpack_intr(p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    K = np.array([[p[0], 0, p[2]], [0, p[1], p[3]], [0, 0, 1.0]])
+    dist = np.zeros(5)
+    dist[: len(p) - 4] = p[4:]
+    return K, dist
+
+
+def joint_refine(wide: CameraCalibration, narrow: CameraCalibration, narrow_pairs: dict, R: np.ndarray,
+                 T: np.ndarray, common: list[str]) -> JointFit:
+    """``narrow_pairs``: view -> (object, image) points of the narrow camera, in the orientation consistent
+    with the wide camera (views whose narrow detection disagreed are simply left out)."""
+    frames = sorted(set(wide.pairs) | set(narrow_pairs))
+    ni_w, ni_n = 4 + _n_dist(wide), 4 + _n_dist(narrow)
+    off_e = ni_w + ni_n
+    off_f = off_e + 6
+    x0 = np.concatenate([_intr(wide, wide.K, wide.dist), _intr(narrow, narrow.K, narrow.dist),
+                         cv2.Rodrigues(R)[0].reshape(3), np.ravel(T)])
+    poses = []
+    for f in frames:
+        if f in wide.poses:
+            poses.append(np.concatenate(wide.poses[f]))
+        else:  # seen by the narrow camera only: wide_from_board = E^-1 narrow_from_board
+            Rn = cv2.Rodrigues(narrow.poses[f][0])[0]
+            Rw = R.T @ Rn
+            poses.append(np.concatenate([cv2.Rodrigues(Rw)[0].reshape(3), R.T @ (narrow.poses[f][1] - np.ravel(T))]))
+    x0 = np.concatenate([x0, np.ravel(poses)])
+    blocks = []  # (camera, frame index, name, obj, img)
+    for i, f in enumerate(frames):
+        if f in wide.pairs:
+            blocks.append((0, i, f, *wide.pairs[f]))
+        if f in narrow_pairs:
+            blocks.append((1, i, f, *narrow_pairs[f]))
+
+    def residuals(x):
+        Kw, dw = _unpack_intr(x[:ni_w])
+        Kn, dn = _unpack_intr(x[ni_w:off_e])
+        RE = cv2.Rodrigues(x[off_e:off_e + 3])[0]
+        tE = x[off_e + 3:off_f]
+        out = []
+        for cam, i, _, obj, img in blocks:
+            p = x[off_f + 6 * i: off_f + 6 * i + 6]
+            if cam == 0:
+                proj, _ = cv2.projectPoints(obj, p[:3], p[3:], Kw, dw)
+            else:
+                Rb = RE @ cv2.Rodrigues(p[:3])[0]
+                proj, _ = cv2.projectPoints(obj, cv2.Rodrigues(Rb)[0], RE @ p[3:] + tE, Kn, dn)
+            out.append((proj - img).reshape(-1))
+        return np.concatenate(out)
+
+    n_res = sum(2 * len(b[3]) for b in blocks)
+    sparsity = lil_matrix((n_res, len(x0)), dtype=np.uint8)
+    row = 0
+    for cam, i, _, obj, _ in blocks:
+        rows = slice(row, row + 2 * len(obj))
+        sparsity[rows, slice(0, ni_w) if cam == 0 else slice(ni_w, off_e)] = 1
+        if cam == 1:
+            sparsity[rows, off_e:off_f] = 1
+        sparsity[rows, off_f + 6 * i: off_f + 6 * i + 6] = 1
+        row += 2 * len(obj)
+    fit = least_squares(residuals, x0, jac_sparsity=sparsity, method="trf", x_scale="jac", xtol=1e-12,
+                        ftol=1e-12, gtol=1e-12, max_nfev=200)
+    x = fit.x
+    r = fit.fun.reshape(-1, 2)
+    sq = np.sum(r ** 2, axis=1)
+    # per block RMS
+    start, per_block = 0, {}
+    for cam, _, name, obj, _ in blocks:
+        per_block[(cam, name)] = float(np.sqrt(sq[start:start + len(obj)].mean()))
+        start += len(obj)
+    cams = np.repeat([b[0] for b in blocks], [len(b[3]) for b in blocks])
+    names = np.repeat([b[2] for b in blocks], [len(b[3]) for b in blocks])
+    in_common = np.isin(names, common)
+    J = fit.jac.toarray() if hasattr(fit.jac, "toarray") else fit.jac
+    dof = max(1, len(fit.fun) - len(x))
+    sigma2 = float(fit.fun @ fit.fun) / dof
+    scale = np.linalg.norm(J, axis=0)
+    scale[scale == 0] = 1
+    JTJ = (J / scale).T @ (J / scale)
+    condition = float(np.linalg.cond(JTJ))
+    try:
+        cov = np.linalg.inv(JTJ) / np.outer(scale, scale) * sigma2
+        std = np.sqrt(np.abs(np.diag(cov)))
+        std = np.concatenate([std[0:4], std[ni_w:ni_w + 4]])
+    except np.linalg.LinAlgError:
+        std = np.full(8, np.inf)
+    Kw, dw = _unpack_intr(x[:ni_w])
+    Kn, dn = _unpack_intr(x[ni_w:off_e])
+    result = JointFit(K_wide=Kw, dist_wide=dw, K_narrow=Kn, dist_narrow=dn, R=cv2.Rodrigues(x[off_e:off_e + 3])[0],
+                      T=x[off_e + 3:off_f].copy(), rms_wide=float(np.sqrt(sq[cams == 0].mean())),
+                      rms_narrow=float(np.sqrt(sq[cams == 1].mean())) if np.any(cams == 1) else float("nan"),
+                      rms_common=float(np.sqrt(sq[in_common].mean())) if in_common.any() else float("nan"),
+                      per_view={n: (per_block.get((0, n), float("nan")), per_block.get((1, n), float("nan")))
+                                for n in common},
+                      std=std, condition=condition)
+    logger.info("joint refinement: %d frames, RMS wide %.3f / narrow %.3f px, cond %.2g, %s", len(frames),
+                result.rms_wide, result.rms_narrow, condition, fit.message)
+    return result

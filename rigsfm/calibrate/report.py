@@ -1,0 +1,185 @@
+"""Calibration report: a text summary per rig plus PNG plots drawn with OpenCV (no matplotlib).
+
+``report_dir/<rig>/report.txt``, ``{wide,narrow}_view_errors.png`` (per-view RMS bars, rejected views in
+red, median and outlier threshold lines), ``{wide,narrow}_coverage.png`` (every used corner, per-view
+convex hulls, covered grid cells shaded) and ``stereo_view_errors.png``; ``report_dir/summary.txt``.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import cv2
+import numpy as np
+
+from rigsfm.calibrate.intrinsics import COVERAGE_GRID, OUTLIER_FACTOR, CameraCalibration
+from rigsfm.calibrate.stereo import StereoFit
+from rigsfm.conventions import euler_zyx_degrees
+from rigsfm.io import atomic_directory, write_text_atomic
+
+if TYPE_CHECKING:
+    from rigsfm.calibrate import CalibrationResult, RigResult
+
+FONT = cv2.FONT_HERSHEY_SIMPLEX
+GREEN, RED, BLUE, GRAY, ORANGE, BLACK = (60, 160, 60), (50, 50, 210), (200, 120, 40), (140, 140, 140), (0, 140, 255), (0, 0, 0)
+
+
+def _rotated_labels(labels: list[str], xs: list[int], width: int, height: int) -> np.ndarray:
+    strip = np.full((width, height, 3), 255, np.uint8)  # drawn transposed, then rotated
+    for label, x in zip(labels, xs):
+        cv2.putText(strip, label[:18], (4, width - x + 4), FONT, 0.38, BLACK, 1, cv2.LINE_AA)
+    return cv2.rotate(strip, cv2.ROTATE_90_COUNTERCLOCKWISE)
+
+
+def bar_chart(title: str, labels: list[str], series: list[list[float | None]], colours: list[list[tuple]],
+              lines: list[tuple[float, tuple, str]] = (), width: int = 960, height: int = 420) -> np.ndarray:
+    """Grouped vertical bars (one group per label); ``lines`` are (value, colour, legend) horizontal lines."""
+    left, top, bottom = 60, 40, 110
+    plot_h, plot_w = height - top - bottom, width - left - 20
+    values = [v for s in series for v in s if v is not None and np.isfinite(v)] + [v for v, _, _ in lines]
+    vmax = max(values + [1e-3]) * 1.15
+    image = np.full((height, width, 3), 255, np.uint8)
+    cv2.putText(image, title, (left, 25), FONT, 0.6, BLACK, 1, cv2.LINE_AA)
+    y = lambda v: int(top + plot_h - v / vmax * plot_h)
+    for k in range(6):
+        value = vmax * k / 5
+        cv2.line(image, (left, y(value)), (left + plot_w, y(value)), (230, 230, 230), 1)
+        cv2.putText(image, f"{value:.2f}", (5, y(value) + 4), FONT, 0.4, BLACK, 1, cv2.LINE_AA)
+    n = max(1, len(labels))
+    group = plot_w / n
+    bar = max(1.0, group * 0.8 / len(series))
+    centres = []
+    for i in range(len(labels)):
+        x0 = left + i * group + group * 0.1
+        centres.append(int(left + (i + 0.5) * group))
+        for j, s in enumerate(series):
+            v = s[i]
+            if v is None or not np.isfinite(v):
+                continue
+            cv2.rectangle(image, (int(x0 + j * bar), y(v)), (int(x0 + (j + 1) * bar) - 1, y(0)), colours[j][i], -1)
+    for k, (value, colour, legend) in enumerate(lines):
+        for x in range(left, left + plot_w, 12):  # dashed
+            cv2.line(image, (x, y(value)), (min(x + 6, left + plot_w), y(value)), colour, 1)
+        cv2.putText(image, f"{legend} {value:.2f}", (width - 260, top + 15 + 16 * k), FONT, 0.42, colour, 1, cv2.LINE_AA)
+    cv2.putText(image, "px", (8, top - 8), FONT, 0.4, BLACK, 1, cv2.LINE_AA)
+    image[height - bottom + 5:height - 5] = _rotated_labels(labels, [c for c in centres], width, bottom - 10)
+    return image
+
+
+def view_error_chart(cam: CameraCalibration, where: str) -> np.ndarray:
+    views = [v for v in cam.views if v.rms is not None]
+    used = [v.rms for v in cam.views if v.used]
+    median = float(np.median(used)) if used else 0.0
+    return bar_chart(f"{where}: per-view RMS reprojection error (red = rejected)", [v.name for v in views],
+                     [[v.rms for v in views]], [[GREEN if v.used else RED for v in views]],
+                     [(median, GRAY, "median"), (OUTLIER_FACTOR * median, ORANGE, f"{OUTLIER_FACTOR:g} x median")])
+
+
+def coverage_image(cam: CameraCalibration, where: str, max_side: int = 800) -> np.ndarray:
+    w, h = cam.image_size
+    s = max_side / max(w, h)
+    image = np.full((int(round(h * s)), int(round(w * s)), 3), 255, np.uint8)
+    cols, rows = COVERAGE_GRID
+    points = [pairs[1].reshape(-1, 2) for pairs in cam.pairs.values()]
+    allp = np.vstack(points) if points else np.zeros((0, 2))
+    for r in range(rows):
+        for c in range(cols):
+            x0, x1, y0, y1 = c * w / cols, (c + 1) * w / cols, r * h / rows, (r + 1) * h / rows
+            hit = np.any((allp[:, 0] >= x0) & (allp[:, 0] < x1) & (allp[:, 1] >= y0) & (allp[:, 1] < y1))
+            p0, p1 = (int(x0 * s), int(y0 * s)), (int(x1 * s) - 1, int(y1 * s) - 1)
+            if hit:
+                cv2.rectangle(image, p0, p1, (225, 245, 225), -1)
+            cv2.rectangle(image, p0, p1, (215, 215, 215), 1)
+    rng = np.random.default_rng(0)
+    for pts in points:
+        colour = tuple(int(c) for c in rng.integers(30, 200, 3))
+        hull = cv2.convexHull((pts * s).astype(np.int32))
+        cv2.polylines(image, [hull], True, colour, 1, cv2.LINE_AA)
+        for x, y in pts * s:
+            cv2.circle(image, (int(x), int(y)), 2, colour, -1, cv2.LINE_AA)
+    cv2.putText(image, f"{where}: corner coverage {100 * cam.coverage:.0f} % of {cols}x{rows} cells, "
+                f"{len(points)} views", (10, 22), FONT, 0.55, BLACK, 1, cv2.LINE_AA)
+    return image
+
+
+def stereo_chart(rig: RigResult) -> np.ndarray:
+    fit = rig.stereo.final
+    names = sorted(fit.per_view)
+    return bar_chart(f"rig {rig.name}: stereo per-view RMS (blue = wide, orange = narrow)", names,
+                     [[fit.per_view[n][0] for n in names], [fit.per_view[n][1] for n in names]],
+                     [[BLUE] * len(names), [ORANGE] * len(names)], [(fit.rms, GRAY, "overall RMS")])
+
+
+def _camera_text(cam: CameraCalibration, K: np.ndarray, dist: np.ndarray, label: str) -> list[str]:
+    std = cam.std_intrinsics
+    lines = [f"{label} camera: {cam.image_size[0]}x{cam.image_size[1]}, COLMAP model {cam.model}",
+             f"  fx, fy = {K[0, 0]:.3f}, {K[1, 1]:.3f} px (mono std {std[0]:.3f}, {std[1]:.3f})",
+             f"  cx, cy = {K[0, 2]:.3f}, {K[1, 2]:.3f} px OpenCV convention "
+             f"(= {K[0, 2] + 0.5:.3f}, {K[1, 2] + 0.5:.3f} in COLMAP's, as written to rigs.yaml)",
+             "  distortion k1 k2 p1 p2 k3 = " + " ".join(f"{v:.6g}" for v in np.ravel(dist)[:5]),
+             f"  mono RMS {cam.rms:.4f} px over {len(cam.used_views)} views; corner coverage {100 * cam.coverage:.0f} %"]
+    lines += [f"  note: {n}" for n in cam.notes] + [f"  WARNING: {w}" for w in cam.warnings]
+    lines.append("  views (name, corners, RMS px, status):")
+    for v in cam.views:
+        rms = "-" if v.rms is None else f"{v.rms:.3f}"
+        lines.append(f"    {v.name:<16} {v.corners:>4} {rms:>8}  {'used' if v.used else 'rejected: ' + v.reason}")
+    return lines
+
+
+def _pose_text(fit: StereoFit, label: str) -> list[str]:
+    angle = float(np.degrees(np.linalg.norm(cv2.Rodrigues(fit.R)[0])))
+    yaw, pitch, roll = euler_zyx_degrees(fit.R)
+    t = fit.T * 1000
+    return [f"  {label}: RMS {fit.rms:.4f} px, rotation {angle:.4f} deg (yaw/pitch/roll {yaw:.4f}/{pitch:.4f}/"
+            f"{roll:.4f} deg), t = [{t[0]:.2f}, {t[1]:.2f}, {t[2]:.2f}] mm, baseline {fit.baseline * 1000:.2f} mm"]
+
+
+def rig_text(rig: RigResult, board_description: str) -> str:
+    st = rig.stereo
+    final = st.final
+    lines = [f"Rig {rig.name}", f"Board: {board_description}", ""]
+    lines += _camera_text(rig.wide, final.K_wide, final.dist_wide, "wide") + [""]
+    lines += _camera_text(rig.narrow, final.K_narrow, final.dist_narrow, "narrow") + [""]
+    lines.append(f"E^sl narrow_from_wide (x_narrow = R x_wide + t) from {len(st.views)} common views:")
+    lines += _pose_text(st.fixed, "intrinsics fixed")
+    if st.joint is not None:
+        lines += _pose_text(st.joint, "joint refinement")
+        d = st.joint_detail
+        if d is not None:
+            lines.append(f"    joint std fx fy cx cy: wide {' '.join(f'{v:.3f}' for v in d.std[:4])}, narrow "
+                         f"{' '.join(f'{v:.3f}' for v in d.std[4:])} px; per-camera RMS {d.rms_wide:.3f} / "
+                         f"{d.rms_narrow:.3f} px; condition {d.condition:.2g}")
+            lines.append("    (a narrow principal-point error dp shifts the E^sl rotation by about dp / f_narrow rad)")
+    lines += [f"  note: {n}" for n in st.notes]
+    lines += [f"  view {n} not used for E^sl: {r}" for n, r in sorted(st.dropped.items())]
+    if rig.scene is not None:
+        sc = rig.scene
+        lines.append(f"  scene: {sc.matches} SIFT matches (narrow downscaled x{sc.scale:.3f}), {sc.inliers} inliers, "
+                     f"Sampson RMS {sc.rms_px:.3f} wide px")
+    lines += [f"  note: {n}" for n in rig.notes]
+    R, t = rig.R, rig.T
+    lines += ["", "Written to rigs.yaml (narrow_from_wide):",
+              "  rotation: " + "; ".join(" ".join(f"{v:.8f}" for v in row) for row in R),
+              "  translation (m): " + " ".join(f"{v:.6f}" for v in t) + f"   baseline {np.linalg.norm(t):.6f} m"]
+    return "\n".join(lines) + "\n"
+
+
+def write_report(result: CalibrationResult, report_dir: Path) -> Path:
+    report_dir = Path(report_dir)
+    report_dir.mkdir(parents=True, exist_ok=True)
+    summary = [f"Board: {result.board.describe()}", ""]
+    for rig in result.rigs:
+        with atomic_directory(report_dir / rig.name, overwrite=True) as tmp:
+            (tmp / "report.txt").write_text(rig_text(rig, result.board.describe()), encoding="utf-8")
+            for cam in (rig.wide, rig.narrow):
+                cv2.imwrite(str(tmp / f"{cam.sensor}_view_errors.png"), view_error_chart(cam, f"{rig.name} {cam.sensor}"))
+                cv2.imwrite(str(tmp / f"{cam.sensor}_coverage.png"), coverage_image(cam, f"{rig.name} {cam.sensor}"))
+            cv2.imwrite(str(tmp / "stereo_view_errors.png"), stereo_chart(rig))
+        f = rig.stereo.final
+        summary.append(f"{rig.name}: wide RMS {rig.wide.rms:.3f} px, narrow RMS {rig.narrow.rms:.3f} px, E^sl RMS "
+                       f"{f.rms:.3f} px, baseline {np.linalg.norm(rig.T) * 1000:.2f} mm"
+                       f"{' (scene rotation)' if rig.scene else ''}; {len(rig.warnings)} warnings")
+        summary += [f"  WARNING: {w}" for w in rig.warnings]
+    write_text_atomic(report_dir / "summary.txt", "\n".join(summary) + "\n")
+    return report_dir

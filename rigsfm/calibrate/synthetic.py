@@ -1,0 +1,217 @@
+"""Exact synthetic images for testing calibration: boards and textured planes seen by a hybrid rig.
+
+Rendering is per-pixel ray casting: every (supersampled) pixel centre is undistorted exactly (iterative
+inverse of OpenCV's distortion, converged to 1e-12), its ray is intersected with textured planes, and the
+texture is sampled bilinearly; supersamples are box-averaged, then slight blur and noise are added. The
+ground truth (intrinsics, poses, E^sl) is therefore exact up to texture interpolation.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from rigsfm.calibrate.board import BoardSpec
+
+SUPERSAMPLE = 2
+
+
+@dataclass
+class SynthCamera:
+    """An OpenCV camera: K (pixel centres at integers), distortion (k1, k2, p1, p2, k3), size (w, h)."""
+
+    K: np.ndarray
+    dist: np.ndarray
+    size: tuple[int, int]
+    _rays: np.ndarray | None = field(default=None, repr=False)
+
+    def rays(self) -> np.ndarray:
+        """(h*ss, w*ss, 3) normalised rays (x, y, 1) of the supersampled pixel centres."""
+        if self._rays is None:
+            w, h = self.size
+            u = (np.arange(w * SUPERSAMPLE) + 0.5) / SUPERSAMPLE - 0.5
+            v = (np.arange(h * SUPERSAMPLE) + 0.5) / SUPERSAMPLE - 0.5
+            uu, vv = np.meshgrid(u, v)
+            pix = np.stack([uu, vv], -1).reshape(-1, 1, 2)
+            criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-14)
+            xy = cv2.undistortPoints(pix, self.K, self.dist, criteria=criteria).reshape(uu.shape + (2,))
+            self._rays = np.concatenate([xy, np.ones(uu.shape + (1,))], -1)
+        return self._rays
+
+    def project(self, points_cam: np.ndarray) -> np.ndarray:
+        pts, _ = cv2.projectPoints(points_cam.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), self.K, self.dist)
+        return pts.reshape(-1, 2)
+
+
+@dataclass
+class TexturedPlane:
+    """A plane z = 0 in its own frame, placed by ``world_from_plane`` (R, t); texture pixel = metres / texel."""
+
+    rotation: np.ndarray
+    translation: np.ndarray
+    texture: np.ndarray  # uint8 gray
+    texel: float  # metres per texture pixel
+    origin_px: tuple[float, float] = (0.0, 0.0)  # texture pixel (area convention) of the plane origin
+    background: float = 128.0
+
+
+def render(camera: SynthCamera, cam_from_world: tuple[np.ndarray, np.ndarray], planes: list[TexturedPlane],
+           rng: np.random.Generator, blur: float = 0.6, noise: float = 1.5, background: float = 110.0) -> np.ndarray:
+    """Ray-cast ``planes`` into ``camera``; nearest plane in front wins; returns a uint8 image."""
+    R, t = cam_from_world
+    rays = camera.rays()
+    shape = rays.shape[:2]
+    image = np.full(shape, background, np.float32)
+    depth = np.full(shape, np.inf)
+    for plane in planes:
+        # plane points in the camera: cam_R_plane [X, Y, 0] + cam_t_plane
+        cR = R @ plane.rotation
+        ct = R @ plane.translation + t
+        H = np.column_stack([cR[:, 0], cR[:, 1], ct])  # normalised ray ~ H [X, Y, 1]
+        q = rays @ np.linalg.inv(H).T
+        s = 1.0 / q[..., 2]  # ray scale: point = s * ray (z = s)
+        X, Y = q[..., 0] * s, q[..., 1] * s
+        mx = (plane.origin_px[0] + X / plane.texel - 0.5).astype(np.float32)
+        my = (plane.origin_px[1] + Y / plane.texel - 0.5).astype(np.float32)
+        h, w = plane.texture.shape
+        visible = (s > 0) & (s < depth) & (mx > -0.5) & (my > -0.5) & (mx < w - 0.5) & (my < h - 0.5)
+        sampled = cv2.remap(plane.texture, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        image[visible] = sampled[visible]
+        depth[visible] = s[visible]
+    w, h = camera.size
+    image = cv2.resize(image, (w, h), interpolation=cv2.INTER_AREA)
+    if blur > 0:
+        image = cv2.GaussianBlur(image, (0, 0), blur)
+    image = image + rng.normal(0.0, noise, image.shape)
+    return np.clip(np.round(image), 0, 255).astype(np.uint8)
+
+
+def board_plane(spec: BoardSpec, px_per_square: int = 120) -> TexturedPlane:
+    """The board as a textured plane in its own frame (world = board), with a white quiet zone."""
+    margin = px_per_square
+    if spec.type == "charuco":
+        cols, rows = spec.squares
+        size = (cols * px_per_square + 2 * margin, rows * px_per_square + 2 * margin)
+        texture = spec.charuco_board().generateImage(size, marginSize=margin, borderBits=1)
+        origin = (float(margin), float(margin))
+    else:
+        cols, rows = spec.inner_corners[0] + 1, spec.inner_corners[1] + 1
+        cells = np.indices((rows, cols)).sum(0) % 2 == 0
+        board = np.where(cells, 0, 255).astype(np.uint8).repeat(px_per_square, 0).repeat(px_per_square, 1)
+        texture = cv2.copyMakeBorder(board, margin, margin, margin, margin, cv2.BORDER_CONSTANT, value=255)
+        origin = (float(margin + px_per_square), float(margin + px_per_square))  # first inner corner
+    return TexturedPlane(np.eye(3), np.zeros(3), texture, spec.square / px_per_square, origin)
+
+
+def noise_texture(rng: np.random.Generator, size: tuple[int, int]) -> np.ndarray:
+    """Multi-scale random texture with blobs: plenty of SIFT features at every scale."""
+    w, h = size
+    acc = np.zeros((h, w), np.float32)
+    for cell in (64, 24, 8, 3):
+        small = rng.random((h // cell + 2, w // cell + 2)).astype(np.float32)
+        acc += cv2.resize(small, (w + 2 * cell, h + 2 * cell), interpolation=cv2.INTER_CUBIC)[cell:cell + h, cell:cell + w]
+    acc = cv2.normalize(acc, None, 0, 255, cv2.NORM_MINMAX)
+    for _ in range(w * h // 4000):
+        centre = (int(rng.integers(0, w)), int(rng.integers(0, h)))
+        cv2.circle(acc, centre, int(rng.integers(3, 25)), float(rng.integers(0, 256)), -1, cv2.LINE_AA)
+    return acc.astype(np.uint8)
+
+
+def rotation_xyz_deg(rx: float, ry: float, rz: float) -> np.ndarray:
+    return cv2.Rodrigues(np.radians([rx, 0, 0]))[0] @ cv2.Rodrigues(np.radians([0, ry, 0]))[0] @ \
+        cv2.Rodrigues(np.radians([0, 0, rz]))[0]
+
+
+@dataclass
+class HybridRig:
+    wide: SynthCamera
+    narrow: SynthCamera
+    R: np.ndarray  # narrow_from_wide rotation
+    t: np.ndarray  # narrow_from_wide translation (metres)
+
+
+def default_hybrid_rig(size: tuple[int, int] = (960, 720), focal_wide: float = 640.0, ratio: float = 4.0) -> HybridRig:
+    w, h = size
+    K_w = np.array([[focal_wide, 0, w / 2 - 3.2], [0, focal_wide * 1.001, h / 2 + 4.7], [0, 0, 1]])
+    K_n = np.array([[focal_wide * ratio, 0, w / 2 + 5.1], [0, focal_wide * ratio * 0.9995, h / 2 - 2.3], [0, 0, 1]])
+    return HybridRig(
+        wide=SynthCamera(K_w, np.array([-0.12, 0.035, 0.0006, -0.0004, 0.0]), size),
+        narrow=SynthCamera(K_n, np.array([-0.05, 0.1, 0.0, 0.0, 0.0]), size),
+        R=rotation_xyz_deg(0.8, -1.5, 0.6),
+        t=np.array([-0.12, 0.004, 0.003]),
+    )
+
+
+def board_views(rng: np.random.Generator, n_stereo: int, n_wide_only: int) -> list[tuple[np.ndarray, np.ndarray]]:
+    """``wide_from_board`` poses: ``n_stereo`` near the optical axis (the narrow camera sees part of the
+    board) then ``n_wide_only`` towards the edges of the wide image."""
+    poses = []
+    for i in range(n_stereo + n_wide_only):
+        stereo = i < n_stereo
+        tilt = 55 if stereo else 35
+        R = rotation_xyz_deg(rng.uniform(-tilt, tilt), rng.uniform(-tilt, tilt), rng.uniform(-20, 20))
+        z = rng.uniform(0.75, 1.3) if stereo else rng.uniform(0.5, 0.8)
+        lateral = 0.15 if stereo else 0.6
+        centre = np.array([rng.uniform(-lateral, lateral) * z, rng.uniform(-lateral, lateral) * z * 0.75, z])
+        if not stereo and abs(centre[0]) < 0.2 * z:
+            centre[0] = np.sign(centre[0] + 1e-9) * 0.3 * z
+        poses.append((R, centre))
+    return poses
+
+
+def _maybe_visible(camera: SynthCamera, cam_from_plane, plane: TexturedPlane) -> bool:
+    """False only if the whole textured plane is surely outside the view (all corners beyond one border)."""
+    h, w = plane.texture.shape
+    corners = np.array([[0, 0], [w, 0], [w, h], [0, h]], float) - plane.origin_px
+    pts = np.column_stack([corners * plane.texel, np.zeros(4)]) @ cam_from_plane[0].T + cam_from_plane[1]
+    if np.any(pts[:, 2] <= 0):
+        return True
+    uv = pts[:, :2] / pts[:, 2:] @ camera.K[:2, :2].T + camera.K[:2, 2]
+    margin = 0.2 * max(camera.size)  # generous: distortion moves points near the borders
+    return not (np.all(uv[:, 0] < -margin) or np.all(uv[:, 1] < -margin) or
+                np.all(uv[:, 0] > camera.size[0] + margin) or np.all(uv[:, 1] > camera.size[1] + margin))
+
+
+def write_board_dataset(root: Path, rig_name: str, spec: BoardSpec, rig: HybridRig, poses, seed: int = 0) -> list[str]:
+    """Render ``poses`` (board centre poses in the wide frame) into ``root/<rig>/{wide,narrow}/NNN.png``."""
+    rng = np.random.default_rng(seed)
+    plane = board_plane(spec)
+    th, tw = plane.texture.shape
+    centre_board = np.array([(tw / 2 - plane.origin_px[0]) * plane.texel, (th / 2 - plane.origin_px[1]) * plane.texel, 0])
+    names = []
+    for sensor in ("wide", "narrow"):
+        (root / rig_name / sensor).mkdir(parents=True, exist_ok=True)
+    for index, (R, centre) in enumerate(poses):
+        t = centre - R @ centre_board  # wide_from_board translation so the board centre lands at ``centre``
+        name = f"{index:03d}.png"
+        wide = render(rig.wide, (R, t), [plane], rng)
+        narrow_pose = (rig.R @ R, rig.R @ t + rig.t)
+        narrow = render(rig.narrow, narrow_pose, [plane] if _maybe_visible(rig.narrow, narrow_pose, plane) else [], rng)
+        cv2.imwrite(str(root / rig_name / "wide" / name), wide)
+        cv2.imwrite(str(root / rig_name / "narrow" / name), narrow)
+        names.append(name)
+    return names
+
+
+def scene_planes(rng: np.random.Generator) -> list[TexturedPlane]:
+    """Two textured planes facing the rig (wide frame = world): a tilted wall at ~4 m and a panel at ~2 m."""
+    far = TexturedPlane(rotation_xyz_deg(10, -15, 0), np.array([-3.0, -2.2, 4.0]), noise_texture(rng, (1500, 1100)), 0.004)
+    near = TexturedPlane(rotation_xyz_deg(-5, 20, 3), np.array([-0.6, -0.1, 2.0]), noise_texture(rng, (900, 500)), 0.0015)
+    return [far, near]
+
+
+def write_scene_dataset(root: Path, rig_name: str, rig: HybridRig, n_frames: int = 2, seed: int = 1) -> None:
+    """Render the two-plane textured scene from ``n_frames`` rig poses into ``root/<rig>/{wide,narrow}``."""
+    rng = np.random.default_rng(seed)
+    planes = scene_planes(rng)
+    for sensor in ("wide", "narrow"):
+        (root / rig_name / sensor).mkdir(parents=True, exist_ok=True)
+    for index in range(n_frames):
+        Rw = rotation_xyz_deg(rng.uniform(-3, 3), rng.uniform(-4, 4), rng.uniform(-2, 2))
+        tw = rng.uniform(-0.1, 0.1, 3)
+        cv2.imwrite(str(root / rig_name / "wide" / f"{index:03d}.png"), render(rig.wide, (Rw, tw), planes, rng))
+        cv2.imwrite(str(root / rig_name / "narrow" / f"{index:03d}.png"),
+                    render(rig.narrow, (rig.R @ Rw, rig.R @ tw + rig.t), planes, rng))

@@ -1,0 +1,127 @@
+"""rigsfm calibrate on OpenCV's real stereo chessboard pairs, checked against OpenCV run directly."""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+import yaml
+
+from rigsfm.calibrate import calibrate_rigs
+from rigsfm.calibrate.board import board_spec_from_dict
+from rigsfm.calibrate.command import calibrate_command
+from rigsfm.rigs import load_rigs
+
+DATA = Path(__file__).resolve().parents[2] / "shared/data/opencv-stereo"
+FRAMES = ["01", "02", "03", "04", "05", "06", "07", "08", "09", "11", "12", "13", "14"]
+SPEC = {"type": "chessboard", "inner_corners": [9, 6], "square": 0.025}
+
+pytestmark = pytest.mark.skipif(not DATA.is_dir(), reason=f"real stereo images not found at {DATA}")
+
+
+@pytest.fixture(scope="module")
+def board_dir(tmp_path_factory) -> Path:
+    """BOARD/rig01/{wide,narrow}/NN.jpg from leftNN.jpg (wide) / rightNN.jpg (narrow)."""
+    root = tmp_path_factory.mktemp("real") / "BOARD"
+    for sensor, side in (("wide", "left"), ("narrow", "right")):
+        (root / "rig01" / sensor).mkdir(parents=True)
+        for n in FRAMES:
+            shutil.copy(DATA / f"{side}{n}.jpg", root / "rig01" / sensor / f"{n}.jpg")
+    return root
+
+
+def opencv_corners(path: Path, win: int | None) -> np.ndarray:
+    """OpenCV's own detection; ``win=None``: half-window 0.4 x corner spacing (clipped to 3..11)."""
+    gray = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+    found, corners = cv2.findChessboardCorners(gray, (9, 6), cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE)
+    assert found, path
+    if win is None:
+        grid = corners.reshape(6, 9, 2)
+        spacing = min(np.linalg.norm(np.diff(grid, axis=1), axis=2).min(), np.linalg.norm(np.diff(grid, axis=0), axis=2).min())
+        win = int(np.clip(round(0.4 * spacing), 3, 11))
+    return cv2.cornerSubPix(gray, corners, (win, win), (-1, -1), (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 30, 0.01))
+
+
+def object_points() -> np.ndarray:
+    objp = np.zeros((54, 3), np.float32)
+    objp[:, :2] = np.mgrid[0:9, 0:6].T.reshape(-1, 2) * 0.025
+    return objp
+
+
+@pytest.fixture(scope="module")
+def result(board_dir):
+    return calibrate_rigs(board_dir, board_spec_from_dict(SPEC), distortion="opencv").rigs[0]
+
+
+def test_matches_opencv_on_the_same_views(result):
+    """Same corners, same views, same model: our intrinsics and E^sl equal OpenCV's to numerical precision."""
+    size = (640, 480)
+    crit = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 100, 1e-12)
+    ref = {}
+    for cam, side in ((result.wide, "left"), (result.narrow, "right")):
+        views = cam.used_views
+        img = [opencv_corners(DATA / f"{side}{n}.jpg", None) for n in views]
+        rms, K, dist, _, _ = cv2.calibrateCamera([object_points()] * len(views), img, size, None, None,
+                                                 flags=cv2.CALIB_FIX_K3, criteria=crit)
+        ref[side] = (K, dist)
+        assert cam.rms == pytest.approx(rms, abs=1e-4)
+        np.testing.assert_allclose(cam.K, K, rtol=1e-5, atol=1e-3)
+        camera = cam.colmap_camera()
+        assert camera.principal_point_x == pytest.approx(K[0, 2] + 0.5, abs=1e-3)  # COLMAP convention
+    common = result.stereo.views
+    out = cv2.stereoCalibrate([object_points()] * len(common), [opencv_corners(DATA / f"left{n}.jpg", None) for n in common],
+                              [opencv_corners(DATA / f"right{n}.jpg", None) for n in common], *ref["left"], *ref["right"],
+                              size, flags=cv2.CALIB_FIX_INTRINSIC, criteria=crit)
+    fixed = result.stereo.fixed
+    assert fixed.rms == pytest.approx(out[0], abs=1e-4)
+    np.testing.assert_allclose(fixed.T, out[6].ravel(), atol=1e-5)
+    np.testing.assert_allclose(fixed.R, out[5], atol=1e-6)
+    print(f"\nreal, same views: ours f_w={result.wide.K[0, 0]:.3f} pp_w=({result.wide.K[0, 2]:.3f},{result.wide.K[1, 2]:.3f}) "
+          f"f_n={result.narrow.K[0, 0]:.3f} pp_n=({result.narrow.K[0, 2]:.3f},{result.narrow.K[1, 2]:.3f}) "
+          f"rms {result.wide.rms:.4f}/{result.narrow.rms:.4f} stereo {fixed.rms:.4f} baseline {1000 * fixed.baseline:.3f} mm; "
+          f"OpenCV f_w={ref['left'][0][0, 0]:.3f} f_n={ref['right'][0][0, 0]:.3f} stereo {out[0]:.4f} "
+          f"baseline {1000 * np.linalg.norm(out[6]):.3f} mm")
+
+
+def test_close_to_opencv_sample_pipeline(result):
+    """OpenCV's stereo_calib sample recipe (all 13 pairs, 11x11 subpixel window, k3 free, joint stereo):
+    a different corner refinement and view set, so agreement is to ~1 %, not to numerical precision."""
+    size = (640, 480)
+    obj = [object_points()] * len(FRAMES)
+    left = [opencv_corners(DATA / f"left{n}.jpg", 11) for n in FRAMES]
+    right = [opencv_corners(DATA / f"right{n}.jpg", 11) for n in FRAMES]
+    rms_l, K_l, d_l, _, _ = cv2.calibrateCamera(obj, left, size, None, None)
+    rms_r, K_r, d_r, _, _ = cv2.calibrateCamera(obj, right, size, None, None)
+    rms_s, *_, R, T, _, _ = cv2.stereoCalibrate(obj, left, right, K_l, d_l, K_r, d_r, size, flags=cv2.CALIB_USE_INTRINSIC_GUESS)
+    final = result.stereo.final
+    print(f"\nOpenCV sample recipe: f_l={K_l[0, 0]:.3f} pp_l=({K_l[0, 2]:.3f},{K_l[1, 2]:.3f}) rms {rms_l:.4f}; "
+          f"f_r={K_r[0, 0]:.3f} pp_r=({K_r[0, 2]:.3f},{K_r[1, 2]:.3f}) rms {rms_r:.4f}; stereo rms {rms_s:.4f} "
+          f"baseline {1000 * np.linalg.norm(T):.3f} mm | ours (final, joint={result.stereo.use_joint}): "
+          f"f_w={final.K_wide[0, 0]:.3f} f_n={final.K_narrow[0, 0]:.3f} baseline {1000 * final.baseline:.3f} mm")
+    assert final.K_wide[0, 0] == pytest.approx(K_l[0, 0], rel=0.01)
+    assert final.K_narrow[0, 0] == pytest.approx(K_r[0, 0], rel=0.01)
+    assert abs(final.K_wide[0, 2] - K_l[0, 2]) < 3 and abs(final.K_narrow[1, 2] - K_r[1, 2]) < 6
+    assert final.baseline == pytest.approx(np.linalg.norm(T), rel=0.01)
+    # physically plausible: a horizontal stereo rig about 8 cm wide, cameras nearly parallel
+    assert 0.07 < final.baseline < 0.10
+    assert abs(final.T[0]) / final.baseline > 0.99
+    assert np.degrees(np.linalg.norm(cv2.Rodrigues(final.R)[0])) < 2.0
+    assert result.wide.rms < 0.5 and result.narrow.rms < 0.5
+
+
+def test_cli_writes_rigs_yaml_and_report(board_dir, tmp_path):
+    board = tmp_path / "board.yaml"
+    board.write_text(yaml.safe_dump(SPEC))
+    out = tmp_path / "rigs.yaml"
+    calibrate_command(board_dir, board, out)
+    (rig,) = load_rigs(out)
+    assert rig.name == "rig01" and rig.wide.width == 640 and rig.wide.model.name in ("OPENCV", "FULL_OPENCV")
+    assert 0.07 < np.linalg.norm(rig.narrow_from_wide.translation) < 0.10
+    report = tmp_path / "rigs.calibration" / "rig01"
+    for name in ("report.txt", "wide_view_errors.png", "narrow_coverage.png", "stereo_view_errors.png"):
+        assert (report / name).is_file(), name
+    assert cv2.imread(str(report / "wide_view_errors.png")) is not None
+    assert "E^sl" in (report / "report.txt").read_text()

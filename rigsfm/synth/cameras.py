@@ -147,18 +147,19 @@ def _signed(rng: np.random.Generator, low: float, high: float) -> float:
 
 
 def perturb_camera(camera: pycolmap.Camera, rng: np.random.Generator, wide: bool) -> pycolmap.Camera:
-    """Focal +-0.1..0.2 %, principal point +-0.3..1 px, distortion slightly off."""
+    """A good board calibration's errors: focal +-0.05..0.15 %, principal point +-0.2..0.8 px,
+    distortion off by well under a pixel at the image corners."""
     fx, fy, cx, cy, k1, k2, p1, p2 = (float(p) for p in camera.params)
     k_scale = 1.0 if wide else 0.5
     params = [
-        fx * (1 + _signed(rng, 0.001, 0.002)),
-        fy * (1 + _signed(rng, 0.001, 0.002)),
-        cx + _signed(rng, 0.3, 1.0),
-        cy + _signed(rng, 0.3, 1.0),
-        k1 + k_scale * _signed(rng, 0.001, 0.003),
-        k2 + k_scale * _signed(rng, 0.0005, 0.0015),
-        p1 + _signed(rng, 0.0, 2e-5),
-        p2 + _signed(rng, 0.0, 2e-5),
+        fx * (1 + _signed(rng, 0.0005, 0.0015)),
+        fy * (1 + _signed(rng, 0.0005, 0.0015)),
+        cx + _signed(rng, 0.2, 0.8),
+        cy + _signed(rng, 0.2, 0.8),
+        k1 + k_scale * _signed(rng, 0.0002, 0.0006),
+        k2 + k_scale * _signed(rng, 0.0001, 0.0003),
+        p1 + _signed(rng, 0.0, 1e-5),
+        p2 + _signed(rng, 0.0, 1e-5),
     ]
     return pycolmap.Camera(model="OPENCV", width=camera.width, height=camera.height, params=params)
 

@@ -9,6 +9,7 @@ from typing import Annotated, Optional
 
 import typer
 from rich.console import Console
+from rich.logging import RichHandler
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
@@ -37,6 +38,13 @@ def fail_cleanly(command):
             raise typer.Exit(2) from None
 
     return wrapper
+
+
+def configure_logging(verbose: bool) -> None:
+    """rigsfm's own log on the terminal (warnings, or everything with -v); COLMAP's goes to OUT/colmap.log."""
+    handler = RichHandler(console=err_console, level=logging.INFO if verbose else logging.WARNING,
+                          show_path=False, show_time=False)
+    logging.basicConfig(level=logging.INFO, handlers=[handler], format="%(message)s", force=True)
 
 
 class StageProgress:
@@ -94,7 +102,7 @@ def run_command(
     verbose: Annotated[bool, typer.Option("--verbose", "-v")] = False,
 ) -> None:
     """Metric poses of every narrow camera of a hybrid-rig network, from image folders."""
-    logging.basicConfig(level=logging.INFO if verbose else logging.WARNING, format="%(levelname)s %(message)s")
+    configure_logging(verbose)
     options = RunOptions(
         matching=MatchingOptions(max_ratio=max_ratio, cross_check=cross_check,
                                  rig_verification=rig_verification, narrow_features=narrow_features),
@@ -140,6 +148,7 @@ def demo_command(
     overwrite: Annotated[bool, typer.Option("--overwrite")] = False,
 ) -> None:
     """Render a synthetic full circle of hybrid rigs, reconstruct it, and print accuracy vs ground truth."""
+    configure_logging(False)
     from rigsfm.demo import run_demo
     from rigsfm.synth.scene import SceneOptions
 

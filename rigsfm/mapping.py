@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import enum
 import logging
+import shutil
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -107,5 +108,6 @@ def run_mapping(
         best = max(models.values(), key=lambda rec: rec.num_reg_frames())
         for index, model in models.items():
             logger.info("Model %d: %s", index, model.summary().replace("\n", " "))
+        shutil.rmtree(models_dir)
         best.write(tmp)
     return pycolmap.Reconstruction(output_path)

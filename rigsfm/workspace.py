@@ -72,6 +72,8 @@ def colmap_log_to(path: Path) -> Iterator[None]:
     handler = logging.FileHandler(path)
     handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
     root_logger = logging.getLogger("rigsfm")
+    saved_level = root_logger.level
+    root_logger.setLevel(logging.INFO)
     root_logger.addHandler(handler)
     sys.stderr.flush()
     saved_fd = os.dup(2)
@@ -84,4 +86,5 @@ def colmap_log_to(path: Path) -> Iterator[None]:
         os.dup2(saved_fd, 2)
         os.close(saved_fd)
         root_logger.removeHandler(handler)
+        root_logger.setLevel(saved_level)
         handler.close()

@@ -95,7 +95,7 @@ def test_close_to_opencv_sample_pipeline(result):
     right = [opencv_corners(DATA / f"right{n}.jpg", 11) for n in FRAMES]
     rms_l, K_l, d_l, _, _ = cv2.calibrateCamera(obj, left, size, None, None)
     rms_r, K_r, d_r, _, _ = cv2.calibrateCamera(obj, right, size, None, None)
-    rms_s, *_, R, T, _, _ = cv2.stereoCalibrate(obj, left, right, K_l, d_l, K_r, d_r, size, flags=cv2.CALIB_USE_INTRINSIC_GUESS)
+    rms_s, *_, _R, T, _, _ = cv2.stereoCalibrate(obj, left, right, K_l, d_l, K_r, d_r, size, flags=cv2.CALIB_USE_INTRINSIC_GUESS)
     final = result.stereo.final
     print(f"\nOpenCV sample recipe: f_l={K_l[0, 0]:.3f} pp_l=({K_l[0, 2]:.3f},{K_l[1, 2]:.3f}) rms {rms_l:.4f}; "
           f"f_r={K_r[0, 0]:.3f} pp_r=({K_r[0, 2]:.3f},{K_r[1, 2]:.3f}) rms {rms_r:.4f}; stereo rms {rms_s:.4f} "

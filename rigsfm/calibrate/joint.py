@@ -3,9 +3,12 @@
 ``stereoCalibrate`` with free intrinsics only sees the views both cameras share, where the wide camera
 sees the board small and central, so it tends to spoil the wide distortion. Here every view of either
 camera contributes (board pose in the wide frame; the narrow camera sees it through E^sl), so the wide
-periphery stays constrained and the narrow principal point, which on its own trades off against each
-view's rotation, is tied to the wide camera through the rigid E^sl. Sparse finite-difference
-Levenberg-Marquardt-like trust region (scipy ``least_squares``) on the pixel reprojection errors.
+periphery stays constrained. Levenberg-Marquardt (scipy ``least_squares``, method lm) on the pixel
+reprojection errors with the analytic Jacobian from ``cv2.projectPoints`` and ``cv2.composeRT``.
+
+Note: a narrow principal-point shift dp is almost indistinguishable from an E^sl rotation of dp / f_narrow
+rad (the narrow field of view is small), so the E^sl rotation is only as good as the narrow principal
+point: it needs narrow views of a strongly tilted board. The reported std devs show this coupling.
 """
 
 from __future__ import annotations
@@ -16,7 +19,6 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 from scipy.optimize import least_squares
-from scipy.sparse import lil_matrix
 
 from rigsfm.calibrate.intrinsics import CameraCalibration
 
@@ -80,34 +82,39 @@ def joint_refine(wide: CameraCalibration, narrow: CameraCalibration, narrow_pair
         if f in narrow_pairs:
             blocks.append((1, i, f, *narrow_pairs[f]))
 
-    def residuals(x):
+    def evaluate(x, with_jacobian: bool):
         Kw, dw = _unpack_intr(x[:ni_w])
         Kn, dn = _unpack_intr(x[ni_w:off_e])
-        RE = cv2.Rodrigues(x[off_e:off_e + 3])[0]
-        tE = x[off_e + 3:off_f]
-        out = []
+        rE, tE = x[off_e:off_e + 3], x[off_e + 3:off_f]
+        out, jac, row = [], np.zeros((n_res, len(x))) if with_jacobian else None, 0
         for cam, i, _, obj, img in blocks:
             p = x[off_f + 6 * i: off_f + 6 * i + 6]
+            cols = slice(off_f + 6 * i, off_f + 6 * i + 6)
             if cam == 0:
-                proj, _ = cv2.projectPoints(obj, p[:3], p[3:], Kw, dw)
-            else:
-                Rb = RE @ cv2.Rodrigues(p[:3])[0]
-                proj, _ = cv2.projectPoints(obj, cv2.Rodrigues(Rb)[0], RE @ p[3:] + tE, Kn, dn)
+                proj, J = cv2.projectPoints(obj, p[:3], p[3:], Kw, dw)
+            else:  # narrow_from_board = E o wide_from_board
+                r3, t3, dr3dr1, dr3dt1, dr3dr2, dr3dt2, dt3dr1, dt3dt1, dt3dr2, dt3dt2 = cv2.composeRT(
+                    p[:3], p[3:], rE, tE)
+                proj, J = cv2.projectPoints(obj, r3, t3, Kn, dn)
             out.append((proj - img).reshape(-1))
-        return np.concatenate(out)
+            if with_jacobian:
+                rows = slice(row, row + 2 * len(obj))
+                n_d = (ni_w if cam == 0 else ni_n) - 4
+                intr = np.hstack([J[:, 6:10], J[:, 10:10 + n_d]])
+                if cam == 0:
+                    jac[rows, cols] = J[:, :6]
+                    jac[rows, :ni_w] = intr
+                else:
+                    A_r, A_t = J[:, :3], J[:, 3:6]
+                    jac[rows, cols] = np.hstack([A_r @ dr3dr1 + A_t @ dt3dr1, A_r @ dr3dt1 + A_t @ dt3dt1])
+                    jac[rows, off_e:off_f] = np.hstack([A_r @ dr3dr2 + A_t @ dt3dr2, A_r @ dr3dt2 + A_t @ dt3dt2])
+                    jac[rows, ni_w:off_e] = intr
+                row += 2 * len(obj)
+        return np.concatenate(out), jac
 
     n_res = sum(2 * len(b[3]) for b in blocks)
-    sparsity = lil_matrix((n_res, len(x0)), dtype=np.uint8)
-    row = 0
-    for cam, i, _, obj, _ in blocks:
-        rows = slice(row, row + 2 * len(obj))
-        sparsity[rows, slice(0, ni_w) if cam == 0 else slice(ni_w, off_e)] = 1
-        if cam == 1:
-            sparsity[rows, off_e:off_f] = 1
-        sparsity[rows, off_f + 6 * i: off_f + 6 * i + 6] = 1
-        row += 2 * len(obj)
-    fit = least_squares(residuals, x0, jac_sparsity=sparsity, method="trf", x_scale="jac", xtol=1e-12,
-                        ftol=1e-12, gtol=1e-12, max_nfev=200)
+    fit = least_squares(lambda x: evaluate(x, False)[0], x0, jac=lambda x: evaluate(x, True)[1], method="lm",
+                        x_scale="jac", xtol=1e-14, ftol=1e-14, gtol=1e-14, max_nfev=500)
     x = fit.x
     r = fit.fun.reshape(-1, 2)
     sq = np.sum(r ** 2, axis=1)
@@ -119,7 +126,7 @@ def joint_refine(wide: CameraCalibration, narrow: CameraCalibration, narrow_pair
     cams = np.repeat([b[0] for b in blocks], [len(b[3]) for b in blocks])
     names = np.repeat([b[2] for b in blocks], [len(b[3]) for b in blocks])
     in_common = np.isin(names, common)
-    J = fit.jac.toarray() if hasattr(fit.jac, "toarray") else fit.jac
+    J = evaluate(x, True)[1]
     dof = max(1, len(fit.fun) - len(x))
     sigma2 = float(fit.fun @ fit.fun) / dof
     scale = np.linalg.norm(J, axis=0)

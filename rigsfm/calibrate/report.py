@@ -79,7 +79,7 @@ def view_error_chart(cam: CameraCalibration, where: str) -> np.ndarray:
 def coverage_image(cam: CameraCalibration, where: str, max_side: int = 800) -> np.ndarray:
     w, h = cam.image_size
     s = max_side / max(w, h)
-    image = np.full((int(round(h * s)), int(round(w * s)), 3), 255, np.uint8)
+    image = np.full((round(h * s), round(w * s), 3), 255, np.uint8)
     cols, rows = COVERAGE_GRID
     points = [pairs[1].reshape(-1, 2) for pairs in cam.pairs.values()]
     allp = np.vstack(points) if points else np.zeros((0, 2))
@@ -115,8 +115,8 @@ def _camera_text(cam: CameraCalibration, K: np.ndarray, dist: np.ndarray, label:
     std = cam.std_intrinsics
     lines = [f"{label} camera: {cam.image_size[0]}x{cam.image_size[1]}, COLMAP model {cam.model}",
              f"  fx, fy = {K[0, 0]:.3f}, {K[1, 1]:.3f} px (mono std {std[0]:.3f}, {std[1]:.3f})",
-             f"  cx, cy = {K[0, 2]:.3f}, {K[1, 2]:.3f} px OpenCV convention "
-             f"(= {K[0, 2] + 0.5:.3f}, {K[1, 2] + 0.5:.3f} in COLMAP's, as written to rigs.yaml)",
+             (f"  cx, cy = {K[0, 2]:.3f}, {K[1, 2]:.3f} px OpenCV convention "
+             f"(= {K[0, 2] + 0.5:.3f}, {K[1, 2] + 0.5:.3f} in COLMAP's, as written to rigs.yaml)"),
              "  distortion k1 k2 p1 p2 k3 = " + " ".join(f"{v:.6g}" for v in np.ravel(dist)[:5]),
              f"  mono RMS {cam.rms:.4f} px over {len(cam.used_views)} views; corner coverage {100 * cam.coverage:.0f} %"]
     lines += [f"  note: {n}" for n in cam.notes] + [f"  WARNING: {w}" for w in cam.warnings]
@@ -131,8 +131,8 @@ def _pose_text(fit: StereoFit, label: str) -> list[str]:
     angle = float(np.degrees(np.linalg.norm(cv2.Rodrigues(fit.R)[0])))
     yaw, pitch, roll = euler_zyx_degrees(fit.R)
     t = fit.T * 1000
-    return [f"  {label}: RMS {fit.rms:.4f} px, rotation {angle:.4f} deg (yaw/pitch/roll {yaw:.4f}/{pitch:.4f}/"
-            f"{roll:.4f} deg), t = [{t[0]:.2f}, {t[1]:.2f}, {t[2]:.2f}] mm, baseline {fit.baseline * 1000:.2f} mm"]
+    return [(f"  {label}: RMS {fit.rms:.4f} px, rotation {angle:.4f} deg (yaw/pitch/roll {yaw:.4f}/{pitch:.4f}/"
+            f"{roll:.4f} deg), t = [{t[0]:.2f}, {t[1]:.2f}, {t[2]:.2f}] mm, baseline {fit.baseline * 1000:.2f} mm")]
 
 
 def rig_text(rig: RigResult, board_description: str) -> str:

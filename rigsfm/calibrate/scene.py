@@ -127,7 +127,7 @@ def estimate_from_scene(frames: list[tuple[Path, Path]], K_wide: np.ndarray, dis
     if E is None or E.shape != (3, 3):
         raise ReconstructionError(f"{where}: no essential matrix fits the {len(pw)} scene matches; the scene "
                                   "may be too flat or too distant, or the matches wrong")
-    inliers, R, t, mask = cv2.recoverPose(E, x1, x2, np.eye(3), mask=mask)
+    _inliers, R, t, mask = cv2.recoverPose(E, x1, x2, np.eye(3), mask=mask)
     keep = mask.reshape(-1) > 0
     if keep.sum() < MIN_INLIERS:
         raise ReconstructionError(f"{where}: only {int(keep.sum())} of {len(pw)} scene matches agree on one relative "

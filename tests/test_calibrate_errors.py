@@ -1,0 +1,107 @@
+"""Bad input to rigsfm calibrate: each gives a clear RigsfmError and writes nothing."""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+import yaml
+
+from rigsfm.calibrate.board import board_spec_from_dict
+from rigsfm.calibrate.command import calibrate_command
+from rigsfm.calibrate.synthetic import SynthCamera, board_plane, render, rotation_xyz_deg
+from rigsfm.errors import InputError, RigsfmError
+
+DATA = Path(__file__).resolve().parents[2] / "shared/data/opencv-stereo"
+FRAMES = ["01", "02", "03", "04", "05", "06", "07", "08", "09", "11", "12", "13", "14"]
+CHESS = {"type": "chessboard", "inner_corners": [9, 6], "square": 0.025}
+needs_real = pytest.mark.skipif(not DATA.is_dir(), reason=f"real stereo images not found at {DATA}")
+
+
+def real_board(root: Path, wide: list[str], narrow: list[str], rename: dict | None = None) -> Path:
+    """BOARD/rig01 with real images for the listed frames and blank gray images for the other frames."""
+    blank = np.full((480, 640), 128, np.uint8)
+    for sensor, side, keep in (("wide", "left", wide), ("narrow", "right", narrow)):
+        folder = root / "BOARD" / "rig01" / sensor
+        folder.mkdir(parents=True)
+        for n in FRAMES:
+            name = (rename or {}).get((sensor, n), n)
+            if n in keep:
+                shutil.copy(DATA / f"{side}{n}.jpg", folder / f"{name}.jpg")
+            else:
+                cv2.imwrite(str(folder / f"{name}.jpg"), blank)
+    return root / "BOARD"
+
+
+def run(tmp_path: Path, board_dir: Path, spec: dict):
+    board = tmp_path / "board.yaml"
+    board.write_text(yaml.safe_dump(spec))
+    out = tmp_path / "out" / "rigs.yaml"
+    try:
+        calibrate_command(board_dir, board, out)
+    finally:
+        assert not (tmp_path / "out").exists(), "an error must not leave output behind"
+
+
+@needs_real
+def test_no_board_anywhere(tmp_path):
+    with pytest.raises(InputError, match="found in none of the 13 images"):
+        run(tmp_path, real_board(tmp_path, [], []), CHESS)
+
+
+@needs_real
+def test_mismatched_frame_names(tmp_path):
+    board_dir = real_board(tmp_path, FRAMES, FRAMES, rename={("narrow", "05"): "05b"})
+    with pytest.raises(InputError, match=r"frame names do not match \(only in wide: 05; only in narrow: 05b\)"):
+        run(tmp_path, board_dir, CHESS)
+
+
+@needs_real
+def test_too_few_common_views(tmp_path):
+    board_dir = real_board(tmp_path, ["06", "07", "08", "09", "11", "12"], ["01", "02", "03", "04", "06", "07"])
+    with pytest.raises(InputError, match="only 2 views usable for E\\^sl"):
+        run(tmp_path, board_dir, CHESS)
+
+
+@needs_real
+def test_chessboard_counted_squares_not_inner_corners(tmp_path):
+    with pytest.raises(InputError, match=r"inner_corners \[9, 6\] was found"):
+        run(tmp_path, real_board(tmp_path, FRAMES, FRAMES), {**CHESS, "inner_corners": [10, 7]})
+
+
+def charuco_board_dir(root: Path, spec: dict, n: int = 3) -> Path:
+    camera = SynthCamera(np.array([[500.0, 0, 319.5], [0, 500, 239.5], [0, 0, 1]]), np.zeros(5), (640, 480))
+    plane = board_plane(board_spec_from_dict(spec), px_per_square=60)
+    rng = np.random.default_rng(0)
+    for sensor in ("wide", "narrow"):
+        (root / "rig01" / sensor).mkdir(parents=True)
+    for i in range(n):
+        R = rotation_xyz_deg(10 * i - 10, 5 * i, 0)
+        t = np.array([-0.33, -0.24, 1.2]) - R @ np.array([-0.33, -0.24, 0]) + np.array([0, 0, 0])
+        image = render(camera, (R, t), [plane], rng)
+        for sensor in ("wide", "narrow"):
+            cv2.imwrite(str(root / "rig01" / sensor / f"{i:02d}.png"), image)
+    return root
+
+
+CHARUCO = {"type": "charuco", "squares": [11, 8], "square": 0.06, "marker": 0.045, "dictionary": "DICT_5X5_100"}
+
+
+def test_charuco_wrong_dictionary(tmp_path):
+    board_dir = charuco_board_dir(tmp_path / "BOARD", CHARUCO)
+    with pytest.raises(InputError, match="no DICT_4X4_50 markers were detected, but DICT_5X5_100 markers were"):
+        run(tmp_path, board_dir, {**CHARUCO, "dictionary": "DICT_4X4_50"})
+
+
+def test_board_spec_validation(tmp_path):
+    with pytest.raises(InputError, match="millimetres"):
+        board_spec_from_dict({**CHESS, "square": 25})
+    with pytest.raises(InputError, match="'marker'.*smaller"):
+        board_spec_from_dict({**CHARUCO, "marker": 0.07})
+    with pytest.raises(InputError, match="unknown ArUco dictionary"):
+        board_spec_from_dict({**CHARUCO, "dictionary": "DICT_9X9_1"})
+    with pytest.raises(RigsfmError, match="does not exist"):
+        run(tmp_path, tmp_path / "nowhere", CHESS)

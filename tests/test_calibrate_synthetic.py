@@ -8,7 +8,7 @@ import yaml
 from typer import Typer
 from typer.testing import CliRunner
 
-from rigsfm.calibrate import calibrate_rigs
+from rigsfm.calibrate import CalibrationResult, calibrate_rigs, write_calibration
 from rigsfm.calibrate.board import board_spec_from_dict
 from rigsfm.calibrate.command import calibrate_command
 from rigsfm.calibrate.synthetic import (
@@ -78,13 +78,21 @@ def test_end_to_end_rigs_yaml_round_trip(dataset, result, tmp_path):
     app.command("noop")(lambda: None)  # two commands: 'calibrate' is a subcommand as in the main CLI
     run = CliRunner().invoke(app, ["calibrate", str(root / "BOARD"), "--board", str(root / "board.yaml"), "--out", str(out)])
     assert run.exit_code == 0, run.output
-    (rig,) = load_rigs(out)
+    (rig,) = load_rigs(out)  # a second, independent run: same numbers up to multi-threaded rounding
     final = result.stereo.final
     np.testing.assert_allclose(rig.wide.params[:4], [final.K_wide[0, 0], final.K_wide[1, 1],
-                                                     final.K_wide[0, 2] + 0.5, final.K_wide[1, 2] + 0.5], rtol=1e-9)
-    np.testing.assert_allclose(rig.narrow.params[4:8], final.dist_narrow[:4], atol=1e-12)
+                                                     final.K_wide[0, 2] + 0.5, final.K_wide[1, 2] + 0.5], rtol=1e-7)
+    np.testing.assert_allclose(rig.narrow_from_wide.translation, result.T, atol=1e-9)
+    # exact round trip of this result through rigs.yaml
+    exact = tmp_path / "exact" / "rigs.yaml"
+    write_calibration(CalibrationResult(board_spec_from_dict(SPEC), [result]), exact)
+    (rig,) = load_rigs(exact)
+    np.testing.assert_allclose(rig.wide.params[:4], [final.K_wide[0, 0], final.K_wide[1, 1],
+                                                     final.K_wide[0, 2] + 0.5, final.K_wide[1, 2] + 0.5], rtol=1e-15)
+    np.testing.assert_allclose(rig.narrow.params[4:8], final.dist_narrow[:4], rtol=1e-15)
     np.testing.assert_allclose(rig.narrow_from_wide.rotation.matrix(), result.R, atol=1e-9)
-    np.testing.assert_allclose(rig.narrow_from_wide.translation, result.T, atol=1e-12)
+    np.testing.assert_allclose(rig.narrow_from_wide.translation, result.T, rtol=1e-15)
+    assert (tmp_path / "exact" / "rigs.calibration" / "summary.txt").is_file()
     assert rotation_angle_deg(rig.narrow_from_wide.rotation.matrix(), RIG.R) <= 0.05
     # a second run neither overwrites nor merges silently
     with pytest.raises(WorkspaceError, match="--overwrite"):

@@ -28,7 +28,7 @@ GREEN, RED, BLUE, GRAY, ORANGE, BLACK = (60, 160, 60), (50, 50, 210), (200, 120,
 def _rotated_labels(labels: list[str], xs: list[int], width: int, height: int) -> np.ndarray:
     strip = np.full((width, height, 3), 255, np.uint8)  # drawn transposed, then rotated
     for label, x in zip(labels, xs):
-        cv2.putText(strip, label[:18], (4, width - x + 4), FONT, 0.38, BLACK, 1, cv2.LINE_AA)
+        cv2.putText(strip, label[:18], (4, x + 4), FONT, 0.38, BLACK, 1, cv2.LINE_AA)
     return cv2.rotate(strip, cv2.ROTATE_90_COUNTERCLOCKWISE)
 
 

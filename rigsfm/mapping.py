@@ -76,6 +76,25 @@ def _global_options(options: MappingOptions, num_wide: int) -> pycolmap.GlobalPi
     return pipeline
 
 
+def initial_pair(database_path: Path) -> tuple[int, int] | None:
+    """The wide-wide pair of two different rigs with the most verified inliers.
+
+    Choosing it up front spares the mapper's initial-pair search, which can run for minutes when the
+    narrow images carry many (e.g. moving-crowd) features.
+    """
+    with pycolmap.Database.open(database_path) as database:
+        names = {image.image_id: image.name for image in database.read_all_images()}
+        pair_ids, inliers = database.read_two_view_geometry_num_inliers()
+    best, best_inliers = None, 0
+    for pair_id, count in zip(pair_ids, inliers):
+        id1, id2 = pycolmap.pair_id_to_image_pair(pair_id)
+        rig1, sensor1, _ = names[id1].split("/", 2)
+        rig2, sensor2, _ = names[id2].split("/", 2)
+        if sensor1 == sensor2 == "wide" and rig1 != rig2 and count > best_inliers:
+            best, best_inliers = (id1, id2), count
+    return best
+
+
 def run_mapping(
     database_path: Path,
     image_dir: Path,
@@ -89,13 +108,21 @@ def run_mapping(
         models_dir = tmp / "models"
         models_dir.mkdir()
         if options.mapper == Mapper.INCREMENTAL:
+            pipeline = _incremental_options(options, num_wide)
+            pair = initial_pair(database_path)
+            if pair is not None:
+                pipeline.init_image_id1, pipeline.init_image_id2 = pair
             models = pycolmap.incremental_mapping(
-                database_path,
-                image_dir,
-                models_dir,
-                _incremental_options(options, num_wide),
-                next_image_callback=on_registered,
+                database_path, image_dir, models_dir, pipeline, next_image_callback=on_registered
             )
+            if not models and pair is not None:
+                logger.warning("Mapping from the initial pair %s failed; searching for another", pair)
+                shutil.rmtree(models_dir)
+                models_dir.mkdir()
+                pipeline.init_image_id1 = pipeline.init_image_id2 = -1
+                models = pycolmap.incremental_mapping(
+                    database_path, image_dir, models_dir, pipeline, next_image_callback=on_registered
+                )
         else:
             models = pycolmap.global_mapping(
                 database_path, image_dir, models_dir, _global_options(options, num_wide)

@@ -21,6 +21,7 @@ from rigsfm.inputs import ImageEntry, scan_images
 from rigsfm.io import write_json_atomic
 from rigsfm.mapping import MappingOptions, run_mapping
 from rigsfm.rig_constraint import RigConstraintOptions, RigConstraintResult, ScaleSource, apply_rig_constraints
+from rigsfm.residuals import reprojection_errors
 from rigsfm.rigs import RigCalibration, load_rigs
 from rigsfm.scale_file import ScaleSpec, load_scale
 from rigsfm.workspace import Workspace, colmap_log_to
@@ -72,25 +73,14 @@ class _Timings(dict):
             logger.info("Stage %s took %.1f s", name, self[name])
 
 
-def reprojection_errors(reconstruction: pycolmap.Reconstruction) -> dict[str, dict]:
-    """Per camera (``<rig>/<sensor>``): mean and RMS reprojection error over its observations."""
+def reprojection_table(reconstruction: pycolmap.Reconstruction) -> dict[str, dict]:
+    """Per camera (``<rig>/<sensor>``): observations, mean and RMS reprojection error."""
     per_camera: dict[str, list[np.ndarray]] = {}
-    for image in reconstruction.images.values():
-        if not image.has_pose:
-            continue
-        observed = [p for p in image.points2D if p.has_point3D()]
-        key = image.name.rsplit("/", 1)[0]
-        per_camera.setdefault(key, [])
-        if not observed:
-            continue
-        xyz = np.array([reconstruction.points3D[p.point3D_id].xyz for p in observed])
-        xy = np.array([p.xy for p in observed])
-        camera = reconstruction.cameras[image.camera_id]
-        projected = np.asarray(camera.img_from_cam(image.cam_from_world() * xyz))
-        per_camera[key].append(np.linalg.norm(projected - xy, axis=1))
+    for name, errors in reprojection_errors(reconstruction).items():
+        per_camera.setdefault(name.rsplit("/", 1)[0], []).append(errors)
     table = {}
     for key, errors in sorted(per_camera.items()):
-        e = np.concatenate(errors) if errors else np.zeros(0)
+        e = np.concatenate(errors)
         table[key] = {
             "observations": int(e.size),
             "mean_px": float(e.mean()) if e.size else None,
@@ -108,13 +98,28 @@ def registration_counts(reconstruction: pycolmap.Reconstruction, images: list[Im
     return counts, sorted(e.name for e in images if e.name not in registered)
 
 
+MAX_METRIC_SCALE_SIGMA = 0.01  # relative; a looser scale is reported as not metric
+
+
+def is_metric(result: RigConstraintResult) -> bool:
+    if result.scale_source == ScaleSource.MEASUREMENTS:
+        return True
+    sigma = result.scale_relative_sigma
+    return result.scale_source == ScaleSource.NARROW_BASELINES and sigma is not None and sigma < MAX_METRIC_SCALE_SIGMA
+
+
 def build_summary(inputs: Inputs, options: RunOptions, result: RigConstraintResult, timings: dict) -> dict:
     reconstruction = result.reconstruction
     counts, unregistered = registration_counts(reconstruction, inputs.images)
-    metric = result.scale_source != ScaleSource.NONE
+    metric = is_metric(result)
     warnings = []
-    if not metric:
+    if result.scale_source == ScaleSource.NONE:
         warnings.append("NOT METRIC: no scale.yaml and no observations in narrow images; units are arbitrary")
+    elif not metric:
+        warnings.append(
+            f"NOT METRIC: the narrow images' observations fix the scale only to +-{100 * result.scale_relative_sigma:.3g} %;"
+            " give a scale.yaml (rangefinder distance or known length)"
+        )
     if unregistered:
         warnings.append(f"{len(unregistered)} image(s) not registered: {', '.join(unregistered[:5])}")
     return {
@@ -134,14 +139,15 @@ def build_summary(inputs: Inputs, options: RunOptions, result: RigConstraintResu
         "scale": {
             "source": str(result.scale_source),
             "metres_per_mapping_unit": result.metres_per_mapping_unit,
-            "relative_sigma_percent": result.scale.relative_sigma_percent if result.scale else None,
+            "relative_sigma_percent": None if result.scale_relative_sigma is None
+            else 100.0 * result.scale_relative_sigma,
             "measurements": result.scale.residuals() if result.scale else [],
         },
         "registered": counts,
         "unregistered": unregistered,
         "num_points3D": reconstruction.num_points3D(),
         "mean_reprojection_error_px": result.mean_reprojection_error_px,
-        "reprojection_error": reprojection_errors(reconstruction),
+        "reprojection_error": reprojection_table(reconstruction),
         "timings_s": dict(timings),
         "warnings": warnings,
     }
@@ -190,7 +196,7 @@ def run(
                 progress("mapping", mapped.num_reg_frames(), num_wide)
         with timings.stage("rig_constraint"):
             result = apply_rig_constraints(mapped, inputs.rigs, inputs.scale, options.rig_constraint)
-        metric = result.scale_source != ScaleSource.NONE
+        metric = is_metric(result)
         with timings.stage("export"):
             write_model(result.reconstruction, workspace.sparse, overwrite=True)
             write_narrow_poses(result.reconstruction, workspace.narrow_poses, metric=metric, overwrite=True)

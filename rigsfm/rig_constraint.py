@@ -17,6 +17,7 @@ import numpy as np
 import pycolmap
 
 from rigsfm.errors import ReconstructionError
+from rigsfm.residuals import reprojection_errors
 from rigsfm.rigs import RigCalibration
 from rigsfm.scale import ScaleEstimate, estimate_scale
 from rigsfm.scale_file import ScaleSpec
@@ -38,6 +39,33 @@ class RigConstraintOptions:
     max_iterations: int = 200
 
 
+def profile_scale_sigma(reconstruction: pycolmap.Reconstruction, rigs: Sequence[RigCalibration],
+                        options: RigConstraintOptions, step: float = 0.01) -> float:
+    """Relative standard uncertainty of a scale set by the metric narrow baselines.
+
+    Profile likelihood: scale the world by 1 +- ``step`` (E^sl restored, everything else re-adjusted),
+    and read the scale's variance off the curvature of the total squared reprojection error, with the
+    pixel noise estimated from the residuals. Returns inf when the scale is unobservable.
+    """
+
+    def squared_error(factor: float) -> tuple[float, int]:
+        trial = pycolmap.Reconstruction(reconstruction)
+        trial.transform(pycolmap.Sim3d(factor, pycolmap.Rotation3d(), np.zeros(3)))
+        restore_calibration(trial, rigs)
+        constrained_bundle_adjustment(trial, options, fix_scale=True)
+        errors = np.concatenate(list(reprojection_errors(trial).values()))
+        return float(np.sum(errors**2)), int(errors.size)
+
+    base, num_observations = squared_error(1.0)
+    up, _ = squared_error(1.0 + step)
+    down, _ = squared_error(1.0 - step)
+    curvature = (up + down - 2.0 * base) / step**2
+    noise_variance = base / max(1, num_observations)
+    if curvature <= 0 or noise_variance <= 0:
+        return float("inf")
+    return float(np.sqrt(2.0 * noise_variance / curvature))
+
+
 @dataclass
 class RigConstraintResult:
     reconstruction: pycolmap.Reconstruction
@@ -45,6 +73,7 @@ class RigConstraintResult:
     scale: ScaleEstimate | None  # measurements against the final model
     metres_per_mapping_unit: float | None
     mean_reprojection_error_px: float
+    scale_relative_sigma: float | None = None  # of a scale set by the narrow baselines
 
 
 def _sensor_of(reconstruction: pycolmap.Reconstruction, image: pycolmap.Image) -> tuple[str, str]:
@@ -154,4 +183,10 @@ def apply_rig_constraints(
             error = constrained_bundle_adjustment(reconstruction, options, fix_scale=source == ScaleSource.NONE)
             if filter_outliers(reconstruction, options.max_reprojection_error_px) == 0:
                 break
-    return RigConstraintResult(reconstruction, source, scale, metres_per_unit, error)
+    relative_sigma = None
+    if source == ScaleSource.NARROW_BASELINES:
+        relative_sigma = profile_scale_sigma(reconstruction, rigs, options)
+        logger.info("Scale from the narrow baselines: relative uncertainty %.3g", relative_sigma)
+    elif scale is not None:
+        relative_sigma = scale.sigma / scale.metres_per_unit
+    return RigConstraintResult(reconstruction, source, scale, metres_per_unit, error, relative_sigma)

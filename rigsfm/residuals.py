@@ -1,0 +1,24 @@
+"""Reprojection residuals of a reconstruction, per image."""
+
+from __future__ import annotations
+
+import numpy as np
+import pycolmap
+
+
+def reprojection_errors(reconstruction: pycolmap.Reconstruction) -> dict[str, np.ndarray]:
+    """For every registered image name, the pixel distance between each observation and its projection."""
+    errors = {}
+    for image in reconstruction.images.values():
+        if not image.has_pose:
+            continue
+        observed = [p for p in image.points2D if p.has_point3D()]
+        if not observed:
+            errors[image.name] = np.zeros(0)
+            continue
+        xyz = np.array([reconstruction.points3D[p.point3D_id].xyz for p in observed])
+        xy = np.array([p.xy for p in observed])
+        camera = reconstruction.cameras[image.camera_id]
+        projected = np.asarray(camera.img_from_cam(image.cam_from_world() * xyz))
+        errors[image.name] = np.linalg.norm(projected - xy, axis=1)
+    return errors

@@ -13,6 +13,7 @@ from rich.logging import RichHandler
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
+from rigsfm.calibrate.command import calibrate_command
 from rigsfm.errors import RigsfmError
 from rigsfm.features import MatchingOptions
 from rigsfm.mapping import Mapper, MappingOptions
@@ -74,6 +75,8 @@ def print_summary(summary: dict, out: Path) -> None:
         f"registered: wide {reg['wide']['registered']}/{reg['wide']['total']}, "
         f"narrow {reg['narrow']['registered']}/{reg['narrow']['total']}; "
         f"{summary['num_points3D']} points; scale source: {summary['scale']['source']}"
+        + ("" if summary["scale"]["relative_sigma_percent"] is None
+           else f" (+-{summary['scale']['relative_sigma_percent']:.3g} %)")
     )
     for row in summary["scale"]["measurements"]:
         console.print(
@@ -161,6 +164,9 @@ def demo_command(
     print_summary(result.run.summary, out / "run")
     print_accuracy(result.accuracy)
     console.print(f"scene: {out / 'scene'}   result: {out / 'run'}   accuracy: {out / 'accuracy.json'}")
+
+
+app.command("calibrate")(fail_cleanly(calibrate_command))
 
 
 @app.callback()

@@ -1,0 +1,66 @@
+"""The workflows/ scripts run end to end on small rendered scenes and give accurate results."""
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from rigsfm.synth.dataset import render_dataset
+from rigsfm.synth.scene import SceneOptions
+
+WORKFLOWS = Path(__file__).resolve().parents[1] / "workflows"
+
+
+def run_workflow(name, *args):
+    completed = subprocess.run([sys.executable, str(WORKFLOWS / name), *map(str, args)],
+                               capture_output=True, text=True, timeout=600)
+    assert completed.returncode == 0, completed.stderr[-3000:]
+    return completed.stdout
+
+
+def test_every_workflow_has_a_docstring_and_usage():
+    for path in WORKFLOWS.glob("*.py"):
+        text = path.read_text()
+        assert text.startswith('"""') and "python workflows/" in text, path
+
+
+def test_full_circle(tmp_path):
+    out = run_workflow("full_circle.py", tmp_path, "--num-rigs", 4, "--image-scale", 0.5)
+    accuracy = json.loads((tmp_path / "accuracy.json").read_text())
+    assert accuracy["narrow"]["registered"] == accuracy["narrow"]["total"] == 4
+    assert accuracy["narrow"]["relative_rotation_deg"]["max"] <= (
+        1.1 * accuracy["oracle_narrow"]["relative_rotation_deg"]["max"] + 1e-3)
+    assert "narrow cameras registered: 4/4" in out
+
+
+@pytest.mark.parametrize("mapper", ["incremental", "global"])
+def test_two_rigs_sixty_degrees_apart(tmp_path, mapper):
+    out = run_workflow("two_rigs.py", tmp_path, "--mapper", mapper, "--image-scale", 0.5)
+    accuracy = json.loads((tmp_path / "accuracy.json").read_text())
+    assert accuracy["narrow"]["registered"] == 2
+    assert accuracy["narrow"]["relative_rotation_deg"]["max"] <= (
+        1.1 * accuracy["oracle_narrow"]["relative_rotation_deg"]["max"] + 1e-3)
+    assert abs(accuracy["narrow"]["distance_error_percent"]["max"]) < 0.5
+    assert "narrow relative rotation error" in out
+
+
+def test_global_mapper(tmp_path):
+    out = run_workflow("global_mapper.py", tmp_path, "--num-rigs", 4, "--image-scale", 0.5)
+    accuracy = json.loads((tmp_path / "accuracy.json").read_text())
+    assert accuracy["narrow"]["registered"] == 4
+    assert accuracy["narrow"]["relative_rotation_deg"]["max"] <= (
+        1.1 * accuracy["oracle_narrow"]["relative_rotation_deg"]["max"] + 1e-3)
+    assert "global mapper: 4/4 narrow cameras" in out
+
+
+def test_own_folders(tmp_path):
+    dataset = render_dataset(tmp_path / "scene", SceneOptions(num_rigs=2, arc_deg=60.0, image_scale=0.5, seed=4))
+    out = run_workflow("own_folders.py", dataset.images, dataset.rigs, tmp_path / "out", "--scale", dataset.scale)
+    assert "rig01/narrow/frame0000.png -> rig02/narrow/frame0000.png" in out and "F_ji" in out
+    poses = json.loads((tmp_path / "out" / "narrow_poses.json").read_text())
+    truth = dataset.load_ground_truth()
+    a, b = (truth.find_image_with_name(f"rig0{i}/narrow/frame0000.png").projection_center() for i in (1, 2))
+    true_distance = float(((a - b) ** 2).sum() ** 0.5)
+    assert poses["pairs"][0]["distance_m"] == pytest.approx(true_distance, rel=0.005)

@@ -7,6 +7,9 @@
 - ``centre_direction_in_i``: unit vector from camera i's centre to camera j's, in camera i's frame.
 - ``F_ji``: x_j^T F_ji x_i = 0 for homogeneous COLMAP pixels (first pixel centre (0.5, 0.5)) of the
   *undistorted* images (pinhole part of each camera); ``E_ji`` the same for normalised coordinates.
+- ``epipolar_band_95_px``: half-width of the band around the epipolar line in j (pinhole pixels of j) that
+  holds the true correspondence of a point of image i with 95 % probability, from the bundle-adjustment
+  covariance of the rig poses (see ``rigsfm.uncertainty``); null when it cannot be estimated.
 """
 
 from __future__ import annotations
@@ -22,6 +25,7 @@ from rigsfm.errors import WorkspaceError
 from rigsfm.conventions import euler_zyx_degrees, wxyz_from_rotation
 from rigsfm.io import atomic_directory, write_json_atomic
 from rigsfm.rigs import camera_to_dict
+from rigsfm.uncertainty import narrow_epipolar_bands
 
 logger = logging.getLogger(__name__)
 
@@ -34,6 +38,12 @@ CONVENTIONS = {
     "centre_direction_in_i": "unit vector from centre i to centre j, in camera i's frame",
     "F_ji": "x_j^T F_ji x_i = 0, homogeneous COLMAP pixels of undistorted images (pinhole K of each camera)",
     "E_ji": "[t]_x R of narrow_j_from_narrow_i",
+    "epipolar_band_95_px": "half-width (pinhole px of j) of the band around the epipolar line of a point of i "
+                           "that holds its true correspondence with 95 % probability: the largest over a grid "
+                           "of image i and every depth at which the point appears in image j "
+                           "(epipolar_band_depth_range_m, metres in camera i); from the bundle-adjustment "
+                           "covariance of the rig poses with intrinsics and E^sl held exact (errors of "
+                           "rigs.yaml itself are not included); null if it could not be estimated",
 }
 
 
@@ -62,9 +72,12 @@ def narrow_images(reconstruction: pycolmap.Reconstruction) -> list[pycolmap.Imag
     )
 
 
-def narrow_poses(reconstruction: pycolmap.Reconstruction, *, metric: bool) -> dict:
+def narrow_poses(reconstruction: pycolmap.Reconstruction, *, metric: bool, uncertainty: bool = True) -> dict:
     """The narrow-camera deliverable as a JSON-ready dict."""
     images = narrow_images(reconstruction)
+    bands = {}
+    if uncertainty and len(images) >= 2:
+        bands = narrow_epipolar_bands(reconstruction, [(a.name, b.name) for a, b in itertools.combinations(images, 2)])
     entries = []
     for image in images:
         camera = reconstruction.cameras[image.camera_id]
@@ -95,6 +108,8 @@ def narrow_poses(reconstruction: pycolmap.Reconstruction, *, metric: bool) -> di
                 "distance_m" if metric else "distance_units": distance,
                 "E_ji": np.asarray(pycolmap.essential_matrix_from_pose(j_from_i)).tolist(),
                 "F_ji": fundamental_matrix(j_from_i, camera_i, camera_j).tolist(),
+                "epipolar_band_95_px": bands.get((image_i.name, image_j.name), {}).get("band_px"),
+                "epipolar_band_depth_range_m": bands.get((image_i.name, image_j.name), {}).get("depth_range_m"),
             }
         )
     return {"metric": metric, "units": "meters" if metric else "arbitrary", "conventions": CONVENTIONS,

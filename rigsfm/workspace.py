@@ -27,6 +27,11 @@ class Workspace:
         return self.root / "mapping"
 
     @property
+    def mapping_database(self) -> Path:
+        """The database copy the mapper reads (see ``mapping.mapping_database``)."""
+        return self.root / "mapping.db"
+
+    @property
     def sparse(self) -> Path:
         """Final metric COLMAP model with rigs, frames, wide and narrow images."""
         return self.root / "sparse"

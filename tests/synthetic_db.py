@@ -40,7 +40,7 @@ def _project(camera: pycolmap.Camera, cam_from_world: pycolmap.Rigid3d, xyz: np.
 
 
 def make_network(root: Path, num_rigs: int = 4, seed: int = 0, noise_px: float = 0.5,
-                 num_points: int = 600) -> SyntheticNetwork:
+                 num_points: int = 600, narrow_observations: bool = False) -> SyntheticNetwork:
     rng = np.random.default_rng(seed)
     pycolmap.set_random_seed(seed)
     options = pycolmap.SyntheticDatasetOptions(
@@ -81,7 +81,7 @@ def make_network(root: Path, num_rigs: int = 4, seed: int = 0, noise_px: float =
         for image in sorted(synthetic.images.values(), key=lambda im: im.image_id):
             database.write_image(pycolmap.Image(name=image.name, camera_id=image.camera_id,
                                                 image_id=image.image_id), use_image_id=True)
-            if "/narrow/" in image.name:
+            if "/narrow/" in image.name and not narrow_observations:
                 database.write_keypoints(image.image_id, np.zeros((0, 2), dtype=np.float32))
                 continue
             camera = synthetic.cameras[image.camera_id]

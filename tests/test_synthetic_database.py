@@ -78,3 +78,19 @@ def test_without_scale_the_result_is_flagged_non_metric(tmp_path):
     assert result.scale_source == ScaleSource.NONE
     assert result.scale is None
     assert isinstance(result.reconstruction, pycolmap.Reconstruction)
+
+
+def test_scale_from_narrow_baselines_with_honest_uncertainty(tmp_path):
+    """Textured narrow views: the metric E^sl baselines alone set the scale, and its reported
+    uncertainty covers the actual error."""
+    net = make_network(tmp_path, num_rigs=4, seed=11, narrow_observations=True, noise_px=0.5)
+    mapped = run_mapping(net.database, tmp_path, tmp_path / "mapping", MappingOptions(), 4,
+                         keep_narrow_offsets=True)
+    result = apply_rig_constraints(mapped, net.rigs, None)
+    assert result.scale_source == ScaleSource.NARROW_BASELINES
+    a, b = "rig01/wide/frame0000.png", "rig03/wide/frame0000.png"
+    estimated = _gt_distance(result.reconstruction, a, b)
+    relative_error = abs(estimated / _gt_distance(net.ground_truth, a, b) - 1.0)
+    sigma = result.scale_relative_sigma
+    assert 0 < sigma < 0.05
+    assert relative_error < 4 * sigma, (relative_error, sigma)

@@ -30,6 +30,7 @@ class MatchingOptions:
     rig_verification: bool = False  # verify pairs with the rigs' generalized relative pose
     narrow_features: bool = False
     max_error_px: float = 4.0  # RANSAC threshold of the two-view geometry
+    max_homography_inlier_ratio: float = 0.95
     num_threads: int = -1
 
 
@@ -99,6 +100,9 @@ def match_features(
     matching.sift.cross_check = options.cross_check
     verification = pycolmap.TwoViewGeometryOptions()
     verification.ransac.max_error = options.max_error_px
+    # Calibrated cameras: keep the essential-matrix model unless a homography explains nearly every
+    # inlier (COLMAP's 0.8 labels far walls seen by distant rigs "planar" and the mappers then fail).
+    verification.max_H_inlier_ratio = options.max_homography_inlier_ratio
     verification.ransac.random_seed = 0
     for start in range(0, len(todo), batch_size):
         batch = todo[start : start + batch_size]

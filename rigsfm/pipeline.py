@@ -21,6 +21,7 @@ from rigsfm.inputs import ImageEntry, scan_images
 from rigsfm.io import write_json_atomic
 from rigsfm.mapping import MappingOptions, run_mapping
 from rigsfm.rig_constraint import RigConstraintOptions, RigConstraintResult, ScaleSource, apply_rig_constraints
+from rigsfm.report import write_report
 from rigsfm.residuals import reprojection_errors
 from rigsfm.rigs import RigCalibration, load_rigs
 from rigsfm.scale_file import ScaleSpec, load_scale
@@ -203,6 +204,8 @@ def run(
             write_points_ply(result.reconstruction, workspace.points_ply, overwrite=True)
     summary = build_summary(inputs, options, result, timings)
     write_json_atomic(workspace.summary, summary)
+    with timings.stage("report"):
+        write_report(workspace.root)
     if summary["registered"]["wide"]["registered"] < 2:
         raise ReconstructionError("fewer than two wide images were registered")
     return RunResult(workspace, result.reconstruction, summary)

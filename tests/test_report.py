@@ -1,0 +1,183 @@
+"""report.html, `rigsfm view --screenshot` and `rigsfm export` on one rendered 3-rig scene run once.
+
+Real clients read the outputs: headless Chromium (the report), Open3D (every Open3D file), Debian's colmap
+3.8 (the COLMAP export); nerfstudio's camera convention is checked by projecting points with it.
+"""
+
+import json
+import shutil
+import subprocess
+
+import cv2
+import numpy as np
+import pycolmap
+import pytest
+import typer
+from typer.testing import CliRunner
+
+from rigsfm.errors import WorkspaceError
+from rigsfm.exporters import ExportFormat, export, export_command
+from rigsfm.pipeline import run
+from rigsfm.report import report_command
+from rigsfm.synth.dataset import render_dataset
+from rigsfm.synth.scene import SceneOptions
+from rigsfm.viewer import NARROW_RGB, WIDE_RGB, view_command
+
+NAMES = sorted(f"rig0{i}/{s}/frame0000.png" for i in (1, 2, 3) for s in ("narrow", "wide"))
+
+
+@pytest.fixture(scope="module")
+def result(tmp_path_factory):
+    root = tmp_path_factory.mktemp("report")
+    dataset = render_dataset(root / "scene", SceneOptions(num_rigs=3, arc_deg=120.0, image_scale=0.5, seed=1))
+    out = root / "out"
+    run(dataset.images, dataset.rigs, out, dataset.scale)
+    return dataset, out, pycolmap.Reconstruction(out / "sparse")
+
+
+def cli(command, name: str):
+    app = typer.Typer()
+    app.command(name)(command)
+    app.command("unused")(lambda: None)  # two commands: typer then expects the command name
+    return app
+
+
+def test_run_writes_report_with_bands(result):
+    _, out, _ = result
+    narrow = json.loads((out / "narrow_poses.json").read_text())
+    assert "epipolar_band_95_px" in narrow["conventions"]
+    for pair in narrow["pairs"]:
+        assert 0.05 < pair["epipolar_band_95_px"] < 20.0
+        near, far = pair["epipolar_band_depth_range_m"]
+        assert 1.0 < near < far < 200.0  # the rigs are 15 m from the centre they look at
+    page = (out / "report.html").read_text()
+    assert "<script" not in page and 'src="http' not in page and 'href="http' not in page and "url(" not in page
+    assert page.count('src="data:image/png;base64,') == 3  # one epipolar figure per narrow pair
+    assert f"{narrow['pairs'][0]['epipolar_band_95_px']:.3g}" in page
+
+
+def test_report_opens_in_headless_chromium(result, tmp_path):
+    playwright = pytest.importorskip("playwright.sync_api")
+    if shutil.which("chromium") is None:
+        pytest.skip("Debian's chromium is not installed (scripts/setup.sh)")
+    _, out, _ = result
+    runner = CliRunner().invoke(cli(report_command, "report"), ["report", str(out)])
+    assert runner.exit_code == 0, runner.output
+    messages = []
+    with playwright.sync_playwright() as p:
+        browser = p.chromium.launch(executable_path="/usr/bin/chromium", headless=True,
+                                    args=["--no-sandbox", "--disable-gpu", "--disable-background-networking"])
+        page = browser.new_page(viewport={"width": 1280, "height": 900})
+        page.on("console", lambda m: messages.append(f"{m.type}: {m.text}") if m.type in ("error", "warning") else None)
+        page.on("pageerror", lambda e: messages.append(str(e)))
+        page.on("request", lambda r: messages.append(f"request {r.url}") if not r.url.startswith(("file:", "data:")) else None)
+        page.goto((out / "report.html").as_uri())
+        title = page.title()
+        headings = page.locator("h2").all_inner_texts()
+        pair_rows = page.locator("h2:text('Narrow camera pairs') + p + table tbody tr").count()
+        figure_sizes = page.eval_on_selector_all("figure img", "els => els.map(e => [e.naturalWidth, e.naturalHeight])")
+        page.screenshot(path=str(tmp_path / "report.png"), full_page=True)
+        browser.close()
+    assert messages == []
+    assert title.startswith("rigsfm report")
+    assert {"Summary", "Reprojection error per camera", "Network (top view)", "Narrow camera pairs", "Uncertainty",
+            "Epipolar check"} <= set(headings)
+    assert pair_rows == 3
+    assert len(figure_sizes) == 3 and all(w > 500 and h > 150 for w, h in figure_sizes)
+    shot = cv2.imread(str(tmp_path / "report.png"))
+    assert shot.shape[0] > 2000 and shot.std() > 20  # a long page with content, not a blank one
+
+
+def test_view_screenshot_shows_both_frustums(result, tmp_path):
+    _, out, _ = result
+    path = tmp_path / "view.png"
+    runner = CliRunner().invoke(cli(view_command, "view"), ["view", str(out), "--screenshot", str(path)])
+    assert runner.exit_code == 0, runner.output
+    image = cv2.imread(str(path))[..., ::-1].reshape(-1, 3).astype(int)
+    assert image.shape[0] == 1280 * 800
+    for colour in (WIDE_RGB, NARROW_RGB):
+        close = np.abs(image - 255 * np.array(colour)).max(axis=1) < 40
+        assert close.sum() > 100, colour
+
+
+def test_open3d_export_reads_back(result, tmp_path):
+    import open3d as o3d
+
+    _, out, rec = result
+    dest = export(out, ExportFormat.OPEN3D, tmp_path / "o3d")
+    assert len(o3d.io.read_point_cloud(str(dest / "points.ply")).points) == rec.num_points3D()
+    lines = o3d.io.read_line_set(str(dest / "frustums.ply"))
+    assert len(lines.lines) >= 6 * 8  # 8 edges per frustum at least
+    trajectory = o3d.io.read_pinhole_camera_trajectory(str(dest / "trajectory.json"))
+    names = json.loads((dest / "cameras.json").read_text())["trajectory_entries"]
+    assert sorted(names) == NAMES and len(trajectory.parameters) == 6
+    for name, params in zip(names, trajectory.parameters):
+        image = rec.find_image_with_name(name)
+        camera = rec.cameras[image.camera_id]
+        np.testing.assert_allclose(params.extrinsic[:3], image.cam_from_world().matrix(), atol=1e-9)
+        k = params.intrinsic.intrinsic_matrix
+        assert k[0, 2] == pytest.approx(camera.principal_point_x - 0.5) and k[0, 0] == pytest.approx(camera.focal_length_x)
+
+
+@pytest.mark.skipif(shutil.which("colmap") is None, reason="Debian's colmap is not installed (scripts/setup.sh)")
+@pytest.mark.parametrize("fmt", ["colmap-bin", "colmap-txt"])
+def test_colmap_export_opens_in_debian_colmap(result, tmp_path, fmt):
+    _, out, rec = result
+    runner = CliRunner().invoke(cli(export_command, "export"), ["export", str(out), "--format", fmt, "--dest",
+                                                                 str(tmp_path / "model")])
+    assert runner.exit_code == 0, runner.output
+    analysis = subprocess.run(["colmap", "model_analyzer", "--path", str(tmp_path / "model")], capture_output=True,
+                              text=True, check=True)
+    text = analysis.stdout + analysis.stderr
+    assert "Registered images: 6" in text and f"Points: {rec.num_points3D()}" in text
+    subprocess.run(["colmap", "model_converter", "--input_path", str(tmp_path / "model"), "--output_path",
+                    str(tmp_path), "--output_type", "TXT"], capture_output=True, check=True)
+    rows = [line.split() for line in (tmp_path / "images.txt").read_text().splitlines() if not line.startswith("#")]
+    poses = {row[9]: [float(v) for v in row[1:8]] for row in rows if len(row) == 10}
+    assert sorted(poses) == NAMES
+    for name, (qw, qx, qy, qz, tx, ty, tz) in poses.items():  # colmap 3.8 wrote back what we exported
+        image = rec.find_image_with_name(name)
+        np.testing.assert_allclose([tx, ty, tz], image.cam_from_world().translation, atol=1e-6)
+        np.testing.assert_allclose(pycolmap.Rotation3d(np.array([qx, qy, qz, qw])).matrix(),
+                                   image.cam_from_world().rotation.matrix(), atol=1e-6)
+
+
+def test_nerfstudio_transforms_project_like_colmap(result, tmp_path):
+    dataset, out, rec = result
+    dest = export(out, ExportFormat.NERFSTUDIO, tmp_path / "ns")
+    data = json.loads((dest / "transforms.json").read_text())
+    assert np.allclose(data["applied_transform"], np.eye(4)[:3]) and (dest / data["ply_file_path"]).is_file()
+    xyz = np.array([p.xyz for p in rec.points3D.values()])
+    for frame in data["frames"]:
+        image = rec.find_image_with_name(frame["rigsfm_name"])
+        assert frame["file_path"] == str((dataset.images / image.name).resolve())
+        assert frame["camera_model"] == "OPENCV" and (frame["w"], frame["h"]) == (812, 617)
+        c2w = np.array(frame["transform_matrix"])
+        in_gl = (xyz - c2w[:3, 3]) @ c2w[:3, :3]  # OpenGL camera: x right, y up, looking down -z
+        front = in_gl[:, 2] < 0
+        u = frame["cx"] + frame["fl_x"] * in_gl[front, 0] / -in_gl[front, 2]  # nerfstudio: pixel centres +0.5
+        v = frame["cy"] - frame["fl_y"] * in_gl[front, 1] / -in_gl[front, 2]
+        pinhole = np.asarray(image.cam_from_world() * xyz[front]) @ np.asarray(
+            rec.cameras[image.camera_id].calibration_matrix()).T
+        np.testing.assert_allclose(np.column_stack([u, v]), pinhole[:, :2] / pinhole[:, 2:], atol=1e-6)
+
+
+def test_json_export_and_overwrite_refused(result, tmp_path):
+    _, out, rec = result
+    dest = export(out, ExportFormat.JSON, tmp_path / "json")
+    images = json.loads((dest / "poses.json").read_text())["images"]
+    assert sorted(i["name"] for i in images) == NAMES
+    for entry in images:
+        image = rec.find_image_with_name(entry["name"])
+        np.testing.assert_allclose(entry["centre"], image.projection_center(), atol=1e-9)
+    with pytest.raises(WorkspaceError, match="--overwrite"):
+        export(out, ExportFormat.JSON, dest)
+
+
+def test_commands_on_a_folder_without_result_fail_cleanly(tmp_path):
+    from rigsfm.cli import fail_cleanly
+
+    for command, name, extra in ((report_command, "report", []), (view_command, "view", ["--screenshot", "x.png"]),
+                                 (export_command, "export", ["--format", "json"])):
+        runner = CliRunner().invoke(cli(fail_cleanly(command), name), [name, str(tmp_path), *extra])
+        assert runner.exit_code == 1 and "run `rigsfm run` first" in runner.output, runner.output

@@ -31,8 +31,11 @@ def png_data_uri(image_bgr: np.ndarray) -> str:
 
 def pick_points(image_gray: np.ndarray, camera: pycolmap.Camera, count: int = 8) -> np.ndarray:
     """Strongest corners of a narrow image (COLMAP pixels), topped up from a grid where it is homogeneous."""
+    mask = np.zeros(image_gray.shape, np.uint8)
+    h, w = image_gray.shape
+    mask[int(0.06 * h):int(0.94 * h), int(0.06 * w):int(0.94 * w)] = 255  # not on the border
     corners = cv2.goodFeaturesToTrack(image_gray, maxCorners=count, qualityLevel=0.05,
-                                      minDistance=0.15 * min(image_gray.shape))
+                                      minDistance=0.15 * min(image_gray.shape), mask=mask)
     points = [] if corners is None else [c.ravel() + 0.5 for c in corners]
     grid = [(camera.width * x, camera.height * y) for y in (0.3, 0.5, 0.7) for x in (0.25, 0.5, 0.75)]
     for g in grid:

@@ -16,6 +16,12 @@ import yaml
 from rigsfm.errors import InputError, WorkspaceError
 
 
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
 def _check_overwrite(path: Path, overwrite: bool) -> None:
     if path.exists() and not overwrite:
         raise WorkspaceError(f"{path} already exists: pass --overwrite to replace it")
@@ -30,6 +36,7 @@ def write_text_atomic(path: Path, text: str, *, overwrite: bool = True) -> Path:
     try:
         with os.fdopen(fd, "w", encoding="utf-8") as f:
             f.write(text)
+        os.chmod(tmp, 0o666 & ~_umask())  # mkstemp makes 0600; give the file the usual permissions
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
@@ -48,6 +55,7 @@ def atomic_directory(path: Path, *, overwrite: bool = True) -> Iterator[Path]:
     _check_overwrite(path, overwrite)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent))
+    os.chmod(tmp, 0o777 & ~_umask())  # mkdtemp makes 0700
     try:
         yield tmp
         if path.exists():

@@ -1,0 +1,116 @@
+"""One method on one rendered scene, in its own process (so the parent can read its peak RSS).
+
+``python -m benchmarks.worker METHOD SCENE OUT [--estimate MODEL]`` writes ``OUT/model`` (a COLMAP
+model, if the method produced one) and ``OUT/worker.json`` (time of the method itself, after the common
+imports; per-stage timings; the process's peak RSS; method-specific facts). METHOD: rigsfm-incremental, rigsfm-global, paper, colmap, oracle
+(needs --estimate: the rigsfm model whose observations it re-uses), idle (imports only: the floor of
+the peak memory).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import shutil
+import sys
+import time
+import traceback
+from pathlib import Path
+
+METHODS = ("rigsfm-incremental", "rigsfm-global", "paper", "colmap", "oracle", "idle")
+
+
+def import_common() -> None:
+    """Heavy imports shared by every method, done before the clock starts (and all that ``idle`` does)."""
+    import cv2  # noqa: F401
+    import pycolmap  # noqa: F401
+    import scipy.optimize  # noqa: F401
+
+    import rigsfm.evaluation
+    import rigsfm.pipeline  # noqa: F401
+
+
+def peak_rss_mb() -> float | None:
+    """This process's peak resident memory (VmHWM), C++ allocations included.
+
+    Not ``ru_maxrss`` from the parent's ``wait4``: Linux carries the parent's peak RSS at fork over
+    the exec into the child's ru_maxrss, so every child would report at least the parent's size.
+    """
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith("VmHWM:"):
+            return round(int(line.split()[1]) / 1024, 1)
+    return None
+
+
+def run_method(method: str, scene: Path, out: Path, estimate: Path | None) -> dict:
+    import pycolmap
+
+    if method == "idle":
+        return {"timings_s": {}, "metric": False}
+    if method.startswith("rigsfm-"):
+        from rigsfm.mapping import Mapper, MappingOptions
+        from rigsfm.pipeline import RunOptions, run
+
+        options = RunOptions(mapping=MappingOptions(mapper=Mapper(method.removeprefix("rigsfm-"))))
+        result = run(scene / "images", scene / "rigs.yaml", out / "run", scene / "scale.yaml", options)
+        shutil.copytree(out / "run" / "sparse", out / "model")
+        return {"timings_s": result.summary["timings_s"], "metric": result.summary["metric"],
+                "scale": result.summary["scale"]["source"], "warnings": result.summary["warnings"]}
+    if method == "paper":
+        from benchmarks.baselines.paper import run_paper
+
+        rec, report = run_paper(scene)
+        (out / "model").mkdir()
+        rec.write(out / "model")
+        return report
+    if method == "colmap":
+        from benchmarks.baselines.plain_colmap import run_plain_colmap
+
+        rec, report = run_plain_colmap(scene / "images", out / "work")
+        if rec is not None:
+            (out / "model").mkdir()
+            rec.write(out / "model")
+        return {**report, "metric": False}
+    if method == "oracle":
+        from rigsfm.evaluation import oracle
+        from rigsfm.pipeline import load_inputs
+
+        if estimate is None:
+            raise ValueError("oracle needs --estimate")
+        inputs = load_inputs(scene / "images", scene / "rigs.yaml", scene / "scale.yaml")
+        truth = pycolmap.Reconstruction(scene / "ground_truth")
+        start = time.perf_counter()
+        rec = oracle(pycolmap.Reconstruction(estimate), truth, inputs.rigs, inputs.scale)
+        (out / "model").mkdir()
+        rec.write(out / "model")
+        return {"timings_s": {"oracle": round(time.perf_counter() - start, 3)}, "metric": True}
+    raise ValueError(f"unknown method {method!r}; use one of {', '.join(METHODS)}")
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("method", choices=METHODS)
+    parser.add_argument("scene", type=Path)
+    parser.add_argument("out", type=Path)
+    parser.add_argument("--estimate", type=Path)
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.WARNING)
+    args.out.mkdir(parents=True, exist_ok=True)
+    shutil.rmtree(args.out / "model", ignore_errors=True)
+    import_common()
+    start = time.perf_counter()
+    try:
+        report = run_method(args.method, args.scene, args.out, args.estimate)
+        report.update(ok=True, error=None)
+    except Exception as error:  # noqa: BLE001  (recorded, not raised: a failure is a benchmark result)
+        report = {"ok": False, "error": f"{type(error).__name__}: {error}", "traceback": traceback.format_exc()}
+    report["method"] = args.method
+    report["time_s"] = round(time.perf_counter() - start, 3)
+    report["peak_rss_mb"] = peak_rss_mb()
+    (args.out / "worker.json").write_text(json.dumps(report, indent=1, default=str))
+    return 0 if report["ok"] else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

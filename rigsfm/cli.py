@@ -15,7 +15,7 @@ from rich.table import Table
 
 from rigsfm.calibrate.command import calibrate_command
 from rigsfm.errors import RigsfmError
-from rigsfm.features import MatchingOptions
+from rigsfm.features import Features, MatchingOptions
 from rigsfm.mapping import Mapper, MappingOptions
 from rigsfm.pipeline import RunOptions, run
 
@@ -88,6 +88,22 @@ def print_summary(summary: dict, out: Path) -> None:
         console.print(f"[bold yellow]warning:[/] {warning}")
 
 
+def print_manual_matches(report: dict) -> None:
+    table = Table(title=f"manual matches ({report['file']})")
+    for column in ("image a", "image b", "given", "kept (inliers)", "automatic inliers", "verified after"):
+        table.add_column(column, justify="left" if column.startswith("image") else "right")
+    for pair in report["pairs"]:
+        table.add_row(pair["image_a"], pair["image_b"], str(pair["given"]), str(pair["kept"]),
+                      str(pair["automatic_inliers"]), str(pair["inliers_after"]))
+    console.print(table)
+    for pair in report["pairs"]:
+        for row in pair["rejected"]:
+            error = "-" if row["epipolar_error_px"] is None else f"{row['epipolar_error_px']:.1f} px"
+            console.print(f"  rejected line {row['line']}: {pair['image_a']} ({row['xy_a'][0]:.1f}, "
+                          f"{row['xy_a'][1]:.1f}) <-> {pair['image_b']} ({row['xy_b'][0]:.1f}, {row['xy_b'][1]:.1f}),"
+                          f" epipolar error {error}", highlight=False)
+
+
 @app.command("run")
 @fail_cleanly
 def run_command(
@@ -97,6 +113,11 @@ def run_command(
     scale: Annotated[Optional[Path], typer.Option("--scale", help="scale.yaml with metric measurements")] = None,
     mapper: Annotated[Mapper, typer.Option("--mapper")] = Mapper.INCREMENTAL,
     narrow_features: Annotated[bool, typer.Option("--narrow-features", help="also match narrow images")] = False,
+    features: Annotated[Features, typer.Option("--features", help="asift: affine-robust, for large perspective "
+                                               "changes between rigs (slower)")] = Features.SIFT,
+    manual_matches: Annotated[Optional[Path], typer.Option(
+        "--manual-matches", help="CSV image_a,x_a,y_a,image_b,x_b,y_b of hand-picked correspondences between "
+        "wide images (COLMAP pixels); see `rigsfm pick`")] = None,
     max_ratio: Annotated[float, typer.Option("--max-ratio", help="Lowe ratio test threshold")] = 0.8,
     cross_check: Annotated[bool, typer.Option("--cross-check/--no-cross-check", help="mutual matching")] = True,
     rig_verification: Annotated[bool, typer.Option("--rig-verification", help="verify pairs as rigs")] = False,
@@ -108,14 +129,18 @@ def run_command(
     configure_logging(verbose)
     options = RunOptions(
         matching=MatchingOptions(max_ratio=max_ratio, cross_check=cross_check,
-                                 rig_verification=rig_verification, narrow_features=narrow_features),
+                                 rig_verification=rig_verification, narrow_features=narrow_features,
+                                 features=features),
         mapping=MappingOptions(mapper=mapper, seed=seed),
         overwrite=overwrite,
+        manual_matches=manual_matches,
     )
     with Progress(TextColumn("{task.description:<15}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
                   console=console, transient=False) as progress:
         result = run(images, rigs, out, scale, options, progress=StageProgress(progress))
     print_summary(result.summary, out)
+    if "manual_matches" in result.summary:
+        print_manual_matches(result.summary["manual_matches"])
 
 
 def print_accuracy(accuracy: dict) -> None:

@@ -7,6 +7,7 @@ is homogeneous by design; features there only cost time and add outliers). Work 
 
 from __future__ import annotations
 
+import enum
 import itertools
 import logging
 from collections.abc import Callable, Sequence
@@ -22,8 +23,14 @@ logger = logging.getLogger(__name__)
 Progress = Callable[[int, int], None]
 
 
+class Features(enum.StrEnum):
+    SIFT = "sift"  # COLMAP's SIFT
+    ASIFT = "asift"  # affine-simulated SIFT (rigsfm.asift), for large perspective changes between rigs
+
+
 @dataclass(kw_only=True)
 class MatchingOptions:
+    features: Features = Features.SIFT
     max_ratio: float = 0.8  # Lowe's ratio test
     cross_check: bool = True  # mutual nearest neighbours
     max_num_features: int = 8192
@@ -46,12 +53,18 @@ def extract_features(
     progress: Progress | None = None,
     batch_size: int = 2,
 ) -> int:
-    """Extract SIFT for every image that has no keypoints yet; returns how many were extracted."""
+    """Extract SIFT (or ASIFT) for every image without keypoints yet; returns how many were extracted."""
     with pycolmap.Database.open(database_path) as database:
         ids = {image.name: image.image_id for image in database.read_all_images()}
         todo = [
             e.name for e in featured_images(images, options) if not database.exists_keypoints(ids[e.name])
         ]
+    if options.features == Features.ASIFT:
+        from rigsfm.asift import extract_asift
+
+        extract_asift(database_path, image_dir, todo, options.max_num_features, progress)
+        logger.info("Extracted ASIFT for %d images (%d already done)", len(todo), len(images) - len(todo))
+        return len(todo)
     extraction = pycolmap.FeatureExtractionOptions(num_threads=options.num_threads, use_gpu=False)
     extraction.sift.max_num_features = options.max_num_features
     for start in range(0, len(todo), batch_size):

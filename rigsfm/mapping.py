@@ -98,8 +98,11 @@ def relax_for_few_matches(pipeline: pycolmap.IncrementalPipelineOptions, best_in
     mapper = pipeline.mapper
     mapper.init_min_num_inliers = min(mapper.init_min_num_inliers, max(floor, best_inliers // 2))
     mapper.abs_pose_min_num_inliers = min(mapper.abs_pose_min_num_inliers, 2 * floor)
+    # Rigs far apart round an arena face each other: the baseline runs along the optical axes, which
+    # COLMAP's forward-motion guard (0.95) rejects although the points between them triangulate well.
+    mapper.init_max_forward_motion = 1.0
     logger.info("Few matches (best wide pair %d inliers): min_num_matches %d, init_min_num_inliers %d, "
-                "abs_pose_min_num_inliers %d", best_inliers, pipeline.min_num_matches,
+                "abs_pose_min_num_inliers %d, any forward motion", best_inliers, pipeline.min_num_matches,
                 mapper.init_min_num_inliers, mapper.abs_pose_min_num_inliers)
 
 

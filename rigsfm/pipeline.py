@@ -6,7 +6,7 @@ import contextlib
 import logging
 import time
 from collections.abc import Callable, Iterator
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -19,6 +19,8 @@ from rigsfm.export import write_model, write_narrow_poses, write_points_ply
 from rigsfm.features import MatchingOptions, extract_features, match_features
 from rigsfm.inputs import ImageEntry, scan_images
 from rigsfm.io import write_json_atomic
+from rigsfm.manual_matches import read_manual_matches, validate_manual_matches
+from rigsfm.manual_merge import add_manual_matches, manual_matches_summary
 from rigsfm.mapping import MappingOptions, run_mapping
 from rigsfm.rig_constraint import RigConstraintOptions, RigConstraintResult, ScaleSource, apply_rig_constraints
 from rigsfm.report import write_report
@@ -38,6 +40,7 @@ class RunOptions:
     mapping: MappingOptions = field(default_factory=MappingOptions)
     rig_constraint: RigConstraintOptions = field(default_factory=RigConstraintOptions)
     overwrite: bool = False
+    manual_matches: Path | None = None  # CSV of correspondences between wide images (rigsfm.manual_matches)
 
 
 @dataclass(frozen=True)
@@ -167,6 +170,8 @@ def run(
     timings = _Timings()
     with timings.stage("validate"):
         inputs = load_inputs(image_dir, rigs_path, scale_path)
+        manual_pairs = {} if options.manual_matches is None else validate_manual_matches(
+            options.manual_matches, read_manual_matches(options.manual_matches), inputs.images, inputs.rigs)
     workspace = Workspace(Path(out))
     workspace.prepare(overwrite=options.overwrite)
 
@@ -183,6 +188,13 @@ def run(
         with timings.stage("matching"):
             match_features(workspace.database, inputs.images, options.matching,
                            workspace.root / "pairs.txt", report("matching"))
+        manual_reports = []
+        if manual_pairs:
+            with timings.stage("manual_matches"):
+                manual_reports = add_manual_matches(workspace.database, manual_pairs, options.matching.max_error_px)
+        mapping_options = options.mapping
+        if manual_pairs:
+            mapping_options = replace(mapping_options, few_matches=True)
         with timings.stage("mapping"):
             done = [0]
 
@@ -191,8 +203,15 @@ def run(
                 if progress:
                     progress("mapping", min(done[0], num_wide), num_wide)
 
-            mapped = run_mapping(workspace.database, inputs.image_dir, workspace.mapping, options.mapping,
-                                 num_wide, on_registered)
+            try:
+                mapped = run_mapping(workspace.database, inputs.image_dir, workspace.mapping, mapping_options,
+                                     num_wide, on_registered, mapping_db=workspace.mapping_database,
+                                     keep_narrow_offsets=options.matching.narrow_features)
+            except ReconstructionError as error:
+                if not manual_reports:
+                    raise
+                kept = "; ".join(f"{r.image_a} <-> {r.image_b}: {r.kept} of {r.given} kept" for r in manual_reports)
+                raise ReconstructionError(f"{error}. Manual matches: {kept}") from None
             if progress:
                 progress("mapping", mapped.num_reg_frames(), num_wide)
         with timings.stage("rig_constraint"):
@@ -203,6 +222,8 @@ def run(
             write_narrow_poses(result.reconstruction, workspace.narrow_poses, metric=metric, overwrite=True)
             write_points_ply(result.reconstruction, workspace.points_ply, overwrite=True)
     summary = build_summary(inputs, options, result, timings)
+    if options.manual_matches is not None:
+        summary["manual_matches"] = manual_matches_summary(options.manual_matches, manual_reports)
     write_json_atomic(workspace.summary, summary)
     with timings.stage("report"):
         write_report(workspace.root)

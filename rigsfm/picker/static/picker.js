@@ -1,0 +1,256 @@
+"use strict";
+// rigsfm pick: two wide images, click pairs, epipolar line of the point being placed (from 8 pairs on).
+// Image coordinates are COLMAP pixels: the image spans [0, width] x [0, height], so a CSS pixel of the
+// unscaled image maps 1:1 onto them.
+
+const SVGNS = "http://www.w3.org/2000/svg";
+const SIDES = ["a", "b"];
+const state = { images: [], pairs: [], pending: null, selected: -1, model: false, epi: null, info: {} };
+const views = { a: { s: 1, tx: 0, ty: 0 }, b: { s: 1, tx: 0, ty: 0 } };
+const $ = (id) => document.getElementById(id);
+
+function setStatus(text, error = false) {
+  const status = $("status");
+  status.textContent = text;
+  status.classList.toggle("error", error);
+}
+
+async function api(method, url, body) {
+  const response = await fetch(url, {
+    method, headers: body ? { "Content-Type": "application/json" } : {}, body: body ? JSON.stringify(body) : undefined,
+  });
+  const data = await response.json();
+  if (!response.ok) throw new Error(data.error || response.statusText);
+  return data;
+}
+
+function pendingKey() { return "rigsfm-pick:" + state.images.map((i) => i.name).join("|"); }
+function storePending() {
+  if (state.pending) localStorage.setItem(pendingKey(), JSON.stringify(state.pending));
+  else localStorage.removeItem(pendingKey());
+}
+
+function applyView(side) {
+  const v = views[side];
+  $("stage-" + side).style.transform = `translate(${v.tx}px, ${v.ty}px) scale(${v.s})`;
+  draw(side);
+}
+
+function fit(side) {
+  const image = state.images[side === "a" ? 0 : 1];
+  const rect = $("view-" + side).getBoundingClientRect();
+  const s = Math.min(rect.width / image.width, rect.height / image.height);
+  views[side] = { s, tx: (rect.width - image.width * s) / 2, ty: (rect.height - image.height * s) / 2 };
+  applyView(side);
+}
+
+function toImage(side, clientX, clientY) {
+  const rect = $("view-" + side).getBoundingClientRect();
+  const v = views[side];
+  return [(clientX - rect.left - v.tx) / v.s, (clientY - rect.top - v.ty) / v.s];
+}
+
+function toScreen(side, x, y) {
+  const rect = $("view-" + side).getBoundingClientRect();
+  const v = views[side];
+  return [rect.left + v.tx + x * v.s, rect.top + v.ty + y * v.s];
+}
+
+function svgElement(name, attrs, parent) {
+  const node = document.createElementNS(SVGNS, name);
+  for (const [k, v] of Object.entries(attrs)) node.setAttribute(k, v);
+  parent.appendChild(node);
+  return node;
+}
+
+function draw(side) {
+  const svg = $("svg-" + side);
+  const image = state.images[side === "a" ? 0 : 1];
+  if (!image) return;
+  svg.setAttribute("width", image.width);
+  svg.setAttribute("height", image.height);
+  svg.setAttribute("viewBox", `0 0 ${image.width} ${image.height}`);
+  svg.replaceChildren();
+  const r = 7 / views[side].s;
+  if (state.epi && state.epi.side === side && state.epi.polyline && state.epi.polyline.length > 1) {
+    svgElement("polyline", { class: "epipolar", id: "epipolar-" + side,
+      points: state.epi.polyline.map((p) => p.join(",")).join(" ") }, svg);
+  }
+  state.pairs.forEach((pair, i) => {
+    const [x, y] = pair[side];
+    const cls = (pair.flagged ? " flagged" : "") + (i === state.selected ? " selected" : "");
+    svgElement("circle", { class: "marker" + cls, cx: x, cy: y, r, "data-index": i }, svg);
+    const label = svgElement("text", { class: cls, x: x + r, y: y - r, "font-size": 12 / views[side].s }, svg);
+    label.textContent = String(i + 1);
+  });
+  if (state.pending && state.pending.side === side) {
+    const [x, y] = state.pending.xy;
+    svgElement("circle", { class: "marker pending", id: "pending", cx: x, cy: y, r: 1.4 * r }, svg);
+  }
+}
+
+function drawTable() {
+  const body = $("pairs").querySelector("tbody");
+  body.replaceChildren();
+  state.pairs.forEach((pair, i) => {
+    const row = document.createElement("tr");
+    row.className = (pair.flagged ? "flagged " : "") + (i === state.selected ? "selected" : "");
+    const cells = [i + 1, ...pair.a.map((v) => v.toFixed(2)), ...pair.b.map((v) => v.toFixed(2)),
+      pair.distance_px === null ? "-" : pair.distance_px.toFixed(2)];
+    for (const value of cells) {
+      const td = document.createElement("td");
+      td.textContent = value;
+      row.appendChild(td);
+    }
+    const td = document.createElement("td");
+    const remove = document.createElement("button");
+    remove.textContent = "×";
+    remove.title = "delete this pair";
+    remove.addEventListener("click", (e) => { e.stopPropagation(); removePair(i); });
+    td.appendChild(remove);
+    row.appendChild(td);
+    row.addEventListener("click", () => { state.selected = i === state.selected ? -1 : i; redraw(); });
+    body.appendChild(row);
+  });
+}
+
+function describe() {
+  const n = state.pairs.length;
+  const flagged = state.pairs.filter((p) => p.flagged).length;
+  const need = state.info.min_pairs - n;
+  const model = state.model
+    ? `epipolar lines from ${n} pairs (${state.info.calibrated ? "calibrated E" : "fundamental matrix"})`
+    : `epipolar lines from ${state.info.min_pairs} pairs on (${need} more)`;
+  const next = state.pending ? `; now click the partner in image ${state.pending.side === "a" ? "b" : "a"}` : "";
+  setStatus(`${n} pairs saved to ${state.info.csv}; ${model}; ${flagged} flagged (> ${state.info.flag_px} px)${next}`);
+}
+
+function redraw() { SIDES.forEach(draw); drawTable(); describe(); }
+
+function applyState(data) {
+  state.info = data;
+  state.images = data.images;
+  state.pairs = data.pairs;
+  state.model = data.model;
+  if (state.selected >= state.pairs.length) state.selected = -1;
+}
+
+async function updateEpipolar() {
+  state.epi = null;
+  if (state.pending && state.model) {
+    const [x, y] = state.pending.xy;
+    const data = await api("GET", `/api/epipolar?side=${state.pending.side}&x=${x}&y=${y}`);
+    state.epi = { side: state.pending.side === "a" ? "b" : "a", polyline: data.polyline };
+  }
+  redraw();
+}
+
+async function save() {
+  try {
+    const data = await api("PUT", "/api/pairs", { pairs: state.pairs.map((p) => [...p.a, ...p.b]) });
+    applyState(data);
+    await updateEpipolar();
+  } catch (error) {
+    setStatus("NOT SAVED: " + error.message, true);
+  }
+}
+
+async function place(side, xy) {
+  const image = state.images[side === "a" ? 0 : 1];
+  if (xy[0] < 0 || xy[1] < 0 || xy[0] > image.width || xy[1] > image.height) return;
+  if (state.pending && state.pending.side !== side) {
+    const pair = side === "b" ? { a: state.pending.xy, b: xy } : { a: xy, b: state.pending.xy };
+    state.pairs.push({ ...pair, distance_px: null, flagged: false });
+    state.pending = null;
+    storePending();
+    await save();
+  } else {
+    state.pending = { side, xy };
+    storePending();
+    await updateEpipolar();
+  }
+}
+
+async function undo() {
+  if (state.pending) {
+    state.pending = null;
+    storePending();
+    await updateEpipolar();
+  } else if (state.pairs.length) {
+    state.pairs.pop();
+    await save();
+  }
+}
+
+async function removePair(i) {
+  state.pairs.splice(i, 1);
+  state.selected = -1;
+  await save();
+}
+
+async function reload() {
+  try {
+    applyState(await api("GET", "/api/state?reload=1"));
+  } catch (error) {
+    setStatus("cannot load: " + error.message, true);
+    return;
+  }
+  const stored = localStorage.getItem(pendingKey());
+  state.pending = stored ? JSON.parse(stored) : null;
+  SIDES.forEach((side, k) => {
+    $("title-" + side).textContent = `${side}: ${state.images[k].name} (${state.images[k].width}x${state.images[k].height})`;
+    const img = $("img-" + side);
+    img.style.width = state.images[k].width + "px";
+    img.style.height = state.images[k].height + "px";
+  });
+  SIDES.forEach(fit);
+  await updateEpipolar();
+}
+
+function attach(side) {
+  const view = $("view-" + side);
+  let drag = null;
+  view.addEventListener("wheel", (e) => {
+    e.preventDefault();
+    const v = views[side];
+    const rect = view.getBoundingClientRect();
+    const s = Math.min(64, Math.max(0.05, v.s * Math.exp(-e.deltaY * 0.0015)));
+    const cx = e.clientX - rect.left, cy = e.clientY - rect.top;
+    views[side] = { s, tx: cx - (cx - v.tx) * (s / v.s), ty: cy - (cy - v.ty) * (s / v.s) };
+    applyView(side);
+  }, { passive: false });
+  view.addEventListener("mousedown", (e) => {
+    if (e.button !== 0) return;
+    drag = { x: e.clientX, y: e.clientY, tx: views[side].tx, ty: views[side].ty, moved: false };
+  });
+  window.addEventListener("mousemove", (e) => {
+    if (!drag) return;
+    const dx = e.clientX - drag.x, dy = e.clientY - drag.y;
+    if (Math.abs(dx) + Math.abs(dy) > 4) drag.moved = true;
+    if (drag.moved) {
+      views[side].tx = drag.tx + dx;
+      views[side].ty = drag.ty + dy;
+      applyView(side);
+    }
+  });
+  window.addEventListener("mouseup", (e) => {
+    if (!drag) return;
+    const wasClick = !drag.moved;
+    drag = null;
+    if (wasClick) place(side, toImage(side, e.clientX, e.clientY));
+  });
+}
+
+SIDES.forEach(attach);
+$("undo").addEventListener("click", undo);
+$("cancel").addEventListener("click", () => { state.pending = null; storePending(); updateEpipolar(); });
+$("save").addEventListener("click", save);
+$("reload").addEventListener("click", reload);
+$("fit").addEventListener("click", () => SIDES.forEach(fit));
+window.addEventListener("keydown", (e) => {
+  if ((e.ctrlKey || e.metaKey) && e.key === "z") { e.preventDefault(); undo(); }
+  if (e.key === "Escape") { state.pending = null; storePending(); updateEpipolar(); }
+});
+window.addEventListener("resize", () => SIDES.forEach(fit));
+
+window.picker = { state, views, toScreen, toImage, ready: reload() };

@@ -1,0 +1,129 @@
+"""rigsfm.track without images: verdicts on synthetic change series, the rig pose solver and its covariance."""
+
+import numpy as np
+import pycolmap
+import pytest
+
+from rigsfm.track.detect import Thresholds, classify
+from rigsfm.track.pose import RegistrationOptions, estimate_rig_pose, pose_covariance, rotation_vector
+
+DEG, MM = np.radians(1.0), 1e-3
+SIGMA = np.diag([0.003 * DEG] * 3 + [1.0 * MM] * 3) ** 2  # a well-registered frame: 0.003 deg, 1 mm
+
+
+def series(n, rng, jitter_deg=0.0, jitter_mm=0.0, noise=True):
+    """n changes [w, d] (rad, m): estimation noise of SIGMA plus zero-mean jitter of the given size."""
+    out = rng.multivariate_normal(np.zeros(6), SIGMA, n) if noise else np.zeros((n, 6))
+    directions = rng.normal(size=(n, 6))
+    directions[:, :3] /= np.linalg.norm(directions[:, :3], axis=1, keepdims=True)
+    directions[:, 3:] /= np.linalg.norm(directions[:, 3:], axis=1, keepdims=True)
+    return out + np.hstack([directions[:, :3] * jitter_deg * DEG, directions[:, 3:] * jitter_mm * MM])
+
+
+def verdict(changes, covariance=SIGMA):
+    frames = [f"f{i:03d}" for i in range(len(changes))]
+    return classify(frames, changes, [covariance] * len(changes), covariance, Thresholds())
+
+
+def test_still_rig_is_stable_and_never_flagged():
+    rng = np.random.default_rng(0)
+    for _ in range(20):
+        v = verdict(series(12, rng))
+        assert v.verdict == "stable" and not any(v.flagged) and v.steps == []
+
+
+def test_zero_mean_shake_above_threshold_is_shaking_not_moved():
+    rng = np.random.default_rng(1)
+    for _ in range(20):
+        v = verdict(series(12, rng, jitter_deg=0.1, jitter_mm=3.0))
+        assert v.verdict == "shaking" and v.steps == []
+        assert sum(v.flagged) >= 10
+
+
+@pytest.mark.parametrize("at", [3, 6, 9])
+def test_bump_is_a_step_at_the_right_frame(at):
+    rng = np.random.default_rng(at)
+    changes = series(12, rng, jitter_deg=0.02, jitter_mm=1.0)
+    bump = np.r_[np.array([0.0, 0.2, 0.1]) * DEG, np.array([10.0, 0.0, -5.0]) * MM]
+    changes[at:] += bump
+    v = verdict(changes)
+    assert v.verdict == "moved"
+    assert [s.index for s in v.steps] == [at] and v.steps[0].frame == f"f{at:03d}"
+    assert v.steps[0].rotation_deg == pytest.approx(np.degrees(np.linalg.norm(bump[:3])), abs=0.03)
+    assert v.steps[0].translation_mm == pytest.approx(1000 * np.linalg.norm(bump[3:]), abs=3.0)
+    assert v.flagged == [i >= at for i in range(12)]
+
+
+def test_moved_before_tracking_started_is_a_step_at_the_first_frame():
+    changes = series(8, np.random.default_rng(3)) + np.r_[np.array([0.0, 0.0, 0.3]) * DEG, np.zeros(3)]
+    v = verdict(changes)
+    assert v.verdict == "moved" and [s.index for s in v.steps] == [0]
+
+
+def test_a_bump_in_the_last_frames_is_not_yet_a_step():
+    changes = series(10, np.random.default_rng(4))
+    changes[8:, 2] += 0.3 * DEG
+    v = verdict(changes)
+    assert v.verdict == "shaking" and v.flagged == [False] * 8 + [True] * 2
+
+
+def test_shift_within_the_weak_direction_is_not_flagged():
+    """A wide camera seeing its map at one depth: 20 mm sideways with a compensating rotation is noise."""
+    weak = np.r_[np.array([0.0, 0.03, 0.0]) * DEG, np.array([20.0, 0.0, 0.0]) * MM]
+    weak /= np.linalg.norm(weak)
+    covariance = SIGMA + (0.025 / np.linalg.norm(weak[3:])) ** 2 * np.outer(weak, weak)  # 25 mm sigma along it
+    changes = np.array([s * 0.02 / np.linalg.norm(weak[3:]) * weak for s in (-1, 1, 0.5, -0.8, 1, -1)])
+    v = verdict(changes, covariance)
+    assert v.verdict == "stable" and not any(v.flagged)
+    assert verdict(changes).verdict != "stable"  # the same numbers with a tight covariance would be flagged
+
+
+def _projections(camera, cam_from_world, xyz):
+    m = cam_from_world.matrix()
+    return np.asarray(camera.img_from_cam(xyz @ m[:, :3].T + m[:, 3]))
+
+
+def test_generalized_pose_with_fixed_esl_recovers_the_rig_pose():
+    rng = np.random.default_rng(7)
+    wide = pycolmap.Camera(model="PINHOLE", width=800, height=600, params=[450, 450, 400, 300])
+    narrow = pycolmap.Camera(model="PINHOLE", width=800, height=600, params=[1800, 1800, 400, 300])
+    narrow_from_wide = pycolmap.Rigid3d(pycolmap.Rotation3d(axis_angle=np.array([0.17, 0.0, 0.0])),
+                                        np.array([-0.06, 0.0, 0.0]))
+    truth = pycolmap.Rigid3d(pycolmap.Rotation3d(axis_angle=np.array([0.01, -0.3, 0.02])), np.array([1.0, -2.0, 0.5]))
+    world_from_wide = truth.inverse().matrix()
+    wide_pts = np.column_stack([rng.uniform(-15, 15, 300), rng.uniform(-8, 4, 300), rng.uniform(30, 44, 300)])
+    narrow_dirs = np.column_stack([rng.uniform(-0.2, 0.2, 200), rng.uniform(-0.15, 0.15, 200), np.ones(200)])
+    narrow_in_wide = narrow_from_wide.inverse().matrix()
+    narrow_pts = (narrow_dirs * 15.0) @ narrow_in_wide[:, :3].T + narrow_in_wide[:, 3]
+    to_world = lambda p: p @ world_from_wide[:, :3].T + world_from_wide[:, 3]  # noqa: E731
+    xyz = {"wide": to_world(wide_pts), "narrow": to_world(narrow_pts)}
+    cameras = {"wide": wide, "narrow": narrow}
+    sensor_from_rig = {"wide": pycolmap.Rigid3d(), "narrow": narrow_from_wide}
+    correspondences = {s: (_projections(cameras[s], sensor_from_rig[s] * truth, xyz[s])
+                           + rng.normal(0, 0.2, (len(xyz[s]), 2)), xyz[s]) for s in cameras}
+    correspondences["narrow"][0][:20] += 50.0  # outliers
+    pose, inliers, used = estimate_rig_pose(correspondences, cameras, sensor_from_rig, RegistrationOptions())
+    assert used == ["wide", "narrow"] and inliers.sum() == 480 and not inliers[300:320].any()
+    assert np.degrees(pose.rotation.angle_to(truth.rotation)) < 0.005
+    assert np.linalg.norm(pose.inverse().translation - truth.inverse().translation) < 0.01
+    only_narrow = {"narrow": correspondences["narrow"]}
+    pose_n, _, used_n = estimate_rig_pose(only_narrow, cameras, sensor_from_rig, RegistrationOptions())
+    # Narrow field of view: weaker, but through E^sl in the rig frame (a wrong E^sl would be ~10 deg off).
+    assert used_n == ["narrow"] and np.degrees(pose_n.rotation.angle_to(truth.rotation)) < 0.1
+
+
+def test_pose_covariance_matches_monte_carlo():
+    rng = np.random.default_rng(0)
+    camera = pycolmap.Camera(model="PINHOLE", width=800, height=600, params=[450, 450, 400, 300])
+    xyz = np.column_stack([rng.uniform(-15, 15, 300), rng.uniform(-8, 4, 300), rng.uniform(38, 44, 300)])
+    exact = _projections(camera, pycolmap.Rigid3d(), xyz)
+    samples = []
+    for _ in range(80):
+        xy = exact + rng.normal(0, 0.2, exact.shape)
+        pose, _, _ = estimate_rig_pose({"wide": (xy, xyz)}, {"wide": camera}, {"wide": pycolmap.Rigid3d()},
+                                       RegistrationOptions())
+        samples.append(np.r_[rotation_vector(pose.rotation), pose.inverse().translation])
+    empirical = np.sqrt(np.diag(np.cov(np.array(samples).T)))
+    predicted = np.sqrt(np.diag(pose_covariance(pose, [(camera, pycolmap.Rigid3d(), xy, xyz)], np.eye(3))))
+    np.testing.assert_allclose(predicted, empirical, rtol=0.3)
+    assert predicted[3:].max() > 0.005  # the weak sideways shift: centimetres, though 0.2 px noise

@@ -15,9 +15,13 @@ from rich.table import Table
 
 from rigsfm.calibrate.command import calibrate_command
 from rigsfm.errors import RigsfmError
+from rigsfm.exporters import export_command
 from rigsfm.features import Features, MatchingOptions
 from rigsfm.mapping import Mapper, MappingOptions
+from rigsfm.picker import pick_command
 from rigsfm.pipeline import RunOptions, run
+from rigsfm.report import report_command
+from rigsfm.viewer import view_command
 
 app = typer.Typer(add_completion=False, no_args_is_help=True)
 console = Console()
@@ -120,7 +124,9 @@ def run_command(
         "wide images (COLMAP pixels); see `rigsfm pick`")] = None,
     max_ratio: Annotated[float, typer.Option("--max-ratio", help="Lowe ratio test threshold")] = 0.8,
     cross_check: Annotated[bool, typer.Option("--cross-check/--no-cross-check", help="mutual matching")] = True,
-    rig_verification: Annotated[bool, typer.Option("--rig-verification", help="verify pairs as rigs")] = False,
+    rig_verification: Annotated[Optional[bool], typer.Option(
+        "--rig-verification/--no-rig-verification",
+        help="verify pairs of frames as rigs [default: on, off with --narrow-features]")] = None,
     seed: Annotated[int, typer.Option("--seed")] = 0,
     overwrite: Annotated[bool, typer.Option("--overwrite", help="replace an existing result")] = False,
     verbose: Annotated[bool, typer.Option("--verbose", "-v")] = False,
@@ -192,6 +198,10 @@ def demo_command(
 
 
 app.command("calibrate")(fail_cleanly(calibrate_command))
+app.command("report")(fail_cleanly(report_command))
+app.command("view")(fail_cleanly(view_command))
+app.command("export")(fail_cleanly(export_command))
+app.command("pick")(fail_cleanly(pick_command))
 
 
 @app.callback()

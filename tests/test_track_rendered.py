@@ -136,7 +136,7 @@ def test_outputs_csv_plots_and_report_section(tracked):
 
 
 def test_cli_reruns_without_work_and_refuses_unknown_rigs(tracked, tmp_path):
-    root, recording, _, streamed = tracked
+    root, recording, _, _ = tracked
     app = typer.Typer()
     app.command()(track_command)
     result = CliRunner().invoke(app, [str(root / "out"), str(recording.images), "--workers", "1"])
@@ -147,3 +147,20 @@ def test_cli_reruns_without_work_and_refuses_unknown_rigs(tracked, tmp_path):
     cv2.imwrite(str(stray / "frame0000.png"), np.zeros((8, 8), np.uint8))
     result = CliRunner().invoke(app, [str(root / "out"), str(tmp_path / "images")])
     assert result.exit_code != 0 and "rig09" in str(result.exception)
+
+
+def test_wrong_image_size_is_an_input_error_and_the_rest_is_kept(tracked, tmp_path):
+    import shutil
+
+    from rigsfm.errors import InputError
+
+    root, _, _, streamed = tracked
+    out = tmp_path / "out"
+    shutil.copytree(root / "out", out)
+    bad = tmp_path / "images" / "rig01" / "wide" / "frame9999.png"
+    bad.parent.mkdir(parents=True)
+    cv2.imwrite(str(bad), np.zeros((8, 8), np.uint8))
+    with pytest.raises(InputError, match=r"rig01/wide/frame9999.png is 8x8; .* calibrated for 812x617"):
+        track(out, tmp_path / "images", workers=1)
+    kept = json.loads((out / "track" / "poses.json").read_text())
+    assert [f["frame"] for f in kept["rigs"]["rig01"]["frames"]] == [f"frame{i:04d}.png" for i in range(NUM_FRAMES)]

@@ -95,7 +95,7 @@ def test_generalized_pose_with_fixed_esl_recovers_the_rig_pose():
     narrow_dirs = np.column_stack([rng.uniform(-0.2, 0.2, 200), rng.uniform(-0.15, 0.15, 200), np.ones(200)])
     narrow_in_wide = narrow_from_wide.inverse().matrix()
     narrow_pts = (narrow_dirs * 15.0) @ narrow_in_wide[:, :3].T + narrow_in_wide[:, 3]
-    to_world = lambda p: p @ world_from_wide[:, :3].T + world_from_wide[:, 3]  # noqa: E731
+    to_world = lambda p: p @ world_from_wide[:, :3].T + world_from_wide[:, 3]
     xyz = {"wide": to_world(wide_pts), "narrow": to_world(narrow_pts)}
     cameras = {"wide": wide, "narrow": narrow}
     sensor_from_rig = {"wide": pycolmap.Rigid3d(), "narrow": narrow_from_wide}

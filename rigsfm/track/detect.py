@@ -22,6 +22,7 @@ covariance > ``significance_chi2``.
 
 from __future__ import annotations
 
+import itertools
 from dataclasses import asdict, dataclass, field
 
 import numpy as np
@@ -161,7 +162,7 @@ def classify(frames: list[str], changes: np.ndarray, covariances: np.ndarray, ba
     steps = _segment(changes, covariances, 0, len(changes), np.zeros(6), baseline_covariance, thresholds, frames)
     bounds = [0, *[s.index for s in steps], len(changes)]
     residuals = np.concatenate([changes[a:b] - np.median(changes[a:b], axis=0)
-                                for a, b in zip(bounds[:-1], bounds[1:]) if b > a])
+                                for a, b in itertools.pairwise(bounds) if b > a])
     rotation = np.degrees(np.linalg.norm(residuals[:, :3], axis=1))
     translation = 1000.0 * np.linalg.norm(residuals[:, 3:], axis=1)
     verdict = "moved" if steps else "shaking" if any(flagged) else "stable"

@@ -34,10 +34,10 @@ def _panel(image, y0: int, values, flagged, threshold: float, label: str, unit: 
     n = len(values)
 
     def px(i: int) -> int:
-        return int(round(x0 + (x1 - x0) * (0.5 if n == 1 else i / (n - 1))))
+        return round(x0 + (x1 - x0) * (0.5 if n == 1 else i / (n - 1)))
 
     def py(v: float) -> int:
-        return int(round(bottom - (bottom - top) * v / y_max))
+        return round(bottom - (bottom - top) * v / y_max)
 
     for t in ticks:
         cv2.line(image, (x0, py(t)), (x1, py(t)), LIGHT, 1)

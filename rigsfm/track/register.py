@@ -113,7 +113,7 @@ def register_frame(task: FrameTask, reference: ReferenceMap, options: Registrati
         xy, descriptors = extract_sift(image, options.max_num_features)
         keypoints, xyz = match_to_map(descriptors, reference, rig, options.max_ratio)
         correspondences[sensor] = (xy[keypoints], xyz)
-        record["sensors"][sensor] = {"features": int(len(xy)), "matches": int(len(keypoints))}
+        record["sensors"][sensor] = {"features": len(xy), "matches": len(keypoints)}
     estimate = estimate_rig_pose(correspondences, cameras, sensor_from_rig, options)
     if estimate is None:
         record["reason"] = f"fewer than {options.min_matches} 2D-3D matches, or RANSAC found no pose"

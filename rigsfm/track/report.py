@@ -23,10 +23,10 @@ def track_report_section(out: Path) -> str:
     poses = json.loads(paths.poses_json.read_text(encoding="utf-8"))
     t = poses["thresholds"]
     parts = ['<section id="track">', "<h2>Pose tracking</h2>",
-             f"<p>Thresholds: {t['rotation_deg']:g}&nbsp;deg, {t['translation_mm']:g}&nbsp;mm (and significant at "
-             f"chi&sup2; &gt; {t['significance_chi2']:g}); changes are measured from each rig's reference frame.</p>",
-             "<table><thead><tr><th>rig</th><th>verdict</th><th>frames</th><th>registered</th><th>flagged</th>"
-             "<th>steps (frame: deg, mm)</th><th>jitter RMS (deg, mm)</th></tr></thead><tbody>"]
+             (f"<p>Thresholds: {t['rotation_deg']:g}&nbsp;deg, {t['translation_mm']:g}&nbsp;mm (and significant at "
+              f"chi&sup2; &gt; {t['significance_chi2']:g}); changes are measured from each rig's reference frame.</p>"),
+             ("<table><thead><tr><th>rig</th><th>verdict</th><th>frames</th><th>registered</th><th>flagged</th>"
+              "<th>steps (frame: deg, mm)</th><th>jitter RMS (deg, mm)</th></tr></thead><tbody>")]
     for name, rig in poses["rigs"].items():
         v = rig["verdict"]
         registered = sum(f["status"] == "registered" for f in rig["frames"])

@@ -21,6 +21,7 @@ from rigsfm.mapping import Mapper, MappingOptions
 from rigsfm.picker import pick_command
 from rigsfm.pipeline import RunOptions, run
 from rigsfm.report import report_command
+from rigsfm.track.command import track_command
 from rigsfm.viewer import view_command
 
 app = typer.Typer(add_completion=False, no_args_is_help=True)
@@ -202,6 +203,7 @@ app.command("report")(fail_cleanly(report_command))
 app.command("view")(fail_cleanly(view_command))
 app.command("export")(fail_cleanly(export_command))
 app.command("pick")(fail_cleanly(pick_command))
+app.command("track")(fail_cleanly(track_command))
 
 
 @app.callback()

@@ -133,6 +133,10 @@ def test_outputs_csv_plots_and_report_section(tracked):
     reds = [int(np.sum((p[..., 2] > 180) & (p[..., 1] < 80) & (p[..., 0] < 80)))
             for p in (cv2.imdecode(np.frombuffer(base64.b64decode(i), np.uint8), cv2.IMREAD_COLOR) for i in images)]
     assert reds[2] > reds[0]
+    from rigsfm.report import write_report
+
+    report = write_report(root / "out").read_text()
+    assert '<section id="track">' in report and "moved" in report
 
 
 def test_cli_reruns_without_work_and_refuses_unknown_rigs(tracked, tmp_path):

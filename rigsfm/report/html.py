@@ -173,6 +173,10 @@ def render_page(out: Path, summary: dict | None, reconstruction: pycolmap.Recons
             "<h2>Network (top view)</h2>" + topdown_svg(reconstruction, units=units),
             pairs_section(narrow), uncertainty_section(narrow),
             epipolar_section(out, summary, reconstruction, narrow)]
+    if (out / "track" / "poses.json").is_file():  # `rigsfm track` results, when there are any
+        from rigsfm.track import track_report_section
+
+        body.append(track_report_section(out))
     return ('<!DOCTYPE html><html lang="en"><head><meta charset="utf-8">'
             f"<title>{esc(title)}</title><style>{CSS}</style></head><body>{''.join(body)}</body></html>\n")
 

@@ -160,7 +160,8 @@ def render_clean(arena: Arena, camera: pycolmap.Camera, cam_from_world: pycolmap
 
 def to_uint8(image: np.ndarray, rng: np.random.Generator | None, noise_sigma: float) -> np.ndarray:
     """8-bit grey image with Gaussian noise of ``noise_sigma`` grey levels (none if rng is None)."""
-    grey = image * 255.0
+    # Pixels whose ray the distortion model cannot invert (strong wide-angle corners) come out NaN: black.
+    grey = np.nan_to_num(image, nan=0.0) * 255.0
     if rng is not None and noise_sigma > 0:
         grey = grey + rng.normal(0.0, noise_sigma, grey.shape)
     return np.clip(np.rint(grey), 0, 255).astype(np.uint8)

@@ -1,0 +1,88 @@
+"""Smoke test of the benchmark baselines on a tiny rendered scene, against the exact ground truth."""
+
+import sys
+from pathlib import Path
+
+import numpy as np
+import pycolmap
+import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+from benchmarks.baselines.paper import PairResult, relative_scale, run_paper
+from benchmarks.baselines.plain_colmap import run_plain_colmap
+from benchmarks.metrics import evaluate
+from benchmarks.run import run_child
+from rigsfm.rigs import load_rigs
+from rigsfm.synth.dataset import render_dataset
+from rigsfm.synth.scene import SceneOptions
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    root = tmp_path_factory.mktemp("bench")
+    return render_dataset(root / "scene", SceneOptions(num_rigs=3, arc_deg=90.0, image_scale=0.5, seed=3))
+
+
+def test_paper_baseline_registers_the_chain_metric_and_close_to_truth(scene):
+    rec, report = run_paper(scene.root)
+    assert report["stopped"] is None and report["metric"] is True
+    assert all(pair["inliers"] > 200 and pair["ba_rms_px"] < 0.5 for pair in report["pairs"])
+    accuracy = evaluate(rec, scene.load_ground_truth(), metric=True)
+    narrow, wide = accuracy["narrow"], accuracy["wide"]
+    assert narrow["registered"] == 3 and narrow["pairs"] == 3
+    # Calibration noise (E^sl off by 0.05-0.1 deg, intrinsics) bounds what any method can reach.
+    assert 0.01 < narrow["relative_rotation_deg"]["max"] < 0.4
+    assert narrow["translation_direction_deg"]["max"] < 1.0
+    # The scale is chained through shared points: the distance that scale.yaml does not fix is right too.
+    assert wide["distance_error_percent"]["max"] < 0.5
+    for rig in load_rigs(scene.rigs):  # narrow poses are E^sl (as calibrated) times the wide poses
+        wide = rec.find_image_with_name(f"{rig.name}/wide/frame0000.png")
+        narrow = rec.find_image_with_name(f"{rig.name}/narrow/frame0000.png")
+        expected = rig.narrow_from_wide * wide.cam_from_world()
+        np.testing.assert_allclose(narrow.cam_from_world().matrix(), expected.matrix(), atol=1e-9)
+
+
+def test_plain_colmap_registers_no_narrow_camera_on_a_featureless_centre(scene, tmp_path):
+    rec, report = run_plain_colmap(scene.images, tmp_path / "colmap")
+    assert report["mean_keypoints"]["narrow"] < 10 and report["mean_keypoints"]["wide"] > 1000
+    assert report["num_cameras_created"] == 6  # one guessed camera per image: no rig, no calibration
+    accuracy = evaluate(rec, scene.load_ground_truth(), metric=False, align=True)
+    assert accuracy["narrow"]["registered"] == 0 and accuracy["narrow"]["total"] == 3
+
+
+def test_relative_scale_recovers_a_known_ratio():
+    rng = np.random.default_rng(0)
+    points_in_b = rng.uniform([-5, -3, 8], [5, 3, 20], size=(40, 3))  # metres, in the shared rig b
+    b_from_a = pycolmap.Rigid3d(pycolmap.Rotation3d(np.array([0.0, 0.3, 0.0])), np.array([4.0, 0.0, 1.0]))
+    c_from_b = pycolmap.Rigid3d(pycolmap.Rotation3d(np.array([0.0, 0.25, 0.0])), np.array([3.0, 0.0, 0.5]))
+    s_ab, s_bc = np.linalg.norm(b_from_a.translation), np.linalg.norm(c_from_b.translation)
+    unit = lambda t, s: pycolmap.Rigid3d(t.rotation, t.translation / s)
+    previous = PairResult("a", "b", second_from_first=unit(b_from_a, s_ab))
+    current = PairResult("b", "c", second_from_first=unit(c_from_b, s_bc))
+    for k, x_b in enumerate(points_in_b):
+        previous.points[100 + k] = (b_from_a.inverse() * x_b) / s_ab
+        previous.second_keypoint[100 + k] = k
+        current.points[k] = x_b / s_bc
+    ratio, shared = relative_scale(previous, current)
+    assert shared == 40
+    assert ratio == pytest.approx(s_bc / s_ab, rel=1e-9)
+    current.points = {k + 1000: x for k, x in current.points.items()}  # nothing shared: the chain stops
+    assert relative_scale(previous, current) == (None, 0)
+
+
+def test_similarity_alignment_removes_gauge_and_scale(scene):
+    truth = scene.load_ground_truth()
+    moved = pycolmap.Reconstruction(truth)
+    moved.transform(pycolmap.Sim3d(0.37, pycolmap.Rotation3d(np.array([0.2, -0.1, 0.4])), np.array([3.0, 1.0, -2.0])))
+    assert evaluate(moved, truth, metric=True)["narrow"]["distance_error_percent"]["max"] == pytest.approx(63.0)
+    aligned = evaluate(moved, truth, metric=False, align=True)["narrow"]
+    assert aligned["distance_error_percent"]["max"] < 1e-6 and aligned["relative_rotation_deg"]["max"] < 1e-5
+
+
+def test_worker_process_reports_time_memory_and_model(scene, tmp_path):
+    report = run_child("paper", scene.root, tmp_path / "paper")
+    assert report["ok"], report.get("error")
+    assert 100 < report["peak_rss_mb"] < 4000 and 0 < report["time_s"] < report["process_s"]
+    model = pycolmap.Reconstruction(tmp_path / "paper" / "model")
+    assert model.num_reg_frames() == 3

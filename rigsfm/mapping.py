@@ -55,8 +55,9 @@ def _incremental_options(options: MappingOptions, num_wide: int) -> pycolmap.Inc
     )
     pipeline.mapper.abs_pose_refine_focal_length = False
     pipeline.mapper.abs_pose_refine_extra_params = False
-    if num_wide <= 4:
-        pipeline.triangulation.ignore_two_view_tracks = False
+    # Rigs far apart round an arena share many points between neighbours only: keep two-view tracks
+    # (verified, and the rig-constraint stage adjusts with a robust loss and drops outliers).
+    pipeline.triangulation.ignore_two_view_tracks = False
     return pipeline
 
 
@@ -76,11 +77,13 @@ def _global_options(options: MappingOptions, num_wide: int) -> pycolmap.GlobalPi
     mapper.bundle_adjustment.refine_extra_params = False
     mapper.bundle_adjustment.refine_sensor_from_rig = False
     mapper.bundle_adjustment.ceres.use_gpu = False
+    # Positions from two-view tracks only where nothing else exists (2-4 rigs); the final adjustment and
+    # retriangulation keep two-view tracks always, as the incremental mapper does.
+    mapper.bundle_adjustment.min_track_length = 2
+    mapper.retriangulation.ignore_two_view_tracks = False
     if num_wide <= 4:
         mapper.track_min_num_views_per_track = 2
         mapper.global_positioning.min_num_view_per_track = 2
-        mapper.bundle_adjustment.min_track_length = 2
-        mapper.retriangulation.ignore_two_view_tracks = False
     return pipeline
 
 

@@ -13,6 +13,7 @@ import numpy as np
 import pycolmap
 
 import rigsfm
+from rigsfm.checks import check_reconstruction
 from rigsfm.database import create_database
 from rigsfm.errors import ReconstructionError
 from rigsfm.export import write_model, write_narrow_poses, write_points_ply
@@ -124,6 +125,7 @@ def build_summary(inputs: Inputs, options: RunOptions, result: RigConstraintResu
             f"NOT METRIC: the narrow images' observations fix the scale only to +-{100 * result.scale_relative_sigma:.3g} %;"
             " give a scale.yaml (rangefinder distance or known length)"
         )
+    warnings.extend(check_reconstruction(reconstruction, result.scale))
     if unregistered:
         warnings.append(f"{len(unregistered)} image(s) not registered: {', '.join(unregistered[:5])}")
     return {

@@ -74,6 +74,12 @@ def rig_pose_covariance(reconstruction: pycolmap.Reconstruction) -> RigPoseCovar
     frame_ids = tuple(sorted(rec.reg_frame_ids()))
     if len(frame_ids) < 2:
         return None
+    # A frame whose reference image observes no point has no parameter block in the problem, and COLMAP's
+    # covariance then aborts the whole process ("Parameter block not found"): refuse before calling it.
+    weak = [f for f in frame_ids if rec.image(_ref_image_id(rec, rec.frame(f))).num_points3D < 6]
+    if weak:
+        logger.warning("No pose covariance: frame(s) %s observe fewer than 6 points", weak)
+        return None
     ba = pycolmap.BundleAdjustmentOptions(
         refine_focal_length=False, refine_principal_point=False, refine_extra_params=False,
         refine_sensor_from_rig=False, refine_rig_from_world=True, refine_points3D=True, print_summary=False,

@@ -27,12 +27,13 @@ def test_every_workflow_has_a_docstring_and_usage():
 
 
 def test_full_circle(tmp_path):
-    out = run_workflow("full_circle.py", tmp_path, "--num-rigs", 4, "--image-scale", 0.5)
+    out = run_workflow("full_circle.py", tmp_path, "--num-rigs", 6, "--image-scale", 0.5)
     accuracy = json.loads((tmp_path / "accuracy.json").read_text())
-    assert accuracy["narrow"]["registered"] == accuracy["narrow"]["total"] == 4
+    assert accuracy["narrow"]["registered"] == accuracy["narrow"]["total"] == 6
     assert accuracy["narrow"]["relative_rotation_deg"]["max"] <= (
         1.1 * accuracy["oracle_narrow"]["relative_rotation_deg"]["max"] + 1e-3)
-    assert "narrow cameras registered: 4/4" in out
+    assert "narrow cameras registered: 6/6" in out
+    assert json.loads((tmp_path / "run" / "summary.json").read_text())["warnings"] == []
 
 
 @pytest.mark.parametrize("mapper", ["incremental", "global"])
@@ -53,6 +54,9 @@ def test_global_mapper(tmp_path):
     assert accuracy["narrow"]["relative_rotation_deg"]["max"] <= (
         1.1 * accuracy["oracle_narrow"]["relative_rotation_deg"]["max"] + 1e-3)
     assert "global mapper: 4/4 narrow cameras" in out
+    # Four rigs 90 degrees apart share no point between three rigs: the shape is flagged as undetermined.
+    warnings = json.loads((tmp_path / "run" / "summary.json").read_text())["warnings"]
+    assert any(w.startswith("SHAPE NOT DETERMINED") for w in warnings)
 
 
 def test_own_folders(tmp_path):

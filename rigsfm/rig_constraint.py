@@ -101,10 +101,11 @@ def has_narrow_observations(reconstruction: pycolmap.Reconstruction) -> bool:
     )
 
 
-def constrained_bundle_adjustment(
-    reconstruction: pycolmap.Reconstruction, options: RigConstraintOptions, *, fix_scale: bool
-) -> float:
-    """BA over rig poses and points; intrinsics and E^sl constant; robust loss. Returns mean error (px)."""
+def fixed_calibration_problem(
+    reconstruction: pycolmap.Reconstruction,
+) -> tuple[pycolmap.BundleAdjustmentOptions, pycolmap.BundleAdjustmentConfig]:
+    """BA options and config over every registered rig pose and point, intrinsics and E^sl constant
+    (no gauge yet). Shared by the rig-constraint stage and the covariance estimate."""
     ba = pycolmap.BundleAdjustmentOptions(
         refine_focal_length=False,
         refine_principal_point=False,
@@ -114,14 +115,7 @@ def constrained_bundle_adjustment(
         refine_points3D=True,
         print_summary=False,
     )
-    ba.ceres.loss_function_type = pycolmap.LossFunctionType.__members__[options.loss]
-    ba.ceres.loss_function_scale = options.loss_scale_px
     ba.ceres.use_gpu = False
-    solver = ba.ceres.solver_options
-    solver.max_num_iterations = options.max_iterations
-    solver.function_tolerance = 1e-9
-    solver.gradient_tolerance = 1e-10
-    solver.parameter_tolerance = 1e-9
     config = pycolmap.BundleAdjustmentConfig()
     for image_id in reconstruction.reg_image_ids():
         config.add_image(image_id)
@@ -130,6 +124,21 @@ def constrained_bundle_adjustment(
     for rig in reconstruction.rigs.values():
         for sensor_id in rig.non_ref_sensors:
             config.set_constant_sensor_from_rig_pose(sensor_id)
+    return ba, config
+
+
+def constrained_bundle_adjustment(
+    reconstruction: pycolmap.Reconstruction, options: RigConstraintOptions, *, fix_scale: bool
+) -> float:
+    """BA over rig poses and points; intrinsics and E^sl constant; robust loss. Returns mean error (px)."""
+    ba, config = fixed_calibration_problem(reconstruction)
+    ba.ceres.loss_function_type = pycolmap.LossFunctionType.__members__[options.loss]
+    ba.ceres.loss_function_scale = options.loss_scale_px
+    solver = ba.ceres.solver_options
+    solver.max_num_iterations = options.max_iterations
+    solver.function_tolerance = 1e-9
+    solver.gradient_tolerance = 1e-10
+    solver.parameter_tolerance = 1e-9
     frame_ids = sorted(reconstruction.reg_frame_ids())
     if fix_scale:
         config.fix_gauge(pycolmap.BundleAdjustmentGauge.TWO_CAMS_FROM_WORLD)

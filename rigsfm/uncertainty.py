@@ -31,7 +31,7 @@ import pycolmap
 from scipy.spatial.transform import Rotation
 
 from rigsfm.residuals import reprojection_errors
-from rigsfm.rig_constraint import has_narrow_observations
+from rigsfm.rig_constraint import fixed_calibration_problem, has_narrow_observations
 
 logger = logging.getLogger(__name__)
 
@@ -80,20 +80,9 @@ def rig_pose_covariance(reconstruction: pycolmap.Reconstruction) -> RigPoseCovar
     if weak:
         logger.warning("No pose covariance: frame(s) %s observe fewer than 6 points", weak)
         return None
-    ba = pycolmap.BundleAdjustmentOptions(
-        refine_focal_length=False, refine_principal_point=False, refine_extra_params=False,
-        refine_sensor_from_rig=False, refine_rig_from_world=True, refine_points3D=True, print_summary=False,
-    )
+    ba, config = fixed_calibration_problem(rec)
     ba.ceres.loss_function_type = pycolmap.LossFunctionType.TRIVIAL
-    config = pycolmap.BundleAdjustmentConfig()
     image_ids = sorted(rec.reg_image_ids())
-    for image_id in image_ids:
-        config.add_image(image_id)
-    for camera_id in rec.cameras:
-        config.set_constant_cam_intrinsics(camera_id)
-    for rig in rec.rigs.values():
-        for sensor_id in rig.non_ref_sensors:
-            config.set_constant_sensor_from_rig_pose(sensor_id)
     fixed_frame = rec.image(image_ids[0]).frame_id
     config.set_constant_rig_from_world_pose(fixed_frame)
     subset_frame, subset_dim = None, None

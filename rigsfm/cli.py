@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import functools
 import logging
+import tempfile
+import traceback
 from pathlib import Path
 from typing import Annotated, Optional
 
@@ -42,6 +44,12 @@ def fail_cleanly(command):
         except KeyboardInterrupt:
             err_console.print("[bold red]interrupted[/]: re-run the same command to resume")
             raise typer.Exit(2) from None
+        except Exception as error:  # a bug, not the user's input: one line, the traceback in a file
+            with tempfile.NamedTemporaryFile("w", prefix="rigsfm-error-", suffix=".txt", delete=False) as f:
+                traceback.print_exc(file=f)
+            err_console.print(f"[bold red]internal error:[/] {type(error).__name__}: {error} "
+                              f"(traceback in {f.name}; please report it)", highlight=False, soft_wrap=True)
+            raise typer.Exit(3) from None
 
     return wrapper
 

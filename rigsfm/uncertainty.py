@@ -136,7 +136,8 @@ def rig_pose_covariance(reconstruction: pycolmap.Reconstruction) -> RigPoseCovar
     scale = np.tile(np.array([2.0, 2.0, 2.0, 1.0, 1.0, 1.0]), len(frame_ids))
     full *= np.outer(scale, scale)
     sigma = _residual_sigma(rec, sum(len(dims(f)) for f in free))
-    if not np.isfinite(sigma):
+    if not np.isfinite(sigma) or not np.all(np.isfinite(full)):  # a rank-deficient (undetermined) network
+        logger.warning("No pose covariance: the bundle adjustment problem is not fully determined")
         return None
     return RigPoseCovariance(frame_ids, full * sigma**2, sigma, fixed_frame)
 

@@ -165,3 +165,16 @@ def test_cli_never_overwrites_a_result(tmp_path):
     assert result.exit_code == 1
     assert "already holds a result" in result.output and "--overwrite" in result.output
     assert (out / "summary.json").read_text() == "{}"
+
+
+def test_cli_turns_an_internal_error_into_one_line(tmp_path, monkeypatch):
+    images, rigs_path, _ = make_inputs(tmp_path)
+
+    def broken(*args, **kwargs):
+        raise ZeroDivisionError("simulated bug")
+
+    monkeypatch.setattr("rigsfm.cli.run", broken)
+    result = CliRunner().invoke(app, ["run", str(images), "--rigs", str(rigs_path), "--out", str(tmp_path / "o")])
+    assert result.exit_code == 3
+    lines = [line for line in result.output.splitlines() if line.strip()]
+    assert "internal error: ZeroDivisionError: simulated bug" in " ".join(lines) and "Traceback" not in result.output

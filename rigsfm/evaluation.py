@@ -16,6 +16,7 @@ import pycolmap
 from rigsfm.conventions import rotation_angle_deg
 from rigsfm.rig_constraint import RigConstraintOptions, apply_rig_constraints, restore_calibration
 from rigsfm.rigs import RigCalibration
+from rigsfm.scale import triangulate_in_images
 from rigsfm.scale_file import ScaleSpec
 
 
@@ -104,17 +105,11 @@ def oracle(estimate: pycolmap.Reconstruction, truth: pycolmap.Reconstruction, ri
     restore_calibration(rec, rigs)
     for point3D_id in list(rec.point3D_ids()):
         point = rec.points3D[point3D_id]
-        poses, rays = [], []
-        for element in point.track.elements:
-            image = rec.images[element.image_id]
-            camera = rec.cameras[image.camera_id]
-            xy = image.points2D[element.point2D_idx].xy
-            ray = np.asarray(camera.cam_ray_from_img(np.asarray([xy]))).reshape(3)
-            poses.append(image.cam_from_world().matrix())
-            rays.append(ray / np.linalg.norm(ray))
-        xyz = pycolmap.triangulate_multi_view_point(poses, np.asarray(rays))
+        observations = [(rec.images[e.image_id], rec.images[e.image_id].points2D[e.point2D_idx].xy)
+                        for e in point.track.elements]
+        xyz = triangulate_in_images(rec, observations)
         if xyz is None:
             rec.delete_point3D(point3D_id)
         else:
-            point.xyz = np.asarray(xyz).reshape(3)
+            point.xyz = xyz
     return apply_rig_constraints(rec, rigs, scale_spec, options).reconstruction

@@ -229,6 +229,4 @@ def run(
     write_json_atomic(workspace.summary, summary)
     with timings.stage("report"):
         write_report(workspace.root)
-    if summary["registered"]["wide"]["registered"] < 2:
-        raise ReconstructionError("fewer than two wide images were registered")
     return RunResult(workspace, result.reconstruction, summary)

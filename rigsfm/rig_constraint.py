@@ -76,7 +76,7 @@ class RigConstraintResult:
     scale_relative_sigma: float | None = None  # of a scale set by the narrow baselines
 
 
-def _sensor_of(reconstruction: pycolmap.Reconstruction, image: pycolmap.Image) -> tuple[str, str]:
+def _sensor_of(image: pycolmap.Image) -> tuple[str, str]:
     rig_name, sensor, _ = image.name.split("/", 2)
     return rig_name, sensor
 
@@ -85,7 +85,7 @@ def restore_calibration(reconstruction: pycolmap.Reconstruction, rigs: Sequence[
     """Reset every camera's intrinsics and every narrow ``sensor_from_rig`` to the rigs.yaml values."""
     by_name = {rig.name: rig for rig in rigs}
     for image in reconstruction.images.values():
-        rig_name, sensor = _sensor_of(reconstruction, image)
+        rig_name, sensor = _sensor_of(image)
         calibration = by_name[rig_name]
         camera = reconstruction.cameras[image.camera_id]
         camera.params = calibration.camera(sensor).params

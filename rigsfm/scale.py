@@ -76,14 +76,11 @@ def camera_centre(reconstruction: pycolmap.Reconstruction, camera: str) -> np.nd
     return np.mean(centres, axis=0)
 
 
-def triangulate_observed_point(reconstruction: pycolmap.Reconstruction, observations) -> np.ndarray | None:
-    """Triangulate one world point from ``(image name, xy)`` observations in registered images."""
-    by_name = {image.name: image for image in reconstruction.images.values() if image.has_pose}
+def triangulate_in_images(reconstruction: pycolmap.Reconstruction,
+                          observations: list[tuple[pycolmap.Image, np.ndarray]]) -> np.ndarray | None:
+    """Triangulate one world point from ``(posed image, xy)`` observations (None if fewer than two)."""
     poses, rays = [], []
-    for name, xy in observations:
-        image = by_name.get(name)
-        if image is None:
-            continue
+    for image, xy in observations:
         camera = reconstruction.cameras[image.camera_id]
         ray = np.asarray(camera.cam_ray_from_img(np.asarray([xy], dtype=np.float64))).reshape(3)
         poses.append(image.cam_from_world().matrix())
@@ -92,6 +89,12 @@ def triangulate_observed_point(reconstruction: pycolmap.Reconstruction, observat
         return None
     point = pycolmap.triangulate_multi_view_point(poses, np.asarray(rays))
     return None if point is None else np.asarray(point).reshape(3)
+
+
+def triangulate_observed_point(reconstruction: pycolmap.Reconstruction, observations) -> np.ndarray | None:
+    """Triangulate one world point from ``(image name, xy)`` observations in registered images."""
+    by_name = {image.name: image for image in reconstruction.images.values() if image.has_pose}
+    return triangulate_in_images(reconstruction, [(by_name[name], xy) for name, xy in observations if name in by_name])
 
 
 def known_length_in_model(reconstruction: pycolmap.Reconstruction, item: KnownLength,

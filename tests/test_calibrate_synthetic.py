@@ -78,11 +78,14 @@ def test_end_to_end_rigs_yaml_round_trip(dataset, result, tmp_path):
     app.command("noop")(lambda: None)  # two commands: 'calibrate' is a subcommand as in the main CLI
     run = CliRunner().invoke(app, ["calibrate", str(root / "BOARD"), "--board", str(root / "board.yaml"), "--out", str(out)])
     assert run.exit_code == 0, run.output
-    (rig,) = load_rigs(out)  # a second, independent run: same numbers up to multi-threaded rounding
+    # A second, independent run: OpenCV's multi-threaded solvers make it differ from `result` by up to ~1e-4 px
+    # (CI measured 4e-5 px). 1e-3 px still catches any pixel-convention slip (0.5 px); the exact round trip of one
+    # result through rigs.yaml is checked bit for bit below.
+    (rig,) = load_rigs(out)
     final = result.stereo.final
     np.testing.assert_allclose(rig.wide.params[:4], [final.K_wide[0, 0], final.K_wide[1, 1],
-                                                     final.K_wide[0, 2] + 0.5, final.K_wide[1, 2] + 0.5], rtol=1e-7)
-    np.testing.assert_allclose(rig.narrow_from_wide.translation, result.T, atol=1e-9)
+                                                     final.K_wide[0, 2] + 0.5, final.K_wide[1, 2] + 0.5], atol=1e-3)
+    np.testing.assert_allclose(rig.narrow_from_wide.translation, result.T, atol=1e-6)
     # exact round trip of this result through rigs.yaml
     exact = tmp_path / "exact" / "rigs.yaml"
     write_calibration(CalibrationResult(board_spec_from_dict(SPEC), [result]), exact)

@@ -60,8 +60,9 @@ def image_name(rig: str, sensor: str, frame: int) -> str:
     return f"{rig}/{sensor}/frame{frame:04d}.png"
 
 
-def choose_bar(arena: Arena, first: RigTruth, second: RigTruth) -> Bar:
-    """A bar on the textured ground, fully visible in both wide images, as long in pixels as possible."""
+def choose_bar(arena: Arena, first: RigTruth, second: RigTruth) -> Bar | None:
+    """A bar on the textured ground, fully visible in both wide images, as long in pixels as possible;
+    None when the two views share no room for it (rigs nearly facing each other with narrow lenses)."""
     opt = arena.options
     radii = np.linspace(opt.centre_radius + 1.5, opt.wall_radius - 1.5, 10)
     angles = np.radians(np.arange(0.0, 360.0, 3.0))
@@ -88,7 +89,9 @@ def choose_bar(arena: Arena, first: RigTruth, second: RigTruth) -> Bar:
         length = np.linalg.norm(project(cam, pose, a) - project(cam, pose, b), axis=1)
         score = np.minimum(score, np.nan_to_num(length, nan=0.0))
     if not np.any(ok):
-        raise RuntimeError(f"no place for the known-length bar visible in {first.name} and {second.name}")
+        logger.warning("no room for the known-length bar in both %s and %s: scale.yaml gives a camera "
+                       "distance only", first.name, second.name)
+        return None
     best = int(np.argmax(np.where(ok, score, -1.0)))
     logger.info(
         "bar at r=%.1f m, azimuth %.0f deg, %.0f px long", r[best], np.degrees(phi[best]), score[best]
@@ -133,10 +136,10 @@ def ground_truth_reconstruction(rigs: list[RigTruth], frames_per_rig: int) -> py
     return rec
 
 
-def _scale_yaml(rigs: list[RigTruth], bar: Bar, first: RigTruth, second: RigTruth) -> str:
+def _scale_yaml(rigs: list[RigTruth], bar: Bar | None, first: RigTruth, second: RigTruth) -> str:
     far = max(rigs[1:], key=lambda rig: float(np.linalg.norm(rig.centre() - rigs[0].centre())))
     observations = []
-    for rig in (first, second):
+    for rig in (first, second) if bar is not None else ():
         a, b = project(rig.wide, rig.wide_from_world, np.stack([bar.a, bar.b]))
         observations.append(
             {"image": image_name(rig.name, "wide", 0), "a": [float(v) for v in a], "b": [float(v) for v in b]}
@@ -149,8 +152,9 @@ def _scale_yaml(rigs: list[RigTruth], bar: Bar, first: RigTruth, second: RigTrut
                 "meters": float(np.linalg.norm(far.centre() - rigs[0].centre())),
             }
         ],
-        "known_length": [{"meters": bar.length, "observations": observations}],
     }
+    if bar is not None:
+        data["known_length"] = [{"meters": bar.length, "observations": observations}]
     return yaml.safe_dump(data, sort_keys=False, default_flow_style=None, width=120)
 
 
@@ -198,7 +202,7 @@ def render_dataset(
     write_text_atomic(out_dir / "scale.yaml", _scale_yaml(rigs, bar, first, second))
     scene = {
         "options": dataclasses.asdict(options),
-        "bar": {"a": [float(v) for v in bar.a], "b": [float(v) for v in bar.b]},
+        "bar": {"a": [float(v) for v in bar.a], "b": [float(v) for v in bar.b]} if bar is not None else None,
     }
     write_text_atomic(out_dir / "scene.yaml", yaml.safe_dump(scene, sort_keys=False, default_flow_style=None))
     gt_dir = out_dir / "ground_truth"

@@ -52,12 +52,21 @@ def visible(
     points: np.ndarray,
     margin: float = 0.0,
 ) -> np.ndarray:
-    """Whether world points project inside the image (``margin`` px from the border) unoccluded."""
+    """Whether world points project inside the image (``margin`` px from the border) unoccluded.
+
+    Points far outside the field of view that the distortion polynomial folds back into the image are
+    not visible: their pixel must map back onto their own ray.
+    """
     points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     xy = project(camera, cam_from_world, points)
     inside = np.all(np.isfinite(xy), axis=1)
     inside &= (xy[:, 0] >= margin) & (xy[:, 0] <= camera.width - margin)
     inside &= (xy[:, 1] >= margin) & (xy[:, 1] <= camera.height - margin)
+    m = cam_from_world.matrix()
+    in_cam = points @ m[:, :3].T + m[:, 3]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        back = np.asarray(camera.cam_from_img(np.nan_to_num(xy)), dtype=np.float64)
+        inside &= np.all(np.abs(back - in_cam[:, :2] / in_cam[:, 2:]) < 1e-6, axis=1)
     centre = camera_centre(cam_from_world)
     offsets = points - centre
     dist = np.linalg.norm(offsets, axis=1)

@@ -129,14 +129,21 @@ class Hits:
     object_index: np.ndarray
 
 
+OBJECT_BAND = 12.0  # metres of the object texture's width that belong to each pillar or box
+
+
 @lru_cache(maxsize=4)
-def _surround_textures(seed: int, wall_radius: float, wall_height: float) -> tuple[Texture, Texture, Texture]:
+def _surround_textures(
+    seed: int, wall_radius: float, wall_height: float, num_objects: int
+) -> tuple[Texture, Texture, Texture]:
     rng = np.random.default_rng([seed, 7])
     circumference = 2 * np.pi * wall_radius
     wall = procedural_texture(rng, circumference, wall_height, 0.025, wrap=True)
     side = 2 * wall_radius + 1.0
     ground = procedural_texture(rng, side, side, 0.02, density=1.0, min_size=0.1, max_size=2.5)
-    objects = procedural_texture(rng, 12.0, 12.0, 0.015, density=2.5, min_size=0.08, max_size=1.2, wrap=True)
+    # One band per object: no two pillars or boxes show the same patch (which gave SIFT false matches).
+    width = OBJECT_BAND * max(num_objects, 1)
+    objects = procedural_texture(rng, width, 12.0, 0.015, density=2.5, min_size=0.08, max_size=1.2, wrap=True)
     logger.debug("generated wall, ground and object textures for seed %d", seed)
     return (
         Texture(build_pyramid(wall), 0.025, (0.0, 0.0), wrap=True),
@@ -154,10 +161,17 @@ def _crowd_texture(seed: int, centre_radius: float) -> Texture:
 
 def make_textures(options: SceneOptions) -> Textures:
     """All textures of an arena, generated from ``options.seed`` (cached: same seed, same arena)."""
-    wall, ground, objects = _surround_textures(options.seed, options.wall_radius, options.wall_height)
+    wall, ground, objects = _surround_textures(
+        options.seed, options.wall_radius, options.wall_height, options.num_pillars + options.num_boxes
+    )
     centre = _crowd_texture(options.seed, options.centre_radius) if options.textured_centre else None
     phase = tuple(float(p) for p in np.random.default_rng([options.seed, 9]).uniform(0, 2 * np.pi, 4))
     return Textures(wall=wall, ground=ground, objects=objects, centre=centre, centre_phase=phase)
+
+
+def _band_offset(index: int, draw: np.ndarray) -> tuple[float, float]:
+    """Texture offset of object ``index``: inside its own band, a little jitter from ``draw`` (0..12)."""
+    return float(OBJECT_BAND * index + draw[0] / 12.0), float(draw[1] / 12.0)
 
 
 def build_arena(options: SceneOptions) -> Arena:
@@ -179,12 +193,14 @@ def build_arena(options: SceneOptions) -> Arena:
     for _ in range(options.num_pillars):
         radius = float(rng.uniform(0.4, 0.8))
         x, y = free_spot(radius)
-        pillars.append(Pillar(x, y, radius, float(rng.uniform(5.0, 10.0)), tuple(rng.uniform(0, 12, 2))))
+        height = float(rng.uniform(5.0, 10.0))
+        pillars.append(Pillar(x, y, radius, height, _band_offset(len(pillars), rng.uniform(0, 12, 2))))
     boxes = []
     for _ in range(options.num_boxes):
         half = (float(rng.uniform(0.5, 1.2)), float(rng.uniform(0.5, 1.2)), float(rng.uniform(0.4, 1.2)))
         x, y = free_spot(float(np.hypot(half[0], half[1])))
-        boxes.append(Box(x, y, half, float(rng.uniform(0, np.pi)), tuple(rng.uniform(0, 12, 2))))
+        yaw = float(rng.uniform(0, np.pi))
+        boxes.append(Box(x, y, half, yaw, _band_offset(options.num_pillars + len(boxes), rng.uniform(0, 12, 2))))
     return Arena(options, tuple(pillars), tuple(boxes), make_textures(options))
 
 

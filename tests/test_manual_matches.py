@@ -1,7 +1,8 @@
-"""Manual correspondences: a rendered rig pair too far apart for SIFT registers from ~30 hand-picked pairs.
+"""Manual correspondences: a rendered rig pair too far apart for SIFT registers from hand-picked pairs.
 
-The correspondences are made like a user's clicks from the exact ground truth: random points on the
-textured ground and wall visible in both wide images, projected, 1 px noise, and 20 % gross outliers.
+The correspondences are made like a user's clicks from the exact ground truth (rigsfm.synth.clicks):
+points spread over the stands, pillars, boxes and ground both wide images show, 1 px noise per
+coordinate, and 20 % gross outliers.
 """
 
 import json
@@ -25,71 +26,20 @@ from rigsfm.manual_matches import (
 from rigsfm.manual_merge import sampson_error_px
 from rigsfm.pipeline import RunOptions, run
 from rigsfm.synth.dataset import render_dataset
-from rigsfm.synth.render import project, visible
+from rigsfm.synth.clicks import simulate_clicks
 from rigsfm.synth.scene import SceneOptions, build_arena
 
 A, B = "rig01/wide/frame0000.png", "rig02/wide/frame0000.png"
-# 170 degrees apart with 2.2 mm-equivalent wide lenses (focal 500 px at full size): the rigs nearly face
-# each other, the views share a strip of ground and wall; COLMAP's SIFT finds no match at all.
-WIDE_APART = SceneOptions(num_rigs=2, arc_deg=170.0, image_scale=0.5, seed=0, wide_focal=500.0)
-NEAR = SceneOptions(num_rigs=2, arc_deg=60.0, image_scale=0.5, seed=0, wide_focal=500.0)
+# 170 degrees apart with wide-angle lenses (focal 500 px, 117 degrees across): the rigs nearly face each
+# other and share only the sides of the arena, seen from opposite directions; SIFT finds no match at all.
+WIDE_APART = SceneOptions(num_rigs=2, arc_deg=170.0, seed=0, wide_focal=500.0)
+NEAR = SceneOptions(num_rigs=2, arc_deg=60.0, seed=0, wide_focal=500.0)  # the same rigs where SIFT works
 
 
-def _visible_in_both(dataset, arena, points, views):
-    ok = np.ones(len(points), bool)
-    for camera, pose in views:
-        ok &= visible(arena, camera, pose, points, margin=20.0)
-        # visible() also accepts points far outside the field of view that the distortion polynomial
-        # folds back into the image: keep only projections that undistort back onto their ray.
-        m = pose.matrix()
-        in_cam = points @ m[:, :3].T + m[:, 3]
-        with np.errstate(invalid="ignore", divide="ignore"):
-            back = np.asarray(camera.cam_from_img(np.nan_to_num(project(camera, pose, points))))
-            ok &= np.all(np.abs(back - in_cam[:, :2] / in_cam[:, 2:]) < 1e-6, axis=1)
-    return ok
-
-
-def synthetic_correspondences(
-    dataset, n=34, noise_px=1.0, outlier_fraction=0.2, seed=0, surfaces=("wall", "ground")
-):
-    """``n`` correspondences A <-> B from ground truth (half on the wall if it is visible); outlier mask."""
-    opt = dataset.options
-    arena = build_arena(opt)
-    truth = dataset.load_ground_truth()
-    views = [
-        (truth.cameras[im.camera_id], im.cam_from_world()) for im in map(truth.find_image_with_name, (A, B))
-    ]
-    rng = np.random.default_rng(seed)
-    m = 6000
-    r = np.sqrt(rng.uniform((opt.centre_radius + 1) ** 2, (opt.wall_radius - 0.5) ** 2, m))
-    phi, theta = rng.uniform(0, 2 * np.pi, m), rng.uniform(0, 2 * np.pi, m)
-    candidates = {
-        "ground": np.column_stack([r * np.cos(phi), r * np.sin(phi), np.zeros(m)]),
-        "wall": np.column_stack(
-            [
-                opt.wall_radius * np.cos(theta),
-                opt.wall_radius * np.sin(theta),
-                rng.uniform(0.2, opt.wall_height - 0.2, m),
-            ]
-        ),
-    }
-    chosen = []
-    for surface in surfaces:
-        pts = candidates[surface]
-        pts = pts[_visible_in_both(dataset, arena, pts, views)]
-        chosen.append(pts[: n // len(surfaces) if surface != surfaces[-1] else n - sum(map(len, chosen))])
-    points = np.vstack(chosen)
-    assert len(points) == n
-    xy = [project(camera, pose, points) + rng.normal(0, noise_px, (n, 2)) for camera, pose in views]
-    outliers = np.zeros(n, bool)
-    outliers[rng.choice(n, round(outlier_fraction * n), replace=False)] = True
-    camera_b = views[1][0]
-    xy[1][outliers] = rng.uniform([20, 20], [camera_b.width - 20, camera_b.height - 20], (outliers.sum(), 2))
-    rows = [
-        Correspondence(A, tuple(map(float, p)), B, tuple(map(float, q)), i + 2)
-        for i, (p, q) in enumerate(zip(*xy))
-    ]
-    return rows, outliers
+def synthetic_correspondences(dataset, **options):
+    """Simulated clicks A <-> B on the dataset's arena (see rigsfm.synth.clicks) and their outlier mask."""
+    clicks = simulate_clicks(build_arena(dataset.options), dataset.load_ground_truth(), A, B, **options)
+    return clicks.rows, clicks.outliers
 
 
 def ground_truth_epipolar_px(dataset, rows) -> np.ndarray:
@@ -157,19 +107,26 @@ def test_sift_fails_and_manual_matches_register_the_pair(scenes):
 
     reference = run(near.images, near.rigs, root / "near", near.scale)
     reference_error = _narrow_rotation_error(reference.reconstruction, near)
+    assert reference_error < 0.15 and reference.summary["warnings"] == []  # measured 0.100 deg
     manual_error = _narrow_rotation_error(pycolmap.Reconstruction(root / "sift_only" / "sparse"), apart)
-    # With 1 px clicks the pose of two nearly facing rigs is click-noise limited (measured 1.1 deg)...
-    assert manual_error < 2.0
-    # ...with exact clicks it is within 2x of the 60-degree SIFT pair (measured 0.23 vs 0.15 deg).
+    # 34 clicks: the pair registers, but 1 px click noise dominates (0.28 deg here; over 10 click sets
+    # benchmarks/separation.py measures a median of ~0.4 deg).
+    assert manual_error < 1.0
+    # The pipeline adds nothing to the clicks' own limit: with exact clicks only the calibration errors of
+    # rigs.yaml remain, within 2x of the SIFT pair (measured 0.13 vs 0.10 deg)...
     exact_rows, _ = synthetic_correspondences(apart, noise_px=0.0, outlier_fraction=0.0)
-    exact = run(
-        apart.images,
-        apart.rigs,
-        root / "exact",
-        apart.scale,
-        RunOptions(manual_matches=write_manual_matches(root / "exact.csv", exact_rows)),
-    )
+    exact = run(apart.images, apart.rigs, root / "exact", apart.scale,
+                RunOptions(manual_matches=write_manual_matches(root / "exact.csv", exact_rows)))
     assert _narrow_rotation_error(exact.reconstruction, apart) < 2.0 * reference_error
+    # ...and more clicks shrink the noise: 60 clicks, median of three click sets (measured 0.26 deg here).
+    errors = []
+    for seed in range(3):
+        rows, _ = synthetic_correspondences(apart, n=60, seed=seed)
+        result = run(apart.images, apart.rigs, root / f"sixty{seed}", apart.scale,
+                     RunOptions(manual_matches=write_manual_matches(root / f"sixty{seed}.csv", rows)))
+        errors.append(_narrow_rotation_error(result.reconstruction, apart))
+    print(f"\nreference {reference_error:.3f}, 34 clicks {manual_error:.3f}, 60 clicks {errors} deg")
+    assert np.median(errors) < 3.0 * reference_error
 
 
 def test_manual_merge_is_idempotent_and_drops_stale_rows(scenes, tmp_path):
@@ -184,15 +141,17 @@ def test_manual_merge_is_idempotent_and_drops_stale_rows(scenes, tmp_path):
     with pycolmap.Database.open(tmp_path / "out" / "database.db") as db:
         assert [db.num_keypoints_for_image(i) for i in (1, 3)] == sizes
         assert [db.num_descriptors_for_image(i) for i in (1, 3)] == sizes
-        assert db.read_two_view_geometry(1, 3).inlier_matches.shape[0] == first["kept"]
+        assert db.read_two_view_geometry(1, 3).inlier_matches.shape[0] == first["pairs"][0]["inliers_after"]
     second = json.loads((tmp_path / "out" / "summary.json").read_text())["manual_matches"]
     assert second == first
     # An edited CSV (fewer rows): the dropped rows' matches leave the database.
-    options.manual_matches = write_manual_matches(tmp_path / "m.csv", rows[:20])
+    options.manual_matches = write_manual_matches(tmp_path / "m.csv", rows[:28])
     third = run(apart.images, apart.rigs, tmp_path / "out", apart.scale, options).summary["manual_matches"]
     with pycolmap.Database.open(tmp_path / "out" / "database.db") as db:
         assert [db.num_keypoints_for_image(i) for i in (1, 3)] == sizes
-        assert db.read_two_view_geometry(1, 3).inlier_matches.shape[0] == third["kept"] < first["kept"]
+        # (a few raw SIFT matches that fit the pose may join the verified inliers)
+        assert db.read_two_view_geometry(1, 3).inlier_matches.shape[0] == third["pairs"][0]["inliers_after"]
+        assert third["kept"] < first["kept"]
 
 
 def _csv(tmp_path, text):
@@ -232,9 +191,9 @@ def test_each_bad_input_gives_its_clear_error(scenes, tmp_path):
     )
     line = good.splitlines()[3].split(",")
     fails(
-        _csv(tmp_path, good.replace(",".join(line), ",".join(line[:4] + ["900.5"] + line[5:]))),
+        _csv(tmp_path, good.replace(",".join(line), ",".join(line[:4] + ["1700.5"] + line[5:]))),
         ManualMatchError,
-        r"m.csv:4: point \(900.5, .*\) lies outside rig02/wide/frame0000.png, which is 812x617 px",
+        r"m.csv:4: point \(1700.5, .*\) lies outside rig02/wide/frame0000.png, which is 1624x1234 px",
     )
     fails(_csv(tmp_path, good + "a,b,c\n"), ManualMatchError, r"m.csv:14: expected 6 columns")
     fails(
@@ -254,7 +213,7 @@ def test_each_bad_input_gives_its_clear_error(scenes, tmp_path):
     fails(
         write_manual_matches(tmp_path / "plane.csv", ground),
         DegenerateCorrespondencesError,
-        "one homography explains (9[5-9]|100) % of them",
+        r"one homography explains \d+ % of them .the points lie on one plane",
         early=False,
     )
 

@@ -4,11 +4,17 @@
   tracks seen by three or more rigs. Rigs linked to the rest by two-view tracks alone can slide along
   their viewing directions (a 4-rig circle 90 degrees apart is the classic case): the model still
   reprojects well while its shape is wrong.
+- Planar ambiguity: when every match tying a rig to the others lies on one plane (one homography
+  explains them, e.g. a single patch of wall or ground), the relative pose has two exact solutions and the
+  mapper may pick the wrong one, degrees away, with perfect reprojection errors.
 - Scale consistency: several scale measurements must agree within their uncertainties; when they do
   not, the shape of the model (or a measurement) is wrong.
 """
 
 from __future__ import annotations
+
+from collections.abc import Iterable
+from pathlib import Path
 
 import pycolmap
 
@@ -33,6 +39,14 @@ def loosely_tied_rigs(reconstruction: pycolmap.Reconstruction) -> list[str]:
         for i, a in enumerate(seen):
             for b in seen[i + 1:]:
                 shared[(a, b)] = shared.get((a, b), 0) + 1
+    largest = max(_groups(rigs, [pair for pair, count in shared.items() if count >= MIN_SHARED_POINTS]), key=len)
+    if len(largest) < 3:  # no rigid core at all
+        return rigs
+    return sorted(rig for rig in rigs if rig not in largest)
+
+
+def _groups(rigs: list[str], links: Iterable[tuple[str, str]]) -> list[list[str]]:
+    """Connected components of the rigs under ``links``."""
     parent = {rig: rig for rig in rigs}
 
     def root(rig: str) -> str:
@@ -41,21 +55,58 @@ def loosely_tied_rigs(reconstruction: pycolmap.Reconstruction) -> list[str]:
             rig = parent[rig]
         return rig
 
-    for (a, b), count in shared.items():
-        if count >= MIN_SHARED_POINTS:
-            parent[root(a)] = root(b)
+    for a, b in links:
+        parent[root(a)] = root(b)
     groups: dict[str, list[str]] = {}
     for rig in rigs:
         groups.setdefault(root(rig), []).append(rig)
-    largest = max(groups.values(), key=len)
-    if len(largest) < 3:  # no rigid core at all
-        return rigs
-    return sorted(rig for rig in rigs if rig not in largest)
+    return list(groups.values())
 
 
-def check_reconstruction(reconstruction: pycolmap.Reconstruction, scale: ScaleEstimate | None) -> list[str]:
-    """Warnings (empty when the checks pass)."""
+PLANAR = {pycolmap.TwoViewGeometryConfiguration.PLANAR, pycolmap.TwoViewGeometryConfiguration.PANORAMIC,
+          pycolmap.TwoViewGeometryConfiguration.PLANAR_OR_PANORAMIC}
+MIN_PAIR_INLIERS = 15  # verified matches that make an image pair a link between two rigs
+
+
+def planar_only_rigs(database_path: Path, reconstruction: pycolmap.Reconstruction) -> dict[str, list[str]]:
+    """Registered rigs tied to the largest group of rigs only through planar image pairs, each with those
+    pairs (``"rig01-rig02: 68 matches"``); empty when every rig has a non-planar link."""
+    rig_of = {image.name: image.name.split("/", 1)[0]
+              for image in reconstruction.images.values() if image.has_pose}
+    rigs = sorted(set(rig_of.values()))
+    if len(rigs) < 2:
+        return {}
+    with pycolmap.Database.open(str(database_path)) as db:
+        names = {image.image_id: image.name for image in db.read_all_images()}
+        pair_ids, geometries = db.read_two_view_geometries()
+    solid, planar = [], {}
+    for pair_id, geometry in zip(pair_ids, geometries):
+        a, b = (rig_of.get(names[i]) for i in pycolmap.pair_id_to_image_pair(pair_id))
+        if a is None or b is None or a == b or len(geometry.inlier_matches) < MIN_PAIR_INLIERS:
+            continue
+        if geometry.config in PLANAR:
+            planar.setdefault(a, []).append(f"{min(a, b)}-{max(a, b)}: {len(geometry.inlier_matches)} matches")
+            planar.setdefault(b, []).append(planar[a][-1])
+        else:
+            solid.append((a, b))
+    largest = max(_groups(rigs, solid), key=len)
+    core = largest if len(largest) > 1 else []
+    return {rig: sorted(set(planar[rig])) for rig in rigs if rig not in core and rig in planar}
+
+
+def check_reconstruction(reconstruction: pycolmap.Reconstruction, scale: ScaleEstimate | None,
+                         database_path: Path | None = None) -> list[str]:
+    """Warnings (empty when the checks pass); the planar check needs the workspace's database."""
     warnings = []
+    planar = planar_only_rigs(database_path, reconstruction) if database_path is not None else {}
+    if planar:
+        pairs = sorted({pair for rows in planar.values() for pair in rows})
+        warnings.append(
+            f"POSE AMBIGUOUS: {', '.join(planar)} are tied to the other rigs only by matches on one plane "
+            f"({'; '.join(pairs)}); such a pose has two exact solutions and may be degrees off. Add "
+            "correspondences off that plane (--manual-matches, e.g. on pillars, stands and the ground) or a rig "
+            "in between"
+        )
     loose = loosely_tied_rigs(reconstruction)
     if loose:
         warnings.append(

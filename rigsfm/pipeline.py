@@ -113,7 +113,8 @@ def is_metric(result: RigConstraintResult) -> bool:
     return result.scale_source == ScaleSource.NARROW_BASELINES and sigma is not None and sigma < MAX_METRIC_SCALE_SIGMA
 
 
-def build_summary(inputs: Inputs, options: RunOptions, result: RigConstraintResult, timings: dict) -> dict:
+def build_summary(inputs: Inputs, options: RunOptions, result: RigConstraintResult, timings: dict,
+                  database: Path | None = None) -> dict:
     reconstruction = result.reconstruction
     counts, unregistered = registration_counts(reconstruction, inputs.images)
     metric = is_metric(result)
@@ -125,7 +126,7 @@ def build_summary(inputs: Inputs, options: RunOptions, result: RigConstraintResu
             f"NOT METRIC: the narrow images' observations fix the scale only to +-{100 * result.scale_relative_sigma:.3g} %;"
             " give a scale.yaml (rangefinder distance or known length)"
         )
-    warnings.extend(check_reconstruction(reconstruction, result.scale))
+    warnings.extend(check_reconstruction(reconstruction, result.scale, database))
     if unregistered:
         warnings.append(f"{len(unregistered)} image(s) not registered: {', '.join(unregistered[:5])}")
     return {
@@ -223,7 +224,7 @@ def run(
             write_model(result.reconstruction, workspace.sparse, overwrite=True)
             write_narrow_poses(result.reconstruction, workspace.narrow_poses, metric=metric, overwrite=True)
             write_points_ply(result.reconstruction, workspace.points_ply, overwrite=True)
-    summary = build_summary(inputs, options, result, timings)
+    summary = build_summary(inputs, options, result, timings, workspace.database)
     if options.manual_matches is not None:
         summary["manual_matches"] = manual_matches_summary(options.manual_matches, manual_reports)
     write_json_atomic(workspace.summary, summary)

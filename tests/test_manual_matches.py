@@ -6,6 +6,7 @@ coordinate, and 20 % gross outliers.
 """
 
 import json
+from dataclasses import replace
 
 import numpy as np
 import pycolmap
@@ -127,6 +128,17 @@ def test_sift_fails_and_manual_matches_register_the_pair(scenes):
         errors.append(_narrow_rotation_error(result.reconstruction, apart))
     print(f"\nreference {reference_error:.3f}, 34 clicks {manual_error:.3f}, 60 clicks {errors} deg")
     assert np.median(errors) < 3.0 * reference_error
+
+
+def test_sift_matches_on_one_plane_are_flagged(scenes):
+    """160 degrees apart, SIFT matches one patch of the stands only: two exact poses, the mapper picks
+    the wrong one (19 deg off here). The result must say so; the 60-degree pair must not."""
+    root, _, near = scenes
+    planar = render_dataset(root / "planar", replace(WIDE_APART, arc_deg=160.0))
+    result = run(planar.images, planar.rigs, root / "planar_out", planar.scale)
+    assert _narrow_rotation_error(result.reconstruction, planar) > 5.0
+    (warning,) = [w for w in result.summary["warnings"] if w.startswith("POSE AMBIGUOUS")]
+    assert "rig01, rig02 are tied to the other rigs only by matches on one plane (rig01-rig02: " in warning
 
 
 def test_manual_merge_is_idempotent_and_drops_stale_rows(scenes, tmp_path):

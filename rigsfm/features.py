@@ -2,13 +2,15 @@
 
 Wide images always get features. Narrow images stay featureless unless ``narrow_features`` (their view
 is homogeneous by design; features there only cost time and add outliers). Work already in the database
-(keypoints of an image, a verified pair) is kept, so an interrupted run resumes where it stopped.
+(keypoints of an image, a verified pair) is kept, so an interrupted run resumes where it stopped; work
+made with other settings is cleared first (``drop_stale_work``).
 """
 
 from __future__ import annotations
 
 import enum
 import itertools
+import json
 import logging
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -17,6 +19,7 @@ from pathlib import Path
 import pycolmap
 
 from rigsfm.inputs import ImageEntry
+from rigsfm.io import write_json_atomic
 
 logger = logging.getLogger(__name__)
 
@@ -41,6 +44,42 @@ class MatchingOptions:
     max_error_px: float = 4.0  # RANSAC threshold of the two-view geometry
     max_homography_inlier_ratio: float = 0.95
     num_threads: int = -1
+
+
+def _settings(options: MatchingOptions) -> dict:
+    """What the stored features and matches depend on (threads do not count)."""
+    rig_verification = (not options.narrow_features) if options.rig_verification is None else options.rig_verification
+    return {
+        "features": {"type": str(options.features), "max_num_features": options.max_num_features,
+                     "narrow_features": options.narrow_features},
+        "matching": {"max_ratio": options.max_ratio, "cross_check": options.cross_check,
+                     "rig_verification": rig_verification, "max_error_px": options.max_error_px,
+                     "max_homography_inlier_ratio": options.max_homography_inlier_ratio},
+    }
+
+
+def drop_stale_work(database_path: Path, settings_path: Path, options: MatchingOptions) -> list[str]:
+    """Clear the features and matches a resumed workspace made with other settings than ``options``, so a
+    changed option takes effect instead of being silently ignored; records the settings. Returns what was
+    cleared (``"features"``, ``"matches"``)."""
+    now = _settings(options)
+    before = json.loads(settings_path.read_text()) if settings_path.exists() else now
+    cleared = []
+    if before != now:
+        with pycolmap.Database.open(database_path) as database:
+            if before.get("features") != now["features"]:
+                database.clear_keypoints()
+                database.clear_descriptors()
+                cleared.append("features")
+            database.clear_matches()
+            database.clear_two_view_geometries()
+            cleared.append("matches")
+        changed = [f"{key}: {before.get(group, {}).get(key)} -> {value}" for group in now
+                   for key, value in now[group].items() if before.get(group, {}).get(key) != value]
+        logger.warning("Settings changed since this workspace's last run (%s): recomputing its %s",
+                       ", ".join(changed), " and ".join(cleared))
+    write_json_atomic(settings_path, now)
+    return cleared
 
 
 def featured_images(images: Sequence[ImageEntry], options: MatchingOptions) -> list[ImageEntry]:
@@ -109,9 +148,7 @@ def match_features(
             (a, b) for a, b in image_pairs(images, options) if not database.exists_two_view_geometry(ids[a], ids[b])
         ]
     matching = pycolmap.FeatureMatchingOptions(
-        num_threads=options.num_threads, use_gpu=False,
-        rig_verification=(not options.narrow_features) if options.rig_verification is None
-        else options.rig_verification,
+        num_threads=options.num_threads, use_gpu=False, rig_verification=_settings(options)["matching"]["rig_verification"]
     )
     matching.sift.max_ratio = options.max_ratio
     matching.sift.cross_check = options.cross_check

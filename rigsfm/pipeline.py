@@ -17,15 +17,20 @@ from rigsfm.checks import check_reconstruction
 from rigsfm.database import create_database
 from rigsfm.errors import ReconstructionError
 from rigsfm.export import write_model, write_narrow_poses, write_points_ply
-from rigsfm.features import MatchingOptions, extract_features, match_features
+from rigsfm.features import MatchingOptions, drop_stale_work, extract_features, match_features
 from rigsfm.inputs import ImageEntry, scan_images
 from rigsfm.io import write_json_atomic
 from rigsfm.manual_matches import read_manual_matches, validate_manual_matches
 from rigsfm.manual_merge import add_manual_matches, manual_matches_summary
 from rigsfm.mapping import MappingOptions, run_mapping
-from rigsfm.rig_constraint import RigConstraintOptions, RigConstraintResult, ScaleSource, apply_rig_constraints
 from rigsfm.report import write_report
 from rigsfm.residuals import reprojection_errors
+from rigsfm.rig_constraint import (
+    RigConstraintOptions,
+    RigConstraintResult,
+    ScaleSource,
+    apply_rig_constraints,
+)
 from rigsfm.rigs import RigCalibration, load_rigs
 from rigsfm.scale_file import ScaleSpec, load_scale
 from rigsfm.workspace import Workspace, colmap_log_to
@@ -186,6 +191,7 @@ def run(
         with timings.stage("database"):
             create_database(workspace.database, inputs.rigs, inputs.images)
         with timings.stage("features"):
+            drop_stale_work(workspace.database, workspace.feature_settings, options.matching)
             extract_features(workspace.database, inputs.image_dir, inputs.images, options.matching,
                              report("features"))
         with timings.stage("matching"):

@@ -22,6 +22,11 @@ class Workspace:
         return self.root / "database.db"
 
     @property
+    def feature_settings(self) -> Path:
+        """The settings the database's features and matches were made with (``features.drop_stale_work``)."""
+        return self.root / "features.json"
+
+    @property
     def mapping(self) -> Path:
         """Wide-camera registration straight out of the mapper (arbitrary units)."""
         return self.root / "mapping"
@@ -65,7 +70,7 @@ class Workspace:
         if existing and not overwrite:
             raise WorkspaceError(
                 f"{self.root} already holds a result ({', '.join(existing)}); "
-                "pass --overwrite to replace it (features and matches are reused) or choose another --out"
+                "pass --overwrite to replace it (features and matches made with the same settings are reused) or choose another --out"
             )
         self.root.mkdir(parents=True, exist_ok=True)
 

@@ -141,3 +141,26 @@ def test_rerun_refuses_to_overwrite_then_resumes(scene):
     assert "Extracted features for 0 images" in (out / "colmap.log").read_text()
     summary = json.loads((out / "summary.json").read_text())
     assert summary["registered"]["narrow"]["registered"] == 3
+
+
+def test_changed_settings_recompute_instead_of_reusing_stale_work(scene, tmp_path):
+    _, out, args, _ = scene
+    work = tmp_path / "out"
+    shutil.copytree(out, work)
+    args = [a if a != str(out) else str(work) for a in args] + ["--overwrite"]
+    with pycolmap.Database.open(work / "database.db") as db:
+        keypoints, matches = db.num_keypoints(), db.num_matches()
+    # A stricter ratio test: the features stay, the matches are recomputed (fewer of them).
+    stricter = CliRunner().invoke(app, args + ["--max-ratio", "0.6"])
+    assert stricter.exit_code == 0, stricter.output
+    with pycolmap.Database.open(work / "database.db") as db:
+        assert db.num_keypoints() == keypoints and 0 < db.num_matches() < 0.9 * matches  # measured 2387 vs 2885
+    log = (work / "colmap.log").read_text()
+    assert "max_ratio: 0.8 -> 0.6" in log and "recomputing its matches" in log
+    assert json.loads((work / "features.json").read_text())["matching"]["max_ratio"] == 0.6
+    # Another feature type: both are recomputed (ASIFT finds more points on these views).
+    asift = CliRunner().invoke(app, args + ["--features", "asift"])
+    assert asift.exit_code == 0, asift.output
+    with pycolmap.Database.open(work / "database.db") as db:
+        assert db.num_keypoints() > keypoints
+    assert "type: sift -> asift" in (work / "colmap.log").read_text()

@@ -14,7 +14,6 @@ Writes ``OUT/separation.json`` and ``OUT/separation.md``.
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import shutil
 import sys
@@ -26,15 +25,15 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from rigsfm.errors import RigsfmError  # noqa: E402
-from rigsfm.evaluation import compare_to_ground_truth  # noqa: E402
-from rigsfm.features import Features, MatchingOptions  # noqa: E402
-from rigsfm.io import write_json_atomic, write_text_atomic  # noqa: E402
-from rigsfm.manual_matches import write_manual_matches  # noqa: E402
-from rigsfm.pipeline import RunOptions, run  # noqa: E402
-from rigsfm.synth.clicks import simulate_clicks  # noqa: E402
-from rigsfm.synth.dataset import render_dataset  # noqa: E402
-from rigsfm.synth.scene import SceneOptions, build_arena  # noqa: E402
+from rigsfm.errors import RigsfmError
+from rigsfm.evaluation import compare_to_ground_truth
+from rigsfm.features import Features, MatchingOptions
+from rigsfm.io import write_json_atomic, write_text_atomic
+from rigsfm.manual_matches import write_manual_matches
+from rigsfm.pipeline import RunOptions, run
+from rigsfm.synth.clicks import simulate_clicks
+from rigsfm.synth.dataset import render_dataset
+from rigsfm.synth.scene import SceneOptions, build_arena
 
 A, B = "rig01/wide/frame0000.png", "rig02/wide/frame0000.png"
 WIDE_FOCAL = 500.0

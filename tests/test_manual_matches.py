@@ -24,11 +24,11 @@ from rigsfm.manual_matches import (
     read_manual_matches,
     write_manual_matches,
 )
-from rigsfm.manual_merge import sampson_error_px
 from rigsfm.pipeline import RunOptions, run
 from rigsfm.synth.clicks import simulate_clicks
 from rigsfm.synth.dataset import render_dataset
 from rigsfm.synth.scene import SceneOptions, build_arena
+from rigsfm.two_view import sampson_error_px
 
 A, B = "rig01/wide/frame0000.png", "rig02/wide/frame0000.png"
 # 170 degrees apart with wide-angle lenses (focal 500 px, 117 degrees across): the rigs nearly face each

@@ -77,3 +77,11 @@ def rotation_angle_deg(a_from_b: np.ndarray, c_from_b: np.ndarray) -> float:
     """Angle in degrees of the rotation between two 3x3 rotation matrices."""
     delta = np.asarray(a_from_b) @ np.asarray(c_from_b).T
     return float(np.degrees(np.arccos(np.clip((np.trace(delta) - 1.0) / 2.0, -1.0, 1.0))))
+
+
+def rotation_vector(rotation: pycolmap.Rotation3d) -> np.ndarray:
+    """Axis * angle (radians) of a rotation, the inverse of ``Rotation3d(axis_angle=...)`` (pycolmap has no
+    logarithm; scipy's quaternions share pycolmap's [x, y, z, w] order)."""
+    from scipy.spatial.transform import Rotation
+
+    return Rotation.from_quat(np.asarray(rotation.quat)).as_rotvec()

@@ -10,6 +10,7 @@ from rigsfm.conventions import (
     rotation_angle_deg,
     rotation_from_euler_zyx_degrees,
     rotation_from_wxyz,
+    rotation_vector,
     wxyz_from_rotation,
 )
 
@@ -66,3 +67,12 @@ def test_rotation_angle():
     a = rotation_from_euler_zyx_degrees(0.0, 0.0, 0.0)
     b = rotation_from_euler_zyx_degrees(0.0, 0.0, 0.25)
     assert rotation_angle_deg(a, b) == pytest.approx(0.25, abs=1e-9)
+
+
+def test_rotation_vector_inverts_axis_angle():
+    for vector in ([0.3, -0.2, 0.1], [0.0, 0.0, 1e-9], [0.0, 3.0, 0.0], [-1.2, 0.4, 2.0]):
+        rotation = pycolmap.Rotation3d(axis_angle=np.array(vector))
+        np.testing.assert_allclose(rotation_vector(rotation), vector, atol=1e-12)
+    # not the [w, x, y, z] reading of the same numbers: 90 deg about z is (0, 0, pi/2)
+    quarter = pycolmap.Rotation3d(np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]))
+    np.testing.assert_allclose(rotation_vector(quarter), [0.0, 0.0, np.pi / 2], atol=1e-12)

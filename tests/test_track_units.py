@@ -5,7 +5,8 @@ import pycolmap
 import pytest
 
 from rigsfm.track.detect import Thresholds, classify
-from rigsfm.track.pose import RegistrationOptions, estimate_rig_pose, pose_covariance, rotation_vector
+from rigsfm.conventions import rotation_vector
+from rigsfm.track.pose import RegistrationOptions, estimate_rig_pose, pose_covariance
 
 DEG, MM = np.radians(1.0), 1e-3
 SIGMA = np.diag([0.003 * DEG] * 3 + [1.0 * MM] * 3) ** 2  # a well-registered frame: 0.003 deg, 1 mm

@@ -76,13 +76,6 @@ def reprojection_errors(cam_from_world: pycolmap.Rigid3d, camera: pycolmap.Camer
     return np.linalg.norm(projected - xy, axis=1)
 
 
-def rotation_vector(rotation: pycolmap.Rotation3d) -> np.ndarray:
-    """Axis * angle (radians) of a rotation (pycolmap has no logarithm; scipy's uses the same xyzw order)."""
-    from scipy.spatial.transform import Rotation
-
-    return Rotation.from_quat(np.asarray(rotation.quat)).as_rotvec()
-
-
 def pose_covariance(rig_from_world: pycolmap.Rigid3d, observations: list[tuple], frame_from_world: np.ndarray,
                     step: float = 1e-6) -> np.ndarray:
     """6x6 covariance of a rig pose in the coordinates a change is reported in: the rotation vector

@@ -20,7 +20,7 @@ import pycolmap
 from rigsfm.errors import WorkspaceError
 from rigsfm.export import pose_dict
 from rigsfm.track.detect import Thresholds, classify
-from rigsfm.track.pose import rotation_vector
+from rigsfm.conventions import rotation_vector
 from rigsfm.track.reference import ReferenceMap, ReferenceRig, rigid3d_from_matrix
 
 logger = logging.getLogger(__name__)

@@ -110,8 +110,8 @@ def test_sift_fails_and_manual_matches_register_the_pair(scenes):
     reference_error = _narrow_rotation_error(reference.reconstruction, near)
     assert reference_error < 0.15 and reference.summary["warnings"] == []  # measured 0.100 deg
     manual_error = _narrow_rotation_error(pycolmap.Reconstruction(root / "sift_only" / "sparse"), apart)
-    # 34 clicks: the pair registers, but 1 px click noise dominates (0.28 deg here; over 10 click sets
-    # benchmarks/separation.py measures a median of ~0.4 deg).
+    # 34 clicks: the pair registers, but 1 px click noise dominates (0.28 deg here; the median over ten
+    # click sets is 0.47 deg, 4.7x, in benchmarks/separation.py).
     assert manual_error < 1.0
     # The pipeline adds nothing to the clicks' own limit: with exact clicks only the calibration errors of
     # rigs.yaml remain, within 2x of the SIFT pair (measured 0.13 vs 0.10 deg)...
@@ -119,15 +119,16 @@ def test_sift_fails_and_manual_matches_register_the_pair(scenes):
     exact = run(apart.images, apart.rigs, root / "exact", apart.scale,
                 RunOptions(manual_matches=write_manual_matches(root / "exact.csv", exact_rows)))
     assert _narrow_rotation_error(exact.reconstruction, apart) < 2.0 * reference_error
-    # ...and more clicks shrink the noise: 60 clicks, median of three click sets (measured 0.26 deg here).
+    # ...and more clicks shrink the noise: with 60 clicks (48 good) the median over ten click sets is within
+    # 2x (measured 0.144 deg, 1.4x; the sets range 0.096-0.336 deg; benchmarks/separation.py).
     errors = []
-    for seed in range(3):
+    for seed in range(10):
         rows, _ = synthetic_correspondences(apart, n=60, seed=seed)
         result = run(apart.images, apart.rigs, root / f"sixty{seed}", apart.scale,
                      RunOptions(manual_matches=write_manual_matches(root / f"sixty{seed}.csv", rows)))
         errors.append(_narrow_rotation_error(result.reconstruction, apart))
-    print(f"\nreference {reference_error:.3f}, 34 clicks {manual_error:.3f}, 60 clicks {errors} deg")
-    assert np.median(errors) < 3.0 * reference_error
+    print(f"\nreference {reference_error:.3f}, 34 clicks {manual_error:.3f}, 60 clicks {np.round(errors, 3)} deg")
+    assert np.median(errors) < 2.0 * reference_error
 
 
 def test_sift_matches_on_one_plane_are_flagged(scenes):

@@ -131,6 +131,21 @@ def test_sift_fails_and_manual_matches_register_the_pair(scenes):
     assert np.median(errors) < 2.0 * reference_error
 
 
+def test_simulated_clicks_are_exact_spread_and_on_every_kind_of_structure(scenes):
+    _, apart, _ = scenes
+    clicks = simulate_clicks(build_arena(WIDE_APART), apart.load_ground_truth(), A, B, noise_px=0.0, seed=4)
+    errors = ground_truth_epipolar_px(apart, clicks.rows)
+    assert clicks.outliers.sum() == 7 and np.max(errors[~clicks.outliers]) < 1e-6
+    assert np.median(errors[clicks.outliers]) > 10.0
+    radius = np.hypot(clicks.points[:, 0], clicks.points[:, 1])
+    on_wall = np.abs(radius - WIDE_APART.wall_radius) < 0.01
+    on_ground = clicks.points[:, 2] < 0.01
+    assert on_wall.sum() >= 10 and on_ground.sum() >= 10 and (~on_wall & ~on_ground).sum() >= 10  # objects
+    xy = np.array([r.xy_a for r in clicks.rows])
+    # spread over what image A shares with B (measured 76 % of its width)
+    assert np.ptp(xy[:, 0]) > 0.6 * 1624 and np.ptp(xy[:, 1]) > 0.3 * 1234
+
+
 def test_sift_matches_on_one_plane_are_flagged(scenes):
     """160 degrees apart, SIFT matches one patch of the stands only: two exact poses, the mapper picks
     the wrong one (19 deg off here). The result must say so (the 60-degree pair above has no warning)."""

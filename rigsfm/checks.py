@@ -4,9 +4,10 @@
   tracks seen by three or more rigs. Rigs linked to the rest by two-view tracks alone can slide along
   their viewing directions (a 4-rig circle 90 degrees apart is the classic case): the model still
   reprojects well while its shape is wrong.
-- Planar ambiguity: when every match tying a rig to the others lies on one plane (one homography
-  explains them, e.g. a single patch of wall or ground), the relative pose has two exact solutions and the
-  mapper may pick the wrong one, degrees away, with perfect reprojection errors.
+- Weak links: when every match tying a rig to the others lies on one plane (one homography explains
+  them, e.g. a single patch of wall or ground), the relative pose has two exact solutions and the mapper
+  may pick the wrong one, degrees away, with perfect reprojection errors. Matches that fit a fundamental
+  matrix but no essential matrix of the calibrated cameras are as suspect (a few matches, some wrong).
 - Scale consistency: several scale measurements must agree within their uncertainties; when they do
   not, the shape of the model (or a measurement) is wrong.
 """
@@ -63,14 +64,16 @@ def _groups(rigs: list[str], links: Iterable[tuple[str, str]]) -> list[list[str]
     return list(groups.values())
 
 
-PLANAR = {pycolmap.TwoViewGeometryConfiguration.PLANAR, pycolmap.TwoViewGeometryConfiguration.PANORAMIC,
-          pycolmap.TwoViewGeometryConfiguration.PLANAR_OR_PANORAMIC}
+Config = pycolmap.TwoViewGeometryConfiguration
+WEAK = {Config.PLANAR: "on one plane", Config.PANORAMIC: "on one plane", Config.PLANAR_OR_PANORAMIC: "on one plane",
+        Config.UNCALIBRATED: "fitting no essential matrix of the calibrated cameras"}
 MIN_PAIR_INLIERS = 15  # verified matches that make an image pair a link between two rigs
 
 
-def planar_only_rigs(database_path: Path, reconstruction: pycolmap.Reconstruction) -> dict[str, list[str]]:
-    """Registered rigs tied to the largest group of rigs only through planar image pairs, each with those
-    pairs (``"rig01-rig02: 68 matches"``); empty when every rig has a non-planar link."""
+def weakly_tied_rigs(database_path: Path, reconstruction: pycolmap.Reconstruction) -> dict[str, list[str]]:
+    """Registered rigs tied to the largest group of rigs only through weak image pairs (planar, or not
+    consistent with the calibration), each with those pairs (``"rig01-rig02: 68 matches on one plane"``);
+    empty when every rig has a sound link."""
     rig_of = {image.name: image.name.split("/", 1)[0]
               for image in reconstruction.images.values() if image.has_pose}
     rigs = sorted(set(rig_of.values()))
@@ -79,33 +82,34 @@ def planar_only_rigs(database_path: Path, reconstruction: pycolmap.Reconstructio
     with pycolmap.Database.open(str(database_path)) as db:
         names = {image.image_id: image.name for image in db.read_all_images()}
         pair_ids, geometries = db.read_two_view_geometries()
-    solid, planar = [], {}
+    sound, weak = [], {}
     for pair_id, geometry in zip(pair_ids, geometries):
         a, b = (rig_of.get(names[i]) for i in pycolmap.pair_id_to_image_pair(pair_id))
         if a is None or b is None or a == b or len(geometry.inlier_matches) < MIN_PAIR_INLIERS:
             continue
-        if geometry.config in PLANAR:
-            planar.setdefault(a, []).append(f"{min(a, b)}-{max(a, b)}: {len(geometry.inlier_matches)} matches")
-            planar.setdefault(b, []).append(planar[a][-1])
+        if geometry.config in WEAK:
+            row = f"{min(a, b)}-{max(a, b)}: {len(geometry.inlier_matches)} matches {WEAK[geometry.config]}"
+            weak.setdefault(a, []).append(row)
+            weak.setdefault(b, []).append(row)
         else:
-            solid.append((a, b))
-    largest = max(_groups(rigs, solid), key=len)
+            sound.append((a, b))
+    largest = max(_groups(rigs, sound), key=len)
     core = largest if len(largest) > 1 else []
-    return {rig: sorted(set(planar[rig])) for rig in rigs if rig not in core and rig in planar}
+    return {rig: sorted(set(weak[rig])) for rig in rigs if rig not in core and rig in weak}
 
 
 def check_reconstruction(reconstruction: pycolmap.Reconstruction, scale: ScaleEstimate | None,
                          database_path: Path | None = None) -> list[str]:
-    """Warnings (empty when the checks pass); the planar check needs the workspace's database."""
+    """Warnings (empty when the checks pass); the weak-link check needs the workspace's database."""
     warnings = []
-    planar = planar_only_rigs(database_path, reconstruction) if database_path is not None else {}
-    if planar:
-        pairs = sorted({pair for rows in planar.values() for pair in rows})
+    weak = weakly_tied_rigs(database_path, reconstruction) if database_path is not None else {}
+    if weak:
+        pairs = sorted({pair for rows in weak.values() for pair in rows})
         warnings.append(
-            f"POSE AMBIGUOUS: {', '.join(planar)} are tied to the other rigs only by matches on one plane "
-            f"({'; '.join(pairs)}); such a pose has two exact solutions and may be degrees off. Add "
-            "correspondences off that plane (--manual-matches, e.g. on pillars, stands and the ground) or a rig "
-            "in between"
+            f"POSE AMBIGUOUS: {', '.join(weak)} are tied to the other rigs only by weak matches ({'; '.join(pairs)}); "
+            "matches on one plane allow two exact poses, matches that fit no essential matrix include wrong ones, and "
+            "the pose may be degrees off. Add correspondences off that plane (--manual-matches, e.g. on pillars, "
+            "stands and the ground), try --features asift, or add a rig in between"
         )
     loose = loosely_tied_rigs(reconstruction)
     if loose:

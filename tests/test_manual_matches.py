@@ -6,6 +6,7 @@ coordinate, and 20 % gross outliers.
 """
 
 import json
+import re
 from dataclasses import replace
 
 import numpy as np
@@ -16,6 +17,7 @@ from typer.testing import CliRunner
 from rigsfm.cli import app
 from rigsfm.errors import ReconstructionError
 from rigsfm.evaluation import compare_to_ground_truth
+from rigsfm.features import Features, MatchingOptions
 from rigsfm.manual_matches import (
     Correspondence,
     DegenerateCorrespondencesError,
@@ -146,15 +148,20 @@ def test_simulated_clicks_are_exact_spread_and_on_every_kind_of_structure(scenes
     assert np.ptp(xy[:, 0]) > 0.6 * 1624 and np.ptp(xy[:, 1]) > 0.3 * 1234
 
 
-def test_sift_matches_on_one_plane_are_flagged(scenes):
-    """160 degrees apart, SIFT matches one patch of the stands only: two exact poses, the mapper picks
-    the wrong one (19 deg off here). The result must say so (the 60-degree pair above has no warning)."""
+def test_weak_automatic_matches_are_flagged(scenes):
+    """160 degrees apart. SIFT matches one patch of the stands only: two exact poses, and the mapper picks
+    the wrong one (19 deg off). ASIFT finds 15 matches, 4 of them wrong, that fit a fundamental matrix but
+    no essential matrix (44 deg off). Both results must say so (the 60-degree pair above has no warning)."""
     root, _, _ = scenes
-    planar = render_dataset(root / "planar", replace(WIDE_APART, arc_deg=160.0))
-    result = run(planar.images, planar.rigs, root / "planar_out", planar.scale)
-    assert _narrow_rotation_error(result.reconstruction, planar) > 5.0
-    (warning,) = [w for w in result.summary["warnings"] if w.startswith("POSE AMBIGUOUS")]
-    assert "rig01, rig02 are tied to the other rigs only by matches on one plane (rig01-rig02: " in warning
+    apart = render_dataset(root / "160", replace(WIDE_APART, arc_deg=160.0))
+    for features, weakness in (("sift", r"\d+ matches on one plane"),
+                               ("asift", r"\d+ matches fitting no essential matrix of the calibrated cameras")):
+        options = RunOptions(matching=MatchingOptions(features=Features(features)))
+        result = run(apart.images, apart.rigs, root / f"160_{features}", apart.scale, options)
+        assert _narrow_rotation_error(result.reconstruction, apart) > 5.0
+        (warning,) = [w for w in result.summary["warnings"] if w.startswith("POSE AMBIGUOUS")]
+        assert re.search(f"rig01, rig02 are tied to the other rigs only by weak matches .rig01-rig02: {weakness}.",
+                         warning), warning
 
 
 def test_manual_merge_is_idempotent_and_drops_stale_rows(scenes, tmp_path):

@@ -118,6 +118,8 @@ def check_reconstruction(reconstruction: pycolmap.Reconstruction, scale: ScaleEs
             "to the rest are not fixed by the images and may be wrong; add rigs in between or wider views, "
             "and check against scale.yaml measurements"
         )
+    for row in scale.unused if scale is not None else ():
+        warnings.append(f"SCALE MEASUREMENT UNUSED: {row}; the scale rests on the other measurements")
     if scale is not None and len(scale.measurements) > 1:
         for row in scale.residuals():
             if abs(row["residual_meters"]) > MAX_NORMALISED_RESIDUAL * row["sigma_meters"]:

@@ -38,6 +38,7 @@ class ScaleEstimate:
     metres_per_unit: float
     sigma: float  # standard uncertainty of metres_per_unit
     measurements: tuple[Measurement, ...]
+    unused: tuple[str, ...] = ()  # measurements that name unregistered cameras: "<label>: <why>"
 
     @property
     def relative_sigma_percent(self) -> float:
@@ -62,6 +63,10 @@ class ScaleEstimate:
         return rows
 
 
+class UnusableMeasurement(Exception):
+    """A measurement that names cameras or images the reconstruction does not hold."""
+
+
 def camera_centre(reconstruction: pycolmap.Reconstruction, camera: str) -> np.ndarray:
     """Centre of ``<rig>/<sensor>`` (mean over its registered frames) or of one image name."""
     centres = [
@@ -70,9 +75,7 @@ def camera_centre(reconstruction: pycolmap.Reconstruction, camera: str) -> np.nd
         if image.has_pose and (image.name == camera or image.name.startswith(camera + "/"))
     ]
     if not centres:
-        raise ReconstructionError(
-            f"scale measurement names {camera}, which was not registered; remove it from scale.yaml"
-        )
+        raise UnusableMeasurement(f"{camera} was not registered")
     return np.mean(centres, axis=0)
 
 
@@ -106,10 +109,7 @@ def known_length_in_model(reconstruction: pycolmap.Reconstruction, item: KnownLe
         for end in (0, 1):
             point = triangulate_observed_point(reconstruction, [(name, ab[end]) for name, ab in observations])
             if point is None:
-                raise ReconstructionError(
-                    f"known length of {item.meters} m: fewer than two of its images were registered; "
-                    "observe it in other images or remove it from scale.yaml"
-                )
+                raise UnusableMeasurement("fewer than two of its images were registered")
             ends.append(point)
         return float(np.linalg.norm(ends[0] - ends[1]))
 
@@ -124,16 +124,32 @@ def known_length_in_model(reconstruction: pycolmap.Reconstruction, item: KnownLe
 
 
 def estimate_scale(reconstruction: pycolmap.Reconstruction, spec: ScaleSpec) -> ScaleEstimate:
-    """Metres per model unit from every measurement, weighted by its uncertainty."""
-    measurements = []
+    """Metres per model unit from every usable measurement, weighted by its uncertainty. Measurements that
+    name unregistered cameras are left out (listed in ``unused``); none usable raises ReconstructionError."""
+    measurements, unused = [], []
     for d in spec.camera_distances:
-        length = float(np.linalg.norm(camera_centre(reconstruction, d.a) - camera_centre(reconstruction, d.b)))
-        measurements.append(Measurement("camera_distance", f"{d.a} - {d.b}", d.meters, length, d.sigma))
+        label = f"{d.a} - {d.b}"
+        try:
+            length = float(np.linalg.norm(camera_centre(reconstruction, d.a) - camera_centre(reconstruction, d.b)))
+        except UnusableMeasurement as why:
+            unused.append(f"{label}: {why}")
+            continue
+        measurements.append(Measurement("camera_distance", label, d.meters, length, d.sigma))
     for i, item in enumerate(spec.known_lengths):
-        length, model_sigma = known_length_in_model(reconstruction, item, spec.pixel_sigma)
-        measurements.append(
-            Measurement("known_length", f"known_length[{i}]", item.meters, length, item.sigma, model_sigma)
+        label = f"known_length[{i}]"
+        try:
+            length, model_sigma = known_length_in_model(reconstruction, item, spec.pixel_sigma)
+        except UnusableMeasurement as why:
+            unused.append(f"{label} ({item.meters} m): {why}")
+            continue
+        measurements.append(Measurement("known_length", label, item.meters, length, item.sigma, model_sigma))
+    if not measurements:
+        raise ReconstructionError(
+            f"no measurement of {spec.path} can set the scale: {'; '.join(unused)}. Measure between cameras "
+            "that register, or observe the known length in images that do"
         )
+    for row in unused:
+        logger.warning("Scale measurement left out: %s", row)
     lengths = np.array([m.model_length for m in measurements])
     meters = np.array([m.meters for m in measurements])
     if np.any(lengths <= 1e-12):
@@ -143,7 +159,7 @@ def estimate_scale(reconstruction: pycolmap.Reconstruction, spec: ScaleSpec) -> 
     weights = 1.0 / sigmas**2
     scale = float(np.sum(weights * lengths * meters) / np.sum(weights * lengths**2))
     sigma = float(1.0 / np.sqrt(np.sum(weights * lengths**2)))
-    estimate = ScaleEstimate(scale, sigma, tuple(measurements))
+    estimate = ScaleEstimate(scale, sigma, tuple(measurements), tuple(unused))
     for row in estimate.residuals():
         logger.info("Scale %s: %.4f m vs %.4f m (%+.3f %%, sigma %.4f m)", row["label"], row["reconstructed_meters"],
                     row["meters"], row["residual_percent"], row["sigma_meters"])

@@ -2,11 +2,17 @@
 
 from pathlib import Path
 
+import numpy as np
+import pycolmap
+import pytest
+from synthetic_db import make_network
+
 from rigsfm.checks import check_reconstruction, loosely_tied_rigs
+from rigsfm.errors import ReconstructionError
 from rigsfm.mapping import MappingOptions, run_mapping
 from rigsfm.rig_constraint import apply_rig_constraints
-from rigsfm.scale import Measurement, ScaleEstimate
-from synthetic_db import make_network
+from rigsfm.scale import Measurement, ScaleEstimate, estimate_scale
+from rigsfm.scale_file import CameraDistance, ScaleSpec
 
 
 def test_a_rigid_network_passes(tmp_path):
@@ -40,6 +46,21 @@ def test_disagreeing_scale_measurements_are_flagged():
 
 
 def _empty():
-    import pycolmap
-
     return pycolmap.Reconstruction()
+
+
+def test_measurements_naming_unregistered_cameras_are_left_out_and_reported(tmp_path):
+    rec = make_network(tmp_path, num_rigs=3, seed=2).ground_truth
+    centre = {name: rec.find_image_with_name(f"{name}/wide/frame0000.png").projection_center()
+              for name in ("rig01", "rig02")}
+    true = float(np.linalg.norm(centre["rig01"] - centre["rig02"]))
+    spec = ScaleSpec(Path("scale.yaml"), (CameraDistance("rig01/wide", "rig02/wide", 2.0 * true),
+                                          CameraDistance("rig01/wide", "rig09/wide", 30.0)), ())
+    scale = estimate_scale(rec, spec)
+    assert scale.metres_per_unit == pytest.approx(2.0) and len(scale.measurements) == 1
+    assert scale.unused == ("rig01/wide - rig09/wide: rig09/wide was not registered",)
+    (warning,) = check_reconstruction(_empty(), scale)
+    assert warning.startswith("SCALE MEASUREMENT UNUSED: rig01/wide - rig09/wide: rig09/wide was not registered")
+    only_unusable = ScaleSpec(Path("scale.yaml"), spec.camera_distances[1:], ())
+    with pytest.raises(ReconstructionError, match="no measurement of scale.yaml can set the scale: .*rig09/wide"):
+        estimate_scale(rec, only_unusable)

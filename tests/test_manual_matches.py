@@ -66,6 +66,12 @@ def scenes(tmp_path_factory):
     return root, render_dataset(root / "apart", WIDE_APART), render_dataset(root / "near", NEAR)
 
 
+def _cli_run(dataset, out, matches, *extra):
+    """``rigsfm run`` through the CLI with ``--manual-matches``."""
+    args = ["run", str(dataset.images), "--rigs", str(dataset.rigs), "--out", str(out), "--manual-matches", str(matches)]
+    return CliRunner().invoke(app, [*args, *extra])
+
+
 def _narrow_rotation_error(reconstruction, dataset) -> float:
     return compare_to_ground_truth(reconstruction, dataset.load_ground_truth())["relative_rotation_deg"][
         "max"
@@ -80,21 +86,7 @@ def test_sift_fails_and_manual_matches_register_the_pair(scenes):
     rows, outliers = synthetic_correspondences(apart)
     csv = write_manual_matches(root / "matches.csv", rows)
     # Same workspace: the SIFT features and the (empty) matches are reused, the manual ones merged in.
-    result = CliRunner().invoke(
-        app,
-        [
-            "run",
-            str(apart.images),
-            "--rigs",
-            str(apart.rigs),
-            "--scale",
-            str(apart.scale),
-            "--out",
-            str(root / "sift_only"),
-            "--manual-matches",
-            str(csv),
-        ],
-    )
+    result = _cli_run(apart, root / "sift_only", csv, "--scale", str(apart.scale))
     assert result.exit_code == 0, result.output
     summary = json.loads((root / "sift_only" / "summary.json").read_text())
     assert summary["registered"]["wide"] == {"registered": 2, "total": 2}
@@ -256,18 +248,6 @@ def test_each_bad_input_gives_its_clear_error(scenes, tmp_path):
 def test_cli_prints_one_clear_line_for_bad_manual_matches(scenes, tmp_path):
     _, apart, _ = scenes
     path = _csv(tmp_path, f"image_a,x_a,y_a,image_b,x_b,y_b\n{A},1,2,nowhere.png,3,4\n")
-    result = CliRunner().invoke(
-        app,
-        [
-            "run",
-            str(apart.images),
-            "--rigs",
-            str(apart.rigs),
-            "--out",
-            str(tmp_path / "o"),
-            "--manual-matches",
-            str(path),
-        ],
-    )
+    result = _cli_run(apart, tmp_path / "o", path)
     assert result.exit_code == 1
     assert "unknown wide image 'nowhere.png'" in result.output and "Traceback" not in result.output

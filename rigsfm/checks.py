@@ -20,6 +20,7 @@ from pathlib import Path
 import pycolmap
 
 from rigsfm.scale import ScaleEstimate
+from rigsfm.two_view import PLANAR, Config
 
 MIN_SHARED_POINTS = 20  # three-view points that tie a rig to the others
 MAX_NORMALISED_RESIDUAL = 5.0
@@ -64,8 +65,7 @@ def _groups(rigs: list[str], links: Iterable[tuple[str, str]]) -> list[list[str]
     return list(groups.values())
 
 
-Config = pycolmap.TwoViewGeometryConfiguration
-WEAK = {Config.PLANAR: "on one plane", Config.PANORAMIC: "on one plane", Config.PLANAR_OR_PANORAMIC: "on one plane",
+WEAK = {**dict.fromkeys(PLANAR, "on one plane"),
         Config.UNCALIBRATED: "fitting no essential matrix of the calibrated cameras"}
 MIN_PAIR_INLIERS = 15  # verified matches that make an image pair a link between two rigs
 

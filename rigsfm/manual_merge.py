@@ -25,13 +25,10 @@ from rigsfm.manual_matches import (
     TooFewCorrespondencesError,
     check_spread,
 )
-from rigsfm.two_view import planar_fraction, sampson_error_px
+from rigsfm.two_view import PLANAR, POSED, Config, planar_fraction, sampson_error_px
 
 logger = logging.getLogger(__name__)
 
-Config = pycolmap.TwoViewGeometryConfiguration
-POSED = (Config.CALIBRATED, Config.UNCALIBRATED, Config.PLANAR, Config.PANORAMIC, Config.PLANAR_OR_PANORAMIC)
-PLANAR = (Config.PLANAR, Config.PANORAMIC, Config.PLANAR_OR_PANORAMIC)
 
 
 @dataclass

@@ -6,6 +6,10 @@ import cv2
 import numpy as np
 import pycolmap
 
+Config = pycolmap.TwoViewGeometryConfiguration
+PLANAR = (Config.PLANAR, Config.PANORAMIC, Config.PLANAR_OR_PANORAMIC)  # a homography explains the matches
+POSED = (Config.CALIBRATED, Config.UNCALIBRATED, *PLANAR)  # configurations that carry a relative pose
+
 
 def sampson_error_px(
     essential: np.ndarray, cam1: pycolmap.Camera, cam2: pycolmap.Camera, xy1: np.ndarray, xy2: np.ndarray

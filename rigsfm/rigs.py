@@ -16,6 +16,7 @@ Intrinsics use COLMAP's pixel convention (first pixel centre at (0.5, 0.5)).
 
 from __future__ import annotations
 
+import copy
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -174,3 +175,33 @@ def rigs_to_yaml(rigs: Sequence[RigCalibration]) -> str:
 def write_rigs(path: Path, rigs: Sequence[RigCalibration], *, overwrite: bool = False) -> Path:
     """Write rigs.yaml atomically; refuses to replace an existing file unless ``overwrite``."""
     return write_text_atomic(Path(path), rigs_to_yaml(rigs), overwrite=overwrite)
+
+
+def add_posed_rig(reconstruction: pycolmap.Reconstruction, rig_id: int, calibration: RigCalibration,
+                  rig_from_world: pycolmap.Rigid3d, frames: Sequence[dict[str, str]]) -> None:
+    """Add one rig to ``reconstruction``: its wide (reference) and narrow cameras (ids ``2 rig_id - 1`` and
+    ``2 rig_id``), the rig with E^sl, and one frame at ``rig_from_world`` per entry of ``frames`` (sensor ->
+    image name). Frame and image ids continue after the largest ones already there."""
+    sensors = {}
+    for offset, sensor in enumerate(("wide", "narrow")):
+        camera = copy.copy(calibration.camera(sensor))
+        camera.camera_id = 2 * rig_id - 1 + offset
+        reconstruction.add_camera(camera)
+        sensors[sensor] = pycolmap.sensor_t(pycolmap.SensorType.CAMERA, camera.camera_id)
+    rig = pycolmap.Rig(rig_id=rig_id)
+    rig.add_ref_sensor(sensors["wide"])
+    rig.add_sensor(sensors["narrow"], calibration.narrow_from_wide)
+    reconstruction.add_rig(rig)
+    frame_id, image_id = max(reconstruction.frames, default=0), max(reconstruction.images, default=0)
+    for names in frames:
+        frame_id += 1
+        frame = pycolmap.Frame(frame_id=frame_id, rig_id=rig_id, rig_from_world=rig_from_world)
+        images = []
+        for sensor, name in names.items():
+            image_id += 1
+            images.append(pycolmap.Image(image_id=image_id, name=name, camera_id=sensors[sensor].id,
+                                         frame_id=frame_id))
+            frame.add_data_id(pycolmap.data_t(sensors[sensor], image_id))
+        reconstruction.add_frame(frame)
+        for image in images:
+            reconstruction.add_image(image)

@@ -22,7 +22,6 @@ rotation error.
 
 from __future__ import annotations
 
-import copy
 import itertools
 import logging
 import time
@@ -41,7 +40,7 @@ from benchmarks.baselines.two_view import (
 )
 from rigsfm.conventions import opencv_from_colmap_pixels, rotation_angle_deg
 from rigsfm.pipeline import load_inputs
-from rigsfm.rigs import RigCalibration
+from rigsfm.rigs import RigCalibration, add_posed_rig
 
 logger = logging.getLogger(__name__)
 
@@ -150,28 +149,9 @@ def reconstruction_from_poses(rigs: list[RigCalibration], wide_from_world: dict[
     """A reconstruction with one rig (wide = reference, narrow at E^sl) per registered rig."""
     rec = pycolmap.Reconstruction()
     for index, rig_cal in enumerate(rigs):
-        if rig_cal.name not in wide_from_world:
-            continue
-        ids = {}
-        for offset, sensor in enumerate(("wide", "narrow")):
-            camera = copy.copy(rig_cal.camera(sensor))
-            camera.camera_id = 2 * index + 1 + offset
-            rec.add_camera(camera)
-            ids[sensor] = pycolmap.sensor_t(pycolmap.SensorType.CAMERA, camera.camera_id)
-        rig = pycolmap.Rig(rig_id=index + 1)
-        rig.add_ref_sensor(ids["wide"])
-        rig.add_sensor(ids["narrow"], rig_cal.narrow_from_wide)
-        rec.add_rig(rig)
-        frame = pycolmap.Frame(frame_id=index + 1, rig_id=index + 1, rig_from_world=wide_from_world[rig_cal.name])
-        images = []
-        for offset, sensor in enumerate(("wide", "narrow")):
-            image_id = 2 * index + 1 + offset
-            images.append(pycolmap.Image(image_id=image_id, name=f"{rig_cal.name}/{sensor}/{frame_file}",
-                                         camera_id=ids[sensor].id, frame_id=index + 1))
-            frame.add_data_id(pycolmap.data_t(ids[sensor], image_id))
-        rec.add_frame(frame)
-        for image in images:
-            rec.add_image(image)
+        if rig_cal.name in wide_from_world:
+            frame = {sensor: f"{rig_cal.name}/{sensor}/{frame_file}" for sensor in ("wide", "narrow")}
+            add_posed_rig(rec, index + 1, rig_cal, wide_from_world[rig_cal.name], [frame])
     return rec
 
 

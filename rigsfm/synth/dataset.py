@@ -13,7 +13,6 @@ OUT/
 
 from __future__ import annotations
 
-import copy
 import dataclasses
 import logging
 import shutil
@@ -28,7 +27,7 @@ import yaml
 
 from rigsfm.errors import WorkspaceError
 from rigsfm.io import write_text_atomic
-from rigsfm.rigs import write_rigs
+from rigsfm.rigs import add_posed_rig, write_rigs
 from rigsfm.synth.cameras import RigTruth, make_rigs, user_calibration
 from rigsfm.synth.render import project, render_clean, to_uint8, visible
 from rigsfm.synth.scene import Arena, Bar, SceneOptions, build_arena
@@ -102,37 +101,10 @@ def choose_bar(arena: Arena, first: RigTruth, second: RigTruth) -> Bar | None:
 def ground_truth_reconstruction(rigs: list[RigTruth], frames_per_rig: int) -> pycolmap.Reconstruction:
     """Exact cameras, one pycolmap.Rig per rig (wide = reference sensor), frames and images."""
     rec = pycolmap.Reconstruction()
-    frame_id = image_id = 0
     for index, truth in enumerate(rigs):
-        sensor_ids = {}
-        for offset, sensor in enumerate(SENSORS):
-            camera = copy.copy(truth.wide if sensor == "wide" else truth.narrow)
-            camera.camera_id = 2 * index + 1 + offset
-            rec.add_camera(camera)
-            sensor_ids[sensor] = pycolmap.sensor_t(pycolmap.SensorType.CAMERA, camera.camera_id)
-        rig = pycolmap.Rig(rig_id=index + 1)
-        rig.add_ref_sensor(sensor_ids["wide"])
-        rig.add_sensor(sensor_ids["narrow"], truth.narrow_from_wide)
-        rec.add_rig(rig)
-        for frame_index in range(frames_per_rig):
-            frame_id += 1
-            frame = pycolmap.Frame(frame_id=frame_id, rig_id=rig.rig_id, rig_from_world=truth.wide_from_world)
-            images = []
-            for sensor in SENSORS:
-                image_id += 1
-                sensor_id = sensor_ids[sensor]
-                images.append(
-                    pycolmap.Image(
-                        image_id=image_id,
-                        name=image_name(truth.name, sensor, frame_index),
-                        camera_id=sensor_id.id,
-                        frame_id=frame_id,
-                    )
-                )
-                frame.add_data_id(pycolmap.data_t(sensor_id, image_id))
-            rec.add_frame(frame)
-            for image in images:
-                rec.add_image(image)
+        frames = [{sensor: image_name(truth.name, sensor, frame) for sensor in SENSORS}
+                  for frame in range(frames_per_rig)]
+        add_posed_rig(rec, index + 1, truth.calibration(), truth.wide_from_world, frames)
     return rec
 
 

@@ -60,6 +60,12 @@ def spread_correspondences(dataset, n, seed):
     return [rows[i] for i in chosen]
 
 
+def settle(page, n):
+    """Wait for ``n`` pairs in the table and for every save to be answered by the server."""
+    page.wait_for_function(f"document.querySelectorAll('#pairs tbody tr').length === {n}")
+    page.evaluate("window.picker.saved()")
+
+
 def table_rows(page):
     return page.locator("#pairs tbody tr")
 
@@ -71,7 +77,7 @@ def test_pick_pairs_epipolar_line_flag_save_undo_reload(page, dataset):
     for row in rows[:8]:
         clicked.append(click(page, "a", row.xy_a) + click(page, "b", row.xy_b))
         assert page.locator("#epipolar-b").count() == 0  # no model before eight pairs
-    page.wait_for_function("document.querySelectorAll('#pairs tbody tr').length === 8")
+    settle(page, 8)
     assert "epipolar lines from 8 pairs (calibrated E)" in page.locator("#status").inner_text()
 
     # The ninth point: its epipolar curve appears in the other image and passes its true partner.
@@ -80,7 +86,7 @@ def test_pick_pairs_epipolar_line_flag_save_undo_reload(page, dataset):
     points = [[float(v) for v in p.split(",")] for p in page.get_attribute("#epipolar-b", "points").split()]
     assert len(points) > 10 and distance_to_polyline(points, np.array(rows[8].xy_b)) < 3.0
     clicked[-1] += click(page, "b", rows[8].xy_b)
-    page.wait_for_function("document.querySelectorAll('#pairs tbody tr').length === 9")
+    settle(page, 9)
     assert page.locator("#epipolar-b").count() == 0 and table_rows(page).locator(".flagged").count() == 0
 
     # Zoomed in, a click still lands where it should; a wrong partner (30 px off its line) is flagged.
@@ -99,11 +105,34 @@ def test_pick_pairs_epipolar_line_flag_save_undo_reload(page, dataset):
     assert np.allclose([[*r.xy_a, *r.xy_b] for r in saved], clicked, atol=1e-3)
 
     page.keyboard.press("Control+z")
-    page.wait_for_function("document.querySelectorAll('#pairs tbody tr').length === 9")
+    settle(page, 9)
     assert len(read_manual_matches(csv)) == 9
     page.reload()
     page.evaluate("window.picker.ready")
     assert table_rows(page).count() == 9 and table_rows(page).locator(".flagged").count() == 0
+
+
+def test_pairs_clicked_while_a_save_is_slow_are_all_kept(page, dataset):
+    """The first save is held back until two more pairs are clicked: no pair may be lost or reordered."""
+    page, server, csv = page
+    held = []
+
+    def hold_first_save(route):
+        if route.request.method == "PUT" and not held:
+            held.append(route)
+        else:
+            route.continue_()
+
+    page.route("**/api/pairs", hold_first_save)
+    rows = spread_correspondences(dataset, 3, seed=3)
+    clicked = [click(page, "a", row.xy_a) + click(page, "b", row.xy_b) for row in rows]
+    assert len(held) == 1 and len(server.session.pairs) == 0
+    held[0].continue_()
+    page.evaluate("window.picker.saved()")
+    assert table_rows(page).count() == 3 and "NOT SAVED" not in page.locator("#status").inner_text()
+    saved = read_manual_matches(csv)
+    assert np.allclose([[*r.xy_a, *r.xy_b] for r in saved], clicked, atol=1e-3)
+    assert len(server.session.pairs) == 3
 
 
 def test_state_survives_a_new_server_and_foreign_hosts_are_refused(page, dataset):
@@ -112,7 +141,7 @@ def test_state_survives_a_new_server_and_foreign_hosts_are_refused(page, dataset
     for row in rows:
         click(page, "a", row.xy_a)
         click(page, "b", row.xy_b)
-    page.wait_for_function("document.querySelectorAll('#pairs tbody tr').length === 3")
+    settle(page, 3)
     # A new picker on the same CSV (e.g. after a crash) starts from what was saved.
     again = start_picker(dataset.images / A, dataset.images / B, csv)
     try:

@@ -137,22 +137,36 @@ function applyState(data) {
 
 async function updateEpipolar() {
   state.epi = null;
-  if (state.pending && state.model) {
-    const [x, y] = state.pending.xy;
-    const data = await api("GET", `/api/epipolar?side=${state.pending.side}&x=${x}&y=${y}`);
-    state.epi = { side: state.pending.side === "a" ? "b" : "a", polyline: data.polyline };
+  const pending = state.pending;
+  if (pending && state.model) {
+    const [x, y] = pending.xy;
+    const data = await api("GET", `/api/epipolar?side=${pending.side}&x=${x}&y=${y}`);
+    if (pending !== state.pending) return;  // the point moved on while the line was computed
+    state.epi = { side: pending.side === "a" ? "b" : "a", polyline: data.polyline };
   }
   redraw();
 }
 
-async function save() {
-  try {
-    const data = await api("PUT", "/api/pairs", { pairs: state.pairs.map((p) => [...p.a, ...p.b]) });
-    applyState(data);
-    await updateEpipolar();
-  } catch (error) {
-    setStatus("NOT SAVED: " + error.message, true);
-  }
+// Saves go to the server one at a time, each with the newest pairs. A response is applied only when no
+// change came after its request: an older response must not replace newer clicks (fast clicking on a slow
+// server lost pairs that way), and an older request must not overwrite a newer CSV.
+let saveQueue = Promise.resolve();
+let changes = 0;
+function save() {
+  const change = ++changes;
+  redraw();  // the change shows at once; the server's distances and flags follow
+  saveQueue = saveQueue.then(async () => {
+    if (change !== changes) return;  // a later save sends these pairs too
+    try {
+      const data = await api("PUT", "/api/pairs", { pairs: state.pairs.map((p) => [...p.a, ...p.b]) });
+      if (change !== changes) return;
+      applyState(data);
+      await updateEpipolar();
+    } catch (error) {
+      setStatus("NOT SAVED: " + error.message, true);
+    }
+  });
+  return saveQueue;
 }
 
 async function place(side, xy) {
@@ -162,6 +176,7 @@ async function place(side, xy) {
     const pair = side === "b" ? { a: state.pending.xy, b: xy } : { a: xy, b: state.pending.xy };
     state.pairs.push({ ...pair, distance_px: null, flagged: false });
     state.pending = null;
+    state.epi = null;
     storePending();
     await save();
   } else {
@@ -253,4 +268,4 @@ window.addEventListener("keydown", (e) => {
 });
 window.addEventListener("resize", () => SIDES.forEach(fit));
 
-window.picker = { state, views, toScreen, toImage, ready: reload() };
+window.picker = { state, views, toScreen, toImage, ready: reload(), saved: () => saveQueue };

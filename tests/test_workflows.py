@@ -48,13 +48,25 @@ def test_two_rigs_sixty_degrees_apart(tmp_path, mapper):
 
 
 def test_global_mapper(tmp_path):
-    out = run_workflow("global_mapper.py", tmp_path, "--num-rigs", 4, "--image-scale", 0.5)
+    out = run_workflow("global_mapper.py", tmp_path, "--num-rigs", 6, "--image-scale", 0.5)
     accuracy = json.loads((tmp_path / "accuracy.json").read_text())
-    assert accuracy["narrow"]["registered"] == 4
+    assert accuracy["narrow"]["registered"] == 6
     assert accuracy["narrow"]["relative_rotation_deg"]["max"] <= (
         1.1 * accuracy["oracle_narrow"]["relative_rotation_deg"]["max"] + 1e-3)
-    assert "global mapper: 4/4 narrow cameras" in out
-    # Four rigs 90 degrees apart share no point between three rigs: the shape is flagged as undetermined.
+    assert "global mapper: 6/6 narrow cameras" in out
+    assert json.loads((tmp_path / "run" / "summary.json").read_text())["warnings"] == []
+
+
+def test_four_rig_circle_is_flagged_as_undetermined(tmp_path):
+    """Four rigs 90 degrees apart share no point between three rigs: the images do not fix the rigs' distances.
+
+    No accuracy is asserted: the global mapper's threads decide whether the loop closes. In 30 of 32 runs here
+    it left the rig01-rig04 pair out and matched the oracle of the remaining chain (0.503 deg); in 2 it closed
+    the loop, and the result was 1.3-1.4x that (better) oracle's rotation error. The warnings are the answer.
+    """
+    run_workflow("global_mapper.py", tmp_path, "--num-rigs", 4, "--image-scale", 0.5)
+    accuracy = json.loads((tmp_path / "accuracy.json").read_text())
+    assert accuracy["narrow"]["registered"] == 4
     warnings = json.loads((tmp_path / "run" / "summary.json").read_text())["warnings"]
     assert any(w.startswith("SHAPE NOT DETERMINED") for w in warnings)
 

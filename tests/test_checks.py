@@ -7,7 +7,7 @@ import pycolmap
 import pytest
 from synthetic_db import make_network
 
-from rigsfm.checks import check_reconstruction, loosely_tied_rigs
+from rigsfm.checks import check_reconstruction, contradicted_pairs, loosely_tied_rigs
 from rigsfm.errors import ReconstructionError
 from rigsfm.mapping import MappingOptions, run_mapping
 from rigsfm.rig_constraint import apply_rig_constraints
@@ -64,3 +64,20 @@ def test_measurements_naming_unregistered_cameras_are_left_out_and_reported(tmp_
     only_unusable = ScaleSpec(Path("scale.yaml"), spec.camera_distances[1:], ())
     with pytest.raises(ReconstructionError, match="no measurement of scale.yaml can set the scale: .*rig09/wide"):
         estimate_scale(rec, only_unusable)
+
+
+def test_a_rig_moved_off_its_verified_matches_is_flagged(tmp_path):
+    net = make_network(tmp_path, num_rigs=4, seed=5)
+    rec = net.ground_truth
+    assert contradicted_pairs(net.database, rec) == []
+    # Slide rig03 sideways by a tenth of the network's size: its rotations stay exact, its matches no longer fit.
+    centres = np.array([image.projection_center() for image in rec.images.values()])
+    frame = next(rec.frames[image.frame_id] for image in rec.images.values() if image.name.startswith("rig03/"))
+    shift = 0.1 * np.ptp(centres, axis=0).max()
+    frame.rig_from_world = pycolmap.Rigid3d(frame.rig_from_world.rotation,
+                                            frame.rig_from_world.translation + np.array([shift, 0.0, 0.0]))
+    rows = contradicted_pairs(net.database, rec)
+    assert [row.split(":")[0] for row in rows] == ["rig01-rig03", "rig02-rig03", "rig03-rig04"]
+    assert all(float(row.split("median error ")[1].split(" px")[0]) > 10.0 for row in rows)
+    (warning,) = [w for w in check_reconstruction(rec, None, net.database) if w.startswith("MATCHES CONTRADICT")]
+    assert "rig02-rig03" in warning

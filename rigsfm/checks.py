@@ -30,10 +30,13 @@ MIN_SHARED_POINTS = 20  # three-view points that tie a rig to the others
 MAX_NORMALISED_RESIDUAL = 5.0
 
 
+def _rig_of(image: pycolmap.Image) -> str:
+    return image.name.split("/", 1)[0]
+
+
 def loosely_tied_rigs(reconstruction: pycolmap.Reconstruction) -> list[str]:
     """Rigs not tied to the largest group of rigs by points seen from at least three rigs."""
-    rig_of_image = {image.image_id: image.name.split("/", 1)[0]
-                    for image in reconstruction.images.values() if image.has_pose}
+    rig_of_image = {image.image_id: _rig_of(image) for image in reconstruction.images.values() if image.has_pose}
     rigs = sorted(set(rig_of_image.values()))
     if len(rigs) < 3:
         return []
@@ -74,29 +77,36 @@ WEAK = {**dict.fromkeys(PLANAR, "on one plane"),
 MIN_PAIR_INLIERS = 15  # verified matches that make an image pair a link between two rigs
 
 
+def _pairs_between_rigs(db: pycolmap.Database, reconstruction: pycolmap.Reconstruction):
+    """Verified image pairs between registered images of two different rigs with at least
+    ``MIN_PAIR_INLIERS`` inliers, as ``(database id 1, image 1, database id 2, image 2, geometry)``."""
+    registered = {image.name: image for image in reconstruction.images.values() if image.has_pose}
+    names = {image.image_id: image.name for image in db.read_all_images()}
+    for pair_id, geometry in zip(*db.read_two_view_geometries()):
+        id1, id2 = pycolmap.pair_id_to_image_pair(pair_id)
+        image1, image2 = registered.get(names[id1]), registered.get(names[id2])
+        if (image1 is not None and image2 is not None and _rig_of(image1) != _rig_of(image2)
+                and len(geometry.inlier_matches) >= MIN_PAIR_INLIERS):
+            yield id1, image1, id2, image2, geometry
+
+
 def weakly_tied_rigs(database_path: Path, reconstruction: pycolmap.Reconstruction) -> dict[str, list[str]]:
     """Registered rigs tied to the largest group of rigs only through weak image pairs (planar, or not
     consistent with the calibration), each with those pairs (``"rig01-rig02: 68 matches on one plane"``);
     empty when every rig has a sound link."""
-    rig_of = {image.name: image.name.split("/", 1)[0]
-              for image in reconstruction.images.values() if image.has_pose}
-    rigs = sorted(set(rig_of.values()))
+    rigs = sorted({_rig_of(image) for image in reconstruction.images.values() if image.has_pose})
     if len(rigs) < 2:
         return {}
-    with pycolmap.Database.open(str(database_path)) as db:
-        names = {image.image_id: image.name for image in db.read_all_images()}
-        pair_ids, geometries = db.read_two_view_geometries()
     sound, weak = [], {}
-    for pair_id, geometry in zip(pair_ids, geometries):
-        a, b = (rig_of.get(names[i]) for i in pycolmap.pair_id_to_image_pair(pair_id))
-        if a is None or b is None or a == b or len(geometry.inlier_matches) < MIN_PAIR_INLIERS:
-            continue
-        if geometry.config in WEAK:
-            row = f"{min(a, b)}-{max(a, b)}: {len(geometry.inlier_matches)} matches {WEAK[geometry.config]}"
-            weak.setdefault(a, []).append(row)
-            weak.setdefault(b, []).append(row)
-        else:
-            sound.append((a, b))
+    with pycolmap.Database.open(str(database_path)) as db:
+        for _, image1, _, image2, geometry in _pairs_between_rigs(db, reconstruction):
+            a, b = _rig_of(image1), _rig_of(image2)
+            if geometry.config in WEAK:
+                row = f"{min(a, b)}-{max(a, b)}: {len(geometry.inlier_matches)} matches {WEAK[geometry.config]}"
+                weak.setdefault(a, []).append(row)
+                weak.setdefault(b, []).append(row)
+            else:
+                sound.append((a, b))
     largest = max(_groups(rigs, sound), key=len)
     core = largest if len(largest) > 1 else []
     return {rig: sorted(set(weak[rig])) for rig in rigs if rig not in core and rig in weak}
@@ -114,34 +124,26 @@ def contradicted_pairs(database_path: Path, reconstruction: pycolmap.Reconstruct
     Pairs verified as calibrated or planar are checked: their matches are true correspondences, which
     satisfy the epipolar constraint of correct poses. Uncalibrated pairs (no essential matrix fits) are not.
     """
-    registered = {image.name: image for image in reconstruction.images.values() if image.has_pose}
     rows = []
     with pycolmap.Database.open(str(database_path)) as db:
-        names = {image.image_id: image.name for image in db.read_all_images()}
-        pair_ids, geometries = db.read_two_view_geometries()
-        for pair_id, geometry in zip(pair_ids, geometries):
-            id1, id2 = pycolmap.pair_id_to_image_pair(pair_id)
-            image1, image2 = registered.get(names[id1]), registered.get(names[id2])
+        for id1, image1, id2, image2, geometry in _pairs_between_rigs(db, reconstruction):
+            if geometry.config not in (Config.CALIBRATED, *PLANAR):
+                continue
             matches = geometry.inlier_matches
-            if (image1 is None or image2 is None or geometry.config not in (Config.CALIBRATED, *PLANAR)
-                    or len(matches) < MIN_PAIR_INLIERS):
-                continue
-            rig1, rig2 = (image.name.split("/", 1)[0] for image in (image1, image2))
-            if rig1 == rig2:
-                continue
             two_from_one = image2.cam_from_world() * image1.cam_from_world().inverse()
             errors = sampson_error_px(np.asarray(pycolmap.essential_matrix_from_pose(two_from_one)),
                                       image1.camera, image2.camera,
                                       db.read_keypoints(id1)[matches[:, 0], :2], db.read_keypoints(id2)[matches[:, 1], :2])
             median = float(np.median(errors))
             if median > MAX_PAIR_ERROR_PX:
-                rows.append(f"{min(rig1, rig2)}-{max(rig1, rig2)}: {len(matches)} matches, median error {median:.1f} px")
+                a, b = sorted((_rig_of(image1), _rig_of(image2)))
+                rows.append(f"{a}-{b}: {len(matches)} matches, median error {median:.1f} px")
     return sorted(rows)
 
 
 def check_reconstruction(reconstruction: pycolmap.Reconstruction, scale: ScaleEstimate | None,
                          database_path: Path | None = None) -> list[str]:
-    """Warnings (empty when the checks pass); the weak-link check needs the workspace's database."""
+    """Warnings (empty when the checks pass); the checks of image pairs need the workspace's database."""
     warnings = []
     weak = weakly_tied_rigs(database_path, reconstruction) if database_path is not None else {}
     if weak:

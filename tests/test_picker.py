@@ -8,6 +8,7 @@ from test_manual_matches import A, B, synthetic_correspondences
 
 from rigsfm.manual_matches import read_manual_matches
 from rigsfm.picker import start_picker
+from rigsfm.synth.clicks import farthest_points
 from rigsfm.synth.dataset import render_dataset
 from rigsfm.synth.scene import SceneOptions
 
@@ -53,10 +54,7 @@ def distance_to_polyline(points, xy):
 def spread_correspondences(dataset, n, seed):
     """``n`` exact correspondences spread over image A (farthest-point sampling), like a careful user's."""
     rows, _ = synthetic_correspondences(dataset, n=80, noise_px=0.0, outlier_fraction=0.0, seed=seed)
-    xy = np.array([r.xy_a for r in rows])
-    chosen = [int(np.argmin(xy[:, 0]))]
-    while len(chosen) < n:
-        chosen.append(int(np.argmax(np.min(np.linalg.norm(xy[:, None] - xy[chosen][None], axis=2), axis=1))))
+    chosen = farthest_points(np.array([r.xy_a for r in rows]), n, np.random.default_rng(seed))
     return [rows[i] for i in chosen]
 
 

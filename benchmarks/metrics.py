@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pycolmap
 
-from rigsfm.evaluation import compare_to_ground_truth
+from rigsfm.synth.truth import compare_to_ground_truth
 
 ERRORS = ("relative_rotation_deg", "translation_direction_deg", "distance_error_percent")
 

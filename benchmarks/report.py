@@ -9,7 +9,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from rigsfm.io import write_text_atomic
+from rigsfm.core.io import write_text_atomic
 
 LABELS = {"rigsfm-incremental": "rigsfm incremental", "rigsfm-global": "rigsfm global",
           "paper": "paper (pairwise F, chained)", "colmap": "plain COLMAP", "oracle": "oracle (limit)"}

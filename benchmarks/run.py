@@ -38,7 +38,7 @@ import pycolmap
 
 from benchmarks.metrics import evaluate, ratios_to_oracle
 from benchmarks.report import write_markdown, write_scaling_plot
-from rigsfm.io import write_json_atomic
+from rigsfm.core.io import write_json_atomic
 from rigsfm.synth.dataset import render_dataset
 from rigsfm.synth.scene import SceneOptions
 

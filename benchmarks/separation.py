@@ -25,12 +25,12 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from rigsfm.errors import RigsfmError
-from rigsfm.evaluation import compare_to_ground_truth
-from rigsfm.features import Features, MatchingOptions
-from rigsfm.io import write_json_atomic, write_text_atomic
-from rigsfm.manual_matches import write_manual_matches
-from rigsfm.pipeline import RunOptions, run
+from rigsfm.core.errors import RigsfmError
+from rigsfm.synth.truth import compare_to_ground_truth
+from rigsfm.run.features import Features, MatchingOptions
+from rigsfm.core.io import write_json_atomic, write_text_atomic
+from rigsfm.run.manual_matches import write_manual_matches
+from rigsfm.run.pipeline import RunOptions, run
 from rigsfm.synth.clicks import simulate_clicks
 from rigsfm.synth.dataset import render_dataset
 from rigsfm.synth.scene import SceneOptions, build_arena

@@ -28,11 +28,11 @@ def main() -> None:
     parser.add_argument("--image-scale", type=float, default=0.5)
     args = parser.parse_args()
 
-    from rigsfm.pipeline import RunOptions, run
+    from rigsfm.run.pipeline import RunOptions, run
     from rigsfm.synth.dataset import render_dataset
     from rigsfm.synth.scene import SceneOptions
     from rigsfm.track import track
-    from rigsfm.track.synthetic import render_recording, shaken_motions
+    from rigsfm.synth.motion import render_recording, shaken_motions
 
     with tempfile.TemporaryDirectory(prefix="rigsfm-track-bench-") as tmp:
         root = Path(tmp)

@@ -27,8 +27,8 @@ def import_common() -> None:
     import pycolmap  # noqa: F401
     import scipy.optimize  # noqa: F401
 
-    import rigsfm.evaluation
-    import rigsfm.pipeline  # noqa: F401
+    import rigsfm.synth.truth
+    import rigsfm.run.pipeline  # noqa: F401
 
 
 def peak_rss_mb() -> float | None:
@@ -49,8 +49,8 @@ def run_method(method: str, scene: Path, out: Path, estimate: Path | None) -> di
     if method == "idle":
         return {"timings_s": {}, "metric": False}
     if method.startswith("rigsfm-"):
-        from rigsfm.mapping import Mapper, MappingOptions
-        from rigsfm.pipeline import RunOptions, run
+        from rigsfm.run.mapping import Mapper, MappingOptions
+        from rigsfm.run.pipeline import RunOptions, run
 
         options = RunOptions(mapping=MappingOptions(mapper=Mapper(method.removeprefix("rigsfm-"))))
         result = run(scene / "images", scene / "rigs.yaml", out / "run", scene / "scale.yaml", options)
@@ -73,8 +73,8 @@ def run_method(method: str, scene: Path, out: Path, estimate: Path | None) -> di
             rec.write(out / "model")
         return {**report, "metric": False}
     if method == "oracle":
-        from rigsfm.evaluation import oracle
-        from rigsfm.pipeline import load_inputs
+        from rigsfm.synth.truth import oracle
+        from rigsfm.run.pipeline import load_inputs
 
         if estimate is None:
             raise ValueError("oracle needs --estimate")

@@ -15,9 +15,9 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 
-from rigsfm.database import rig_configs
-from rigsfm.inputs import ImageEntry
-from rigsfm.rigs import RigCalibration
+from rigsfm.run.database import rig_configs
+from rigsfm.run.inputs import ImageEntry
+from rigsfm.core.rig import RigCalibration
 
 
 @dataclass

@@ -5,10 +5,10 @@ import numpy as np
 import pycolmap
 import pytest
 
-from rigsfm.asift import asift_features, colmap_sift_descriptors
-from rigsfm.evaluation import compare_to_ground_truth
-from rigsfm.features import Features, MatchingOptions
-from rigsfm.pipeline import RunOptions, run
+from rigsfm.run.asift import asift_features, colmap_sift_descriptors
+from rigsfm.synth.truth import compare_to_ground_truth
+from rigsfm.run.features import Features, MatchingOptions
+from rigsfm.run.pipeline import RunOptions, run
 from rigsfm.synth.dataset import render_dataset
 from rigsfm.synth.scene import SceneOptions
 

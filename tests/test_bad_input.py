@@ -10,8 +10,8 @@ import yaml
 from typer.testing import CliRunner
 
 from rigsfm.cli import app
-from rigsfm.errors import InputError
-from rigsfm.pipeline import load_inputs
+from rigsfm.core.errors import InputError
+from rigsfm.run.pipeline import load_inputs
 
 W, H = 64, 48
 CAMERA = {"model": "PINHOLE", "width": W, "height": H, "params": [50.0, 50.0, 32.0, 24.0]}

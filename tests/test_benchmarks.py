@@ -13,7 +13,7 @@ from benchmarks.baselines.paper import PairResult, relative_scale, run_paper
 from benchmarks.baselines.plain_colmap import run_plain_colmap
 from benchmarks.metrics import evaluate
 from benchmarks.run import run_child
-from rigsfm.rigs import load_rigs
+from rigsfm.core.rig import load_rigs
 from rigsfm.synth.dataset import render_dataset
 from rigsfm.synth.scene import SceneOptions
 

@@ -12,8 +12,8 @@ import yaml
 
 from rigsfm.calibrate.board import board_spec_from_dict
 from rigsfm.calibrate.command import calibrate_command
-from rigsfm.calibrate.synthetic import SynthCamera, board_plane, render, rotation_xyz_deg
-from rigsfm.errors import InputError, RigsfmError
+from rigsfm.synth.boards import SynthCamera, board_plane, render, rotation_xyz_deg
+from rigsfm.core.errors import InputError, RigsfmError
 
 DATA = Path(__file__).resolve().parents[2] / "shared/data/opencv-stereo"
 FRAMES = ["01", "02", "03", "04", "05", "06", "07", "08", "09", "11", "12", "13", "14"]

@@ -13,7 +13,7 @@ import yaml
 from rigsfm.calibrate import calibrate_rigs
 from rigsfm.calibrate.board import board_spec_from_dict
 from rigsfm.calibrate.command import calibrate_command
-from rigsfm.rigs import load_rigs
+from rigsfm.core.rig import load_rigs
 
 DATA = Path(__file__).resolve().parents[2] / "shared/data/opencv-stereo"
 FRAMES = ["01", "02", "03", "04", "05", "06", "07", "08", "09", "11", "12", "13", "14"]

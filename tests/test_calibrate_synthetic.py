@@ -11,15 +11,15 @@ from typer.testing import CliRunner
 from rigsfm.calibrate import CalibrationResult, calibrate_rigs, write_calibration
 from rigsfm.calibrate.board import board_spec_from_dict
 from rigsfm.calibrate.command import calibrate_command
-from rigsfm.calibrate.synthetic import (
+from rigsfm.synth.boards import (
     board_views,
     default_hybrid_rig,
     write_board_dataset,
     write_scene_dataset,
 )
-from rigsfm.conventions import rotation_angle_deg
-from rigsfm.errors import WorkspaceError
-from rigsfm.rigs import load_rigs
+from rigsfm.core.conventions import rotation_angle_deg
+from rigsfm.core.errors import WorkspaceError
+from rigsfm.core.rig import load_rigs
 
 SPEC = {"type": "charuco", "squares": [11, 8], "square": 0.06, "marker": 0.045, "dictionary": "DICT_5X5_100"}
 RIG = default_hybrid_rig()  # wide f = 640 px, narrow f = 2560 px, 960x720, baseline 12 cm
@@ -106,7 +106,7 @@ def test_end_to_end_rigs_yaml_round_trip(dataset, result, tmp_path):
 
 def test_merge_keeps_other_rigs(result, tmp_path):
     from rigsfm.calibrate.output import merged
-    from rigsfm.rigs import RigCalibration, write_rigs
+    from rigsfm.core.rig import RigCalibration, write_rigs
 
     this = result.rig_calibration()
     other = RigCalibration("rig02", this.wide, this.narrow, this.narrow_from_wide)

@@ -5,13 +5,13 @@ import pycolmap
 import yaml
 from typer.testing import CliRunner
 
-from rigsfm.calibrate.synthetic import HybridRig, SynthCamera, board_views, write_board_dataset
+from rigsfm.synth.boards import HybridRig, SynthCamera, board_views, write_board_dataset
 from rigsfm.calibrate.board import board_spec_from_dict
 from rigsfm.cli import app
-from rigsfm.conventions import opencv_from_colmap_pixels, rotation_angle_deg
-from rigsfm.demo import score
-from rigsfm.pipeline import RunResult
-from rigsfm.rigs import load_rigs
+from rigsfm.core.conventions import opencv_from_colmap_pixels, rotation_angle_deg
+from rigsfm.synth.demo import score
+from rigsfm.run.pipeline import RunResult
+from rigsfm.core.rig import load_rigs
 from rigsfm.synth.dataset import render_dataset
 from rigsfm.synth.scene import SceneOptions
 

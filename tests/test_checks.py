@@ -7,12 +7,12 @@ import pycolmap
 import pytest
 from synthetic_db import make_network
 
-from rigsfm.checks import check_reconstruction, contradicted_pairs, loosely_tied_rigs
-from rigsfm.errors import ReconstructionError
-from rigsfm.mapping import MappingOptions, run_mapping
-from rigsfm.rig_constraint import apply_rig_constraints
-from rigsfm.scale import Measurement, ScaleEstimate, estimate_scale
-from rigsfm.scale_file import CameraDistance, ScaleSpec
+from rigsfm.run.diagnostics import check_reconstruction, contradicted_pairs, loosely_tied_rigs
+from rigsfm.core.errors import ReconstructionError
+from rigsfm.run.mapping import MappingOptions, run_mapping
+from rigsfm.run.adjust import apply_rig_constraints
+from rigsfm.run.scale import Measurement, ScaleEstimate, estimate_scale
+from rigsfm.run.scale_file import CameraDistance, ScaleSpec
 
 
 def test_a_rigid_network_passes(tmp_path):

@@ -2,7 +2,7 @@ import numpy as np
 import pycolmap
 import pytest
 
-from rigsfm.conventions import (
+from rigsfm.core.conventions import (
     colmap_from_opencv_pixels,
     euler_zyx_degrees,
     opencv_from_colmap_pixels,

@@ -10,10 +10,10 @@ import pytest
 from typer.testing import CliRunner
 
 from rigsfm.cli import app
-from rigsfm.conventions import rotation_from_euler_zyx_degrees
-from rigsfm.demo import score
-from rigsfm.pipeline import RunResult
-from rigsfm.rigs import load_rigs
+from rigsfm.core.conventions import rotation_from_euler_zyx_degrees
+from rigsfm.synth.demo import score
+from rigsfm.run.pipeline import RunResult
+from rigsfm.core.rig import load_rigs
 from rigsfm.synth.dataset import render_dataset
 from rigsfm.synth.scene import SceneOptions
 

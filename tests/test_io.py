@@ -2,8 +2,8 @@ import os
 
 import pytest
 
-from rigsfm.errors import WorkspaceError
-from rigsfm.io import atomic_directory, write_json_atomic, write_text_atomic
+from rigsfm.core.errors import WorkspaceError
+from rigsfm.core.io import atomic_directory, write_json_atomic, write_text_atomic
 
 
 def test_atomic_text_refuses_overwrite_and_keeps_usual_permissions(tmp_path):

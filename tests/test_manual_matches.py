@@ -15,10 +15,10 @@ import pytest
 from typer.testing import CliRunner
 
 from rigsfm.cli import app
-from rigsfm.errors import ReconstructionError
-from rigsfm.evaluation import compare_to_ground_truth
-from rigsfm.features import Features, MatchingOptions
-from rigsfm.manual_matches import (
+from rigsfm.core.errors import ReconstructionError
+from rigsfm.synth.truth import compare_to_ground_truth
+from rigsfm.run.features import Features, MatchingOptions
+from rigsfm.run.manual_matches import (
     Correspondence,
     DegenerateCorrespondencesError,
     ManualMatchError,
@@ -26,11 +26,11 @@ from rigsfm.manual_matches import (
     read_manual_matches,
     write_manual_matches,
 )
-from rigsfm.pipeline import RunOptions, run
+from rigsfm.run.pipeline import RunOptions, run
 from rigsfm.synth.clicks import simulate_clicks
 from rigsfm.synth.dataset import render_dataset
 from rigsfm.synth.scene import SceneOptions, build_arena
-from rigsfm.two_view import sampson_error_px
+from rigsfm.core.geometry import sampson_error_px
 
 A, B = "rig01/wide/frame0000.png", "rig02/wide/frame0000.png"
 # 170 degrees apart with wide-angle lenses (focal 500 px, 117 degrees across): the rigs nearly face each

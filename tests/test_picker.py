@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 from test_manual_matches import A, B, synthetic_correspondences
 
-from rigsfm.manual_matches import read_manual_matches
-from rigsfm.picker import start_picker
+from rigsfm.run.manual_matches import read_manual_matches
+from rigsfm.pick import start_picker
 from rigsfm.synth.clicks import farthest_points
 from rigsfm.synth.dataset import render_dataset
 from rigsfm.synth.scene import SceneOptions

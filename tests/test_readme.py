@@ -5,7 +5,7 @@ from pathlib import Path
 
 import yaml
 
-from rigsfm.rigs import parse_camera, parse_rigid3d
+from rigsfm.core.rig import parse_camera, parse_rigid3d
 
 ROOT = Path(__file__).resolve().parents[1]
 README = (ROOT / "README.md").read_text()

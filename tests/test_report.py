@@ -15,13 +15,13 @@ import pytest
 import typer
 from typer.testing import CliRunner
 
-from rigsfm.errors import WorkspaceError
-from rigsfm.exporters import ExportFormat, export, export_command
-from rigsfm.pipeline import run
-from rigsfm.report import report_command
+from rigsfm.core.errors import WorkspaceError
+from rigsfm.inspect.export import ExportFormat, export, export_command
+from rigsfm.run.pipeline import run
+from rigsfm.inspect.report import report_command
 from rigsfm.synth.dataset import render_dataset
 from rigsfm.synth.scene import SceneOptions
-from rigsfm.viewer import NARROW_RGB, WIDE_RGB, view_command
+from rigsfm.inspect.viewer import NARROW_RGB, WIDE_RGB, view_command
 
 NAMES = sorted(f"rig0{i}/{s}/frame0000.png" for i in (1, 2, 3) for s in ("narrow", "wide"))
 

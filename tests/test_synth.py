@@ -8,9 +8,9 @@ import pycolmap
 import pytest
 import yaml
 
-from rigsfm.conventions import rotation_angle_deg
-from rigsfm.errors import WorkspaceError
-from rigsfm.rigs import load_rigs
+from rigsfm.core.conventions import rotation_angle_deg
+from rigsfm.core.errors import WorkspaceError
+from rigsfm.core.rig import load_rigs
 from rigsfm.synth import (
     SceneOptions,
     build_arena,

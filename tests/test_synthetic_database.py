@@ -4,10 +4,10 @@ import numpy as np
 import pycolmap
 import pytest
 
-from rigsfm.evaluation import compare_to_ground_truth, oracle
-from rigsfm.mapping import Mapper, MappingOptions, run_mapping
-from rigsfm.rig_constraint import ScaleSource, apply_rig_constraints
-from rigsfm.scale_file import CameraDistance, ScaleSpec
+from rigsfm.synth.truth import compare_to_ground_truth, oracle
+from rigsfm.run.mapping import Mapper, MappingOptions, run_mapping
+from rigsfm.run.adjust import ScaleSource, apply_rig_constraints
+from rigsfm.run.scale_file import CameraDistance, ScaleSpec
 from synthetic_db import make_network
 
 

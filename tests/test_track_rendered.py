@@ -12,12 +12,12 @@ import pytest
 import typer
 from typer.testing import CliRunner
 
-from rigsfm.conventions import rotation_angle_deg
-from rigsfm.pipeline import RunOptions, run
+from rigsfm.core.conventions import rotation_angle_deg
+from rigsfm.run.pipeline import RunOptions, run
 from rigsfm.synth.dataset import render_dataset
 from rigsfm.synth.scene import SceneOptions
 from rigsfm.track import FrameTask, load_reference, register_frame, track, track_command, track_report_section
-from rigsfm.track.synthetic import render_recording, shaken_motions
+from rigsfm.synth.motion import render_recording, shaken_motions
 
 NUM_FRAMES, BUMP_AT = 8, 4
 FIRST_BATCH = 5  # frames 0..4 with the local pool, then all with Ray: only 5..7 are new
@@ -133,7 +133,7 @@ def test_outputs_csv_plots_and_report_section(tracked):
     reds = [int(np.sum((p[..., 2] > 180) & (p[..., 1] < 80) & (p[..., 0] < 80)))
             for p in (cv2.imdecode(np.frombuffer(base64.b64decode(i), np.uint8), cv2.IMREAD_COLOR) for i in images)]
     assert reds[2] > reds[0]
-    from rigsfm.report import write_report
+    from rigsfm.inspect.report import write_report
 
     report = write_report(root / "out").read_text()
     assert '<section id="track">' in report and "moved" in report
@@ -156,7 +156,7 @@ def test_cli_reruns_without_work_and_refuses_unknown_rigs(tracked, tmp_path):
 def test_wrong_image_size_is_an_input_error_and_the_rest_is_kept(tracked, tmp_path):
     import shutil
 
-    from rigsfm.errors import InputError
+    from rigsfm.core.errors import InputError
 
     root, _, _, streamed = tracked
     out = tmp_path / "out"

@@ -4,8 +4,8 @@ import numpy as np
 import pycolmap
 import pytest
 
-from rigsfm.track.detect import Thresholds, classify
-from rigsfm.conventions import rotation_vector
+from rigsfm.track.verdict import Thresholds, classify
+from rigsfm.core.conventions import rotation_vector
 from rigsfm.track.pose import RegistrationOptions, estimate_rig_pose, pose_covariance
 
 DEG, MM = np.radians(1.0), 1e-3

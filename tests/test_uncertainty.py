@@ -9,11 +9,11 @@ import numpy as np
 import pycolmap
 import pytest
 
-from rigsfm.export import narrow_images
-from rigsfm.mapping import MappingOptions, run_mapping
-from rigsfm.rig_constraint import apply_rig_constraints
-from rigsfm.scale_file import CameraDistance, ScaleSpec
-from rigsfm.uncertainty import (correspondence_check, narrow_epipolar_bands, rig_pose_covariance,
+from rigsfm.run.deliver import narrow_images
+from rigsfm.run.mapping import MappingOptions, run_mapping
+from rigsfm.run.adjust import apply_rig_constraints
+from rigsfm.run.scale_file import CameraDistance, ScaleSpec
+from rigsfm.run.uncertainty import (correspondence_check, narrow_epipolar_bands, rig_pose_covariance,
                                 sample_narrow_from_world)
 from synthetic_db import make_network
 

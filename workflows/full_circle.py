@@ -11,7 +11,7 @@ import argparse
 import json
 from pathlib import Path
 
-from rigsfm.demo import run_demo
+from rigsfm.synth.demo import run_demo
 from rigsfm.synth.scene import SceneOptions
 
 

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from rigsfm.pipeline import RunOptions, run
+from rigsfm.run.pipeline import RunOptions, run
 
 
 def main(argv=None) -> dict:

@@ -38,9 +38,9 @@ from benchmarks.baselines.two_view import (
     ransac_fundamental,
     two_view_bundle_adjustment,
 )
-from rigsfm.conventions import opencv_from_colmap_pixels, rotation_angle_deg
-from rigsfm.pipeline import load_inputs
-from rigsfm.rigs import RigCalibration, add_posed_rig
+from rigsfm.core.conventions import opencv_from_colmap_pixels, rotation_angle_deg
+from rigsfm.run.pipeline import load_inputs
+from rigsfm.core.rig import RigCalibration, add_posed_rig
 
 logger = logging.getLogger(__name__)
 

@@ -37,9 +37,9 @@ from rigsfm.calibrate.dataset import RigFrames, discover_rigs
 from rigsfm.calibrate.intrinsics import CameraCalibration, calibrate_camera, colmap_camera
 from rigsfm.calibrate.scene import SceneEstimate, estimate_from_scene
 from rigsfm.calibrate.stereo import StereoCalibration, calibrate_stereo
-from rigsfm.conventions import rotation_angle_deg
-from rigsfm.errors import InputError
-from rigsfm.rigs import RigCalibration
+from rigsfm.core.conventions import rotation_angle_deg
+from rigsfm.core.errors import InputError
+from rigsfm.core.rig import RigCalibration
 
 __all__ = ["BoardSpec", "CalibrationResult", "RigResult", "calibrate_rig", "calibrate_rigs", "load_board_spec",
            "write_calibration"]

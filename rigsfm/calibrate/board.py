@@ -15,8 +15,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from rigsfm.errors import InputError
-from rigsfm.io import load_yaml_or_json
+from rigsfm.core.errors import InputError
+from rigsfm.core.io import load_yaml_or_json
 
 logger = logging.getLogger(__name__)
 

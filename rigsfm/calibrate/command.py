@@ -13,7 +13,7 @@ from rigsfm.calibrate.board import load_board_spec
 from rigsfm.calibrate.dataset import discover_rigs
 from rigsfm.calibrate.intrinsics import DISTORTIONS
 from rigsfm.calibrate.output import check_output
-from rigsfm.errors import InputError
+from rigsfm.core.errors import InputError
 
 logger = logging.getLogger(__name__)
 

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import cv2
 
-from rigsfm.errors import InputError
+from rigsfm.core.errors import InputError
 
 IMAGE_EXTENSIONS = {".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".pgm", ".ppm", ".webp"}
 SENSORS = ("wide", "narrow")

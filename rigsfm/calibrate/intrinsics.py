@@ -14,8 +14,8 @@ import numpy as np
 import pycolmap
 
 from rigsfm.calibrate.board import MIN_CORNERS, Detection
-from rigsfm.conventions import colmap_from_opencv_pixels
-from rigsfm.errors import InputError, RigsfmError
+from rigsfm.core.conventions import colmap_from_opencv_pixels
+from rigsfm.core.errors import InputError, RigsfmError
 
 logger = logging.getLogger(__name__)
 

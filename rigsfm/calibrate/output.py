@@ -6,8 +6,8 @@ import logging
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from rigsfm.errors import WorkspaceError
-from rigsfm.rigs import RigCalibration, load_rigs, write_rigs
+from rigsfm.core.errors import WorkspaceError
+from rigsfm.core.rig import RigCalibration, load_rigs, write_rigs
 
 if TYPE_CHECKING:
     from rigsfm.calibrate import CalibrationResult

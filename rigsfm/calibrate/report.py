@@ -15,8 +15,8 @@ import numpy as np
 
 from rigsfm.calibrate.intrinsics import COVERAGE_GRID, OUTLIER_FACTOR, CameraCalibration
 from rigsfm.calibrate.stereo import StereoFit
-from rigsfm.conventions import euler_zyx_degrees
-from rigsfm.io import atomic_directory, write_text_atomic
+from rigsfm.core.conventions import euler_zyx_degrees
+from rigsfm.core.io import atomic_directory, write_text_atomic
 
 if TYPE_CHECKING:
     from rigsfm.calibrate import CalibrationResult, RigResult

@@ -21,7 +21,7 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from rigsfm.calibrate.board import read_gray
-from rigsfm.errors import ReconstructionError
+from rigsfm.core.errors import ReconstructionError
 
 logger = logging.getLogger(__name__)
 

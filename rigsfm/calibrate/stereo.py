@@ -22,8 +22,8 @@ from rigsfm.calibrate.intrinsics import (
     correspondences,
 )
 from rigsfm.calibrate.joint import JointFit, joint_refine
-from rigsfm.conventions import rotation_angle_deg
-from rigsfm.errors import InputError, RigsfmError
+from rigsfm.core.conventions import rotation_angle_deg
+from rigsfm.core.errors import InputError, RigsfmError
 
 logger = logging.getLogger(__name__)
 

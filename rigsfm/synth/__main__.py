@@ -7,7 +7,7 @@ import logging
 import sys
 from pathlib import Path
 
-from rigsfm.errors import RigsfmError
+from rigsfm.core.errors import RigsfmError
 from rigsfm.synth.dataset import render_dataset
 from rigsfm.synth.scene import SceneOptions
 

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 import pycolmap
 
-from rigsfm.rigs import RigCalibration
+from rigsfm.core.rig import RigCalibration
 from rigsfm.synth.scene import SceneOptions
 
 logger = logging.getLogger(__name__)

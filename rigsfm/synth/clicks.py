@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 import pycolmap
 
-from rigsfm.manual_matches import Correspondence
+from rigsfm.run.manual_matches import Correspondence
 from rigsfm.synth.render import project, visible
 from rigsfm.synth.scene import Arena, Box, Pillar
 

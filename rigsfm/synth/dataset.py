@@ -25,9 +25,9 @@ import numpy as np
 import pycolmap
 import yaml
 
-from rigsfm.errors import WorkspaceError
-from rigsfm.io import write_text_atomic
-from rigsfm.rigs import add_posed_rig, write_rigs
+from rigsfm.core.errors import WorkspaceError
+from rigsfm.core.io import write_text_atomic
+from rigsfm.core.rig import add_posed_rig, write_rigs
 from rigsfm.synth.cameras import RigTruth, make_rigs, user_calibration
 from rigsfm.synth.render import project, render_clean, to_uint8, visible
 from rigsfm.synth.scene import Arena, Bar, SceneOptions, build_arena

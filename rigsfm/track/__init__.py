@@ -1,7 +1,7 @@
 """``rigsfm track``: re-estimate rig poses over time against a reference run (shake and drift monitoring)."""
 
 from rigsfm.track.command import TrackResult, track, track_command
-from rigsfm.track.detect import Thresholds, Verdict, classify
+from rigsfm.track.verdict import Thresholds, Verdict, classify
 from rigsfm.track.pose import RegistrationOptions
 from rigsfm.track.reference import ReferenceMap, load_reference
 from rigsfm.track.register import FrameTask, register_frame

@@ -23,11 +23,11 @@ from typing import Annotated, Optional
 
 import typer
 
-from rigsfm.errors import InputError, WorkspaceError
-from rigsfm.inputs import scan_images
-from rigsfm.io import write_json_atomic, write_text_atomic
-from rigsfm.rigs import RigCalibration
-from rigsfm.track.detect import Thresholds
+from rigsfm.core.errors import InputError, WorkspaceError
+from rigsfm.run.inputs import scan_images
+from rigsfm.core.io import write_json_atomic, write_text_atomic
+from rigsfm.core.rig import RigCalibration
+from rigsfm.track.verdict import Thresholds
 from rigsfm.track.executors import run_frames
 from rigsfm.track.plot import encode_png, plot_rig
 from rigsfm.track.pose import RegistrationOptions

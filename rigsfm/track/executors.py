@@ -21,7 +21,7 @@ from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from dataclasses import replace
 from pathlib import Path
 
-from rigsfm.errors import InputError
+from rigsfm.core.errors import InputError
 from rigsfm.track.pose import RegistrationOptions
 from rigsfm.track.reference import ReferenceMap
 from rigsfm.track.register import FrameTask, register_frame

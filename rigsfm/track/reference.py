@@ -20,9 +20,9 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 
-from rigsfm.errors import ReconstructionError, WorkspaceError
+from rigsfm.core.errors import ReconstructionError, WorkspaceError
 from rigsfm.track.pose import RegistrationOptions, estimate_rig_pose, pose_covariance
-from rigsfm.workspace import Workspace
+from rigsfm.core.workspace import Workspace
 
 logger = logging.getLogger(__name__)
 

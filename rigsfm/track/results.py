@@ -17,10 +17,10 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 
-from rigsfm.errors import WorkspaceError
-from rigsfm.export import pose_dict
-from rigsfm.track.detect import Thresholds, classify
-from rigsfm.conventions import rotation_vector
+from rigsfm.core.errors import WorkspaceError
+from rigsfm.run.deliver import pose_dict
+from rigsfm.track.verdict import Thresholds, classify
+from rigsfm.core.conventions import rotation_vector
 from rigsfm.track.reference import ReferenceMap, ReferenceRig, rigid3d_from_matrix
 
 logger = logging.getLogger(__name__)
@@ -65,7 +65,7 @@ def derive(record: dict, rig: ReferenceRig) -> dict:
 
 
 def change_vector(entry: dict) -> np.ndarray:
-    """[w (rad), d (m)] in the convention of :mod:`rigsfm.track.detect` (w = -rotation vector of the change)."""
+    """[w (rad), d (m)] in the convention of :mod:`rigsfm.track.verdict` (w = -rotation vector of the change)."""
     return np.concatenate([-np.radians(entry["wide"]["rotation_vector_deg"]),
                            np.asarray(entry["wide"]["translation_mm"]) / 1000.0])
 

@@ -1,0 +1,170 @@
+"""``rigsfm export OUT --format ...``: the result in the formats other tools read.
+
+- ``colmap-bin`` / ``colmap-txt``: the COLMAP model (pycolmap's writer; rigs.* and frames.* are ignored by
+  COLMAP < 3.12, which still reads cameras, images and points). Pixels: COLMAP (first centre at 0.5).
+- ``open3d``: ``points.ply`` (PointCloud), ``frustums.ply`` (LineSet: wide blue, narrow orange, rig links
+  green), ``trajectory.json`` (``PinholeCameraTrajectory``: per image, pinhole intrinsics with OpenCV pixel
+  centres, i.e. COLMAP cx - 0.5, distortion dropped, and extrinsic = cam_from_world, OpenCV axes) and
+  ``cameras.json`` (which image each trajectory entry is).
+- ``nerfstudio``: ``transforms.json`` with per-frame OPENCV intrinsics (fl_x, fl_y, cx, cy, w, h, k1, k2,
+  p1, p2; nerfstudio puts pixel centres at +0.5 like COLMAP, so cx/cy are COLMAP's unchanged) and
+  ``transform_matrix`` = camera-to-world with OpenGL axes; the world is rigsfm's metric world
+  (``applied_transform`` identity); ``points3D.ply`` as ``ply_file_path``.
+- ``json``: ``poses.json``, every registered image's camera (COLMAP convention) and cam_from_world.
+"""
+
+from __future__ import annotations
+
+import enum
+import json
+import logging
+from pathlib import Path
+from typing import Annotated, Optional
+
+import numpy as np
+import open3d as o3d
+import pycolmap
+import typer
+
+from rigsfm.core.conventions import opencv_from_colmap_pixels, opengl_c2w_from_cam_from_world
+from rigsfm.core.errors import InputError, WorkspaceError
+from rigsfm.run.deliver import CONVENTIONS, pose_dict
+from rigsfm.core.io import atomic_directory, write_json_atomic
+from rigsfm.core.rig import camera_to_dict
+from rigsfm.inspect.viewer import build_scene, pinhole_intrinsic
+from rigsfm.core.workspace import Workspace
+
+logger = logging.getLogger(__name__)
+
+
+class ExportFormat(enum.StrEnum):
+    COLMAP_BIN = "colmap-bin"
+    COLMAP_TXT = "colmap-txt"
+    OPEN3D = "open3d"
+    NERFSTUDIO = "nerfstudio"
+    JSON = "json"
+
+
+def registered_images(reconstruction: pycolmap.Reconstruction) -> list[pycolmap.Image]:
+    return sorted((im for im in reconstruction.images.values() if im.has_pose), key=lambda im: im.name)
+
+
+def write_colmap(reconstruction: pycolmap.Reconstruction, dest: Path, *, binary: bool) -> list[Path]:
+    if binary:
+        reconstruction.write_binary(str(dest))
+    else:
+        reconstruction.write_text(str(dest))
+    return sorted(dest.iterdir())
+
+
+def write_open3d(reconstruction: pycolmap.Reconstruction, dest: Path) -> list[Path]:
+    scene = build_scene(reconstruction)
+    if not o3d.io.write_point_cloud(str(dest / "points.ply"), scene.points):
+        raise WorkspaceError(f"Open3D could not write {dest / 'points.ply'}")
+    frustums = o3d.geometry.LineSet()
+    for line_set in scene.lines.values():
+        frustums += line_set
+    if not o3d.io.write_line_set(str(dest / "frustums.ply"), frustums):
+        raise WorkspaceError(f"Open3D could not write {dest / 'frustums.ply'}")
+    trajectory = o3d.camera.PinholeCameraTrajectory()
+    parameters, names = [], []
+    for image in registered_images(reconstruction):
+        p = o3d.camera.PinholeCameraParameters()
+        p.intrinsic = pinhole_intrinsic(reconstruction.cameras[image.camera_id])
+        p.extrinsic = np.vstack([image.cam_from_world().matrix(), [0.0, 0.0, 0.0, 1.0]])
+        parameters.append(p)
+        names.append(image.name)
+    trajectory.parameters = parameters
+    if not o3d.io.write_pinhole_camera_trajectory(str(dest / "trajectory.json"), trajectory):
+        raise WorkspaceError(f"Open3D could not write {dest / 'trajectory.json'}")
+    write_json_atomic(dest / "cameras.json", {
+        "trajectory_entries": names,
+        "conventions": {"intrinsic": "pinhole part only (distortion dropped), OpenCV pixel centres: cx = COLMAP cx - 0.5",
+                        "extrinsic": "cam_from_world (world to camera), OpenCV axes, metres"}})
+    return sorted(dest.iterdir())
+
+
+def nerfstudio_intrinsics(camera: pycolmap.Camera) -> dict:
+    """Per-frame OPENCV intrinsics; pixel centres as in COLMAP (nerfstudio also offsets pixels by 0.5)."""
+    names = [n.strip() for n in camera.params_info.split(",")]
+    values = dict(zip(names, (float(v) for v in camera.params)))
+    supported = {"f", "fx", "fy", "cx", "cy", "k", "k1", "k2", "p1", "p2"}
+    if not set(names) <= supported:
+        raise InputError(f"camera model {camera.model.name} cannot be written as nerfstudio OPENCV "
+                         f"({', '.join(sorted(set(names) - supported))} unsupported)")
+    return {
+        "camera_model": "OPENCV",
+        "fl_x": values.get("fx", values.get("f")), "fl_y": values.get("fy", values.get("f")),
+        "cx": values["cx"], "cy": values["cy"], "w": int(camera.width), "h": int(camera.height),
+        "k1": values.get("k1", values.get("k", 0.0)), "k2": values.get("k2", 0.0),
+        "p1": values.get("p1", 0.0), "p2": values.get("p2", 0.0),
+    }
+
+
+def write_nerfstudio(reconstruction: pycolmap.Reconstruction, dest: Path, images_dir: Path | None) -> list[Path]:
+    frames = []
+    for image in registered_images(reconstruction):
+        path = (images_dir / image.name).resolve() if images_dir is not None else Path(image.name)
+        frames.append({"file_path": str(path), **nerfstudio_intrinsics(reconstruction.cameras[image.camera_id]),
+                       "transform_matrix": opengl_c2w_from_cam_from_world(image.cam_from_world()).tolist(),
+                       "rigsfm_name": image.name})
+    reconstruction.export_PLY(str(dest / "points3D.ply"))
+    write_json_atomic(dest / "transforms.json", {
+        "frames": frames,
+        "ply_file_path": "points3D.ply",
+        "applied_transform": np.eye(4)[:3].tolist(),
+        "rigsfm_conventions": {
+            "transform_matrix": "camera-to-world, OpenGL camera axes (x right, y up, looking down -z), metres",
+            "applied_transform": "identity: the world is rigsfm's (COLMAP model) world, not re-oriented",
+            "pixels": "COLMAP/nerfstudio: centre of the first pixel at (0.5, 0.5); cx, cy unchanged",
+            "file_path": "absolute path of the image in the run's images folder" if images_dir else "image name",
+        }})
+    return sorted(dest.iterdir())
+
+
+def write_json_poses(reconstruction: pycolmap.Reconstruction, dest: Path) -> list[Path]:
+    images = []
+    for image in registered_images(reconstruction):
+        rig, sensor, frame = image.name.split("/", 2)
+        images.append({"name": image.name, "rig": rig, "sensor": sensor, "frame": frame,
+                       "camera": camera_to_dict(reconstruction.cameras[image.camera_id]),
+                       "cam_from_world": pose_dict(image.cam_from_world()),
+                       "centre": image.projection_center().tolist()})
+    write_json_atomic(dest / "poses.json", {"conventions": {k: CONVENTIONS[k] for k in
+                                                            ("cam_from_world", "quaternion", "pixels")},
+                                            "images": images})
+    return sorted(dest.iterdir())
+
+
+def export(out: Path, fmt: ExportFormat, dest: Path | None = None, *, overwrite: bool = False) -> Path:
+    """Write the workspace's result in ``fmt`` into ``dest`` (default ``OUT/export/<fmt>``); returns it."""
+    workspace = Workspace(Path(out))
+    if not workspace.sparse.is_dir():
+        raise WorkspaceError(f"{workspace.sparse} is missing: run `rigsfm run` first")
+    reconstruction = pycolmap.Reconstruction(str(workspace.sparse))
+    dest = Path(dest) if dest is not None else workspace.root / "export" / str(fmt)
+    images_dir = None
+    if workspace.summary.is_file():
+        images = json.loads(workspace.summary.read_text()).get("inputs", {}).get("images")
+        images_dir = Path(images) if images else None
+    with atomic_directory(dest, overwrite=overwrite) as tmp:
+        if fmt in (ExportFormat.COLMAP_BIN, ExportFormat.COLMAP_TXT):
+            write_colmap(reconstruction, tmp, binary=fmt == ExportFormat.COLMAP_BIN)
+        elif fmt == ExportFormat.OPEN3D:
+            write_open3d(reconstruction, tmp)
+        elif fmt == ExportFormat.NERFSTUDIO:
+            write_nerfstudio(reconstruction, tmp, images_dir)
+        else:
+            write_json_poses(reconstruction, tmp)
+    logger.info("Exported %s to %s", fmt, dest)
+    return dest
+
+
+def export_command(
+    out: Annotated[Path, typer.Argument(help="workspace folder of a finished `rigsfm run`")],
+    fmt: Annotated[ExportFormat, typer.Option("--format", help="colmap-bin, colmap-txt, open3d, nerfstudio, json")],
+    dest: Annotated[Optional[Path], typer.Option("--dest", help="output folder (default OUT/export/FORMAT)")] = None,
+    overwrite: Annotated[bool, typer.Option("--overwrite", help="replace an existing export")] = False,
+) -> None:
+    """Export the calibrated network for COLMAP, Open3D, nerfstudio or as plain JSON poses."""
+    typer.echo(f"exported {fmt}: {export(out, fmt, dest, overwrite=overwrite)}")

@@ -1,0 +1,209 @@
+"""Figures for report.html, drawn without matplotlib: OpenCV into PNG (epipolar check) or inline SVG.
+
+Pixel conventions: pycolmap cameras use COLMAP pixels (first pixel centre at (0.5, 0.5)); OpenCV drawing
+uses pixel indices (first pixel centre at (0, 0)), so every point is converted with
+``opencv_from_colmap_pixels`` before it is drawn.
+"""
+
+from __future__ import annotations
+
+import base64
+import html
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pycolmap
+
+from rigsfm.core.conventions import opencv_from_colmap_pixels
+
+COLOURS_BGR = [(40, 40, 230), (40, 170, 40), (220, 120, 30), (30, 200, 220), (200, 60, 200), (0, 140, 255),
+               (130, 130, 20), (90, 30, 160)]
+WIDE_SVG, NARROW_SVG = "#1f77b4", "#e6550d"
+
+
+def png_data_uri(image_bgr: np.ndarray) -> str:
+    ok, buffer = cv2.imencode(".png", image_bgr)
+    if not ok:
+        raise ValueError("PNG encoding failed")
+    return "data:image/png;base64," + base64.b64encode(buffer.tobytes()).decode("ascii")
+
+
+def pick_points(image_gray: np.ndarray, camera: pycolmap.Camera, count: int = 8) -> np.ndarray:
+    """Strongest corners of a narrow image (COLMAP pixels), topped up from a grid where it is homogeneous."""
+    mask = np.zeros(image_gray.shape, np.uint8)
+    h, w = image_gray.shape
+    mask[int(0.06 * h):int(0.94 * h), int(0.06 * w):int(0.94 * w)] = 255  # not on the border
+    corners = cv2.goodFeaturesToTrack(image_gray, maxCorners=count, qualityLevel=0.05,
+                                      minDistance=0.15 * min(image_gray.shape), mask=mask)
+    points = [] if corners is None else [c.ravel() + 0.5 for c in corners]
+    grid = [(camera.width * x, camera.height * y) for y in (0.3, 0.5, 0.7) for x in (0.25, 0.5, 0.75)]
+    for g in grid:
+        if len(points) >= count:
+            break
+        if all(np.hypot(*(np.asarray(g) - p)) > 0.12 * camera.width for p in points):
+            points.append(np.asarray(g, dtype=np.float64))
+    return np.array(points[:count], dtype=np.float64)
+
+
+def epipolar_curve(camera_i: pycolmap.Camera, camera_j: pycolmap.Camera, j_from_i: pycolmap.Rigid3d,
+                   pixel_i: np.ndarray, num: int = 200) -> np.ndarray:
+    """The epipolar line of a pixel of i as drawn in the raw (distorted) image j: the ray's projections."""
+    ray = np.append(np.asarray(camera_i.cam_from_img(pixel_i.reshape(1, 2))).ravel(), 1.0)
+    distance = max(float(np.linalg.norm(j_from_i.translation)), 1e-6)
+    depths = np.geomspace(0.05 * distance, 1e4 * distance, num)
+    in_j = np.asarray(j_from_i * (ray[None, :] * depths[:, None]))
+    in_j = in_j[in_j[:, 2] > 1e-9]
+    if len(in_j) == 0:
+        return np.zeros((0, 2))
+    xy = np.asarray(camera_j.img_from_cam(in_j))
+    margin = 0.2 * max(camera_j.width, camera_j.height)
+    inside = (xy[:, 0] > -margin) & (xy[:, 0] < camera_j.width + margin) & \
+             (xy[:, 1] > -margin) & (xy[:, 1] < camera_j.height + margin)
+    return xy[inside]
+
+
+def _offset(curve: np.ndarray, distance: float) -> np.ndarray:
+    tangent = np.gradient(curve, axis=0)
+    tangent /= np.maximum(np.linalg.norm(tangent, axis=1, keepdims=True), 1e-12)
+    return curve + distance * np.column_stack([-tangent[:, 1], tangent[:, 0]])
+
+
+def _to_cv(points: np.ndarray, scale: float) -> np.ndarray:
+    return np.round(opencv_from_colmap_pixels(points) * scale * 16).astype(np.int32)  # 4 fractional bits
+
+
+def epipolar_figure(image_i: np.ndarray, image_j: np.ndarray, camera_i: pycolmap.Camera,
+                    camera_j: pycolmap.Camera, j_from_i: pycolmap.Rigid3d, band_px: float | None,
+                    width: int = 560) -> np.ndarray:
+    """Side by side: points in narrow image i, their epipolar lines (and 95 % band) in narrow image j."""
+    gray_i = image_i if image_i.ndim == 2 else cv2.cvtColor(image_i, cv2.COLOR_BGR2GRAY)
+    points = pick_points(gray_i, camera_i)
+    panels = []
+    for image, camera in ((image_i, camera_i), (image_j, camera_j)):
+        scale = width / camera.width
+        panel = cv2.resize(image, (width, int(round(camera.height * scale))), interpolation=cv2.INTER_AREA)
+        panels.append((panel if panel.ndim == 3 else cv2.cvtColor(panel, cv2.COLOR_GRAY2BGR), scale))
+    (left, scale_i), (right, scale_j) = panels
+    overlay = right.copy()
+    for k, point in enumerate(points):
+        colour = COLOURS_BGR[k % len(COLOURS_BGR)]
+        cv2.circle(left, tuple(_to_cv(point, scale_i)), 7 * 16, colour, 2, cv2.LINE_AA, shift=4)
+        cv2.putText(left, str(k + 1), tuple(int(v) for v in opencv_from_colmap_pixels(point) * scale_i + 9),
+                    cv2.FONT_HERSHEY_SIMPLEX, 0.5, colour, 1, cv2.LINE_AA)
+        curve = epipolar_curve(camera_i, camera_j, j_from_i, point)
+        if len(curve) < 2:
+            continue
+        if band_px is not None and np.isfinite(band_px):
+            polygon = np.vstack([_offset(curve, band_px), _offset(curve, -band_px)[::-1]])
+            cv2.fillPoly(overlay, [_to_cv(polygon, scale_j)], colour, cv2.LINE_AA, shift=4)
+        cv2.polylines(right, [_to_cv(curve, scale_j)], False, colour, 1, cv2.LINE_AA, shift=4)
+    right = cv2.addWeighted(overlay, 0.25, right, 0.75, 0.0)
+    for k, point in enumerate(points):  # re-draw the lines over the translucent band
+        curve = epipolar_curve(camera_i, camera_j, j_from_i, point)
+        if len(curve) >= 2:
+            cv2.polylines(right, [_to_cv(curve, scale_j)], False, COLOURS_BGR[k % len(COLOURS_BGR)], 1,
+                          cv2.LINE_AA, shift=4)
+    height = max(left.shape[0], right.shape[0])
+    canvas = np.full((height, left.shape[1] + right.shape[1] + 8, 3), 255, np.uint8)
+    canvas[:left.shape[0], :left.shape[1]] = left
+    canvas[:right.shape[0], left.shape[1] + 8:] = right
+    return canvas
+
+
+def read_image(path: Path) -> np.ndarray | None:
+    image = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    return image
+
+
+def _nice_step(span: float) -> float:
+    raw = span / 6.0
+    power = 10 ** np.floor(np.log10(max(raw, 1e-12)))
+    return float(min((s * power for s in (1, 2, 5, 10)), key=lambda v: abs(v - raw)))
+
+
+def histogram_svg(errors: np.ndarray, title: str, upper: float, bins: int = 24, w: int = 260, h: int = 140) -> str:
+    """A histogram of reprojection errors (px) as inline SVG."""
+    counts, edges = np.histogram(np.clip(errors, 0, upper), bins=bins, range=(0.0, upper))
+    top = max(int(counts.max()), 1)
+    left, bottom, plot_w, plot_h = 34, h - 22, w - 44, h - 44
+    bars = "".join(
+        f'<rect x="{left + plot_w * k / bins:.1f}" y="{bottom - plot_h * c / top:.1f}" '
+        f'width="{plot_w / bins - 1:.1f}" height="{plot_h * c / top:.1f}" fill="{WIDE_SVG}"/>'
+        for k, c in enumerate(counts))
+    ticks = "".join(
+        f'<text x="{left + plot_w * v / upper:.1f}" y="{h - 6}" font-size="10" text-anchor="middle">{v:g}</text>'
+        for v in np.arange(0.0, upper + 1e-9, _nice_step(upper)))
+    return (f'<svg xmlns="http://www.w3.org/2000/svg" width="{w}" height="{h}" role="img">'
+            f'<text x="{left}" y="13" font-size="12">{html.escape(title)}</text>{bars}'
+            f'<line x1="{left}" y1="{bottom}" x2="{left + plot_w}" y2="{bottom}" stroke="#333"/>'
+            f'<text x="4" y="{bottom - plot_h + 4}" font-size="10">{top}</text>{ticks}'
+            f'<text x="{left + plot_w}" y="{bottom - plot_h}" font-size="10" text-anchor="end">px</text></svg>')
+
+
+def ground_frame(reconstruction: pycolmap.Reconstruction) -> tuple[np.ndarray, np.ndarray]:
+    """(origin, 3x3 rows = [east, north, up]): the plane of the points and cameras seen from above."""
+    centres = np.array([im.projection_center() for im in reconstruction.images.values() if im.has_pose])
+    xyz = np.array([p.xyz for p in reconstruction.points3D.values()]) if reconstruction.num_points3D() else centres
+    cloud = np.vstack([xyz, centres])
+    origin = np.median(cloud, axis=0)
+    _, _, vt = np.linalg.svd(cloud - origin, full_matrices=False)
+    up = vt[2]
+    image_up = np.mean([-(im.cam_from_world().rotation.matrix()[1]) for im in reconstruction.images.values()
+                        if im.has_pose], axis=0)  # -y of the cameras points up
+    if np.dot(up, image_up) < 0:
+        up = -up
+    east = vt[0] - np.dot(vt[0], up) * up
+    east /= np.linalg.norm(east)
+    return origin, np.array([east, np.cross(up, east), up])
+
+
+def topdown_svg(reconstruction: pycolmap.Reconstruction, size: int = 620, max_points: int = 4000,
+                units: str = "m") -> str:
+    """Top view of the network: points, wide and narrow cameras with their viewing directions, axes."""
+    origin, axes = ground_frame(reconstruction)
+    images = [im for im in reconstruction.images.values() if im.has_pose]
+    xyz = np.array([p.xyz for p in reconstruction.points3D.values()]) if reconstruction.num_points3D() else np.zeros((0, 3))
+    if len(xyz) > max_points:
+        xyz = xyz[np.random.default_rng(0).choice(len(xyz), max_points, replace=False)]
+    points2 = (xyz - origin) @ axes[:2].T
+    centres2 = (np.array([im.projection_center() for im in images]) - origin) @ axes[:2].T
+    extent_pts = points2 if len(points2) else centres2
+    lo = np.minimum(np.percentile(extent_pts, 1, axis=0), centres2.min(axis=0))
+    hi = np.maximum(np.percentile(extent_pts, 99, axis=0), centres2.max(axis=0))
+    span = float(max(hi - lo)) * 1.1 or 1.0
+    mid = (lo + hi) / 2
+    pad = 40
+    scale = (size - 2 * pad) / span
+
+    def to_svg(p: np.ndarray) -> tuple[float, float]:
+        return pad + (p[0] - mid[0] + span / 2) * scale, size - pad - (p[1] - mid[1] + span / 2) * scale
+
+    parts = [f'<svg xmlns="http://www.w3.org/2000/svg" width="{size}" height="{size}" role="img" '
+             f'style="background:#fff;border:1px solid #ccc">']
+    step = _nice_step(span)
+    for k in np.arange(np.ceil((mid[0] - span / 2) / step), np.floor((mid[0] + span / 2) / step) + 1):
+        x, _ = to_svg(np.array([k * step, 0.0]))
+        parts.append(f'<line x1="{x:.1f}" y1="{pad}" x2="{x:.1f}" y2="{size - pad}" stroke="#eee"/>'
+                     f'<text x="{x:.1f}" y="{size - pad + 14}" font-size="10" text-anchor="middle">{k * step:g}</text>')
+    for k in np.arange(np.ceil((mid[1] - span / 2) / step), np.floor((mid[1] + span / 2) / step) + 1):
+        _, y = to_svg(np.array([0.0, k * step]))
+        parts.append(f'<line x1="{pad}" y1="{y:.1f}" x2="{size - pad}" y2="{y:.1f}" stroke="#eee"/>'
+                     f'<text x="{pad - 4}" y="{y + 3:.1f}" font-size="10" text-anchor="end">{k * step:g}</text>')
+    parts.append("".join(f'<circle cx="{x:.1f}" cy="{y:.1f}" r="0.8" fill="#888"/>'
+                         for x, y in (to_svg(p) for p in points2)))
+    for image, centre in zip(images, centres2):
+        narrow = image.name.split("/")[1] == "narrow"
+        colour = NARROW_SVG if narrow else WIDE_SVG
+        view = image.cam_from_world().rotation.matrix()[2] @ axes[:2].T
+        view = view / max(np.linalg.norm(view), 1e-9) * (0.12 if narrow else 0.07) * span
+        (x0, y0), (x1, y1) = to_svg(centre), to_svg(centre + view)
+        parts.append(f'<line x1="{x0:.1f}" y1="{y0:.1f}" x2="{x1:.1f}" y2="{y1:.1f}" stroke="{colour}" '
+                     f'stroke-width="2"/><circle cx="{x0:.1f}" cy="{y0:.1f}" r="4" fill="{colour}"/>')
+        if not narrow:
+            parts.append(f'<text x="{x0 + 6:.1f}" y="{y0 - 6:.1f}" font-size="11">'
+                         f'{html.escape(image.name.split("/")[0])}</text>')
+    parts.append(f'<text x="{pad}" y="16" font-size="11">grid {step:g} {units}; '
+                 f'<tspan fill="{WIDE_SVG}">wide</tspan>, <tspan fill="{NARROW_SVG}">narrow</tspan> cameras '
+                 'with viewing directions; grey: sparse points (top view of their best-fit plane)</text></svg>')
+    return "".join(parts)

@@ -1,0 +1,185 @@
+"""report.html: one self-contained page (inline CSS, SVG and base64 PNG; no scripts, no external resources)."""
+
+from __future__ import annotations
+
+import html
+import json
+import logging
+from pathlib import Path
+
+import numpy as np
+import pycolmap
+
+from rigsfm.inspect.report.figures import epipolar_figure, histogram_svg, png_data_uri, read_image, topdown_svg
+from rigsfm.core.residuals import reprojection_errors
+
+logger = logging.getLogger(__name__)
+
+CSS = """
+body{font-family:system-ui,-apple-system,'Segoe UI',sans-serif;margin:24px;color:#222;max-width:1200px}
+h1{font-size:22px}h2{font-size:18px;margin-top:32px;border-bottom:1px solid #ddd}
+table{border-collapse:collapse;font-size:13px;margin:8px 0}td,th{border:1px solid #ccc;padding:3px 7px;text-align:right}
+th{background:#f3f3f3}td.l,th.l{text-align:left}.warn{color:#b00;font-weight:bold}.note{color:#555;font-size:13px}
+.hists{display:flex;flex-wrap:wrap;gap:10px}.mono{font-family:ui-monospace,monospace;font-size:11px;white-space:pre}
+figure{margin:12px 0}figcaption{font-size:13px;color:#444}
+"""
+
+
+def esc(value) -> str:
+    return html.escape(str(value))
+
+
+def fmt(value, digits: int = 4) -> str:
+    if value is None:
+        return "–"
+    if isinstance(value, float):
+        return f"{value:.{digits}g}" if abs(value) < 1e4 else f"{value:.1f}"
+    return esc(value)
+
+
+def table(header: list[str], rows: list[list], left: int = 1) -> str:
+    head = "".join(f'<th class="{"l" if k < left else ""}">{esc(h)}</th>' for k, h in enumerate(header))
+    body = "".join("<tr>" + "".join(f'<td class="{"l" if k < left else ""}">{c}</td>' for k, c in enumerate(row))
+                   + "</tr>" for row in rows)
+    return f"<table><thead><tr>{head}</tr></thead><tbody>{body}</tbody></table>"
+
+
+def summary_section(summary: dict | None, reconstruction: pycolmap.Reconstruction, narrow: dict) -> str:
+    parts = ["<h2>Summary</h2>"]
+    if summary is None:
+        parts.append('<p class="warn">summary.json is missing: scale and timings are not shown.</p>')
+    rigs = sorted({im.name.split("/")[0] for im in reconstruction.images.values()})
+    counts = {s: sum(im.has_pose and im.name.split("/")[1] == s for im in reconstruction.images.values())
+              for s in ("wide", "narrow")}
+    registered = (summary or {}).get("registered", {})
+    rows = [["rigs", len(rigs)], ["3D points", reconstruction.num_points3D()],
+            ["metric", esc(narrow.get("metric")) + f" ({esc(narrow.get('units'))})"]]
+    for sensor in ("wide", "narrow"):
+        total = registered.get(sensor, {}).get("total", "?")
+        rows.append([f"{sensor} images registered", f"{counts[sensor]} / {total}"])
+    if summary:
+        scale = summary.get("scale", {})
+        sigma = scale.get("relative_sigma_percent")
+        rows.append(["scale source", esc(scale.get("source")) + ("" if sigma is None else f" (±{sigma:.3g} %)")])
+        rows.append(["mean reprojection error (px)", fmt(summary.get("mean_reprojection_error_px"))])
+        rows.append(["images folder", esc(summary.get("inputs", {}).get("images"))])
+    parts.append(table(["", ""], rows))
+    for warning in (summary or {}).get("warnings", []):
+        parts.append(f'<p class="warn">warning: {esc(warning)}</p>')
+    if summary and summary.get("scale", {}).get("measurements"):
+        parts.append("<h3>Scale measurements</h3>")
+        parts.append(table(["measurement", "kind", "true (m)", "reconstructed (m)", "residual (m)", "residual (%)",
+                            "σ (m)"],
+                           [[esc(m["label"]), esc(m["kind"]), fmt(m["meters"], 6), fmt(m["reconstructed_meters"], 6),
+                             fmt(m["residual_meters"], 3), fmt(m["residual_percent"], 3), fmt(m["sigma_meters"], 3)]
+                            for m in summary["scale"]["measurements"]], left=2))
+    if summary and summary.get("timings_s"):
+        timings = summary["timings_s"]
+        parts.append("<h3>Timings (s)</h3>" + table(list(timings), [[fmt(v, 3) for v in timings.values()]], left=0))
+    return "".join(parts)
+
+
+def reprojection_section(reconstruction: pycolmap.Reconstruction) -> str:
+    per_camera: dict[str, list[np.ndarray]] = {}
+    for name, errors in reprojection_errors(reconstruction).items():
+        per_camera.setdefault(name.rsplit("/", 1)[0], []).append(errors)
+    rows, figures = [], []
+    merged = {k: np.concatenate(v) for k, v in sorted(per_camera.items())}
+    observed = [e for e in merged.values() if e.size]
+    upper = float(np.percentile(np.concatenate(observed), 99)) * 1.2 if observed else 1.0
+    upper = max(upper, 0.1)
+    for camera, e in merged.items():
+        rows.append([esc(camera), e.size, fmt(float(e.mean())) if e.size else "–",
+                     fmt(float(np.sqrt(np.mean(e**2)))) if e.size else "–",
+                     fmt(float(np.percentile(e, 95))) if e.size else "–"])
+        if e.size:
+            figures.append(histogram_svg(e, camera, upper))
+    return ("<h2>Reprojection error per camera</h2>"
+            + table(["camera", "observations", "mean (px)", "RMS (px)", "95th pct (px)"], rows)
+            + '<p class="note">Narrow cameras usually have no observations (homogeneous view): their poses '
+              "follow from the wide camera through the fixed E^sl.</p>"
+            + f'<div class="hists">{"".join(figures)}</div>')
+
+
+def pairs_section(narrow: dict) -> str:
+    rows = []
+    for p in narrow.get("pairs", []):
+        e, d = p["euler_zyx_deg"], p["centre_direction_in_i"]
+        distance = p.get("distance_m", p.get("distance_units"))
+        f = np.asarray(p["F_ji"])
+        rows.append([esc(p["i"]), esc(p["j"]), f"{e['yaw']:.4f}", f"{e['pitch']:.4f}", f"{e['roll']:.4f}",
+                     "(" + ", ".join(f"{v:.4f}" for v in d) + ")", fmt(distance, 6),
+                     fmt(p.get("epipolar_band_95_px"), 3),
+                     '<span class="mono">' + "\n".join(" ".join(f"{v:+.3e}" for v in row) for row in f) + "</span>"])
+    unit = "m" if narrow.get("metric") else "units"
+    return ("<h2>Narrow camera pairs</h2>"
+            '<p class="note">narrow_j_from_narrow_i as Euler angles (yaw, pitch, roll; R = Rz Ry Rx, degrees), '
+            "unit direction from centre i to centre j in camera i's frame, centre distance, the 95 % epipolar "
+            "band half-width (pixels of j), and F_ji (x_j^T F_ji x_i = 0, COLMAP pixels of undistorted images, "
+            "scaled to unit norm).</p>"
+            + table(["narrow i", "narrow j", "yaw", "pitch", "roll", "centre direction in i", f"distance ({unit})",
+                     "band 95 % (px)", "F_ji"], rows, left=2))
+
+
+def uncertainty_section(narrow: dict) -> str:
+    rows = [[esc(p["i"]), esc(p["j"]), fmt(p.get("epipolar_band_95_px"), 3),
+             "–" if not p.get("epipolar_band_depth_range_m") else
+             "{:.3g} – {:.3g}".format(*p["epipolar_band_depth_range_m"])] for p in narrow.get("pairs", [])]
+    return ("<h2>Uncertainty</h2>"
+            '<p class="note">From the bundle-adjustment covariance of the rig poses (COLMAP, intrinsics and E^sl '
+            "held exact, pixel noise estimated from the residuals), propagated through the fixed E^sl to every "
+            "narrow camera and sampled. The band holds the true correspondence of a point of image i with 95 % "
+            "probability for every point of a grid on image i at every depth at which it appears in image j "
+            "(depth range below, metres in camera i). Errors of rigs.yaml itself are not included.</p>"
+            + table(["narrow i", "narrow j", "band 95 % (px)", "depths seen in j (m)"], rows, left=2))
+
+
+def epipolar_section(out: Path, summary: dict | None, reconstruction: pycolmap.Reconstruction, narrow: dict,
+                     max_pairs: int = 40) -> str:
+    parts = ["<h2>Epipolar check</h2>",
+             '<p class="note">Left: distinctive points (strongest corners, else a grid) in narrow image i. '
+             "Right: their epipolar lines in narrow image j (drawn through the full camera model, so slightly "
+             "curved by distortion) with the 95 % band shaded. The same scene point must lie on its line.</p>"]
+    images_dir = Path(summary["inputs"]["images"]) if summary and summary.get("inputs", {}).get("images") else None
+    if images_dir is None or not images_dir.is_dir():
+        parts.append(f'<p class="warn">Images folder {esc(images_dir)} not found: no epipolar figures.</p>')
+        return "".join(parts)
+    for p in narrow.get("pairs", [])[:max_pairs]:
+        image_i, image_j = (reconstruction.find_image_with_name(n) for n in (p["i"], p["j"]))
+        if image_i is None or image_j is None:
+            continue
+        pixels = [read_image(images_dir / n) for n in (p["i"], p["j"])]
+        if any(x is None for x in pixels):
+            parts.append(f'<p class="warn">cannot read {esc(p["i"])} or {esc(p["j"])} in {esc(images_dir)}</p>')
+            continue
+        j_from_i = image_j.cam_from_world() * image_i.cam_from_world().inverse()
+        figure = epipolar_figure(pixels[0], pixels[1], reconstruction.cameras[image_i.camera_id],
+                                 reconstruction.cameras[image_j.camera_id], j_from_i, p.get("epipolar_band_95_px"))
+        band = p.get("epipolar_band_95_px")
+        caption = f"{esc(p['i'])} → {esc(p['j'])}" + ("" if band is None else f"; band ±{band:.2f} px")
+        parts.append(f'<figure><img alt="epipolar check {esc(p["i"])} to {esc(p["j"])}" '
+                     f'src="{png_data_uri(figure)}"><figcaption>{caption}</figcaption></figure>')
+    return "".join(parts)
+
+
+def render_page(out: Path, summary: dict | None, reconstruction: pycolmap.Reconstruction, narrow: dict) -> str:
+    title = f"rigsfm report: {out.resolve().name}"
+    version = (summary or {}).get("rigsfm_version", "")
+    units = "m" if narrow.get("metric") else "units"
+    body = [f"<h1>{esc(title)}</h1>",
+            f'<p class="note">rigsfm {esc(version)}; workspace {esc(out.resolve())}</p>',
+            summary_section(summary, reconstruction, narrow),
+            reprojection_section(reconstruction),
+            "<h2>Network (top view)</h2>" + topdown_svg(reconstruction, units=units),
+            pairs_section(narrow), uncertainty_section(narrow),
+            epipolar_section(out, summary, reconstruction, narrow)]
+    if (out / "track" / "poses.json").is_file():  # `rigsfm track` results, when there are any
+        from rigsfm.track import track_report_section
+
+        body.append(track_report_section(out))
+    return ('<!DOCTYPE html><html lang="en"><head><meta charset="utf-8">'
+            f"<title>{esc(title)}</title><style>{CSS}</style></head><body>{''.join(body)}</body></html>\n")
+
+
+def load_json(path: Path) -> dict | None:
+    return json.loads(path.read_text(encoding="utf-8")) if path.is_file() else None

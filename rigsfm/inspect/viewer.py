@@ -1,0 +1,207 @@
+"""``rigsfm view OUT``: the network in Open3D — points, wide and narrow frustums, rig links, metric axes.
+
+``--screenshot FILE.png`` renders the same view headless with Open3D's OffscreenRenderer (Filament; on a
+machine without GPU it needs a software Vulkan driver, Debian's mesa-vulkan-drivers). Where that is
+impossible the same geometry is drawn by a small numpy/OpenCV rasteriser (lines and points, no shading)
+and the fallback is logged.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Annotated, Optional
+
+import cv2
+import numpy as np
+import open3d as o3d
+import pycolmap
+import typer
+
+from rigsfm.core.conventions import opencv_from_colmap_pixels
+from rigsfm.core.errors import WorkspaceError
+from rigsfm.core.workspace import Workspace
+
+logger = logging.getLogger(__name__)
+
+WIDE_RGB = (0.0, 0.35, 1.0)
+NARROW_RGB = (1.0, 0.45, 0.0)
+LINK_RGB = (0.0, 0.7, 0.2)
+BACKGROUND_RGB = (1.0, 1.0, 1.0)
+
+
+@dataclass
+class Scene:
+    points: o3d.geometry.PointCloud
+    lines: dict[str, o3d.geometry.LineSet]  # wide_frustums, narrow_frustums, rig_links, axes
+    centre: np.ndarray
+    size: float  # metres (or model units) spanned by the cameras
+    up: np.ndarray
+
+
+def pinhole_intrinsic(camera: pycolmap.Camera) -> o3d.camera.PinholeCameraIntrinsic:
+    """Open3D intrinsics (OpenCV pixel centres, pinhole part only: distortion is dropped)."""
+    cx, cy = opencv_from_colmap_pixels(np.array([camera.principal_point_x, camera.principal_point_y]))
+    return o3d.camera.PinholeCameraIntrinsic(int(camera.width), int(camera.height), float(camera.focal_length_x),
+                                             float(camera.focal_length_y), float(cx), float(cy))
+
+
+def frustum(camera: pycolmap.Camera, cam_from_world: pycolmap.Rigid3d, depth: float) -> o3d.geometry.LineSet:
+    intrinsic = pinhole_intrinsic(camera)
+    extrinsic = np.vstack([cam_from_world.matrix(), [0, 0, 0, 1]])
+    return o3d.geometry.LineSet.create_camera_visualization(intrinsic, extrinsic, scale=depth)
+
+
+def _merge(line_sets: list[o3d.geometry.LineSet], colour) -> o3d.geometry.LineSet:
+    merged = o3d.geometry.LineSet()
+    for line_set in line_sets:
+        merged += line_set
+    merged.paint_uniform_color(colour)
+    return merged
+
+
+def build_scene(reconstruction: pycolmap.Reconstruction) -> Scene:
+    images = [im for im in reconstruction.images.values() if im.has_pose]
+    if not images:
+        raise WorkspaceError("the model has no registered images to show")
+    centres = np.array([im.projection_center() for im in images])
+    size = float(np.ptp(centres, axis=0).max()) or 1.0
+    wide, narrow = [], []
+    for image in images:
+        is_narrow = image.name.split("/")[1] == "narrow"
+        camera = reconstruction.cameras[image.camera_id]
+        (narrow if is_narrow else wide).append(frustum(camera, image.cam_from_world(), (0.25 if is_narrow else 0.12) * size))
+    by_rig: dict[str, dict[str, np.ndarray]] = {}
+    for image, centre in zip(images, centres):
+        by_rig.setdefault(image.name.split("/")[0] + "/" + image.name.split("/", 2)[2], {})[image.name.split("/")[1]] = centre
+    ends = [(v["wide"], v["narrow"]) for v in by_rig.values() if {"wide", "narrow"} <= set(v)]
+    links = o3d.geometry.LineSet(o3d.utility.Vector3dVector(np.array([p for e in ends for p in e]).reshape(-1, 3)),
+                                 o3d.utility.Vector2iVector(np.arange(2 * len(ends)).reshape(-1, 2)))
+    links.paint_uniform_color(LINK_RGB)
+    up = np.mean([-im.cam_from_world().rotation.matrix()[1] for im in images], axis=0)
+    up /= max(np.linalg.norm(up), 1e-12)
+    axis_length = 10 ** np.floor(np.log10(size))  # a round number of metres, 10-100 % of the network
+    origin = centres.mean(axis=0)
+    axes = o3d.geometry.LineSet(
+        o3d.utility.Vector3dVector(np.array([origin, origin + [axis_length, 0, 0], origin, origin + [0, axis_length, 0],
+                                             origin, origin + [0, 0, axis_length]])),
+        o3d.utility.Vector2iVector(np.array([[0, 1], [2, 3], [4, 5]])))
+    axes.colors = o3d.utility.Vector3dVector(np.eye(3))
+    points = o3d.geometry.PointCloud()
+    if reconstruction.num_points3D():
+        points.points = o3d.utility.Vector3dVector(np.array([p.xyz for p in reconstruction.points3D.values()]))
+        points.colors = o3d.utility.Vector3dVector(
+            np.array([p.color for p in reconstruction.points3D.values()], dtype=np.float64) / 255.0)
+    return Scene(points, {"wide_frustums": _merge(wide, WIDE_RGB), "narrow_frustums": _merge(narrow, NARROW_RGB),
+                          "rig_links": links, "axes": axes}, origin, size, up)
+
+
+def view_eye(scene: Scene) -> tuple[np.ndarray, np.ndarray]:
+    """A camera above and behind the network looking at its centre: (eye, look-at)."""
+    cloud = np.asarray(scene.points.points)
+    target = 0.5 * (np.median(cloud, axis=0) + scene.centre) if len(cloud) else scene.centre
+    horizontal = scene.centre - target - np.dot(scene.centre - target, scene.up) * scene.up
+    if np.linalg.norm(horizontal) < 1e-9:
+        horizontal = np.cross(scene.up, [1.0, 0.0, 0.0] if abs(scene.up[0]) < 0.9 else [0.0, 1.0, 0.0])
+    horizontal /= np.linalg.norm(horizontal)
+    reach = max(scene.size, 2.0 * np.linalg.norm(scene.centre - target))
+    eye = target + (0.6 * horizontal + 1.0 * scene.up) * 1.3 * reach
+    return eye, target
+
+
+def linear_from_srgb(colour) -> np.ndarray:
+    """Filament takes linear colours and writes sRGB: convert so that the PNG shows the intended colours."""
+    c = np.asarray(colour, dtype=np.float64)
+    return np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)
+
+
+def render_offscreen(scene: Scene, path: Path, width: int, height: int) -> None:
+    rendering = o3d.visualization.rendering
+    renderer = rendering.OffscreenRenderer(width, height)
+    renderer.scene.set_background([*BACKGROUND_RGB, 1.0])
+    renderer.scene.view.set_color_grading(rendering.ColorGrading(rendering.ColorGrading.Quality.ULTRA,
+                                                                 rendering.ColorGrading.ToneMapping.LINEAR))
+    lines = rendering.MaterialRecord()
+    lines.shader, lines.line_width = "unlitLine", 3.0
+    dots = rendering.MaterialRecord()
+    dots.shader, dots.point_size = "defaultUnlit", 2.0
+    if len(scene.points.points):
+        renderer.scene.add_geometry("points", scene.points, dots)
+    for name, line_set in scene.lines.items():
+        linear = o3d.geometry.LineSet(line_set)
+        linear.colors = o3d.utility.Vector3dVector(linear_from_srgb(np.asarray(line_set.colors)))
+        renderer.scene.add_geometry(name, linear, lines)
+    eye, target = view_eye(scene)
+    renderer.setup_camera(50.0, target, eye, scene.up)
+    image = np.asarray(renderer.render_to_image())
+    cv2.imwrite(str(path), cv2.cvtColor(image, cv2.COLOR_RGB2BGR))
+
+
+def render_raster(scene: Scene, path: Path, width: int, height: int) -> None:
+    """The same view drawn with OpenCV: a pinhole camera at ``view_eye``, lines and points only."""
+    eye, target = view_eye(scene)
+    forward = (target - eye) / np.linalg.norm(target - eye)
+    right = np.cross(forward, scene.up)
+    right /= np.linalg.norm(right)
+    down = np.cross(forward, right)
+    rotation = np.array([right, down, forward])
+    focal = 0.5 * height / np.tan(np.radians(25.0))
+
+    def project(xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        cam = (np.asarray(xyz) - eye) @ rotation.T
+        ok = cam[:, 2] > 1e-6
+        return np.column_stack([focal * cam[:, 0] / cam[:, 2] + width / 2,
+                                focal * cam[:, 1] / cam[:, 2] + height / 2]), ok
+
+    canvas = np.full((height, width, 3), 255, np.uint8)
+    xy, ok = project(np.asarray(scene.points.points)) if len(scene.points.points) else (np.zeros((0, 2)), [])
+    colours = (np.asarray(scene.points.colors)[:, ::-1] * 255).astype(int) if len(xy) else []
+    for p, good, c in zip(xy, ok, colours):
+        if good and 0 <= p[0] < width and 0 <= p[1] < height:
+            canvas[int(p[1]), int(p[0])] = c
+    for line_set in scene.lines.values():
+        xy, ok = project(np.asarray(line_set.points))
+        colours = np.asarray(line_set.colors)
+        for k, (a, b) in enumerate(np.asarray(line_set.lines)):
+            if ok[a] and ok[b]:
+                colour = tuple(int(255 * v) for v in colours[k][::-1])
+                cv2.line(canvas, tuple(np.round(xy[a]).astype(int)), tuple(np.round(xy[b]).astype(int)), colour, 2,
+                         cv2.LINE_AA)
+    cv2.imwrite(str(path), canvas)
+
+
+def screenshot(out: Path, path: Path, width: int = 1280, height: int = 800) -> Path:
+    """Render the network view headless into ``path`` (PNG); returns it."""
+    scene = build_scene(load_model(out))
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    try:
+        render_offscreen(scene, path, width, height)
+    except Exception as error:  # no GPU / Vulkan / EGL: draw the same geometry ourselves
+        logger.warning("Open3D offscreen rendering unavailable (%s); using the OpenCV rasteriser", error)
+        render_raster(scene, path, width, height)
+    return path
+
+
+def load_model(out: Path) -> pycolmap.Reconstruction:
+    sparse = Workspace(Path(out)).sparse
+    if not sparse.is_dir():
+        raise WorkspaceError(f"{sparse} is missing: run `rigsfm run` first")
+    return pycolmap.Reconstruction(str(sparse))
+
+
+def view_command(
+    out: Annotated[Path, typer.Argument(help="workspace folder of a finished `rigsfm run`")],
+    screenshot_path: Annotated[Optional[Path], typer.Option("--screenshot", help="render headless into this PNG")] = None,
+) -> None:
+    """Show the network in Open3D: points, wide (blue) and narrow (orange) frustums, rig links, axes."""
+    if screenshot_path is not None:
+        typer.echo(f"screenshot: {screenshot(out, screenshot_path)}")
+        return
+    scene = build_scene(load_model(out))
+    geometries = ([scene.points] if len(scene.points.points) else []) + list(scene.lines.values())
+    try:
+        o3d.visualization.draw_geometries(geometries, window_name=f"rigsfm: {out}", width=1280, height=800)
+    except Exception as error:
+        raise WorkspaceError(f"cannot open a window ({error}); use --screenshot FILE.png") from None

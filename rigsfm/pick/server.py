@@ -1,0 +1,173 @@
+"""``rigsfm pick``: a local page (127.0.0.1 only) to pick correspondences between two wide images.
+
+The page (``static/``, vanilla JS, no network access beyond this server) shows both images with zoom;
+click a point in one image and its partner in the other. From eight pairs on, the epipolar line of
+the point being placed is drawn in the other image, and pairs whose Sampson distance exceeds
+``--flag-px`` are flagged. Every change is saved to the CSV at once (atomically); undo works and a
+reload of the page (or a new ``rigsfm pick`` after a crash) starts from the CSV.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import mimetypes
+import threading
+from http import HTTPStatus
+from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+from pathlib import Path
+from typing import Annotated
+from urllib.parse import parse_qs, urlparse
+
+import cv2
+import typer
+
+from rigsfm.core.errors import RigsfmError
+from rigsfm.pick.session import PickerSession, picker_image
+from rigsfm.core.rig import load_rigs
+
+logger = logging.getLogger(__name__)
+
+STATIC = Path(__file__).resolve().parent / "static"
+BROWSER_FORMATS = {".png", ".jpg", ".jpeg", ".bmp"}
+MAX_BODY = 5_000_000
+
+
+def _image_bytes(path: Path) -> tuple[bytes, str]:
+    if path.suffix.lower() in BROWSER_FORMATS:
+        return path.read_bytes(), mimetypes.guess_type(path.name)[0] or "image/png"
+    ok, data = cv2.imencode(".png", cv2.imread(str(path), cv2.IMREAD_UNCHANGED))
+    if not ok:
+        raise RigsfmError(f"{path}: cannot be converted for the browser")
+    return data.tobytes(), "image/png"
+
+
+class _Handler(BaseHTTPRequestHandler):
+    session: PickerSession  # set on the subclass made per server
+    server_version = "rigsfm-pick"
+
+    def log_message(self, fmt: str, *args) -> None:  # keep the terminal quiet; debug log only
+        logger.debug("%s " + fmt, self.address_string(), *args)
+
+    def _send(self, body: bytes, content_type: str, status: int = HTTPStatus.OK) -> None:
+        self.send_response(status)
+        self.send_header("Content-Type", content_type)
+        self.send_header("Content-Length", str(len(body)))
+        self.send_header("Cache-Control", "no-store")
+        self.end_headers()
+        self.wfile.write(body)
+
+    def _json(self, data, status: int = HTTPStatus.OK) -> None:
+        self._send(json.dumps(data).encode(), "application/json", status)
+
+    def _host_ok(self) -> bool:
+        host = (self.headers.get("Host") or "").rsplit(":", 1)[0]
+        if host in ("127.0.0.1", "localhost"):
+            return True
+        self._json({"error": "forbidden host"}, HTTPStatus.FORBIDDEN)
+        return False
+
+    def do_GET(self) -> None:
+        if not self._host_ok():
+            return
+        url = urlparse(self.path)
+        query = {k: v[-1] for k, v in parse_qs(url.query).items()}
+        try:
+            if url.path in ("/", "/index.html"):
+                self._send((STATIC / "index.html").read_bytes(), "text/html; charset=utf-8")
+            elif url.path in ("/picker.js", "/picker.css"):
+                kind = "text/javascript" if url.path.endswith(".js") else "text/css"
+                self._send((STATIC / url.path[1:]).read_bytes(), f"{kind}; charset=utf-8")
+            elif url.path in ("/image/a", "/image/b"):
+                self._send(*_image_bytes(self.session.images[0 if url.path.endswith("a") else 1].path))
+            elif url.path == "/api/state":
+                if query.get("reload") == "1":
+                    self.session.reload()
+                self._json(self.session.state())
+            elif url.path == "/api/epipolar":
+                side = query.get("side", "a")
+                line = self.session.epipolar(side, float(query["x"]), float(query["y"]))
+                self._json({"side": side, "polyline": line})
+            else:
+                self._json({"error": "not found"}, HTTPStatus.NOT_FOUND)
+        except (RigsfmError, KeyError, ValueError) as error:
+            self._json({"error": str(error)}, HTTPStatus.BAD_REQUEST)
+
+    def do_PUT(self) -> None:
+        if not self._host_ok():
+            return
+        if urlparse(self.path).path != "/api/pairs":
+            self._json({"error": "not found"}, HTTPStatus.NOT_FOUND)
+            return
+        length = int(self.headers.get("Content-Length") or 0)
+        if length > MAX_BODY:
+            self._json({"error": "request too large"}, HTTPStatus.REQUEST_ENTITY_TOO_LARGE)
+            return
+        try:
+            body = json.loads(self.rfile.read(length) or b"{}")
+            self._json(self.session.set_pairs(body["pairs"]))
+        except (RigsfmError, KeyError, ValueError, TypeError) as error:
+            self._json({"error": str(error)}, HTTPStatus.BAD_REQUEST)
+
+
+class PickerServer:
+    """The HTTP server in a daemon thread; ``url`` to open, ``close()`` to stop."""
+
+    def __init__(self, session: PickerSession, port: int = 0):
+        handler = type("PickerHandler", (_Handler,), {"session": session})
+        self.session = session
+        self.httpd = ThreadingHTTPServer(("127.0.0.1", port), handler)
+        self.httpd.daemon_threads = True
+        self.thread = threading.Thread(target=self.httpd.serve_forever, name="rigsfm-pick", daemon=True)
+        self.thread.start()
+
+    @property
+    def url(self) -> str:
+        return f"http://127.0.0.1:{self.httpd.server_address[1]}/"
+
+    def close(self) -> None:
+        self.httpd.shutdown()
+        self.httpd.server_close()
+        self.thread.join(timeout=5)
+
+
+def start_picker(
+    image_a: Path,
+    image_b: Path,
+    out: Path,
+    rigs_path: Path | None = None,
+    port: int = 0,
+    flag_px: float = 4.0,
+) -> PickerServer:
+    rigs = load_rigs(rigs_path) if rigs_path is not None else None
+    session = PickerSession(picker_image(image_a, rigs), picker_image(image_b, rigs), out, flag_px)
+    return PickerServer(session, port)
+
+
+def pick_command(
+    image_a: Annotated[Path, typer.Argument(help="first wide image, IMAGES/<rig>/wide/<file>")],
+    image_b: Annotated[Path, typer.Argument(help="second wide image")],
+    out: Annotated[Path, typer.Option("--out", help="CSV to write (and to resume from if it exists)")],
+    rigs: Annotated[Path | None, typer.Option("--rigs", help="rigs.yaml: calibrated epipolar curves")] = None,
+    port: Annotated[int, typer.Option("--port", help="0 picks a free port")] = 0,
+    flag_px: Annotated[
+        float,
+        typer.Option("--flag-px", help="flag pairs farther than this from their epipolar line (Sampson, px)"),
+    ] = 4.0,
+) -> None:
+    """Pick correspondences between two wide images in the browser (for run --manual-matches)."""
+    from rich.console import Console
+
+    server = start_picker(image_a, image_b, out, rigs, port, flag_px)
+    console = Console()
+    console.print(
+        f"picker for {server.session.images[0].name} <-> {server.session.images[1].name}: "
+        f"open [bold]{server.url}[/] (saves to {out} on every change); Ctrl-C to stop"
+    )
+    try:
+        threading.Event().wait()
+    except KeyboardInterrupt:
+        pass
+    finally:
+        server.close()
+        console.print(f"{len(server.session.pairs)} pairs in {out}")

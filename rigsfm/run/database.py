@@ -1,0 +1,107 @@
+"""Stage 1: the COLMAP database — calibrated cameras, images and the rig configuration with E^sl.
+
+One camera per rig sensor (intrinsics from rigs.yaml, never refined), one image row per file, and one
+``pycolmap.Rig`` per rig with the wide camera as reference sensor and ``narrow_from_wide`` as the narrow
+sensor's ``sensor_from_rig``. Frames group the wide and narrow images of the same file name.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+import pycolmap
+
+from rigsfm.core.errors import WorkspaceError
+from rigsfm.run.inputs import ImageEntry
+from rigsfm.core.rig import SENSORS, RigCalibration
+
+logger = logging.getLogger(__name__)
+
+
+def calibrated_camera(camera: pycolmap.Camera) -> pycolmap.Camera:
+    """A copy flagged as calibrated (COLMAP's global mapper trusts only "prior" focal lengths)."""
+    copy = pycolmap.Camera(model=camera.model, width=camera.width, height=camera.height, params=camera.params)
+    copy.has_prior_focal_length = True
+    return copy
+
+
+def rig_configs(rigs: Sequence[RigCalibration], images: Sequence[ImageEntry]) -> list[pycolmap.RigConfig]:
+    """COLMAP rig configurations: image prefix ``<rig>/<sensor>/``, wide is the reference sensor.
+
+    COLMAP needs an image of every configured camera, so a rig without narrow images is configured
+    with its wide camera alone (its narrow pose still follows from E^sl at export).
+    """
+    with_narrow = {entry.rig for entry in images if entry.sensor == "narrow"}
+    configs = []
+    for rig in rigs:
+        wide = pycolmap.RigConfigCamera(
+            ref_sensor=True, image_prefix=f"{rig.name}/wide/", camera=calibrated_camera(rig.wide)
+        )
+        if rig.name not in with_narrow:
+            configs.append(pycolmap.RigConfig(cameras=[wide]))
+            continue
+        narrow = pycolmap.RigConfigCamera(
+            ref_sensor=False,
+            image_prefix=f"{rig.name}/narrow/",
+            cam_from_rig=rig.narrow_from_wide,
+            camera=calibrated_camera(rig.narrow),
+        )
+        configs.append(pycolmap.RigConfig(cameras=[wide, narrow]))
+    return configs
+
+
+def _same_camera(a: pycolmap.Camera, b: pycolmap.Camera) -> bool:
+    return (
+        a.model == b.model
+        and (a.width, a.height) == (b.width, b.height)
+        and np.allclose(a.params, b.params, rtol=0, atol=1e-12)
+    )
+
+
+def _check_existing(database: pycolmap.Database, rigs: Sequence[RigCalibration], images: Sequence[ImageEntry]) -> None:
+    """An existing database must hold exactly these images and cameras to be resumed."""
+    db_images = {image.name: image for image in database.read_all_images()}
+    wanted = {entry.name for entry in images}
+    if set(db_images) != wanted:
+        diff = sorted(set(db_images) ^ wanted)
+        raise WorkspaceError(
+            f"the workspace database holds other images than the image folder (e.g. {diff[0]}); "
+            "use another --out or delete its database.db"
+        )
+    cameras = {camera.camera_id: camera for camera in database.read_all_cameras()}
+    by_name = {rig.name: rig for rig in rigs}
+    for entry in images:
+        camera = cameras[db_images[entry.name].camera_id]
+        if not _same_camera(camera, by_name[entry.rig].camera(entry.sensor)):
+            raise WorkspaceError(
+                f"the workspace database was made with another calibration for {entry.rig}/{entry.sensor}; "
+                "use another --out or delete its database.db"
+            )
+
+
+def create_database(
+    database_path: Path, rigs: Sequence[RigCalibration], images: Sequence[ImageEntry]
+) -> Path:
+    """Create the database (or check that an existing one matches these inputs) and return its path."""
+    database_path = Path(database_path)
+    if database_path.exists():
+        with pycolmap.Database.open(database_path) as database:
+            _check_existing(database, rigs, images)
+        logger.info("Reusing database %s", database_path)
+        return database_path
+    tmp_path = database_path.with_name(database_path.name + ".tmp")
+    tmp_path.unlink(missing_ok=True)
+    with pycolmap.Database.open(tmp_path) as database:
+        for rig in rigs:
+            for sensor in SENSORS:
+                camera_id = database.write_camera(calibrated_camera(rig.camera(sensor)))
+                for entry in images:
+                    if (entry.rig, entry.sensor) == (rig.name, sensor):
+                        database.write_image(pycolmap.Image(name=entry.name, camera_id=camera_id))
+        pycolmap.apply_rig_config(rig_configs(rigs, images), database)
+    tmp_path.replace(database_path)
+    logger.info("Created database %s with %d images of %d rigs", database_path, len(images), len(rigs))
+    return database_path

@@ -1,0 +1,138 @@
+"""Stage 5: write the deliverables — COLMAP model, narrow_poses.json, points3D.ply.
+
+``narrow_poses.json`` conventions (also in the file's ``conventions`` block):
+- ``cam_from_world``: x_cam = R x_world + t, metres; ``centre`` = -R^T t, world frame.
+- For each narrow pair (i, j): ``narrow_j_from_narrow_i`` maps camera-i coordinates to camera-j.
+- ``euler_zyx_deg`` = (yaw, pitch, roll) with R = Rz(yaw) Ry(pitch) Rx(roll).
+- ``centre_direction_in_i``: unit vector from camera i's centre to camera j's, in camera i's frame.
+- ``F_ji``: x_j^T F_ji x_i = 0 for homogeneous COLMAP pixels (first pixel centre (0.5, 0.5)) of the
+  *undistorted* images (pinhole part of each camera); ``E_ji`` the same for normalised coordinates.
+- ``epipolar_band_95_px``: half-width of the band around the epipolar line in j (pinhole pixels of j) that
+  holds the true correspondence of a point of image i with 95 % probability, from the bundle-adjustment
+  covariance of the rig poses (see ``rigsfm.run.uncertainty``); null when it cannot be estimated.
+"""
+
+from __future__ import annotations
+
+import itertools
+import logging
+from pathlib import Path
+
+import numpy as np
+import pycolmap
+
+from rigsfm.core.errors import WorkspaceError
+from rigsfm.core.conventions import euler_zyx_degrees, wxyz_from_rotation
+from rigsfm.core.io import atomic_directory, write_json_atomic
+from rigsfm.core.rig import camera_to_dict
+from rigsfm.run.uncertainty import narrow_epipolar_bands
+
+logger = logging.getLogger(__name__)
+
+CONVENTIONS = {
+    "cam_from_world": "x_cam = R @ x_world + t (metres); centre = -R.T @ t",
+    "quaternion": "[w, x, y, z]",
+    "pixels": "COLMAP: centre of the first pixel at (0.5, 0.5)",
+    "narrow_j_from_narrow_i": "x_j = R @ x_i + t",
+    "euler_zyx_deg": "(yaw, pitch, roll), R = Rz(yaw) @ Ry(pitch) @ Rx(roll), intrinsic z-y'-x''",
+    "centre_direction_in_i": "unit vector from centre i to centre j, in camera i's frame",
+    "F_ji": "x_j^T F_ji x_i = 0, homogeneous COLMAP pixels of undistorted images (pinhole K of each camera)",
+    "E_ji": "[t]_x R of narrow_j_from_narrow_i",
+    "epipolar_band_95_px": "half-width (pinhole px of j) of the band around the epipolar line of a point of i "
+                           "that holds its true correspondence with 95 % probability: the largest over a grid "
+                           "of image i and every depth at which the point appears in image j "
+                           "(epipolar_band_depth_range_m, metres in camera i); from the bundle-adjustment "
+                           "covariance of the rig poses with intrinsics and E^sl held exact (errors of "
+                           "rigs.yaml itself are not included); null if it could not be estimated",
+}
+
+
+def pose_dict(transform: pycolmap.Rigid3d) -> dict:
+    return {
+        "rotation": transform.rotation.matrix().tolist(),
+        "quaternion_wxyz": wxyz_from_rotation(transform.rotation),
+        "translation": transform.translation.tolist(),
+    }
+
+
+def pinhole_matrix(camera: pycolmap.Camera) -> np.ndarray:
+    return np.asarray(camera.calibration_matrix(), dtype=np.float64)
+
+
+def fundamental_matrix(j_from_i: pycolmap.Rigid3d, camera_i: pycolmap.Camera, camera_j: pycolmap.Camera) -> np.ndarray:
+    essential = np.asarray(pycolmap.essential_matrix_from_pose(j_from_i))
+    f = np.linalg.inv(pinhole_matrix(camera_j)).T @ essential @ np.linalg.inv(pinhole_matrix(camera_i))
+    return f / np.linalg.norm(f)
+
+
+def narrow_images(reconstruction: pycolmap.Reconstruction) -> list[pycolmap.Image]:
+    return sorted(
+        (im for im in reconstruction.images.values() if im.has_pose and im.name.split("/")[1] == "narrow"),
+        key=lambda im: im.name,
+    )
+
+
+def narrow_poses(reconstruction: pycolmap.Reconstruction, *, metric: bool, uncertainty: bool = True) -> dict:
+    """The narrow-camera deliverable as a JSON-ready dict."""
+    images = narrow_images(reconstruction)
+    bands = {}
+    if uncertainty and len(images) >= 2:
+        bands = narrow_epipolar_bands(reconstruction, [(a.name, b.name) for a, b in itertools.combinations(images, 2)])
+    entries = []
+    for image in images:
+        camera = reconstruction.cameras[image.camera_id]
+        entries.append(
+            {
+                "name": image.name,
+                "rig": image.name.split("/")[0],
+                "camera": camera_to_dict(camera),
+                "cam_from_world": pose_dict(image.cam_from_world()),
+                "centre": image.projection_center().tolist(),
+            }
+        )
+    pairs = []
+    for image_i, image_j in itertools.combinations(images, 2):
+        j_from_i = image_j.cam_from_world() * image_i.cam_from_world().inverse()
+        camera_i = reconstruction.cameras[image_i.camera_id]
+        camera_j = reconstruction.cameras[image_j.camera_id]
+        centre_j_in_i = image_i.cam_from_world() * image_j.projection_center()
+        distance = float(np.linalg.norm(centre_j_in_i))
+        yaw, pitch, roll = euler_zyx_degrees(j_from_i.rotation.matrix())
+        pairs.append(
+            {
+                "i": image_i.name,
+                "j": image_j.name,
+                "narrow_j_from_narrow_i": pose_dict(j_from_i),
+                "euler_zyx_deg": {"yaw": yaw, "pitch": pitch, "roll": roll},
+                "centre_direction_in_i": (centre_j_in_i / distance).tolist(),
+                "distance_m" if metric else "distance_units": distance,
+                "E_ji": np.asarray(pycolmap.essential_matrix_from_pose(j_from_i)).tolist(),
+                "F_ji": fundamental_matrix(j_from_i, camera_i, camera_j).tolist(),
+                "epipolar_band_95_px": bands.get((image_i.name, image_j.name), {}).get("band_px"),
+                "epipolar_band_depth_range_m": bands.get((image_i.name, image_j.name), {}).get("depth_range_m"),
+            }
+        )
+    return {"metric": metric, "units": "meters" if metric else "arbitrary", "conventions": CONVENTIONS,
+            "narrow": entries, "pairs": pairs}
+
+
+def write_model(reconstruction: pycolmap.Reconstruction, path: Path, *, overwrite: bool) -> Path:
+    with atomic_directory(path, overwrite=overwrite) as tmp:
+        reconstruction.write(tmp)
+    return path
+
+
+def write_points_ply(reconstruction: pycolmap.Reconstruction, path: Path, *, overwrite: bool) -> Path:
+    if path.exists() and not overwrite:
+        raise WorkspaceError(f"{path} already exists: pass --overwrite to replace it")
+    tmp = path.with_name(f".{path.stem}.tmp{path.suffix}")
+    try:
+        reconstruction.export_PLY(tmp)
+        tmp.replace(path)
+    finally:
+        tmp.unlink(missing_ok=True)
+    return path
+
+
+def write_narrow_poses(reconstruction: pycolmap.Reconstruction, path: Path, *, metric: bool, overwrite: bool) -> Path:
+    return write_json_atomic(path, narrow_poses(reconstruction, metric=metric), overwrite=overwrite)

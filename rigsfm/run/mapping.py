@@ -1,0 +1,242 @@
+"""Stage 3: register the wide cameras with COLMAP's incremental or global mapper.
+
+Intrinsics and every ``sensor_from_rig`` (E^sl) stay fixed. Small networks (2-4 rigs) only have
+two-view tracks, which COLMAP ignores by default; they are allowed here, and the model-size and
+track-length minimums are lowered to what the network can provide.
+"""
+
+from __future__ import annotations
+
+import enum
+import logging
+import shutil
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pycolmap
+
+from rigsfm.core.errors import ReconstructionError
+from rigsfm.core.io import atomic_directory
+
+logger = logging.getLogger(__name__)
+
+
+class Mapper(enum.StrEnum):
+    INCREMENTAL = "incremental"
+    GLOBAL = "global"
+
+
+@dataclass(kw_only=True)
+class MappingOptions:
+    mapper: Mapper = Mapper.INCREMENTAL
+    seed: int = 0
+    num_threads: int = -1
+    # Lower COLMAP's match-count thresholds (relax_for_few_matches); the pipeline sets it when manual
+    # matches are given. Not automatic: relaxed, a pair of rigs with 21 wrong-but-consistent SIFT
+    # matches registers 70 degrees off instead of failing with a clear message.
+    few_matches: bool = False
+
+
+def _incremental_options(options: MappingOptions, num_wide: int) -> pycolmap.IncrementalPipelineOptions:
+    pipeline = pycolmap.IncrementalPipelineOptions(
+        num_threads=options.num_threads,
+        random_seed=options.seed,
+        ba_refine_focal_length=False,
+        ba_refine_principal_point=False,
+        ba_refine_extra_params=False,
+        ba_refine_sensor_from_rig=False,
+        min_model_size=min(10, max(2, num_wide)),
+        # One model: a forced initial pair would otherwise be re-used for every further model, and
+        # frames the incremental mapper cannot reach are handed to the global mapper instead.
+        multiple_models=False,
+        extract_colors=True,
+    )
+    pipeline.mapper.abs_pose_refine_focal_length = False
+    pipeline.mapper.abs_pose_refine_extra_params = False
+    # Rigs far apart round an arena share many points between neighbours only: keep two-view tracks
+    # (verified, and the rig-constraint stage adjusts with a robust loss and drops outliers).
+    pipeline.triangulation.ignore_two_view_tracks = False
+    return pipeline
+
+
+def _global_options(options: MappingOptions, num_wide: int) -> pycolmap.GlobalPipelineOptions:
+    pipeline = pycolmap.GlobalPipelineOptions(
+        num_threads=options.num_threads, random_seed=options.seed, min_model_size=min(3, max(2, num_wide))
+    )
+    mapper = pipeline.mapper
+    mapper.num_threads = options.num_threads
+    mapper.random_seed = options.seed
+    mapper.refine_sensor_from_rig = False
+    mapper.rotation_averaging.refine_sensor_from_rig = False
+    mapper.global_positioning.refine_sensor_from_rig = False
+    mapper.global_positioning.use_gpu = False
+    mapper.bundle_adjustment.refine_focal_length = False
+    mapper.bundle_adjustment.refine_principal_point = False
+    mapper.bundle_adjustment.refine_extra_params = False
+    mapper.bundle_adjustment.refine_sensor_from_rig = False
+    mapper.bundle_adjustment.ceres.use_gpu = False
+    # Positions from two-view tracks only where nothing else exists (2-4 rigs); the final adjustment and
+    # retriangulation keep two-view tracks always, as the incremental mapper does.
+    mapper.bundle_adjustment.min_track_length = 2
+    mapper.retriangulation.ignore_two_view_tracks = False
+    if num_wide <= 4:
+        mapper.track_min_num_views_per_track = 2
+        mapper.global_positioning.min_num_view_per_track = 2
+    return pipeline
+
+
+FEW_MATCHES_MIN_INLIERS = 8  # the least a pair of manual correspondences keeps (rigsfm.run.manual_matches)
+
+
+def relax_for_few_matches(pipeline: pycolmap.IncrementalPipelineOptions, best_inliers: int) -> None:
+    """Thresholds for networks held together by few matches (e.g. ~30 manual correspondences).
+
+    COLMAP ignores pairs under ``min_num_matches`` (15), starts only from a pair with
+    ``init_min_num_inliers`` (100) and adds images with ``abs_pose_min_num_inliers`` (30).
+    """
+    floor = FEW_MATCHES_MIN_INLIERS
+    pipeline.min_num_matches = min(pipeline.min_num_matches, floor)
+    mapper = pipeline.mapper
+    mapper.init_min_num_inliers = min(mapper.init_min_num_inliers, max(floor, best_inliers // 2))
+    mapper.abs_pose_min_num_inliers = min(mapper.abs_pose_min_num_inliers, 2 * floor)
+    # Rigs far apart round an arena face each other: the baseline runs along the optical axes, which
+    # COLMAP's forward-motion guard (0.95) rejects although the points between them triangulate well.
+    mapper.init_max_forward_motion = 1.0
+    logger.info("Few matches (best wide pair %d inliers): min_num_matches %d, init_min_num_inliers %d, "
+                "abs_pose_min_num_inliers %d, any forward motion", best_inliers, pipeline.min_num_matches,
+                mapper.init_min_num_inliers, mapper.abs_pose_min_num_inliers)
+
+
+def best_pair_inliers(database_path: Path) -> int:
+    """Verified inliers of the best wide-wide pair of two different rigs (0 if none)."""
+    pair = initial_pair(database_path)
+    if pair is None:
+        return 0
+    with pycolmap.Database.open(database_path) as database:
+        return len(database.read_two_view_geometry(*pair).inlier_matches)
+
+
+def initial_pair(database_path: Path) -> tuple[int, int] | None:
+    """The wide-wide pair of two different rigs with the most verified inliers.
+
+    Choosing it up front spares the mapper's initial-pair search, which can run for minutes when the
+    narrow images carry many (e.g. moving-crowd) features.
+    """
+    with pycolmap.Database.open(database_path) as database:
+        names = {image.image_id: image.name for image in database.read_all_images()}
+        pair_ids, inliers = database.read_two_view_geometry_num_inliers()
+    best, best_inliers = None, 0
+    for pair_id, count in zip(pair_ids, inliers):
+        id1, id2 = pycolmap.pair_id_to_image_pair(pair_id)
+        rig1, sensor1, _ = names[id1].split("/", 2)
+        rig2, sensor2, _ = names[id2].split("/", 2)
+        if sensor1 == sensor2 == "wide" and rig1 != rig2 and count > best_inliers:
+            best, best_inliers = (id1, id2), count
+    return best
+
+
+def mapping_database(database_path: Path, path: Path, *, keep_narrow_offsets: bool) -> Path:
+    """The database the mapper reads: a copy of ``database_path``, narrow offsets zeroed by default.
+
+    Works around pycolmap 4.2.1: after mapping, ``AlignReconstructionToOrigRigScales`` looks
+    up every rig whose non-reference sensor has a non-zero ``sensor_from_rig`` translation and raises
+    ``IndexError: Rig with ID n does not exist`` for a rig none of whose frames registered. Without
+    narrow features the narrow images carry no observations, so their offset plays no part in mapping;
+    zeroing it (rotation kept) avoids the crash, and the rig-constraint stage restores E^sl.
+    """
+    tmp = path.with_name(path.name + ".tmp")
+    shutil.copyfile(database_path, tmp)
+    if not keep_narrow_offsets:
+        with pycolmap.Database.open(tmp) as database:
+            for rig in database.read_all_rigs():
+                for sensor_id, sensor_from_rig in rig.non_ref_sensors.items():
+                    if sensor_from_rig is not None:
+                        rig.set_sensor_from_rig(sensor_id, pycolmap.Rigid3d(sensor_from_rig.rotation, np.zeros(3)))
+                database.update_rig(rig)
+    tmp.replace(path)
+    return path
+
+
+def _incremental(database_path: Path, image_dir: Path, models_dir: Path, options: MappingOptions, num_wide: int,
+                 on_registered: Callable[[], None] | None) -> dict[int, pycolmap.Reconstruction]:
+    pipeline = _incremental_options(options, num_wide)
+    if options.few_matches:
+        relax_for_few_matches(pipeline, best_pair_inliers(database_path))
+    pair = initial_pair(database_path)
+    if pair is not None:
+        pipeline.init_image_id1, pipeline.init_image_id2 = pair
+    models = pycolmap.incremental_mapping(
+        database_path, image_dir, models_dir, pipeline, next_image_callback=on_registered
+    )
+    if not models and pair is not None:
+        logger.warning("Mapping from the initial pair %s failed; searching for another", pair)
+        pipeline.init_image_id1 = pipeline.init_image_id2 = -1
+        models = pycolmap.incremental_mapping(
+            database_path, image_dir, models_dir, pipeline, next_image_callback=on_registered
+        )
+    return models
+
+
+def _map(database_path: Path, image_dir: Path, models_dir: Path, options: MappingOptions, num_wide: int,
+         on_registered: Callable[[], None] | None) -> pycolmap.Reconstruction | None:
+    """The largest model of one mapper run, or None when it registered nothing."""
+    shutil.rmtree(models_dir, ignore_errors=True)
+    models_dir.mkdir()
+    if options.mapper == Mapper.INCREMENTAL:
+        models = _incremental(database_path, image_dir, models_dir, options, num_wide, on_registered)
+    else:
+        models = pycolmap.global_mapping(database_path, image_dir, models_dir, _global_options(options, num_wide))
+    for index, model in models.items():
+        logger.info("%s model %d: %d frames, %d points", options.mapper, index, model.num_reg_frames(),
+                    model.num_points3D())
+    shutil.rmtree(models_dir)
+    return max(models.values(), key=lambda rec: rec.num_reg_frames()) if models else None
+
+
+def run_mapping(
+    database_path: Path,
+    image_dir: Path,
+    output_path: Path,
+    options: MappingOptions,
+    num_wide: int,
+    on_registered: Callable[[], None] | None = None,
+    *,
+    mapping_db: Path | None = None,
+    keep_narrow_offsets: bool = False,
+) -> pycolmap.Reconstruction:
+    """Map, keep the largest model, write it to ``output_path`` (atomically) and return it.
+
+    If the incremental mapper cannot register every wide frame (e.g. neighbouring rigs share no
+    three-view tracks), the global mapper is tried too and the model with more frames is kept.
+    """
+    mapping_db = mapping_db or output_path.with_name("mapping.db")
+    with atomic_directory(output_path) as tmp:
+        models_dir = tmp / "models"
+        mapping_database(database_path, mapping_db, keep_narrow_offsets=keep_narrow_offsets)
+        try:
+            best = _map(mapping_db, image_dir, models_dir, options, num_wide, on_registered)
+        except IndexError as error:  # pycolmap 4.2.1 rig-scale alignment bug, see mapping_database
+            if not keep_narrow_offsets:
+                raise
+            logger.warning("COLMAP failed with narrow offsets (%s); mapping the wide cameras alone", error)
+            mapping_database(database_path, mapping_db, keep_narrow_offsets=False)
+            best = _map(mapping_db, image_dir, models_dir, options, num_wide, on_registered)
+        if options.mapper == Mapper.INCREMENTAL and (best is None or best.num_reg_frames() < num_wide):
+            registered = 0 if best is None else best.num_reg_frames()
+            logger.warning("The incremental mapper registered %d of %d frames; trying the global mapper",
+                           registered, num_wide)
+            fallback = _map(mapping_db, image_dir, models_dir, MappingOptions(
+                mapper=Mapper.GLOBAL, seed=options.seed, num_threads=options.num_threads), num_wide, None)
+            if fallback is not None and fallback.num_reg_frames() > registered:
+                logger.warning("Using the global mapper's model (%d frames)", fallback.num_reg_frames())
+                best = fallback
+        if best is None:
+            raise ReconstructionError(
+                "the mapper registered no wide images: the wide views share too few verified matches. "
+                "Check that neighbouring wide cameras overlap, or add manual correspondences "
+                "(--manual-matches FILE; `rigsfm pick IMAGE_A IMAGE_B` helps pick them)"
+            )
+        best.write(tmp)
+    return pycolmap.Reconstruction(output_path)

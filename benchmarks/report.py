@@ -13,7 +13,7 @@ from rigsfm.core.io import write_text_atomic
 
 LABELS = {"rigsfm-incremental": "rigsfm incremental", "rigsfm-global": "rigsfm global",
           "paper": "paper (pairwise F, chained)", "colmap": "plain COLMAP", "oracle": "oracle (limit)"}
-STAGES = ("features", "matching", "mapping", "rig_constraint")
+STAGES = ("features", "matching", "mapping", "adjust")
 COLOURS = {"rigsfm-incremental": (180, 90, 20), "rigsfm-global": (40, 160, 40), "paper": (30, 30, 200),
            "colmap": (0, 140, 230), "oracle": (140, 60, 160)}  # BGR
 

@@ -27,7 +27,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from rigsfm.core.errors import RigsfmError
 from rigsfm.synth.truth import compare_to_ground_truth
-from rigsfm.run.features import Features, MatchingOptions
+from rigsfm.run.options import Features, MatchingOptions
 from rigsfm.core.io import write_json_atomic, write_text_atomic
 from rigsfm.run.manual_matches import write_manual_matches
 from rigsfm.run.pipeline import RunOptions, run
@@ -48,7 +48,7 @@ def attempt(dataset, out: Path, options: RunOptions) -> dict:
         return {"ok": False, "error": str(error), "seconds": round(time.perf_counter() - start, 1)}
     scores = compare_to_ground_truth(result.reconstruction, dataset.load_ground_truth())
     return {"ok": True, "narrow_rotation_error_deg": scores["relative_rotation_deg"]["max"],
-            "registered_narrow": scores.get("registered", None), "warnings": result.summary["warnings"],
+            "registered_narrow": scores.get("registered", None), "warnings": result.summary.warnings,
             "seconds": round(time.perf_counter() - start, 1)}
 
 

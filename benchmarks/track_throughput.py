@@ -31,7 +31,7 @@ def main() -> None:
     from rigsfm.run.pipeline import RunOptions, run
     from rigsfm.synth.dataset import render_dataset
     from rigsfm.synth.scene import SceneOptions
-    from rigsfm.track import track
+    from rigsfm.track import Executor, TrackOptions, track
     from rigsfm.synth.motion import render_recording, shaken_motions
 
     with tempfile.TemporaryDirectory(prefix="rigsfm-track-bench-") as tmp:
@@ -50,7 +50,7 @@ def main() -> None:
 
         shutil.copytree(root / "out", root / "out_local")
         start = time.perf_counter()
-        local = track(root / "out_local", recording.images, executor="local", workers=args.workers)
+        local = track(root / "out_local", recording.images, TrackOptions(executor=Executor.LOCAL, workers=args.workers))
         seconds = time.perf_counter() - start
         results["local_s"] = round(seconds, 2)
         results["local_fps"] = round(frames / seconds, 3)
@@ -65,7 +65,7 @@ def main() -> None:
         results["ray_startup_s"] = round(time.perf_counter() - start, 2)
         try:
             start = time.perf_counter()
-            track(root / "out_ray", recording.images, executor="ray")
+            track(root / "out_ray", recording.images, TrackOptions(executor=Executor.RAY))
             seconds = time.perf_counter() - start
         finally:
             ray.shutdown()

@@ -49,14 +49,14 @@ def run_method(method: str, scene: Path, out: Path, estimate: Path | None) -> di
     if method == "idle":
         return {"timings_s": {}, "metric": False}
     if method.startswith("rigsfm-"):
-        from rigsfm.run.mapping import Mapper, MappingOptions
+        from rigsfm.run.options import Mapper, MappingOptions
         from rigsfm.run.pipeline import RunOptions, run
 
         options = RunOptions(mapping=MappingOptions(mapper=Mapper(method.removeprefix("rigsfm-"))))
         result = run(scene / "images", scene / "rigs.yaml", out / "run", scene / "scale.yaml", options)
         shutil.copytree(out / "run" / "sparse", out / "model")
-        return {"timings_s": result.summary["timings_s"], "metric": result.summary["metric"],
-                "scale": result.summary["scale"]["source"], "warnings": result.summary["warnings"]}
+        return {"timings_s": result.summary.timings_s, "metric": result.summary.metric,
+                "scale": result.summary.scale.source, "warnings": result.summary.warnings}
     if method == "paper":
         from benchmarks.baselines.paper import run_paper
 

@@ -7,7 +7,7 @@ import pytest
 
 from rigsfm.run.asift import asift_features, colmap_sift_descriptors
 from rigsfm.synth.truth import compare_to_ground_truth
-from rigsfm.run.features import Features, MatchingOptions
+from rigsfm.run.options import Features, MatchingOptions
 from rigsfm.run.pipeline import RunOptions, run
 from rigsfm.synth.dataset import render_dataset
 from rigsfm.synth.scene import SceneOptions
@@ -51,7 +51,7 @@ def test_asift_registers_a_rig_pair(pair):
         compare_to_ground_truth(r.reconstruction, truth)["relative_rotation_deg"]["max"]
         for r in (asift, sift)
     ]
-    assert asift.summary["registered"]["wide"]["registered"] == 2
+    assert asift.summary.registered["wide"].registered == 2
     assert errors[0] < max(0.3, 2 * errors[1])
     with pycolmap.Database.open(root / "asift" / "database.db") as a:
         descriptors = a.read_descriptors(1)

@@ -173,7 +173,7 @@ def test_cli_turns_an_internal_error_into_one_line(tmp_path, monkeypatch):
     def broken(*args, **kwargs):
         raise ZeroDivisionError("simulated bug")
 
-    monkeypatch.setattr("rigsfm.cli.run", broken)
+    monkeypatch.setattr("rigsfm.run.pipeline.run", broken)
     result = CliRunner().invoke(app, ["run", str(images), "--rigs", str(rigs_path), "--out", str(tmp_path / "o")])
     assert result.exit_code == 3
     lines = [line for line in result.output.splitlines() if line.strip()]

@@ -11,7 +11,7 @@ import pytest
 import yaml
 
 from rigsfm.calibrate.board import board_spec_from_dict
-from rigsfm.calibrate.command import calibrate_command
+from rigsfm.calibrate import CalibrateOptions, calibrate
 from rigsfm.synth.boards import SynthCamera, board_plane, render, rotation_xyz_deg
 from rigsfm.core.errors import InputError, RigsfmError
 
@@ -41,7 +41,7 @@ def run(tmp_path: Path, board_dir: Path, spec: dict):
     board.write_text(yaml.safe_dump(spec))
     out = tmp_path / "out" / "rigs.yaml"
     try:
-        calibrate_command(board_dir, board, out)
+        calibrate(board_dir, out, CalibrateOptions(board=board))
     finally:
         assert not (tmp_path / "out").exists(), "an error must not leave output behind"
 

@@ -12,7 +12,7 @@ import yaml
 
 from rigsfm.calibrate import calibrate_rigs
 from rigsfm.calibrate.board import board_spec_from_dict
-from rigsfm.calibrate.command import calibrate_command
+from rigsfm.calibrate import CalibrateOptions, calibrate
 from rigsfm.core.rig import load_rigs
 
 DATA = Path(__file__).resolve().parents[2] / "shared/data/opencv-stereo"
@@ -116,7 +116,7 @@ def test_cli_writes_rigs_yaml_and_report(board_dir, tmp_path):
     board = tmp_path / "board.yaml"
     board.write_text(yaml.safe_dump(SPEC))
     out = tmp_path / "rigs.yaml"
-    calibrate_command(board_dir, board, out)
+    calibrate(board_dir, out, CalibrateOptions(board=board))
     (rig,) = load_rigs(out)
     assert rig.name == "rig01" and rig.wide.width == 640 and rig.wide.model.name in ("OPENCV", "FULL_OPENCV")
     assert 0.07 < np.linalg.norm(rig.narrow_from_wide.translation) < 0.10

@@ -5,12 +5,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import yaml
-from typer import Typer
 from typer.testing import CliRunner
 
-from rigsfm.calibrate import CalibrationResult, calibrate_rigs, write_calibration
 from rigsfm.calibrate.board import board_spec_from_dict
-from rigsfm.calibrate.command import calibrate_command
+from rigsfm.calibrate import CalibrateOptions, CalibrationResult, calibrate, calibrate_rigs, write_calibration
+from rigsfm.cli import app
 from rigsfm.synth.boards import (
     board_views,
     default_hybrid_rig,
@@ -73,9 +72,6 @@ def test_accuracy_against_ground_truth(result):
 def test_end_to_end_rigs_yaml_round_trip(dataset, result, tmp_path):
     root, _ = dataset
     out = tmp_path / "rigs.yaml"
-    app = Typer()
-    app.command("calibrate")(calibrate_command)
-    app.command("noop")(lambda: None)  # two commands: 'calibrate' is a subcommand as in the main CLI
     run = CliRunner().invoke(app, ["calibrate", str(root / "BOARD"), "--board", str(root / "board.yaml"), "--out", str(out)])
     assert run.exit_code == 0, run.output
     # A second, independent run: OpenCV's multi-threaded solvers make it differ from `result` by up to ~1e-4 px
@@ -99,9 +95,9 @@ def test_end_to_end_rigs_yaml_round_trip(dataset, result, tmp_path):
     assert rotation_angle_deg(rig.narrow_from_wide.rotation.matrix(), RIG.R) <= 0.05
     # a second run neither overwrites nor merges silently
     with pytest.raises(WorkspaceError, match="--overwrite"):
-        calibrate_command(root / "BOARD", root / "board.yaml", out)
+        calibrate(root / "BOARD", out, CalibrateOptions(board=root / "board.yaml"))
     with pytest.raises(WorkspaceError, match="already has rig"):
-        calibrate_command(root / "BOARD", root / "board.yaml", out, merge=True)
+        calibrate(root / "BOARD", out, CalibrateOptions(board=root / "board.yaml", merge=True))
 
 
 def test_merge_keeps_other_rigs(result, tmp_path):
@@ -120,7 +116,7 @@ def test_from_scene(dataset, tmp_path):
     root, _ = dataset
     write_scene_dataset(tmp_path / "SCENE", "rig01", RIG, n_frames=2)
     out = tmp_path / "rigs.yaml"
-    calibrate_command(root / "BOARD", root / "board.yaml", out, from_scene=tmp_path / "SCENE", baseline=0.12)
+    calibrate(root / "BOARD", out, CalibrateOptions(board=root / "board.yaml", scene_dir=tmp_path / "SCENE", baseline=0.12))
     (rig,) = load_rigs(out)
     R = rig.narrow_from_wide.rotation.matrix()
     t = np.asarray(rig.narrow_from_wide.translation)

@@ -9,16 +9,18 @@ from synthetic_db import make_network
 
 from rigsfm.run.diagnostics import check_reconstruction, contradicted_pairs, loosely_tied_rigs
 from rigsfm.core.errors import ReconstructionError
-from rigsfm.run.mapping import MappingOptions, run_mapping
-from rigsfm.run.adjust import apply_rig_constraints
+from rigsfm.core.workspace import Workspace
+from rigsfm.run.mapping import run_mapping
+from rigsfm.run.options import MappingOptions
+from rigsfm.run.adjust import adjust
 from rigsfm.run.scale import Measurement, ScaleEstimate, estimate_scale
 from rigsfm.run.scale_file import CameraDistance, ScaleSpec
 
 
 def test_a_rigid_network_passes(tmp_path):
     net = make_network(tmp_path, num_rigs=4, seed=5)
-    mapped = run_mapping(net.database, tmp_path, tmp_path / "mapping", MappingOptions(), 4)
-    result = apply_rig_constraints(mapped, net.rigs, None)
+    mapped = run_mapping(Workspace(tmp_path), tmp_path, MappingOptions(), num_wide=4).reconstruction
+    result = adjust(mapped, net.rigs, None)
     assert loosely_tied_rigs(result.reconstruction) == []
 
 

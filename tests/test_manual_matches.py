@@ -17,7 +17,7 @@ from typer.testing import CliRunner
 from rigsfm.cli import app
 from rigsfm.core.errors import ReconstructionError
 from rigsfm.synth.truth import compare_to_ground_truth
-from rigsfm.run.features import Features, MatchingOptions
+from rigsfm.run.options import Features, MatchingOptions
 from rigsfm.run.manual_matches import (
     Correspondence,
     DegenerateCorrespondencesError,
@@ -100,9 +100,9 @@ def test_sift_fails_and_manual_matches_register_the_pair(scenes):
     assert pair["kept"] >= 0.8 * (34 - outliers.sum())  # and nearly every good pair kept
     assert f"rejected line {min(outlier_lines)}:" in result.output
 
-    reference = run(near.images, near.rigs, root / "near", near.scale)
+    reference = run(near.images, near.rigs, root / "near_out", near.scale)
     reference_error = _narrow_rotation_error(reference.reconstruction, near)
-    assert reference_error < 0.15 and reference.summary["warnings"] == []  # measured 0.100 deg
+    assert reference_error < 0.15 and reference.summary.warnings == []  # measured 0.100 deg
     manual_error = _narrow_rotation_error(pycolmap.Reconstruction(root / "sift_only" / "sparse"), apart)
     # 34 clicks: the pair registers, but 1 px click noise dominates (0.28 deg here; the median over ten
     # click sets is 0.47 deg, 4.7x, in benchmarks/separation.py).
@@ -151,7 +151,7 @@ def test_weak_automatic_matches_are_flagged(scenes):
         options = RunOptions(matching=MatchingOptions(features=Features(features)))
         result = run(apart.images, apart.rigs, root / f"160_{features}", apart.scale, options)
         assert _narrow_rotation_error(result.reconstruction, apart) > 5.0
-        (warning,) = [w for w in result.summary["warnings"] if w.startswith("POSE AMBIGUOUS")]
+        (warning,) = [w for w in result.summary.warnings if w.startswith("POSE AMBIGUOUS")]
         assert re.search(f"rig01, rig02 are tied to the other rigs only by weak matches .rig01-rig02: {weakness}.",
                          warning), warning
 
@@ -173,7 +173,7 @@ def test_manual_merge_is_idempotent_and_drops_stale_rows(scenes, tmp_path):
     assert second == first
     # An edited CSV (fewer rows): the dropped rows' matches leave the database.
     options.manual_matches = write_manual_matches(tmp_path / "m.csv", rows[:28])
-    third = run(apart.images, apart.rigs, tmp_path / "out", apart.scale, options).summary["manual_matches"]
+    third = run(apart.images, apart.rigs, tmp_path / "out", apart.scale, options).summary.manual_matches
     with pycolmap.Database.open(tmp_path / "out" / "database.db") as db:
         assert [db.num_keypoints_for_image(i) for i in (1, 3)] == sizes
         # (a few raw SIFT matches that fit the pose may join the verified inliers)

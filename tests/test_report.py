@@ -12,16 +12,16 @@ import cv2
 import numpy as np
 import pycolmap
 import pytest
-import typer
 from typer.testing import CliRunner
 
 from rigsfm.core.errors import WorkspaceError
-from rigsfm.inspect.export import ExportFormat, export, export_command
+from rigsfm.cli import app
+from rigsfm.inspect.export import export
+from rigsfm.inspect.options import ExportFormat, ExportOptions
 from rigsfm.run.pipeline import run
-from rigsfm.inspect.report import report_command
 from rigsfm.synth.dataset import render_dataset
 from rigsfm.synth.scene import SceneOptions
-from rigsfm.inspect.viewer import NARROW_RGB, WIDE_RGB, view_command
+from rigsfm.inspect.viewer import NARROW_RGB, WIDE_RGB
 
 NAMES = sorted(f"rig0{i}/{s}/frame0000.png" for i in (1, 2, 3) for s in ("narrow", "wide"))
 
@@ -33,13 +33,6 @@ def result(tmp_path_factory):
     out = root / "out"
     run(dataset.images, dataset.rigs, out, dataset.scale)
     return dataset, out, pycolmap.Reconstruction(out / "sparse")
-
-
-def cli(command, name: str):
-    app = typer.Typer()
-    app.command(name)(command)
-    app.command("unused")(lambda: None)  # two commands: typer then expects the command name
-    return app
 
 
 def test_run_writes_report_with_bands(result):
@@ -61,7 +54,7 @@ def test_report_opens_in_headless_chromium(result, tmp_path):
     if shutil.which("chromium") is None:
         pytest.skip("Debian's chromium is not installed (scripts/setup.sh)")
     _, out, _ = result
-    runner = CliRunner().invoke(cli(report_command, "report"), ["report", str(out)])
+    runner = CliRunner().invoke(app, ["report", str(out)])
     assert runner.exit_code == 0, runner.output
     messages = []
     with playwright.sync_playwright() as p:
@@ -91,7 +84,7 @@ def test_report_opens_in_headless_chromium(result, tmp_path):
 def test_view_screenshot_shows_both_frustums(result, tmp_path):
     _, out, _ = result
     path = tmp_path / "view.png"
-    runner = CliRunner().invoke(cli(view_command, "view"), ["view", str(out), "--screenshot", str(path)])
+    runner = CliRunner().invoke(app, ["view", str(out), "--screenshot", str(path)])
     assert runner.exit_code == 0, runner.output
     image = cv2.imread(str(path))[..., ::-1].reshape(-1, 3).astype(int)
     assert image.shape[0] == 1280 * 800
@@ -104,7 +97,7 @@ def test_open3d_export_reads_back(result, tmp_path):
     import open3d as o3d
 
     _, out, rec = result
-    dest = export(out, ExportFormat.OPEN3D, tmp_path / "o3d")
+    dest = export(out, ExportOptions(format=ExportFormat.OPEN3D, dest=tmp_path / "o3d"))
     assert len(o3d.io.read_point_cloud(str(dest / "points.ply")).points) == rec.num_points3D()
     lines = o3d.io.read_line_set(str(dest / "frustums.ply"))
     assert len(lines.lines) >= 6 * 8  # 8 edges per frustum at least
@@ -123,7 +116,7 @@ def test_open3d_export_reads_back(result, tmp_path):
 @pytest.mark.parametrize("fmt", ["colmap-bin", "colmap-txt"])
 def test_colmap_export_opens_in_debian_colmap(result, tmp_path, fmt):
     _, out, rec = result
-    runner = CliRunner().invoke(cli(export_command, "export"), ["export", str(out), "--format", fmt, "--dest",
+    runner = CliRunner().invoke(app, ["export", str(out), "--format", fmt, "--dest",
                                                                  str(tmp_path / "model")])
     assert runner.exit_code == 0, runner.output
     analysis = subprocess.run(["colmap", "model_analyzer", "--path", str(tmp_path / "model")], capture_output=True,
@@ -144,7 +137,7 @@ def test_colmap_export_opens_in_debian_colmap(result, tmp_path, fmt):
 
 def test_nerfstudio_transforms_project_like_colmap(result, tmp_path):
     dataset, out, rec = result
-    dest = export(out, ExportFormat.NERFSTUDIO, tmp_path / "ns")
+    dest = export(out, ExportOptions(format=ExportFormat.NERFSTUDIO, dest=tmp_path / "ns"))
     data = json.loads((dest / "transforms.json").read_text())
     assert np.allclose(data["applied_transform"], np.eye(4)[:3]) and (dest / data["ply_file_path"]).is_file()
     xyz = np.array([p.xyz for p in rec.points3D.values()])
@@ -164,20 +157,17 @@ def test_nerfstudio_transforms_project_like_colmap(result, tmp_path):
 
 def test_json_export_and_overwrite_refused(result, tmp_path):
     _, out, rec = result
-    dest = export(out, ExportFormat.JSON, tmp_path / "json")
+    dest = export(out, ExportOptions(format=ExportFormat.JSON, dest=tmp_path / "json"))
     images = json.loads((dest / "poses.json").read_text())["images"]
     assert sorted(i["name"] for i in images) == NAMES
     for entry in images:
         image = rec.find_image_with_name(entry["name"])
         np.testing.assert_allclose(entry["centre"], image.projection_center(), atol=1e-9)
     with pytest.raises(WorkspaceError, match="--overwrite"):
-        export(out, ExportFormat.JSON, dest)
+        export(out, ExportOptions(format=ExportFormat.JSON, dest=dest))
 
 
 def test_commands_on_a_folder_without_result_fail_cleanly(tmp_path):
-    from rigsfm.cli import fail_cleanly
-
-    for command, name, extra in ((report_command, "report", []), (view_command, "view", ["--screenshot", "x.png"]),
-                                 (export_command, "export", ["--format", "json"])):
-        runner = CliRunner().invoke(cli(fail_cleanly(command), name), [name, str(tmp_path), *extra])
-        assert runner.exit_code == 1 and "run `rigsfm run` first" in runner.output, runner.output
+    for name, extra in (("report", []), ("view", ["--screenshot", "x.png"]), ("export", ["--format", "json"])):
+        runner = CliRunner().invoke(app, [name, str(tmp_path), *extra])
+        assert runner.exit_code == 1 and "run `rigsfm run" in runner.output, runner.output

@@ -5,8 +5,10 @@ import pycolmap
 import pytest
 
 from rigsfm.synth.truth import compare_to_ground_truth, oracle
-from rigsfm.run.mapping import Mapper, MappingOptions, run_mapping
-from rigsfm.run.adjust import ScaleSource, apply_rig_constraints
+from rigsfm.core.workspace import Workspace
+from rigsfm.run.mapping import run_mapping
+from rigsfm.run.options import Mapper, MappingOptions
+from rigsfm.run.adjust import ScaleSource, adjust
 from rigsfm.run.scale_file import CameraDistance, ScaleSpec
 from synthetic_db import make_network
 
@@ -19,12 +21,12 @@ def _gt_distance(gt, a, b):
 @pytest.mark.parametrize("num_rigs,mapper", [(2, "incremental"), (2, "global"), (5, "incremental"), (5, "global")])
 def test_rig_network_matches_ground_truth_and_oracle(tmp_path, num_rigs, mapper):
     net = make_network(tmp_path, num_rigs=num_rigs, seed=num_rigs)
-    mapped = run_mapping(net.database, tmp_path, tmp_path / "mapping", MappingOptions(mapper=Mapper(mapper)), num_rigs)
+    mapped = run_mapping(Workspace(tmp_path), tmp_path, MappingOptions(mapper=Mapper(mapper)), num_wide=num_rigs).reconstruction
     assert mapped.num_reg_frames() == num_rigs
 
     a, b = "rig01/wide/frame0000.png", f"rig{num_rigs:02d}/wide/frame0000.png"
     spec = ScaleSpec(tmp_path / "scale.yaml", (CameraDistance(a, b, _gt_distance(net.ground_truth, a, b)),), ())
-    result = apply_rig_constraints(mapped, net.rigs, spec)
+    result = adjust(mapped, net.rigs, spec)
     rec = result.reconstruction
     assert result.scale_source == ScaleSource.MEASUREMENTS
     assert abs(result.scale.residuals()[0]["residual_percent"]) < 1e-6
@@ -56,13 +58,13 @@ def test_rig_network_matches_ground_truth_and_oracle(tmp_path, num_rigs, mapper)
 def test_scale_trap_is_avoided(tmp_path):
     """The mapped world is in arbitrary units; E^sl must come out metric, not scaled with the world."""
     net = make_network(tmp_path, num_rigs=3, seed=7)
-    mapped = run_mapping(net.database, tmp_path, tmp_path / "mapping", MappingOptions(), 3)
+    mapped = run_mapping(Workspace(tmp_path), tmp_path, MappingOptions(), num_wide=3).reconstruction
     a, b = "rig01/wide/frame0000.png", "rig02/wide/frame0000.png"
     true_distance = _gt_distance(net.ground_truth, a, b)
     mapped_distance = float(np.linalg.norm(mapped.find_image_with_name(a).projection_center()
                                            - mapped.find_image_with_name(b).projection_center()))
     assert abs(mapped_distance / true_distance - 1.0) > 0.05, "mapping units happen to be metric; test is void"
-    result = apply_rig_constraints(
+    result = adjust(
         mapped, net.rigs, ScaleSpec(tmp_path / "s.yaml", (CameraDistance(a, b, true_distance),), ()))
     for rig in net.rigs:
         wide = result.reconstruction.find_image_with_name(f"{rig.name}/wide/frame0000.png")
@@ -73,8 +75,8 @@ def test_scale_trap_is_avoided(tmp_path):
 
 def test_without_scale_the_result_is_flagged_non_metric(tmp_path):
     net = make_network(tmp_path, num_rigs=3, seed=3)
-    mapped = run_mapping(net.database, tmp_path, tmp_path / "mapping", MappingOptions(), 3)
-    result = apply_rig_constraints(mapped, net.rigs, None)
+    mapped = run_mapping(Workspace(tmp_path), tmp_path, MappingOptions(), num_wide=3).reconstruction
+    result = adjust(mapped, net.rigs, None)
     assert result.scale_source == ScaleSource.NONE
     assert result.scale is None
     assert isinstance(result.reconstruction, pycolmap.Reconstruction)
@@ -84,9 +86,8 @@ def test_scale_from_narrow_baselines_with_honest_uncertainty(tmp_path):
     """Textured narrow views: the metric E^sl baselines alone set the scale, and its reported
     uncertainty covers the actual error."""
     net = make_network(tmp_path, num_rigs=4, seed=11, narrow_observations=True, noise_px=0.5)
-    mapped = run_mapping(net.database, tmp_path, tmp_path / "mapping", MappingOptions(), 4,
-                         keep_narrow_offsets=True)
-    result = apply_rig_constraints(mapped, net.rigs, None)
+    mapped = run_mapping(Workspace(tmp_path), tmp_path, MappingOptions(), num_wide=4, keep_narrow_offsets=True).reconstruction
+    result = adjust(mapped, net.rigs, None)
     assert result.scale_source == ScaleSource.NARROW_BASELINES
     a, b = "rig01/wide/frame0000.png", "rig03/wide/frame0000.png"
     estimated = _gt_distance(result.reconstruction, a, b)

@@ -9,14 +9,15 @@ import cv2
 import numpy as np
 import pycolmap
 import pytest
-import typer
 from typer.testing import CliRunner
 
 from rigsfm.core.conventions import rotation_angle_deg
 from rigsfm.run.pipeline import RunOptions, run
 from rigsfm.synth.dataset import render_dataset
 from rigsfm.synth.scene import SceneOptions
-from rigsfm.track import FrameTask, load_reference, register_frame, track, track_command, track_report_section
+from rigsfm.cli import app
+from rigsfm.track import (Executor, FrameTask, TrackOptions, load_reference, register_frame, track,
+                          track_report_section)
 from rigsfm.synth.motion import render_recording, shaken_motions
 
 NUM_FRAMES, BUMP_AT = 8, 4
@@ -43,12 +44,12 @@ def tracked(tmp_path_factory):
             link = first / path.relative_to(recording.images)
             link.parent.mkdir(parents=True, exist_ok=True)
             link.symlink_to(path)
-    local = track(root / "out", first, executor="local", workers=2)
+    local = track(root / "out", first, TrackOptions(executor=Executor.LOCAL, workers=2))
     import ray
 
     ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
     try:
-        streamed = track(root / "out", recording.images, executor="ray")
+        streamed = track(root / "out", recording.images, TrackOptions(executor=Executor.RAY))
     finally:
         ray.shutdown()
     return root, recording, local, streamed
@@ -141,16 +142,14 @@ def test_outputs_csv_plots_and_report_section(tracked):
 
 def test_cli_reruns_without_work_and_refuses_unknown_rigs(tracked, tmp_path):
     root, recording, _, _ = tracked
-    app = typer.Typer()
-    app.command()(track_command)
-    result = CliRunner().invoke(app, [str(root / "out"), str(recording.images), "--workers", "1"])
+    result = CliRunner().invoke(app, ["track", str(root / "out"), str(recording.images), "--workers", "1"])
     assert result.exit_code == 0, result.output
     assert "0 new frames, 24 already tracked" in result.output and "moved" in result.output
     stray = tmp_path / "images" / "rig09" / "wide"
     stray.mkdir(parents=True)
     cv2.imwrite(str(stray / "frame0000.png"), np.zeros((8, 8), np.uint8))
-    result = CliRunner().invoke(app, [str(root / "out"), str(tmp_path / "images")])
-    assert result.exit_code != 0 and "rig09" in str(result.exception)
+    result = CliRunner().invoke(app, ["track", str(root / "out"), str(tmp_path / "images")])
+    assert result.exit_code == 1 and "rig09" in result.output
 
 
 def test_wrong_image_size_is_an_input_error_and_the_rest_is_kept(tracked, tmp_path):
@@ -165,6 +164,6 @@ def test_wrong_image_size_is_an_input_error_and_the_rest_is_kept(tracked, tmp_pa
     bad.parent.mkdir(parents=True)
     cv2.imwrite(str(bad), np.zeros((8, 8), np.uint8))
     with pytest.raises(InputError, match=r"rig01/wide/frame9999.png is 8x8; .* calibrated for 812x617"):
-        track(out, tmp_path / "images", workers=1)
+        track(out, tmp_path / "images", TrackOptions(workers=1))
     kept = json.loads((out / "track" / "poses.json").read_text())
     assert [f["frame"] for f in kept["rigs"]["rig01"]["frames"]] == [f"frame{i:04d}.png" for i in range(NUM_FRAMES)]

@@ -4,9 +4,11 @@ import numpy as np
 import pycolmap
 import pytest
 
-from rigsfm.track.verdict import Thresholds, classify
+from rigsfm.track.options import Thresholds
+from rigsfm.track.verdict import classify
 from rigsfm.core.conventions import rotation_vector
-from rigsfm.track.pose import RegistrationOptions, estimate_rig_pose, pose_covariance
+from rigsfm.track.options import RegistrationOptions
+from rigsfm.track.pose import estimate_rig_pose, pose_covariance
 
 DEG, MM = np.radians(1.0), 1e-3
 SIGMA = np.diag([0.003 * DEG] * 3 + [1.0 * MM] * 3) ** 2  # a well-registered frame: 0.003 deg, 1 mm

@@ -10,8 +10,10 @@ import pycolmap
 import pytest
 
 from rigsfm.run.deliver import narrow_images
-from rigsfm.run.mapping import MappingOptions, run_mapping
-from rigsfm.run.adjust import apply_rig_constraints
+from rigsfm.core.workspace import Workspace
+from rigsfm.run.mapping import run_mapping
+from rigsfm.run.options import MappingOptions
+from rigsfm.run.adjust import adjust
 from rigsfm.run.scale_file import CameraDistance, ScaleSpec
 from rigsfm.run.uncertainty import (correspondence_check, narrow_epipolar_bands, rig_pose_covariance,
                                 sample_narrow_from_world)
@@ -23,13 +25,13 @@ NOISE_PX = 0.5
 def estimate(root: Path, seed: int, num_rigs: int = 4, noise_px: float = NOISE_PX):
     root.mkdir(parents=True)
     net = make_network(root, num_rigs=num_rigs, seed=seed, noise_px=noise_px)
-    mapped = run_mapping(net.database, root, root / "mapping", MappingOptions(), num_rigs)
+    mapped = run_mapping(Workspace(root), root, MappingOptions(), num_wide=num_rigs).reconstruction
     a, b = "rig01/wide/frame0000.png", f"rig{num_rigs:02d}/wide/frame0000.png"
     truth = net.ground_truth
     metres = float(np.linalg.norm(truth.find_image_with_name(a).projection_center()
                                   - truth.find_image_with_name(b).projection_center()))
     spec = ScaleSpec(root / "scale.yaml", (CameraDistance(a, b, metres),), ())
-    return apply_rig_constraints(mapped, net.rigs, spec).reconstruction, truth
+    return adjust(mapped, net.rigs, spec).reconstruction, truth
 
 
 def sample_points(truth: pycolmap.Reconstruction, name: str, rng: np.random.Generator, n: int = 300) -> np.ndarray:

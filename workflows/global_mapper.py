@@ -10,7 +10,7 @@ import argparse
 from pathlib import Path
 
 from rigsfm.synth.demo import run_demo
-from rigsfm.run.mapping import Mapper, MappingOptions
+from rigsfm.run.options import Mapper, MappingOptions
 from rigsfm.run.pipeline import RunOptions
 from rigsfm.synth.scene import SceneOptions
 
@@ -27,7 +27,7 @@ def main(argv=None) -> dict:
     narrow, limit = result.accuracy["narrow"], result.accuracy["oracle_narrow"]
     print(f"global mapper: {narrow['registered']}/{narrow['total']} narrow cameras; rotation error max "
           f"{narrow['relative_rotation_deg']['max']:.4f} deg (oracle {limit['relative_rotation_deg']['max']:.4f})")
-    print(f"time per stage (s): {result.run.summary['timings_s']}")
+    print(f"time per stage (s): {result.run.summary.timings_s}")
     return result.accuracy
 
 

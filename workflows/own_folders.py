@@ -37,7 +37,7 @@ def main(argv=None) -> dict:
         print(f"{pair['i']} -> {pair['j']}: yaw {e['yaw']:+.3f} pitch {e['pitch']:+.3f} roll {e['roll']:+.3f} deg,"
               f" direction {np.round(pair['centre_direction_in_i'], 4).tolist()}, distance {distance:.3f} {unit}")
         print(f"  F_ji = {np.array2string(np.array(pair['F_ji']), precision=6)}")
-    for warning in result.summary["warnings"]:
+    for warning in result.summary.warnings:
         print(f"warning: {warning}")
     return poses
 

@@ -11,7 +11,7 @@ import argparse
 from pathlib import Path
 
 from rigsfm.synth.demo import run_demo
-from rigsfm.run.mapping import Mapper, MappingOptions
+from rigsfm.run.options import Mapper, MappingOptions
 from rigsfm.run.pipeline import RunOptions
 from rigsfm.synth.scene import SceneOptions
 
@@ -26,9 +26,9 @@ def main(argv=None) -> dict:
 
     scene = SceneOptions(num_rigs=2, arc_deg=args.arc_deg, image_scale=args.image_scale)
     result = run_demo(args.out, scene, RunOptions(mapping=MappingOptions(mapper=args.mapper)))
-    pair = result.run.summary
+    registered = result.run.summary.registered
     narrow = result.accuracy["narrow"]
-    print(f"registered: {pair['registered']}")
+    print("registered: " + ", ".join(f"{sensor} {r.registered}/{r.total}" for sensor, r in registered.items()))
     print(f"narrow relative rotation error: {narrow['relative_rotation_deg']['max']:.4f} deg, "
           f"distance error: {narrow['distance_error_percent']['max']:.4f} %")
     return result.accuracy

@@ -13,13 +13,14 @@ import cv2
 import numpy as np
 import pycolmap
 
+from rigsfm.calibrate.options import Distortion
 from rigsfm.calibrate.board import MIN_CORNERS, Detection
 from rigsfm.core.conventions import colmap_from_opencv_pixels
 from rigsfm.core.errors import InputError, RigsfmError
 
 logger = logging.getLogger(__name__)
 
-DISTORTIONS = ("auto", "opencv", "full_opencv")
+DISTORTIONS = tuple(d.value for d in Distortion)
 MIN_VIEWS = 3
 OUTLIER_FACTOR = 3.0  # a view is an outlier if its RMS > 3 x the median view RMS ...
 OUTLIER_FLOOR_PX = 0.5  # ... and above this (tiny RMS differences are noise, not outliers)

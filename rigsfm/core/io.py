@@ -27,21 +27,26 @@ def _check_overwrite(path: Path, overwrite: bool) -> None:
         raise WorkspaceError(f"{path} already exists: pass --overwrite to replace it")
 
 
-def write_text_atomic(path: Path, text: str, *, overwrite: bool = True) -> Path:
-    """Write ``text`` to a temporary file beside ``path``, then rename it into place."""
+def write_bytes_atomic(path: Path, data: bytes, *, overwrite: bool = True) -> Path:
+    """Write ``data`` to a temporary file beside ``path``, then rename it into place."""
     path = Path(path)
     _check_overwrite(path, overwrite)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
-        with os.fdopen(fd, "w", encoding="utf-8") as f:
-            f.write(text)
-        os.chmod(tmp, 0o666 & ~_umask())  # mkstemp makes 0600; give the file the usual permissions
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+        os.chmod(tmp, 0o666 & ~_umask())
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
     return path
+
+
+def write_text_atomic(path: Path, text: str, *, overwrite: bool = True) -> Path:
+    """Write ``text`` (UTF-8) to a temporary file beside ``path``, then rename it into place."""
+    return write_bytes_atomic(path, text.encode("utf-8"), overwrite=overwrite)
 
 
 def write_json_atomic(path: Path, data: Any, *, overwrite: bool = True) -> Path:

@@ -26,9 +26,9 @@ import pycolmap
 import yaml
 
 from rigsfm.core.errors import InputError
+from rigsfm.core.names import SENSORS
 from rigsfm.core.io import load_yaml_or_json, write_text_atomic
 
-SENSORS = ("wide", "narrow")
 CAMERA_MODELS = tuple(m for m in pycolmap.CameraModelId.__members__ if m != "INVALID")
 ROTATION_TOLERANCE = 1e-5
 

@@ -15,34 +15,29 @@
 
 from __future__ import annotations
 
-import enum
 import json
 import logging
+import os
+import shutil
+import tempfile
 from pathlib import Path
-from typing import Annotated, Optional
 
 import numpy as np
-import open3d as o3d
 import pycolmap
-import typer
 
-from rigsfm.core.conventions import opencv_from_colmap_pixels, opengl_c2w_from_cam_from_world
+from rigsfm.core.conventions import opengl_c2w_from_cam_from_world
 from rigsfm.core.errors import InputError, WorkspaceError
-from rigsfm.run.deliver import CONVENTIONS, pose_dict
-from rigsfm.core.io import atomic_directory, write_json_atomic
+from rigsfm.core.io import write_json_atomic
+from rigsfm.core.names import name_of
 from rigsfm.core.rig import camera_to_dict
-from rigsfm.inspect.viewer import build_scene, pinhole_intrinsic
 from rigsfm.core.workspace import Workspace
+from rigsfm.inspect.options import ExportFormat, ExportOptions
+from rigsfm.run.deliver import CONVENTIONS, pose_dict
+from rigsfm.run.summary import Summary
 
 logger = logging.getLogger(__name__)
 
-
-class ExportFormat(enum.StrEnum):
-    COLMAP_BIN = "colmap-bin"
-    COLMAP_TXT = "colmap-txt"
-    OPEN3D = "open3d"
-    NERFSTUDIO = "nerfstudio"
-    JSON = "json"
+MANIFEST = ".rigsfm-export.json"  # the files rigsfm wrote into an export folder: all --overwrite may remove
 
 
 def registered_images(reconstruction: pycolmap.Reconstruction) -> list[pycolmap.Image]:
@@ -58,6 +53,10 @@ def write_colmap(reconstruction: pycolmap.Reconstruction, dest: Path, *, binary:
 
 
 def write_open3d(reconstruction: pycolmap.Reconstruction, dest: Path) -> list[Path]:
+    import open3d as o3d
+
+    from rigsfm.inspect.viewer import build_scene, pinhole_intrinsic
+
     scene = build_scene(reconstruction)
     if not o3d.io.write_point_cloud(str(dest / "points.ply"), scene.points):
         raise WorkspaceError(f"Open3D could not write {dest / 'points.ply'}")
@@ -125,8 +124,8 @@ def write_nerfstudio(reconstruction: pycolmap.Reconstruction, dest: Path, images
 def write_json_poses(reconstruction: pycolmap.Reconstruction, dest: Path) -> list[Path]:
     images = []
     for image in registered_images(reconstruction):
-        rig, sensor, frame = image.name.split("/", 2)
-        images.append({"name": image.name, "rig": rig, "sensor": sensor, "frame": frame,
+        name = name_of(image)
+        images.append({"name": image.name, "rig": name.rig, "sensor": str(name.sensor), "frame": name.frame,
                        "camera": camera_to_dict(reconstruction.cameras[image.camera_id]),
                        "cam_from_world": pose_dict(image.cam_from_world()),
                        "centre": image.projection_center().tolist()})
@@ -136,18 +135,56 @@ def write_json_poses(reconstruction: pycolmap.Reconstruction, dest: Path) -> lis
     return sorted(dest.iterdir())
 
 
-def export(out: Path, fmt: ExportFormat, dest: Path | None = None, *, overwrite: bool = False) -> Path:
-    """Write the workspace's result in ``fmt`` into ``dest`` (default ``OUT/export/<fmt>``); returns it."""
+def check_destination(dest: Path, workspace: Workspace, *, overwrite: bool) -> list[str]:
+    """What an export into ``dest`` may replace: the files of an earlier export listed in its manifest.
+
+    Refuses the workspace itself or a folder that holds it, a folder with files rigsfm did not write, and
+    an earlier export without ``overwrite``."""
+    resolved, root = dest.resolve(), workspace.root.resolve()
+    if resolved == root or root.is_relative_to(resolved):
+        raise WorkspaceError(f"--dest {dest} is the workspace or a folder that holds it; choose a folder of its own "
+                             f"(the default is {workspace.export('FORMAT')})")
+    if resolved.is_relative_to(root) and not resolved.is_relative_to(root / "export"):
+        raise WorkspaceError(f"--dest {dest} is inside the workspace's own files; use {root / 'export'}/... or a folder "
+                             "outside the workspace")
+    if not dest.exists():
+        return []
+    if not dest.is_dir():
+        raise WorkspaceError(f"--dest {dest} exists and is not a folder; choose a new or empty folder")
+    present = sorted(p.name for p in dest.iterdir())
+    if not present:
+        return []
+    manifest = dest / MANIFEST
+    listed: list[str] = []
+    if manifest.is_file():
+        try:
+            listed = [str(name) for name in json.loads(manifest.read_text(encoding="utf-8"))["files"]]
+        except (ValueError, KeyError, TypeError):
+            listed = []
+    foreign = [name for name in present if name != MANIFEST and name not in listed]
+    if foreign:
+        raise WorkspaceError(f"--dest {dest} holds files rigsfm did not write ({', '.join(foreign[:3])}"
+                             f"{', ...' if len(foreign) > 3 else ''}); choose a new or empty folder (nothing was "
+                             "written or removed)")
+    if not overwrite:
+        raise WorkspaceError(f"{dest} already holds an export: pass --overwrite to replace it")
+    return listed
+
+
+def export(out: Path, options: ExportOptions) -> Path:
+    """Write the workspace's result in ``options.format`` into ``options.dest`` (default ``OUT/export/<format>``)
+    and return that folder. Only an earlier export's own files are ever replaced (see ``check_destination``)."""
     workspace = Workspace(Path(out))
-    if not workspace.sparse.is_dir():
-        raise WorkspaceError(f"{workspace.sparse} is missing: run `rigsfm run` first")
+    workspace.require_result()
+    fmt = ExportFormat(options.format)
+    dest = Path(options.dest) if options.dest is not None else workspace.export(fmt)
+    previous = check_destination(dest, workspace, overwrite=options.overwrite)
     reconstruction = pycolmap.Reconstruction(str(workspace.sparse))
-    dest = Path(dest) if dest is not None else workspace.root / "export" / str(fmt)
-    images_dir = None
-    if workspace.summary.is_file():
-        images = json.loads(workspace.summary.read_text()).get("inputs", {}).get("images")
-        images_dir = Path(images) if images else None
-    with atomic_directory(dest, overwrite=overwrite) as tmp:
+    summary = Summary.read(workspace.summary)
+    images_dir = Path(summary.inputs.images) if summary and summary.inputs.images else None
+    dest.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{dest.name}.", suffix=".tmp", dir=dest.parent))
+    try:
         if fmt in (ExportFormat.COLMAP_BIN, ExportFormat.COLMAP_TXT):
             write_colmap(reconstruction, tmp, binary=fmt == ExportFormat.COLMAP_BIN)
         elif fmt == ExportFormat.OPEN3D:
@@ -156,15 +193,19 @@ def export(out: Path, fmt: ExportFormat, dest: Path | None = None, *, overwrite:
             write_nerfstudio(reconstruction, tmp, images_dir)
         else:
             write_json_poses(reconstruction, tmp)
+        written = sorted(p.name for p in tmp.iterdir())
+        write_json_atomic(tmp / MANIFEST, {"format": str(fmt), "workspace": str(workspace.root.resolve()),
+                                            "files": written})
+        dest.mkdir(exist_ok=True)
+        for name in previous:  # only what an earlier export wrote
+            target = dest / name
+            if target.is_dir() and not target.is_symlink():
+                shutil.rmtree(target)
+            else:
+                target.unlink(missing_ok=True)
+        for name in [*written, MANIFEST]:
+            os.replace(tmp / name, dest / name)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
     logger.info("Exported %s to %s", fmt, dest)
     return dest
-
-
-def export_command(
-    out: Annotated[Path, typer.Argument(help="workspace folder of a finished `rigsfm run`")],
-    fmt: Annotated[ExportFormat, typer.Option("--format", help="colmap-bin, colmap-txt, open3d, nerfstudio, json")],
-    dest: Annotated[Optional[Path], typer.Option("--dest", help="output folder (default OUT/export/FORMAT)")] = None,
-    overwrite: Annotated[bool, typer.Option("--overwrite", help="replace an existing export")] = False,
-) -> None:
-    """Export the calibrated network for COLMAP, Open3D, nerfstudio or as plain JSON poses."""
-    typer.echo(f"exported {fmt}: {export(out, fmt, dest, overwrite=overwrite)}")

@@ -9,16 +9,16 @@ and the fallback is logged.
 from __future__ import annotations
 
 import logging
+import os
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Annotated, Optional
 
 import cv2
 import numpy as np
 import open3d as o3d
 import pycolmap
-import typer
 
+from rigsfm.core.names import name_of
 from rigsfm.core.conventions import opencv_from_colmap_pixels
 from rigsfm.core.errors import WorkspaceError
 from rigsfm.core.workspace import Workspace
@@ -69,12 +69,13 @@ def build_scene(reconstruction: pycolmap.Reconstruction) -> Scene:
     size = float(np.ptp(centres, axis=0).max()) or 1.0
     wide, narrow = [], []
     for image in images:
-        is_narrow = image.name.split("/")[1] == "narrow"
+        is_narrow = name_of(image).is_narrow
         camera = reconstruction.cameras[image.camera_id]
         (narrow if is_narrow else wide).append(frustum(camera, image.cam_from_world(), (0.25 if is_narrow else 0.12) * size))
     by_rig: dict[str, dict[str, np.ndarray]] = {}
     for image, centre in zip(images, centres):
-        by_rig.setdefault(image.name.split("/")[0] + "/" + image.name.split("/", 2)[2], {})[image.name.split("/")[1]] = centre
+        name = name_of(image)
+        by_rig.setdefault((name.rig, name.frame), {})[name.sensor] = centre
     ends = [(v["wide"], v["narrow"]) for v in by_rig.values() if {"wide", "narrow"} <= set(v)]
     links = o3d.geometry.LineSet(o3d.utility.Vector3dVector(np.array([p for e in ends for p in e]).reshape(-1, 3)),
                                  o3d.utility.Vector2iVector(np.arange(2 * len(ends)).reshape(-1, 2)))
@@ -185,20 +186,21 @@ def screenshot(out: Path, path: Path, width: int = 1280, height: int = 800) -> P
 
 
 def load_model(out: Path) -> pycolmap.Reconstruction:
-    sparse = Workspace(Path(out)).sparse
-    if not sparse.is_dir():
-        raise WorkspaceError(f"{sparse} is missing: run `rigsfm run` first")
-    return pycolmap.Reconstruction(str(sparse))
+    workspace = Workspace(Path(out))
+    workspace.require_result()
+    return pycolmap.Reconstruction(str(workspace.sparse))
 
 
-def view_command(
-    out: Annotated[Path, typer.Argument(help="workspace folder of a finished `rigsfm run`")],
-    screenshot_path: Annotated[Optional[Path], typer.Option("--screenshot", help="render headless into this PNG")] = None,
-) -> None:
-    """Show the network in Open3D: points, wide (blue) and narrow (orange) frustums, rig links, axes."""
-    if screenshot_path is not None:
-        typer.echo(f"screenshot: {screenshot(out, screenshot_path)}")
-        return
+def has_display() -> bool:
+    """Whether a window can open here (an X11 or Wayland display is set)."""
+    return bool(os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))
+
+
+def show(out: Path) -> None:
+    """Open an Open3D window on the network: points, wide (blue) and narrow (orange) frustums, rig links, axes."""
+    if not has_display():
+        raise WorkspaceError("no display here (DISPLAY and WAYLAND_DISPLAY are unset): `rigsfm view` opens a window; "
+                             "use `rigsfm view OUT --screenshot view.png` to render the view into a file instead")
     scene = build_scene(load_model(out))
     geometries = ([scene.points] if len(scene.points.points) else []) + list(scene.lines.values())
     try:

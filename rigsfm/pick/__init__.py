@@ -1,6 +1,12 @@
-"""``rigsfm pick``: pick correspondences between two wide images in a local browser page."""
+"""``rigsfm pick``: pick correspondences between two wide images in a local browser page.
 
-from rigsfm.pick.server import PickerServer, pick_command, start_picker
-from rigsfm.pick.session import PickerSession
+Library use: ``start_picker(IMAGE_A, IMAGE_B, CSV, rigs.yaml) -> PickerServer`` (``url``, ``close()``).
+"""
 
-__all__ = ["PickerServer", "PickerSession", "pick_command", "start_picker"]
+from rigsfm.core.lazy import lazy_exports
+
+__getattr__, __all__ = lazy_exports(__name__, {
+    "PickerServer": "rigsfm.pick.server",
+    "start_picker": "rigsfm.pick.server",
+    "PickerSession": "rigsfm.pick.session",
+})

@@ -9,6 +9,7 @@ reload of the page (or a new ``rigsfm pick`` after a crash) starts from the CSV.
 
 from __future__ import annotations
 
+import errno
 import json
 import logging
 import mimetypes
@@ -16,13 +17,12 @@ import threading
 from http import HTTPStatus
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
-from typing import Annotated
 from urllib.parse import parse_qs, urlparse
 
 import cv2
-import typer
 
-from rigsfm.core.errors import RigsfmError
+from rigsfm.core.errors import InputError, RigsfmError
+from rigsfm.core.workspace import os_error_text
 from rigsfm.pick.session import PickerSession, picker_image
 from rigsfm.core.rig import load_rigs
 
@@ -116,7 +116,12 @@ class PickerServer:
     def __init__(self, session: PickerSession, port: int = 0):
         handler = type("PickerHandler", (_Handler,), {"session": session})
         self.session = session
-        self.httpd = ThreadingHTTPServer(("127.0.0.1", port), handler)
+        try:
+            self.httpd = ThreadingHTTPServer(("127.0.0.1", port), handler)
+        except OSError as error:
+            why = "the port is in use" if error.errno == errno.EADDRINUSE else os_error_text(error)
+            raise InputError(f"cannot serve on 127.0.0.1:{port} ({why}); choose another --port, or 0 for a free "
+                             "one") from None
         self.httpd.daemon_threads = True
         self.thread = threading.Thread(target=self.httpd.serve_forever, name="rigsfm-pick", daemon=True)
         self.thread.start()
@@ -142,32 +147,3 @@ def start_picker(
     rigs = load_rigs(rigs_path) if rigs_path is not None else None
     session = PickerSession(picker_image(image_a, rigs), picker_image(image_b, rigs), out, flag_px)
     return PickerServer(session, port)
-
-
-def pick_command(
-    image_a: Annotated[Path, typer.Argument(help="first wide image, IMAGES/<rig>/wide/<file>")],
-    image_b: Annotated[Path, typer.Argument(help="second wide image")],
-    out: Annotated[Path, typer.Option("--out", help="CSV to write (and to resume from if it exists)")],
-    rigs: Annotated[Path | None, typer.Option("--rigs", help="rigs.yaml: calibrated epipolar curves")] = None,
-    port: Annotated[int, typer.Option("--port", help="0 picks a free port")] = 0,
-    flag_px: Annotated[
-        float,
-        typer.Option("--flag-px", help="flag pairs farther than this from their epipolar line (Sampson, px)"),
-    ] = 4.0,
-) -> None:
-    """Pick correspondences between two wide images in the browser (for run --manual-matches)."""
-    from rich.console import Console
-
-    server = start_picker(image_a, image_b, out, rigs, port, flag_px)
-    console = Console()
-    console.print(
-        f"picker for {server.session.images[0].name} <-> {server.session.images[1].name}: "
-        f"open [bold]{server.url}[/] (saves to {out} on every change); Ctrl-C to stop"
-    )
-    try:
-        threading.Event().wait()
-    except KeyboardInterrupt:
-        pass
-    finally:
-        server.close()
-        console.print(f"{len(server.session.pairs)} pairs in {out}")

@@ -16,10 +16,12 @@ from dataclasses import dataclass
 import numpy as np
 import pycolmap
 
+from rigsfm.core.names import name_of
 from rigsfm.core.errors import ReconstructionError
 from rigsfm.core.residuals import reprojection_errors
 from rigsfm.core.rig import RigCalibration
 from rigsfm.run.scale import ScaleEstimate, estimate_scale
+from rigsfm.run.options import AdjustOptions
 from rigsfm.run.scale_file import ScaleSpec
 
 logger = logging.getLogger(__name__)
@@ -31,16 +33,8 @@ class ScaleSource(enum.StrEnum):
     NONE = "none"  # arbitrary units
 
 
-@dataclass(kw_only=True)
-class RigConstraintOptions:
-    loss: str = "CAUCHY"  # pycolmap.LossFunctionType name
-    loss_scale_px: float = 1.0
-    max_reprojection_error_px: float = 4.0
-    max_iterations: int = 200
-
-
 def profile_scale_sigma(reconstruction: pycolmap.Reconstruction, rigs: Sequence[RigCalibration],
-                        options: RigConstraintOptions, step: float = 0.01) -> float:
+                        options: AdjustOptions, step: float = 0.01) -> float:
     """Relative standard uncertainty of a scale set by the metric narrow baselines.
 
     Profile likelihood: scale the world by 1 +- ``step`` (E^sl restored, everything else re-adjusted),
@@ -67,7 +61,7 @@ def profile_scale_sigma(reconstruction: pycolmap.Reconstruction, rigs: Sequence[
 
 
 @dataclass
-class RigConstraintResult:
+class AdjustResult:
     reconstruction: pycolmap.Reconstruction
     scale_source: ScaleSource
     scale: ScaleEstimate | None  # measurements against the final model
@@ -76,27 +70,22 @@ class RigConstraintResult:
     scale_relative_sigma: float | None = None  # of a scale set by the narrow baselines
 
 
-def _sensor_of(image: pycolmap.Image) -> tuple[str, str]:
-    rig_name, sensor, _ = image.name.split("/", 2)
-    return rig_name, sensor
-
-
 def restore_calibration(reconstruction: pycolmap.Reconstruction, rigs: Sequence[RigCalibration]) -> None:
     """Reset every camera's intrinsics and every narrow ``sensor_from_rig`` to the rigs.yaml values."""
     by_name = {rig.name: rig for rig in rigs}
     for image in reconstruction.images.values():
-        rig_name, sensor = _sensor_of(image)
-        calibration = by_name[rig_name]
+        name = name_of(image)
+        calibration = by_name[name.rig]
         camera = reconstruction.cameras[image.camera_id]
-        camera.params = calibration.camera(sensor).params
-        if sensor == "narrow":
+        camera.params = calibration.camera(name.sensor).params
+        if name.is_narrow:
             rig = reconstruction.rig(reconstruction.frame(image.frame_id).rig_id)
             rig.set_sensor_from_rig(camera.sensor_id, calibration.narrow_from_wide)
 
 
 def has_narrow_observations(reconstruction: pycolmap.Reconstruction) -> bool:
     return any(
-        image.has_pose and image.num_points3D > 0 and "/narrow/" in image.name
+        image.has_pose and image.num_points3D > 0 and name_of(image).is_narrow
         for image in reconstruction.images.values()
     )
 
@@ -128,7 +117,7 @@ def fixed_calibration_problem(
 
 
 def constrained_bundle_adjustment(
-    reconstruction: pycolmap.Reconstruction, options: RigConstraintOptions, *, fix_scale: bool
+    reconstruction: pycolmap.Reconstruction, options: AdjustOptions, *, fix_scale: bool
 ) -> float:
     """BA over rig poses and points; intrinsics and E^sl constant; robust loss. Returns mean error (px)."""
     ba, config = fixed_calibration_problem(reconstruction)
@@ -155,14 +144,14 @@ def filter_outliers(reconstruction: pycolmap.Reconstruction, max_error_px: float
     return manager.filter_all_points3D(max_error_px, 0.5)
 
 
-def apply_rig_constraints(
+def adjust(
     mapped: pycolmap.Reconstruction,
     rigs: Sequence[RigCalibration],
     scale_spec: ScaleSpec | None,
-    options: RigConstraintOptions | None = None,
-) -> RigConstraintResult:
+    options: AdjustOptions | None = None,
+) -> AdjustResult:
     """Return a metric reconstruction (a new object) with E^sl and intrinsics exactly as calibrated."""
-    options = options or RigConstraintOptions()
+    options = options or AdjustOptions()
     reconstruction = pycolmap.Reconstruction(mapped)
     if reconstruction.num_reg_frames() < 2:
         raise ReconstructionError("fewer than two rigs were registered; nothing to calibrate")
@@ -198,4 +187,4 @@ def apply_rig_constraints(
         logger.info("Scale from the narrow baselines: relative uncertainty %.3g", relative_sigma)
     elif scale is not None:
         relative_sigma = scale.sigma / scale.metres_per_unit
-    return RigConstraintResult(reconstruction, source, scale, metres_per_unit, error, relative_sigma)
+    return AdjustResult(reconstruction, source, scale, metres_per_unit, error, relative_sigma)

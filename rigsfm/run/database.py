@@ -16,7 +16,8 @@ import pycolmap
 
 from rigsfm.core.errors import WorkspaceError
 from rigsfm.run.inputs import ImageEntry
-from rigsfm.core.rig import SENSORS, RigCalibration
+from rigsfm.core.names import SENSORS
+from rigsfm.core.rig import RigCalibration
 
 logger = logging.getLogger(__name__)
 

@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 
+from rigsfm.core.names import name_of
 from rigsfm.core.errors import WorkspaceError
 from rigsfm.core.conventions import euler_zyx_degrees, wxyz_from_rotation
 from rigsfm.core.io import atomic_directory, write_json_atomic
@@ -67,7 +68,7 @@ def fundamental_matrix(j_from_i: pycolmap.Rigid3d, camera_i: pycolmap.Camera, ca
 
 def narrow_images(reconstruction: pycolmap.Reconstruction) -> list[pycolmap.Image]:
     return sorted(
-        (im for im in reconstruction.images.values() if im.has_pose and im.name.split("/")[1] == "narrow"),
+        (im for im in reconstruction.images.values() if im.has_pose and name_of(im).is_narrow),
         key=lambda im: im.name,
     )
 
@@ -84,7 +85,7 @@ def narrow_poses(reconstruction: pycolmap.Reconstruction, *, metric: bool, uncer
         entries.append(
             {
                 "name": image.name,
-                "rig": image.name.split("/")[0],
+                "rig": name_of(image).rig,
                 "camera": camera_to_dict(camera),
                 "cam_from_world": pose_dict(image.cam_from_world()),
                 "centre": image.projection_center().tolist(),

@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 
+from rigsfm.core.names import name_of
 from rigsfm.run.scale import ScaleEstimate
 from rigsfm.core.geometry import PLANAR, Config, sampson_error_px
 
@@ -31,7 +32,7 @@ MAX_NORMALISED_RESIDUAL = 5.0
 
 
 def _rig_of(image: pycolmap.Image) -> str:
-    return image.name.split("/", 1)[0]
+    return name_of(image).rig
 
 
 def loosely_tied_rigs(reconstruction: pycolmap.Reconstruction) -> list[str]:

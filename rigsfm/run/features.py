@@ -8,17 +8,16 @@ made with other settings is cleared first (``drop_stale_work``).
 
 from __future__ import annotations
 
-import enum
 import itertools
 import json
 import logging
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
 from pathlib import Path
 
 import pycolmap
 
 from rigsfm.run.inputs import ImageEntry
+from rigsfm.run.options import Features, MatchingOptions
 from rigsfm.core.io import write_json_atomic
 
 logger = logging.getLogger(__name__)
@@ -26,34 +25,13 @@ logger = logging.getLogger(__name__)
 Progress = Callable[[int, int], None]
 
 
-class Features(enum.StrEnum):
-    SIFT = "sift"  # COLMAP's SIFT
-    ASIFT = "asift"  # affine-simulated SIFT (rigsfm.run.asift), for large perspective changes between rigs
-
-
-@dataclass(kw_only=True)
-class MatchingOptions:
-    features: Features = Features.SIFT
-    max_ratio: float = 0.8  # Lowe's ratio test
-    cross_check: bool = True  # mutual nearest neighbours
-    max_num_features: int = 8192
-    # Verify pairs of frames with the rigs' generalized relative pose. None: on unless narrow features
-    # are extracted (with textured narrow views it took over 15 minutes for 24 images).
-    rig_verification: bool | None = None
-    narrow_features: bool = False
-    max_error_px: float = 4.0  # RANSAC threshold of the two-view geometry
-    max_homography_inlier_ratio: float = 0.95
-    num_threads: int = -1
-
-
 def _settings(options: MatchingOptions) -> dict:
     """What the stored features and matches depend on (threads do not count)."""
-    rig_verification = (not options.narrow_features) if options.rig_verification is None else options.rig_verification
     return {
         "features": {"type": str(options.features), "max_num_features": options.max_num_features,
                      "narrow_features": options.narrow_features},
         "matching": {"max_ratio": options.max_ratio, "cross_check": options.cross_check,
-                     "rig_verification": rig_verification, "max_error_px": options.max_error_px,
+                     "rig_verification": options.resolved_rig_verification, "max_error_px": options.max_error_px,
                      "max_homography_inlier_ratio": options.max_homography_inlier_ratio},
     }
 
@@ -93,6 +71,8 @@ def extract_features(
     options: MatchingOptions,
     progress: Progress | None = None,
     batch_size: int = 2,
+    *,
+    num_threads: int = -1,
 ) -> int:
     """Extract SIFT (or ASIFT) for every image without keypoints yet; returns how many were extracted."""
     with pycolmap.Database.open(database_path) as database:
@@ -106,7 +86,7 @@ def extract_features(
         extract_asift(database_path, image_dir, todo, options.max_num_features, progress)
         logger.info("Extracted ASIFT for %d images (%d already done)", len(todo), len(images) - len(todo))
         return len(todo)
-    extraction = pycolmap.FeatureExtractionOptions(num_threads=options.num_threads, use_gpu=False)
+    extraction = pycolmap.FeatureExtractionOptions(num_threads=num_threads, use_gpu=False)
     extraction.sift.max_num_features = options.max_num_features
     for start in range(0, len(todo), batch_size):
         batch = todo[start : start + batch_size]
@@ -140,6 +120,8 @@ def match_features(
     pairs_path: Path,
     progress: Progress | None = None,
     batch_size: int = 6,
+    *,
+    num_threads: int = -1,
 ) -> int:
     """Match and verify every pair not verified yet; returns how many pairs were matched now."""
     with pycolmap.Database.open(database_path) as database:
@@ -148,7 +130,7 @@ def match_features(
             (a, b) for a, b in image_pairs(images, options) if not database.exists_two_view_geometry(ids[a], ids[b])
         ]
     matching = pycolmap.FeatureMatchingOptions(
-        num_threads=options.num_threads, use_gpu=False, rig_verification=_settings(options)["matching"]["rig_verification"]
+        num_threads=num_threads, use_gpu=False, rig_verification=options.resolved_rig_verification
     )
     matching.sift.max_ratio = options.max_ratio
     matching.sift.cross_check = options.cross_check

@@ -14,7 +14,8 @@ from pathlib import Path
 import cv2
 
 from rigsfm.core.errors import InputError
-from rigsfm.core.rig import SENSORS, RigCalibration
+from rigsfm.core.names import SENSORS, ImageName, Sensor
+from rigsfm.core.rig import RigCalibration
 
 logger = logging.getLogger(__name__)
 
@@ -26,13 +27,18 @@ class ImageEntry:
     """One image file: which rig and sensor it belongs to and which frame it is."""
 
     rig: str
-    sensor: str
+    sensor: Sensor
     frame: str
     path: Path
 
     @property
+    def image_name(self) -> ImageName:
+        return ImageName(self.rig, self.sensor, self.frame)
+
+    @property
     def name(self) -> str:
-        return f"{self.rig}/{self.sensor}/{self.frame}"
+        """The image's name in the workspace and its models, ``<rig>/<sensor>/<frame file>``."""
+        return str(self.image_name)
 
 
 def _is_hidden(path: Path) -> bool:

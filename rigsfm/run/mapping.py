@@ -7,41 +7,27 @@ track-length minimums are lowered to what the network can provide.
 
 from __future__ import annotations
 
-import enum
 import logging
 import shutil
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
 import pycolmap
 
+from rigsfm.core.names import ImageName, Sensor
 from rigsfm.core.errors import ReconstructionError
 from rigsfm.core.io import atomic_directory
+from rigsfm.core.workspace import Workspace
+from rigsfm.run.options import Mapper, MappingOptions
 
 logger = logging.getLogger(__name__)
 
 
-class Mapper(enum.StrEnum):
-    INCREMENTAL = "incremental"
-    GLOBAL = "global"
-
-
-@dataclass(kw_only=True)
-class MappingOptions:
-    mapper: Mapper = Mapper.INCREMENTAL
-    seed: int = 0
-    num_threads: int = -1
-    # Lower COLMAP's match-count thresholds (relax_for_few_matches); the pipeline sets it when manual
-    # matches are given. Not automatic: relaxed, a pair of rigs with 21 wrong-but-consistent SIFT
-    # matches registers 70 degrees off instead of failing with a clear message.
-    few_matches: bool = False
-
-
-def _incremental_options(options: MappingOptions, num_wide: int) -> pycolmap.IncrementalPipelineOptions:
+def _incremental_options(options: MappingOptions, num_wide: int, num_threads: int) -> pycolmap.IncrementalPipelineOptions:
     pipeline = pycolmap.IncrementalPipelineOptions(
-        num_threads=options.num_threads,
+        num_threads=num_threads,
         random_seed=options.seed,
         ba_refine_focal_length=False,
         ba_refine_principal_point=False,
@@ -61,12 +47,12 @@ def _incremental_options(options: MappingOptions, num_wide: int) -> pycolmap.Inc
     return pipeline
 
 
-def _global_options(options: MappingOptions, num_wide: int) -> pycolmap.GlobalPipelineOptions:
+def _global_options(options: MappingOptions, num_wide: int, num_threads: int) -> pycolmap.GlobalPipelineOptions:
     pipeline = pycolmap.GlobalPipelineOptions(
-        num_threads=options.num_threads, random_seed=options.seed, min_model_size=min(3, max(2, num_wide))
+        num_threads=num_threads, random_seed=options.seed, min_model_size=min(3, max(2, num_wide))
     )
     mapper = pipeline.mapper
-    mapper.num_threads = options.num_threads
+    mapper.num_threads = num_threads
     mapper.random_seed = options.seed
     mapper.refine_sensor_from_rig = False
     mapper.rotation_averaging.refine_sensor_from_rig = False
@@ -130,9 +116,8 @@ def initial_pair(database_path: Path) -> tuple[int, int] | None:
     best, best_inliers = None, 0
     for pair_id, count in zip(pair_ids, inliers):
         id1, id2 = pycolmap.pair_id_to_image_pair(pair_id)
-        rig1, sensor1, _ = names[id1].split("/", 2)
-        rig2, sensor2, _ = names[id2].split("/", 2)
-        if sensor1 == sensor2 == "wide" and rig1 != rig2 and count > best_inliers:
+        one, two = ImageName.parse(names[id1]), ImageName.parse(names[id2])
+        if one.sensor == two.sensor == Sensor.WIDE and one.rig != two.rig and count > best_inliers:
             best, best_inliers = (id1, id2), count
     return best
 
@@ -160,8 +145,8 @@ def mapping_database(database_path: Path, path: Path, *, keep_narrow_offsets: bo
 
 
 def _incremental(database_path: Path, image_dir: Path, models_dir: Path, options: MappingOptions, num_wide: int,
-                 on_registered: Callable[[], None] | None) -> dict[int, pycolmap.Reconstruction]:
-    pipeline = _incremental_options(options, num_wide)
+                 num_threads: int, on_registered: Callable[[], None] | None) -> dict[int, pycolmap.Reconstruction]:
+    pipeline = _incremental_options(options, num_wide, num_threads)
     if options.few_matches:
         relax_for_few_matches(pipeline, best_pair_inliers(database_path))
     pair = initial_pair(database_path)
@@ -180,14 +165,15 @@ def _incremental(database_path: Path, image_dir: Path, models_dir: Path, options
 
 
 def _map(database_path: Path, image_dir: Path, models_dir: Path, options: MappingOptions, num_wide: int,
-         on_registered: Callable[[], None] | None) -> pycolmap.Reconstruction | None:
+         num_threads: int, on_registered: Callable[[], None] | None) -> pycolmap.Reconstruction | None:
     """The largest model of one mapper run, or None when it registered nothing."""
     shutil.rmtree(models_dir, ignore_errors=True)
     models_dir.mkdir()
     if options.mapper == Mapper.INCREMENTAL:
-        models = _incremental(database_path, image_dir, models_dir, options, num_wide, on_registered)
+        models = _incremental(database_path, image_dir, models_dir, options, num_wide, num_threads, on_registered)
     else:
-        models = pycolmap.global_mapping(database_path, image_dir, models_dir, _global_options(options, num_wide))
+        models = pycolmap.global_mapping(database_path, image_dir, models_dir,
+                                         _global_options(options, num_wide, num_threads))
     for index, model in models.items():
         logger.info("%s model %d: %d frames, %d points", options.mapper, index, model.num_reg_frames(),
                     model.num_points3D())
@@ -195,43 +181,54 @@ def _map(database_path: Path, image_dir: Path, models_dir: Path, options: Mappin
     return max(models.values(), key=lambda rec: rec.num_reg_frames()) if models else None
 
 
+@dataclass
+class MappingResult:
+    reconstruction: pycolmap.Reconstruction  # wide cameras registered, arbitrary units
+    mapper: Mapper  # the mapper whose model was kept
+    fallback: str | None = None  # why another mapper's model was kept than the one asked for
+
+
 def run_mapping(
-    database_path: Path,
+    workspace: Workspace,
     image_dir: Path,
-    output_path: Path,
     options: MappingOptions,
-    num_wide: int,
-    on_registered: Callable[[], None] | None = None,
     *,
-    mapping_db: Path | None = None,
+    num_wide: int,
     keep_narrow_offsets: bool = False,
-) -> pycolmap.Reconstruction:
-    """Map, keep the largest model, write it to ``output_path`` (atomically) and return it.
+    num_threads: int = -1,
+    on_registered: Callable[[], None] | None = None,
+) -> MappingResult:
+    """Map the workspace's database, keep the largest model, write it to ``workspace.mapping``.
 
     If the incremental mapper cannot register every wide frame (e.g. neighbouring rigs share no
-    three-view tracks), the global mapper is tried too and the model with more frames is kept.
+    three-view tracks), the global mapper is tried too and the model with more frames is kept; the
+    result says so (``fallback``).
     """
-    mapping_db = mapping_db or output_path.with_name("mapping.db")
-    with atomic_directory(output_path) as tmp:
+    mapping_db = workspace.mapping_database
+    fallback_note = None
+    kept = options.mapper
+    with atomic_directory(workspace.mapping) as tmp:
         models_dir = tmp / "models"
-        mapping_database(database_path, mapping_db, keep_narrow_offsets=keep_narrow_offsets)
+        mapping_database(workspace.database, mapping_db, keep_narrow_offsets=keep_narrow_offsets)
         try:
-            best = _map(mapping_db, image_dir, models_dir, options, num_wide, on_registered)
+            best = _map(mapping_db, image_dir, models_dir, options, num_wide, num_threads, on_registered)
         except IndexError as error:  # pycolmap 4.2.1 rig-scale alignment bug, see mapping_database
             if not keep_narrow_offsets:
                 raise
             logger.warning("COLMAP failed with narrow offsets (%s); mapping the wide cameras alone", error)
-            mapping_database(database_path, mapping_db, keep_narrow_offsets=False)
-            best = _map(mapping_db, image_dir, models_dir, options, num_wide, on_registered)
+            mapping_database(workspace.database, mapping_db, keep_narrow_offsets=False)
+            best = _map(mapping_db, image_dir, models_dir, options, num_wide, num_threads, on_registered)
         if options.mapper == Mapper.INCREMENTAL and (best is None or best.num_reg_frames() < num_wide):
             registered = 0 if best is None else best.num_reg_frames()
-            logger.warning("The incremental mapper registered %d of %d frames; trying the global mapper",
-                           registered, num_wide)
-            fallback = _map(mapping_db, image_dir, models_dir, MappingOptions(
-                mapper=Mapper.GLOBAL, seed=options.seed, num_threads=options.num_threads), num_wide, None)
+            logger.info("The incremental mapper registered %d of %d frames; trying the global mapper",
+                        registered, num_wide)
+            fallback = _map(mapping_db, image_dir, models_dir, replace(options, mapper=Mapper.GLOBAL), num_wide,
+                            num_threads, None)
             if fallback is not None and fallback.num_reg_frames() > registered:
-                logger.warning("Using the global mapper's model (%d frames)", fallback.num_reg_frames())
-                best = fallback
+                fallback_note = (f"the incremental mapper registered {registered} of {num_wide} wide frames; the "
+                                 f"global mapper's model ({fallback.num_reg_frames()} frames) is used instead")
+                logger.warning("Using the global mapper's model: %s", fallback_note)
+                best, kept = fallback, Mapper.GLOBAL
         if best is None:
             raise ReconstructionError(
                 "the mapper registered no wide images: the wide views share too few verified matches. "
@@ -239,4 +236,4 @@ def run_mapping(
                 "(--manual-matches FILE; `rigsfm pick IMAGE_A IMAGE_B` helps pick them)"
             )
         best.write(tmp)
-    return pycolmap.Reconstruction(output_path)
+    return MappingResult(pycolmap.Reconstruction(workspace.mapping), kept, fallback_note)

@@ -1,4 +1,4 @@
-"""``rigsfm run``: validate, database, features, mapping, rig constraints, export — in one workspace."""
+"""``rigsfm run``: validate, database, features, mapping, adjust, deliver — in one workspace (:func:`run`)."""
 
 from __future__ import annotations
 
@@ -6,47 +6,37 @@ import contextlib
 import logging
 import time
 from collections.abc import Callable, Iterator
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import numpy as np
 import pycolmap
 
 import rigsfm
-from rigsfm.run.diagnostics import check_reconstruction
-from rigsfm.run.database import create_database
 from rigsfm.core.errors import ReconstructionError
-from rigsfm.run.deliver import write_model, write_narrow_poses, write_points_ply
-from rigsfm.run.features import MatchingOptions, drop_stale_work, extract_features, match_features
-from rigsfm.run.inputs import ImageEntry, scan_images
 from rigsfm.core.io import write_json_atomic
+from rigsfm.core.names import SENSORS, ImageName
+from rigsfm.core.residuals import reprojection_errors
+from rigsfm.core.rig import RigCalibration, load_rigs
+from rigsfm.core.workspace import Workspace, colmap_log_to
+from rigsfm.inspect.report import write_report
+from rigsfm.run.adjust import AdjustResult, ScaleSource, adjust
+from rigsfm.run.database import create_database
+from rigsfm.run.deliver import write_model, write_narrow_poses, write_points_ply
+from rigsfm.run.diagnostics import check_reconstruction
+from rigsfm.run.features import drop_stale_work, extract_features, match_features
+from rigsfm.run.inputs import ImageEntry, scan_images
 from rigsfm.run.manual_matches import read_manual_matches, validate_manual_matches
 from rigsfm.run.manual_merge import add_manual_matches, manual_matches_summary
-from rigsfm.run.mapping import MappingOptions, run_mapping
-from rigsfm.inspect.report import write_report
-from rigsfm.core.residuals import reprojection_errors
-from rigsfm.run.adjust import (
-    RigConstraintOptions,
-    RigConstraintResult,
-    ScaleSource,
-    apply_rig_constraints,
-)
-from rigsfm.core.rig import RigCalibration, load_rigs
+from rigsfm.run.mapping import MappingResult, run_mapping
+from rigsfm.run.options import RunOptions
 from rigsfm.run.scale_file import ScaleSpec, load_scale
-from rigsfm.core.workspace import Workspace, colmap_log_to
+from rigsfm.run.summary import (CameraError, InputsSummary, MappingSummary, Registration, ScaleSummary,
+                                Summary)
 
 logger = logging.getLogger(__name__)
 
 Progress = Callable[[str, int, int], None]
-
-
-@dataclass(kw_only=True)
-class RunOptions:
-    matching: MatchingOptions = field(default_factory=MatchingOptions)
-    mapping: MappingOptions = field(default_factory=MappingOptions)
-    rig_constraint: RigConstraintOptions = field(default_factory=RigConstraintOptions)
-    overwrite: bool = False
-    manual_matches: Path | None = None  # CSV of correspondences between wide images (rigsfm.run.manual_matches)
 
 
 @dataclass(frozen=True)
@@ -61,7 +51,7 @@ class Inputs:
 class RunResult:
     workspace: Workspace
     reconstruction: pycolmap.Reconstruction
-    summary: dict
+    summary: Summary
 
 
 def load_inputs(image_dir: Path, rigs_path: Path, scale_path: Path | None = None) -> Inputs:
@@ -83,47 +73,47 @@ class _Timings(dict):
             logger.info("Stage %s took %.1f s", name, self[name])
 
 
-def reprojection_table(reconstruction: pycolmap.Reconstruction) -> dict[str, dict]:
+def reprojection_table(reconstruction: pycolmap.Reconstruction) -> dict[str, CameraError]:
     """Per camera (``<rig>/<sensor>``): observations, mean and RMS reprojection error."""
     per_camera: dict[str, list[np.ndarray]] = {}
     for name, errors in reprojection_errors(reconstruction).items():
-        per_camera.setdefault(name.rsplit("/", 1)[0], []).append(errors)
+        per_camera.setdefault(ImageName.parse(name).camera, []).append(errors)
     table = {}
     for key, errors in sorted(per_camera.items()):
         e = np.concatenate(errors)
-        table[key] = {
-            "observations": int(e.size),
-            "mean_px": float(e.mean()) if e.size else None,
-            "rms_px": float(np.sqrt(np.mean(e**2))) if e.size else None,
-        }
+        table[key] = CameraError(observations=int(e.size), mean_px=float(e.mean()) if e.size else None,
+                                 rms_px=float(np.sqrt(np.mean(e**2))) if e.size else None)
     return table
 
 
-def registration_counts(reconstruction: pycolmap.Reconstruction, images: list[ImageEntry]) -> tuple[dict, list[str]]:
+def registration_counts(reconstruction: pycolmap.Reconstruction,
+                        images: list[ImageEntry]) -> tuple[dict[str, Registration], list[str]]:
     registered = {im.name for im in reconstruction.images.values() if im.has_pose}
     counts = {}
-    for sensor in ("wide", "narrow"):
+    for sensor in SENSORS:
         names = [e.name for e in images if e.sensor == sensor]
-        counts[sensor] = {"registered": sum(n in registered for n in names), "total": len(names)}
+        counts[str(sensor)] = Registration(registered=sum(n in registered for n in names), total=len(names))
     return counts, sorted(e.name for e in images if e.name not in registered)
 
 
 MAX_METRIC_SCALE_SIGMA = 0.01  # relative; a looser scale is reported as not metric
 
 
-def is_metric(result: RigConstraintResult) -> bool:
+def is_metric(result: AdjustResult) -> bool:
     if result.scale_source == ScaleSource.MEASUREMENTS:
         return True
     sigma = result.scale_relative_sigma
     return result.scale_source == ScaleSource.NARROW_BASELINES and sigma is not None and sigma < MAX_METRIC_SCALE_SIGMA
 
 
-def build_summary(inputs: Inputs, options: RunOptions, result: RigConstraintResult, timings: dict,
-                  database: Path | None = None) -> dict:
+def build_summary(inputs: Inputs, options: RunOptions, mapping: MappingResult, result: AdjustResult,
+                  timings: dict, database: Path | None = None) -> Summary:
     reconstruction = result.reconstruction
     counts, unregistered = registration_counts(reconstruction, inputs.images)
     metric = is_metric(result)
     warnings = []
+    if mapping.fallback:
+        warnings.append(f"OTHER MAPPER USED: {mapping.fallback}")
     if result.scale_source == ScaleSource.NONE:
         warnings.append("NOT METRIC: no scale.yaml and no observations in narrow images; units are arbitrary")
     elif not metric:
@@ -134,35 +124,36 @@ def build_summary(inputs: Inputs, options: RunOptions, result: RigConstraintResu
     warnings.extend(check_reconstruction(reconstruction, result.scale, database))
     if unregistered:
         warnings.append(f"{len(unregistered)} image(s) not registered: {', '.join(unregistered[:5])}")
-    return {
-        "rigsfm_version": rigsfm.__version__,
-        "pycolmap_version": pycolmap.__version__,
-        "inputs": {
-            "images": str(inputs.image_dir),
-            "num_rigs": len(inputs.rigs),
-            "scale_file": str(inputs.scale.path) if inputs.scale else None,
-        },
-        "options": {
-            "matching": asdict(options.matching),
-            "mapping": {k: str(v) for k, v in asdict(options.mapping).items()},
-            "rig_constraint": asdict(options.rig_constraint),
-        },
-        "metric": metric,
-        "scale": {
-            "source": str(result.scale_source),
-            "metres_per_mapping_unit": result.metres_per_mapping_unit,
-            "relative_sigma_percent": None if result.scale_relative_sigma is None
-            else 100.0 * result.scale_relative_sigma,
-            "measurements": result.scale.residuals() if result.scale else [],
-        },
-        "registered": counts,
-        "unregistered": unregistered,
-        "num_points3D": reconstruction.num_points3D(),
-        "mean_reprojection_error_px": result.mean_reprojection_error_px,
-        "reprojection_error": reprojection_table(reconstruction),
-        "timings_s": dict(timings),
-        "warnings": warnings,
-    }
+    return Summary(
+        rigsfm_version=rigsfm.__version__,
+        pycolmap_version=pycolmap.__version__,
+        inputs=InputsSummary(images=str(inputs.image_dir), num_rigs=len(inputs.rigs),
+                             scale_file=str(inputs.scale.path) if inputs.scale else None),
+        options=json_ready(asdict(options)),
+        metric=metric,
+        scale=ScaleSummary(
+            source=str(result.scale_source), metres_per_mapping_unit=result.metres_per_mapping_unit,
+            relative_sigma_percent=None if result.scale_relative_sigma is None else 100.0 * result.scale_relative_sigma,
+            measurements=result.scale.residuals() if result.scale else []),
+        mapping=MappingSummary(asked=str(options.mapping.mapper), used=str(mapping.mapper), fallback=mapping.fallback,
+                               few_matches=bool(options.mapping.few_matches)),
+        registered=counts,
+        unregistered=unregistered,
+        num_points3D=reconstruction.num_points3D(),
+        mean_reprojection_error_px=result.mean_reprojection_error_px,
+        reprojection_error=reprojection_table(reconstruction),
+        timings_s=dict(timings),
+        warnings=warnings,
+    )
+
+
+def json_ready(value):
+    """Options as JSON: paths and enums as strings."""
+    if isinstance(value, dict):
+        return {k: json_ready(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [json_ready(v) for v in value]
+    return str(value) if isinstance(value, Path) else value
 
 
 def run(
@@ -173,19 +164,29 @@ def run(
     options: RunOptions | None = None,
     progress: Progress | None = None,
 ) -> RunResult:
-    """The whole pipeline; every artifact lands in ``out`` (see :class:`Workspace`)."""
+    """The whole pipeline; every artifact lands in ``out`` (see :class:`rigsfm.core.workspace.Workspace`)."""
     options = options or RunOptions()
     timings = _Timings()
     with timings.stage("validate"):
         inputs = load_inputs(image_dir, rigs_path, scale_path)
         manual_pairs = {} if options.manual_matches is None else validate_manual_matches(
             options.manual_matches, read_manual_matches(options.manual_matches), inputs.images, inputs.rigs)
+    if options.mapping.few_matches is None:
+        options = replace(options, mapping=replace(options.mapping, few_matches=bool(manual_pairs)))
+        if manual_pairs:
+            logger.warning("Manual matches given: the mapper's match-count thresholds are lowered for them")
     workspace = Workspace(Path(out))
-    workspace.prepare(overwrite=options.overwrite)
+    with workspace.lock():
+        workspace.prepare(overwrite=options.overwrite)
+        return _run_locked(workspace, inputs, manual_pairs, options, timings, progress)
 
+
+def _run_locked(workspace: Workspace, inputs: Inputs, manual_pairs: dict, options: RunOptions, timings: _Timings,
+                progress: Progress | None) -> RunResult:
     def report(stage: str) -> Callable[[int, int], None] | None:
         return (lambda done, total: progress(stage, done, total)) if progress else None
 
+    threads = options.num_threads
     num_wide = sum(e.sensor == "wide" for e in inputs.images)
     with colmap_log_to(workspace.colmap_log):
         with timings.stage("database"):
@@ -193,17 +194,14 @@ def run(
         with timings.stage("features"):
             drop_stale_work(workspace.database, workspace.feature_settings, options.matching)
             extract_features(workspace.database, inputs.image_dir, inputs.images, options.matching,
-                             report("features"))
+                             report("features"), num_threads=threads)
         with timings.stage("matching"):
-            match_features(workspace.database, inputs.images, options.matching,
-                           workspace.root / "pairs.txt", report("matching"))
+            match_features(workspace.database, inputs.images, options.matching, workspace.pairs, report("matching"),
+                           num_threads=threads)
         manual_reports = []
         if manual_pairs:
             with timings.stage("manual_matches"):
                 manual_reports = add_manual_matches(workspace.database, manual_pairs, options.matching.max_error_px)
-        mapping_options = options.mapping
-        if manual_pairs:
-            mapping_options = replace(mapping_options, few_matches=True)
         with timings.stage("mapping"):
             done = [0]
 
@@ -213,27 +211,26 @@ def run(
                     progress("mapping", min(done[0], num_wide), num_wide)
 
             try:
-                mapped = run_mapping(workspace.database, inputs.image_dir, workspace.mapping, mapping_options,
-                                     num_wide, on_registered, mapping_db=workspace.mapping_database,
-                                     keep_narrow_offsets=options.matching.narrow_features)
+                mapping = run_mapping(workspace, inputs.image_dir, options.mapping, num_wide=num_wide,
+                                      keep_narrow_offsets=options.matching.narrow_features, num_threads=threads,
+                                      on_registered=on_registered)
             except ReconstructionError as error:
                 if not manual_reports:
                     raise
                 kept = "; ".join(f"{r.image_a} <-> {r.image_b}: {r.kept} of {r.given} kept" for r in manual_reports)
                 raise ReconstructionError(f"{error}. Manual matches: {kept}") from None
             if progress:
-                progress("mapping", mapped.num_reg_frames(), num_wide)
-        with timings.stage("rig_constraint"):
-            result = apply_rig_constraints(mapped, inputs.rigs, inputs.scale, options.rig_constraint)
+                progress("mapping", mapping.reconstruction.num_reg_frames(), num_wide)
+        with timings.stage("adjust"):
+            result = adjust(mapping.reconstruction, inputs.rigs, inputs.scale, options.adjust)
         metric = is_metric(result)
-        with timings.stage("export"):
+        with timings.stage("deliver"):
             write_model(result.reconstruction, workspace.sparse, overwrite=True)
             write_narrow_poses(result.reconstruction, workspace.narrow_poses, metric=metric, overwrite=True)
             write_points_ply(result.reconstruction, workspace.points_ply, overwrite=True)
-    summary = build_summary(inputs, options, result, timings, workspace.database)
+    summary = build_summary(inputs, options, mapping, result, timings, workspace.database)
     if options.manual_matches is not None:
-        summary["manual_matches"] = manual_matches_summary(options.manual_matches, manual_reports)
-    write_json_atomic(workspace.summary, summary)
-    with timings.stage("report"):
-        write_report(workspace.root)
+        summary.manual_matches = manual_matches_summary(options.manual_matches, manual_reports)
+    write_json_atomic(workspace.summary, summary.to_json())
+    write_report(workspace.root)
     return RunResult(workspace, result.reconstruction, summary)

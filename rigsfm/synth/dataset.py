@@ -26,6 +26,7 @@ import pycolmap
 import yaml
 
 from rigsfm.core.errors import WorkspaceError
+from rigsfm.core.names import SENSORS, ImageName, Sensor
 from rigsfm.core.io import write_text_atomic
 from rigsfm.core.rig import add_posed_rig, write_rigs
 from rigsfm.synth.cameras import RigTruth, make_rigs, user_calibration
@@ -34,7 +35,6 @@ from rigsfm.synth.scene import Arena, Bar, SceneOptions, build_arena
 
 logger = logging.getLogger(__name__)
 
-SENSORS = ("wide", "narrow")
 
 
 @dataclass(frozen=True)
@@ -56,7 +56,7 @@ class SyntheticDataset:
 
 def image_name(rig: str, sensor: str, frame: int) -> str:
     """Image name relative to ``images/``, as in the ground truth: ``rig01/wide/frame0000.png``."""
-    return f"{rig}/{sensor}/frame{frame:04d}.png"
+    return str(ImageName(rig, Sensor(sensor), f"frame{frame:04d}.png"))
 
 
 def choose_bar(arena: Arena, first: RigTruth, second: RigTruth) -> Bar | None:

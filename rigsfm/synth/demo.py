@@ -52,6 +52,6 @@ def run_demo(out: Path, scene: SceneOptions | None = None, options: RunOptions |
     if progress:
         progress("render", 1, 1)
     result = run(dataset.images, dataset.rigs, out / "run", dataset.scale, options, progress)
-    accuracy = {"scene": asdict(scene), "timings_s": result.summary["timings_s"], **score(result, dataset)}
+    accuracy = {"scene": asdict(scene), "timings_s": result.summary.timings_s, **score(result, dataset)}
     write_json_atomic(out / "accuracy.json", accuracy)
     return DemoResult(dataset, result, accuracy)

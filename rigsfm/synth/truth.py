@@ -13,8 +13,9 @@ from collections.abc import Sequence
 import numpy as np
 import pycolmap
 
+from rigsfm.core.names import name_of
 from rigsfm.core.conventions import rotation_angle_deg
-from rigsfm.run.adjust import RigConstraintOptions, apply_rig_constraints, restore_calibration
+from rigsfm.run.adjust import AdjustOptions, adjust, restore_calibration
 from rigsfm.core.rig import RigCalibration
 from rigsfm.run.scale import triangulate_in_images
 from rigsfm.run.scale_file import ScaleSpec
@@ -22,7 +23,7 @@ from rigsfm.run.scale_file import ScaleSpec
 
 def _posed(reconstruction: pycolmap.Reconstruction, sensor: str) -> dict[str, pycolmap.Image]:
     return {
-        im.name: im for im in reconstruction.images.values() if im.has_pose and im.name.split("/")[1] == sensor
+        im.name: im for im in reconstruction.images.values() if im.has_pose and name_of(im).sensor == sensor
     }
 
 
@@ -93,7 +94,7 @@ def wide_distance_error_percent(estimate: pycolmap.Reconstruction, truth: pycolm
 
 
 def oracle(estimate: pycolmap.Reconstruction, truth: pycolmap.Reconstruction, rigs: Sequence[RigCalibration],
-           scale_spec: ScaleSpec | None = None, options: RigConstraintOptions | None = None) -> pycolmap.Reconstruction:
+           scale_spec: ScaleSpec | None = None, options: AdjustOptions | None = None) -> pycolmap.Reconstruction:
     """The rig-constraint stage started from ground-truth poses, with the estimate's observations, the
     same calibration file and the same scale measurements."""
     rec = pycolmap.Reconstruction(estimate)
@@ -112,4 +113,4 @@ def oracle(estimate: pycolmap.Reconstruction, truth: pycolmap.Reconstruction, ri
             rec.delete_point3D(point3D_id)
         else:
             point.xyz = xyz
-    return apply_rig_constraints(rec, rigs, scale_spec, options).reconstruction
+    return adjust(rec, rigs, scale_spec, options).reconstruction

@@ -1,23 +1,22 @@
-"""``rigsfm track``: re-estimate rig poses over time against a reference run (shake and drift monitoring)."""
+"""``rigsfm track``: re-estimate rig poses over time against a reference run (shake and drift monitoring).
 
-from rigsfm.track.command import TrackResult, track, track_command
-from rigsfm.track.verdict import Thresholds, Verdict, classify
-from rigsfm.track.pose import RegistrationOptions
-from rigsfm.track.reference import ReferenceMap, load_reference
-from rigsfm.track.register import FrameTask, register_frame
-from rigsfm.track.report import track_report_section
+Library use: ``track(OUT, NEW_IMAGES, TrackOptions(...)) -> TrackResult`` (``rigsfm.track.pipeline``).
+"""
 
-__all__ = [
-    "FrameTask",
-    "ReferenceMap",
-    "RegistrationOptions",
-    "Thresholds",
-    "TrackResult",
-    "Verdict",
-    "classify",
-    "load_reference",
-    "register_frame",
-    "track",
-    "track_command",
-    "track_report_section",
-]
+from rigsfm.core.lazy import lazy_exports
+
+__getattr__, __all__ = lazy_exports(__name__, {
+    "track": "rigsfm.track.pipeline",
+    "TrackResult": "rigsfm.track.pipeline",
+    "TrackOptions": "rigsfm.track.options",
+    "Thresholds": "rigsfm.track.options",
+    "RegistrationOptions": "rigsfm.track.options",
+    "Executor": "rigsfm.track.options",
+    "Verdict": "rigsfm.track.verdict",
+    "classify": "rigsfm.track.verdict",
+    "ReferenceMap": "rigsfm.track.reference",
+    "load_reference": "rigsfm.track.reference",
+    "FrameTask": "rigsfm.track.register",
+    "register_frame": "rigsfm.track.register",
+    "track_report_section": "rigsfm.track.report",
+})

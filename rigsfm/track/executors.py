@@ -22,7 +22,7 @@ from dataclasses import replace
 from pathlib import Path
 
 from rigsfm.core.errors import InputError
-from rigsfm.track.pose import RegistrationOptions
+from rigsfm.track.options import RegistrationOptions
 from rigsfm.track.reference import ReferenceMap
 from rigsfm.track.register import FrameTask, register_frame
 

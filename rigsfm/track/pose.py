@@ -2,29 +2,19 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 import pycolmap
 
+from rigsfm.track.options import RegistrationOptions
 
-@dataclass(frozen=True, kw_only=True)
-class RegistrationOptions:
-    max_ratio: float = 0.8  # Lowe's ratio test, as in `rigsfm run`
-    max_num_features: int = 8192  # SIFT, as in `rigsfm run`
-    max_error_px: float = 4.0  # RANSAC inlier threshold
-    min_matches: int = 12  # a sensor with fewer 2D-3D matches is not used
-    min_inliers: int = 30  # fewer: the frame is reported as not registered
-    use_narrow: bool | None = None  # None: narrow images only for rigs whose narrow image has map points
-    seed: int = 0
 
-    def refinement(self) -> pycolmap.AbsolutePoseRefinementOptions:
-        # COLMAP's default gradient tolerance (1.0) stops while the weak rotation/translation coupling of a
-        # wide camera is still off by millimetres; converge fully instead.
-        refinement = pycolmap.AbsolutePoseRefinementOptions()
-        refinement.gradient_tolerance = 1e-10
-        refinement.max_num_iterations = 200
-        return refinement
+def refinement_options() -> pycolmap.AbsolutePoseRefinementOptions:
+    """COLMAP's default gradient tolerance (1.0) stops while the weak rotation/translation coupling of a wide
+    camera is still off by millimetres; converge fully instead."""
+    refinement = pycolmap.AbsolutePoseRefinementOptions()
+    refinement.gradient_tolerance = 1e-10
+    refinement.max_num_iterations = 200
+    return refinement
 
 
 def estimate_rig_pose(
@@ -51,7 +41,7 @@ def estimate_rig_pose(
         idxs = [i for i, s in enumerate(sensors) for _ in range(len(correspondences[s][0]))]
         result = pycolmap.estimate_and_refine_generalized_absolute_pose(
             xy, xyz, idxs, [sensor_from_rig[s] for s in sensors], [cameras[s] for s in sensors], ransac,
-            options.refinement())
+            refinement_options())
         if result is None:
             return None
         rig_from_world = result["rig_from_world"]
@@ -60,7 +50,7 @@ def estimate_rig_pose(
         estimation.ransac.max_error = options.max_error_px
         estimation.ransac.random_seed = options.seed
         result = pycolmap.estimate_and_refine_absolute_pose(xy, xyz, cameras[sensors[0]], estimation,
-                                                           options.refinement())
+                                                           refinement_options())
         if result is None:
             return None
         rig_from_world = sensor_from_rig[sensors[0]].inverse() * result["cam_from_world"]

@@ -20,8 +20,10 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 
+from rigsfm.core.names import ImageName, name_of
 from rigsfm.core.errors import ReconstructionError, WorkspaceError
-from rigsfm.track.pose import RegistrationOptions, estimate_rig_pose, pose_covariance
+from rigsfm.track.options import RegistrationOptions
+from rigsfm.track.pose import estimate_rig_pose, pose_covariance
 from rigsfm.core.workspace import Workspace
 
 logger = logging.getLogger(__name__)
@@ -101,18 +103,19 @@ def model_fingerprint(sparse: Path) -> str:
     return digest.hexdigest()[:16]
 
 
-def _split_name(name: str) -> tuple[str, str, str]:
-    parts = name.split("/")
-    if len(parts) != 3:
-        raise WorkspaceError(f"image {name!r} in the reference model is not named <rig>/<sensor>/<frame>")
-    return parts[0], parts[1], parts[2]
+def _split_name(name: str) -> ImageName:
+    try:
+        return ImageName.parse(name)
+    except ValueError:
+        raise WorkspaceError(f"image {name!r} in the reference model is not named <rig>/<sensor>/<frame>") from None
 
 
 def _reference_rigs(rec: pycolmap.Reconstruction) -> dict[str, dict]:
     """Per rig: its first registered wide image (by name), the cameras and E^sl from the model."""
     rigs: dict[str, dict] = {}
     for image in sorted(rec.images.values(), key=lambda im: im.name):
-        rig_name, sensor, _ = _split_name(image.name)
+        parsed = _split_name(image.name)
+        rig_name, sensor = parsed.rig, parsed.sensor
         entry = rigs.setdefault(rig_name, {"wide": None, "narrow": None, "narrow_from_wide": None, "image": None})
         camera = rec.cameras[image.camera_id]
         if sensor == "wide" and entry["image"] is None and image.has_pose:
@@ -146,7 +149,7 @@ def _observations(rec: pycolmap.Reconstruction, frame_id: int) -> dict[str, tupl
     for image in rec.images.values():
         if image.frame_id == frame_id and image.num_points3D > 0:
             points = [image.points2D[i] for i in image.get_observation_point2D_idxs()]
-            found[image.name.split("/")[1]] = (np.array([p.xy for p in points], np.float64).reshape(-1, 2),
+            found[name_of(image).sensor] = (np.array([p.xy for p in points], np.float64).reshape(-1, 2),
                                                np.array([rec.points3D[p.point3D_id].xyz for p in points]))
     return found
 
@@ -171,8 +174,7 @@ def load_reference(out: Path, neighbours: int = DEFAULT_NEIGHBOURS,
     """Read OUT/sparse and OUT/database.db into a picklable :class:`ReferenceMap`."""
     options = options or RegistrationOptions()
     workspace = Workspace(Path(out))
-    if not (workspace.sparse / "images.bin").is_file():
-        raise WorkspaceError(f"{workspace.sparse} holds no reference model: run `rigsfm run ... --out {out}` first")
+    workspace.require_result()
     if not workspace.database.is_file():
         raise WorkspaceError(f"{workspace.database} is missing: track needs the descriptors of the reference run")
     rec = pycolmap.Reconstruction(str(workspace.sparse))
@@ -202,7 +204,7 @@ def load_reference(out: Path, neighbours: int = DEFAULT_NEIGHBOURS,
         if entry["image"] is None:
             logger.warning("rig %s has no registered wide image in the reference model: it cannot be tracked", name)
             continue
-        own = [i for i, n in enumerate(names) if n.split("/")[0] == name]
+        own = [i for i, n in enumerate(names) if ImageName.parse(n).rig == name]
         shared = covisible[own].sum(axis=0) if own else np.zeros(len(names))
         others = [i for i in np.argsort(-shared, kind="stable") if i not in own and shared[i] > 0]
         observations = _observations(rec, entry["frame_id"])

@@ -18,7 +18,8 @@ import cv2
 import numpy as np
 import pycolmap
 
-from rigsfm.track.pose import RegistrationOptions, estimate_rig_pose, pose_covariance, reprojection_errors
+from rigsfm.track.options import RegistrationOptions
+from rigsfm.track.pose import estimate_rig_pose, pose_covariance, reprojection_errors
 from rigsfm.track.reference import ReferenceMap, ReferenceRig
 
 logger = logging.getLogger(__name__)

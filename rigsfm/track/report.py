@@ -7,7 +7,7 @@ import html
 import json
 from pathlib import Path
 
-from rigsfm.track.command import TrackPaths
+from rigsfm.core.workspace import Workspace
 
 VERDICT_STYLE = {"stable": "color:#2a7d2a", "shaking": "color:#c77700", "moved": "color:#c0392b;font-weight:bold"}
 
@@ -17,7 +17,7 @@ def track_report_section(out: Path) -> str:
 
     Returns a short note when `rigsfm track` has not been run on this workspace.
     """
-    paths = TrackPaths(Path(out) / "track")
+    paths = Workspace(Path(out)).track
     if not paths.poses_json.is_file():
         return '<section id="track"><h2>Pose tracking</h2><p>No tracking results (run <code>rigsfm track</code>).</p></section>'
     poses = json.loads(paths.poses_json.read_text(encoding="utf-8"))
@@ -39,7 +39,7 @@ def track_report_section(out: Path) -> str:
                      f"<td>{v['flagged_frames']}</td><td>{steps}</td><td>{jitter}</td></tr>")
     parts.append("</tbody></table>")
     for name in poses["rigs"]:
-        png = paths.plots / f"{name}.png"
+        png = paths.plot(name)
         if png.is_file():
             data = base64.b64encode(png.read_bytes()).decode("ascii")
             parts.append(f'<figure><img alt="pose changes of {html.escape(name)}" src="data:image/png;base64,{data}">'

@@ -19,7 +19,8 @@ import pycolmap
 
 from rigsfm.core.errors import WorkspaceError
 from rigsfm.run.deliver import pose_dict
-from rigsfm.track.verdict import Thresholds, classify
+from rigsfm.track.options import Thresholds
+from rigsfm.track.verdict import classify
 from rigsfm.core.conventions import rotation_vector
 from rigsfm.track.reference import ReferenceMap, ReferenceRig, rigid3d_from_matrix
 

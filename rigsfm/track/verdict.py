@@ -27,15 +27,7 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
-
-@dataclass(frozen=True, kw_only=True)
-class Thresholds:
-    rotation_deg: float = 0.05
-    translation_mm: float = 5.0
-    significance_chi2: float = 16.27  # chi-square with 3 degrees of freedom at 99.9 %
-    min_persist_frames: int = 3
-    persist_fraction: float = 0.75
-    step_to_spread: float = 2.0  # a step must be this many times the frames' median spread about their level
+from rigsfm.track.options import Thresholds
 
 
 @dataclass(frozen=True)

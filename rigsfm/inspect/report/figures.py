@@ -15,6 +15,7 @@ import cv2
 import numpy as np
 import pycolmap
 
+from rigsfm.core.names import name_of
 from rigsfm.core.conventions import opencv_from_colmap_pixels
 
 COLOURS_BGR = [(40, 40, 230), (40, 170, 40), (220, 120, 30), (30, 200, 220), (200, 60, 200), (0, 140, 255),
@@ -193,7 +194,7 @@ def topdown_svg(reconstruction: pycolmap.Reconstruction, size: int = 620, max_po
     parts.append("".join(f'<circle cx="{x:.1f}" cy="{y:.1f}" r="0.8" fill="#888"/>'
                          for x, y in (to_svg(p) for p in points2)))
     for image, centre in zip(images, centres2):
-        narrow = image.name.split("/")[1] == "narrow"
+        narrow = name_of(image).is_narrow
         colour = NARROW_SVG if narrow else WIDE_SVG
         view = image.cam_from_world().rotation.matrix()[2] @ axes[:2].T
         view = view / max(np.linalg.norm(view), 1e-9) * (0.12 if narrow else 0.07) * span
@@ -202,7 +203,7 @@ def topdown_svg(reconstruction: pycolmap.Reconstruction, size: int = 620, max_po
                      f'stroke-width="2"/><circle cx="{x0:.1f}" cy="{y0:.1f}" r="4" fill="{colour}"/>')
         if not narrow:
             parts.append(f'<text x="{x0 + 6:.1f}" y="{y0 - 6:.1f}" font-size="11">'
-                         f'{html.escape(image.name.split("/")[0])}</text>')
+                         f'{html.escape(name_of(image).rig)}</text>')
     parts.append(f'<text x="{pad}" y="16" font-size="11">grid {step:g} {units}; '
                  f'<tspan fill="{WIDE_SVG}">wide</tspan>, <tspan fill="{NARROW_SVG}">narrow</tspan> cameras '
                  'with viewing directions; grey: sparse points (top view of their best-fit plane)</text></svg>')

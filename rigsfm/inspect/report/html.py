@@ -3,15 +3,17 @@
 from __future__ import annotations
 
 import html
-import json
 import logging
 from pathlib import Path
 
 import numpy as np
 import pycolmap
 
+from rigsfm.core.names import ImageName, name_of
 from rigsfm.inspect.report.figures import epipolar_figure, histogram_svg, png_data_uri, read_image, topdown_svg
 from rigsfm.core.residuals import reprojection_errors
+from rigsfm.core.workspace import Workspace
+from rigsfm.run.summary import Summary
 
 logger = logging.getLogger(__name__)
 
@@ -44,37 +46,37 @@ def table(header: list[str], rows: list[list], left: int = 1) -> str:
     return f"<table><thead><tr>{head}</tr></thead><tbody>{body}</tbody></table>"
 
 
-def summary_section(summary: dict | None, reconstruction: pycolmap.Reconstruction, narrow: dict) -> str:
+def summary_section(summary: Summary | None, reconstruction: pycolmap.Reconstruction, narrow: dict) -> str:
     parts = ["<h2>Summary</h2>"]
     if summary is None:
         parts.append('<p class="warn">summary.json is missing: scale and timings are not shown.</p>')
-    rigs = sorted({im.name.split("/")[0] for im in reconstruction.images.values()})
-    counts = {s: sum(im.has_pose and im.name.split("/")[1] == s for im in reconstruction.images.values())
+    rigs = sorted({name_of(im).rig for im in reconstruction.images.values()})
+    counts = {s: sum(im.has_pose and name_of(im).sensor == s for im in reconstruction.images.values())
               for s in ("wide", "narrow")}
-    registered = (summary or {}).get("registered", {})
+    registered = summary.registered if summary else {}
     rows = [["rigs", len(rigs)], ["3D points", reconstruction.num_points3D()],
             ["metric", esc(narrow.get("metric")) + f" ({esc(narrow.get('units'))})"]]
     for sensor in ("wide", "narrow"):
-        total = registered.get(sensor, {}).get("total", "?")
+        total = registered[sensor].total if sensor in registered else "?"
         rows.append([f"{sensor} images registered", f"{counts[sensor]} / {total}"])
     if summary:
-        scale = summary.get("scale", {})
-        sigma = scale.get("relative_sigma_percent")
-        rows.append(["scale source", esc(scale.get("source")) + ("" if sigma is None else f" (±{sigma:.3g} %)")])
-        rows.append(["mean reprojection error (px)", fmt(summary.get("mean_reprojection_error_px"))])
-        rows.append(["images folder", esc(summary.get("inputs", {}).get("images"))])
+        sigma = summary.scale.relative_sigma_percent
+        rows.append(["scale source", esc(summary.scale.source) + ("" if sigma is None else f" (±{sigma:.3g} %)")])
+        rows.append(["mapper", esc(summary.mapping.used or "?")])
+        rows.append(["mean reprojection error (px)", fmt(summary.mean_reprojection_error_px)])
+        rows.append(["images folder", esc(summary.inputs.images)])
     parts.append(table(["", ""], rows))
-    for warning in (summary or {}).get("warnings", []):
+    for warning in summary.warnings if summary else []:
         parts.append(f'<p class="warn">warning: {esc(warning)}</p>')
-    if summary and summary.get("scale", {}).get("measurements"):
+    if summary and summary.scale.measurements:
         parts.append("<h3>Scale measurements</h3>")
         parts.append(table(["measurement", "kind", "true (m)", "reconstructed (m)", "residual (m)", "residual (%)",
                             "σ (m)"],
                            [[esc(m["label"]), esc(m["kind"]), fmt(m["meters"], 6), fmt(m["reconstructed_meters"], 6),
                              fmt(m["residual_meters"], 3), fmt(m["residual_percent"], 3), fmt(m["sigma_meters"], 3)]
-                            for m in summary["scale"]["measurements"]], left=2))
-    if summary and summary.get("timings_s"):
-        timings = summary["timings_s"]
+                            for m in summary.scale.measurements], left=2))
+    if summary and summary.timings_s:
+        timings = summary.timings_s
         parts.append("<h3>Timings (s)</h3>" + table(list(timings), [[fmt(v, 3) for v in timings.values()]], left=0))
     return "".join(parts)
 
@@ -82,7 +84,7 @@ def summary_section(summary: dict | None, reconstruction: pycolmap.Reconstructio
 def reprojection_section(reconstruction: pycolmap.Reconstruction) -> str:
     per_camera: dict[str, list[np.ndarray]] = {}
     for name, errors in reprojection_errors(reconstruction).items():
-        per_camera.setdefault(name.rsplit("/", 1)[0], []).append(errors)
+        per_camera.setdefault(ImageName.parse(name).camera, []).append(errors)
     rows, figures = [], []
     merged = {k: np.concatenate(v) for k, v in sorted(per_camera.items())}
     observed = [e for e in merged.values() if e.size]
@@ -134,13 +136,13 @@ def uncertainty_section(narrow: dict) -> str:
             + table(["narrow i", "narrow j", "band 95 % (px)", "depths seen in j (m)"], rows, left=2))
 
 
-def epipolar_section(out: Path, summary: dict | None, reconstruction: pycolmap.Reconstruction, narrow: dict,
+def epipolar_section(out: Path, summary: Summary | None, reconstruction: pycolmap.Reconstruction, narrow: dict,
                      max_pairs: int = 40) -> str:
     parts = ["<h2>Epipolar check</h2>",
              '<p class="note">Left: distinctive points (strongest corners, else a grid) in narrow image i. '
              "Right: their epipolar lines in narrow image j (drawn through the full camera model, so slightly "
              "curved by distortion) with the 95 % band shaded. The same scene point must lie on its line.</p>"]
-    images_dir = Path(summary["inputs"]["images"]) if summary and summary.get("inputs", {}).get("images") else None
+    images_dir = Path(summary.inputs.images) if summary and summary.inputs.images else None
     if images_dir is None or not images_dir.is_dir():
         parts.append(f'<p class="warn">Images folder {esc(images_dir)} not found: no epipolar figures.</p>')
         return "".join(parts)
@@ -162,9 +164,9 @@ def epipolar_section(out: Path, summary: dict | None, reconstruction: pycolmap.R
     return "".join(parts)
 
 
-def render_page(out: Path, summary: dict | None, reconstruction: pycolmap.Reconstruction, narrow: dict) -> str:
+def render_page(out: Path, summary: Summary | None, reconstruction: pycolmap.Reconstruction, narrow: dict) -> str:
     title = f"rigsfm report: {out.resolve().name}"
-    version = (summary or {}).get("rigsfm_version", "")
+    version = summary.rigsfm_version if summary else ""
     units = "m" if narrow.get("metric") else "units"
     body = [f"<h1>{esc(title)}</h1>",
             f'<p class="note">rigsfm {esc(version)}; workspace {esc(out.resolve())}</p>',
@@ -173,13 +175,9 @@ def render_page(out: Path, summary: dict | None, reconstruction: pycolmap.Recons
             "<h2>Network (top view)</h2>" + topdown_svg(reconstruction, units=units),
             pairs_section(narrow), uncertainty_section(narrow),
             epipolar_section(out, summary, reconstruction, narrow)]
-    if (out / "track" / "poses.json").is_file():  # `rigsfm track` results, when there are any
+    if Workspace(out).track.poses_json.is_file():  # `rigsfm track` results, when there are any
         from rigsfm.track import track_report_section
 
         body.append(track_report_section(out))
     return ('<!DOCTYPE html><html lang="en"><head><meta charset="utf-8">'
             f"<title>{esc(title)}</title><style>{CSS}</style></head><body>{''.join(body)}</body></html>\n")
-
-
-def load_json(path: Path) -> dict | None:
-    return json.loads(path.read_text(encoding="utf-8")) if path.is_file() else None

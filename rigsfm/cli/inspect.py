@@ -1,0 +1,53 @@
+"""``rigsfm report``, ``rigsfm view`` and ``rigsfm export``."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated, Optional
+
+import typer
+
+from rigsfm.cli.common import console, fail_cleanly, flag
+from rigsfm.inspect.options import ExportFormat, ExportOptions
+
+WORKSPACE = typer.Argument(help="workspace folder of a finished `rigsfm run`", show_default=False)
+
+
+@fail_cleanly
+def report_command(out: Annotated[Path, WORKSPACE]) -> None:
+    """Write OUT/report.html: summary, reprojection errors, network plot, narrow pairs, epipolar check."""
+    from rigsfm.inspect.report.write import write_report
+
+    console.print(f"report: {write_report(out)}")
+
+
+@fail_cleanly
+def view_command(
+    out: Annotated[Path, WORKSPACE],
+    screenshot_path: Annotated[Optional[Path], typer.Option(
+        "--screenshot", help="render the view headless into this PNG instead of opening a window [default: open a "
+                             "window; needs a display]", show_default=False)] = None,
+) -> None:
+    """Show the network in Open3D (needs a display): points, wide (blue) and narrow (orange) frustums, rig links."""
+    from rigsfm.inspect.viewer import screenshot, show
+
+    if screenshot_path is not None:
+        console.print(f"screenshot: {screenshot(out, screenshot_path)}")
+    else:
+        show(out)
+
+
+@fail_cleanly
+def export_command(
+    out: Annotated[Path, WORKSPACE],
+    fmt: Annotated[ExportFormat, typer.Option("--format", help="what to write", show_default=False)],
+    dest: Annotated[Optional[Path], typer.Option(
+        "--dest", help="folder to write [default: OUT/export/FORMAT]; a new or empty one, or an earlier export",
+        show_default=False)] = None,
+    overwrite: Annotated[bool, flag("--overwrite", help="replace an earlier export in DEST (only the files rigsfm "
+                                                        "wrote there are removed)")] = False,
+) -> None:
+    """Export the calibrated network for COLMAP, Open3D, nerfstudio or as plain JSON poses."""
+    from rigsfm.inspect.export import export
+
+    console.print(f"exported {fmt}: {export(out, ExportOptions(format=fmt, dest=dest, overwrite=overwrite))}")

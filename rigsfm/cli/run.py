@@ -1,0 +1,156 @@
+"""``rigsfm run`` and ``rigsfm demo``."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated, Optional
+
+import typer
+from rich.table import Table
+
+from rigsfm.cli.common import StageProgress, configure_logging, console, fail_cleanly, finish, flag, progress_bars
+from rigsfm.run.options import Features, Mapper, MappingOptions, MatchingOptions, RunOptions
+
+VERBOSE = flag("--verbose", "-v", help="show rigsfm's log (info level) on the terminal")
+STRICT = flag("--strict", help="exit with code 4 when the result carries warnings (for scripts)")
+
+
+def print_summary(summary, out: Path) -> None:
+    table = Table(title=f"rigsfm result in {out}", show_lines=False)
+    table.add_column("camera")
+    table.add_column("observations", justify="right")
+    table.add_column("mean reproj. error (px)", justify="right")
+    for camera, row in summary.reprojection_error.items():
+        table.add_row(camera, str(row.observations), "-" if row.mean_px is None else f"{row.mean_px:.3f}")
+    console.print(table)
+    reg, scale = summary.registered, summary.scale
+    console.print(
+        f"registered: wide {reg['wide'].registered}/{reg['wide'].total}, "
+        f"narrow {reg['narrow'].registered}/{reg['narrow'].total}; "
+        f"{summary.num_points3D} points; mapper: {summary.mapping.used}; scale source: {scale.source}"
+        + ("" if scale.relative_sigma_percent is None else f" (+-{scale.relative_sigma_percent:.3g} %)")
+    )
+    for row in scale.measurements:
+        console.print(f"  {row['label']}: {row['reconstructed_meters']:.4f} m vs {row['meters']:.4f} m "
+                      f"({row['residual_percent']:+.3f} %)")
+    console.print("timings (s): " + ", ".join(f"{k} {v:.1f}" for k, v in summary.timings_s.items()))
+
+
+def print_manual_matches(report: dict) -> None:
+    table = Table(title=f"manual matches ({report['file']})")
+    for column in ("image a", "image b", "given", "kept (inliers)", "automatic inliers", "verified after"):
+        table.add_column(column, justify="left" if column.startswith("image") else "right")
+    for pair in report["pairs"]:
+        table.add_row(pair["image_a"], pair["image_b"], str(pair["given"]), str(pair["kept"]),
+                      str(pair["automatic_inliers"]), str(pair["inliers_after"]))
+    console.print(table)
+    for pair in report["pairs"]:
+        for row in pair["rejected"]:
+            error = "-" if row["epipolar_error_px"] is None else f"{row['epipolar_error_px']:.1f} px"
+            console.print(f"  rejected line {row['line']}: {pair['image_a']} ({row['xy_a'][0]:.1f}, "
+                          f"{row['xy_a'][1]:.1f}) <-> {pair['image_b']} ({row['xy_b'][0]:.1f}, {row['xy_b'][1]:.1f}),"
+                          f" epipolar error {error}", highlight=False)
+
+
+@fail_cleanly
+def run_command(
+    images: Annotated[Path, typer.Argument(help="image folder: IMAGES/<rig>/<wide|narrow>/<frame file>",
+                                           show_default=False)],
+    rigs: Annotated[Path, typer.Option("--rigs", help="rigs.yaml: intrinsics and narrow_from_wide per rig",
+                                       show_default=False)],
+    out: Annotated[Path, typer.Option("--out", help="output workspace folder", show_default=False)],
+    scale: Annotated[Optional[Path], typer.Option(
+        "--scale", help="scale.yaml: rangefinder distances and known lengths [default: none, the result is not "
+                        "metric]", show_default=False)] = None,
+    mapper: Annotated[Mapper, typer.Option("--mapper", help="COLMAP's mapper for the wide images")] = Mapper.INCREMENTAL,
+    narrow_features: Annotated[bool, flag("--narrow-features", help="also extract and match features in the narrow "
+                                                                    "images (textured or crowded narrow views)")] = False,
+    features: Annotated[Features, typer.Option("--features", help="sift, or asift: affine-robust, for large perspective "
+                                                                  "changes between rigs (slower)")] = Features.SIFT,
+    manual_matches: Annotated[Optional[Path], typer.Option(
+        "--manual-matches", help="CSV image_a,x_a,y_a,image_b,x_b,y_b of hand-picked correspondences between wide "
+                                 "images (COLMAP pixels; see `rigsfm pick`) [default: none]", show_default=False)] = None,
+    max_ratio: Annotated[float, typer.Option("--max-ratio", min=0.1, max=1.0,
+                                             help="Lowe's ratio test threshold of the SIFT matching")] = 0.8,
+    cross_check: Annotated[bool, typer.Option("--cross-check/--no-cross-check",
+                                              help="keep only mutual nearest-neighbour matches")] = True,
+    rig_verification: Annotated[Optional[bool], typer.Option(
+        "--rig-verification/--no-rig-verification",
+        help="verify matches of two frames with both rigs' cameras at once [default: on, off with --narrow-features]",
+        show_default=False)] = None,
+    seed: Annotated[int, typer.Option("--seed", help="random seed of the mapper's RANSAC and sampling")] = 0,
+    overwrite: Annotated[bool, flag("--overwrite", help="replace an existing result in OUT (features and matches "
+                                                        "made with the same settings are reused)")] = False,
+    strict: Annotated[bool, STRICT] = False,
+    verbose: Annotated[bool, VERBOSE] = False,
+) -> None:
+    """Metric poses of every narrow camera of a hybrid-rig network, from image folders."""
+    configure_logging(verbose)
+    from rigsfm.run.pipeline import run
+
+    options = RunOptions(
+        matching=MatchingOptions(max_ratio=max_ratio, cross_check=cross_check, rig_verification=rig_verification,
+                                 narrow_features=narrow_features, features=features),
+        mapping=MappingOptions(mapper=mapper, seed=seed),
+        overwrite=overwrite,
+        manual_matches=manual_matches,
+    )
+    with progress_bars() as progress:
+        result = run(images, rigs, out, scale, options, progress=StageProgress(progress))
+    print_summary(result.summary, out)
+    if result.summary.manual_matches:
+        print_manual_matches(result.summary.manual_matches)
+    console.print(f"result: {out}; open {result.workspace.report}")
+    finish(result.summary.warnings, strict)
+
+
+def print_accuracy(accuracy: dict) -> None:
+    table = Table(title="accuracy against ground truth (narrow cameras)")
+    table.add_column("metric")
+    table.add_column("rigsfm median / max", justify="right")
+    table.add_column("oracle median / max", justify="right")
+    run_, limit = accuracy["narrow"], accuracy["oracle_narrow"]
+    for key, label in (("relative_rotation_deg", "pairwise rotation error (deg)"),
+                       ("translation_direction_deg", "translation direction error (deg)"),
+                       ("distance_error_percent", "centre distance error (%)")):
+        table.add_row(label, f"{run_[key]['median']:.4f} / {run_[key]['max']:.4f}",
+                      f"{limit[key]['median']:.4f} / {limit[key]['max']:.4f}")
+    centre, centre_limit = accuracy["narrow_centre_error_mm"], accuracy["oracle_narrow_centre_error_mm"]
+    if centre["median"] is not None:
+        table.add_row("narrow centre error (mm)", f"{centre['median']:.1f} / {centre['max']:.1f}",
+                      f"{centre_limit['median']:.1f} / {centre_limit['max']:.1f}")
+    table.add_row("narrow registered", f"{run_['registered']}/{run_['total']}",
+                  f"{limit['registered']}/{limit['total']}")
+    console.print(table)
+
+
+@fail_cleanly
+def demo_command(
+    out: Annotated[Path, typer.Argument(help="folder for the rendered scene, the run and accuracy.json",
+                                        show_default=False)],
+    num_rigs: Annotated[int, typer.Option("--num-rigs", min=2, help="rigs round the arena")] = 8,
+    arc_deg: Annotated[float, typer.Option("--arc-deg", min=1.0, max=360.0,
+                                           help="angular span of the rigs; 360 = full circle")] = 360.0,
+    image_scale: Annotated[float, typer.Option("--image-scale", min=0.05, max=2.0,
+                                               help="image size relative to 1624x1234 (0.5 renders 812x617)")] = 1.0,
+    exact_calibration: Annotated[bool, flag("--exact-calibration", help="give the run the exact calibration "
+                                                                        "(no calibration errors)")] = False,
+    mapper: Annotated[Mapper, typer.Option("--mapper", help="COLMAP's mapper for the wide images")] = Mapper.INCREMENTAL,
+    seed: Annotated[int, typer.Option("--seed", help="seed of the rendered scene and of the mapper")] = 0,
+    overwrite: Annotated[bool, flag("--overwrite", help="replace an earlier demo in OUT")] = False,
+    strict: Annotated[bool, STRICT] = False,
+) -> None:
+    """Render a synthetic full circle of hybrid rigs, reconstruct it, and print accuracy vs ground truth."""
+    configure_logging(False)
+    from rigsfm.synth.demo import run_demo
+    from rigsfm.synth.scene import SceneOptions
+
+    scene = SceneOptions(num_rigs=num_rigs, arc_deg=arc_deg, image_scale=image_scale, seed=seed,
+                         calibration_noise=not exact_calibration)
+    options = RunOptions(mapping=MappingOptions(mapper=mapper, seed=seed), overwrite=overwrite)
+    with progress_bars() as progress:
+        result = run_demo(out, scene, options, progress=StageProgress(progress))
+    print_summary(result.run.summary, out / "run")
+    print_accuracy(result.accuracy)
+    console.print(f"scene: {out / 'scene'}   result: {out / 'run'}   accuracy: {out / 'accuracy.json'}")
+    finish(result.run.summary.warnings, strict)

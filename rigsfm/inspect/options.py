@@ -1,0 +1,22 @@
+"""Typed options of ``rigsfm export`` and ``rigsfm view``; imports nothing heavy."""
+
+from __future__ import annotations
+
+import enum
+from dataclasses import dataclass
+from pathlib import Path
+
+
+class ExportFormat(enum.StrEnum):
+    COLMAP_BIN = "colmap-bin"  # COLMAP model, binary (COLMAP >= 3.8 reads it)
+    COLMAP_TXT = "colmap-txt"  # COLMAP model, text
+    OPEN3D = "open3d"  # points.ply, frustums.ply, trajectory.json
+    NERFSTUDIO = "nerfstudio"  # transforms.json
+    JSON = "json"  # poses.json: every image's camera and cam_from_world
+
+
+@dataclass(frozen=True, kw_only=True)
+class ExportOptions:
+    format: ExportFormat
+    dest: Path | None = None  # default OUT/export/<format>
+    overwrite: bool = False  # replace an earlier export of rigsfm in dest (nothing else is ever removed)

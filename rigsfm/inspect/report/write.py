@@ -1,0 +1,44 @@
+"""``rigsfm report OUT``: OUT/report.html, one self-contained page to inspect and trust a calibration.
+
+Summary (rigs, registration, scale residuals, timings), reprojection error per camera with histograms, a
+top view of the network, the narrow pairs in the paper's format with F_ji and the 95 % epipolar band, and
+an epipolar check figure per narrow pair (points in narrow image i, their lines and bands in image j).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from pathlib import Path
+
+import pycolmap
+
+from rigsfm.core.errors import WorkspaceError
+from rigsfm.core.io import write_text_atomic
+from rigsfm.core.workspace import Workspace
+from rigsfm.inspect.report.html import render_page
+from rigsfm.run.summary import Summary
+
+logger = logging.getLogger(__name__)
+
+
+def load_result(out: Path) -> tuple[pycolmap.Reconstruction, dict, Summary | None]:
+    """The final model, narrow_poses.json and (if present) summary.json of a workspace."""
+    workspace = Workspace(Path(out))
+    workspace.require_result()
+    try:
+        narrow = json.loads(workspace.narrow_poses.read_text(encoding="utf-8"))
+    except (json.JSONDecodeError, UnicodeDecodeError) as error:
+        raise WorkspaceError(f"{workspace.narrow_poses} is not valid JSON ({error}); re-run `rigsfm run ... "
+                             "--overwrite`") from None
+    return pycolmap.Reconstruction(str(workspace.sparse)), narrow, Summary.read(workspace.summary)
+
+
+def write_report(out: Path) -> Path:
+    """Write ``out/report.html`` from the workspace's results (replacing an older report) and return it."""
+    workspace = Workspace(Path(out))
+    reconstruction, narrow, summary = load_result(workspace.root)
+    page = render_page(workspace.root, summary, reconstruction, narrow)
+    path = write_text_atomic(workspace.report, page)
+    logger.info("Wrote %s (%.1f kB)", path, path.stat().st_size / 1e3)
+    return path

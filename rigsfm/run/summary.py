@@ -1,0 +1,102 @@
+"""summary.json: what a run did and what its result is worth, as one typed record (:class:`Summary`).
+
+Written by ``rigsfm run`` (``Summary.to_json``), read by the report, ``rigsfm export`` and the command line
+(``Summary.read``; summaries of older runs read with defaults for what they lack).
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import asdict, dataclass, field, fields
+from pathlib import Path
+
+from rigsfm.core.errors import WorkspaceError
+
+
+@dataclass(kw_only=True)
+class Registration:
+    registered: int = 0
+    total: int = 0
+
+
+@dataclass(kw_only=True)
+class CameraError:
+    """Reprojection error of one camera (``<rig>/<sensor>``) over its observations."""
+
+    observations: int = 0
+    mean_px: float | None = None
+    rms_px: float | None = None
+
+
+@dataclass(kw_only=True)
+class ScaleSummary:
+    source: str = "none"  # measurements, narrow_baselines or none (rigsfm.run.adjust.ScaleSource)
+    metres_per_mapping_unit: float | None = None
+    relative_sigma_percent: float | None = None
+    measurements: list[dict] = field(default_factory=list)  # rigsfm.run.scale.ScaleEstimate.residuals()
+
+
+@dataclass(kw_only=True)
+class MappingSummary:
+    asked: str = ""  # the --mapper asked for
+    used: str = ""  # the mapper whose model was kept
+    fallback: str | None = None  # why it differs from the one asked for
+    few_matches: bool = False  # COLMAP's match thresholds lowered (manual matches)
+
+
+@dataclass(kw_only=True)
+class InputsSummary:
+    images: str = ""
+    num_rigs: int = 0
+    scale_file: str | None = None
+
+
+@dataclass(kw_only=True)
+class Summary:
+    rigsfm_version: str = ""
+    pycolmap_version: str = ""
+    inputs: InputsSummary = field(default_factory=InputsSummary)
+    options: dict = field(default_factory=dict)  # the RunOptions, as JSON
+    metric: bool = False
+    scale: ScaleSummary = field(default_factory=ScaleSummary)
+    mapping: MappingSummary = field(default_factory=MappingSummary)
+    registered: dict[str, Registration] = field(default_factory=dict)  # per sensor
+    unregistered: list[str] = field(default_factory=list)
+    num_points3D: int = 0
+    mean_reprojection_error_px: float | None = None
+    reprojection_error: dict[str, CameraError] = field(default_factory=dict)  # per camera <rig>/<sensor>
+    timings_s: dict[str, float] = field(default_factory=dict)
+    warnings: list[str] = field(default_factory=list)
+    manual_matches: dict | None = None  # rigsfm.run.manual_merge.manual_matches_summary
+
+    def to_json(self) -> dict:
+        return asdict(self)
+
+    @classmethod
+    def from_json(cls, data: dict) -> Summary:
+        known = {f.name for f in fields(cls)}
+        values = {k: v for k, v in data.items() if k in known}
+        for key, kind in (("inputs", InputsSummary), ("scale", ScaleSummary), ("mapping", MappingSummary)):
+            if isinstance(values.get(key), dict):
+                values[key] = _typed(kind, values[key])
+        values["registered"] = {k: _typed(Registration, v) for k, v in (values.get("registered") or {}).items()}
+        values["reprojection_error"] = {k: _typed(CameraError, v)
+                                        for k, v in (values.get("reprojection_error") or {}).items()}
+        return cls(**values)
+
+    @classmethod
+    def read(cls, path: Path) -> Summary | None:
+        """The summary at ``path``; None when there is none; a clear error when it is unreadable."""
+        path = Path(path)
+        if not path.is_file():
+            return None
+        try:
+            return cls.from_json(json.loads(path.read_text(encoding="utf-8")))
+        except (json.JSONDecodeError, UnicodeDecodeError, TypeError, AttributeError) as error:
+            raise WorkspaceError(f"{path} is not a valid summary ({error}); re-run `rigsfm run ... --overwrite`") \
+                from None
+
+
+def _typed(kind, values: dict):
+    known = {f.name for f in fields(kind)}
+    return kind(**{k: v for k, v in values.items() if k in known})

@@ -1,0 +1,114 @@
+"""``rigsfm track OUT NEW_IMAGES``: re-register every rig in every new frame against the reference in OUT.
+
+Outputs (OUT/track/): ``poses.json`` (per rig: baseline, verdict, frames), ``poses.csv`` (one row per
+frame), ``plots/<rig>.png``. Frames already in poses.json (same rig and frame file name) are skipped, so
+the command can run again as recordings arrive; results are merged, checkpointed every
+``checkpoint_every`` frames and written atomically. Flags and verdicts are recomputed over the whole
+series on every run (with the thresholds of that run).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+from rigsfm.core.errors import InputError
+from rigsfm.core.io import write_bytes_atomic, write_json_atomic, write_text_atomic
+from rigsfm.core.rig import RigCalibration
+from rigsfm.core.workspace import TrackPaths, Workspace
+from rigsfm.run.inputs import scan_images
+from rigsfm.track.executors import run_frames
+from rigsfm.track.options import TrackOptions
+from rigsfm.track.plot import encode_png, plot_rig
+from rigsfm.track.reference import ReferenceMap, camera_from_spec, load_reference, rigid3d_from_matrix
+from rigsfm.track.register import FrameTask
+from rigsfm.track.results import assemble, derive, load_poses, to_csv
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass
+class TrackResult:
+    paths: TrackPaths
+    poses: dict  # poses.json content
+    processed: int  # frames registered (or attempted) in this run
+    skipped: int  # frames already in poses.json
+
+
+def frame_tasks(new_images: Path, reference: ReferenceMap) -> list[FrameTask]:
+    """One task per (rig, frame) under NEW_IMAGES/<rig>/<wide|narrow>/<frame file>."""
+    new_images = Path(new_images)
+    if not new_images.is_dir():
+        raise InputError(f"image folder {new_images} does not exist")
+    present = sorted(p.name for p in new_images.iterdir() if p.is_dir() and not p.name.startswith("."))
+    unknown = [name for name in present if name not in reference.rigs]
+    if unknown:
+        raise InputError(f"{new_images}: folder(s) {', '.join(unknown)} are not rigs of the reference model "
+                         f"{reference.sparse}; move them out or track them against their own reference")
+    if not present:
+        raise InputError(f"{new_images} has no <rig>/wide/ folders with images")
+    # scan_images checks the layout; pixel sizes are checked by the workers, which read the images anyway.
+    rigs = [RigCalibration(name, camera_from_spec(reference.rigs[name].wide),
+                           camera_from_spec(reference.rigs[name].narrow or reference.rigs[name].wide),
+                           rigid3d_from_matrix(reference.rigs[name].narrow_from_wide
+                                               if reference.rigs[name].narrow_from_wide is not None
+                                               else [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0]]))
+            for name in present]
+    images: dict[tuple[str, str], dict[str, Path]] = {}
+    for entry in scan_images(new_images, rigs, check_pixels=False):
+        images.setdefault((entry.rig, entry.frame), {})[entry.sensor] = entry.path
+    return [FrameTask(rig, frame, sensors) for (rig, frame), sensors in sorted(images.items())]
+
+
+def _save(paths: TrackPaths, poses: dict, plots: bool) -> None:
+    write_json_atomic(paths.poses_json, poses)
+    write_text_atomic(paths.poses_csv, to_csv(poses))
+    if plots:
+        for name, rig in poses["rigs"].items():
+            write_bytes_atomic(paths.plot(name), encode_png(plot_rig(name, {**rig, "thresholds": poses["thresholds"]})))
+
+
+def track(out: Path, new_images: Path, options: TrackOptions | None = None, *,
+          progress: Callable[[int, int], None] | None = None) -> TrackResult:
+    """Register the new frames, merge them into OUT/track and return the merged result."""
+    options = options or TrackOptions()
+    thresholds = options.thresholds
+    if thresholds.rotation_deg <= 0 or thresholds.translation_mm <= 0:
+        raise InputError("the rotation and translation thresholds must be positive")
+    workspace = Workspace(Path(out))
+    workspace.require_result()
+    paths = workspace.track
+    reference = load_reference(workspace.root, options=options.registration)
+    tasks = frame_tasks(new_images, reference)
+    with workspace.lock():
+        frames = {} if options.overwrite else load_poses(paths.poses_json, reference)
+        todo = [t for t in tasks if (t.rig, t.frame) not in frames]
+        logger.info("%d new frames to register, %d already tracked", len(todo), len(tasks) - len(todo))
+        bad: list[str] = []
+        done = [0, time.monotonic()]
+
+        def on_result(record: dict) -> None:
+            done[0] += 1
+            if record["status"] == "bad_input":
+                bad.append(record["reason"])
+            else:
+                frames[(record["rig"], record["frame"])] = derive(record, reference.rigs[record["rig"]])
+            if done[0] % options.checkpoint_every == 0:
+                _save(paths, assemble(frames, reference, thresholds), plots=False)
+            if progress:
+                progress(done[0], len(todo))
+
+        try:
+            run_frames(todo, reference, on_result, executor=str(options.executor), workers=options.workers,
+                       address=options.address, options=options.registration)
+        finally:
+            poses = assemble(frames, reference, thresholds)
+            if frames or options.overwrite:
+                _save(paths, poses, plots=True)
+    if bad:
+        raise InputError(f"{len(bad)} frame(s) could not be used (the others are saved): {bad[0]}"
+                         + (f" (and {len(bad) - 1} more)" if len(bad) > 1 else ""))
+    return TrackResult(paths, poses, len(todo), len(tasks) - len(todo))

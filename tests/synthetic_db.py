@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 
+from rigsfm.core.geometry import project_world
 from rigsfm.run.database import rig_configs
 from rigsfm.run.inputs import ImageEntry
 from rigsfm.core.rig import RigCalibration
@@ -26,17 +27,6 @@ class SyntheticNetwork:
     ground_truth: pycolmap.Reconstruction
     rigs: list[RigCalibration]
     images: list[ImageEntry]
-
-
-def _project(camera: pycolmap.Camera, cam_from_world: pycolmap.Rigid3d, xyz: np.ndarray):
-    in_cam = np.asarray(cam_from_world * xyz)
-    xy = np.asarray(camera.img_from_cam(in_cam))
-    inside = (
-        (in_cam[:, 2] > 0)
-        & (xy[:, 0] >= 0) & (xy[:, 0] < camera.width)
-        & (xy[:, 1] >= 0) & (xy[:, 1] < camera.height)
-    )
-    return xy, inside
 
 
 def make_network(root: Path, num_rigs: int = 4, seed: int = 0, noise_px: float = 0.5,
@@ -85,7 +75,7 @@ def make_network(root: Path, num_rigs: int = 4, seed: int = 0, noise_px: float =
                 database.write_keypoints(image.image_id, np.zeros((0, 2), dtype=np.float32))
                 continue
             camera = synthetic.cameras[image.camera_id]
-            xy, inside = _project(camera, image.cam_from_world(), xyz)
+            xy, inside = project_world(camera, image.cam_from_world(), xyz)
             xy = xy[inside] + rng.normal(0.0, noise_px, size=(inside.sum(), 2))
             database.write_keypoints(image.image_id, xy.astype(np.float32))
             keypoint_of[image.image_id] = {int(pid): k for k, pid in enumerate(point_ids[inside])}

@@ -20,6 +20,7 @@ import cv2
 import numpy as np
 from scipy.optimize import least_squares
 
+from rigsfm.core.geometry import sampson
 from rigsfm.calibrate.board import read_gray
 from rigsfm.core.errors import ReconstructionError
 
@@ -68,16 +69,6 @@ def _normalise(points: np.ndarray, K: np.ndarray, dist: np.ndarray) -> np.ndarra
 
 def _skew(v: np.ndarray) -> np.ndarray:
     return np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
-
-
-def sampson(E: np.ndarray, x1: np.ndarray, x2: np.ndarray) -> np.ndarray:
-    """Sampson distances of normalised correspondences x2^T E x1 = 0 (normalised units)."""
-    h1 = np.column_stack([x1, np.ones(len(x1))])
-    h2 = np.column_stack([x2, np.ones(len(x2))])
-    Ex1 = h1 @ E.T
-    Etx2 = h2 @ E
-    num = np.sum(h2 * Ex1, axis=1)
-    return num / np.sqrt(Ex1[:, 0] ** 2 + Ex1[:, 1] ** 2 + Etx2[:, 0] ** 2 + Etx2[:, 1] ** 2)
 
 
 def _refine(R0: np.ndarray, t0: np.ndarray, x1: np.ndarray, x2: np.ndarray, scale: float):

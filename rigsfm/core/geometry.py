@@ -1,4 +1,8 @@
-"""Two-view geometry measures on calibrated cameras: epipolar (Sampson) error and planarity."""
+"""Geometry shared by every verb: the one projection helper, the one Sampson error, epipolar lines and
+two-view measures on calibrated cameras.
+
+Pixels are COLMAP's (centre of the first pixel at (0.5, 0.5)) throughout.
+"""
 
 from __future__ import annotations
 
@@ -10,18 +14,66 @@ Config = pycolmap.TwoViewGeometryConfiguration
 PLANAR = (Config.PLANAR, Config.PANORAMIC, Config.PLANAR_OR_PANORAMIC)  # a homography explains the matches
 POSED = (Config.CALIBRATED, Config.UNCALIBRATED, *PLANAR)  # configurations that carry a relative pose
 
+ROUND_TRIP_TOLERANCE = 1e-6  # normalised image units (~0.004 px at f = 3600)
+
+
+def project(camera: pycolmap.Camera, points_in_cam: np.ndarray, *, margin_px: float | None = 0.0,
+            ) -> tuple[np.ndarray, np.ndarray]:
+    """Pixels of points given in camera coordinates (N x 3), and which of them are seen.
+
+    A point is seen when it lies in front of the camera, within the range where the lens model is
+    monotonic (``Camera.img_from_cam`` folds points far outside a view back into the image: their pixel does
+    not map back onto their own ray through ``cam_from_img``), and, unless ``margin_px`` is None, inside the
+    image at least ``margin_px`` from its border. Pixels of points not seen are NaN.
+    """
+    points = np.asarray(points_in_cam, dtype=np.float64).reshape(-1, 3)
+    front = points[:, 2] > 1e-12
+    xy = np.full((len(points), 2), np.nan)
+    if front.any():
+        xy[front] = np.asarray(camera.img_from_cam(points[front], check_cheirality=False), dtype=np.float64)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            back = np.asarray(camera.cam_from_img(np.nan_to_num(xy[front])), dtype=np.float64)
+            normalised = points[front, :2] / points[front, 2:]
+            scale = np.maximum(1.0, np.abs(normalised))
+            folds = ~np.all(np.abs(back - normalised) <= ROUND_TRIP_TOLERANCE * scale, axis=1)
+        front[np.flatnonzero(front)[folds]] = False
+    seen = front & np.all(np.isfinite(xy), axis=1)
+    if margin_px is not None:
+        with np.errstate(invalid="ignore"):
+            seen &= (xy[:, 0] >= margin_px) & (xy[:, 0] <= camera.width - margin_px)
+            seen &= (xy[:, 1] >= margin_px) & (xy[:, 1] <= camera.height - margin_px)
+    xy[~seen] = np.nan
+    return xy, seen
+
+
+def project_world(camera: pycolmap.Camera, cam_from_world: pycolmap.Rigid3d, points: np.ndarray, *,
+                  margin_px: float | None = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`project` for world points (N x 3) seen from ``cam_from_world``."""
+    points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    m = cam_from_world.matrix()
+    return project(camera, points @ m[:, :3].T + m[:, 3], margin_px=margin_px)
+
+
+def sampson(matrix: np.ndarray, x1: np.ndarray, x2: np.ndarray) -> np.ndarray:
+    """Signed Sampson distance of each correspondence ``x2^T M x1 = 0`` (M an essential or fundamental matrix),
+    in the units of the coordinates (N x 2 each)."""
+    h1 = np.column_stack([np.asarray(x1, np.float64), np.ones(len(x1))])
+    h2 = np.column_stack([np.asarray(x2, np.float64), np.ones(len(x2))])
+    mx1, mtx2 = h1 @ matrix.T, h2 @ matrix
+    num = np.sum(h2 * mx1, axis=1)
+    den = np.sqrt(mx1[:, 0] ** 2 + mx1[:, 1] ** 2 + mtx2[:, 0] ** 2 + mtx2[:, 1] ** 2)
+    return num / np.maximum(den, 1e-300)
+
 
 def sampson_error_px(
     essential: np.ndarray, cam1: pycolmap.Camera, cam2: pycolmap.Camera, xy1: np.ndarray, xy2: np.ndarray
 ) -> np.ndarray:
-    """Sampson epipolar error of each correspondence (``x2^T E x1 = 0``), in pixels via the mean focal."""
-    x1 = np.c_[np.asarray(cam1.cam_from_img(np.asarray(xy1, np.float64))), np.ones(len(xy1))]
-    x2 = np.c_[np.asarray(cam2.cam_from_img(np.asarray(xy2, np.float64))), np.ones(len(xy2))]
-    ex1, etx2 = x1 @ essential.T, x2 @ essential
-    num = np.sum(x2 * ex1, axis=1) ** 2
-    den = ex1[:, 0] ** 2 + ex1[:, 1] ** 2 + etx2[:, 0] ** 2 + etx2[:, 1] ** 2
+    """Sampson epipolar error of each correspondence of raw pixels (``x2^T E x1 = 0``), in pixels via the mean
+    focal length of both cameras."""
+    n1 = np.asarray(cam1.cam_from_img(np.asarray(xy1, np.float64)))
+    n2 = np.asarray(cam2.cam_from_img(np.asarray(xy2, np.float64)))
     focal = 0.5 * (cam1.mean_focal_length() + cam2.mean_focal_length())
-    return np.sqrt(num / np.maximum(den, 1e-300)) * focal
+    return np.abs(sampson(essential, n1, n2)) * focal
 
 
 def planar_fraction(

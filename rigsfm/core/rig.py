@@ -27,6 +27,7 @@ import yaml
 
 from rigsfm.core.errors import InputError
 from rigsfm.core.names import SENSORS
+from rigsfm.core.serialise import camera_to_dict, pose_to_dict
 from rigsfm.core.io import load_yaml_or_json, write_text_atomic
 
 CAMERA_MODELS = tuple(m for m in pycolmap.CameraModelId.__members__ if m != "INVALID")
@@ -141,22 +142,6 @@ def load_rigs(path: Path) -> list[RigCalibration]:
     return rigs
 
 
-def camera_to_dict(camera: pycolmap.Camera) -> dict:
-    return {
-        "model": camera.model.name,
-        "width": int(camera.width),
-        "height": int(camera.height),
-        "params": [float(p) for p in camera.params],
-    }
-
-
-def rigid3d_to_dict(transform: pycolmap.Rigid3d) -> dict:
-    return {
-        "rotation": [[float(v) for v in row] for row in transform.rotation.matrix()],
-        "translation": [float(v) for v in transform.translation],
-    }
-
-
 def rigs_to_yaml(rigs: Sequence[RigCalibration]) -> str:
     data = {
         "units": "meters",
@@ -164,7 +149,7 @@ def rigs_to_yaml(rigs: Sequence[RigCalibration]) -> str:
             {
                 "name": rig.name,
                 "sensors": {"wide": camera_to_dict(rig.wide), "narrow": camera_to_dict(rig.narrow)},
-                "narrow_from_wide": rigid3d_to_dict(rig.narrow_from_wide),
+                "narrow_from_wide": pose_to_dict(rig.narrow_from_wide, quaternion=False),
             }
             for rig in rigs
         ],

@@ -25,14 +25,14 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 
+from rigsfm.core.serialise import camera_to_dict, pose_to_dict
 from rigsfm.core.conventions import opengl_c2w_from_cam_from_world
 from rigsfm.core.errors import InputError, WorkspaceError
 from rigsfm.core.io import write_json_atomic
 from rigsfm.core.names import name_of
-from rigsfm.core.rig import camera_to_dict
 from rigsfm.core.workspace import Workspace
 from rigsfm.inspect.options import ExportFormat, ExportOptions
-from rigsfm.run.deliver import CONVENTIONS, pose_dict
+from rigsfm.run.deliver import CONVENTIONS
 from rigsfm.run.summary import Summary
 
 logger = logging.getLogger(__name__)
@@ -127,7 +127,7 @@ def write_json_poses(reconstruction: pycolmap.Reconstruction, dest: Path) -> lis
         name = name_of(image)
         images.append({"name": image.name, "rig": name.rig, "sensor": str(name.sensor), "frame": name.frame,
                        "camera": camera_to_dict(reconstruction.cameras[image.camera_id]),
-                       "cam_from_world": pose_dict(image.cam_from_world()),
+                       "cam_from_world": pose_to_dict(image.cam_from_world()),
                        "centre": image.projection_center().tolist()})
     write_json_atomic(dest / "poses.json", {"conventions": {k: CONVENTIONS[k] for k in
                                                             ("cam_from_world", "quaternion", "pixels")},

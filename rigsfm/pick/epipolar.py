@@ -14,6 +14,8 @@ from dataclasses import dataclass
 import numpy as np
 import pycolmap
 
+from rigsfm.core.geometry import project, sampson
+
 MIN_PAIRS = 8
 
 
@@ -45,16 +47,6 @@ def eight_point(xa: np.ndarray, xb: np.ndarray, essential: bool = False) -> np.n
     return m / np.linalg.norm(m)
 
 
-def sampson(m: np.ndarray, xa: np.ndarray, xb: np.ndarray) -> np.ndarray:
-    """Sampson distance of each correspondence (in the units of the coordinates)."""
-    pa = np.c_[xa, np.ones(len(xa))]
-    pb = np.c_[xb, np.ones(len(xb))]
-    mxa, mtxb = pa @ m.T, pb @ m
-    num = np.sum(pb * mxa, axis=1) ** 2
-    den = mxa[:, 0] ** 2 + mxa[:, 1] ** 2 + mtxb[:, 0] ** 2 + mtxb[:, 1] ** 2
-    return np.sqrt(num / np.maximum(den, 1e-300))
-
-
 def robust_eight_point(
     xa: np.ndarray,
     xb: np.ndarray,
@@ -71,7 +63,7 @@ def robust_eight_point(
         best_count = -1
         for _ in range(iterations):
             sample = rng.choice(n, MIN_PAIRS, replace=False)
-            inliers = sampson(eight_point(xa[sample], xb[sample], essential), xa, xb) < threshold
+            inliers = np.abs(sampson(eight_point(xa[sample], xb[sample], essential), xa, xb)) < threshold
             if inliers.sum() > best_count:
                 best, best_count = inliers, int(inliers.sum())
         if best.sum() < MIN_PAIRS:
@@ -97,9 +89,9 @@ class EpipolarModel:
 
     def distances_px(self, xa: np.ndarray, xb: np.ndarray) -> np.ndarray:
         if not self.calibrated:
-            return sampson(self.matrix, xa, xb)
+            return np.abs(sampson(self.matrix, xa, xb))
         focal = 0.5 * (self.camera_a.mean_focal_length() + self.camera_b.mean_focal_length())
-        return focal * sampson(self.matrix, self._normalised(xa, "a"), self._normalised(xb, "b"))
+        return focal * np.abs(sampson(self.matrix, self._normalised(xa, "a"), self._normalised(xb, "b")))
 
     def line(self, xy: tuple[float, float], side: str, width: int, height: int, samples: int = 64) -> list:
         """Polyline (COLMAP pixels, inside the other image) of the epipolar line/curve of a point in ``side``."""
@@ -118,9 +110,7 @@ class EpipolarModel:
             else:
                 v = np.linspace(lo[1], hi[1], samples)
                 pts = np.c_[-(l_[1] * v + l_[2]) / l_[0], v]
-            xy_img = np.asarray(other.img_from_cam(np.c_[pts, np.ones(len(pts))]))
-            back = np.asarray(other.cam_from_img(xy_img))  # drop points the distortion folds back
-            ok = np.all(np.abs(back - pts) < 1e-6, axis=1) & np.all(np.isfinite(xy_img), axis=1)
+            xy_img, ok = project(other, np.c_[pts, np.ones(len(pts))], margin_px=None)
             ok &= (xy_img[:, 0] >= -width) & (xy_img[:, 0] <= 2 * width)
             ok &= (xy_img[:, 1] >= -height) & (xy_img[:, 1] <= 2 * height)
             return xy_img[ok].tolist()

@@ -23,9 +23,9 @@ import pycolmap
 
 from rigsfm.core.names import name_of
 from rigsfm.core.errors import WorkspaceError
-from rigsfm.core.conventions import euler_zyx_degrees, wxyz_from_rotation
+from rigsfm.core.conventions import euler_zyx_degrees
 from rigsfm.core.io import atomic_directory, write_json_atomic
-from rigsfm.core.rig import camera_to_dict
+from rigsfm.core.serialise import camera_to_dict, pose_to_dict
 from rigsfm.run.uncertainty import narrow_epipolar_bands
 
 logger = logging.getLogger(__name__)
@@ -46,14 +46,6 @@ CONVENTIONS = {
                            "covariance of the rig poses with intrinsics and E^sl held exact (errors of "
                            "rigs.yaml itself are not included); null if it could not be estimated",
 }
-
-
-def pose_dict(transform: pycolmap.Rigid3d) -> dict:
-    return {
-        "rotation": transform.rotation.matrix().tolist(),
-        "quaternion_wxyz": wxyz_from_rotation(transform.rotation),
-        "translation": transform.translation.tolist(),
-    }
 
 
 def pinhole_matrix(camera: pycolmap.Camera) -> np.ndarray:
@@ -87,7 +79,7 @@ def narrow_poses(reconstruction: pycolmap.Reconstruction, *, metric: bool, uncer
                 "name": image.name,
                 "rig": name_of(image).rig,
                 "camera": camera_to_dict(camera),
-                "cam_from_world": pose_dict(image.cam_from_world()),
+                "cam_from_world": pose_to_dict(image.cam_from_world()),
                 "centre": image.projection_center().tolist(),
             }
         )
@@ -103,7 +95,7 @@ def narrow_poses(reconstruction: pycolmap.Reconstruction, *, metric: bool, uncer
             {
                 "i": image_i.name,
                 "j": image_j.name,
-                "narrow_j_from_narrow_i": pose_dict(j_from_i),
+                "narrow_j_from_narrow_i": pose_to_dict(j_from_i),
                 "euler_zyx_deg": {"yaw": yaw, "pitch": pitch, "roll": roll},
                 "centre_direction_in_i": (centre_j_in_i / distance).tolist(),
                 "distance_m" if metric else "distance_units": distance,

@@ -30,6 +30,7 @@ import numpy as np
 import pycolmap
 from scipy.spatial.transform import Rotation
 
+from rigsfm.core.geometry import project
 from rigsfm.core.residuals import reprojection_errors
 from rigsfm.run.adjust import fixed_calibration_problem, has_narrow_observations
 
@@ -274,9 +275,7 @@ def correspondence_check(estimate: pycolmap.Reconstruction, truth: pycolmap.Reco
         image = truth.find_image_with_name(name)
         camera = truth.cameras[image.camera_id]
         in_cam = np.asarray(image.cam_from_world() * np.asarray(world_points, dtype=np.float64))
-        xy = np.asarray(camera.img_from_cam(in_cam))
-        ok = (in_cam[:, 2] > 0) & (xy >= 0).all(axis=1) & (xy[:, 0] < camera.width) & (xy[:, 1] < camera.height)
-        pixels.append((xy, ok))
+        pixels.append(project(camera, in_cam))
         depths = in_cam[:, 2] if depths is None else depths
     both = pixels[0][1] & pixels[1][1]
     if not both.any():

@@ -6,7 +6,7 @@ ground-truth ``pycolmap.Reconstruction``; ``python -m rigsfm.synth OUT`` does th
 
 from rigsfm.synth.cameras import RigTruth, make_rigs
 from rigsfm.synth.dataset import SyntheticDataset, render_dataset
-from rigsfm.synth.render import pixel_rays, project, render_clean, render_image
+from rigsfm.synth.render import pixel_rays, render_clean, render_image
 from rigsfm.synth.scene import Arena, Bar, SceneOptions, build_arena
 
 __all__ = [
@@ -18,7 +18,6 @@ __all__ = [
     "build_arena",
     "make_rigs",
     "pixel_rays",
-    "project",
     "render_clean",
     "render_dataset",
     "render_image",

@@ -13,8 +13,9 @@ from dataclasses import dataclass
 import numpy as np
 import pycolmap
 
+from rigsfm.core.geometry import project_world
 from rigsfm.run.manual_matches import Correspondence
-from rigsfm.synth.render import project, visible
+from rigsfm.synth.render import visible
 from rigsfm.synth.scene import Arena, Box, Pillar
 
 SURFACES = ("wall", "objects", "ground")
@@ -107,9 +108,10 @@ def simulate_clicks(
     chosen: list[np.ndarray] = []
     for k, pts in enumerate(pools):
         count = n // len(pools) if k < len(pools) - 1 else n - sum(map(len, chosen))
-        chosen.append(pts[farthest_points(project(*views[0], pts), count, rng)])
+        chosen.append(pts[farthest_points(project_world(*views[0], pts, margin_px=None)[0], count, rng)])
     points = np.vstack(chosen)
-    xy = [project(camera, pose, points) + rng.normal(0, noise_px, (len(points), 2)) for camera, pose in views]
+    xy = [project_world(camera, pose, points, margin_px=None)[0] + rng.normal(0, noise_px, (len(points), 2))
+          for camera, pose in views]
     outliers = np.zeros(len(points), bool)
     outliers[rng.choice(len(points), round(outlier_fraction * len(points)), replace=False)] = True
     cam_b = views[1][0]

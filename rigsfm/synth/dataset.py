@@ -25,12 +25,13 @@ import numpy as np
 import pycolmap
 import yaml
 
+from rigsfm.core.geometry import project_world
 from rigsfm.core.errors import WorkspaceError
 from rigsfm.core.names import SENSORS, ImageName, Sensor
 from rigsfm.core.io import write_text_atomic
 from rigsfm.core.rig import add_posed_rig, write_rigs
 from rigsfm.synth.cameras import RigTruth, make_rigs, user_calibration
-from rigsfm.synth.render import project, render_clean, to_uint8, visible
+from rigsfm.synth.render import render_clean, to_uint8, visible
 from rigsfm.synth.scene import Arena, Bar, SceneOptions, build_arena
 
 logger = logging.getLogger(__name__)
@@ -85,7 +86,8 @@ def choose_bar(arena: Arena, first: RigTruth, second: RigTruth) -> Bar | None:
         margin = 0.06 * cam.width
         for p in (a, mid, b, a - tangent * ring, b + tangent * ring):
             ok &= visible(arena, cam, pose, p, margin)
-        length = np.linalg.norm(project(cam, pose, a) - project(cam, pose, b), axis=1)
+        ends = [project_world(cam, pose, end, margin_px=None)[0] for end in (a, b)]
+        length = np.linalg.norm(ends[0] - ends[1], axis=1)
         score = np.minimum(score, np.nan_to_num(length, nan=0.0))
     if not np.any(ok):
         logger.warning("no room for the known-length bar in both %s and %s: scale.yaml gives a camera "
@@ -112,7 +114,7 @@ def _scale_yaml(rigs: list[RigTruth], bar: Bar | None, first: RigTruth, second: 
     far = max(rigs[1:], key=lambda rig: float(np.linalg.norm(rig.centre() - rigs[0].centre())))
     observations = []
     for rig in (first, second) if bar is not None else ():
-        a, b = project(rig.wide, rig.wide_from_world, np.stack([bar.a, bar.b]))
+        a, b = project_world(rig.wide, rig.wide_from_world, np.stack([bar.a, bar.b]), margin_px=None)[0]
         observations.append(
             {"image": image_name(rig.name, "wide", 0), "a": [float(v) for v in a], "b": [float(v) for v in b]}
         )

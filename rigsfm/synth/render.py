@@ -13,6 +13,7 @@ import time
 import numpy as np
 import pycolmap
 
+from rigsfm.core.geometry import project_world
 from rigsfm.synth.scene import GROUND, OBJECT, SKY, WALL, Arena, Bar, Hits, trace
 
 logger = logging.getLogger(__name__)
@@ -35,16 +36,6 @@ def camera_centre(cam_from_world: pycolmap.Rigid3d) -> np.ndarray:
     return np.asarray(cam_from_world.inverse().translation, dtype=np.float64)
 
 
-def project(camera: pycolmap.Camera, cam_from_world: pycolmap.Rigid3d, points: np.ndarray) -> np.ndarray:
-    """COLMAP pixel coordinates of world points (N x 3); NaN for points behind the camera."""
-    points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
-    m = cam_from_world.matrix()
-    in_cam = points @ m[:, :3].T + m[:, 3]
-    xy = np.asarray(camera.img_from_cam(in_cam, check_cheirality=False), dtype=np.float64)
-    xy[in_cam[:, 2] <= 1e-9] = np.nan
-    return xy
-
-
 def visible(
     arena: Arena,
     camera: pycolmap.Camera,
@@ -55,18 +46,10 @@ def visible(
     """Whether world points project inside the image (``margin`` px from the border) unoccluded.
 
     Points far outside the field of view that the distortion polynomial folds back into the image are
-    not visible: their pixel must map back onto their own ray.
+    not visible (``rigsfm.core.geometry.project``).
     """
     points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
-    xy = project(camera, cam_from_world, points)
-    inside = np.all(np.isfinite(xy), axis=1)
-    inside &= (xy[:, 0] >= margin) & (xy[:, 0] <= camera.width - margin)
-    inside &= (xy[:, 1] >= margin) & (xy[:, 1] <= camera.height - margin)
-    m = cam_from_world.matrix()
-    in_cam = points @ m[:, :3].T + m[:, 3]
-    with np.errstate(invalid="ignore", divide="ignore"):
-        back = np.asarray(camera.cam_from_img(np.nan_to_num(xy)), dtype=np.float64)
-        inside &= np.all(np.abs(back - in_cam[:, :2] / in_cam[:, 2:]) < 1e-6, axis=1)
+    _, inside = project_world(camera, cam_from_world, points, margin_px=margin)
     centre = camera_centre(cam_from_world)
     offsets = points - centre
     dist = np.linalg.norm(offsets, axis=1)

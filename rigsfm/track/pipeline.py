@@ -15,6 +15,8 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
+import pycolmap
+
 from rigsfm.core.errors import InputError
 from rigsfm.core.io import write_bytes_atomic, write_json_atomic, write_text_atomic
 from rigsfm.core.rig import RigCalibration
@@ -23,7 +25,7 @@ from rigsfm.run.inputs import scan_images
 from rigsfm.track.executors import run_frames
 from rigsfm.track.options import TrackOptions
 from rigsfm.track.plot import encode_png, plot_rig
-from rigsfm.track.reference import ReferenceMap, camera_from_spec, load_reference, rigid3d_from_matrix
+from rigsfm.track.reference import ReferenceMap, load_reference
 from rigsfm.track.register import FrameTask
 from rigsfm.track.results import assemble, derive, load_poses, to_csv
 
@@ -51,12 +53,12 @@ def frame_tasks(new_images: Path, reference: ReferenceMap) -> list[FrameTask]:
     if not present:
         raise InputError(f"{new_images} has no <rig>/wide/ folders with images")
     # scan_images checks the layout; pixel sizes are checked by the workers, which read the images anyway.
-    rigs = [RigCalibration(name, camera_from_spec(reference.rigs[name].wide),
-                           camera_from_spec(reference.rigs[name].narrow or reference.rigs[name].wide),
-                           rigid3d_from_matrix(reference.rigs[name].narrow_from_wide
-                                               if reference.rigs[name].narrow_from_wide is not None
-                                               else [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0]]))
-            for name in present]
+    rigs = []
+    for name in present:
+        rig = reference.rigs[name]
+        narrow = rig.wide if rig.narrow is None else rig.narrow
+        narrow_from_wide = pycolmap.Rigid3d() if rig.narrow_from_wide is None else rig.narrow_from_wide
+        rigs.append(RigCalibration(name, rig.wide, narrow, narrow_from_wide))
     images: dict[tuple[str, str], dict[str, Path]] = {}
     for entry in scan_images(new_images, rigs, check_pixels=False):
         images.setdefault((entry.rig, entry.frame), {})[entry.sensor] = entry.path

@@ -5,13 +5,13 @@ The map is the SIFT descriptors (from OUT/database.db) of every reference-image 
 *baseline*: its reference wide image (and narrow image, if it observes map points) registered with the
 same estimator from its own observations in the model. Bundle adjustment compromises a little between
 all images, so the model's pose and the estimator's pose of the very same image differ by up to a few mm;
-the baseline removes that bias, and the model pose is kept as ``wide_from_world``. Everything here is plain numpy and
-Python values so that it pickles cheaply to worker processes and Ray workers; pycolmap objects are
-rebuilt on the worker side (:func:`camera_from_spec`, :func:`rigid3d_from_matrix`).
+the baseline removes that bias, and the model pose is kept as ``wide_from_world``. Everything here pickles
+cheaply to worker processes and Ray workers (numpy arrays and pycolmap's own cameras and poses).
 """
 
 from __future__ import annotations
 
+import copy
 import hashlib
 import logging
 from dataclasses import dataclass, field, replace
@@ -32,23 +32,15 @@ DEFAULT_NEIGHBOURS = 2  # besides its own images, a rig is matched against its m
 
 
 @dataclass(frozen=True)
-class CameraSpec:
-    model: str
-    width: int
-    height: int
-    params: tuple[float, ...]
-
-
-@dataclass(frozen=True)
 class ReferenceRig:
     """One rig as calibrated and registered in the reference model (wide = reference sensor)."""
 
     name: str
-    wide: CameraSpec
-    narrow: CameraSpec | None  # None when the reference run had no narrow image of this rig
-    narrow_from_wide: np.ndarray | None  # 3x4, E^sl exactly as in OUT/sparse
-    wide_from_world: np.ndarray  # 3x4, the reference pose in OUT/sparse
-    baseline_wide_from_world: np.ndarray  # 3x4, changes are measured from this (see the module docstring)
+    wide: pycolmap.Camera
+    narrow: pycolmap.Camera | None  # None when the reference run had no narrow image of this rig
+    narrow_from_wide: pycolmap.Rigid3d | None  # E^sl exactly as in OUT/sparse
+    wide_from_world: pycolmap.Rigid3d  # the reference pose in OUT/sparse
+    baseline_wide_from_world: pycolmap.Rigid3d  # changes are measured from this (see the module docstring)
     baseline_covariance: np.ndarray  # 6x6, see rigsfm.track.pose.pose_covariance
     reference_image: str
     blocks: tuple[int, ...]  # indices into ReferenceMap.blocks this rig's frames are matched against
@@ -56,11 +48,11 @@ class ReferenceRig:
 
     def cameras(self) -> tuple[dict[str, pycolmap.Camera], dict[str, pycolmap.Rigid3d]]:
         """Per sensor: the calibrated camera and its fixed ``sensor_from_rig`` (wide: identity, narrow: E^sl)."""
-        cameras = {"wide": camera_from_spec(self.wide)}
+        cameras = {"wide": self.wide}
         sensor_from_rig = {"wide": pycolmap.Rigid3d()}
         if self.narrow is not None:
-            cameras["narrow"] = camera_from_spec(self.narrow)
-            sensor_from_rig["narrow"] = rigid3d_from_matrix(self.narrow_from_wide)
+            cameras["narrow"] = self.narrow
+            sensor_from_rig["narrow"] = self.narrow_from_wide
         return cameras, sensor_from_rig
 
 
@@ -78,19 +70,6 @@ class ReferenceMap:
     blocks: tuple[MapBlock, ...]
     fingerprint: str
     sparse: str = field(default="")
-
-
-def camera_spec(camera: pycolmap.Camera) -> CameraSpec:
-    return CameraSpec(camera.model.name, int(camera.width), int(camera.height),
-                      tuple(float(p) for p in camera.params))
-
-
-def camera_from_spec(spec: CameraSpec) -> pycolmap.Camera:
-    return pycolmap.Camera(model=spec.model, width=spec.width, height=spec.height, params=list(spec.params))
-
-
-def rigid3d_from_matrix(matrix: np.ndarray) -> pycolmap.Rigid3d:
-    return pycolmap.Rigid3d(np.asarray(matrix, dtype=np.float64).reshape(3, 4))
 
 
 def model_fingerprint(sparse: Path) -> str:
@@ -120,13 +99,13 @@ def _reference_rigs(rec: pycolmap.Reconstruction) -> dict[str, dict]:
         camera = rec.cameras[image.camera_id]
         if sensor == "wide" and entry["image"] is None and image.has_pose:
             entry["image"], entry["frame_id"] = image.name, image.frame_id
-            entry["wide_from_world"] = image.cam_from_world().matrix()
+            entry["wide_from_world"] = image.cam_from_world()
         if entry[sensor] is None:
-            entry[sensor] = camera_spec(camera)
+            entry[sensor] = copy.copy(camera)
             if sensor == "narrow":
                 rig = rec.rigs[rec.frames[image.frame_id].rig_id]
-                entry["narrow_from_wide"] = rig.sensor_from_rig(
-                    pycolmap.sensor_t(pycolmap.SensorType.CAMERA, image.camera_id)).matrix()
+                entry["narrow_from_wide"] = copy.copy(rig.sensor_from_rig(
+                    pycolmap.sensor_t(pycolmap.SensorType.CAMERA, image.camera_id)))
     return rigs
 
 
@@ -154,7 +133,8 @@ def _observations(rec: pycolmap.Reconstruction, frame_id: int) -> dict[str, tupl
     return found
 
 
-def baseline_pose(rig: ReferenceRig, observations: dict, options: RegistrationOptions) -> tuple[np.ndarray, np.ndarray]:
+def baseline_pose(rig: ReferenceRig, observations: dict,
+                  options: RegistrationOptions) -> tuple[pycolmap.Rigid3d, np.ndarray]:
     """The reference frame registered from its own observations, and that pose's covariance."""
     cameras, sensor_from_rig = rig.cameras()
     observations = {s: observations[s] for s in observations if s in cameras}
@@ -166,7 +146,7 @@ def baseline_pose(rig: ReferenceRig, observations: dict, options: RegistrationOp
     masks = np.split(inliers, np.cumsum([len(observations[s][0]) for s in used])[:-1])
     covariance = pose_covariance(pose, [(cameras[s], sensor_from_rig[s], observations[s][0][m], observations[s][1][m])
                                         for s, m in zip(used, masks)], pose.rotation.matrix())
-    return pose.matrix(), covariance
+    return pose, covariance
 
 
 def load_reference(out: Path, neighbours: int = DEFAULT_NEIGHBOURS,

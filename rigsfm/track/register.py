@@ -135,7 +135,7 @@ def register_frame(task: FrameTask, reference: ReferenceMap, options: Registrati
         if inliers.sum() < options.min_inliers:
             record["reason"] = f"only {int(inliers.sum())} inliers (need {options.min_inliers})"
         else:
-            covariance = pose_covariance(wide_from_world, observations, rig.baseline_wide_from_world[:, :3])
+            covariance = pose_covariance(wide_from_world, observations, rig.baseline_wide_from_world.rotation.matrix())
             record.update(status="registered", wide_from_world=wide_from_world.matrix().tolist(),
                           covariance=covariance.tolist())
     record["time_s"] = round(time.perf_counter() - start, 3)

@@ -17,12 +17,12 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 
+from rigsfm.core.serialise import pose_to_dict
 from rigsfm.core.errors import WorkspaceError
-from rigsfm.run.deliver import pose_dict
 from rigsfm.track.options import Thresholds
 from rigsfm.track.verdict import classify
 from rigsfm.core.conventions import rotation_vector
-from rigsfm.track.reference import ReferenceMap, ReferenceRig, rigid3d_from_matrix
+from rigsfm.track.reference import ReferenceMap, ReferenceRig
 
 logger = logging.getLogger(__name__)
 
@@ -54,13 +54,13 @@ def derive(record: dict, rig: ReferenceRig) -> dict:
     entry = dict(record)
     if record["status"] != "registered":
         return entry
-    wide_from_world = rigid3d_from_matrix(np.array(record["wide_from_world"]))
-    baseline = rigid3d_from_matrix(rig.baseline_wide_from_world)
-    entry["wide_from_world"] = pose_dict(wide_from_world)
+    wide_from_world = pycolmap.Rigid3d(np.asarray(record["wide_from_world"], dtype=np.float64))
+    baseline = rig.baseline_wide_from_world
+    entry["wide_from_world"] = pose_to_dict(wide_from_world)
     entry["wide"] = _change(baseline, wide_from_world)
     if rig.narrow_from_wide is not None:
-        narrow_from_wide = rigid3d_from_matrix(rig.narrow_from_wide)
-        entry["narrow_from_world"] = pose_dict(narrow_from_wide * wide_from_world)
+        narrow_from_wide = rig.narrow_from_wide
+        entry["narrow_from_world"] = pose_to_dict(narrow_from_wide * wide_from_world)
         entry["narrow"] = _change(narrow_from_wide * baseline, narrow_from_wide * wide_from_world)
     return entry
 
@@ -101,8 +101,8 @@ def assemble(frames: dict[tuple[str, str], dict], reference: ReferenceMap, thres
             f["flagged"] = bool(flag)
         rigs[name] = {
             "reference_image": rig.reference_image,
-            "baseline_wide_from_world": pose_dict(rigid3d_from_matrix(rig.baseline_wide_from_world)),
-            "reference_wide_from_world": pose_dict(rigid3d_from_matrix(rig.wide_from_world)),
+            "baseline_wide_from_world": pose_to_dict(rig.baseline_wide_from_world),
+            "reference_wide_from_world": pose_to_dict(rig.wide_from_world),
             "verdict": verdict.to_dict(),
             "frames": entries,
         }

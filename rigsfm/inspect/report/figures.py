@@ -15,6 +15,7 @@ import cv2
 import numpy as np
 import pycolmap
 
+from rigsfm.core.geometry import project
 from rigsfm.core.names import name_of
 from rigsfm.core.conventions import opencv_from_colmap_pixels
 
@@ -54,14 +55,9 @@ def epipolar_curve(camera_i: pycolmap.Camera, camera_j: pycolmap.Camera, j_from_
     distance = max(float(np.linalg.norm(j_from_i.translation)), 1e-6)
     depths = np.geomspace(0.05 * distance, 1e4 * distance, num)
     in_j = np.asarray(j_from_i * (ray[None, :] * depths[:, None]))
-    in_j = in_j[in_j[:, 2] > 1e-9]
-    if len(in_j) == 0:
-        return np.zeros((0, 2))
-    xy = np.asarray(camera_j.img_from_cam(in_j))
-    margin = 0.2 * max(camera_j.width, camera_j.height)
-    inside = (xy[:, 0] > -margin) & (xy[:, 0] < camera_j.width + margin) & \
-             (xy[:, 1] > -margin) & (xy[:, 1] < camera_j.height + margin)
-    return xy[inside]
+    # a little beyond the border so the line reaches it; points the distortion folds back are dropped
+    xy, seen = project(camera_j, in_j, margin_px=-0.2 * max(camera_j.width, camera_j.height))
+    return xy[seen]
 
 
 def _offset(curve: np.ndarray, distance: float) -> np.ndarray:

@@ -6,9 +6,17 @@ camera contributes (board pose in the wide frame; the narrow camera sees it thro
 periphery stays constrained. Levenberg-Marquardt (scipy ``least_squares``, method lm) on the pixel
 reprojection errors with the analytic Jacobian from ``cv2.projectPoints`` and ``cv2.composeRT``, each view's
 errors weighted by 1 / its corner noise (estimated from the fit: it varies 10x between frontal and tilted
-views). The covariance of the intrinsics and E^sl is (J^T W J)^-1 scaled by the weighted residual variance
-RSS_w / (2N - p), with the board poses marginalised out; over 24 synthetic calibrations the actual errors
-divided by its std devs have an RMS of 0.84-1.16 per parameter group (benchmarks/calibration_sigmas.py).
+views; weighting halves the errors of the estimate on rendered boards).
+
+Covariance of the intrinsics and E^sl (board poses marginalised out): (J^T W J)^-1 scaled by the weighted
+residual variance RSS_w / (2N - p), which assumes independent corner errors, then inflated per block (wide
+intrinsics, narrow intrinsics, E^sl) by sqrt(median over the block of jackknife variance / that variance),
+at least 1, the jackknife being the linearised delete-one-frame one. On rendered boards corner errors are
+independent, the factor is ~1 and the actual errors / sigmas have an RMS of 0.89-1.05 per parameter group
+over 24 calibrations (benchmarks/calibration_sigmas.py). On OpenCV's real chessboard pairs the residuals of
+neighbouring corners are correlated (0.3-0.5: lens-model misfit, a corner bias that repeats along the board),
+the independent-error sigmas are 2.2x (intrinsics) and 1.7x (E^sl) smaller than the leave-one-frame-out
+spread of the calibration, and the inflation restores them (tests/test_calibrate_real.py).
 
 Note: a narrow principal-point shift dp is almost indistinguishable from an E^sl rotation of dp / f_narrow
 rad (the narrow field of view is small), so the E^sl rotation is only as good as the narrow principal
@@ -47,12 +55,14 @@ class JointFit:
     std: np.ndarray  # std dev of fx, fy, cx, cy (wide) then (narrow), px
     condition: float  # of the column-scaled normal matrix
     noise: tuple[float, float] = (float("nan"), float("nan"))  # pooled corner noise (px per coordinate): wide, narrow
-    # Covariance of [wide intrinsics, narrow intrinsics, w (rad), t (m)] (see ``covariance``), where each
-    # camera's intrinsics are fx, fy, cx, cy, k1, k2, p1, p2[, k3] and w is a small rotation applied on the
-    # left of E^sl's rotation (R_true = Exp(w) R); board poses are marginalised out. None if singular.
+    # Covariance of [wide intrinsics, narrow intrinsics, w (rad), t (m)] (see ``block``), where each camera's
+    # intrinsics are fx, fy, cx, cy, k1, k2, p1, p2[, k3] (OpenCV) and w is a small rotation applied on the
+    # left of E^sl's rotation (R_true = Exp(w) R); board poses marginalised out. None if singular.
     covariance: np.ndarray | None = None
     n_wide: int = 8  # number of wide intrinsics in ``covariance``
     n_narrow: int = 8
+    covariance_iid: np.ndarray | None = None  # the same for independent corner noise, before the inflation
+    inflation: tuple[float, float, float] = (1.0, 1.0, 1.0)  # sigma factor: wide, narrow, E^sl (see joint_refine)
 
     def block(self, part: str) -> np.ndarray | None:
         """Covariance block of ``part``: 'wide', 'narrow' (intrinsics) or 'rig' (6x6 [w, t])."""
@@ -93,6 +103,28 @@ def view_noise(residuals: np.ndarray, J: np.ndarray, view_of_row: np.ndarray, ca
         cameras[c] = np.sqrt(rss[mine].sum() / max(redundancy[mine].sum(), 1e-9))
     prior = cameras[camera_of_view] ** 2
     return np.sqrt((rss + prior_dof * prior) / (redundancy + prior_dof)), cameras
+
+
+def frame_jackknife(J: np.ndarray, residuals: np.ndarray, frame_of_row: np.ndarray, n_shared: int,
+                    n_frames: int) -> np.ndarray:
+    """Delete-one-frame jackknife covariance of the first ``n_shared`` parameters, linearised: leaving frame f
+    out (its rows and its 6 pose columns) moves them by N_f^-1 J_f^T r_f (one Gauss-Newton step, exact for a
+    linear problem), N_f the normal matrix without it. ``J``, ``residuals``: weighted."""
+    scale = np.linalg.norm(J, axis=0)
+    scale[scale == 0] = 1
+    Js = J / scale
+    N = Js.T @ Js
+    shifts = []
+    for f in range(n_frames):
+        rows = frame_of_row == f
+        keep = np.ones(J.shape[1], bool)
+        keep[n_shared + 6 * f:n_shared + 6 * f + 6] = False
+        Jf = Js[rows][:, keep]
+        step = np.linalg.solve(N[np.ix_(keep, keep)] - Jf.T @ Jf, Jf.T @ residuals[rows])
+        shifts.append(step[:n_shared] / scale[:n_shared])
+    d = np.array(shifts)
+    d -= d.mean(0)
+    return (len(d) - 1) / len(d) * d.T @ d
 
 
 def _n_dist(cam: CameraCalibration) -> int:
@@ -176,8 +208,8 @@ def joint_refine(wide: CameraCalibration, narrow: CameraCalibration, narrow_pair
     x = x0
     for _ in range(NOISE_ITERATIONS):
         weights = 1.0 / noise[view_of_row]
-        fit = least_squares(lambda x: weights * evaluate(x, False)[0], x,
-                            jac=lambda x: weights[:, None] * evaluate(x, True)[1], method="lm", x_scale="jac",
+        fit = least_squares(lambda x, w=weights: w * evaluate(x, False)[0], x,
+                            jac=lambda x, w=weights: w[:, None] * evaluate(x, True)[1], method="lm", x_scale="jac",
                             xtol=1e-14, ftol=1e-14, gtol=1e-14, max_nfev=500)
         x = fit.x
         previous = noise
@@ -204,7 +236,8 @@ def joint_refine(wide: CameraCalibration, narrow: CameraCalibration, narrow_pair
     scale[scale == 0] = 1
     JTJ = (J / scale).T @ (J / scale)
     condition = float(np.linalg.cond(JTJ))
-    covariance = None
+    covariance = covariance_iid = None
+    inflation = np.ones(3)
     try:
         cov = np.linalg.inv(JTJ) / np.outer(scale, scale) * sigma2
         std = np.sqrt(np.abs(np.diag(cov)))
@@ -212,7 +245,14 @@ def joint_refine(wide: CameraCalibration, narrow: CameraCalibration, narrow_pair
         # rotation vector r -> left perturbation w (R(r + dr) = Exp(J_l(r) dr) R(r)); board poses dropped
         A = np.eye(off_f)
         A[off_e:off_e + 3, off_e:off_e + 3] = left_jacobian(x[off_e:off_e + 3])
-        covariance = A @ cov[:off_f, :off_f] @ A.T
+        covariance_iid = A @ cov[:off_f, :off_f] @ A.T
+        frame_of_row = np.repeat([b[1] for b in blocks], [2 * len(b[3]) for b in blocks])
+        jackknife = A @ frame_jackknife(J, weights * fit.fun, frame_of_row, off_f, len(frames)) @ A.T
+        ratio = np.diag(jackknife) / np.diag(covariance_iid)
+        parts = np.split(np.arange(off_f), [ni_w, off_e])  # wide intrinsics, narrow intrinsics, E^sl
+        inflation = np.array([np.sqrt(max(1.0, float(np.median(ratio[p])))) for p in parts])
+        k = np.concatenate([np.full(len(p), f) for p, f in zip(parts, inflation)])
+        covariance = covariance_iid * np.outer(k, k)
     except np.linalg.LinAlgError:
         std = np.full(8, np.inf)
     Kw, dw = _unpack_intr(x[:ni_w])
@@ -224,7 +264,9 @@ def joint_refine(wide: CameraCalibration, narrow: CameraCalibration, narrow_pair
                       per_view={n: (per_block.get((0, n), float("nan")), per_block.get((1, n), float("nan")))
                                 for n in common},
                       std=std, condition=condition, covariance=covariance, n_wide=ni_w, n_narrow=ni_n,
-                      noise=(float(camera_noise[0]), float(camera_noise[-1]) if len(camera_noise) > 1 else float("nan")))
-    logger.info("joint refinement: %d frames, RMS wide %.3f / narrow %.3f px, noise %.3f / %.3f px, cond %.2g, %s",
-                len(frames), result.rms_wide, result.rms_narrow, *result.noise, condition, fit.message)
+                      noise=(float(camera_noise[0]), float(camera_noise[-1]) if len(camera_noise) > 1 else float("nan")),
+                      covariance_iid=covariance_iid, inflation=tuple(float(v) for v in inflation))
+    logger.info("joint refinement: %d frames, RMS wide %.3f / narrow %.3f px, noise %.3f / %.3f px, sigma inflation "
+                "%.2f / %.2f / %.2f, cond %.2g, %s", len(frames), result.rms_wide, result.rms_narrow, *result.noise,
+                *inflation, condition, fit.message)
     return result

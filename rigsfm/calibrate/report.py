@@ -147,7 +147,8 @@ def rig_text(rig: RigResult, board_description: str) -> str:
         lines += _pose_text(st.joint, "joint refinement")
         d = st.joint_detail
         if d is not None:
-            lines.append(f"    joint std fx fy cx cy: wide {' '.join(f'{v:.3f}' for v in d.std[:4])}, narrow "
+            lines.append(f"    joint std fx fy cx cy (independent corner errors): wide "
+                         f"{' '.join(f'{v:.3f}' for v in d.std[:4])}, narrow "
                          f"{' '.join(f'{v:.3f}' for v in d.std[4:])} px; per-camera RMS {d.rms_wide:.3f} / "
                          f"{d.rms_narrow:.3f} px; condition {d.condition:.2g}")
             lines.append("    (a narrow principal-point error dp shifts the E^sl rotation by about dp / f_narrow rad)")
@@ -196,7 +197,7 @@ def _sigma_text(rig: RigResult) -> list[str]:
                        reverse=True)
         strong = [f"{names[j]} / {names[i]} {corr[i, j]:+.3f}" for c, i, j in pairs[:4] if c > 0.5]
         if strong:
-            lines.append("  correlations between sensors and E^sl (not in rigs.yaml): " + "; ".join(strong))
+            lines.append("  strongest correlations across wide / narrow / E^sl (not in rigs.yaml): " + "; ".join(strong))
     return lines
 
 

@@ -9,6 +9,7 @@ import cv2
 import numpy as np
 import pytest
 import yaml
+from scipy.spatial.transform import Rotation
 
 from rigsfm.calibrate import calibrate_rigs
 from rigsfm.calibrate.board import board_spec_from_dict
@@ -125,3 +126,65 @@ def test_cli_writes_rigs_yaml_and_report(board_dir, tmp_path):
         assert (report / name).is_file(), name
     assert cv2.imread(str(report / "wide_view_errors.png")) is not None
     assert "E^sl" in (report / "report.txt").read_text()
+
+
+def _parameters(rig, R0: np.ndarray) -> np.ndarray:
+    """fx fy cx cy of both cameras (px), E^sl w (deg, R = Exp(w) R0) and t (mm): what the sigmas are compared on."""
+    f = rig.stereo.final
+    w = Rotation.from_matrix(rig.R @ R0.T).as_rotvec()
+    return np.concatenate([[f.K_wide[0, 0], f.K_wide[1, 1], f.K_wide[0, 2], f.K_wide[1, 2], f.K_narrow[0, 0],
+                            f.K_narrow[1, 1], f.K_narrow[0, 2], f.K_narrow[1, 2]], np.degrees(w), 1000 * rig.T])
+
+
+def _jackknife(samples: np.ndarray) -> np.ndarray:
+    k = len(samples)
+    return np.sqrt((k - 1) / k * ((samples - samples.mean(0)) ** 2).sum(0))
+
+
+def test_sigmas_match_the_leave_one_pair_out_spread(result, tmp_path):
+    """The written sigmas against the jackknife spread of the calibration over the 13 leave-one-pair-out runs
+    (ours, and OpenCV's stereo_calib recipe for scale). Corner errors on these real images are correlated
+    (neighbouring corners' residuals 0.3-0.5), so the independent-error covariance alone is ~2x too small here;
+    the written (jackknife-inflated) sigmas must be within a factor 2 of the spread per group. ~15 s."""
+    sigmas = result.sigmas()
+    detail = result.stereo.joint_detail
+    written = np.concatenate([sigmas.wide[:4], sigmas.narrow[:4], sigmas.rotation_deg, 1000 * sigmas.translation_m])
+    iid = np.sqrt(np.diag(detail.covariance_iid))
+    iid = np.concatenate([iid[:4], iid[detail.n_wide:detail.n_wide + 4], np.degrees(iid[-6:-3]), 1000 * iid[-3:]])
+    ours = []
+    for left_out in FRAMES:
+        root = tmp_path / left_out / "BOARD"
+        for sensor, side in (("wide", "left"), ("narrow", "right")):
+            (root / "rig01" / sensor).mkdir(parents=True)
+            for n in FRAMES:
+                if n != left_out:
+                    shutil.copy(DATA / f"{side}{n}.jpg", root / "rig01" / sensor / f"{n}.jpg")
+        ours.append(_parameters(calibrate_rigs(root, board_spec_from_dict(SPEC), distortion="opencv").rigs[0], result.R))
+    spread = _jackknife(np.array(ours))
+    size, crit = (640, 480), (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 100, 1e-12)
+    left = {n: opencv_corners(DATA / f"left{n}.jpg", 11) for n in FRAMES}
+    right = {n: opencv_corners(DATA / f"right{n}.jpg", 11) for n in FRAMES}
+    opencv = []
+    for left_out in FRAMES:
+        names = [n for n in FRAMES if n != left_out]
+        obj, img_l, img_r = [object_points()] * len(names), [left[n] for n in names], [right[n] for n in names]
+        _, K_l, d_l, _, _ = cv2.calibrateCamera(obj, img_l, size, None, None, flags=cv2.CALIB_FIX_K3, criteria=crit)
+        _, K_r, d_r, _, _ = cv2.calibrateCamera(obj, img_r, size, None, None, flags=cv2.CALIB_FIX_K3, criteria=crit)
+        _, K1, _, K2, _, R, T, _, _ = cv2.stereoCalibrate(obj, img_l, img_r, K_l, d_l, K_r, d_r, size, criteria=crit,
+                                                          flags=cv2.CALIB_USE_INTRINSIC_GUESS | cv2.CALIB_FIX_K3)
+        opencv.append(np.concatenate([[K1[0, 0], K1[1, 1], K1[0, 2], K1[1, 2], K2[0, 0], K2[1, 1], K2[0, 2], K2[1, 2]],
+                                      np.degrees(Rotation.from_matrix(R @ result.R.T).as_rotvec()), 1000 * T.ravel()]))
+    spread_opencv = _jackknife(np.array(opencv))
+    names = [f"{c} {p}" for c in ("wide", "narrow") for p in ("fx", "fy", "cx", "cy")] + \
+        ["E^sl w_x deg", "E^sl w_y deg", "E^sl w_z deg", "E^sl t_x mm", "E^sl t_y mm", "E^sl t_z mm"]
+    print(f"\nsigma inflation (wide / narrow / E^sl) {' / '.join(f'{v:.2f}' for v in detail.inflation)}")
+    print(f"{'':14}{'written':>9}{'iid':>9}{'spread':>9}{'OpenCV':>9}   (spread: jackknife over 13 leave-one-pair-out runs)")
+    for i, n in enumerate(names):
+        print(f"{n:14}{written[i]:9.4f}{iid[i]:9.4f}{spread[i]:9.4f}{spread_opencv[i]:9.4f}")
+    groups = {"wide intrinsics": slice(0, 4), "narrow intrinsics": slice(4, 8), "E^sl rotation": slice(8, 11),
+              "E^sl translation": slice(11, 14)}
+    for group, cut in groups.items():
+        ratio = np.sqrt(np.mean(written[cut] ** 2) / np.mean(spread[cut] ** 2))
+        print(f"{group}: written / spread {ratio:.2f}, independent-error / spread "
+              f"{np.sqrt(np.mean(iid[cut] ** 2) / np.mean(spread[cut] ** 2)):.2f}")
+        assert 0.5 < ratio < 2.0, group

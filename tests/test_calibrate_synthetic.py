@@ -2,13 +2,17 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 import yaml
+from scipy.spatial.transform import Rotation
 from typer.testing import CliRunner
 
 from rigsfm.calibrate.board import board_spec_from_dict
 from rigsfm.calibrate import CalibrateOptions, CalibrationResult, calibrate, calibrate_rigs, write_calibration
+from rigsfm.calibrate.intrinsics import colmap_camera
 from rigsfm.cli import app
 from rigsfm.synth.boards import (
     board_views,
@@ -16,6 +20,7 @@ from rigsfm.synth.boards import (
     write_board_dataset,
     write_scene_dataset,
 )
+from rigsfm.calibrate.uncertainty import load_sigmas
 from rigsfm.core.conventions import rotation_angle_deg
 from rigsfm.core.errors import WorkspaceError
 from rigsfm.core.rig import load_rigs
@@ -100,6 +105,37 @@ def test_end_to_end_rigs_yaml_round_trip(dataset, result, tmp_path):
         calibrate(root / "BOARD", out, CalibrateOptions(board=root / "board.yaml", merge=True))
 
 
+def test_sigmas_written_to_rigs_yaml(result, tmp_path):
+    """rigs.yaml carries the joint refinement's sigmas (per COLMAP param, E^sl rotation/translation, 6x6
+    covariance); here the actual errors are within 4 sigma (their RMS over many boards: test_calibrate_sigmas)."""
+    out = tmp_path / "rigs.yaml"
+    write_calibration(CalibrationResult(board_spec_from_dict(SPEC), [result]), out)
+    (rig,) = load_rigs(out)
+    sigmas = load_sigmas(out)["rig01"]
+    expected = result.sigmas()
+    for sensor, truth in (("wide", RIG.wide), ("narrow", RIG.narrow)):
+        camera = rig.camera(sensor)
+        written = sigmas.sensor(sensor)
+        assert len(written) == len(camera.params)
+        np.testing.assert_allclose(written, expected.sensor(sensor), rtol=1e-3)
+        true = colmap_camera(truth.K, truth.dist, truth.size, camera.model.name).params
+        assert np.all(np.abs(np.asarray(camera.params) - true)[written > 0] < 4 * written[written > 0]), sensor
+    w = Rotation.from_matrix(RIG.R @ rig.narrow_from_wide.rotation.matrix().T).as_rotvec()
+    assert np.all(np.abs(np.degrees(w)) < 4 * sigmas.rotation_deg)
+    assert np.all(np.abs(RIG.t - rig.narrow_from_wide.translation) < 4 * sigmas.translation_m)
+    np.testing.assert_allclose(np.sqrt(np.diag(sigmas.covariance)),
+                               np.concatenate([np.radians(sigmas.rotation_deg), sigmas.translation_m]), rtol=1e-3)
+    assert 0 < sigmas.rotation_deg.max() < 0.05 and 0 < sigmas.translation_m.max() < 0.001
+    assert "E^sl rotation sigma" in (tmp_path / "rigs.calibration" / "rig01" / "report.txt").read_text()
+    # --merge keeps the other rigs' entries as they were, sigmas included
+    write_calibration(CalibrationResult(board_spec_from_dict(SPEC), [dataclasses.replace(result, name="rig02")]), out,
+                      merge=True)
+    merged_sigmas = load_sigmas(out)
+    assert [r.name for r in load_rigs(out)] == ["rig01", "rig02"]
+    np.testing.assert_array_equal(merged_sigmas["rig01"].covariance, sigmas.covariance)
+    np.testing.assert_array_equal(merged_sigmas["rig02"].narrow, sigmas.narrow)
+
+
 def test_merge_keeps_other_rigs(result, tmp_path):
     from rigsfm.calibrate.output import merged
     from rigsfm.core.rig import RigCalibration, write_rigs
@@ -127,3 +163,5 @@ def test_from_scene(dataset, tmp_path):
     assert direction < 1.0
     assert np.linalg.norm(t) == pytest.approx(0.12, abs=1e-12)  # --baseline
     assert "scene" in (tmp_path / "rigs.calibration" / "rig01" / "report.txt").read_text()
+    sigmas = load_sigmas(out)["rig01"]  # E^sl not from the board: no E^sl sigmas, intrinsics ones kept
+    assert sigmas.wide is not None and sigmas.rotation_deg is None and sigmas.covariance is None

@@ -1,4 +1,9 @@
-"""Writing the calibration: rigs.yaml (optionally merged into an existing one) and the report folder."""
+"""Writing the calibration: rigs.yaml (optionally merged into an existing one) and the report folder.
+
+Each rig is written as ``rigs.rigs_to_yaml`` writes it plus the uncertainty keys of ``uncertainty.py``
+(``sigmas`` per sensor, ``sigma_rotation_deg``, ``sigma_translation_m``, ``covariance`` for E^sl). Rigs
+that a merge keeps are copied from the existing file entry by entry, so their own uncertainties survive.
+"""
 
 from __future__ import annotations
 
@@ -6,8 +11,12 @@ import logging
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+import yaml
+
+from rigsfm.calibrate.uncertainty import add_sigmas, rig_sigmas
 from rigsfm.core.errors import WorkspaceError
-from rigsfm.core.rig import RigCalibration, load_rigs, write_rigs
+from rigsfm.core.io import load_yaml_or_json, write_text_atomic
+from rigsfm.core.rig import RigCalibration, load_rigs, rigs_to_yaml
 
 if TYPE_CHECKING:
     from rigsfm.calibrate import CalibrationResult
@@ -54,6 +63,19 @@ def write_outputs(result: CalibrationResult, out: Path, *, merge: bool = False, 
     existing = check_output(out, [r.name for r in new], merge=merge, overwrite=overwrite)
     report_dir = Path(report_dir) if report_dir is not None else default_report_dir(Path(out))
     write_report(result, report_dir)
-    write_rigs(Path(out), merged(existing, new), overwrite=True)
+    write_text_atomic(Path(out), rigs_yaml_text(result, existing, Path(out)), overwrite=True)
     logger.info("wrote %s (%d rigs) and the report in %s", out, len(new), report_dir)
     return Path(out), report_dir
+
+
+def rigs_yaml_text(result: CalibrationResult, existing: list[RigCalibration], out: Path) -> str:
+    """rigs.yaml with ``result``'s rigs and their uncertainties, after the ``existing`` rigs a merge keeps."""
+    new = result.rig_calibrations()
+    entries = yaml.safe_load(rigs_to_yaml(new))["rigs"] if new else []
+    by_name = {e["name"]: add_sigmas(e, rig_sigmas(rig)) for e, rig in zip(entries, result.rigs)}
+    kept = {}
+    if existing:  # the entries as they are in the file (validated by load_rigs in check_output)
+        kept = {e["name"]: e for e in load_yaml_or_json(out, "rig calibration")["rigs"]}
+    rigs = [r.name for r in merged(existing, new)]
+    data = {"units": "meters", "rigs": [by_name[n] if n in by_name else kept[n] for n in rigs]}
+    return yaml.safe_dump(data, sort_keys=False, default_flow_style=None, width=120)

@@ -38,6 +38,7 @@ from rigsfm.calibrate.options import CalibrateOptions
 from rigsfm.calibrate.intrinsics import CameraCalibration, calibrate_camera, colmap_camera
 from rigsfm.calibrate.scene import SceneEstimate, estimate_from_scene
 from rigsfm.calibrate.stereo import StereoCalibration, calibrate_stereo
+from rigsfm.calibrate.uncertainty import RigSigmas, rig_sigmas
 from rigsfm.core.conventions import rotation_angle_deg
 from rigsfm.core.errors import InputError
 from rigsfm.core.rig import RigCalibration
@@ -55,6 +56,7 @@ class RigResult:
     R: np.ndarray  # final narrow_from_wide
     T: np.ndarray
     scene: SceneEstimate | None = None
+    measured_baseline: float | None = None  # --baseline (m), replacing the board's length of T
     notes: list[str] = field(default_factory=list)
     warnings: list[str] = field(default_factory=list)
 
@@ -63,6 +65,10 @@ class RigResult:
         fit = self.stereo.final
         return (colmap_camera(fit.K_wide, fit.dist_wide, self.wide.image_size, self.wide.model),
                 colmap_camera(fit.K_narrow, fit.dist_narrow, self.narrow.image_size, self.narrow.model))
+
+    def sigmas(self) -> RigSigmas:
+        """The uncertainties written with this rig (``uncertainty.py``)."""
+        return rig_sigmas(self)
 
     def rig_calibration(self) -> RigCalibration:
         wide, narrow = self.cameras()
@@ -116,7 +122,7 @@ def calibrate_rig(frames: RigFrames, board: BoardSpec, *, distortion: str = "aut
     fit = stereo.final
     R, T = fit.R.copy(), fit.T.copy()
     result = RigResult(name=frames.name, wide=wide, narrow=narrow, stereo=stereo, R=R, T=T,
-                       warnings=wide.warnings + narrow.warnings)
+                       measured_baseline=baseline, warnings=wide.warnings + narrow.warnings)
     length = float(np.linalg.norm(T)) if baseline is None else float(baseline)
     if scene is not None:
         est = estimate_from_scene([(scene.wide[n], scene.narrow[n]) for n in scene.frames], fit.K_wide, fit.dist_wide,

@@ -147,7 +147,8 @@ def rig_text(rig: RigResult, board_description: str) -> str:
         lines += _pose_text(st.joint, "joint refinement")
         d = st.joint_detail
         if d is not None:
-            lines.append(f"    joint std fx fy cx cy: wide {' '.join(f'{v:.3f}' for v in d.std[:4])}, narrow "
+            lines.append(f"    joint std fx fy cx cy (independent corner errors): wide "
+                         f"{' '.join(f'{v:.3f}' for v in d.std[:4])}, narrow "
                          f"{' '.join(f'{v:.3f}' for v in d.std[4:])} px; per-camera RMS {d.rms_wide:.3f} / "
                          f"{d.rms_narrow:.3f} px; condition {d.condition:.2g}")
             lines.append("    (a narrow principal-point error dp shifts the E^sl rotation by about dp / f_narrow rad)")
@@ -162,7 +163,42 @@ def rig_text(rig: RigResult, board_description: str) -> str:
     lines += ["", "Written to rigs.yaml (narrow_from_wide):",
               "  rotation: " + "; ".join(" ".join(f"{v:.8f}" for v in row) for row in R),
               "  translation (m): " + " ".join(f"{v:.6f}" for v in t) + f"   baseline {np.linalg.norm(t):.6f} m"]
+    lines += [""] + _sigma_text(rig)
     return "\n".join(lines) + "\n"
+
+
+PARAM_NAMES = ["fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3"]
+
+
+def _sigma_text(rig: RigResult) -> list[str]:
+    sigmas = rig.sigmas()
+    lines = ["Uncertainties written to rigs.yaml (1 sigma, from the joint refinement's covariance):"]
+    for sensor in ("wide", "narrow"):
+        values = sigmas.sensor(sensor)
+        if values is not None:
+            lines.append(f"  {sensor} sigmas: " + ", ".join(f"{n} {v:.3g}" for n, v in zip(PARAM_NAMES, values)))
+    if sigmas.rotation_deg is not None:
+        lines.append("  E^sl rotation sigma (deg, R_true = Exp(w) R, w in narrow axes): "
+                     + " ".join(f"{v:.4f}" for v in sigmas.rotation_deg))
+    if sigmas.translation_m is not None:
+        lines.append("  E^sl translation sigma (mm): " + " ".join(f"{1000 * v:.3f}" for v in sigmas.translation_m))
+    lines += [f"  note: {n}" for n in sigmas.notes]
+    detail = rig.stereo.joint_detail
+    if rig.stereo.use_joint and detail is not None and detail.covariance is not None:
+        lines.append(f"  corner noise estimated from the fit: wide {detail.noise[0]:.3f}, narrow {detail.noise[1]:.3f} px; "
+                     "sigmas for independent corner errors x " + " / ".join(f"{v:.2f}" for v in detail.inflation)
+                     + " (wide / narrow / E^sl: the leave-one-frame-out jackknife's excess, >= 1)")
+        names = ([f"wide {n}" for n in PARAM_NAMES[:detail.n_wide]] + [f"narrow {n}" for n in PARAM_NAMES[:detail.n_narrow]]
+                 + ["E^sl w_x", "E^sl w_y", "E^sl w_z", "E^sl t_x", "E^sl t_y", "E^sl t_z"])
+        part = np.repeat([0, 1, 2], [detail.n_wide, detail.n_narrow, 6])
+        std = np.sqrt(np.clip(np.diag(detail.covariance), 1e-300, None))
+        corr = detail.covariance / np.outer(std, std)
+        pairs = sorted(((abs(corr[i, j]), i, j) for i in range(len(std)) for j in range(i) if part[i] != part[j]),
+                       reverse=True)
+        strong = [f"{names[j]} / {names[i]} {corr[i, j]:+.3f}" for c, i, j in pairs[:4] if c > 0.5]
+        if strong:
+            lines.append("  strongest correlations across wide / narrow / E^sl (not in rigs.yaml): " + "; ".join(strong))
+    return lines
 
 
 def write_report(result: CalibrationResult, report_dir: Path) -> Path:

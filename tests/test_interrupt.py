@@ -2,8 +2,8 @@
 incremental mapper starts from a pair COLMAP accepts (issue 10).
 
 The scene: 4 rigs 30 deg apart on a 90 deg arc, textured ground in the centre. Neighbouring rigs share the most
-matches, mostly on the ground: COLMAP's initial-pair test rejects them (a near-planar scene seen with a small
-triangulation angle), which is what made a forced most-inliers pair stall the mapper for minutes.
+matches, mostly on the ground: COLMAP's initial-pair test rejects them (labelled planar, the pose from the
+homography triangulates at 2-3 deg), which is what made a forced most-inliers pair stall the mapper for minutes.
 """
 
 from __future__ import annotations
@@ -21,12 +21,12 @@ import pycolmap
 import pytest
 
 from rigsfm.core import stages
+from rigsfm.core.rig import load_rigs
 from rigsfm.core.workspace import Workspace
 from rigsfm.run.database import create_database
 from rigsfm.run.features import extract_features, match_features
 from rigsfm.run.inputs import scan_images
-from rigsfm.core.rig import load_rigs
-from rigsfm.run.mapping import (RELAXATIONS, _incremental_options, initial_pair, run_mapping, wide_pairs)
+from rigsfm.run.mapping import RELAXATIONS, _incremental_options, initial_pair, run_mapping, wide_pairs
 from rigsfm.run.options import Mapper, MappingOptions, MatchingOptions
 from rigsfm.synth.dataset import render_dataset
 from rigsfm.synth.scene import SceneOptions
@@ -158,13 +158,18 @@ def _alive(pid: int) -> bool:
     return state != "Z"
 
 
+def _as_from_a_terminal() -> None:
+    """SIGINT as a terminal's foreground job has it (a shell starts background jobs with SIGINT ignored)."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def _run(scene, out, env, *, signum=None, when=None, group=False) -> tuple[int, str, str]:
     """Run the command; with ``signum``, send it once ``when`` appears in OUT/colmap.log (to the process group
     with ``group``, as a terminal's Ctrl-C does). Returns exit code, stderr, and colmap.log."""
     log = out / "colmap.log"
     start = log.stat().st_size if log.exists() else 0
     process = subprocess.Popen(_command(scene, out), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                               env=env, cwd=ROOT, start_new_session=True)
+                               env=env, cwd=ROOT, start_new_session=True, preexec_fn=_as_from_a_terminal)
     helpers: set[int] = set()
     if signum is not None:
         while process.poll() is None:

@@ -91,6 +91,8 @@ def start(preload: Iterable[str] = ()) -> None:
     caller goes on; otherwise it starts at the first stage. Modules named after it has started are imported by
     each child instead (slower, same result)."""
     global _context
+    if not runs_in_child():
+        return
     if _context is None:
         _context = multiprocessing.get_context("forkserver")
     _PRELOAD[-1:-1] = [name for name in preload if name not in _PRELOAD]
@@ -271,7 +273,7 @@ def in_child(fn: Callable[..., T], *args, **kwargs) -> T:
         return fn(*args, **kwargs)
     if _context is None:
         start()
-    assert _context is not None
+    assert _context is not None, "runs_in_child() changed meanwhile"
     callables = {key: value for key, value in [*enumerate(args), *kwargs.items()]
                  if callable(value) and not isinstance(value, type)}
     plain_args = tuple(None if i in callables else value for i, value in enumerate(args))

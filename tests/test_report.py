@@ -45,7 +45,8 @@ def test_run_writes_report_with_bands(result):
         assert 1.0 < near < far < 200.0  # the rigs are 15 m from the centre they look at
     page = (out / "report.html").read_text()
     assert "<script" not in page and 'src="http' not in page and 'href="http' not in page and "url(" not in page
-    assert page.count('src="data:image/png;base64,') == 3  # one epipolar figure per narrow pair
+    assert page.count('<img alt="epipolar check ') == 3  # one epipolar figure per narrow pair
+    assert page.count('<img alt="reprojection errors of ') == 3  # one histogram per camera with observations
     assert f"{narrow['pairs'][0]['epipolar_band_95_px']:.3g}" in page
 
 

@@ -8,6 +8,7 @@ homography triangulates at 2-3 deg), which is what made a forced most-inliers pa
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import signal
@@ -242,3 +243,16 @@ def test_leftovers_of_a_killed_stage_are_swept_and_nothing_else(tmp_path):
 
 def test_stage_runs_in_a_child_by_default():
     assert stages.runs_in_child()
+
+
+@pytest.mark.slow
+def test_stages_in_a_child_give_the_same_result_as_in_process(scene, tmp_path):
+    from rigsfm.run.pipeline import run
+
+    results = {}
+    for mode in ("child", "in_process"):
+        context = stages.in_process() if mode == "in_process" else contextlib.nullcontext()
+        with context:
+            run(scene.images, scene.rigs, tmp_path / mode, scene.scale)
+        results[mode] = _results(tmp_path / mode)
+    assert results["child"] == results["in_process"]  # every number of summary.json and narrow_poses.json

@@ -23,6 +23,7 @@ import pytest
 
 from rigsfm.core import stages
 from rigsfm.core.rig import load_rigs
+from rigsfm.core.errors import WorkspaceError
 from rigsfm.core.workspace import Workspace
 from rigsfm.run.database import create_database
 from rigsfm.run.features import extract_features, match_features
@@ -239,6 +240,17 @@ def test_leftovers_of_a_killed_stage_are_swept_and_nothing_else(tmp_path):
     workspace.prepare(overwrite=False)
     assert not any(path.exists() for path in ours)
     assert all(path.exists() for path in others)
+
+
+def test_a_run_stopped_while_delivering_is_resumed_a_finished_one_kept(tmp_path):
+    workspace = Workspace(tmp_path / "out")
+    workspace.prepare(overwrite=False)
+    workspace.sparse.mkdir()
+    workspace.narrow_poses.write_text("{}")
+    workspace.prepare(overwrite=False)  # no summary.json: stopped before the end, the same command goes on
+    workspace.summary.write_text("{}")
+    with pytest.raises(WorkspaceError, match="already holds a result .sparse, narrow_poses.json, summary.json"):
+        workspace.prepare(overwrite=False)
 
 
 def test_stage_runs_in_a_child_by_default():

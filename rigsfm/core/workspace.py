@@ -148,9 +148,11 @@ class Workspace:
                                  "folder (rigsfm never writes among files it did not make)")
 
     def prepare(self, *, overwrite: bool) -> None:
-        """Create the folder; refuse a folder that holds other files, and an existing result unless ``overwrite``."""
+        """Create the folder; refuse a folder that holds other files, and an existing result unless ``overwrite``.
+        A run is finished when its summary.json (written last) exists; what a run stopped while delivering wrote
+        before it is replaced, so that the same command resumes."""
         self._check_ours()
-        existing = [p.name for p in self.results if p.exists()]
+        existing = [p.name for p in self.results if p.exists()] if self.summary.exists() else []
         if existing and not overwrite:
             raise WorkspaceError(
                 f"{self.root} already holds a result ({', '.join(existing)}); pass --overwrite to replace it "

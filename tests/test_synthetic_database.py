@@ -86,7 +86,7 @@ def test_scale_from_narrow_baselines_with_honest_uncertainty(tmp_path):
     """Textured narrow views: the metric E^sl baselines alone set the scale, and its reported
     uncertainty covers the actual error."""
     net = make_network(tmp_path, num_rigs=4, seed=11, narrow_observations=True, noise_px=0.5)
-    mapped = run_mapping(Workspace(tmp_path), tmp_path, MappingOptions(), num_wide=4, keep_narrow_offsets=True).reconstruction
+    mapped = run_mapping(Workspace(tmp_path), tmp_path, MappingOptions(), num_wide=4).reconstruction
     result = adjust(mapped, net.rigs, None)
     assert result.scale_source == ScaleSource.NARROW_BASELINES
     a, b = "rig01/wide/frame0000.png", "rig03/wide/frame0000.png"

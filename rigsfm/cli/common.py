@@ -30,6 +30,12 @@ def _raise_terminated(signum, frame) -> None:
     raise Terminated()
 
 
+def _import_native_libraries() -> None:
+    """pycolmap's import (glog's failure handler) takes SIGTERM over, printing a C stack trace and no message;
+    imported before ``fail_cleanly`` sets its handler, it cannot (0.2 s, which most commands spend anyway)."""
+    import pycolmap  # noqa: F401
+
+
 def flag(*names: str, help: str) -> typer.models.OptionInfo:
     """A boolean option shown as a plain flag (``--overwrite``), not ``--overwrite <bool>``."""
     return typer.Option(*names, help=help, metavar="")
@@ -48,6 +54,7 @@ def fail_cleanly(command):
         from rigsfm.core.errors import RigsfmError
         from rigsfm.core.workspace import os_error_text
 
+        _import_native_libraries()  # first: their import replaces the SIGTERM handler
         previous = signal.signal(signal.SIGTERM, _raise_terminated)
         try:
             return command(*args, **kwargs)
@@ -56,11 +63,11 @@ def fail_cleanly(command):
             raise typer.Exit(EXIT_ERROR) from None
         except KeyboardInterrupt:
             err_console.print("[bold red]interrupted[/] (Ctrl-C): nothing finished was lost; re-run the same command "
-                              "to resume")
+                              "to resume", soft_wrap=True)
             raise typer.Exit(EXIT_INTERRUPTED) from None
         except Terminated:
             err_console.print("[bold red]terminated[/] (SIGTERM): nothing finished was lost; re-run the same command "
-                              "to resume")
+                              "to resume", soft_wrap=True)
             raise typer.Exit(EXIT_TERMINATED) from None
         except OSError as error:  # disk full, read-only, permission: the user's to fix, with the path
             where = f"{error.filename}: " if error.filename else ""

@@ -79,6 +79,10 @@ def run_command(
         help="verify matches of two frames with both rigs' cameras at once [default: on, off with --narrow-features]",
         show_default=False)] = None,
     seed: Annotated[int, typer.Option("--seed", help="random seed of the mapper's RANSAC and sampling")] = 0,
+    incremental_time_limit: Annotated[int, typer.Option(
+        "--incremental-time-limit", min=0, metavar="SECONDS",
+        help="after this long the incremental mapper stops and the global mapper's model is used (with a warning)"
+    )] = MappingOptions().incremental_time_limit_s,
     overwrite: Annotated[bool, flag("--overwrite", help="replace an existing result in OUT (features and matches "
                                                         "made with the same settings are reused)")] = False,
     strict: Annotated[bool, STRICT] = False,
@@ -91,7 +95,7 @@ def run_command(
     options = RunOptions(
         matching=MatchingOptions(max_ratio=max_ratio, cross_check=cross_check, rig_verification=rig_verification,
                                  narrow_features=narrow_features, features=features),
-        mapping=MappingOptions(mapper=mapper, seed=seed),
+        mapping=MappingOptions(mapper=mapper, seed=seed, incremental_time_limit_s=incremental_time_limit),
         overwrite=overwrite,
         manual_matches=manual_matches,
     )

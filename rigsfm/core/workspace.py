@@ -7,7 +7,7 @@ OUT/
   database.db         COLMAP database: cameras, rigs with E^sl, features, verified matches
   features.json       the settings the features and matches were made with
   pairs.txt           the image pairs being matched (transient)
-  mapping.db          the database copy the mapper reads;  mapping/  the mapper's raw model
+  mapping/            the mapper's raw model (arbitrary units)
   sparse/             the final metric model            narrow_poses.json  points3D.ply  summary.json
   report.html         colmap.log
   export/<format>/    `rigsfm export`                  track/  `rigsfm track` (poses.json, poses.csv, plots/)
@@ -21,12 +21,16 @@ import errno
 import fcntl
 import logging
 import os
+import re
+import shutil
 import sys
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
 from rigsfm.core.errors import WorkspaceError
+
+logger = logging.getLogger(__name__)
 
 MARKER = ".rigsfm-workspace"
 LOCK = ".rigsfm.lock"
@@ -79,11 +83,6 @@ class Workspace:
     def mapping(self) -> Path:
         """Wide-camera registration straight out of the mapper (arbitrary units)."""
         return self.root / "mapping"
-
-    @property
-    def mapping_database(self) -> Path:
-        """The database copy the mapper reads (see ``mapping.mapping_database``)."""
-        return self.root / "mapping.db"
 
     @property
     def sparse(self) -> Path:
@@ -149,9 +148,11 @@ class Workspace:
                                  "folder (rigsfm never writes among files it did not make)")
 
     def prepare(self, *, overwrite: bool) -> None:
-        """Create the folder; refuse a folder that holds other files, and an existing result unless ``overwrite``."""
+        """Create the folder; refuse a folder that holds other files, and an existing result unless ``overwrite``.
+        A run is finished when its summary.json (written last) exists; what a run stopped while delivering wrote
+        before it is replaced, so that the same command resumes."""
         self._check_ours()
-        existing = [p.name for p in self.results if p.exists()]
+        existing = [p.name for p in self.results if p.exists()] if self.summary.exists() else []
         if existing and not overwrite:
             raise WorkspaceError(
                 f"{self.root} already holds a result ({', '.join(existing)}); pass --overwrite to replace it "
@@ -159,6 +160,35 @@ class Workspace:
             )
         writable(self.root)
         (self.root / MARKER).touch()
+        self.sweep()
+
+    def leftovers(self) -> list[Path]:
+        """What an interrupted or killed stage left: the temporary files and folders of rigsfm's atomic writes
+        (``.<name>.<8 characters>.tmp``, ``.<name>.old``) of this workspace's own files and folders, and
+        ``mapping.db`` (and ``.tmp``), the database copy older versions mapped from."""
+        if not self.root.is_dir():
+            return []
+        names = {path.name for path in (self.database, self.feature_settings, self.pairs, self.mapping, *self.results,
+                                        self.report)}
+        pattern = re.compile(r"\.(?P<name>.+)\.(?:[a-z0-9_]{8}\.tmp|old)")
+        found = []
+        for path in self.root.iterdir():
+            match = pattern.fullmatch(path.name)
+            if (match and match["name"] in names) or path.name in ("mapping.db", "mapping.db.tmp"):
+                found.append(path)
+        return sorted(found)
+
+    def sweep(self) -> list[Path]:
+        """Remove :meth:`leftovers` (only ever names rigsfm writes); returns what was removed."""
+        removed = self.leftovers()
+        for path in removed:
+            if path.is_dir() and not path.is_symlink():
+                shutil.rmtree(path, ignore_errors=True)
+            else:
+                path.unlink(missing_ok=True)
+        if removed:
+            logger.info("Removed what an interrupted run left in %s: %s", self.root, ", ".join(p.name for p in removed))
+        return removed
 
     @contextlib.contextmanager
     def lock(self) -> Iterator[None]:

@@ -2,18 +2,19 @@
 
 Intrinsics and every ``sensor_from_rig`` (E^sl) stay fixed. Small networks (2-4 rigs) only have
 two-view tracks, which COLMAP ignores by default; they are allowed here, and the model-size and
-track-length minimums are lowered to what the network can provide.
+track-length minimums are lowered to what the network can provide. The incremental mapper starts from a
+wide pair that COLMAP's own initial-pair test accepts (:func:`initial_pair`) and has a time limit, after
+which the global mapper is used (with a warning).
 """
 
 from __future__ import annotations
 
 import logging
-import shutil
+import time
 from collections.abc import Callable
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
-import numpy as np
 import pycolmap
 
 from rigsfm.core.names import ImageName, Sensor
@@ -95,90 +96,178 @@ def relax_for_few_matches(pipeline: pycolmap.IncrementalPipelineOptions, best_in
                 mapper.init_min_num_inliers, mapper.abs_pose_min_num_inliers)
 
 
-def best_pair_inliers(database_path: Path) -> int:
-    """Verified inliers of the best wide-wide pair of two different rigs (0 if none)."""
-    pair = initial_pair(database_path)
-    if pair is None:
-        return 0
-    with pycolmap.Database.open(database_path) as database:
-        return len(database.read_two_view_geometry(*pair).inlier_matches)
+@dataclass(frozen=True, order=True)
+class WidePair:
+    inliers: int
+    image_id1: int
+    image_id2: int
+    label: str = field(compare=False)  # "rig01-rig03"
 
 
-def initial_pair(database_path: Path) -> tuple[int, int] | None:
-    """The wide-wide pair of two different rigs with the most verified inliers.
-
-    Choosing it up front spares the mapper's initial-pair search, which can run for minutes when the
-    narrow images carry many (e.g. moving-crowd) features.
-    """
-    with pycolmap.Database.open(database_path) as database:
-        names = {image.image_id: image.name for image in database.read_all_images()}
-        pair_ids, inliers = database.read_two_view_geometry_num_inliers()
-    best, best_inliers = None, 0
+def wide_pairs(database: pycolmap.Database) -> list[WidePair]:
+    """The verified wide-wide pairs of two different rigs, most inliers first."""
+    names = {image.image_id: image.name for image in database.read_all_images()}
+    pair_ids, inliers = database.read_two_view_geometry_num_inliers()
+    pairs = []
     for pair_id, count in zip(pair_ids, inliers):
         id1, id2 = pycolmap.pair_id_to_image_pair(pair_id)
         one, two = ImageName.parse(names[id1]), ImageName.parse(names[id2])
-        if one.sensor == two.sensor == Sensor.WIDE and one.rig != two.rig and count > best_inliers:
-            best, best_inliers = (id1, id2), count
-    return best
+        if one.sensor == two.sensor == Sensor.WIDE and one.rig != two.rig:
+            pairs.append(WidePair(int(count), int(id1), int(id2), f"{one.rig}-{two.rig}"))
+    return sorted(pairs, reverse=True)
 
 
-def mapping_database(database_path: Path, path: Path, *, keep_narrow_offsets: bool) -> Path:
-    """The database the mapper reads: a copy of ``database_path``, narrow offsets zeroed by default.
+def best_pair_inliers(database_path: Path) -> int:
+    """Verified inliers of the best wide-wide pair of two different rigs (0 if none)."""
+    with pycolmap.Database.open(database_path) as database:
+        pairs = wide_pairs(database)
+    return pairs[0].inliers if pairs else 0
 
-    Works around pycolmap 4.2.1: after mapping, ``AlignReconstructionToOrigRigScales`` looks
-    up every rig whose non-reference sensor has a non-zero ``sensor_from_rig`` translation and raises
-    ``IndexError: Rig with ID n does not exist`` for a rig none of whose frames registered. Without
-    narrow features the narrow images carry no observations, so their offset plays no part in mapping;
-    zeroing it (rotation kept) avoids the crash, and the rig-constraint stage restores E^sl.
+
+# COLMAP relaxes a failed initialisation twice by halving init_min_num_inliers, then init_min_tri_angle.
+RELAXATIONS = ((1, 1), (2, 1), (2, 2), (4, 2), (4, 4))
+MAX_INITIAL_PAIR_TESTS = 100  # 0.05-0.1 s each
+
+
+def initial_pair(cache: pycolmap.DatabaseCache, pipeline: pycolmap.IncrementalPipelineOptions,
+                 pairs: list[WidePair]) -> WidePair | None:
+    """The wide pair of two rigs, most inliers first, that COLMAP's own initial-pair test accepts (inliers,
+    forward motion, triangulation angle, the rigs' generalized relative pose) at the mapper's thresholds, or
+    at the first of COLMAP's relaxations where one does; None if none does within MAX_INITIAL_PAIR_TESTS.
+
+    The pair with the most inliers alone is often two neighbouring rigs whose matches lie on the (textured)
+    ground: a homography, a median triangulation angle of ~3 deg, below even COLMAP's most relaxed minimum
+    (4 deg), so forcing it failed 1000 times (200 trials x 5 relaxations), for minutes. Chosen here, the mapper
+    also skips its own search, which can run for minutes when the narrow images carry many features.
     """
-    tmp = path.with_name(path.name + ".tmp")
-    shutil.copyfile(database_path, tmp)
-    if not keep_narrow_offsets:
-        with pycolmap.Database.open(tmp) as database:
-            for rig in database.read_all_rigs():
-                for sensor_id, sensor_from_rig in rig.non_ref_sensors.items():
-                    if sensor_from_rig is not None:
-                        rig.set_sensor_from_rig(sensor_id, pycolmap.Rigid3d(sensor_from_rig.rotation, np.zeros(3)))
-                database.update_rig(rig)
-    tmp.replace(path)
-    return path
+    start = time.perf_counter()
+    mapper = pycolmap.IncrementalMapper(cache)
+    mapper.begin_reconstruction(pycolmap.Reconstruction())
+    base = pipeline.get_mapper()
+    tested, rejected = 0, []
+    try:
+        for inlier_div, angle_div in RELAXATIONS:
+            options = pipeline.get_mapper()
+            options.init_min_num_inliers = base.init_min_num_inliers // inlier_div
+            options.init_min_tri_angle = base.init_min_tri_angle / angle_div
+            for pair in pairs:
+                if tested == MAX_INITIAL_PAIR_TESTS:
+                    break
+                if pair.inliers < options.init_min_num_inliers:
+                    continue
+                if not (cache.exists_image(pair.image_id1) and cache.exists_image(pair.image_id2)):
+                    continue
+                tested += 1
+                if mapper.estimate_initial_two_view_geometry(options, pair.image_id1, pair.image_id2) is not None:
+                    logger.info("Initial pair %s (%d inliers; init_min_num_inliers %d, init_min_tri_angle %.3g deg); "
+                                "%d pair(s) with more inliers fail COLMAP's initial-pair test (%s); %d tests in %.2f s",
+                                pair.label, pair.inliers, options.init_min_num_inliers, options.init_min_tri_angle,
+                                len(rejected), ", ".join(f"{r.label} ({r.inliers})" for r in rejected[:4]), tested,
+                                time.perf_counter() - start)
+                    return pair
+                if pair not in rejected:
+                    rejected.append(pair)
+    finally:
+        mapper.end_reconstruction(True)
+    logger.info("No wide pair passes COLMAP's initial-pair test (%d tests in %.2f s); the mapper searches", tested,
+                time.perf_counter() - start)
+    return None
 
 
-def _incremental(database_path: Path, image_dir: Path, models_dir: Path, options: MappingOptions, num_wide: int,
-                 num_threads: int, on_registered: Callable[[], None] | None) -> dict[int, pycolmap.Reconstruction]:
+def _is_rig_scale_bug(error: IndexError) -> bool:
+    """pycolmap 4.2.1, after mapping: ``AlignReconstructionToOrigRigScales`` looks up every rig whose narrow
+    offset is non-zero and raises ``IndexError: Rig with ID n does not exist`` for a rig none of whose frames
+    registered. The model is finished by then, and that alignment would change nothing here (sensor_from_rig is
+    held fixed, so its scale ratio is 1): the model is kept as it is."""
+    return str(error).startswith("Rig with ID")
+
+
+@dataclass
+class _Run:
+    models: list[pycolmap.Reconstruction]
+    timed_out: bool = False  # the mapper stopped at its time limit: what it left is unfinished
+
+
+def _run_incremental(cache: pycolmap.DatabaseCache, pipeline: pycolmap.IncrementalPipelineOptions,
+                     deadline: float | None, on_registered: Callable[[], None] | None) -> _Run:
+    if deadline is not None:
+        remaining = deadline - time.monotonic()
+        if remaining < 1:
+            return _Run([], timed_out=True)
+        pipeline.max_runtime_seconds = int(remaining)
+    manager = pycolmap.ReconstructionManager()
+    mapper = pycolmap.IncrementalPipeline(pipeline, cache, manager)
+    if on_registered is not None:
+        mapper.add_callback(pycolmap.IncrementalPipelineCallback.NEXT_IMAGE_REG_CALLBACK, on_registered)
+    try:
+        mapper.run()
+    except IndexError as error:
+        if not _is_rig_scale_bug(error):
+            raise
+        logger.info("COLMAP's rig-scale alignment failed (%s); the model is kept as it is", error)
+    return _Run([manager.get(i) for i in range(manager.size())], timed_out=mapper.check_reached_max_runtime())
+
+
+def _incremental(database_path: Path, image_dir: Path, options: MappingOptions, num_wide: int, num_threads: int,
+                 on_registered: Callable[[], None] | None) -> _Run:
+    limit = options.incremental_time_limit_s
+    deadline = None if limit is None else time.monotonic() + limit
     pipeline = _incremental_options(options, num_wide, num_threads)
-    if options.few_matches:
-        relax_for_few_matches(pipeline, best_pair_inliers(database_path))
-    pair = initial_pair(database_path)
+    pipeline.image_path = str(image_dir)
+    with pycolmap.Database.open(database_path) as database:
+        pairs = wide_pairs(database)
+        if options.few_matches:
+            relax_for_few_matches(pipeline, pairs[0].inliers if pairs else 0)
+        cache_options = pycolmap.DatabaseCacheOptions()
+        cache_options.min_num_matches = pipeline.min_num_matches
+        cache_options.ignore_watermarks = pipeline.ignore_watermarks
+        cache = pycolmap.DatabaseCache.create(database, cache_options)
+    pair = initial_pair(cache, pipeline, pairs)
     if pair is not None:
-        pipeline.init_image_id1, pipeline.init_image_id2 = pair
-    models = pycolmap.incremental_mapping(
-        database_path, image_dir, models_dir, pipeline, next_image_callback=on_registered
-    )
-    if not models and pair is not None:
-        logger.warning("Mapping from the initial pair %s failed; searching for another", pair)
+        search_trials = pipeline.init_num_trials
+        pipeline.init_image_id1, pipeline.init_image_id2 = pair.image_id1, pair.image_id2
+        pipeline.init_num_trials = 1  # COLMAP tries a given pair init_num_trials times; it fails alike each time
+        run = _run_incremental(cache, pipeline, deadline, on_registered)
+        if run.models or run.timed_out:
+            return run
+        logger.warning("Mapping from the initial pair %s failed; the mapper searches for another", pair.label)
         pipeline.init_image_id1 = pipeline.init_image_id2 = -1
-        models = pycolmap.incremental_mapping(
-            database_path, image_dir, models_dir, pipeline, next_image_callback=on_registered
-        )
-    return models
+        pipeline.init_num_trials = search_trials
+    return _run_incremental(cache, pipeline, deadline, on_registered)
 
 
-def _map(database_path: Path, image_dir: Path, models_dir: Path, options: MappingOptions, num_wide: int,
-         num_threads: int, on_registered: Callable[[], None] | None) -> pycolmap.Reconstruction | None:
-    """The largest model of one mapper run, or None when it registered nothing."""
-    shutil.rmtree(models_dir, ignore_errors=True)
-    models_dir.mkdir()
+def _global(database_path: Path, image_dir: Path, options: MappingOptions, num_wide: int, num_threads: int) -> _Run:
+    pipeline_options = _global_options(options, num_wide, num_threads)
+    pipeline_options.image_path = str(image_dir)
+    manager = pycolmap.ReconstructionManager()
+    with pycolmap.Database.open(database_path) as database:
+        pipeline = pycolmap.GlobalPipeline(pipeline_options, database, manager)
+        try:
+            pipeline.run()
+        except IndexError as error:
+            if not _is_rig_scale_bug(error):
+                raise
+            logger.info("COLMAP's rig-scale alignment failed (%s); the model is kept as it is", error)
+            for i in range(manager.size()):  # what the global pipeline does after that alignment
+                manager.get(i).extract_colors_for_all_images(str(image_dir), num_threads)
+    return _Run([manager.get(i) for i in range(manager.size())])
+
+
+def _map(database_path: Path, image_dir: Path, options: MappingOptions, num_wide: int, num_threads: int,
+         on_registered: Callable[[], None] | None) -> tuple[pycolmap.Reconstruction | None, bool]:
+    """The largest model of one mapper run (None when it registered nothing), and whether the mapper stopped at
+    its time limit (its model is then dropped: unfinished, without its final adjustment)."""
     if options.mapper == Mapper.INCREMENTAL:
-        models = _incremental(database_path, image_dir, models_dir, options, num_wide, num_threads, on_registered)
+        run = _incremental(database_path, image_dir, options, num_wide, num_threads, on_registered)
     else:
-        models = pycolmap.global_mapping(database_path, image_dir, models_dir,
-                                         _global_options(options, num_wide, num_threads))
-    for index, model in models.items():
-        logger.info("%s model %d: %d frames, %d points", options.mapper, index, model.num_reg_frames(),
-                    model.num_points3D())
-    shutil.rmtree(models_dir)
-    return max(models.values(), key=lambda rec: rec.num_reg_frames()) if models else None
+        run = _global(database_path, image_dir, options, num_wide, num_threads)
+    for index, model in enumerate(run.models):
+        logger.info("%s model %d: %d frames, %d points%s", options.mapper, index, model.num_reg_frames(),
+                    model.num_points3D(), " (time limit reached: dropped)" if run.timed_out else "")
+    models = [model for model in run.models if model.num_reg_frames() > 0]
+    if run.timed_out or not models:
+        return None, run.timed_out
+    return max(models, key=lambda rec: rec.num_reg_frames()), False
 
 
 @dataclass
@@ -194,46 +283,42 @@ def run_mapping(
     options: MappingOptions,
     *,
     num_wide: int,
-    keep_narrow_offsets: bool = False,
     num_threads: int = -1,
     on_registered: Callable[[], None] | None = None,
 ) -> MappingResult:
     """Map the workspace's database, keep the largest model, write it to ``workspace.mapping``.
 
     If the incremental mapper cannot register every wide frame (e.g. neighbouring rigs share no
-    three-view tracks), the global mapper is tried too and the model with more frames is kept; the
-    result says so (``fallback``).
+    three-view tracks) or does not finish within ``options.incremental_time_limit_s``, the global mapper
+    is tried too and the model with more frames is kept; the result says so (``fallback``).
     """
-    mapping_db = workspace.mapping_database
-    fallback_note = None
-    kept = options.mapper
-    with atomic_directory(workspace.mapping) as tmp:
-        models_dir = tmp / "models"
-        mapping_database(workspace.database, mapping_db, keep_narrow_offsets=keep_narrow_offsets)
-        try:
-            best = _map(mapping_db, image_dir, models_dir, options, num_wide, num_threads, on_registered)
-        except IndexError as error:  # pycolmap 4.2.1 rig-scale alignment bug, see mapping_database
-            if not keep_narrow_offsets:
-                raise
-            logger.warning("COLMAP failed with narrow offsets (%s); mapping the wide cameras alone", error)
-            mapping_database(workspace.database, mapping_db, keep_narrow_offsets=False)
-            best = _map(mapping_db, image_dir, models_dir, options, num_wide, num_threads, on_registered)
-        if options.mapper == Mapper.INCREMENTAL and (best is None or best.num_reg_frames() < num_wide):
-            registered = 0 if best is None else best.num_reg_frames()
-            logger.info("The incremental mapper registered %d of %d frames; trying the global mapper",
-                        registered, num_wide)
-            fallback = _map(mapping_db, image_dir, models_dir, replace(options, mapper=Mapper.GLOBAL), num_wide,
-                            num_threads, None)
-            if fallback is not None and fallback.num_reg_frames() > registered:
-                fallback_note = (f"the incremental mapper registered {registered} of {num_wide} wide frames; the "
-                                 f"global mapper's model ({fallback.num_reg_frames()} frames) is used instead")
-                logger.warning("Using the global mapper's model: %s", fallback_note)
-                best, kept = fallback, Mapper.GLOBAL
-        if best is None:
+    kept, fallback_note = options.mapper, None
+    best, timed_out = _map(workspace.database, image_dir, options, num_wide, num_threads, on_registered)
+    if options.mapper == Mapper.INCREMENTAL and (best is None or best.num_reg_frames() < num_wide):
+        registered = 0 if best is None else best.num_reg_frames()
+        if timed_out:
+            why = f"the incremental mapper did not finish within {options.incremental_time_limit_s:g} s"
+        else:
+            why = f"the incremental mapper registered {registered} of {num_wide} wide frames"
+        logger.info("%s; trying the global mapper", why)
+        fallback, _ = _map(workspace.database, image_dir, replace(options, mapper=Mapper.GLOBAL), num_wide,
+                           num_threads, None)
+        if fallback is not None and fallback.num_reg_frames() > registered:
+            fallback_note = f"{why}; the global mapper's model ({fallback.num_reg_frames()} frames) is used instead"
+            logger.warning("Using the global mapper's model: %s", fallback_note)
+            best, kept = fallback, Mapper.GLOBAL
+        elif timed_out:
             raise ReconstructionError(
-                "the mapper registered no wide images: the wide views share too few verified matches. "
-                "Check that neighbouring wide cameras overlap, or add manual correspondences "
-                "(--manual-matches FILE; `rigsfm pick IMAGE_A IMAGE_B` helps pick them)"
-            )
+                f"{why} and the global mapper registered no wide images; allow it more time "
+                "(--incremental-time-limit) or check that neighbouring wide cameras overlap")
+    if best is None:
+        raise ReconstructionError(
+            "the mapper registered no wide images: the wide views share too few verified matches. "
+            "Check that neighbouring wide cameras overlap, or add manual correspondences "
+            "(--manual-matches FILE; `rigsfm pick IMAGE_A IMAGE_B` helps pick them)"
+        )
+    with atomic_directory(workspace.mapping) as tmp:
         best.write(tmp)
+    # As written: the same numbers whether this stage ran in a child process or not (reading a model back
+    # normalises its rotations, a change in the 16th digit).
     return MappingResult(pycolmap.Reconstruction(workspace.mapping), kept, fallback_note)

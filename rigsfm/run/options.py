@@ -55,6 +55,9 @@ class MappingOptions:
     # matches are given, off otherwise. Not on by default: relaxed, a pair of rigs with 21 wrong-but-consistent
     # SIFT matches registers 70 degrees off instead of failing with a clear message.
     few_matches: bool | None = None
+    # The incremental mapper stops after this long (seconds; None: never) and the global mapper is used instead,
+    # with a warning; a safety net: with its initial pair chosen up front it maps 12 rigs in under a minute.
+    incremental_time_limit_s: int | None = 900
 
 
 @dataclass(kw_only=True)

@@ -13,11 +13,13 @@ import numpy as np
 import pycolmap
 
 import rigsfm
+from rigsfm.core import stages
 from rigsfm.core.errors import ReconstructionError
 from rigsfm.core.io import write_json_atomic
 from rigsfm.core.names import SENSORS, ImageName
 from rigsfm.core.residuals import reprojection_errors
 from rigsfm.core.rig import RigCalibration, load_rigs
+from rigsfm.core.stages import in_child
 from rigsfm.core.workspace import Workspace, colmap_log_to
 from rigsfm.inspect.report import write_report
 from rigsfm.run.adjust import AdjustResult, ScaleSource, adjust
@@ -37,6 +39,9 @@ from rigsfm.run.summary import (CameraError, InputsSummary, MappingSummary, Regi
 logger = logging.getLogger(__name__)
 
 Progress = Callable[[str, int, int], None]
+
+# The heavy stages run in a child process (rigsfm.core.stages: Ctrl-C and SIGTERM stop them at once).
+STAGE_MODULES = ("rigsfm.run.features", "rigsfm.run.mapping", "rigsfm.run.adjust")
 
 
 @dataclass(frozen=True)
@@ -68,9 +73,11 @@ class _Timings(dict):
         start = time.perf_counter()
         try:
             yield
-        finally:
-            self[name] = round(time.perf_counter() - start, 3)
-            logger.info("Stage %s took %.1f s", name, self[name])
+        except BaseException:
+            logger.info("Stage %s stopped after %.1f s", name, time.perf_counter() - start)
+            raise
+        self[name] = round(time.perf_counter() - start, 3)
+        logger.info("Stage %s took %.1f s", name, self[name])
 
 
 def reprojection_table(reconstruction: pycolmap.Reconstruction) -> dict[str, CameraError]:
@@ -166,6 +173,7 @@ def run(
 ) -> RunResult:
     """The whole pipeline; every artifact lands in ``out`` (see :class:`rigsfm.core.workspace.Workspace`)."""
     options = options or RunOptions()
+    stages.start(preload=STAGE_MODULES)  # imports them in the stages' forkserver while the inputs are checked
     timings = _Timings()
     with timings.stage("validate"):
         inputs = load_inputs(image_dir, rigs_path, scale_path)
@@ -193,11 +201,11 @@ def _run_locked(workspace: Workspace, inputs: Inputs, manual_pairs: dict, option
             create_database(workspace.database, inputs.rigs, inputs.images)
         with timings.stage("features"):
             drop_stale_work(workspace.database, workspace.feature_settings, options.matching)
-            extract_features(workspace.database, inputs.image_dir, inputs.images, options.matching,
-                             report("features"), num_threads=threads)
+            in_child(extract_features, workspace.database, inputs.image_dir, inputs.images, options.matching,
+                     report("features"), num_threads=threads)
         with timings.stage("matching"):
-            match_features(workspace.database, inputs.images, options.matching, workspace.pairs, report("matching"),
-                           num_threads=threads)
+            in_child(match_features, workspace.database, inputs.images, options.matching, workspace.pairs,
+                     report("matching"), num_threads=threads)
         manual_reports = []
         if manual_pairs:
             with timings.stage("manual_matches"):
@@ -211,9 +219,8 @@ def _run_locked(workspace: Workspace, inputs: Inputs, manual_pairs: dict, option
                     progress("mapping", min(done[0], num_wide), num_wide)
 
             try:
-                mapping = run_mapping(workspace, inputs.image_dir, options.mapping, num_wide=num_wide,
-                                      keep_narrow_offsets=options.matching.narrow_features, num_threads=threads,
-                                      on_registered=on_registered)
+                mapping = in_child(run_mapping, workspace, inputs.image_dir, options.mapping, num_wide=num_wide,
+                                   num_threads=threads, on_registered=on_registered)
             except ReconstructionError as error:
                 if not manual_reports:
                     raise
@@ -222,7 +229,7 @@ def _run_locked(workspace: Workspace, inputs: Inputs, manual_pairs: dict, option
             if progress:
                 progress("mapping", mapping.reconstruction.num_reg_frames(), num_wide)
         with timings.stage("adjust"):
-            result = adjust(mapping.reconstruction, inputs.rigs, inputs.scale, options.adjust)
+            result = in_child(adjust, mapping.reconstruction, inputs.rigs, inputs.scale, options.adjust)
         metric = is_metric(result)
         with timings.stage("deliver"):
             write_model(result.reconstruction, workspace.sparse, overwrite=True)

@@ -1,0 +1,128 @@
+"""rigsfm.core.stages: a stage function in a child process, stopped at once by the caller's signals."""
+
+import logging
+import os
+import pickle
+import signal
+import time
+
+import numpy as np
+import pycolmap
+import pytest
+
+from rigsfm.core import stages
+from rigsfm.core.errors import InputError
+from rigsfm.core.stages import StageDied, in_child
+
+
+# Stage functions must be importable by name: module level.
+def _add(a, b, *, scale=1):
+    return (a + b) * scale, os.getpid()
+
+
+def _report(n, progress):
+    for i in range(n):
+        progress(i + 1, n)
+    return "done"
+
+
+def _log(message):
+    logging.getLogger("rigsfm.test_stages").warning("from the child: %s", message)
+    logging.getLogger("rigsfm.test_stages").debug("not kept: the caller keeps warnings only")
+    os.write(2, b"fd2 line from the child\n")
+
+
+def _fail():
+    raise InputError("rigs.yaml: rig01 has no narrow camera; add one")
+
+
+class _NotPicklable(Exception):
+    def __init__(self, a, b):
+        super().__init__(f"{a} {b}")
+
+
+def _fail_unpicklable():
+    raise _NotPicklable(1, 2)
+
+
+def _die():
+    os._exit(3)
+
+
+def _block_until_stopped(started):
+    """Tells the caller its pid, then stays in one C call without the GIL's help, as pycolmap's mapper does."""
+    started(os.getpid())
+    time.sleep(600)
+    return "not stopped"
+
+
+def _echo(value):
+    return value
+
+
+def test_result_arguments_and_child_process():
+    value, pid = in_child(_add, 2, 3, scale=10)
+    assert value == 50
+    assert pid != os.getpid()
+
+
+def test_in_process_switch_runs_in_the_caller():
+    with stages.in_process():
+        assert in_child(_add, 1, 1)[1] == os.getpid()
+    assert in_child(_add, 1, 1)[1] != os.getpid()
+
+
+def test_callables_are_called_in_the_caller():
+    calls = []
+    assert in_child(_report, 3, lambda done, total: calls.append((done, total))) == "done"
+    assert calls == [(1, 3), (2, 3), (3, 3)]
+
+
+def test_log_records_and_fd2_reach_the_caller(caplog, capfd):
+    with caplog.at_level(logging.WARNING, logger="rigsfm.test_stages"):
+        in_child(_log, "hello")
+    messages = [r.getMessage() for r in caplog.records if r.name == "rigsfm.test_stages"]
+    assert messages == ["from the child: hello"]
+    assert "fd2 line from the child" in capfd.readouterr().err
+
+
+def test_errors_keep_their_type_and_message():
+    with pytest.raises(InputError, match="rig01 has no narrow camera"):
+        in_child(_fail)
+    with pytest.raises(RuntimeError, match="_NotPicklable: 1 2"):
+        in_child(_fail_unpicklable)
+
+
+def test_a_child_that_dies_is_a_one_line_error():
+    with pytest.raises(StageDied, match="_die stage stopped without a result .exit code 3"):
+        in_child(_die)
+
+
+def test_reconstruction_travels_exactly():
+    reconstruction = pycolmap.Reconstruction()
+    camera = pycolmap.Camera.create_from_model_id(1, pycolmap.CameraModelId.SIMPLE_RADIAL, 812.5, 812, 617)
+    reconstruction.add_camera(camera)
+    rng = np.random.default_rng(0)
+    for i in range(50):
+        reconstruction.add_point3D(rng.normal(size=3) * 7.0, pycolmap.Track(), np.array([1, 2, 3], np.uint8))
+    copy = in_child(_echo, reconstruction)
+    assert copy.cameras[1].params.tolist() == camera.params.tolist()
+    assert sorted(copy.points3D) == sorted(reconstruction.points3D)
+    for point_id, point in reconstruction.points3D.items():
+        assert copy.points3D[point_id].xyz.tolist() == point.xyz.tolist()
+    assert pickle.loads(pickle.dumps(copy)).num_points3D() == 50
+
+
+def test_an_exception_in_the_caller_kills_the_child():
+    """A signal handler that raises (Ctrl-C here) ends the wait at once, and the child with it."""
+    pids = []
+
+    def started(pid):
+        pids.append(pid)
+        os.kill(os.getpid(), signal.SIGINT)  # Ctrl-C while the child sleeps in C
+
+    with pytest.raises(KeyboardInterrupt):
+        in_child(_block_until_stopped, started)
+    assert len(pids) == 1 and pids[0] != os.getpid()
+    with pytest.raises(ProcessLookupError):  # killed and reaped, not left running
+        os.kill(pids[0], 0)

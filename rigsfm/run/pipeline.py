@@ -25,7 +25,7 @@ from rigsfm.run.database import create_database
 from rigsfm.run.deliver import write_model, write_narrow_poses, write_points_ply
 from rigsfm.run.diagnostics import check_reconstruction
 from rigsfm.run.features import drop_stale_work, extract_features, match_features
-from rigsfm.run.inputs import ImageEntry, scan_images
+from rigsfm.run.inputs import ImageEntry, rigs_without_narrow, scan_images
 from rigsfm.run.manual_matches import read_manual_matches, validate_manual_matches
 from rigsfm.run.manual_merge import add_manual_matches, manual_matches_summary
 from rigsfm.run.mapping import MappingResult, run_mapping
@@ -58,7 +58,9 @@ def load_inputs(image_dir: Path, rigs_path: Path, scale_path: Path | None = None
     """Validate every input before any heavy work; raises ``InputError`` naming file and fix."""
     rigs = load_rigs(rigs_path)
     images = scan_images(image_dir, rigs)
-    scale = load_scale(scale_path, images) if scale_path is not None else None
+    for line in rigs_without_narrow(image_dir, images, rigs):
+        logger.warning("NO NARROW IMAGES: %s", line)
+    scale = load_scale(scale_path, images, rigs) if scale_path is not None else None
     return Inputs(Path(image_dir), rigs, images, scale)
 
 
@@ -124,6 +126,8 @@ def build_summary(inputs: Inputs, options: RunOptions, mapping: MappingResult, r
     warnings.extend(check_reconstruction(reconstruction, result.scale, database))
     if unregistered:
         warnings.append(f"{len(unregistered)} image(s) not registered: {', '.join(unregistered[:5])}")
+    warnings.extend(f"NO NARROW IMAGES: {line}" for line in rigs_without_narrow(inputs.image_dir, inputs.images,
+                                                                               inputs.rigs))
     return Summary(
         rigsfm_version=rigsfm.__version__,
         pycolmap_version=pycolmap.__version__,

@@ -75,14 +75,31 @@ def atomic_directory(path: Path, *, overwrite: bool = True) -> Iterator[Path]:
         shutil.rmtree(tmp, ignore_errors=True)
 
 
-def load_yaml_or_json(path: Path, what: str) -> Any:
-    """Parse a YAML (or JSON, a subset of YAML) file, with an error that names the file."""
+BOMS = ((b"\xef\xbb\xbf", "utf-8-sig"), (b"\xff\xfe", "utf-16"), (b"\xfe\xff", "utf-16"))
+
+
+def read_user_text(path: Path, what: str) -> str:
+    """A text file a user made: UTF-8, with or without the byte-order mark spreadsheets and Windows editors write,
+    or UTF-16 with its mark ("Unicode text" in Excel); anything else is refused naming the file and the fix."""
     path = Path(path)
     if not path.is_file():
         raise InputError(f"{what} file {path} does not exist")
+    data = path.read_bytes()
+    encoding = next((name for bom, name in BOMS if data.startswith(bom)), "utf-8")
     try:
-        data = yaml.safe_load(path.read_text(encoding="utf-8"))
-    except (yaml.YAMLError, UnicodeDecodeError) as e:
+        return data.decode(encoding)
+    except UnicodeDecodeError as e:
+        raise InputError(f"{path}: not {encoding.upper()} text (byte {e.start}); save it as UTF-8 (e.g. 'CSV UTF-8' "
+                         "in a spreadsheet)") from None
+
+
+def load_yaml_or_json(path: Path, what: str) -> Any:
+    """Parse a YAML (or JSON, a subset of YAML) file, with an error that names the file."""
+    path = Path(path)
+    text = read_user_text(path, what)
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as e:
         first_line = str(e).splitlines()[0] if str(e) else type(e).__name__
         raise InputError(f"{path}: not valid YAML/JSON ({first_line}); fix the syntax") from e
     if not isinstance(data, dict):

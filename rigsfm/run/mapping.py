@@ -19,7 +19,7 @@ import pycolmap
 from rigsfm.core.names import ImageName, Sensor
 from rigsfm.core.errors import ReconstructionError
 from rigsfm.core.io import atomic_directory
-from rigsfm.core.workspace import Workspace
+from rigsfm.core.workspace import Workspace, read_model
 from rigsfm.run.options import Mapper, MappingOptions
 
 logger = logging.getLogger(__name__)
@@ -236,4 +236,4 @@ def run_mapping(
                 "(--manual-matches FILE; `rigsfm pick IMAGE_A IMAGE_B` helps pick them)"
             )
         best.write(tmp)
-    return MappingResult(pycolmap.Reconstruction(workspace.mapping), kept, fallback_note)
+    return MappingResult(read_model(workspace.mapping, workspace.rerun_hint), kept, fallback_note)

@@ -38,6 +38,11 @@ def write_bytes_atomic(path: Path, data: bytes, *, overwrite: bool = True) -> Pa
             f.write(data)
         os.chmod(tmp, 0o666 & ~_umask())
         os.replace(tmp, path)
+    except OSError as error:
+        Path(tmp).unlink(missing_ok=True)
+        if error.filename is None:  # a full disk fails the write itself, which names no file
+            raise OSError(error.errno, error.strerror, str(path)) from None
+        raise
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
@@ -84,7 +89,12 @@ def read_user_text(path: Path, what: str) -> str:
     path = Path(path)
     if not path.is_file():
         raise InputError(f"{what} file {path} does not exist")
-    data = path.read_bytes()
+    try:
+        data = path.read_bytes()
+    except OSError as error:
+        from rigsfm.core.workspace import os_error_text
+
+        raise InputError(f"cannot read {what} file {path}: {os_error_text(error)}") from None
     encoding = next((name for bom, name in BOMS if data.startswith(bom)), "utf-8")
     try:
         return data.decode(encoding)

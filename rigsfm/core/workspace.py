@@ -218,7 +218,7 @@ def read_model(folder: Path, fix: str) -> pycolmap.Reconstruction:
         raise WorkspaceError(f"{folder} holds no complete COLMAP model ({what}): {fix}")
     try:
         return pycolmap.Reconstruction(str(folder))
-    except (ValueError, RuntimeError, MemoryError, OSError) as error:
+    except Exception as error:  # ValueError, IndexError ("unordered_map::at"), MemoryError, ... by where it is cut
         cause = (str(error).splitlines() or [""])[0].strip() or type(error).__name__
         sizes = ", ".join(f"{p.name} {p.stat().st_size} B" for p in sorted(folder.glob("*.bin")))
         raise WorkspaceError(f"{folder}: the COLMAP model cannot be read ({cause}; a file is truncated or damaged: "
@@ -241,18 +241,58 @@ def read_json(path: Path, fix: str, *, keys: tuple[str, ...] = ()) -> Any:
     return data
 
 
-def writable(folder: Path) -> Path:
-    """Create ``folder`` (and parents) and check a file can be written in it; a clear error if not."""
-    folder = Path(folder)
+def _write_probe(folder: Path) -> str | None:
+    """Create ``folder`` (and parents) and a file in it; why that fails (``os_error_text``), or None."""
     try:
         folder.mkdir(parents=True, exist_ok=True)
         probe = folder / f".rigsfm-write-test-{os.getpid()}"
         probe.write_bytes(b"")
         probe.unlink()
     except OSError as error:
-        raise WorkspaceError(f"cannot write in {folder}: {os_error_text(error)}; choose a folder you can write to") \
-            from None
+        return os_error_text(error)
+    return None
+
+
+def writable(folder: Path) -> Path:
+    """Create ``folder`` (and parents) and check a file can be written in it; a clear error if not."""
+    folder = Path(folder)
+    problem = _write_probe(folder)
+    if problem is not None:
+        raise WorkspaceError(f"cannot write in {folder}: {problem}; choose a folder you can write to")
     return folder
+
+
+MIN_FREE_BYTES = 1 << 20  # less free space than this and a failed write is put down to a full disk
+
+
+def disk_problem(folder: Path) -> str | None:
+    """Why files cannot be written in ``folder`` now (the disk is full, read-only, permission denied), or None."""
+    folder = Path(folder)
+    while not folder.exists() and folder != folder.parent:
+        folder = folder.parent
+    try:
+        stats = os.statvfs(folder)
+        if stats.f_bavail * stats.f_frsize < MIN_FREE_BYTES:
+            return f"the disk is full ({stats.f_bavail * stats.f_frsize / 1024:.0f} kB free)"
+    except OSError:
+        pass
+    return _write_probe(folder)
+
+
+@contextlib.contextmanager
+def disk_errors_named(folder: Path) -> Iterator[None]:
+    """Turn a failure that comes from the disk under ``folder`` into one line naming it and the cause. COLMAP's
+    words do not say it: "No registered database factory succeeded" (SQLite cannot open the database on a full
+    disk), an OSError without a file name, a truncated write. Other errors pass unchanged."""
+    try:
+        yield
+    except (RuntimeError, ValueError, OSError) as error:
+        problem = disk_problem(folder)
+        if problem is None:
+            raise
+        cause = (str(error).splitlines() or [""])[0].strip() or type(error).__name__
+        raise WorkspaceError(f"cannot write in {folder}: {problem} ({cause}); free space or choose another --out, "
+                             "then re-run the same command (finished work is kept)") from None
 
 
 def os_error_text(error: OSError) -> str:

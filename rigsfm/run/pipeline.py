@@ -18,7 +18,7 @@ from rigsfm.core.io import write_json_atomic
 from rigsfm.core.names import SENSORS, ImageName
 from rigsfm.core.residuals import reprojection_errors
 from rigsfm.core.rig import RigCalibration, load_rigs
-from rigsfm.core.workspace import Workspace, colmap_log_to
+from rigsfm.core.workspace import Workspace, colmap_log_to, disk_errors_named
 from rigsfm.inspect.report import write_report
 from rigsfm.run.adjust import AdjustResult, ScaleSource, adjust
 from rigsfm.run.database import create_database
@@ -180,7 +180,7 @@ def run(
         if manual_pairs:
             logger.warning("Manual matches given: the mapper's match-count thresholds are lowered for them")
     workspace = Workspace(Path(out))
-    with workspace.lock():
+    with workspace.lock(), disk_errors_named(workspace.root):
         workspace.prepare(overwrite=options.overwrite)
         return _run_locked(workspace, inputs, manual_pairs, options, timings, progress)
 

@@ -109,6 +109,8 @@ def load_yaml_or_json(path: Path, what: str) -> Any:
     text = read_user_text(path, what)
     try:
         data = yaml.safe_load(text)
+    except RecursionError:
+        raise InputError(f"{path}: nested too deeply to be a {what} file; fix the syntax") from None
     except yaml.YAMLError as e:
         first_line = str(e).splitlines()[0] if str(e) else type(e).__name__
         raise InputError(f"{path}: not valid YAML/JSON ({first_line}); fix the syntax") from e

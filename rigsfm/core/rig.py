@@ -122,7 +122,7 @@ def parse_camera(spec, where: str) -> pycolmap.Camera:
     try:
         width, height = int(spec["width"]), int(spec["height"])
         params = [float(p) for p in spec["params"]]
-    except (TypeError, ValueError) as e:
+    except (TypeError, ValueError, OverflowError) as e:
         raise InputError(f"{where}: width/height must be integers and params a list of numbers") from e
     if width <= 0 or height <= 0:
         raise InputError(f"{where}: width and height must be positive, got {width}x{height}")
@@ -168,7 +168,7 @@ def parse_rigid3d(spec, where: str) -> pycolmap.Rigid3d:
     try:
         rotation = np.array(spec["rotation"], dtype=np.float64)
         translation = np.array(spec["translation"], dtype=np.float64).reshape(-1)
-    except (TypeError, ValueError) as e:
+    except (TypeError, ValueError, OverflowError) as e:
         raise InputError(f"{where}: rotation and translation must be numbers") from e
     if rotation.shape != (3, 3) or translation.shape != (3,):
         raise InputError(
@@ -202,7 +202,7 @@ def check_baseline(narrow_from_wide: pycolmap.Rigid3d, where: str) -> None:
 def _sigma_vector(value, n: int, where: str) -> np.ndarray:
     try:
         out = np.array(value, dtype=np.float64).reshape(-1)
-    except (TypeError, ValueError) as e:
+    except (TypeError, ValueError, OverflowError) as e:
         raise InputError(f"{where}: expected {n} numbers, got {value!r}") from e
     if out.shape != (n,) or not np.all(np.isfinite(out)) or np.any(out < 0):
         raise InputError(f"{where}: expected {n} finite numbers >= 0, got {value!r}")
@@ -254,7 +254,7 @@ def sigmas_from_entry(entry: dict, where: str) -> RigSigmas:
         what = f"{where} narrow_from_wide covariance"
         try:
             cov = np.array(pose["covariance"], dtype=np.float64)
-        except (TypeError, ValueError) as e:
+        except (TypeError, ValueError, OverflowError) as e:
             raise InputError(f"{what}: expected a 6x6 matrix of numbers") from e
         if cov.shape != (6, 6) or not np.all(np.isfinite(cov)):
             raise InputError(f"{what}: expected a finite 6x6 matrix, got shape {cov.shape}")

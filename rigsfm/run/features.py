@@ -20,6 +20,7 @@ import pycolmap
 from rigsfm.run.inputs import ImageEntry
 from rigsfm.run.options import Features, MatchingOptions
 from rigsfm.core.io import write_json_atomic
+from rigsfm.run.database import open_database
 
 logger = logging.getLogger(__name__)
 
@@ -53,7 +54,7 @@ def drop_stale_work(database_path: Path, settings_path: Path, options: MatchingO
             before = {}
     cleared = []
     if before != now:
-        with pycolmap.Database.open(database_path) as database:
+        with open_database(database_path) as database:
             if before.get("features") != now["features"]:
                 database.clear_keypoints()
                 database.clear_descriptors()
@@ -84,7 +85,7 @@ def extract_features(
     num_threads: int = -1,
 ) -> int:
     """Extract SIFT (or ASIFT) for every image without keypoints yet; returns how many were extracted."""
-    with pycolmap.Database.open(database_path) as database:
+    with open_database(database_path) as database:
         ids = {image.name: image.image_id for image in database.read_all_images()}
         todo = [
             e.name for e in featured_images(images, options) if not database.exists_keypoints(ids[e.name])
@@ -133,7 +134,7 @@ def match_features(
     num_threads: int = -1,
 ) -> int:
     """Match and verify every pair not verified yet; returns how many pairs were matched now."""
-    with pycolmap.Database.open(database_path) as database:
+    with open_database(database_path) as database:
         ids = {image.name: image.image_id for image in database.read_all_images()}
         todo = [
             (a, b) for a, b in image_pairs(images, options) if not database.exists_two_view_geometry(ids[a], ids[b])
@@ -247,7 +248,7 @@ def match_pairs_directly(database_path: Path, pairs: Sequence[tuple[str, str]],
     (fewer than ``min_num_inliers`` matches or inliers are stored as none). Raw matches already stored (an
     interrupted run) are verified, not matched again."""
     minimum = verification.min_num_inliers
-    with pycolmap.Database.open(database_path) as database:
+    with open_database(database_path) as database:
         images = {image.name: image for image in database.read_all_images()}
         for done, (a, b) in enumerate(pairs, start=1):
             id1, id2 = images[a].image_id, images[b].image_id

@@ -21,6 +21,7 @@ from rigsfm.core.errors import ReconstructionError
 from rigsfm.core.io import atomic_directory
 from rigsfm.core.workspace import Workspace, read_model
 from rigsfm.run.options import Mapper, MappingOptions
+from rigsfm.run.database import open_database
 
 logger = logging.getLogger(__name__)
 
@@ -100,7 +101,7 @@ def best_pair_inliers(database_path: Path) -> int:
     pair = initial_pair(database_path)
     if pair is None:
         return 0
-    with pycolmap.Database.open(database_path) as database:
+    with open_database(database_path) as database:
         return len(database.read_two_view_geometry(*pair).inlier_matches)
 
 
@@ -110,7 +111,7 @@ def initial_pair(database_path: Path) -> tuple[int, int] | None:
     Choosing it up front spares the mapper's initial-pair search, which can run for minutes when the
     narrow images carry many (e.g. moving-crowd) features.
     """
-    with pycolmap.Database.open(database_path) as database:
+    with open_database(database_path) as database:
         names = {image.image_id: image.name for image in database.read_all_images()}
         pair_ids, inliers = database.read_two_view_geometry_num_inliers()
     best, best_inliers = None, 0
@@ -134,7 +135,7 @@ def mapping_database(database_path: Path, path: Path, *, keep_narrow_offsets: bo
     tmp = path.with_name(path.name + ".tmp")
     shutil.copyfile(database_path, tmp)
     if not keep_narrow_offsets:
-        with pycolmap.Database.open(tmp) as database:
+        with open_database(tmp) as database:
             for rig in database.read_all_rigs():
                 for sensor_id, sensor_from_rig in rig.non_ref_sensors.items():
                     if sensor_from_rig is not None:

@@ -162,9 +162,10 @@ def check_plausible_camera(camera: pycolmap.Camera, where: str) -> None:
 
 def parse_rigid3d(spec, where: str) -> pycolmap.Rigid3d:
     """``{rotation: 3x3, translation: 3}`` -> ``pycolmap.Rigid3d``, checking it is a proper rotation."""
+    if isinstance(spec, dict):
+        check_keys(spec, POSE_KEYS, where)
     if not isinstance(spec, dict) or "rotation" not in spec or "translation" not in spec:
         raise InputError(f"{where}: expected a mapping with rotation (3x3) and translation (3)")
-    check_keys(spec, POSE_KEYS, where)
     try:
         rotation = np.array(spec["rotation"], dtype=np.float64)
         translation = np.array(spec["translation"], dtype=np.float64).reshape(-1)

@@ -22,6 +22,7 @@ import fcntl
 import json
 import logging
 import os
+import re
 import sys
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -219,7 +220,8 @@ def read_model(folder: Path, fix: str) -> pycolmap.Reconstruction:
     try:
         return pycolmap.Reconstruction(str(folder))
     except Exception as error:  # ValueError, IndexError ("unordered_map::at"), MemoryError, ... by where it is cut
-        cause = (str(error).splitlines() or [""])[0].strip() or type(error).__name__
+        cause = re.sub(r"^\[[\w.]+:\d+\]\s*", "", (str(error).splitlines() or [""])[0].strip())
+        cause = cause or type(error).__name__
         sizes = ", ".join(f"{p.name} {p.stat().st_size} B" for p in sorted(folder.glob("*.bin")))
         raise WorkspaceError(f"{folder}: the COLMAP model cannot be read ({cause}; a file is truncated or damaged: "
                              f"{sizes}): {fix}") from None

@@ -26,7 +26,7 @@ from rigsfm.core.io import write_bytes_atomic, write_json_atomic, write_text_ato
 from rigsfm.core.rig import RigCalibration
 from rigsfm.core.workspace import TrackPaths, Workspace
 from rigsfm.run.inputs import scan_images
-from rigsfm.track.executors import run_frames
+from rigsfm.track.executors import check_reachable, run_frames
 from rigsfm.track.options import TrackOptions
 from rigsfm.track.plot import encode_png, plot_rig
 from rigsfm.track.reference import ReferenceMap, load_reference
@@ -112,6 +112,8 @@ def track(out: Path, new_images: Path, options: TrackOptions | None = None, *,
     thresholds = options.thresholds
     if thresholds.rotation_deg <= 0 or thresholds.translation_mm <= 0:
         raise InputError("the rotation and translation thresholds must be positive")
+    if options.executor == "ray" and options.address:  # before the reference is read: fail in seconds, not minutes
+        check_reachable(options.address)
     workspace = Workspace(Path(out))
     workspace.require_result()
     paths = workspace.track

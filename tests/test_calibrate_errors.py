@@ -10,15 +10,15 @@ import numpy as np
 import pytest
 import yaml
 
+from support import REAL_STEREO
 from rigsfm.calibrate.board import board_spec_from_dict
 from rigsfm.calibrate import CalibrateOptions, calibrate
 from rigsfm.synth.boards import SynthCamera, board_plane, render, rotation_xyz_deg
 from rigsfm.core.errors import InputError, RigsfmError
 
-DATA = Path(__file__).resolve().parents[2] / "shared/data/opencv-stereo"
+DATA = REAL_STEREO
 FRAMES = ["01", "02", "03", "04", "05", "06", "07", "08", "09", "11", "12", "13", "14"]
 CHESS = {"type": "chessboard", "inner_corners": [9, 6], "square": 0.025}
-needs_real = pytest.mark.skipif(not DATA.is_dir(), reason=f"real stereo images not found at {DATA}")
 
 
 def real_board(root: Path, wide: list[str], narrow: list[str], rename: dict | None = None) -> Path:
@@ -46,27 +46,23 @@ def run(tmp_path: Path, board_dir: Path, spec: dict):
         assert not (tmp_path / "out").exists(), "an error must not leave output behind"
 
 
-@needs_real
 def test_no_board_anywhere(tmp_path):
     with pytest.raises(InputError, match="found in none of the 13 images"):
         run(tmp_path, real_board(tmp_path, [], []), CHESS)
 
 
-@needs_real
 def test_mismatched_frame_names(tmp_path):
     board_dir = real_board(tmp_path, FRAMES, FRAMES, rename={("narrow", "05"): "05b"})
     with pytest.raises(InputError, match=r"frame names do not match \(only in wide: 05; only in narrow: 05b\)"):
         run(tmp_path, board_dir, CHESS)
 
 
-@needs_real
 def test_too_few_common_views(tmp_path):
     board_dir = real_board(tmp_path, ["06", "07", "08", "09", "11", "12"], ["01", "02", "03", "04", "06", "07"])
     with pytest.raises(InputError, match="only 2 views usable for E\\^sl"):
         run(tmp_path, board_dir, CHESS)
 
 
-@needs_real
 def test_chessboard_counted_squares_not_inner_corners(tmp_path):
     with pytest.raises(InputError, match=r"inner_corners \[9, 6\] was found"):
         run(tmp_path, real_board(tmp_path, FRAMES, FRAMES), {**CHESS, "inner_corners": [10, 7]})

@@ -11,16 +11,16 @@ import pytest
 import yaml
 from scipy.spatial.transform import Rotation
 
+from support import REAL_STEREO
 from rigsfm.calibrate import calibrate_rigs
 from rigsfm.calibrate.board import board_spec_from_dict
 from rigsfm.calibrate import CalibrateOptions, calibrate
 from rigsfm.core.rig import load_rigs
 
-DATA = Path(__file__).resolve().parents[2] / "shared/data/opencv-stereo"
+DATA = REAL_STEREO
 FRAMES = ["01", "02", "03", "04", "05", "06", "07", "08", "09", "11", "12", "13", "14"]
 SPEC = {"type": "chessboard", "inner_corners": [9, 6], "square": 0.025}
 
-pytestmark = pytest.mark.skipif(not DATA.is_dir(), reason=f"real stereo images not found at {DATA}")
 
 
 @pytest.fixture(scope="module")

@@ -112,7 +112,6 @@ def test_points_open_in_open3d(scene):
     assert len(cloud.points) == pycolmap.Reconstruction(out / "sparse").num_points3D() > 500
 
 
-@pytest.mark.skipif(shutil.which("colmap") is None, reason="Debian's colmap is not installed (scripts/setup.sh)")
 def test_model_opens_in_debian_colmap(scene, tmp_path):
     _, out, _, _ = scene
     analysis = subprocess.run(["colmap", "model_analyzer", "--path", str(out / "sparse")],

@@ -6,13 +6,14 @@ import numpy as np
 import pytest
 from test_manual_matches import A, B, synthetic_correspondences
 
+import playwright.sync_api as playwright_api
+from support import launch_chromium
 from rigsfm.run.manual_matches import read_manual_matches
 from rigsfm.pick import start_picker
 from rigsfm.synth.clicks import farthest_points
 from rigsfm.synth.dataset import render_dataset
 from rigsfm.synth.scene import SceneOptions
 
-playwright_api = pytest.importorskip("playwright.sync_api")
 
 
 @pytest.fixture(scope="module")
@@ -25,11 +26,7 @@ def dataset(tmp_path_factory):
 def page(dataset, tmp_path):
     server = start_picker(dataset.images / A, dataset.images / B, tmp_path / "matches.csv", dataset.rigs)
     with playwright_api.sync_playwright() as p:
-        browser = p.chromium.launch(
-            executable_path="/usr/bin/chromium",
-            headless=True,
-            args=["--no-sandbox", "--disable-gpu", "--disable-background-networking"],
-        )
+        browser = launch_chromium(p)
         page = browser.new_page(viewport={"width": 1800, "height": 1100})
         page.goto(server.url)
         page.evaluate("window.picker.ready")

@@ -1,7 +1,7 @@
 """Single-camera calibration from board detections, with outlier-view rejection and coverage check.
 
 The distortion model follows what is estimated: k1, k2, p1, p2 -> COLMAP ``OPENCV``; with k3 as well ->
-``FULL_OPENCV`` (k4..k6 = 0). ``distortion="auto"`` adds k3 only if it lowers the RMS by >= 5 %.
+``FULL_OPENCV`` (k4..k6 = 0). ``Distortion.AUTO`` adds k3 only if it lowers the RMS by >= 5 %.
 """
 
 from __future__ import annotations
@@ -20,7 +20,6 @@ from rigsfm.core.errors import InputError, RigsfmError
 
 logger = logging.getLogger(__name__)
 
-DISTORTIONS = tuple(d.value for d in Distortion)
 MIN_VIEWS = 3
 OUTLIER_FACTOR = 3.0  # a view is an outlier if its RMS > 3 x the median view RMS ...
 OUTLIER_FLOOR_PX = 0.5  # ... and above this (tiny RMS differences are noise, not outliers)
@@ -117,10 +116,13 @@ def coverage_fraction(points: list[np.ndarray], image_size: tuple[int, int]) -> 
 
 
 def calibrate_camera(sensor: str, detections: dict[str, Detection | None], object_points: np.ndarray,
-                     image_size: tuple[int, int], distortion: str = "auto", where: str = "") -> CameraCalibration:
+                     image_size: tuple[int, int], distortion: Distortion = Distortion.AUTO,
+                     where: str = "") -> CameraCalibration:
     """Calibrate one camera from its detections (view name -> Detection or None)."""
-    if distortion not in DISTORTIONS:
-        raise InputError(f"distortion must be one of {', '.join(DISTORTIONS)}, got {distortion!r}")
+    try:
+        distortion = Distortion(distortion)
+    except ValueError:
+        raise InputError(f"distortion must be one of {', '.join(Distortion)}, got {distortion!r}") from None
     where = where or sensor
     views = {n: ViewResult(n, 0 if d is None else len(d), None, False,
                            "board not found" if d is None else "") for n, d in detections.items()}
@@ -132,7 +134,7 @@ def calibrate_camera(sensor: str, detections: dict[str, Detection | None], objec
         raise InputError(f"{where}: the board was detected in only {len(active)} images (need at least "
                          f"{MIN_VIEWS}, better 10+); capture more views with the whole board or more of it visible")
     pairs = {n: correspondences(detections[n], object_points) for n in active}
-    k3 = distortion == "full_opencv"
+    k3 = distortion == Distortion.FULL_OPENCV
     while True:
         fit = _fit([pairs[n][0] for n in active], [pairs[n][1] for n in active], image_size, k3)
         per_view = fit[6]
@@ -148,7 +150,7 @@ def calibrate_camera(sensor: str, detections: dict[str, Detection | None], objec
                               f"outlier: view RMS {per_view[worst]:.2f} px > {MAX_VIEW_RMS_PX:g} px")
         logger.info("%s: rejected view %s (%s)", where, name, views[name].reason)
     notes = []
-    if distortion == "auto":
+    if distortion == Distortion.AUTO:
         with_k3 = _fit([pairs[n][0] for n in active], [pairs[n][1] for n in active], image_size, True)
         gain = 1.0 - with_k3[0] / fit[0]
         if gain >= K3_GAIN:

@@ -34,7 +34,7 @@ from rigsfm.calibrate.board import (
     read_gray,
 )
 from rigsfm.calibrate.dataset import RigFrames, discover_rigs
-from rigsfm.calibrate.options import CalibrateOptions
+from rigsfm.calibrate.options import CalibrateOptions, Distortion
 from rigsfm.calibrate.intrinsics import CameraCalibration, calibrate_camera, colmap_camera
 from rigsfm.calibrate.scene import SceneEstimate, estimate_from_scene
 from rigsfm.calibrate.stereo import StereoCalibration, calibrate_stereo
@@ -102,7 +102,7 @@ def _detect(detector: BoardDetector, paths: dict[str, Path], where: str) -> tupl
     return detections, next(iter(sizes))
 
 
-def calibrate_rig(frames: RigFrames, board: BoardSpec, *, distortion: str = "auto", scene: RigFrames | None = None,
+def calibrate_rig(frames: RigFrames, board: BoardSpec, *, distortion: Distortion = Distortion.AUTO, scene: RigFrames | None = None,
                   baseline: float | None = None) -> RigResult:
     detector = BoardDetector(board)
     detections, sizes = {}, {}
@@ -140,7 +140,7 @@ def calibrate_rig(frames: RigFrames, board: BoardSpec, *, distortion: str = "aut
     return result
 
 
-def calibrate_rigs(board_dir: Path, board: BoardSpec, *, distortion: str = "auto", scene_dir: Path | None = None,
+def calibrate_rigs(board_dir: Path, board: BoardSpec, *, distortion: Distortion = Distortion.AUTO, scene_dir: Path | None = None,
                    baseline: float | None = None, rig_names: list[str] | None = None) -> CalibrationResult:
     """Calibrate every rig under ``board_dir`` (``<rig>/wide``, ``<rig>/narrow``)."""
     if baseline is not None and not (np.isfinite(baseline) and baseline > 0):
@@ -193,7 +193,7 @@ def calibrate(board_images: Path, out: Path, options: CalibrateOptions) -> tuple
     spec = load_board_spec(options.board)
     names = [r.name for r in discover_rigs(board_images, "board images")]
     check_output(out, names, merge=options.merge, overwrite=options.overwrite)
-    result = calibrate_rigs(board_images, spec, distortion=str(options.distortion), scene_dir=options.scene_dir,
+    result = calibrate_rigs(board_images, spec, distortion=options.distortion, scene_dir=options.scene_dir,
                             baseline=options.baseline)
     rigs_path, report = write_calibration(result, out, merge=options.merge, overwrite=options.overwrite,
                                           report_dir=options.report_dir)

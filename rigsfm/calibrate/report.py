@@ -13,6 +13,7 @@ from typing import TYPE_CHECKING
 import cv2
 import numpy as np
 
+from rigsfm.core import charts
 from rigsfm.calibrate.intrinsics import COVERAGE_GRID, OUTLIER_FACTOR, CameraCalibration
 from rigsfm.calibrate.stereo import StereoFit
 from rigsfm.core.conventions import euler_zyx_degrees
@@ -21,65 +22,20 @@ from rigsfm.core.io import atomic_directory, write_text_atomic
 if TYPE_CHECKING:
     from rigsfm.calibrate import CalibrationResult, RigResult
 
-FONT = cv2.FONT_HERSHEY_SIMPLEX
-GREEN, RED, BLUE, GRAY, ORANGE, BLACK = (60, 160, 60), (50, 50, 210), (200, 120, 40), (140, 140, 140), (0, 140, 255), (0, 0, 0)
-
-
-def _rotated_labels(labels: list[str], xs: list[int], width: int, height: int) -> np.ndarray:
-    strip = np.full((width, height, 3), 255, np.uint8)  # drawn transposed, then rotated
-    for label, x in zip(labels, xs):
-        cv2.putText(strip, label[:18], (4, x + 4), FONT, 0.38, BLACK, 1, cv2.LINE_AA)
-    return cv2.rotate(strip, cv2.ROTATE_90_COUNTERCLOCKWISE)
-
-
-def bar_chart(title: str, labels: list[str], series: list[list[float | None]], colours: list[list[tuple]],
-              lines: list[tuple[float, tuple, str]] = (), width: int = 960, height: int = 420) -> np.ndarray:
-    """Grouped vertical bars (one group per label); ``lines`` are (value, colour, legend) horizontal lines."""
-    left, top, bottom = 60, 40, 110
-    plot_h, plot_w = height - top - bottom, width - left - 20
-    values = [v for s in series for v in s if v is not None and np.isfinite(v)] + [v for v, _, _ in lines]
-    vmax = max(values + [1e-3]) * 1.15
-    image = np.full((height, width, 3), 255, np.uint8)
-    cv2.putText(image, title, (left, 25), FONT, 0.6, BLACK, 1, cv2.LINE_AA)
-    y = lambda v: int(top + plot_h - v / vmax * plot_h)
-    for k in range(6):
-        value = vmax * k / 5
-        cv2.line(image, (left, y(value)), (left + plot_w, y(value)), (230, 230, 230), 1)
-        cv2.putText(image, f"{value:.2f}", (5, y(value) + 4), FONT, 0.4, BLACK, 1, cv2.LINE_AA)
-    n = max(1, len(labels))
-    group = plot_w / n
-    bar = max(1.0, group * 0.8 / len(series))
-    centres = []
-    for i in range(len(labels)):
-        x0 = left + i * group + group * 0.1
-        centres.append(int(left + (i + 0.5) * group))
-        for j, s in enumerate(series):
-            v = s[i]
-            if v is None or not np.isfinite(v):
-                continue
-            cv2.rectangle(image, (int(x0 + j * bar), y(v)), (int(x0 + (j + 1) * bar) - 1, y(0)), colours[j][i], -1)
-    for k, (value, colour, legend) in enumerate(lines):
-        for x in range(left, left + plot_w, 12):  # dashed
-            cv2.line(image, (x, y(value)), (min(x + 6, left + plot_w), y(value)), colour, 1)
-        cv2.putText(image, f"{legend} {value:.2f}", (width - 260, top + 15 + 16 * k), FONT, 0.42, colour, 1, cv2.LINE_AA)
-    cv2.putText(image, "px", (8, top - 8), FONT, 0.4, BLACK, 1, cv2.LINE_AA)
-    image[height - bottom + 5:height - 5] = _rotated_labels(labels, [c for c in centres], width, bottom - 10)
-    return image
-
-
 def view_error_chart(cam: CameraCalibration, where: str) -> np.ndarray:
     views = [v for v in cam.views if v.rms is not None]
     used = [v.rms for v in cam.views if v.used]
     median = float(np.median(used)) if used else 0.0
-    return bar_chart(f"{where}: per-view RMS reprojection error (red = rejected)", [v.name for v in views],
-                     [[v.rms for v in views]], [[GREEN if v.used else RED for v in views]],
-                     [(median, GRAY, "median"), (OUTLIER_FACTOR * median, ORANGE, f"{OUTLIER_FACTOR:g} x median")])
+    return charts.bar_chart(f"{where}: per-view RMS reprojection error (red = rejected)", [v.name for v in views],
+                            [[v.rms for v in views]], [["good" if v.used else "bad" for v in views]],
+                            [(median, "muted", "median"), (OUTLIER_FACTOR * median, "warn",
+                                                           f"{OUTLIER_FACTOR:g} x median")])
 
 
 def coverage_image(cam: CameraCalibration, where: str, max_side: int = 800) -> np.ndarray:
     w, h = cam.image_size
     s = max_side / max(w, h)
-    image = np.full((round(h * s), round(w * s), 3), 255, np.uint8)
+    image = charts.canvas(round(w * s), round(h * s))
     cols, rows = COVERAGE_GRID
     points = [pairs[1].reshape(-1, 2) for pairs in cam.pairs.values()]
     allp = np.vstack(points) if points else np.zeros((0, 2))
@@ -89,26 +45,25 @@ def coverage_image(cam: CameraCalibration, where: str, max_side: int = 800) -> n
             hit = np.any((allp[:, 0] >= x0) & (allp[:, 0] < x1) & (allp[:, 1] >= y0) & (allp[:, 1] < y1))
             p0, p1 = (int(x0 * s), int(y0 * s)), (int(x1 * s) - 1, int(y1 * s) - 1)
             if hit:
-                cv2.rectangle(image, p0, p1, (225, 245, 225), -1)
-            cv2.rectangle(image, p0, p1, (215, 215, 215), 1)
-    rng = np.random.default_rng(0)
-    for pts in points:
-        colour = tuple(int(c) for c in rng.integers(30, 200, 3))
+                cv2.rectangle(image, p0, p1, charts.bgr((225, 245, 225)), -1)
+            cv2.rectangle(image, p0, p1, charts.bgr("grid"), 1)
+    for k, pts in enumerate(points):
+        colour = charts.bgr(charts.SERIES[k % len(charts.SERIES)])
         hull = cv2.convexHull((pts * s).astype(np.int32))
         cv2.polylines(image, [hull], True, colour, 1, cv2.LINE_AA)
         for x, y in pts * s:
             cv2.circle(image, (int(x), int(y)), 2, colour, -1, cv2.LINE_AA)
-    cv2.putText(image, f"{where}: corner coverage {100 * cam.coverage:.0f} % of {cols}x{rows} cells, "
-                f"{len(points)} views", (10, 22), FONT, 0.55, BLACK, 1, cv2.LINE_AA)
+    charts.text(image, f"{where}: corner coverage {100 * cam.coverage:.0f} % of {cols}x{rows} cells, "
+                f"{len(points)} views", (10, 22), size=0.55)
     return image
 
 
 def stereo_chart(rig: RigResult) -> np.ndarray:
     fit = rig.stereo.final
     names = sorted(fit.per_view)
-    return bar_chart(f"rig {rig.name}: stereo per-view RMS (blue = wide, orange = narrow)", names,
-                     [[fit.per_view[n][0] for n in names], [fit.per_view[n][1] for n in names]],
-                     [[BLUE] * len(names), [ORANGE] * len(names)], [(fit.rms, GRAY, "overall RMS")])
+    return charts.bar_chart(f"rig {rig.name}: stereo per-view RMS (blue = wide, orange = narrow)", names,
+                            [[fit.per_view[n][0] for n in names], [fit.per_view[n][1] for n in names]],
+                            [["wide"] * len(names), ["narrow"] * len(names)], [(fit.rms, "muted", "overall RMS")])
 
 
 def _camera_text(cam: CameraCalibration, K: np.ndarray, dist: np.ndarray, label: str) -> list[str]:

@@ -21,6 +21,7 @@ from pathlib import Path
 
 import pycolmap
 
+from rigsfm.core import charts
 from rigsfm.core.errors import InputError
 from rigsfm.core.io import write_bytes_atomic, write_json_atomic, write_text_atomic
 from rigsfm.core.rig import RigCalibration
@@ -28,7 +29,7 @@ from rigsfm.core.workspace import TrackPaths, Workspace
 from rigsfm.run.inputs import scan_images
 from rigsfm.track.executors import check_reachable, run_frames
 from rigsfm.track.options import TrackOptions
-from rigsfm.track.plot import encode_png, plot_rig
+from rigsfm.track.plot import plot_rig
 from rigsfm.track.reference import ReferenceMap, load_reference
 from rigsfm.track.register import FrameTask
 from rigsfm.track.results import assemble, derive, load_poses, to_csv
@@ -102,7 +103,8 @@ def _save(paths: TrackPaths, poses: dict, plots: bool) -> None:
     write_text_atomic(paths.poses_csv, to_csv(poses))
     if plots:
         for name, rig in poses["rigs"].items():
-            write_bytes_atomic(paths.plot(name), encode_png(plot_rig(name, {**rig, "thresholds": poses["thresholds"]})))
+            plot = plot_rig(name, {**rig, "thresholds": poses["thresholds"]})
+            write_bytes_atomic(paths.plot(name), charts.encode(plot))
 
 
 def track(out: Path, new_images: Path, options: TrackOptions | None = None, *,

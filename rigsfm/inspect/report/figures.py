@@ -1,4 +1,5 @@
-"""Figures for report.html, drawn without matplotlib: OpenCV into JPEG (epipolar check) or inline SVG.
+"""Figures for report.html in the one chart style (rigsfm.core.charts): OpenCV images (epipolar check, embedded
+as JPEG) and inline SVG maps (the network seen from above).
 
 Pixel conventions: pycolmap cameras use COLMAP pixels (first pixel centre at (0.5, 0.5)); OpenCV drawing
 uses pixel indices (first pixel centre at (0, 0)), so every point is converted with
@@ -7,7 +8,6 @@ uses pixel indices (first pixel centre at (0, 0)), so every point is converted w
 
 from __future__ import annotations
 
-import base64
 import html
 from pathlib import Path
 
@@ -15,30 +15,14 @@ import cv2
 import numpy as np
 import pycolmap
 
+from rigsfm.core import charts
 from rigsfm.core.geometry import project
 from rigsfm.core.names import name_of
 from rigsfm.core.conventions import opencv_from_colmap_pixels
 
-COLOURS_BGR = [(40, 40, 230), (40, 170, 40), (220, 120, 30), (30, 200, 220), (200, 60, 200), (0, 140, 255),
-               (130, 130, 20), (90, 30, 160)]
-WIDE_SVG, NARROW_SVG = "#1f77b4", "#e6550d"
-
-
-JPEG_QUALITY = 85  # the panels are photographs with thin coloured lines: ~10x smaller than PNG, lines still crisp
-
-
-def png_data_uri(image_bgr: np.ndarray) -> str:
-    ok, buffer = cv2.imencode(".png", image_bgr)
-    if not ok:
-        raise ValueError("PNG encoding failed")
-    return "data:image/png;base64," + base64.b64encode(buffer.tobytes()).decode("ascii")
-
-
-def jpeg_data_uri(image_bgr: np.ndarray, quality: int = JPEG_QUALITY) -> str:
-    ok, buffer = cv2.imencode(".jpg", image_bgr, [cv2.IMWRITE_JPEG_QUALITY, quality])
-    if not ok:
-        raise ValueError("JPEG encoding failed")
-    return "data:image/jpeg;base64," + base64.b64encode(buffer.tobytes()).decode("ascii")
+COLOURS_BGR = [charts.bgr(colour) for colour in charts.SERIES]
+WIDE_SVG, NARROW_SVG = charts.hex_colour("wide"), charts.hex_colour("narrow")
+JPEG_QUALITY = 85  # the epipolar panels are photographs with thin lines: ~15x smaller than PNG, lines still crisp
 
 
 def pick_points(image_gray: np.ndarray, camera: pycolmap.Camera, count: int = 8) -> np.ndarray:
@@ -123,31 +107,6 @@ def read_image(path: Path) -> np.ndarray | None:
     return image
 
 
-def _nice_step(span: float) -> float:
-    raw = span / 6.0
-    power = 10 ** np.floor(np.log10(max(raw, 1e-12)))
-    return float(min((s * power for s in (1, 2, 5, 10)), key=lambda v: abs(v - raw)))
-
-
-def histogram_svg(errors: np.ndarray, title: str, upper: float, bins: int = 24, w: int = 260, h: int = 140) -> str:
-    """A histogram of reprojection errors (px) as inline SVG."""
-    counts, edges = np.histogram(np.clip(errors, 0, upper), bins=bins, range=(0.0, upper))
-    top = max(int(counts.max()), 1)
-    left, bottom, plot_w, plot_h = 34, h - 22, w - 44, h - 44
-    bars = "".join(
-        f'<rect x="{left + plot_w * k / bins:.1f}" y="{bottom - plot_h * c / top:.1f}" '
-        f'width="{plot_w / bins - 1:.1f}" height="{plot_h * c / top:.1f}" fill="{WIDE_SVG}"/>'
-        for k, c in enumerate(counts))
-    ticks = "".join(
-        f'<text x="{left + plot_w * v / upper:.1f}" y="{h - 6}" font-size="10" text-anchor="middle">{v:g}</text>'
-        for v in np.arange(0.0, upper + 1e-9, _nice_step(upper)))
-    return (f'<svg xmlns="http://www.w3.org/2000/svg" width="{w}" height="{h}" role="img">'
-            f'<text x="{left}" y="13" font-size="12">{html.escape(title)}</text>{bars}'
-            f'<line x1="{left}" y1="{bottom}" x2="{left + plot_w}" y2="{bottom}" stroke="#333"/>'
-            f'<text x="4" y="{bottom - plot_h + 4}" font-size="10">{top}</text>{ticks}'
-            f'<text x="{left + plot_w}" y="{bottom - plot_h}" font-size="10" text-anchor="end">px</text></svg>')
-
-
 def ground_frame(reconstruction: pycolmap.Reconstruction) -> tuple[np.ndarray, np.ndarray]:
     """(origin, 3x3 rows = [east, north, up]): the plane of the points and cameras seen from above."""
     centres = np.array([im.projection_center() for im in reconstruction.images.values() if im.has_pose])
@@ -188,7 +147,7 @@ def topdown_svg(reconstruction: pycolmap.Reconstruction, size: int = 620, max_po
 
     parts = [f'<svg xmlns="http://www.w3.org/2000/svg" width="{size}" height="{size}" role="img" '
              f'style="background:#fff;border:1px solid #ccc">']
-    step = _nice_step(span)
+    step = charts.nice_ticks(span, 6)[1]
     for k in np.arange(np.ceil((mid[0] - span / 2) / step), np.floor((mid[0] + span / 2) / step) + 1):
         x, _ = to_svg(np.array([k * step, 0.0]))
         parts.append(f'<line x1="{x:.1f}" y1="{pad}" x2="{x:.1f}" y2="{size - pad}" stroke="#eee"/>'

@@ -10,7 +10,8 @@ import numpy as np
 import pycolmap
 
 from rigsfm.core.names import ImageName, name_of
-from rigsfm.inspect.report.figures import epipolar_figure, histogram_svg, jpeg_data_uri, read_image, topdown_svg
+from rigsfm.core import charts
+from rigsfm.inspect.report.figures import JPEG_QUALITY, epipolar_figure, read_image, topdown_svg
 from rigsfm.core.residuals import reprojection_errors
 from rigsfm.core.workspace import Workspace
 from rigsfm.run.summary import Summary
@@ -95,7 +96,9 @@ def reprojection_section(reconstruction: pycolmap.Reconstruction) -> str:
                      fmt(float(np.sqrt(np.mean(e**2)))) if e.size else "–",
                      fmt(float(np.percentile(e, 95))) if e.size else "–"])
         if e.size:
-            figures.append(histogram_svg(e, camera, upper))
+            colour = "narrow" if camera.endswith("/narrow") else "wide"
+            figures.append(f'<img alt="reprojection errors of {esc(camera)}" '
+                           f'src="{charts.data_uri(charts.histogram(e, camera, upper, colour=colour))}">')
     return ("<h2>Reprojection error per camera</h2>"
             + table(["camera", "observations", "mean (px)", "RMS (px)", "95th pct (px)"], rows)
             + '<p class="note">Narrow cameras usually have no observations (homogeneous view): their poses '
@@ -189,7 +192,8 @@ def epipolar_section(out: Path, summary: Summary | None, reconstruction: pycolma
         caption = (f"{esc(p['i'])} → {esc(p['j'])}" + ("" if band is None else f"; band ±{band:.2f} px")
                    + (f" ({chosen[(p['i'], p['j'])]})" if chosen[(p['i'], p['j'])] else ""))
         parts.append(f'<figure><img alt="epipolar check {esc(p["i"])} to {esc(p["j"])}" '
-                     f'src="{jpeg_data_uri(figure)}"><figcaption>{caption}</figcaption></figure>')
+                     f'src="{charts.data_uri(figure, ".jpg", JPEG_QUALITY)}"><figcaption>{caption}</figcaption>'
+                     '</figure>')
     if len(chosen) < len(pairs):
         rows = [[esc(p["i"]), esc(p["j"]), fmt(p.get("epipolar_band_95_px"), 3),
                  esc(chosen.get((p["i"], p["j"]), "–"))] for p in pairs]

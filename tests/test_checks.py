@@ -83,3 +83,25 @@ def test_a_rig_moved_off_its_verified_matches_is_flagged(tmp_path):
     assert all(float(row.split("median error ")[1].split(" px")[0]) > 10.0 for row in rows)
     (warning,) = [w for w in check_reconstruction(rec, None, net.database) if w.startswith("MATCHES CONTRADICT")]
     assert "rig02-rig03" in warning
+
+
+def test_scale_messages_name_the_measurement_and_why(tmp_path):
+    """A zero model length names its measurement; a known length says which of its images were not registered."""
+    from rigsfm.run.scale_file import KnownLength, LengthObservation
+
+    rec = make_network(tmp_path, num_rigs=3, seed=2).ground_truth
+    same = CameraDistance("rig01/wide", "rig01/wide/frame0000.png", 1.0)  # validation refuses it; scale.py names it
+    with pytest.raises(ReconstructionError, match=r"scale measurement\(s\) rig01/wide - rig01/wide/frame0000.png of "
+                                                  r"scale.yaml have zero length in the model"):
+        estimate_scale(rec, ScaleSpec(Path("scale.yaml"), (same,), ()))
+    images = [rec.find_image_with_name(f"rig0{k}/wide/frame0000.png") for k in (1, 2)]
+    point = next(iter(rec.points3D.values())).xyz
+    xy = [np.asarray(rec.cameras[im.camera_id].img_from_cam(np.asarray(im.cam_from_world() * point)[None]))[0]
+          for im in images]
+    bar = KnownLength(2.0, (LengthObservation(images[0].name, tuple(xy[0]), tuple(xy[0] + 30)),
+                            LengthObservation("rig09/wide/frame0000.png", (1.0, 1.0), (5.0, 5.0))))
+    distance = CameraDistance("rig01/wide", "rig02/wide", 10.0)
+    scale = estimate_scale(rec, ScaleSpec(Path("scale.yaml"), (distance,), (bar,)))
+    assert scale.unused == ("known_length[0] (2.0 m): fewer than two of its images were registered "
+                            "(rig09/wide/frame0000.png not)",)
+    assert [m.label for m in scale.measurements] == ["rig01/wide - rig02/wide"]

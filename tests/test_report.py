@@ -46,6 +46,7 @@ def test_run_writes_report_with_bands(result):
     page = (out / "report.html").read_text()
     assert "<script" not in page and 'src="http' not in page and 'href="http' not in page and "url(" not in page
     assert page.count('<img alt="epipolar check ') == 3  # one epipolar figure per narrow pair
+    assert page.count('src="data:image/jpeg;base64,') == 3  # the epipolar figures are JPEG
     assert page.count('<img alt="reprojection errors of ') == 3  # one histogram per camera with observations
     assert f"{narrow['pairs'][0]['epipolar_band_95_px']:.3g}" in page
 
@@ -169,3 +170,23 @@ def test_commands_on_a_folder_without_result_fail_cleanly(tmp_path):
     for name, extra in (("report", []), ("view", ["--screenshot", "x.png"]), ("export", ["--format", "json"])):
         runner = CliRunner().invoke(app, [name, str(tmp_path), *extra])
         assert runner.exit_code == 1 and "run `rigsfm run" in runner.output, runner.output
+
+
+def test_figures_are_capped_to_the_widest_and_narrowest_bands(result):
+    """With fewer figures allowed than pairs: the widest bands first, then the narrowest; every pair is still
+    listed, with whether (and why) it is drawn."""
+    from rigsfm.inspect.report.html import choose_figures, epipolar_section
+    from rigsfm.run.summary import Summary
+
+    _, out, rec = result
+    pairs = json.loads((out / "narrow_poses.json").read_text())["pairs"]
+    bands = sorted(pairs, key=lambda p: p["epipolar_band_95_px"])
+    assert choose_figures(pairs, max_figures=2) == {(bands[-1]["i"], bands[-1]["j"]): "widest band",
+                                                    (bands[0]["i"], bands[0]["j"]): "narrowest band"}
+    assert choose_figures(pairs, max_figures=3) == {(p["i"], p["j"]): "" for p in pairs}
+    many = [dict(p, i=f"{p['i']}{k}") for k in range(10) for p in pairs]
+    assert sorted(choose_figures(many, 12).values()).count("widest band") == 6
+    page = epipolar_section(out, Summary.read(out / "summary.json"), rec, {"pairs": pairs}, max_figures=2)
+    assert page.count('src="data:image/jpeg;base64,') == 2 and "2 of 3 pairs are drawn" in page
+    assert page.count(">widest band</td>") == 1 and page.count(">narrowest band</td>") == 1 and page.count(">–</td>") == 1
+    assert page.count("<tr>") == 1 + 3  # the table: header and every pair

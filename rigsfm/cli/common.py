@@ -71,7 +71,7 @@ def fail_cleanly(command):
             raise typer.Exit(EXIT_TERMINATED) from None
         except OSError as error:  # disk full, read-only, permission: the user's to fix, with the path
             where = f"{error.filename}: " if error.filename else ""
-            say_error(f"{where}{os_error_text(error)}; free space or choose a folder you can write to")
+            say_error(f"{where}{os_error_text(error)}; {os_error_advice(error)}")
             raise typer.Exit(EXIT_ERROR) from None
         except typer.Exit:
             raise
@@ -85,6 +85,20 @@ def fail_cleanly(command):
             signal.signal(signal.SIGTERM, previous)
 
     return wrapper
+
+
+def os_error_advice(error: OSError) -> str:
+    import errno
+
+    if error.errno in (errno.ENOSPC, errno.EDQUOT):
+        return "free space, then re-run the same command (finished work is kept)"
+    if error.errno == errno.EROFS:
+        return "choose a folder you can write to"
+    if error.errno in (errno.EACCES, errno.EPERM):
+        return "check its permissions, or choose a folder you can write to"
+    if isinstance(error, ConnectionError):
+        return "check the address and that the other side is running"
+    return "check the path"
 
 
 def configure_logging(verbose: bool) -> None:

@@ -70,8 +70,8 @@ def run_command(
     manual_matches: Annotated[Optional[Path], typer.Option(
         "--manual-matches", help="CSV image_a,x_a,y_a,image_b,x_b,y_b of hand-picked correspondences between wide "
                                  "images (COLMAP pixels; see `rigsfm pick`) [default: none]", show_default=False)] = None,
-    max_ratio: Annotated[float, typer.Option("--max-ratio", min=0.1, max=1.0,
-                                             help="Lowe's ratio test threshold of the SIFT matching")] = 0.8,
+    max_ratio: Annotated[float, typer.Option("--max-ratio", help="Lowe's ratio test threshold of the SIFT matching, "
+                                                                 "in (0, 1]")] = 0.8,
     cross_check: Annotated[bool, typer.Option("--cross-check/--no-cross-check",
                                               help="keep only mutual nearest-neighbour matches")] = True,
     rig_verification: Annotated[Optional[bool], typer.Option(

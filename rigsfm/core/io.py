@@ -38,6 +38,11 @@ def write_bytes_atomic(path: Path, data: bytes, *, overwrite: bool = True) -> Pa
             f.write(data)
         os.chmod(tmp, 0o666 & ~_umask())
         os.replace(tmp, path)
+    except OSError as error:
+        Path(tmp).unlink(missing_ok=True)
+        if error.filename is None:  # a full disk fails the write itself, which names no file
+            raise OSError(error.errno, error.strerror, str(path)) from None
+        raise
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
@@ -75,14 +80,38 @@ def atomic_directory(path: Path, *, overwrite: bool = True) -> Iterator[Path]:
         shutil.rmtree(tmp, ignore_errors=True)
 
 
-def load_yaml_or_json(path: Path, what: str) -> Any:
-    """Parse a YAML (or JSON, a subset of YAML) file, with an error that names the file."""
+BOMS = ((b"\xef\xbb\xbf", "utf-8-sig"), (b"\xff\xfe", "utf-16"), (b"\xfe\xff", "utf-16"))
+
+
+def read_user_text(path: Path, what: str) -> str:
+    """A text file a user made: UTF-8, with or without the byte-order mark spreadsheets and Windows editors write,
+    or UTF-16 with its mark ("Unicode text" in Excel); anything else is refused naming the file and the fix."""
     path = Path(path)
     if not path.is_file():
         raise InputError(f"{what} file {path} does not exist")
     try:
-        data = yaml.safe_load(path.read_text(encoding="utf-8"))
-    except (yaml.YAMLError, UnicodeDecodeError) as e:
+        data = path.read_bytes()
+    except OSError as error:
+        from rigsfm.core.workspace import os_error_text
+
+        raise InputError(f"cannot read {what} file {path}: {os_error_text(error)}") from None
+    encoding = next((name for bom, name in BOMS if data.startswith(bom)), "utf-8")
+    try:
+        return data.decode(encoding)
+    except UnicodeDecodeError as e:
+        raise InputError(f"{path}: not {encoding.upper()} text (byte {e.start}); save it as UTF-8 (e.g. 'CSV UTF-8' "
+                         "in a spreadsheet)") from None
+
+
+def load_yaml_or_json(path: Path, what: str) -> Any:
+    """Parse a YAML (or JSON, a subset of YAML) file, with an error that names the file."""
+    path = Path(path)
+    text = read_user_text(path, what)
+    try:
+        data = yaml.safe_load(text)
+    except RecursionError:
+        raise InputError(f"{path}: nested too deeply to be a {what} file; fix the syntax") from None
+    except yaml.YAMLError as e:
         first_line = str(e).splitlines()[0] if str(e) else type(e).__name__
         raise InputError(f"{path}: not valid YAML/JSON ({first_line}); fix the syntax") from e
     if not isinstance(data, dict):

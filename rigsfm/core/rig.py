@@ -11,14 +11,22 @@ rigs:
       rotation: [[...], [...], [...]]
       translation: [tx, ty, tz]
 ```
-Intrinsics use COLMAP's pixel convention (first pixel centre at (0.5, 0.5)).
+Intrinsics use COLMAP's pixel convention (first pixel centre at (0.5, 0.5)). Optional uncertainty keys
+(``sigmas`` per sensor; ``sigma_rotation_deg``, ``sigma_translation_m``, ``covariance`` under
+``narrow_from_wide``), written by ``rigsfm calibrate``, become :class:`RigSigmas` on ``RigCalibration.sigmas``.
+
+Besides the syntax, :func:`load_rigs` refuses what cannot be a real rig, one line naming the rig, the key and
+the fix: unknown keys (with a "did you mean"), an E^sl baseline outside 1 mm - 5 m (millimetres written as
+metres), a principal point outside the image, a focal length implausible for the image width, and sigmas that
+are not positive, finite and plausible.
 """
 
 from __future__ import annotations
 
 import copy
+import difflib
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -30,27 +38,79 @@ from rigsfm.core.names import SENSORS
 from rigsfm.core.serialise import camera_to_dict, pose_to_dict
 from rigsfm.core.io import load_yaml_or_json, write_text_atomic
 
-CAMERA_MODELS = tuple(m for m in pycolmap.CameraModelId.__members__ if m != "INVALID")
+# Every COLMAP model with a focal length and a principal point (EQUIRECTANGULAR has neither: no rig camera).
+CAMERA_MODELS = tuple(m for m in pycolmap.CameraModelId.__members__ if m not in ("INVALID", "EQUIRECTANGULAR"))
 ROTATION_TOLERANCE = 1e-5
+
+# Plausibility limits (see load_rigs): what lies outside is a unit or typing mistake, not a rig.
+BASELINE_RANGE_M = (0.001, 5.0)  # |t| of E^sl: two cameras on one rig
+# focal length / image width: a 220-degree fisheye is ~0.2, a 150-degree perspective lens ~0.13; long narrow
+# lenses are 3-10 (a 1200 mm lens on a 1/2.3" sensor ~200 would be refused: not a camera for this task)
+FOCAL_RANGE_WIDTHS = (0.1, 50.0)
+FOCAL_ASPECT_RANGE = (1 / 3, 3.0)  # fx / fy: anamorphic lenses reach 2
+MAX_SIGMA_ROTATION_DEG = 5.0
+MAX_SIGMA_FOCAL = 0.10  # relative to the focal length
+MAX_SIGMA_PRINCIPAL_POINT = 0.10  # relative to the image size
+
+TOP_KEYS = ("units", "rigs")
+RIG_KEYS = ("name", "sensors", "narrow_from_wide")
+CAMERA_KEYS = ("model", "width", "height", "params", "sigmas")
+POSE_KEYS = ("rotation", "translation", "sigma_rotation_deg", "sigma_translation_m", "covariance")
+
+
+@dataclass
+class RigSigmas:
+    """1-sigma uncertainties of one rig's calibration (None: not estimated, nothing written).
+
+    ``wide``/``narrow``: one per entry of the camera's params (COLMAP order and pixels; 0 = held fixed, allowed
+    for distortion terms only). ``rotation_deg``: per axis of w with R_true = Exp(w) R (a small rotation applied
+    on the left, degrees). ``translation_m``: of t. ``covariance``: 6x6 of [w (rad), t (m)]."""
+
+    wide: np.ndarray | None = None
+    narrow: np.ndarray | None = None
+    rotation_deg: np.ndarray | None = None
+    translation_m: np.ndarray | None = None
+    covariance: np.ndarray | None = None
+    notes: list[str] = field(default_factory=list)  # why something is missing (rigsfm calibrate's report)
+
+    def sensor(self, name: str) -> np.ndarray | None:
+        return self.wide if name == "wide" else self.narrow
+
+    def is_empty(self) -> bool:
+        return all(v is None for v in (self.wide, self.narrow, self.rotation_deg, self.translation_m,
+                                       self.covariance))
 
 
 @dataclass(frozen=True)
 class RigCalibration:
-    """One hybrid rig: its two calibrated cameras and ``narrow_from_wide`` (E^sl, metres)."""
+    """One hybrid rig: its two calibrated cameras and ``narrow_from_wide`` (E^sl, metres); ``sigmas`` their
+    uncertainties when rigs.yaml gives them (None otherwise)."""
 
     name: str
     wide: pycolmap.Camera
     narrow: pycolmap.Camera
     narrow_from_wide: pycolmap.Rigid3d
+    sigmas: RigSigmas | None = field(default=None, compare=False)
 
     def camera(self, sensor: str) -> pycolmap.Camera:
         return self.wide if sensor == "wide" else self.narrow
+
+
+def check_keys(spec: dict, known: Sequence[str], where: str) -> None:
+    """Refuse a key that is not in ``known``, suggesting the closest known one (a typo is never ignored)."""
+    for key in spec:
+        if key in known:
+            continue
+        hint = difflib.get_close_matches(str(key), [str(k) for k in known], n=1, cutoff=0.5)
+        raise InputError(f"{where}: unknown key {key!r}" + (f" (did you mean {hint[0]!r}?)" if hint else "")
+                         + f"; the keys here are {', '.join(known)}")
 
 
 def parse_camera(spec, where: str) -> pycolmap.Camera:
     """A ``pycolmap.Camera`` from ``{model, width, height, params}``; ``where`` names it in errors."""
     if not isinstance(spec, dict):
         raise InputError(f"{where}: expected a mapping with model, width, height, params")
+    check_keys(spec, CAMERA_KEYS, where)
     missing = [k for k in ("model", "width", "height", "params") if k not in spec]
     if missing:
         raise InputError(f"{where}: missing {', '.join(missing)}")
@@ -62,7 +122,7 @@ def parse_camera(spec, where: str) -> pycolmap.Camera:
     try:
         width, height = int(spec["width"]), int(spec["height"])
         params = [float(p) for p in spec["params"]]
-    except (TypeError, ValueError) as e:
+    except (TypeError, ValueError, OverflowError) as e:
         raise InputError(f"{where}: width/height must be integers and params a list of numbers") from e
     if width <= 0 or height <= 0:
         raise InputError(f"{where}: width and height must be positive, got {width}x{height}")
@@ -75,17 +135,41 @@ def parse_camera(spec, where: str) -> pycolmap.Camera:
         )
     if not np.all(np.isfinite(params)) or min(camera.focal_length_x, camera.focal_length_y) <= 0:
         raise InputError(f"{where}: params must be finite with positive focal lengths")
+    check_plausible_camera(camera, where)
     return camera
+
+
+def check_plausible_camera(camera: pycolmap.Camera, where: str) -> None:
+    """Refuse a principal point outside the image and a focal length no lens has at this image size."""
+    cx, cy = camera.principal_point_x, camera.principal_point_y
+    if not (0.0 <= cx <= camera.width and 0.0 <= cy <= camera.height):
+        raise InputError(
+            f"{where}: principal point ({cx:g}, {cy:g}) lies outside the {camera.width}x{camera.height} image; "
+            "give cx, cy in pixels of this image size (COLMAP order: after the focal length)")
+    low, high = FOCAL_RANGE_WIDTHS
+    for axis, focal in (("x", camera.focal_length_x), ("y", camera.focal_length_y)):
+        ratio = focal / camera.width
+        if not low <= ratio <= high:
+            raise InputError(
+                f"{where}: focal length f{axis} = {focal:g} px is {ratio:.3g} x the image width {camera.width}; "
+                f"a lens has {low:g}-{high:g} x (fisheye ~0.2, long lenses 3-10): give it in pixels of this image "
+                "size, not millimetres")
+    aspect = camera.focal_length_x / camera.focal_length_y
+    if not FOCAL_ASPECT_RANGE[0] <= aspect <= FOCAL_ASPECT_RANGE[1]:
+        raise InputError(f"{where}: fx / fy = {aspect:.3g}; pixels are (nearly) square, so fx and fy should be "
+                         "close: check the params' order and digits")
 
 
 def parse_rigid3d(spec, where: str) -> pycolmap.Rigid3d:
     """``{rotation: 3x3, translation: 3}`` -> ``pycolmap.Rigid3d``, checking it is a proper rotation."""
+    if isinstance(spec, dict):
+        check_keys(spec, POSE_KEYS, where)
     if not isinstance(spec, dict) or "rotation" not in spec or "translation" not in spec:
         raise InputError(f"{where}: expected a mapping with rotation (3x3) and translation (3)")
     try:
         rotation = np.array(spec["rotation"], dtype=np.float64)
         translation = np.array(spec["translation"], dtype=np.float64).reshape(-1)
-    except (TypeError, ValueError) as e:
+    except (TypeError, ValueError, OverflowError) as e:
         raise InputError(f"{where}: rotation and translation must be numbers") from e
     if rotation.shape != (3, 3) or translation.shape != (3,):
         raise InputError(
@@ -105,10 +189,114 @@ def parse_rigid3d(spec, where: str) -> pycolmap.Rigid3d:
     return pycolmap.Rigid3d(pycolmap.Rotation3d(rotation), translation)
 
 
+def check_baseline(narrow_from_wide: pycolmap.Rigid3d, where: str) -> None:
+    """The two cameras of a rig sit 1 mm - 5 m apart; outside, the translation is in other units than metres."""
+    baseline = float(np.linalg.norm(narrow_from_wide.translation))
+    low, high = BASELINE_RANGE_M
+    if not low <= baseline <= high:
+        hint = (f"in millimetres? {baseline:g} mm is {baseline / 1000:g} m" if baseline > high
+                else "the two cameras cannot be at one point")
+        raise InputError(f"{where} translation: the baseline |t| = {baseline:g} m is outside {low * 1000:g} mm - "
+                         f"{high:g} m ({hint}); give the translation in metres")
+
+
+def _sigma_vector(value, n: int, where: str) -> np.ndarray:
+    try:
+        out = np.array(value, dtype=np.float64).reshape(-1)
+    except (TypeError, ValueError, OverflowError) as e:
+        raise InputError(f"{where}: expected {n} numbers, got {value!r}") from e
+    if out.shape != (n,) or not np.all(np.isfinite(out)) or np.any(out < 0):
+        raise InputError(f"{where}: expected {n} finite numbers >= 0, got {value!r}")
+    return out
+
+
+def _check_camera_sigmas(sigmas: np.ndarray, spec: dict, where: str) -> None:
+    """Focal length and principal point sigmas must be positive and below 10 % (a zero would hold them exactly,
+    more is no calibration); distortion terms may be 0 (held fixed)."""
+    camera = pycolmap.Camera(model=str(spec["model"]).upper(), width=int(spec["width"]),
+                             height=int(spec["height"]), params=[float(p) for p in spec["params"]])
+    params = np.asarray(camera.params)
+    for i in camera.focal_length_idxs():
+        if not 0 < sigmas[i] <= MAX_SIGMA_FOCAL * params[i]:
+            raise InputError(f"{where}: the focal length's sigma {sigmas[i]:g} px must be > 0 and at most "
+                             f"{100 * MAX_SIGMA_FOCAL:g} % of {params[i]:g} px; recalibrate, or remove 'sigmas'")
+    for i, size in zip(camera.principal_point_idxs(), (camera.width, camera.height)):
+        if not 0 < sigmas[i] <= MAX_SIGMA_PRINCIPAL_POINT * size:
+            raise InputError(f"{where}: the principal point's sigma {sigmas[i]:g} px must be > 0 and at most "
+                             f"{100 * MAX_SIGMA_PRINCIPAL_POINT:g} % of the image size; recalibrate, or remove "
+                             "'sigmas'")
+
+
+def sigmas_from_entry(entry: dict, where: str) -> RigSigmas:
+    """Read and check the uncertainty keys of one rig entry of rigs.yaml (absent keys stay None)."""
+    out = RigSigmas()
+    for sensor in SENSORS:
+        spec = entry["sensors"][sensor]
+        if "sigmas" in spec:
+            what = f"{where} sensor {sensor} sigmas (one per entry of params)"
+            vector = _sigma_vector(spec["sigmas"], len(spec["params"]), what)
+            _check_camera_sigmas(vector, spec, what)
+            setattr(out, sensor, vector)
+    pose = entry["narrow_from_wide"]
+    if "sigma_rotation_deg" in pose:
+        what = f"{where} narrow_from_wide sigma_rotation_deg"
+        out.rotation_deg = _sigma_vector(pose["sigma_rotation_deg"], 3, what)
+        if not np.all((out.rotation_deg > 0) & (out.rotation_deg <= MAX_SIGMA_ROTATION_DEG)):
+            raise InputError(f"{what}: each must be > 0 and at most {MAX_SIGMA_ROTATION_DEG:g} degrees, got "
+                             f"{pose['sigma_rotation_deg']}; recalibrate, or remove the key")
+    if "sigma_translation_m" in pose:
+        what = f"{where} narrow_from_wide sigma_translation_m"
+        out.translation_m = _sigma_vector(pose["sigma_translation_m"], 3, what)
+        baseline = float(np.linalg.norm(np.asarray(pose["translation"], dtype=np.float64)))
+        if not np.all((out.translation_m > 0) & (out.translation_m <= baseline)):
+            raise InputError(f"{what}: each must be > 0 and below the baseline |t| = {baseline:g} m, got "
+                             f"{pose['sigma_translation_m']}; recalibrate, or remove the key")
+    if "covariance" in pose:
+        what = f"{where} narrow_from_wide covariance"
+        try:
+            cov = np.array(pose["covariance"], dtype=np.float64)
+        except (TypeError, ValueError, OverflowError) as e:
+            raise InputError(f"{what}: expected a 6x6 matrix of numbers") from e
+        if cov.shape != (6, 6) or not np.all(np.isfinite(cov)):
+            raise InputError(f"{what}: expected a finite 6x6 matrix, got shape {cov.shape}")
+        scale = np.sqrt(np.clip(np.diag(cov), 1e-300, None))
+        if not np.allclose(cov, cov.T, rtol=1e-6, atol=0) or np.linalg.eigvalsh(cov / np.outer(scale, scale)).min() < -1e-6:
+            raise InputError(f"{what}: must be symmetric positive semi-definite ([w (rad), t (m)])")
+        if np.degrees(np.sqrt(np.diag(cov)[:3])).max() > MAX_SIGMA_ROTATION_DEG:
+            raise InputError(f"{what}: a rotation variance above ({MAX_SIGMA_ROTATION_DEG:g} deg)^2; the rotation "
+                             "block is in rad^2: recalibrate, or remove the key")
+        out.covariance = cov
+    return out
+
+
+SIGNIFICANT = 4  # digits written for sigmas ...
+COVARIANCE_SIGNIFICANT = 8  # ... and for the covariance (its eigenvalues then move by < 1e-7 relative)
+
+
+def _round(values, digits: int = SIGNIFICANT) -> list[float]:
+    return [float(f"{v:.{digits}g}") for v in np.ravel(values)]
+
+
+def add_sigmas(entry: dict, sigmas: RigSigmas) -> dict:
+    """Add the uncertainty keys to one rig's rigs.yaml entry (a dict as :func:`rigs_to_yaml` builds it)."""
+    for sensor in SENSORS:
+        if sigmas.sensor(sensor) is not None:
+            entry["sensors"][sensor]["sigmas"] = _round(sigmas.sensor(sensor))
+    pose = entry["narrow_from_wide"]
+    if sigmas.rotation_deg is not None:
+        pose["sigma_rotation_deg"] = _round(sigmas.rotation_deg)
+    if sigmas.translation_m is not None:
+        pose["sigma_translation_m"] = _round(sigmas.translation_m)
+    if sigmas.covariance is not None:
+        pose["covariance"] = [_round(row, COVARIANCE_SIGNIFICANT) for row in sigmas.covariance]
+    return entry
+
+
 def load_rigs(path: Path) -> list[RigCalibration]:
     """Read and validate rigs.yaml (or the same structure as JSON)."""
     path = Path(path)
     data = load_yaml_or_json(path, "rig calibration")
+    check_keys(data, TOP_KEYS, str(path))
     units = data.get("units", "meters")
     if units not in ("meters", "metres", "m"):
         raise InputError(f"{path}: units must be meters (got {units!r}); convert translations to metres")
@@ -124,17 +312,19 @@ def load_rigs(path: Path) -> list[RigCalibration]:
         if "/" in name or name.startswith("."):
             raise InputError(f"{where}: rig name {name!r} must be a plain folder name")
         where = f"{path}: rig {name}"
+        check_keys(entry, RIG_KEYS, where)
         sensors = entry.get("sensors")
+        if isinstance(sensors, dict):
+            check_keys(sensors, SENSORS, f"{where} sensors")
         if not isinstance(sensors, dict) or set(sensors) != set(SENSORS):
             raise InputError(f"{where}: 'sensors' must have exactly 'wide' and 'narrow'")
-        rigs.append(
-            RigCalibration(
-                name=name,
-                wide=parse_camera(sensors["wide"], f"{where} sensor wide"),
-                narrow=parse_camera(sensors["narrow"], f"{where} sensor narrow"),
-                narrow_from_wide=parse_rigid3d(entry.get("narrow_from_wide"), f"{where} narrow_from_wide"),
-            )
-        )
+        wide = parse_camera(sensors["wide"], f"{where} sensor wide")
+        narrow = parse_camera(sensors["narrow"], f"{where} sensor narrow")
+        narrow_from_wide = parse_rigid3d(entry.get("narrow_from_wide"), f"{where} narrow_from_wide")
+        check_baseline(narrow_from_wide, f"{where} narrow_from_wide")
+        sigmas = sigmas_from_entry(entry, where)
+        rigs.append(RigCalibration(name=name, wide=wide, narrow=narrow, narrow_from_wide=narrow_from_wide,
+                                   sigmas=None if sigmas.is_empty() else sigmas))
     names = [r.name for r in rigs]
     duplicates = sorted({n for n in names if names.count(n) > 1})
     if duplicates:
@@ -143,17 +333,16 @@ def load_rigs(path: Path) -> list[RigCalibration]:
 
 
 def rigs_to_yaml(rigs: Sequence[RigCalibration]) -> str:
-    data = {
-        "units": "meters",
-        "rigs": [
-            {
-                "name": rig.name,
-                "sensors": {"wide": camera_to_dict(rig.wide), "narrow": camera_to_dict(rig.narrow)},
-                "narrow_from_wide": pose_to_dict(rig.narrow_from_wide, quaternion=False),
-            }
-            for rig in rigs
-        ],
-    }
+    """rigs.yaml for ``rigs``, with their uncertainty keys where they have ``sigmas``."""
+    entries = []
+    for rig in rigs:
+        entry = {
+            "name": rig.name,
+            "sensors": {"wide": camera_to_dict(rig.wide), "narrow": camera_to_dict(rig.narrow)},
+            "narrow_from_wide": pose_to_dict(rig.narrow_from_wide, quaternion=False),
+        }
+        entries.append(add_sigmas(entry, rig.sigmas) if rig.sigmas is not None else entry)
+    data = {"units": "meters", "rigs": entries}
     return yaml.safe_dump(data, sort_keys=False, default_flow_style=None, width=120)
 
 

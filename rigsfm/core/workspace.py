@@ -19,6 +19,7 @@ from __future__ import annotations
 import contextlib
 import errno
 import fcntl
+import json
 import logging
 import os
 import re
@@ -27,10 +28,13 @@ import sys
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 from rigsfm.core.errors import WorkspaceError
 
 logger = logging.getLogger(__name__)
+if TYPE_CHECKING:
+    import pycolmap
 
 MARKER = ".rigsfm-workspace"
 LOCK = ".rigsfm.lock"
@@ -136,6 +140,17 @@ class Workspace:
         if not self.narrow_poses.is_file():
             raise WorkspaceError(f"{self.narrow_poses} is missing: re-run `rigsfm run ... --out {self.root} --overwrite`")
 
+    @property
+    def rerun_hint(self) -> str:
+        return f"re-run `rigsfm run IMAGES --rigs rigs.yaml --out {self.root} --overwrite`"
+
+    def read_sparse(self) -> pycolmap.Reconstruction:
+        """The final model (``sparse/``), or a ``WorkspaceError`` naming the damaged file and the fix."""
+        return read_model(self.sparse, self.rerun_hint)
+
+    def read_narrow_poses(self) -> dict:
+        return read_json(self.narrow_poses, self.rerun_hint, keys=("narrow", "pairs"))
+
     def is_ours(self) -> bool:
         """Whether rigsfm made this folder (its marker, or the files of a run made before the marker existed)."""
         return (self.root / MARKER).is_file() or self.database.is_file() or self.summary.is_file()
@@ -216,18 +231,98 @@ class Workspace:
                 fcntl.flock(handle, fcntl.LOCK_UN)
 
 
-def writable(folder: Path) -> Path:
-    """Create ``folder`` (and parents) and check a file can be written in it; a clear error if not."""
+MODEL_FILES = ("cameras.bin", "images.bin", "points3D.bin")  # rigs.bin and frames.bin: COLMAP 4 models only
+
+
+def read_model(folder: Path, fix: str) -> pycolmap.Reconstruction:
+    """``pycolmap.Reconstruction(folder)``, with a ``WorkspaceError`` naming the folder, what is wrong and ``fix``
+    instead of COLMAP's words (a truncated images.bin says "vector::reserve", a missing one "Check failed")."""
+    import pycolmap
+
     folder = Path(folder)
+    missing = [name for name in MODEL_FILES if not (folder / name).is_file()]
+    empty = [name for name in MODEL_FILES if name not in missing and (folder / name).stat().st_size == 0]
+    if missing or empty:
+        what = "; ".join(filter(None, [missing and f"{', '.join(missing)} missing", empty and f"{', '.join(empty)} empty"]))
+        raise WorkspaceError(f"{folder} holds no complete COLMAP model ({what}): {fix}")
+    try:
+        return pycolmap.Reconstruction(str(folder))
+    except Exception as error:  # ValueError, IndexError ("unordered_map::at"), MemoryError, ... by where it is cut
+        cause = re.sub(r"^\[[\w.]+:\d+\]\s*", "", (str(error).splitlines() or [""])[0].strip())
+        cause = cause or type(error).__name__
+        sizes = ", ".join(f"{p.name} {p.stat().st_size} B" for p in sorted(folder.glob("*.bin")))
+        raise WorkspaceError(f"{folder}: the COLMAP model cannot be read ({cause}; a file is truncated or damaged: "
+                             f"{sizes}): {fix}") from None
+
+
+def read_json(path: Path, fix: str, *, keys: tuple[str, ...] = ()) -> Any:
+    """A JSON file rigsfm wrote; a ``WorkspaceError`` naming it and ``fix`` when it is missing, not JSON, or lacks
+    one of ``keys`` at its top level (a file cut short by a full disk, or edited by hand)."""
+    path = Path(path)
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise WorkspaceError(f"{path} is missing: {fix}") from None
+    except (json.JSONDecodeError, UnicodeDecodeError) as error:
+        raise WorkspaceError(f"{path} is not valid JSON ({error}): {fix}") from None
+    if keys and (not isinstance(data, dict) or any(key not in data for key in keys)):
+        lacking = [k for k in keys if not isinstance(data, dict) or k not in data]
+        raise WorkspaceError(f"{path} is not a file rigsfm wrote (no {', '.join(lacking)}): {fix}")
+    return data
+
+
+def _write_probe(folder: Path) -> str | None:
+    """Create ``folder`` (and parents) and a file in it; why that fails (``os_error_text``), or None."""
     try:
         folder.mkdir(parents=True, exist_ok=True)
         probe = folder / f".rigsfm-write-test-{os.getpid()}"
         probe.write_bytes(b"")
         probe.unlink()
     except OSError as error:
-        raise WorkspaceError(f"cannot write in {folder}: {os_error_text(error)}; choose a folder you can write to") \
-            from None
+        return os_error_text(error)
+    return None
+
+
+def writable(folder: Path) -> Path:
+    """Create ``folder`` (and parents) and check a file can be written in it; a clear error if not."""
+    folder = Path(folder)
+    problem = _write_probe(folder)
+    if problem is not None:
+        raise WorkspaceError(f"cannot write in {folder}: {problem}; choose a folder you can write to")
     return folder
+
+
+MIN_FREE_BYTES = 1 << 20  # less free space than this and a failed write is put down to a full disk
+
+
+def disk_problem(folder: Path) -> str | None:
+    """Why files cannot be written in ``folder`` now (the disk is full, read-only, permission denied), or None."""
+    folder = Path(folder)
+    while not folder.exists() and folder != folder.parent:
+        folder = folder.parent
+    try:
+        stats = os.statvfs(folder)
+        if stats.f_bavail * stats.f_frsize < MIN_FREE_BYTES:
+            return f"the disk is full ({stats.f_bavail * stats.f_frsize / 1024:.0f} kB free)"
+    except OSError:
+        pass
+    return _write_probe(folder)
+
+
+@contextlib.contextmanager
+def disk_errors_named(folder: Path) -> Iterator[None]:
+    """Turn a failure that comes from the disk under ``folder`` into one line naming it and the cause. COLMAP's
+    words do not say it: "No registered database factory succeeded" (SQLite cannot open the database on a full
+    disk), an OSError without a file name, a truncated write. Other errors pass unchanged."""
+    try:
+        yield
+    except (RuntimeError, ValueError, OSError) as error:
+        problem = disk_problem(folder)
+        if problem is None:
+            raise
+        cause = (str(error).splitlines() or [""])[0].strip() or type(error).__name__
+        raise WorkspaceError(f"cannot write in {folder}: {problem} ({cause}); free space or choose another --out, "
+                             "then re-run the same command (finished work is kept)") from None
 
 
 def os_error_text(error: OSError) -> str:

@@ -179,7 +179,7 @@ def export(out: Path, options: ExportOptions) -> Path:
     fmt = ExportFormat(options.format)
     dest = Path(options.dest) if options.dest is not None else workspace.export(fmt)
     previous = check_destination(dest, workspace, overwrite=options.overwrite)
-    reconstruction = pycolmap.Reconstruction(str(workspace.sparse))
+    reconstruction = workspace.read_sparse()
     summary = Summary.read(workspace.summary)
     images_dir = Path(summary.inputs.images) if summary and summary.inputs.images else None
     dest.parent.mkdir(parents=True, exist_ok=True)

@@ -188,7 +188,7 @@ def screenshot(out: Path, path: Path, width: int = 1280, height: int = 800) -> P
 def load_model(out: Path) -> pycolmap.Reconstruction:
     workspace = Workspace(Path(out))
     workspace.require_result()
-    return pycolmap.Reconstruction(str(workspace.sparse))
+    return workspace.read_sparse()
 
 
 def has_display() -> bool:

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import errno
 import json
+import math
 import logging
 import mimetypes
 import threading
@@ -86,8 +87,12 @@ class _Handler(BaseHTTPRequestHandler):
                 self._json(self.session.state())
             elif url.path == "/api/epipolar":
                 side = query.get("side", "a")
-                line = self.session.epipolar(side, float(query["x"]), float(query["y"]))
-                self._json({"side": side, "polyline": line})
+                if side not in ("a", "b"):
+                    raise ValueError("side must be a or b")
+                x, y = float(query["x"]), float(query["y"])
+                if not (math.isfinite(x) and math.isfinite(y)):
+                    raise ValueError("x and y must be finite numbers")
+                self._json({"side": side, "polyline": self.session.epipolar(side, x, y)})
             else:
                 self._json({"error": "not found"}, HTTPStatus.NOT_FOUND)
         except (RigsfmError, KeyError, ValueError) as error:
@@ -99,15 +104,23 @@ class _Handler(BaseHTTPRequestHandler):
         if urlparse(self.path).path != "/api/pairs":
             self._json({"error": "not found"}, HTTPStatus.NOT_FOUND)
             return
-        length = int(self.headers.get("Content-Length") or 0)
+        try:
+            length = int(self.headers.get("Content-Length") or 0)
+        except ValueError:
+            length = -1
+        if length < 0:
+            self._json({"error": "a Content-Length header with the body's size is needed"}, HTTPStatus.BAD_REQUEST)
+            return
         if length > MAX_BODY:
             self._json({"error": "request too large"}, HTTPStatus.REQUEST_ENTITY_TOO_LARGE)
             return
         try:
             body = json.loads(self.rfile.read(length) or b"{}")
+            if not isinstance(body, dict) or "pairs" not in body:
+                raise ValueError('expected {"pairs": [[x_a, y_a, x_b, y_b], ...]}')
             self._json(self.session.set_pairs(body["pairs"]))
-        except (RigsfmError, KeyError, ValueError, TypeError) as error:
-            self._json({"error": str(error)}, HTTPStatus.BAD_REQUEST)
+        except (RigsfmError, ValueError, RecursionError) as error:
+            self._json({"error": str(error) or type(error).__name__}, HTTPStatus.BAD_REQUEST)
 
 
 class PickerServer:

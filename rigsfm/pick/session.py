@@ -1,6 +1,9 @@
 """The picker's state: two wide images, their picked pairs, and the CSV they are saved to on every change.
 
-Only the rows of this image pair are edited; rows of other pairs in the same CSV are kept as they are.
+Only the rows of this image pair are edited; rows of other pairs in the same CSV are kept as they are. The page
+removes one pair per click (undo, delete); a save that drops more than one of the saved pairs at once (a page that
+lost its state, a second tab, a script sending ``{"pairs": []}``) first copies the CSV to ``<CSV>.bak``, so what
+it replaced can be restored.
 Image names are the workspace names ``<rig>/wide/<file>`` taken from the last three path components
 (``IMAGES/<rig>/wide/<file>``); with a calibration file the wide camera of ``<rig>`` is used.
 """
@@ -8,6 +11,7 @@ Image names are the workspace names ``<rig>/wide/<file>`` taken from the last th
 from __future__ import annotations
 
 import logging
+import math
 import threading
 from dataclasses import dataclass
 from pathlib import Path
@@ -16,6 +20,7 @@ import cv2
 import numpy as np
 import pycolmap
 
+from rigsfm.core.io import write_bytes_atomic
 from rigsfm.run.manual_matches import Correspondence, ManualMatchError, read_manual_matches, write_manual_matches
 from rigsfm.pick.epipolar import MIN_PAIRS, EpipolarModel, fit_model
 from rigsfm.core.rig import RigCalibration
@@ -104,7 +109,13 @@ class PickerSession:
     def _check(self, pairs) -> list[list[float]]:
         clean = []
         for i, pair in enumerate(pairs):
-            values = [float(v) for v in pair]
+            if not isinstance(pair, list) or not all(isinstance(v, (int, float)) and not isinstance(v, bool)
+                                                     for v in pair):
+                raise ManualMatchError(f"pair {i + 1}: expected [x_a, y_a, x_b, y_b], got {pair!r}")
+            try:
+                values = [float(v) for v in pair]
+            except OverflowError:
+                values = [math.inf]
             if len(values) != 4 or not np.all(np.isfinite(values)):
                 raise ManualMatchError(f"pair {i + 1}: expected four finite numbers")
             for (x, y), image in zip((values[:2], values[2:]), self.images):
@@ -113,17 +124,34 @@ class PickerSession:
             clean.append(values)
         return clean
 
+    @property
+    def backup_path(self) -> Path:
+        return self.csv_path.with_name(self.csv_path.name + ".bak")
+
     def set_pairs(self, pairs) -> dict:
-        """Replace this image pair's correspondences and save the CSV (temporary file + rename)."""
+        """Replace this image pair's correspondences and save the CSV (temporary file + rename); keep the CSV as it
+        was in ``<CSV>.bak`` first when more than one saved pair would be lost (see the module docstring)."""
+        if not isinstance(pairs, list):
+            raise ManualMatchError("'pairs' must be a list of [x_a, y_a, x_b, y_b]")
         clean = self._check(pairs)
         a, b = (image.name for image in self.images)
+        backup = None
         with self.lock:
+            kept = {tuple(round(v, 3) for v in p) for p in clean}
+            lost = [p for p in self.pairs if tuple(round(v, 3) for v in p) not in kept]
+            if len(lost) > 1 and self.csv_path.is_file():
+                backup = write_bytes_atomic(self.backup_path, self.csv_path.read_bytes())
+                logger.warning("This save drops %d of the %d saved pairs of %s <-> %s: the CSV as it was is kept in %s",
+                               len(lost), len(self.pairs), a, b, backup)
             self.pairs = clean
             rows = self.others + [Correspondence(a, (p[0], p[1]), b, (p[2], p[3])) for p in clean]
             write_manual_matches(self.csv_path, rows)
             self._refit()
         logger.info("Saved %d pairs to %s", len(clean), self.csv_path)
-        return self.state()
+        state = self.state()
+        if backup is not None:
+            state["backup"] = str(backup)
+        return state
 
     def state(self) -> dict:
         with self.lock:

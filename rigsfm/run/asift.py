@@ -23,6 +23,7 @@ import pycolmap
 
 from rigsfm.core.conventions import colmap_from_opencv_pixels
 from rigsfm.core.errors import InputError
+from rigsfm.run.database import open_database
 
 logger = logging.getLogger(__name__)
 
@@ -68,7 +69,7 @@ def extract_asift(
     progress: Callable[[int, int], None] | None = None,
 ) -> int:
     """ASIFT for each named image (``<rig>/<sensor>/<file>`` under ``image_dir``) into the database."""
-    with pycolmap.Database.open(database_path) as database:
+    with open_database(database_path) as database:
         ids = {image.name: image.image_id for image in database.read_all_images()}
         for done, name in enumerate(names, start=1):
             gray = cv2.imread(str(Path(image_dir) / name), cv2.IMREAD_GRAYSCALE)

@@ -7,8 +7,10 @@ sensor's ``sensor_from_rig``. Frames group the wide and narrow images of the sam
 
 from __future__ import annotations
 
+import contextlib
+import ctypes
 import logging
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -83,19 +85,43 @@ def _check_existing(database: pycolmap.Database, rigs: Sequence[RigCalibration],
             )
 
 
+_NEVER_CLOSED: list = []
+
+
+@contextlib.contextmanager
+def open_database(path: Path) -> Iterator[pycolmap.Database]:
+    """``pycolmap.Database.open(path)`` as a context, safe on a full disk.
+
+    Closing a database from which entries were deleted runs SQLite's VACUUM, which needs free space. When that
+    close fails (disk full), the C++ destructor tries again later, and an exception thrown there aborts the
+    whole process (``terminate called ... database or disk is full``, exit 134, after rigsfm's own message). A
+    database whose close failed is therefore kept alive until the process ends (the OS closes its file; its
+    last transaction is rolled back by SQLite on the next open), and the close's error is raised as usual."""
+    database = pycolmap.Database.open(path)
+    try:
+        yield database
+    finally:
+        try:
+            database.close()
+        except RuntimeError:
+            ctypes.pythonapi.Py_IncRef(ctypes.py_object(database))  # never destructed: see above
+            _NEVER_CLOSED.append(database)
+            raise
+
+
 def create_database(
     database_path: Path, rigs: Sequence[RigCalibration], images: Sequence[ImageEntry]
 ) -> Path:
     """Create the database (or check that an existing one matches these inputs) and return its path."""
     database_path = Path(database_path)
     if database_path.exists():
-        with pycolmap.Database.open(database_path) as database:
+        with open_database(database_path) as database:
             _check_existing(database, rigs, images)
         logger.info("Reusing database %s", database_path)
         return database_path
     tmp_path = database_path.with_name(database_path.name + ".tmp")
     tmp_path.unlink(missing_ok=True)
-    with pycolmap.Database.open(tmp_path) as database:
+    with open_database(tmp_path) as database:
         for rig in rigs:
             for sensor in SENSORS:
                 camera_id = database.write_camera(calibrated_camera(rig.camera(sensor)))

@@ -26,6 +26,7 @@ import pycolmap
 from rigsfm.core.names import name_of
 from rigsfm.run.scale import ScaleEstimate
 from rigsfm.core.geometry import PLANAR, Config, sampson_error_px
+from rigsfm.run.database import open_database
 
 MIN_SHARED_POINTS = 20  # three-view points that tie a rig to the others
 MAX_NORMALISED_RESIDUAL = 5.0
@@ -99,7 +100,7 @@ def weakly_tied_rigs(database_path: Path, reconstruction: pycolmap.Reconstructio
     if len(rigs) < 2:
         return {}
     sound, weak = [], {}
-    with pycolmap.Database.open(str(database_path)) as db:
+    with open_database(database_path) as db:
         for _, image1, _, image2, geometry in _pairs_between_rigs(db, reconstruction):
             a, b = _rig_of(image1), _rig_of(image2)
             if geometry.config in WEAK:
@@ -126,7 +127,7 @@ def contradicted_pairs(database_path: Path, reconstruction: pycolmap.Reconstruct
     satisfy the epipolar constraint of correct poses. Uncalibrated pairs (no essential matrix fits) are not.
     """
     rows = []
-    with pycolmap.Database.open(str(database_path)) as db:
+    with open_database(database_path) as db:
         for id1, image1, id2, image2, geometry in _pairs_between_rigs(db, reconstruction):
             if geometry.config not in (Config.CALIBRATED, *PLANAR):
                 continue

@@ -106,6 +106,15 @@ def scan_images(image_dir: Path, rigs: Sequence[RigCalibration], *, check_pixels
     return entries
 
 
+def rigs_without_narrow(image_dir: Path, images: Sequence[ImageEntry], rigs: Sequence[RigCalibration]) -> list[str]:
+    """One line per rig with no narrow image (allowed: its wide images still register, its narrow camera gets no
+    pose); for a warning, since a misnamed or forgotten narrow folder otherwise goes unnoticed."""
+    with_narrow = {e.rig for e in images if e.sensor == "narrow"}
+    return [f"rig {rig.name} has no narrow images ({Path(image_dir) / rig.name / 'narrow'} "
+            f"{'is empty' if (Path(image_dir) / rig.name / 'narrow').is_dir() else 'does not exist'}): its narrow "
+            "camera gets no pose" for rig in rigs if rig.name not in with_narrow]
+
+
 def check_image(entry: ImageEntry, camera) -> None:
     """The image decodes and matches its camera's calibrated size."""
     image = cv2.imread(str(entry.path), cv2.IMREAD_UNCHANGED)

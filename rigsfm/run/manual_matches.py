@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import csv
 import difflib
+import io
 import logging
 import math
 from collections.abc import Sequence
@@ -32,7 +33,7 @@ import pycolmap
 
 from rigsfm.core.errors import InputError
 from rigsfm.run.inputs import ImageEntry
-from rigsfm.core.io import write_text_atomic
+from rigsfm.core.io import read_user_text, write_text_atomic
 from rigsfm.core.rig import RigCalibration
 
 logger = logging.getLogger(__name__)
@@ -69,29 +70,37 @@ class Correspondence:
 def read_manual_matches(path: Path) -> list[Correspondence]:
     """Parse the CSV (syntax only); raises ``ManualMatchError`` naming the line to fix."""
     path = Path(path)
-    if not path.is_file():
-        raise ManualMatchError(f"manual matches file {path} does not exist")
+    try:
+        text = read_user_text(path, "manual matches")
+    except InputError as error:
+        raise ManualMatchError(str(error)) from None
     rows = []
-    with path.open(newline="", encoding="utf-8") as f:
-        for line, row in enumerate(csv.reader(f), start=1):
-            cells = [c.strip() for c in row]
-            if not any(cells) or cells[0].startswith("#"):
-                continue
-            if tuple(c.lower() for c in cells) == HEADER:
-                continue
-            if len(cells) != 6:
-                raise ManualMatchError(
-                    f"{path}:{line}: expected 6 columns {','.join(HEADER)}, got {len(cells)}: {','.join(cells)}"
-                )
-            try:
-                xa, ya, xb, yb = (float(cells[i]) for i in (1, 2, 4, 5))
-            except ValueError:
-                raise ManualMatchError(
-                    f"{path}:{line}: x and y must be numbers (pixels), got {','.join(cells)}"
-                ) from None
-            if not all(math.isfinite(v) for v in (xa, ya, xb, yb)):
-                raise ManualMatchError(f"{path}:{line}: coordinates must be finite numbers")
-            rows.append(Correspondence(cells[0], (xa, ya), cells[3], (xb, yb), line))
+    if "\0" in text:
+        raise ManualMatchError(f"{path}: holds NUL characters (a binary file, or UTF-16 without its byte-order mark); "
+                               "save it as CSV UTF-8")
+    for line, row in enumerate(csv.reader(io.StringIO(text, newline="")), start=1):
+        cells = [c.strip() for c in row]
+        if not any(cells) or cells[0].startswith("#"):
+            continue
+        if tuple(c.lower() for c in cells) == HEADER:
+            continue
+        if len(cells) != 6:
+            separator = next((name for sep, name in ((";", "semicolons"), ("\t", "tabs")) if len(cells) == 1
+                              and cells[0].count(sep) == 5), None)
+            raise ManualMatchError(
+                f"{path}:{line}: " + (f"the columns are separated by {separator}; save it as comma-separated CSV"
+                                      if separator else
+                                      f"expected 6 columns {','.join(HEADER)}, got {len(cells)}: {','.join(cells)}")
+            )
+        try:
+            xa, ya, xb, yb = (float(cells[i]) for i in (1, 2, 4, 5))
+        except ValueError:
+            raise ManualMatchError(
+                f"{path}:{line}: x and y must be numbers (pixels), got {','.join(cells)}"
+            ) from None
+        if not all(math.isfinite(v) for v in (xa, ya, xb, yb)):
+            raise ManualMatchError(f"{path}:{line}: coordinates must be finite numbers")
+        rows.append(Correspondence(cells[0], (xa, ya), cells[3], (xb, yb), line))
     return rows
 
 

@@ -26,6 +26,7 @@ from rigsfm.run.manual_matches import (
     check_spread,
 )
 from rigsfm.core.geometry import PLANAR, POSED, Config, planar_fraction, sampson_error_px
+from rigsfm.run.database import open_database
 
 logger = logging.getLogger(__name__)
 
@@ -261,7 +262,7 @@ def add_manual_matches(
     database_path: Path, pairs: dict[tuple[str, str], list[Correspondence]], max_error_px: float = 4.0
 ) -> list[PairReport]:
     """Merge validated manual correspondences (see :func:`validate_manual_matches`) into the database."""
-    with pycolmap.Database.open(database_path) as database:
+    with open_database(database_path) as database:
         ids = {image.name: image.image_id for image in database.read_all_images()}
         points: dict[int, list[tuple[float, float]]] = {}
         for (a, b), rows in pairs.items():

@@ -20,7 +20,8 @@ import pycolmap
 from rigsfm.core.names import ImageName, Sensor
 from rigsfm.core.errors import ReconstructionError
 from rigsfm.core.io import atomic_directory
-from rigsfm.core.workspace import Workspace
+from rigsfm.core.workspace import Workspace, read_model
+from rigsfm.run.database import open_database
 from rigsfm.run.options import Mapper, MappingOptions
 
 logger = logging.getLogger(__name__)
@@ -119,7 +120,7 @@ def wide_pairs(database: pycolmap.Database) -> list[WidePair]:
 
 def best_pair_inliers(database_path: Path) -> int:
     """Verified inliers of the best wide-wide pair of two different rigs (0 if none)."""
-    with pycolmap.Database.open(database_path) as database:
+    with open_database(database_path) as database:
         pairs = wide_pairs(database)
     return pairs[0].inliers if pairs else 0
 
@@ -214,7 +215,7 @@ def _incremental(database_path: Path, image_dir: Path, options: MappingOptions, 
     deadline = None if limit is None else time.monotonic() + limit
     pipeline = _incremental_options(options, num_wide, num_threads)
     pipeline.image_path = str(image_dir)
-    with pycolmap.Database.open(database_path) as database:
+    with open_database(database_path) as database:
         pairs = wide_pairs(database)
         if options.few_matches:
             relax_for_few_matches(pipeline, pairs[0].inliers if pairs else 0)
@@ -240,7 +241,7 @@ def _global(database_path: Path, image_dir: Path, options: MappingOptions, num_w
     pipeline_options = _global_options(options, num_wide, num_threads)
     pipeline_options.image_path = str(image_dir)
     manager = pycolmap.ReconstructionManager()
-    with pycolmap.Database.open(database_path) as database:
+    with open_database(database_path) as database:
         pipeline = pycolmap.GlobalPipeline(pipeline_options, database, manager)
         try:
             pipeline.run()
@@ -321,4 +322,4 @@ def run_mapping(
         best.write(tmp)
     # As written: the same numbers whether this stage ran in a child process or not (reading a model back
     # normalises its rotations, a change in the 16th digit).
-    return MappingResult(pycolmap.Reconstruction(workspace.mapping), kept, fallback_note)
+    return MappingResult(read_model(workspace.mapping, workspace.rerun_hint), kept, fallback_note)

@@ -6,8 +6,30 @@ This module imports nothing heavy, so the command line can build its help from i
 from __future__ import annotations
 
 import enum
+import math
+import numbers
 from dataclasses import dataclass, field
 from pathlib import Path
+
+from rigsfm.core.errors import InputError
+
+
+def _check_range(name: str, value, low: float, high: float, *, low_open: bool = False, integer: bool = False) -> None:
+    """``value`` a (finite) number in [low, high] ((low, high] with ``low_open``); an ``InputError`` naming the
+    option and its range otherwise (NaN included: it passes every comparison)."""
+    number_ok = isinstance(value, numbers.Integral if integer else numbers.Real) and not isinstance(value, bool)
+    if not number_ok or not math.isfinite(value) or value > high or value < low or (low_open and value == low):
+        kind = "an integer" if integer else "a number"
+        show = (lambda v: str(int(v))) if integer else (lambda v: f"{v:g}")
+        bounds = f"{'>' if low_open else '>='} {show(low)} and <= {show(high)}"
+        raise InputError(f"{name} must be {kind} {bounds}, got {value!r}")
+
+
+def _choice(kind: type[enum.StrEnum], value, name: str):
+    try:
+        return kind(value)
+    except ValueError:
+        raise InputError(f"{name} must be one of {', '.join(kind)}, got {value!r}") from None
 
 
 class Features(enum.StrEnum):
@@ -42,6 +64,13 @@ class MatchingOptions:
     max_error_px: float = 4.0  # RANSAC threshold of the two-view geometry
     max_homography_inlier_ratio: float = 0.95
 
+    def __post_init__(self) -> None:
+        _check_range("--max-ratio (Lowe's ratio test)", self.max_ratio, 0.0, 1.0, low_open=True)
+        _check_range("max_num_features", self.max_num_features, 1, 1_000_000, integer=True)
+        _check_range("max_error_px", self.max_error_px, 0.0, 1000.0, low_open=True)
+        _check_range("max_homography_inlier_ratio", self.max_homography_inlier_ratio, 0.0, 1.0, low_open=True)
+        self.features = _choice(Features, self.features, "--features")
+
     @property
     def resolved_rig_verification(self) -> bool:
         return (not self.narrow_features) if self.rig_verification is None else self.rig_verification
@@ -59,6 +88,10 @@ class MappingOptions:
     # with a warning; a safety net: with its initial pair chosen up front it maps 12 rigs in under a minute.
     incremental_time_limit_s: int | None = 900
 
+    def __post_init__(self) -> None:
+        self.mapper = _choice(Mapper, self.mapper, "--mapper")
+        _check_range("--seed (-1: random)", self.seed, -1, 2**31 - 1, integer=True)
+
 
 @dataclass(kw_only=True)
 class AdjustOptions:
@@ -69,6 +102,12 @@ class AdjustOptions:
     max_reprojection_error_px: float = 4.0
     max_iterations: int = 200
 
+    def __post_init__(self) -> None:
+        self.loss = _choice(Loss, self.loss, "loss")
+        _check_range("loss_scale_px", self.loss_scale_px, 0.0, 1000.0, low_open=True)
+        _check_range("max_reprojection_error_px", self.max_reprojection_error_px, 0.0, 1000.0, low_open=True)
+        _check_range("max_iterations", self.max_iterations, 1, 1_000_000, integer=True)
+
 
 @dataclass(kw_only=True)
 class RunOptions:
@@ -78,3 +117,7 @@ class RunOptions:
     manual_matches: Path | None = None  # CSV of correspondences between wide images (rigsfm.run.manual_matches)
     overwrite: bool = False
     num_threads: int = -1  # every stage; -1: all cores
+
+    def __post_init__(self) -> None:
+        if self.num_threads != -1:
+            _check_range("num_threads (-1: all cores)", self.num_threads, 1, 4096, integer=True)

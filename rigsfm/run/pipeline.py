@@ -20,14 +20,14 @@ from rigsfm.core.names import SENSORS, ImageName
 from rigsfm.core.residuals import reprojection_errors
 from rigsfm.core.rig import RigCalibration, load_rigs
 from rigsfm.core.stages import in_child
-from rigsfm.core.workspace import Workspace, colmap_log_to
+from rigsfm.core.workspace import Workspace, colmap_log_to, disk_errors_named
 from rigsfm.inspect.report import write_report
 from rigsfm.run.adjust import AdjustResult, ScaleSource, adjust
 from rigsfm.run.database import create_database
 from rigsfm.run.deliver import write_model, write_narrow_poses, write_points_ply
 from rigsfm.run.diagnostics import check_reconstruction
 from rigsfm.run.features import drop_stale_work, extract_features, match_features
-from rigsfm.run.inputs import ImageEntry, scan_images
+from rigsfm.run.inputs import ImageEntry, rigs_without_narrow, scan_images
 from rigsfm.run.manual_matches import read_manual_matches, validate_manual_matches
 from rigsfm.run.manual_merge import add_manual_matches, manual_matches_summary
 from rigsfm.run.mapping import MappingResult, run_mapping
@@ -63,7 +63,9 @@ def load_inputs(image_dir: Path, rigs_path: Path, scale_path: Path | None = None
     """Validate every input before any heavy work; raises ``InputError`` naming file and fix."""
     rigs = load_rigs(rigs_path)
     images = scan_images(image_dir, rigs)
-    scale = load_scale(scale_path, images) if scale_path is not None else None
+    for line in rigs_without_narrow(image_dir, images, rigs):
+        logger.warning("NO NARROW IMAGES: %s", line)
+    scale = load_scale(scale_path, images, rigs) if scale_path is not None else None
     return Inputs(Path(image_dir), rigs, images, scale)
 
 
@@ -131,6 +133,8 @@ def build_summary(inputs: Inputs, options: RunOptions, mapping: MappingResult, r
     warnings.extend(check_reconstruction(reconstruction, result.scale, database))
     if unregistered:
         warnings.append(f"{len(unregistered)} image(s) not registered: {', '.join(unregistered[:5])}")
+    warnings.extend(f"NO NARROW IMAGES: {line}" for line in rigs_without_narrow(inputs.image_dir, inputs.images,
+                                                                               inputs.rigs))
     return Summary(
         rigsfm_version=rigsfm.__version__,
         pycolmap_version=pycolmap.__version__,
@@ -184,7 +188,7 @@ def run(
         if manual_pairs:
             logger.warning("Manual matches given: the mapper's match-count thresholds are lowered for them")
     workspace = Workspace(Path(out))
-    with workspace.lock():
+    with workspace.lock(), disk_errors_named(workspace.root):
         workspace.prepare(overwrite=options.overwrite)
         return _run_locked(workspace, inputs, manual_pairs, options, timings, progress)
 

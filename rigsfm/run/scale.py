@@ -104,12 +104,20 @@ def known_length_in_model(reconstruction: pycolmap.Reconstruction, item: KnownLe
                           pixel_sigma: float) -> tuple[float, float]:
     """The object's length in model units and its uncertainty from ``pixel_sigma`` on every end point."""
 
+    registered = {image.name for image in reconstruction.images.values() if image.has_pose}
+    seen = sorted({o.image for o in item.observations} & registered)
+    if len(seen) < 2:
+        missing = sorted({o.image for o in item.observations} - registered)
+        raise UnusableMeasurement(f"fewer than two of its images were registered ({', '.join(missing)} not)")
+
     def length(observations) -> float:
         ends = []
-        for end in (0, 1):
+        for end, label in ((0, "a"), (1, "b")):
             point = triangulate_observed_point(reconstruction, [(name, ab[end]) for name, ab in observations])
             if point is None:
-                raise UnusableMeasurement("fewer than two of its images were registered")
+                raise UnusableMeasurement(f"its end {label} does not triangulate from {', '.join(seen)} (the rays "
+                                          "do not meet in front of the cameras): check that a and b mark the same "
+                                          "physical points in every image")
             ends.append(point)
         return float(np.linalg.norm(ends[0] - ends[1]))
 
@@ -152,8 +160,11 @@ def estimate_scale(reconstruction: pycolmap.Reconstruction, spec: ScaleSpec) -> 
         logger.warning("Scale measurement left out: %s", row)
     lengths = np.array([m.model_length for m in measurements])
     meters = np.array([m.meters for m in measurements])
-    if np.any(lengths <= 1e-12):
-        raise ReconstructionError("a scale measurement has zero length in the model (same camera twice?)")
+    zero = [m.label for m in measurements if m.model_length <= 1e-12 * max(1.0, float(lengths.max()))]
+    if zero:
+        raise ReconstructionError(f"scale measurement(s) {', '.join(zero)} of {spec.path} have zero length in the "
+                                  "model (the same camera twice, or a bar whose two ends are one point); fix or "
+                                  "remove them")
     first_guess = float(np.median(meters / lengths))
     sigmas = np.array([np.hypot(m.sigma, first_guess * m.model_sigma) for m in measurements])
     weights = 1.0 / sigmas**2

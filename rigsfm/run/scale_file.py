@@ -24,13 +24,15 @@ from pathlib import Path
 import numpy as np
 
 from rigsfm.core.errors import InputError
-from rigsfm.run.inputs import ImageEntry
 from rigsfm.core.io import load_yaml_or_json
+from rigsfm.core.rig import RigCalibration, check_keys
+from rigsfm.run.inputs import ImageEntry
 
 
 DEFAULT_DISTANCE_SIGMA = 0.01
 DEFAULT_LENGTH_SIGMA = 0.002
 DEFAULT_PIXEL_SIGMA = 0.5
+MIN_END_SEPARATION_PX = 1.0  # a known length whose two ends are closer in an image is a repeated point
 
 
 @dataclass(frozen=True)
@@ -66,7 +68,7 @@ class ScaleSpec:
 def _positive(value, where: str) -> float:
     try:
         number = float(value)
-    except (TypeError, ValueError) as e:
+    except (TypeError, ValueError, OverflowError) as e:
         raise InputError(f"{where} must be a number, got {value!r}") from e
     if not np.isfinite(number) or number <= 0:
         raise InputError(f"{where} must be positive, got {value}")
@@ -77,60 +79,88 @@ def _meters(value, where: str) -> float:
     return _positive(value, f"{where}: 'meters'")
 
 
+def _list(data: dict, key: str, path: Path) -> list:
+    value = data.get(key)
+    if value is None:
+        return []
+    if not isinstance(value, list):
+        raise InputError(f"{path}: {key} must be a list of entries (each starting with '- '), got {value!r}")
+    return value
+
+
 def _pixel(value, where: str) -> tuple[float, float]:
     try:
         xy = np.array(value, dtype=np.float64).reshape(-1)
-    except (TypeError, ValueError) as e:
+    except (TypeError, ValueError, OverflowError) as e:
         raise InputError(f"{where}: expected [x, y] pixel coordinates") from e
     if xy.shape != (2,) or not np.all(np.isfinite(xy)):
         raise InputError(f"{where}: expected [x, y] pixel coordinates, got {value}")
     return float(xy[0]), float(xy[1])
 
 
-def load_scale(path: Path, images: Sequence[ImageEntry]) -> ScaleSpec:
-    """Read scale.yaml and check every camera and image it names exists in the image folder."""
+def _check_inside(xy: tuple[float, float], entry: ImageEntry, rigs: dict[str, RigCalibration] | None,
+                  where: str) -> None:
+    if rigs is None or entry.rig not in rigs:
+        return
+    camera = rigs[entry.rig].camera(entry.sensor)
+    x, y = xy
+    if not (0.0 <= x <= camera.width and 0.0 <= y <= camera.height):
+        raise InputError(f"{where}: ({x:g}, {y:g}) lies outside {entry.name}, which is {camera.width}x{camera.height} "
+                         "px (COLMAP pixels: 0 <= x <= width, 0 <= y <= height); fix the coordinates")
+
+
+def load_scale(path: Path, images: Sequence[ImageEntry], rigs: Sequence[RigCalibration] | None = None) -> ScaleSpec:
+    """Read scale.yaml and check every camera and image it names exists in the image folder; with ``rigs``, also
+    that every known-length end point lies inside its image."""
     path = Path(path)
+    by_rig = None if rigs is None else {rig.name: rig for rig in rigs}
+    entries = {entry.name: entry for entry in images}
     data = load_yaml_or_json(path, "scale")
-    unknown = set(data) - {"camera_distance", "known_length", "pixel_sigma"}
-    if unknown:
-        raise InputError(
-            f"{path}: unknown key(s) {', '.join(sorted(unknown))}; use camera_distance, known_length, pixel_sigma"
-        )
+    check_keys(data, ("camera_distance", "known_length", "pixel_sigma"), str(path))
     pixel_sigma = _positive(data.get("pixel_sigma", DEFAULT_PIXEL_SIGMA), f"{path}: pixel_sigma")
     image_names = {entry.name for entry in images}
     camera_names = {f"{entry.rig}/{entry.sensor}" for entry in images}
 
     distances = []
-    for i, item in enumerate(data.get("camera_distance") or []):
+    for i, item in enumerate(_list(data, "camera_distance", path)):
         where = f"{path}: camera_distance[{i}]"
         if not isinstance(item, dict) or not {"a", "b", "meters"} <= set(item):
             raise InputError(f"{where}: expected {{a: rig/sensor, b: rig/sensor, meters: number}}")
+        check_keys(item, ("a", "b", "meters", "sigma"), where)
         for key in ("a", "b"):
-            if item[key] not in camera_names and item[key] not in image_names:
+            if not isinstance(item[key], str) or (item[key] not in camera_names and item[key] not in image_names):
                 raise InputError(
                     f"{where}: {key} = {item[key]!r} names no camera or image in the image folder "
                     "(write <rig>/<sensor> or <rig>/<sensor>/<frame file>)"
                 )
-        if item["a"] == item["b"]:
-            raise InputError(f"{where}: a and b are the same camera")
+        if item["a"] == item["b"] or str(item["a"]).startswith(f"{item['b']}/") or \
+                str(item["b"]).startswith(f"{item['a']}/"):
+            raise InputError(f"{where}: a = {item['a']!r} and b = {item['b']!r} are the same camera (zero distance); "
+                             "measure between two different cameras")
         sigma = _positive(item.get("sigma", DEFAULT_DISTANCE_SIGMA), f"{where}: sigma")
         distances.append(CameraDistance(str(item["a"]), str(item["b"]), _meters(item["meters"], where), sigma))
 
     lengths = []
-    for i, item in enumerate(data.get("known_length") or []):
+    for i, item in enumerate(_list(data, "known_length", path)):
         where = f"{path}: known_length[{i}]"
         if not isinstance(item, dict) or "meters" not in item or not isinstance(item.get("observations"), list):
             raise InputError(f"{where}: expected {{meters: number, observations: [...]}}")
+        check_keys(item, ("meters", "observations", "sigma"), where)
         observations = []
         for j, obs in enumerate(item["observations"]):
             obs_where = f"{where}.observations[{j}]"
             if not isinstance(obs, dict) or not {"image", "a", "b"} <= set(obs):
                 raise InputError(f"{obs_where}: expected {{image: name, a: [x, y], b: [x, y]}}")
-            if obs["image"] not in image_names:
+            check_keys(obs, ("image", "a", "b"), obs_where)
+            if not isinstance(obs["image"], str) or obs["image"] not in image_names:
                 raise InputError(f"{obs_where}: image {obs['image']!r} is not in the image folder")
-            observations.append(
-                LengthObservation(str(obs["image"]), _pixel(obs["a"], obs_where), _pixel(obs["b"], obs_where))
-            )
+            a, b = _pixel(obs["a"], f"{obs_where}.a"), _pixel(obs["b"], f"{obs_where}.b")
+            _check_inside(a, entries[obs["image"]], by_rig, f"{obs_where}.a")
+            _check_inside(b, entries[obs["image"]], by_rig, f"{obs_where}.b")
+            if np.hypot(a[0] - b[0], a[1] - b[1]) < MIN_END_SEPARATION_PX:
+                raise InputError(f"{obs_where}: a and b are the same point in {obs['image']} (a zero-length bar); give "
+                                 "the pixels of the object's two different ends")
+            observations.append(LengthObservation(str(obs["image"]), a, b))
         if len({o.image for o in observations}) < 2:
             raise InputError(f"{where}: needs the object's two ends seen in at least two different images")
         sigma = _positive(item.get("sigma", DEFAULT_LENGTH_SIGMA), f"{where}: sigma")

@@ -92,7 +92,7 @@ class Summary:
             return None
         try:
             return cls.from_json(json.loads(path.read_text(encoding="utf-8")))
-        except (json.JSONDecodeError, UnicodeDecodeError, TypeError, AttributeError) as error:
+        except (json.JSONDecodeError, UnicodeDecodeError, TypeError, AttributeError, ValueError) as error:
             raise WorkspaceError(f"{path} is not a valid summary ({error}); re-run `rigsfm run ... --overwrite`") \
                 from None
 

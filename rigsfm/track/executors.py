@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import logging
 import multiprocessing
+import socket
 from collections.abc import Callable, Sequence
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from dataclasses import replace
@@ -30,6 +31,7 @@ logger = logging.getLogger(__name__)
 
 EXECUTORS = ("local", "ray")
 OnResult = Callable[[dict], None]
+RAY_CONNECT_TIMEOUT_S = 10.0
 
 _WORKER: dict = {}
 
@@ -83,6 +85,27 @@ def _with_bytes(task: FrameTask) -> FrameTask:
     return replace(task, images=images)
 
 
+def check_reachable(address: str, timeout: float = RAY_CONNECT_TIMEOUT_S) -> None:
+    """Refuse a Ray address nothing answers on, within ``timeout``: ``ray.init`` retries an unreachable GCS for
+    ever, printing a warning every few seconds. ``auto`` and ``local`` are Ray's own look-ups (they fail fast)."""
+    if address in ("auto", "local"):
+        return
+    host, colon, port = address.removeprefix("ray://").rpartition(":")
+    host = host.strip("[]")
+    if not colon or not host or not port.isdigit() or not 0 < int(port) < 65536:
+        raise InputError(f"--address {address!r}: expected HOST:PORT, ray://HOST:PORT or auto")
+    try:
+        with socket.create_connection((host, int(port)), timeout=timeout):
+            pass
+    except OSError as error:
+        why = {ConnectionRefusedError: "connection refused: nothing listens on that port",
+               TimeoutError: f"no answer within {timeout:g} s", socket.gaierror: "unknown host"}.get(
+            type(error), str(error) or type(error).__name__)
+        raise InputError(f"cannot reach the Ray cluster at {address} ({why}); start it there (`ray start --head "
+                         f"--port {port}`), check --address, or leave --address out to use a Ray instance on this "
+                         "machine") from None
+
+
 def run_ray(tasks: Sequence[FrameTask], reference: ReferenceMap, options: RegistrationOptions, workers: int,
             address: str | None, on_result: OnResult) -> None:
     try:
@@ -92,7 +115,11 @@ def run_ray(tasks: Sequence[FrameTask], reference: ReferenceMap, options: Regist
     started = not ray.is_initialized()
     if started:
         if address:
-            ray.init(address=address, log_to_driver=False)
+            check_reachable(address)
+            try:
+                ray.init(address=address, log_to_driver=False)
+            except (ConnectionError, TimeoutError, RuntimeError) as error:
+                raise InputError(f"cannot connect to the Ray cluster at {address}: {error}") from None
         else:
             ray.init(num_cpus=max(1, workers), include_dashboard=False, log_to_driver=False)
     try:

@@ -1,15 +1,19 @@
 """``rigsfm track OUT NEW_IMAGES``: re-register every rig in every new frame against the reference in OUT.
 
 Outputs (OUT/track/): ``poses.json`` (per rig: baseline, verdict, frames), ``poses.csv`` (one row per
-frame), ``plots/<rig>.png``. Frames already in poses.json (same rig and frame file name) are skipped, so
-the command can run again as recordings arrive; results are merged, checkpointed every
-``checkpoint_every`` frames and written atomically. Flags and verdicts are recomputed over the whole
+frame), ``plots/<rig>.png``. Frames already in poses.json (same rig and frame file name, same content) are
+skipped, so the command can run again as recordings arrive; results are merged, checkpointed every
+``checkpoint_every`` frames and written atomically. Each tracked frame records its files' fingerprints (size,
+modification time, SHA-256): a file that reuses a tracked name with other content (a new recording that numbers
+its frames from 0 again) is registered again, its earlier result replaced, with a warning. Flags and verdicts are recomputed over the whole
 series on every run (with the thresholds of that run).
 """
 
 from __future__ import annotations
 
+import hashlib
 import logging
+import os
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -23,7 +27,7 @@ from rigsfm.core.io import write_bytes_atomic, write_json_atomic, write_text_ato
 from rigsfm.core.rig import RigCalibration
 from rigsfm.core.workspace import TrackPaths, Workspace
 from rigsfm.run.inputs import scan_images
-from rigsfm.track.executors import run_frames
+from rigsfm.track.executors import check_reachable, run_frames
 from rigsfm.track.options import TrackOptions
 from rigsfm.track.plot import plot_rig
 from rigsfm.track.reference import ReferenceMap, load_reference
@@ -66,6 +70,34 @@ def frame_tasks(new_images: Path, reference: ReferenceMap) -> list[FrameTask]:
     return [FrameTask(rig, frame, sensors) for (rig, frame), sensors in sorted(images.items())]
 
 
+def fingerprint(path: Path, known: dict | None = None) -> dict:
+    """Size, modification time (ns) and SHA-256 of a file; the hash of ``known`` is reused when size and time
+    match it (no re-reading of unchanged files)."""
+    stat = Path(path).stat()
+    if known and known.get("size") == stat.st_size and known.get("mtime_ns") == stat.st_mtime_ns:
+        return dict(known)
+    digest = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            digest.update(block)
+    return {"size": stat.st_size, "mtime_ns": stat.st_mtime_ns, "sha256": digest.hexdigest()}
+
+
+def task_fingerprints(task: FrameTask, known: dict | None = None) -> dict:
+    return {sensor: fingerprint(path, (known or {}).get(sensor)) for sensor, path in sorted(task.images.items())
+            if isinstance(path, (str, os.PathLike))}
+
+
+def changed_since_tracked(task: FrameTask, entry: dict) -> bool:
+    """Whether the task's files differ from those ``entry`` was tracked from (entries written before fingerprints
+    were recorded count as unchanged)."""
+    known = entry.get("files")
+    if not isinstance(known, dict) or not known:
+        return False
+    now = task_fingerprints(task, known)
+    return {s: f["sha256"] for s, f in now.items()} != {s: (f or {}).get("sha256") for s, f in known.items()}
+
+
 def _save(paths: TrackPaths, poses: dict, plots: bool) -> None:
     write_json_atomic(paths.poses_json, poses)
     write_text_atomic(paths.poses_csv, to_csv(poses))
@@ -82,6 +114,8 @@ def track(out: Path, new_images: Path, options: TrackOptions | None = None, *,
     thresholds = options.thresholds
     if thresholds.rotation_deg <= 0 or thresholds.translation_mm <= 0:
         raise InputError("the rotation and translation thresholds must be positive")
+    if options.executor == "ray" and options.address:  # before the reference is read: fail in seconds, not minutes
+        check_reachable(options.address)
     workspace = Workspace(Path(out))
     workspace.require_result()
     paths = workspace.track
@@ -89,8 +123,15 @@ def track(out: Path, new_images: Path, options: TrackOptions | None = None, *,
     tasks = frame_tasks(new_images, reference)
     with workspace.lock():
         frames = {} if options.overwrite else load_poses(paths.poses_json, reference)
-        todo = [t for t in tasks if (t.rig, t.frame) not in frames]
+        changed = [t for t in tasks if (t.rig, t.frame) in frames and changed_since_tracked(t, frames[(t.rig, t.frame)])]
+        if changed:
+            names = [f"{t.rig}/{t.frame}" for t in changed]
+            logger.warning("%d frame(s) reuse the name of a tracked frame with other content (%s%s): registering them "
+                           "again, their earlier results are replaced", len(changed), ", ".join(names[:3]),
+                           ", ..." if len(names) > 3 else "")
+        todo = [t for t in tasks if (t.rig, t.frame) not in frames or t in changed]
         logger.info("%d new frames to register, %d already tracked", len(todo), len(tasks) - len(todo))
+        files = {(t.rig, t.frame): task_fingerprints(t) for t in todo}
         bad: list[str] = []
         done = [0, time.monotonic()]
 
@@ -99,7 +140,8 @@ def track(out: Path, new_images: Path, options: TrackOptions | None = None, *,
             if record["status"] == "bad_input":
                 bad.append(record["reason"])
             else:
-                frames[(record["rig"], record["frame"])] = derive(record, reference.rigs[record["rig"]])
+                key = (record["rig"], record["frame"])
+                frames[key] = {**derive(record, reference.rigs[record["rig"]]), "files": files[key]}
             if done[0] % options.checkpoint_every == 0:
                 _save(paths, assemble(frames, reference, thresholds), plots=False)
             if progress:

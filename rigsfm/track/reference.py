@@ -157,7 +157,7 @@ def load_reference(out: Path, neighbours: int = DEFAULT_NEIGHBOURS,
     workspace.require_result()
     if not workspace.database.is_file():
         raise WorkspaceError(f"{workspace.database} is missing: track needs the descriptors of the reference run")
-    rec = pycolmap.Reconstruction(str(workspace.sparse))
+    rec = workspace.read_sparse()
     with_points = sorted((im for im in rec.images.values() if im.has_pose and im.num_points3D > 0),
                          key=lambda im: im.name)
     if not with_points:

@@ -4,10 +4,9 @@ from __future__ import annotations
 
 import base64
 import html
-import json
 from pathlib import Path
 
-from rigsfm.core.workspace import Workspace
+from rigsfm.core.workspace import Workspace, read_json
 
 VERDICT_STYLE = {"stable": "color:#2a7d2a", "shaking": "color:#c77700", "moved": "color:#c0392b;font-weight:bold"}
 
@@ -20,7 +19,7 @@ def track_report_section(out: Path) -> str:
     paths = Workspace(Path(out)).track
     if not paths.poses_json.is_file():
         return '<section id="track"><h2>Pose tracking</h2><p>No tracking results (run <code>rigsfm track</code>).</p></section>'
-    poses = json.loads(paths.poses_json.read_text(encoding="utf-8"))
+    poses = read_json(paths.poses_json, "re-run `rigsfm track OUT NEW_IMAGES --overwrite`", keys=("thresholds", "rigs"))
     t = poses["thresholds"]
     parts = ['<section id="track">', "<h2>Pose tracking</h2>",
              (f"<p>Thresholds: {t['rotation_deg']:g}&nbsp;deg, {t['translation_mm']:g}&nbsp;mm (and significant at "

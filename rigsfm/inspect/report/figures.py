@@ -1,5 +1,5 @@
-"""Figures for report.html in the one chart style (rigsfm.core.charts): OpenCV images (epipolar check) and
-inline SVG maps (the network seen from above).
+"""Figures for report.html in the one chart style (rigsfm.core.charts): OpenCV images (epipolar check, embedded
+as JPEG) and inline SVG maps (the network seen from above).
 
 Pixel conventions: pycolmap cameras use COLMAP pixels (first pixel centre at (0.5, 0.5)); OpenCV drawing
 uses pixel indices (first pixel centre at (0, 0)), so every point is converted with
@@ -22,6 +22,7 @@ from rigsfm.core.conventions import opencv_from_colmap_pixels
 
 COLOURS_BGR = [charts.bgr(colour) for colour in charts.SERIES]
 WIDE_SVG, NARROW_SVG = charts.hex_colour("wide"), charts.hex_colour("narrow")
+JPEG_QUALITY = 85  # the epipolar panels are photographs with thin lines: ~15x smaller than PNG, lines still crisp
 
 
 def pick_points(image_gray: np.ndarray, camera: pycolmap.Camera, count: int = 8) -> np.ndarray:

@@ -11,7 +11,7 @@ import pycolmap
 
 from rigsfm.core.names import ImageName, name_of
 from rigsfm.core import charts
-from rigsfm.inspect.report.figures import epipolar_figure, read_image, topdown_svg
+from rigsfm.inspect.report.figures import JPEG_QUALITY, epipolar_figure, read_image, topdown_svg
 from rigsfm.core.residuals import reprojection_errors
 from rigsfm.core.workspace import Workspace
 from rigsfm.run.summary import Summary
@@ -139,8 +139,28 @@ def uncertainty_section(narrow: dict) -> str:
             + table(["narrow i", "narrow j", "band 95 % (px)", "depths seen in j (m)"], rows, left=2))
 
 
+MAX_FIGURES = 12  # ~0.1 MB each as JPEG: the report stays < 5 MB at 16 rigs (120 narrow pairs)
+
+
+def choose_figures(pairs: list[dict], max_figures: int = MAX_FIGURES) -> dict[tuple[str, str], str]:
+    """The pairs worth a figure when there are more than ``max_figures``: half the widest 95 % bands (the least
+    certain pairs, the ones to check) and half the narrowest (the best the network does); pair -> why drawn."""
+    if len(pairs) <= max_figures:
+        return {(p["i"], p["j"]): "" for p in pairs}
+    known = sorted((p for p in pairs if p.get("epipolar_band_95_px") is not None),
+                   key=lambda p: p["epipolar_band_95_px"])
+    unknown = [p for p in pairs if p.get("epipolar_band_95_px") is None]
+    widest = known[::-1][: (max_figures + 1) // 2]
+    chosen = {(p["i"], p["j"]): "widest band" for p in widest}
+    for p in known + unknown:
+        if len(chosen) >= max_figures:
+            break
+        chosen.setdefault((p["i"], p["j"]), "narrowest band" if p in known else "no band")
+    return chosen
+
+
 def epipolar_section(out: Path, summary: Summary | None, reconstruction: pycolmap.Reconstruction, narrow: dict,
-                     max_pairs: int = 40) -> str:
+                     max_figures: int = MAX_FIGURES) -> str:
     parts = ["<h2>Epipolar check</h2>",
              '<p class="note">Left: distinctive points (strongest corners, else a grid) in narrow image i. '
              "Right: their epipolar lines in narrow image j (drawn through the full camera model, so slightly "
@@ -149,7 +169,15 @@ def epipolar_section(out: Path, summary: Summary | None, reconstruction: pycolma
     if images_dir is None or not images_dir.is_dir():
         parts.append(f'<p class="warn">Images folder {esc(images_dir)} not found: no epipolar figures.</p>')
         return "".join(parts)
-    for p in narrow.get("pairs", [])[:max_pairs]:
+    pairs = narrow.get("pairs", [])
+    chosen = choose_figures(pairs, max_figures)
+    if len(chosen) < len(pairs):
+        parts.append(f'<p class="note">{len(chosen)} of {len(pairs)} pairs are drawn: the widest 95 % bands (the '
+                     "least certain pairs, the ones to check) and the narrowest; every pair is listed in the table "
+                     "after the figures.</p>")
+    for p in pairs:
+        if (p["i"], p["j"]) not in chosen:
+            continue
         image_i, image_j = (reconstruction.find_image_with_name(n) for n in (p["i"], p["j"]))
         if image_i is None or image_j is None:
             continue
@@ -161,9 +189,15 @@ def epipolar_section(out: Path, summary: Summary | None, reconstruction: pycolma
         figure = epipolar_figure(pixels[0], pixels[1], reconstruction.cameras[image_i.camera_id],
                                  reconstruction.cameras[image_j.camera_id], j_from_i, p.get("epipolar_band_95_px"))
         band = p.get("epipolar_band_95_px")
-        caption = f"{esc(p['i'])} → {esc(p['j'])}" + ("" if band is None else f"; band ±{band:.2f} px")
+        caption = (f"{esc(p['i'])} → {esc(p['j'])}" + ("" if band is None else f"; band ±{band:.2f} px")
+                   + (f" ({chosen[(p['i'], p['j'])]})" if chosen[(p['i'], p['j'])] else ""))
         parts.append(f'<figure><img alt="epipolar check {esc(p["i"])} to {esc(p["j"])}" '
-                     f'src="{charts.data_uri(figure)}"><figcaption>{caption}</figcaption></figure>')
+                     f'src="{charts.data_uri(figure, ".jpg", JPEG_QUALITY)}"><figcaption>{caption}</figcaption>'
+                     '</figure>')
+    if len(chosen) < len(pairs):
+        rows = [[esc(p["i"]), esc(p["j"]), fmt(p.get("epipolar_band_95_px"), 3),
+                 esc(chosen.get((p["i"], p["j"]), "–"))] for p in pairs]
+        parts.append(table(["narrow i", "narrow j", "band 95 % (px)", "drawn"], rows, left=2))
     return "".join(parts)
 
 

@@ -7,13 +7,11 @@ an epipolar check figure per narrow pair (points in narrow image i, their lines 
 
 from __future__ import annotations
 
-import json
 import logging
 from pathlib import Path
 
 import pycolmap
 
-from rigsfm.core.errors import WorkspaceError
 from rigsfm.core.io import write_text_atomic
 from rigsfm.core.workspace import Workspace
 from rigsfm.inspect.report.html import render_page
@@ -26,12 +24,8 @@ def load_result(out: Path) -> tuple[pycolmap.Reconstruction, dict, Summary | Non
     """The final model, narrow_poses.json and (if present) summary.json of a workspace."""
     workspace = Workspace(Path(out))
     workspace.require_result()
-    try:
-        narrow = json.loads(workspace.narrow_poses.read_text(encoding="utf-8"))
-    except (json.JSONDecodeError, UnicodeDecodeError) as error:
-        raise WorkspaceError(f"{workspace.narrow_poses} is not valid JSON ({error}); re-run `rigsfm run ... "
-                             "--overwrite`") from None
-    return pycolmap.Reconstruction(str(workspace.sparse)), narrow, Summary.read(workspace.summary)
+    narrow = workspace.read_narrow_poses()
+    return workspace.read_sparse(), narrow, Summary.read(workspace.summary)
 
 
 def write_report(out: Path) -> Path:

@@ -141,3 +141,31 @@ def test_two_frames_of_one_camera_are_not_two_cameras():
     assert maps.seen_twice_m2[0] == pytest.approx(single)
     assert maps.overlap("rig01/narrow/frame0000.png", "rig01/narrow/frame0001.png") is None
     assert len(maps.per_image) == 5  # four cameras, one of them twice
+
+
+def test_report_shows_the_floor_map_and_the_self_check(tmp_path):
+    from test_camera_files import finished_workspace
+
+    from rigsfm.core.io import write_json_atomic
+    from rigsfm.inspect.report.write import write_report
+    from rigsfm.run.summary import Summary
+
+    finished_workspace(tmp_path / "out")
+    narrow = json.loads((tmp_path / "out" / "narrow_poses.json").read_text())
+    pair = {"frame": "f0.png", "i": "rig01/narrow/f0.png", "j": "rig02/narrow/f0.png", "band_px": 1.2,
+            "matches": 300, "median_px": 2.0, "p95_px": 4.5, "within_band": 0.2, "band_matches": 40,
+            "measured_within_px": 14.0, "verdict": "failed"}
+    summary = Summary(world=narrow["world"], warnings=["EPIPOLAR CHECK FAILED: 1 of 1 narrow pairs ..."],
+                      epipolar_self_check={"frames": ["f0.png"], "guided_by": "epipolar band", "skipped": None,
+                                           "seconds": 1.0, "settings": {"wide_factor": 5.0}, "pairs": [pair]})
+    write_json_atomic(tmp_path / "out" / "summary.json", summary.to_json())
+    page = write_report(tmp_path / "out").read_text()
+    world = page[page.index("<h2>World frame and floor map</h2>"):page.index("<h2>Narrow camera pairs</h2>")]
+    assert "sparse 6" in world and "towards the first registered rig of rigs.yaml (rig01)" in world
+    svg = world[world.index("<svg"):world.index("</svg>")]
+    assert svg.count("<title>rig0") == 4  # one footprint per narrow camera
+    assert 'fill="#28aa28"' in svg  # the areas seen by two or more narrow cameras
+    assert "seen by two or more narrow cameras: " in world.replace("Area seen", "seen")
+    check = page[page.index("<h2>Epipolar self-check"):]
+    assert '<span class="warn">failed</span>' in check and "14" in check and "4.5" in check
+

@@ -48,6 +48,7 @@ import numpy as np
 import pycolmap
 
 from rigsfm.core.ground import footprints, ground_from_image, image_from_plane, pairwise_overlaps, undistort_pixels
+from rigsfm.core.matching import candidate_matches
 from rigsfm.core.names import name_of
 from rigsfm.run.floor_matching import grid_rays, plane_hits, plane_warp
 from rigsfm.run.options import SelfCheckOptions
@@ -263,25 +264,8 @@ def _candidates(f_ji: np.ndarray, lines: np.ndarray, undistorted_j: np.ndarray, 
 
 def _guided_matches(fi: _Features, fj: _Features, a: np.ndarray, b: np.ndarray,
                     max_ratio: float = MAX_RATIO) -> np.ndarray:
-    """(k, 2) index pairs among the candidate pairs (a, b): Lowe's ratio test among each keypoint of i's
-    candidates (a single candidate passes), then mutual best (L2 descriptor distances, as OpenCV's)."""
-    if not len(a):
-        return np.zeros((0, 2), int)
-    di, dj = fi.descriptors.astype(np.float32), fj.descriptors.astype(np.float32)
-    squared = (np.einsum("ij,ij->i", di[a], di[a]) + np.einsum("ij,ij->i", dj[b], dj[b])
-               - 2.0 * np.einsum("ij,ij->i", di[a], dj[b]))
-    distance = np.sqrt(np.maximum(squared, 0.0))
-    order = np.lexsort((distance, a))
-    a_s, b_s, d_s = a[order], b[order], distance[order]
-    first = np.flatnonzero(np.r_[True, a_s[1:] != a_s[:-1]])
-    has_second = np.r_[first[1:], len(a_s)] - first > 1
-    second = np.where(has_second, d_s[np.minimum(first + 1, len(d_s) - 1)], np.inf)
-    passed = first[d_s[first] < max_ratio * second]
-    order_b = np.lexsort((distance, b))
-    first_b = order_b[np.r_[True, b[order_b][1:] != b[order_b][:-1]]]
-    best_a_of_b = dict(zip(b[first_b].tolist(), a[first_b].tolist()))
-    pairs = [(i, j) for i, j in zip(a_s[passed].tolist(), b_s[passed].tolist()) if best_a_of_b.get(j) == i]
-    return np.array(pairs, dtype=int).reshape(-1, 2)
+    """(k, 2) index pairs among the candidate pairs (a, b): ratio test among candidates, mutual best."""
+    return candidate_matches(fi.descriptors, fj.descriptors, a, b, max_ratio)
 
 
 def _overlapping_pairs(reconstruction: pycolmap.Reconstruction, images: Sequence[pycolmap.Image],

@@ -15,8 +15,8 @@ def candidate_matches(descriptors_i: np.ndarray, descriptors_j: np.ndarray, a: n
     if not len(a):
         return np.zeros((0, 2), int)
     di, dj = np.asarray(descriptors_i, np.float32), np.asarray(descriptors_j, np.float32)
-    squared = (np.einsum("ij,ij->i", di[a], di[a]) + np.einsum("ij,ij->i", dj[b], dj[b])
-               - 2.0 * np.einsum("ij,ij->i", di[a], dj[b]))
+    norms_i, norms_j = np.einsum("ij,ij->i", di, di), np.einsum("ij,ij->i", dj, dj)
+    squared = norms_i[a] + norms_j[b] - 2.0 * np.einsum("ij,ij->i", di[a], dj[b])
     distance = np.sqrt(np.maximum(squared, 0.0))
     order = np.lexsort((distance, a))
     a_s, b_s, d_s = a[order], b[order], distance[order]
@@ -26,6 +26,7 @@ def candidate_matches(descriptors_i: np.ndarray, descriptors_j: np.ndarray, a: n
     passed = first[d_s[first] < max_ratio * second]
     order_b = np.lexsort((distance, b))
     first_b = order_b[np.r_[True, b[order_b][1:] != b[order_b][:-1]]]
-    best_a_of_b = dict(zip(b[first_b].tolist(), a[first_b].tolist()))
-    pairs = [(i, j) for i, j in zip(a_s[passed].tolist(), b_s[passed].tolist()) if best_a_of_b.get(j) == i]
-    return np.array(pairs, dtype=int).reshape(-1, 2)
+    best_a_of_b = np.full(int(b.max()) + 1, -1, dtype=np.int64)
+    best_a_of_b[b[first_b]] = a[first_b]
+    mutual = best_a_of_b[b_s[passed]] == a_s[passed]
+    return np.c_[a_s[passed][mutual], b_s[passed][mutual]].astype(int)

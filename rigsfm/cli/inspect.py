@@ -47,7 +47,8 @@ def export_command(
     overwrite: Annotated[bool, flag("--overwrite", help="replace an earlier export in DEST (only the files rigsfm "
                                                         "wrote there are removed)")] = False,
 ) -> None:
-    """Export the calibrated network for COLMAP, Open3D, nerfstudio or as plain JSON poses."""
+    """Export the calibrated network for COLMAP, Open3D, nerfstudio, EasyMocap (opencv), aniposelib (toml) or
+    as plain JSON poses."""
     from rigsfm.inspect.export import export
 
     console.print(f"exported {fmt}: {export(out, ExportOptions(format=fmt, dest=dest, overwrite=overwrite))}")

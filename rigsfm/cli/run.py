@@ -9,7 +9,7 @@ import typer
 from rich.table import Table
 
 from rigsfm.cli.common import StageProgress, configure_logging, console, fail_cleanly, finish, flag, progress_bars
-from rigsfm.run.options import Features, Mapper, MappingOptions, MatchingOptions, RunOptions
+from rigsfm.run.options import Features, Mapper, MappingOptions, MatchingOptions, RunOptions, WorldFrame, WorldOptions
 
 VERBOSE = flag("--verbose", "-v", help="show rigsfm's log (info level) on the terminal")
 STRICT = flag("--strict", help="exit with code 4 when the result carries warnings (for scripts)")
@@ -33,7 +33,24 @@ def print_summary(summary, out: Path) -> None:
     for row in scale.measurements:
         console.print(f"  {row['label']}: {row['reconstructed_meters']:.4f} m vs {row['meters']:.4f} m "
                       f"({row['residual_percent']:+.3f} %)")
+    print_world(summary)
     console.print("timings (s): " + ", ".join(f"{k} {v:.1f}" for k, v in summary.timings_s.items()))
+
+
+def print_world(summary) -> None:
+    """The result's frame and the epipolar self-check, one line each."""
+    world, check = summary.world or {}, summary.epipolar_self_check or {}
+    floor = world.get("floor") or {}
+    if world.get("frame") == "floor":
+        heights = floor.get("camera_height") or {}
+        console.print(f"world: floor frame ({floor.get('num_points')} floor points, RMS {1000 * floor['rms']:.1f} mm; "
+                      f"cameras {heights.get('min', 0):.2f}-{heights.get('max', 0):.2f} m above the floor)")
+    elif world:
+        console.print("world: the mapper's frame" + ("" if world.get("asked") == "mapping" else " (no floor found)"))
+    verdicts = [p["verdict"] for p in check.get("pairs", [])]
+    if verdicts:
+        console.print(f"epipolar self-check: {verdicts.count('ok')} ok, {verdicts.count('failed')} failed, "
+                      f"{len(verdicts) - verdicts.count('ok') - verdicts.count('failed')} without verdict")
 
 
 def print_manual_matches(report: dict) -> None:
@@ -83,6 +100,12 @@ def run_command(
         "--incremental-time-limit", min=0, metavar="SECONDS",
         help="after this long the incremental mapper stops and the global mapper's model is used (with a warning)"
     )] = MappingOptions().incremental_time_limit_s,
+    world: Annotated[WorldFrame, typer.Option(
+        "--world", help="floor: z = 0 on the floor, z up, origin under the rigs' centroid, x towards the first rig; "
+                        "mapping: the mapper's frame")] = WorldFrame.FLOOR,
+    plane_height: Annotated[Optional[float], typer.Option(
+        "--plane-height", help="also map every narrow image onto the plane this many metres above the floor "
+                               "(e.g. 1.7 for heads) [default: the floor only]", show_default=False)] = None,
     overwrite: Annotated[bool, flag("--overwrite", help="replace an existing result in OUT (features and matches "
                                                         "made with the same settings are reused)")] = False,
     strict: Annotated[bool, STRICT] = False,
@@ -96,6 +119,7 @@ def run_command(
         matching=MatchingOptions(max_ratio=max_ratio, cross_check=cross_check, rig_verification=rig_verification,
                                  narrow_features=narrow_features, features=features),
         mapping=MappingOptions(mapper=mapper, seed=seed, incremental_time_limit_s=incremental_time_limit),
+        world=WorldOptions(frame=world, plane_heights=() if plane_height is None else (plane_height,)),
         overwrite=overwrite,
         manual_matches=manual_matches,
     )

@@ -11,6 +11,10 @@
   ``transform_matrix`` = camera-to-world with OpenGL axes; the world is rigsfm's metric world
   (``applied_transform`` identity); ``points3D.ply`` as ``ply_file_path``.
 - ``json``: ``poses.json``, every registered image's camera (COLMAP convention) and cam_from_world.
+- ``opencv``: ``intri.yml`` / ``extri.yml`` (OpenCV FileStorage YAML, EasyMocap's layout) and ``toml``:
+  ``calibration.toml`` (aniposelib's ``CameraGroup`` layout): one entry per camera (``<rig>_<sensor>``), K and
+  distortion with OpenCV pixel centres (cx = COLMAP cx - 0.5), R (Rodrigues) and t world-to-camera in metres,
+  image size (``rigsfm.inspect.camera_files``). The world is the run's (the floor frame by default).
 """
 
 from __future__ import annotations
@@ -31,6 +35,7 @@ from rigsfm.core.errors import InputError, WorkspaceError
 from rigsfm.core.io import write_json_atomic
 from rigsfm.core.names import name_of
 from rigsfm.core.workspace import Workspace
+from rigsfm.inspect.camera_files import write_opencv, write_toml
 from rigsfm.inspect.options import ExportFormat, ExportOptions
 from rigsfm.run.deliver import CONVENTIONS
 from rigsfm.run.summary import Summary
@@ -135,6 +140,18 @@ def write_json_poses(reconstruction: pycolmap.Reconstruction, dest: Path) -> lis
     return sorted(dest.iterdir())
 
 
+def world_metadata(workspace: Workspace) -> dict[str, str]:
+    """The run's world frame in words, for the files' metadata (from narrow_poses.json)."""
+    try:
+        world = json.loads(workspace.narrow_poses.read_text(encoding="utf-8")).get("world") or {}
+    except (OSError, json.JSONDecodeError, UnicodeDecodeError):
+        world = {}
+    if world.get("frame") == "floor":
+        return {"world": f"floor frame: z {world.get('z_axis')}; origin {world.get('origin')}; "
+                         f"x {world.get('x_axis')}", "units": str(world.get("units", "metres"))}
+    return {"world": "the mapper's frame (no floor frame)"} if world else {}
+
+
 def check_destination(dest: Path, workspace: Workspace, *, overwrite: bool) -> list[str]:
     """What an export into ``dest`` may replace: the files of an earlier export listed in its manifest.
 
@@ -191,6 +208,10 @@ def export(out: Path, options: ExportOptions) -> Path:
             write_open3d(reconstruction, tmp)
         elif fmt == ExportFormat.NERFSTUDIO:
             write_nerfstudio(reconstruction, tmp, images_dir)
+        elif fmt == ExportFormat.OPENCV:
+            write_opencv(reconstruction, tmp)
+        elif fmt == ExportFormat.TOML:
+            write_toml(reconstruction, tmp, metadata=world_metadata(workspace))
         else:
             write_json_poses(reconstruction, tmp)
         written = sorted(p.name for p in tmp.iterdir())

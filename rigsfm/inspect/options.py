@@ -13,6 +13,8 @@ class ExportFormat(enum.StrEnum):
     OPEN3D = "open3d"  # points.ply, frustums.ply, trajectory.json
     NERFSTUDIO = "nerfstudio"  # transforms.json
     JSON = "json"  # poses.json: every image's camera and cam_from_world
+    OPENCV = "opencv"  # intri.yml / extri.yml: OpenCV FileStorage YAML in EasyMocap's layout
+    TOML = "toml"  # calibration.toml in aniposelib's layout (also read by Caliscope)
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -9,8 +9,10 @@ The stages, in pipeline order (:func:`rigsfm.run.pipeline.run` calls them):
 3. ``features`` (``asift``) — features and verified matches; ``manual_merge`` adds hand-picked ones;
 4. ``mapping`` — COLMAP's incremental or global mapper on the wide images;
 5. ``adjust`` (``scale``) — the metric bundle adjustment with the rigs' calibration;
+5b. ``world`` (``floor``, ``floor_matching``) — the floor frame: z = 0 on the floor, z up, metres; ground maps;
 6. ``uncertainty``, ``diagnostics`` — what the result is worth, and warnings;
-7. ``deliver`` — sparse/, narrow_poses.json, points3D.ply; ``summary`` — summary.json.
+7. ``deliver`` — sparse/, narrow_poses.json, points3D.ply; ``self_check`` — epipolar distances of matches
+   between synchronised narrow images against the band; ``summary`` — summary.json.
 """
 
 from rigsfm.core.lazy import lazy_exports
@@ -25,5 +27,8 @@ __getattr__, __all__ = lazy_exports(__name__, {
     "AdjustOptions": "rigsfm.run.options",
     "Features": "rigsfm.run.options",
     "Mapper": "rigsfm.run.options",
+    "WorldFrame": "rigsfm.run.options",
+    "WorldOptions": "rigsfm.run.options",
+    "SelfCheckOptions": "rigsfm.run.options",
     "Summary": "rigsfm.run.summary",
 })

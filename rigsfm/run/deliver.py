@@ -10,6 +10,11 @@
 - ``epipolar_band_95_px``: half-width of the band around the epipolar line in j (pinhole pixels of j) that
   holds the true correspondence of a point of image i with 95 % probability, from the bundle-adjustment
   covariance of the rig poses (see ``rigsfm.run.uncertainty``); null when it cannot be estimated.
+- ``world``: the frame of every pose (``rigsfm.run.world``): by default the floor frame (z = 0 on the floor, z
+  up, metres, origin under the rigs' centroid, x towards the first rig), with how the floor was found.
+- per narrow image, ``ground``: one entry per plane z = h (the floor, then ``--plane-height``) with
+  ``ground_from_image`` (undistorted COLMAP pixels -> plane metres, as ``F_ji``), the footprint polygon and
+  the ground sampling distance at its centre; per pair, ``ground_overlap_m2`` (area both cameras see, per plane).
 """
 
 from __future__ import annotations
@@ -45,6 +50,21 @@ CONVENTIONS = {
                            "(epipolar_band_depth_range_m, metres in camera i); from the bundle-adjustment "
                            "covariance of the rig poses with intrinsics and E^sl held exact (errors of "
                            "rigs.yaml itself are not included); null if it could not be estimated",
+    "world": "the frame of every pose and point: see world.frame, world.origin, world.x_axis, world.z_axis",
+    "ground_from_image": "3x3 H: (x, y, w) = H @ (u, v, 1) for an undistorted COLMAP pixel (u, v) of the camera's "
+                         "pinhole K (as F_ji); the point on the plane z = plane_height_m is (x / w, y / w) in "
+                         "world metres; w > 0 only for pixels whose ray meets the plane in front of the camera "
+                         "(below the horizon). Raw pixels: undistort with the camera model first",
+    "footprint_m": "the part of the plane the image sees: counter-clockwise polygon (x, y) in world metres, the "
+                   "image border (pixel edges) through the full camera model; clipped = cut at the horizon or "
+                   "at 20 camera heights' depth",
+    "footprint_centre_m": "where the ray of the image centre (W/2, H/2) meets the plane",
+    "gsd_mm_per_px": "ground sampling distance at footprint_centre_m: sqrt |det J| of the pixel -> plane "
+                     "Jacobian (mm per pixel); gsd_mm_per_px_xy: along image x and y",
+    "ground_overlap_m2": "per plane of world.plane_heights_m, the area (m^2) seen by both narrow cameras of the "
+                         "pair; null for two images of the same camera",
+    "seen_by_two_or_more_m2": "per plane of world.plane_heights_m, the area seen by two or more narrow cameras "
+                              "(where stereo analysis is possible), counted on a 5 cm raster",
 }
 
 
@@ -65,8 +85,10 @@ def narrow_images(reconstruction: pycolmap.Reconstruction) -> list[pycolmap.Imag
     )
 
 
-def narrow_poses(reconstruction: pycolmap.Reconstruction, *, metric: bool, uncertainty: bool = True) -> dict:
-    """The narrow-camera deliverable as a JSON-ready dict."""
+def narrow_poses(reconstruction: pycolmap.Reconstruction, *, metric: bool, uncertainty: bool = True,
+                 world: dict | None = None, ground=None) -> dict:
+    """The narrow-camera deliverable as a JSON-ready dict; ``world`` (``WorldResult.to_dict()``) and ``ground``
+    (:class:`rigsfm.run.world.GroundMaps`) when known."""
     images = narrow_images(reconstruction)
     bands = {}
     if uncertainty and len(images) >= 2:
@@ -83,6 +105,8 @@ def narrow_poses(reconstruction: pycolmap.Reconstruction, *, metric: bool, uncer
                 "centre": image.projection_center().tolist(),
             }
         )
+        if ground is not None:
+            entries[-1]["ground"] = ground.per_image.get(image.name, [])
     pairs = []
     for image_i, image_j in itertools.combinations(images, 2):
         j_from_i = image_j.cam_from_world() * image_i.cam_from_world().inverse()
@@ -105,8 +129,15 @@ def narrow_poses(reconstruction: pycolmap.Reconstruction, *, metric: bool, uncer
                 "epipolar_band_depth_range_m": bands.get((image_i.name, image_j.name), {}).get("depth_range_m"),
             }
         )
-    return {"metric": metric, "units": "meters" if metric else "arbitrary", "conventions": CONVENTIONS,
+        if ground is not None:
+            pairs[-1]["ground_overlap_m2"] = ground.overlap(image_i.name, image_j.name)
+    data = {"metric": metric, "units": "meters" if metric else "arbitrary", "conventions": CONVENTIONS,
             "narrow": entries, "pairs": pairs}
+    if world is not None:
+        data["world"] = world
+    if ground is not None:
+        data["ground"] = {"plane_heights_m": list(ground.heights), "seen_by_two_or_more_m2": ground.seen_twice_m2}
+    return data
 
 
 def write_model(reconstruction: pycolmap.Reconstruction, path: Path, *, overwrite: bool) -> Path:
@@ -127,5 +158,7 @@ def write_points_ply(reconstruction: pycolmap.Reconstruction, path: Path, *, ove
     return path
 
 
-def write_narrow_poses(reconstruction: pycolmap.Reconstruction, path: Path, *, metric: bool, overwrite: bool) -> Path:
-    return write_json_atomic(path, narrow_poses(reconstruction, metric=metric), overwrite=overwrite)
+def write_narrow_poses(reconstruction: pycolmap.Reconstruction, path: Path, *, metric: bool, overwrite: bool,
+                       world: dict | None = None, ground=None) -> Path:
+    return write_json_atomic(path, narrow_poses(reconstruction, metric=metric, world=world, ground=ground),
+                             overwrite=overwrite)

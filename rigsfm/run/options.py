@@ -109,11 +109,37 @@ class AdjustOptions:
         _check_range("max_iterations", self.max_iterations, 1, 1_000_000, integer=True)
 
 
+class WorldFrame(enum.StrEnum):
+    """The frame of the result (rigsfm.run.world)."""
+
+    FLOOR = "floor"  # z = 0 on the floor, z up, origin under the rigs' centroid, x towards the first rig
+    MAPPING = "mapping"  # the mapper's frame (after the metric adjustment)
+
+
+@dataclass(kw_only=True)
+class WorldOptions:
+    frame: WorldFrame = WorldFrame.FLOOR
+    plane_heights: tuple[float, ...] = ()  # metres above the floor: extra ground maps (e.g. 1.7 for heads)
+
+
+@dataclass(kw_only=True)
+class SelfCheckOptions:
+    """The epipolar self-check on synchronised narrow images (rigsfm.run.self_check)."""
+
+    enabled: bool = True
+    max_frames: int = 1  # frame names checked (the first ones shared by two or more rigs)
+    # Image j is warped into image i's view through the plane at this height (floor frame, metres) before
+    # features are compared: 0 for what lies on the floor; a crowd seen from above may match better at 1.7.
+    warp_height_m: float = 0.0
+
+
 @dataclass(kw_only=True)
 class RunOptions:
     matching: MatchingOptions = field(default_factory=MatchingOptions)
     mapping: MappingOptions = field(default_factory=MappingOptions)
     adjust: AdjustOptions = field(default_factory=AdjustOptions)
+    world: WorldOptions = field(default_factory=WorldOptions)
+    self_check: SelfCheckOptions = field(default_factory=SelfCheckOptions)
     manual_matches: Path | None = None  # CSV of correspondences between wide images (rigsfm.run.manual_matches)
     overwrite: bool = False
     num_threads: int = -1  # every stage; -1: all cores

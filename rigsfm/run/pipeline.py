@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import json
 import logging
 import time
 from collections.abc import Callable, Iterator
@@ -35,6 +36,7 @@ from rigsfm.run.options import RunOptions
 from rigsfm.run.scale_file import ScaleSpec, load_scale
 from rigsfm.run.summary import (CameraError, InputsSummary, MappingSummary, Registration, ScaleSummary,
                                 Summary)
+from rigsfm.run.world import ground_maps, place_in_world, validate_world_options
 
 logger = logging.getLogger(__name__)
 
@@ -181,6 +183,7 @@ def run(
     timings = _Timings()
     with timings.stage("validate"):
         inputs = load_inputs(image_dir, rigs_path, scale_path)
+        validate_world_options(options.world)
         manual_pairs = {} if options.manual_matches is None else validate_manual_matches(
             options.manual_matches, read_manual_matches(options.manual_matches), inputs.images, inputs.rigs)
     if options.mapping.few_matches is None:
@@ -235,11 +238,29 @@ def _run_locked(workspace: Workspace, inputs: Inputs, manual_pairs: dict, option
         with timings.stage("adjust"):
             result = in_child(adjust, mapping.reconstruction, inputs.rigs, inputs.scale, options.adjust)
         metric = is_metric(result)
+        with timings.stage("world"):
+            world = place_in_world(result.reconstruction, inputs.image_dir, inputs.scale,
+                                   [rig.name for rig in inputs.rigs], options.world, metric=metric)
+            ground = ground_maps(result.reconstruction, world.plane_heights) if world.plane_heights else None
         with timings.stage("deliver"):
             write_model(result.reconstruction, workspace.sparse, overwrite=True)
-            write_narrow_poses(result.reconstruction, workspace.narrow_poses, metric=metric, overwrite=True)
+            write_narrow_poses(result.reconstruction, workspace.narrow_poses, metric=metric, overwrite=True,
+                               world=world.to_dict(), ground=ground)
             write_points_ply(result.reconstruction, workspace.points_ply, overwrite=True)
+    self_check = None
+    if options.self_check.enabled:
+        with timings.stage("self_check"):
+            from rigsfm.run.self_check import epipolar_self_check
+
+            self_check = epipolar_self_check(result.reconstruction, inputs.image_dir,
+                                             json.loads(workspace.narrow_poses.read_text(encoding="utf-8")),
+                                             options.self_check)
     summary = build_summary(inputs, options, mapping, result, timings, workspace.database)
+    summary.world = world.to_dict()
+    summary.warnings.extend(world.warnings)
+    if self_check is not None:
+        summary.epipolar_self_check = self_check.to_dict()
+        summary.warnings.extend(self_check.warnings)
     if options.manual_matches is not None:
         summary.manual_matches = manual_matches_summary(options.manual_matches, manual_reports)
     write_json_atomic(workspace.summary, summary.to_json())

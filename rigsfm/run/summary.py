@@ -68,6 +68,8 @@ class Summary:
     timings_s: dict[str, float] = field(default_factory=dict)
     warnings: list[str] = field(default_factory=list)
     manual_matches: dict | None = None  # rigsfm.run.manual_merge.manual_matches_summary
+    world: dict | None = None  # the result's frame and its floor fit (rigsfm.run.world.WorldResult.to_dict)
+    epipolar_self_check: dict | None = None  # rigsfm.run.self_check.SelfCheck.to_dict
 
     def to_json(self) -> dict:
         return asdict(self)

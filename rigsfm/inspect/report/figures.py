@@ -173,3 +173,77 @@ def topdown_svg(reconstruction: pycolmap.Reconstruction, size: int = 620, max_po
                  f'<tspan fill="{WIDE_SVG}">wide</tspan>, <tspan fill="{NARROW_SVG}">narrow</tspan> cameras '
                  'with viewing directions; grey: sparse points (top view of their best-fit plane)</text></svg>')
     return "".join(parts)
+
+
+STEREO_SVG = charts.hex_colour(charts.SERIES[1])  # areas seen by two or more narrow cameras
+
+
+def _svg_path(points: np.ndarray, to_svg) -> str:
+    return "M" + " L".join("{:.1f},{:.1f}".format(*to_svg(p)) for p in points) + " Z"
+
+
+def floor_map_svg(narrow: dict, reconstruction: pycolmap.Reconstruction, size: int = 620) -> str | None:
+    """The floor seen from above, to scale (floor frame, metres): rigs, every narrow camera's footprint and the
+    areas seen by two or more narrow cameras, with a metre grid. None when narrow_poses.json has no ground
+    maps (the result is not in the floor frame)."""
+    from rigsfm.core.ground import coverage
+
+    prints, centres = {}, {}
+    for entry in narrow.get("narrow", []):
+        ground = entry.get("ground") or []
+        floor = next((g for g in ground if g.get("plane_height_m") == 0.0 and g.get("footprint_m")), None)
+        camera = entry["name"].rsplit("/", 1)[0]
+        if floor is not None and camera not in prints:
+            prints[camera] = np.asarray(floor["footprint_m"], dtype=np.float64)
+    if not prints:
+        return None
+    for image in reconstruction.images.values():
+        if image.has_pose and not name_of(image).is_narrow:
+            centres.setdefault(name_of(image).rig, np.asarray(image.projection_center())[:2])
+    twice = coverage(prints, cell=0.05).outlines(2)
+    everything = np.vstack([*prints.values(), *(c[None] for c in centres.values())])
+    lo, hi = everything.min(axis=0), everything.max(axis=0)
+    span = float(max(hi - lo)) * 1.08 or 1.0
+    mid = (lo + hi) / 2
+    pad = 40
+    scale = (size - 2 * pad) / span
+
+    def to_svg(p) -> tuple[float, float]:
+        return pad + (p[0] - mid[0] + span / 2) * scale, size - pad - (p[1] - mid[1] + span / 2) * scale
+
+    parts = [f'<svg xmlns="http://www.w3.org/2000/svg" width="{size}" height="{size}" role="img" '
+             f'style="background:#fff;border:1px solid #ccc">']
+    step = max(1.0, charts.nice_ticks(span, 6)[1])  # whole metres
+    if step > 1.0 and span < 120.0:  # and light lines every metre
+        for k in np.arange(np.ceil(mid[0] - span / 2), np.floor(mid[0] + span / 2) + 1):
+            x, _ = to_svg((k, 0.0))
+            parts.append(f'<line x1="{x:.1f}" y1="{pad}" x2="{x:.1f}" y2="{size - pad}" stroke="#f4f4f4"/>')
+        for k in np.arange(np.ceil(mid[1] - span / 2), np.floor(mid[1] + span / 2) + 1):
+            _, y = to_svg((0.0, k))
+            parts.append(f'<line x1="{pad}" y1="{y:.1f}" x2="{size - pad}" y2="{y:.1f}" stroke="#f4f4f4"/>')
+    for k in np.arange(np.ceil((mid[0] - span / 2) / step), np.floor((mid[0] + span / 2) / step) + 1):
+        x, _ = to_svg((k * step, 0.0))
+        parts.append(f'<line x1="{x:.1f}" y1="{pad}" x2="{x:.1f}" y2="{size - pad}" stroke="#e4e4e4"/>'
+                     f'<text x="{x:.1f}" y="{size - pad + 14}" font-size="10" text-anchor="middle">{k * step:g}</text>')
+    for k in np.arange(np.ceil((mid[1] - span / 2) / step), np.floor((mid[1] + span / 2) / step) + 1):
+        _, y = to_svg((0.0, k * step))
+        parts.append(f'<line x1="{pad}" y1="{y:.1f}" x2="{size - pad}" y2="{y:.1f}" stroke="#e4e4e4"/>'
+                     f'<text x="{pad - 4}" y="{y + 3:.1f}" font-size="10" text-anchor="end">{k * step:g}</text>')
+    for camera, polygon in prints.items():
+        parts.append(f'<path d="{_svg_path(polygon, to_svg)}" fill="{NARROW_SVG}" fill-opacity="0.08" '
+                     f'stroke="{NARROW_SVG}" stroke-width="1"><title>{html.escape(camera)}</title></path>')
+    for outline in twice:
+        parts.append(f'<path d="{_svg_path(outline, to_svg)}" fill="{STEREO_SVG}" fill-opacity="0.35" '
+                     f'stroke="{STEREO_SVG}" stroke-width="1"/>')
+    for rig, centre in sorted(centres.items()):
+        x, y = to_svg(centre)
+        parts.append(f'<circle cx="{x:.1f}" cy="{y:.1f}" r="4" fill="{WIDE_SVG}"/>'
+                     f'<text x="{x + 6:.1f}" y="{y - 6:.1f}" font-size="11">{html.escape(rig)}</text>')
+    (x0, y0), (x1, y1) = to_svg((0.0, 0.0)), to_svg((step, 0.0))
+    parts.append(f'<line x1="{x0:.1f}" y1="{y0:.1f}" x2="{x1:.1f}" y2="{y1:.1f}" stroke="#333" stroke-width="2"/>'
+                 f'<circle cx="{x0:.1f}" cy="{y0:.1f}" r="2.5" fill="#333"/>'
+                 f'<text x="{x1 + 3:.1f}" y="{y1 + 4:.1f}" font-size="10">x</text>')
+    parts.append(f'<text x="{pad}" y="16" font-size="11">floor (z = 0), grid 1 m, labels every {step:g} m; '
+                 f'<tspan fill="{WIDE_SVG}">rigs</tspan>, <tspan fill="{NARROW_SVG}">narrow footprints</tspan>, '
+                 f'<tspan fill="{STEREO_SVG}">seen by 2+ narrow cameras</tspan></text></svg>')
+    return "".join(parts)

@@ -11,7 +11,7 @@ import pycolmap
 
 from rigsfm.core.names import ImageName, name_of
 from rigsfm.core import charts
-from rigsfm.inspect.report.figures import JPEG_QUALITY, epipolar_figure, read_image, topdown_svg
+from rigsfm.inspect.report.figures import JPEG_QUALITY, epipolar_figure, floor_map_svg, read_image, topdown_svg
 from rigsfm.core.residuals import reprojection_errors
 from rigsfm.core.workspace import Workspace
 from rigsfm.run.summary import Summary
@@ -201,6 +201,87 @@ def epipolar_section(out: Path, summary: Summary | None, reconstruction: pycolma
     return "".join(parts)
 
 
+def world_section(narrow: dict, reconstruction: pycolmap.Reconstruction) -> str:
+    world = narrow.get("world")
+    parts = ["<h2>World frame and floor map</h2>"]
+    if not world:
+        parts.append('<p class="note">This result predates the floor frame (no "world" in narrow_poses.json).</p>')
+        return "".join(parts)
+    floor = world.get("floor") or {}
+    if world.get("frame") != "floor":
+        why = ("--world mapping was asked for" if world.get("asked") == "mapping"
+               else f"no floor was found: {floor.get('reason', '?')}")
+        parts.append(f'<p class="note">The poses are in the mapper\'s frame ({esc(why)}): no metres on the ground.</p>')
+        return "".join(parts)
+    matching = floor.get("matching") or {}
+    heights = floor.get("camera_height") or {}
+    rows = [["z", esc(world.get("z_axis"))], ["origin", esc(world.get("origin"))], ["x", esc(world.get("x_axis"))],
+            ["floor points", ", ".join(f"{esc(k)} {v}" for k, v in (floor.get("points_by_source") or {}).items())],
+            ["fit residual RMS (m)", fmt(floor.get("rms"))],
+            ["normal σ (deg)", fmt(floor.get("normal_sigma_deg"), 3)],
+            ["camera heights (m)", f"{fmt(heights.get('min'))} – {fmt(heights.get('max'))}"],
+            ["floor matching", "not needed (the sparse points fix the floor)" if not matching.get("ran") else
+             f"{matching.get('rounds')} round(s), {matching.get('image_pairs')} image pairs, "
+             f"{matching.get('matched_points')} points, {fmt(matching.get('seconds'), 3)} s "
+             f"({esc(matching.get('why'))})"]]
+    if floor.get("marker_residuals"):
+        rows.append(["marker heights (m)", ", ".join(f"{v:+.4f}" for v in floor["marker_residuals"])])
+    parts.append(table(["", ""], rows))
+    svg = floor_map_svg(narrow, reconstruction)
+    if svg:
+        parts.append(svg)
+    ground = narrow.get("ground") or {}
+    planes = ground.get("plane_heights_m") or []
+    if planes:
+        seen = ground.get("seen_by_two_or_more_m2") or []
+        parts.append('<p class="note">Area seen by two or more narrow cameras: '
+                     + ", ".join(f"{fmt(a, 4)} m² at z = {h:g} m" for h, a in zip(planes, seen)) + ".</p>")
+        header = ["narrow camera", "height (m)"]
+        for h in planes:
+            header += [f"footprint (m²) z={h:g}", f"GSD (mm/px) z={h:g}"]
+        body = []
+        for entry in narrow.get("narrow", []):
+            row = [esc(entry["name"]), fmt(float(entry["centre"][2]))]
+            for g in entry.get("ground") or []:
+                row += [fmt(g.get("footprint_area_m2"), 4), fmt(g.get("gsd_mm_per_px"), 3)]
+            body.append(row)
+        parts.append(table(header, body))
+    return "".join(parts)
+
+
+def self_check_section(summary: Summary | None) -> str:
+    check = summary.epipolar_self_check if summary else None
+    parts = ["<h2>Epipolar self-check on synchronised narrow images</h2>",
+             '<p class="note">Narrow images of different rigs with the same frame name were taken at the same '
+             "instant: features matched between them (searched only near each epipolar line"
+             + ("" if not check else f": {esc(check.get('guided_by'))}") +
+             ") must lie within the predicted 95 % band. The distances are measured on matches searched in a band "
+             f"at least {esc((check or {}).get('settings', {}).get('wide_factor', '5'))}x wider than the "
+             "prediction, widened until the matches stay well inside it, so a band that is too narrow shows; a "
+             "pair fails when the 95th percentile exceeds the band by more than the keypoints' own noise "
+             f"({esc((check or {}).get('settings', {}).get('keypoint_noise_px', 1.0))} px).</p>"]
+    if not check:
+        parts.append('<p class="note">Not run.</p>')
+        return "".join(parts)
+    if check.get("skipped"):
+        parts.append(f'<p class="note">Nothing checked: {esc(check["skipped"])}.</p>')
+        return "".join(parts)
+    rows = []
+    for p in check.get("pairs", []):
+        verdict = esc(p["verdict"])
+        if p["verdict"] == "failed":
+            verdict = f'<span class="warn">{verdict}</span>'
+        within = p.get("within_band")
+        rows.append([esc(p["frame"]), esc(p["i"]), esc(p["j"]), fmt(p.get("band_px"), 3), p["matches"],
+                     fmt(p.get("median_px"), 3), fmt(p.get("p95_px"), 3),
+                     "–" if within is None else f"{100 * within:.0f} %", fmt(p.get("measured_within_px"), 3),
+                     verdict])
+    parts.append(table(["frame", "narrow i", "narrow j", "band 95 % (px)", "matches", "median (px)",
+                        "95th pct (px)", "within band", "searched within (px)", "verdict"], rows, left=3))
+    parts.append(f'<p class="note">{fmt(check.get("seconds"), 3)} s.</p>')
+    return "".join(parts)
+
+
 def render_page(out: Path, summary: Summary | None, reconstruction: pycolmap.Reconstruction, narrow: dict) -> str:
     title = f"rigsfm report: {out.resolve().name}"
     version = summary.rigsfm_version if summary else ""
@@ -210,8 +291,9 @@ def render_page(out: Path, summary: Summary | None, reconstruction: pycolmap.Rec
             summary_section(summary, reconstruction, narrow),
             reprojection_section(reconstruction),
             "<h2>Network (top view)</h2>" + topdown_svg(reconstruction, units=units),
+            world_section(narrow, reconstruction),
             pairs_section(narrow), uncertainty_section(narrow),
-            epipolar_section(out, summary, reconstruction, narrow)]
+            epipolar_section(out, summary, reconstruction, narrow), self_check_section(summary)]
     if Workspace(out).track.poses_json.is_file():  # `rigsfm track` results, when there are any
         from rigsfm.track import track_report_section
 

@@ -1,0 +1,32 @@
+"""Descriptor matching restricted to candidate pairs (guided matching): Lowe's ratio test among each feature's
+candidates, then mutual best matches, without an n_i x n_j distance table."""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def candidate_matches(descriptors_i: np.ndarray, descriptors_j: np.ndarray, a: np.ndarray, b: np.ndarray,
+                      max_ratio: float) -> np.ndarray:
+    """(k, 2) index pairs among the candidate pairs (a[n], b[n]) (feature a of i, feature b of j): the nearest
+    candidate of each feature of i (L2 descriptor distance, as OpenCV's) that passes the ratio test against its
+    second-nearest candidate (a single candidate passes) and is in turn the nearest candidate of its feature of j."""
+    a, b = np.asarray(a, dtype=np.int64), np.asarray(b, dtype=np.int64)
+    if not len(a):
+        return np.zeros((0, 2), int)
+    di, dj = np.asarray(descriptors_i, np.float32), np.asarray(descriptors_j, np.float32)
+    norms_i, norms_j = np.einsum("ij,ij->i", di, di), np.einsum("ij,ij->i", dj, dj)
+    squared = norms_i[a] + norms_j[b] - 2.0 * np.einsum("ij,ij->i", di[a], dj[b])
+    distance = np.sqrt(np.maximum(squared, 0.0))
+    order = np.lexsort((distance, a))
+    a_s, b_s, d_s = a[order], b[order], distance[order]
+    first = np.flatnonzero(np.r_[True, a_s[1:] != a_s[:-1]])
+    has_second = np.r_[first[1:], len(a_s)] - first > 1
+    second = np.where(has_second, d_s[np.minimum(first + 1, len(d_s) - 1)], np.inf)
+    passed = first[d_s[first] < max_ratio * second]
+    order_b = np.lexsort((distance, b))
+    first_b = order_b[np.r_[True, b[order_b][1:] != b[order_b][:-1]]]
+    best_a_of_b = np.full(int(b.max()) + 1, -1, dtype=np.int64)
+    best_a_of_b[b[first_b]] = a[first_b]
+    mutual = best_a_of_b[b_s[passed]] == a_s[passed]
+    return np.c_[a_s[passed][mutual], b_s[passed][mutual]].astype(int)

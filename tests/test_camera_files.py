@@ -1,0 +1,250 @@
+"""EasyMocap intri/extri.yml and aniposelib calibration.toml, read back with the real readers.
+
+The projection of a world point through the file (cv2.projectPoints / aniposelib's camera.project, both with
+the file's K, distortion, rvec, tvec) must equal pycolmap's ``img_from_cam`` minus 0.5 px to 1e-6 px.
+EasyMocap itself is not installed; ``read_easymocap`` transcribes the key accesses of its ``read_camera``
+(easymocap/mytools/camera_utils.py): FileStorage, ``names`` as a string list, ``K_``, ``dist_``, ``H_``/``W_``
+via ``int(node.real())``, ``R_`` through ``cv2.Rodrigues``, ``T_``.
+"""
+
+from __future__ import annotations
+
+import tomllib
+
+import cv2
+import numpy as np
+import pycolmap
+import pytest
+from aniposelib.cameras import CameraGroup
+
+from rigsfm.core.errors import InputError
+from rigsfm.inspect.camera_files import opencv_intrinsics, write_opencv, write_toml
+
+MODELS = {
+    "SIMPLE_PINHOLE": [900.0, 401.3, 305.2],
+    "PINHOLE": [1801.5, 1799.2, 409.9, 309.9],
+    "SIMPLE_RADIAL": [450.2, 403.0, 309.1, -0.09],
+    "RADIAL": [451.0, 404.2, 308.7, -0.1, 0.02],
+    "OPENCV": [450.5, 449.4, 402.9, 309.1, -0.0987, 0.0006, 0.0002, -0.0003],
+    "FULL_OPENCV": [450.5, 449.4, 402.9, 309.1, -0.12, 0.03, 0.0004, -0.0002, 0.001, 0.01, -0.002, 0.0005],
+    "OPENCV_FISHEYE": [300.0, 301.0, 406.0, 308.0, 0.05, -0.01, 0.002, -0.0004],
+    "SIMPLE_RADIAL_FISHEYE": [300.0, 406.0, 308.0, 0.04],
+    "RADIAL_FISHEYE": [300.0, 406.0, 308.0, 0.04, -0.008],
+}
+FISHEYE = {"OPENCV_FISHEYE", "SIMPLE_RADIAL_FISHEYE", "RADIAL_FISHEYE"}
+
+
+def random_pose(rng: np.random.Generator) -> pycolmap.Rigid3d:
+    q = rng.normal(size=4)
+    return pycolmap.Rigid3d(pycolmap.Rotation3d(q / np.linalg.norm(q)), rng.uniform(-20, 20, 3))
+
+
+def make_reconstruction(models: dict[str, list[float]], seed: int = 0, rig_names=None) -> pycolmap.Reconstruction:
+    """One camera per model, each with a trivial rig and one posed image ``<rig>/<sensor>/f0.png``."""
+    rng = np.random.default_rng(seed)
+    rec = pycolmap.Reconstruction()
+    for camera_id, (model, params) in enumerate(models.items(), start=1):
+        camera = pycolmap.Camera.create_from_model_name(camera_id, model, 1.0, 812, 617)
+        camera.params = params
+        rec.add_camera_with_trivial_rig(camera)
+        rig = rig_names[camera_id - 1] if rig_names else f"rig{camera_id:02d}"
+        image = pycolmap.Image(image_id=camera_id, name=f"{rig}/wide/f0.png", camera_id=camera_id)
+        rec.add_image_with_trivial_frame(image, random_pose(rng))
+    return rec
+
+
+def points_in_view(image: pycolmap.Image, rng: np.random.Generator, n: int = 50) -> np.ndarray:
+    """World points that project inside the image (COLMAP pixels away from the border), 2-40 units deep."""
+    camera = image.camera
+    pixels = np.c_[rng.uniform(20, camera.width - 20, n), rng.uniform(20, camera.height - 20, n)]
+    rays = np.c_[camera.cam_from_img(pixels), np.ones(n)]
+    in_cam = rays * rng.uniform(2, 40, n)[:, None]
+    return np.array([image.cam_from_world().inverse() * p for p in in_cam])
+
+
+def expected_opencv_pixels(image: pycolmap.Image, world: np.ndarray) -> np.ndarray:
+    in_cam = np.array([image.cam_from_world() * p for p in world])
+    return image.camera.img_from_cam(in_cam) - 0.5
+
+
+def read_easymocap(intri_path, extri_path) -> dict:
+    intri = cv2.FileStorage(str(intri_path), cv2.FILE_STORAGE_READ)
+    extri = cv2.FileStorage(str(extri_path), cv2.FILE_STORAGE_READ)
+    node = intri.getNode("names")
+    names = []
+    for i in range(node.size()):
+        value = node.at(i).string()
+        names.append(value if value != "" else str(int(node.at(i).real())))
+    cameras = {}
+    for name in names:
+        rvec = extri.getNode(f"R_{name}").mat()
+        cameras[name] = {
+            "K": intri.getNode(f"K_{name}").mat(),
+            "dist": intri.getNode(f"dist_{name}").mat(),
+            "H": int(intri.getNode(f"H_{name}").real()),
+            "W": int(intri.getNode(f"W_{name}").real()),
+            "Rvec": rvec,
+            "R": cv2.Rodrigues(rvec)[0],
+            "Rot": extri.getNode(f"Rot_{name}").mat(),
+            "T": extri.getNode(f"T_{name}").mat(),
+        }
+    ext_names = extri.getNode("names")
+    assert [ext_names.at(i).string() for i in range(ext_names.size())] == names
+    return cameras
+
+
+def test_easymocap_yaml_projects_like_pycolmap(tmp_path):
+    pinhole_models = {m: p for m, p in MODELS.items() if m not in FISHEYE}
+    rec = make_reconstruction(pinhole_models)
+    paths = write_opencv(rec, tmp_path)
+    assert [p.name for p in paths] == ["intri.yml", "extri.yml"]
+    assert paths[0].read_text().startswith("%YAML:1.0\n")
+    cameras = read_easymocap(*paths)
+    rng = np.random.default_rng(1)
+    assert sorted(cameras) == [f"rig{i:02d}_wide" for i in range(1, len(pinhole_models) + 1)]
+    for image in rec.images.values():
+        cam = cameras[image.name.split("/")[0] + "_wide"]
+        assert (cam["W"], cam["H"]) == (812, 617)
+        assert cam["dist"].shape == ((1, 8) if image.camera.model.name == "FULL_OPENCV" else (1, 5))
+        np.testing.assert_allclose(cam["Rot"], cam["R"], atol=1e-12)
+        world = points_in_view(image, rng)
+        projected, _ = cv2.projectPoints(world, cam["Rvec"], cam["T"], cam["K"], cam["dist"])
+        np.testing.assert_allclose(projected.reshape(-1, 2), expected_opencv_pixels(image, world), atol=1e-6, rtol=0)
+
+
+def test_aniposelib_toml_projects_like_pycolmap(tmp_path):
+    rec = make_reconstruction(MODELS)
+    (path,) = write_toml(rec, tmp_path, metadata={"world": "test"})
+    group = CameraGroup.load(str(path))
+    assert tomllib.loads(path.read_text())["metadata"]["world"] == "test"
+    assert group.metadata["source"] == "rigsfm"
+    by_name = {camera.get_name(): camera for camera in group.cameras}
+    rng = np.random.default_rng(2)
+    for image in rec.images.values():
+        camera = by_name[image.name.split("/")[0] + "_wide"]
+        assert list(camera.get_size()) == [812, 617]
+        assert type(camera).__name__ == ("FisheyeCamera" if image.camera.model.name in FISHEYE else "Camera")
+        world = points_in_view(image, rng)
+        projected = camera.project(world).reshape(-1, 2)
+        np.testing.assert_allclose(projected, expected_opencv_pixels(image, world), atol=1e-6, rtol=0)
+
+
+def test_toml_keeps_camera_order_beyond_ten(tmp_path):
+    """aniposelib sorts table names: cam_10 before cam_2 unless the index is zero-padded."""
+    rec = pycolmap.Reconstruction()
+    rng = np.random.default_rng(3)
+    for camera_id in range(1, 13):
+        camera = pycolmap.Camera.create_from_model_name(camera_id, "OPENCV", 1.0, 812, 617)
+        camera.params = MODELS["OPENCV"]
+        rec.add_camera_with_trivial_rig(camera)
+        rec.add_image_with_trivial_frame(
+            pycolmap.Image(image_id=camera_id, name=f"r{camera_id:02d}/narrow/f0.png", camera_id=camera_id),
+            random_pose(rng))
+    (path,) = write_toml(rec, tmp_path, sensors=("narrow",))
+    names = [camera.get_name() for camera in CameraGroup.load(str(path)).cameras]
+    assert names == [f"r{i:02d}_narrow" for i in range(1, 13)]
+    assert "[cam_00]" in path.read_text()
+
+
+def test_fisheye_refused_for_easymocap_but_written_for_aniposelib(tmp_path):
+    rec = make_reconstruction({"OPENCV_FISHEYE": MODELS["OPENCV_FISHEYE"]})
+    with pytest.raises(InputError, match="fisheye.*toml"):
+        write_opencv(rec, tmp_path / "yml")
+    (path,) = write_toml(rec, tmp_path / "toml")
+    assert tomllib.loads(path.read_text())["cam_0"]["fisheye"] is True
+
+
+@pytest.mark.parametrize("model", ["FOV", "THIN_PRISM_FISHEYE", "SIMPLE_DIVISION"])
+def test_models_without_opencv_equivalent_are_refused(model):
+    camera = pycolmap.Camera.create_from_model_name(1, model, 500.0, 812, 617)
+    with pytest.raises(InputError, match=f"{model} has no OpenCV equivalent"):
+        opencv_intrinsics(camera, "rig01_wide")
+
+
+def test_principal_point_moves_by_half_a_pixel():
+    camera = pycolmap.Camera.create_from_model_name(1, "PINHOLE", 1.0, 812, 617)
+    camera.params = [1000.0, 1001.0, 406.0, 308.5]
+    k, dist, fisheye = opencv_intrinsics(camera)
+    np.testing.assert_array_equal(k, [[1000.0, 0, 405.5], [0, 1001.0, 308.0], [0, 0, 1]])
+    assert not fisheye and not dist.any()
+
+
+def test_names_are_sanitised_and_numeric_names_stay_strings(tmp_path):
+    rec = make_reconstruction({"OPENCV": MODELS["OPENCV"], "PINHOLE": MODELS["PINHOLE"]},
+                              rig_names=["01", "rig.b"])
+    cameras = read_easymocap(*write_opencv(rec, tmp_path))
+    assert sorted(cameras) == ["01_wide", "rig_b_wide"]
+
+
+def test_repeated_names_after_sanitising_are_refused(tmp_path):
+    rec = make_reconstruction({"OPENCV": MODELS["OPENCV"], "PINHOLE": MODELS["PINHOLE"]},
+                              rig_names=["rig.a", "rig_a"])
+    with pytest.raises(InputError, match="repeat"):
+        write_toml(rec, tmp_path)
+
+
+def test_several_frames_export_their_mean_pose(tmp_path):
+    rec = pycolmap.Reconstruction()
+    camera = pycolmap.Camera.create_from_model_name(1, "OPENCV", 1.0, 812, 617)
+    camera.params = MODELS["OPENCV"]
+    rec.add_camera_with_trivial_rig(camera)
+    base = random_pose(np.random.default_rng(4))
+    tweak = pycolmap.Rigid3d(pycolmap.Rotation3d(np.array([1e-4, 0, 0, 1.0]) / np.linalg.norm([1e-4, 0, 0, 1.0])),
+                             np.array([2e-4, 0, 0]))
+    rec.add_image_with_trivial_frame(pycolmap.Image(image_id=1, name="rig01/wide/f0.png", camera_id=1), base)
+    rec.add_image_with_trivial_frame(pycolmap.Image(image_id=2, name="rig01/wide/f1.png", camera_id=1), tweak * base)
+    group = CameraGroup.load(str(write_toml(rec, tmp_path)[0]))
+    assert len(group.cameras) == 1
+    centre = -cv2.Rodrigues(group.cameras[0].get_rotation())[0].T @ group.cameras[0].get_translation()
+    expected = (rec.images[1].projection_center() + rec.images[2].projection_center()) / 2
+    np.testing.assert_allclose(centre, expected, atol=1e-9)
+
+
+def finished_workspace(root):
+    """A workspace holding a finished result in the floor frame: the synthetic ring's model and narrow_poses."""
+    from synthetic_world import ring
+
+    from rigsfm.core.workspace import Workspace
+    from rigsfm.run.deliver import write_model, write_narrow_poses
+    from rigsfm.run.options import WorldOptions
+    from rigsfm.run.world import ground_maps, place_in_world
+
+    rec = ring(seed=30, num_rigs=4).reconstruction
+    world = place_in_world(rec, None, None, ["rig01"], WorldOptions())
+    for point3D_id in list(rec.point3D_ids()):  # their observations are placeholders (pixel 0, 0)
+        rec.delete_point3D(point3D_id)
+    workspace = Workspace(root)
+    workspace.prepare(overwrite=False)
+    write_model(rec, workspace.sparse, overwrite=True)
+    write_narrow_poses(rec, workspace.narrow_poses, metric=True, overwrite=True, world=world.to_dict(),
+                       ground=ground_maps(rec, world.plane_heights))
+    return pycolmap.Reconstruction(str(workspace.sparse))
+
+
+@pytest.mark.parametrize("fmt", ["opencv", "toml"])
+def test_rigsfm_export_writes_files_the_real_readers_project_like_the_model(tmp_path, fmt):
+    from rigsfm.core.errors import WorkspaceError
+    from rigsfm.inspect.export import MANIFEST, export
+    from rigsfm.inspect.options import ExportFormat, ExportOptions
+
+    rec = finished_workspace(tmp_path / "out")
+    dest = export(tmp_path / "out", ExportOptions(format=ExportFormat(fmt)))
+    assert dest == tmp_path / "out" / "export" / fmt
+    rng = np.random.default_rng(5)
+    images = [im for im in rec.images.values() if im.has_pose]
+    if fmt == "opencv":
+        cameras = read_easymocap(dest / "intri.yml", dest / "extri.yml")
+        project = {name: (lambda p, c=c: cv2.projectPoints(p, c["Rvec"], c["T"], c["K"], c["dist"])[0].reshape(-1, 2))
+                   for name, c in cameras.items()}
+    else:
+        group = CameraGroup.load(str(dest / "calibration.toml"))
+        assert group.metadata["world"].startswith("floor frame: z up, normal to the floor")
+        project = {c.get_name(): (lambda p, c=c: c.project(p).reshape(-1, 2)) for c in group.cameras}
+    assert sorted(project) == sorted(im.name.split("/")[0] + "_" + im.name.split("/")[1] for im in images)
+    for image in images:
+        world = points_in_view(image, rng, 20)
+        projected = project[image.name.split("/")[0] + "_" + image.name.split("/")[1]](world)
+        np.testing.assert_allclose(projected, expected_opencv_pixels(image, world), atol=1e-6, rtol=0)
+    assert (dest / MANIFEST).is_file()
+    with pytest.raises(WorkspaceError, match="--overwrite"):
+        export(tmp_path / "out", ExportOptions(format=ExportFormat(fmt)))

@@ -1,0 +1,141 @@
+"""Floor fit on synthetic sparse points with exact truth (tests/synthetic_world.py): the fitted frame against
+the truth, the frame's definition, the transform's effect on the rigs, and scenes without a floor."""
+
+from __future__ import annotations
+
+import numpy as np
+import pycolmap
+import pytest
+from synthetic_world import ring
+
+from rigsfm.run.floor import (FloorOptions, NoFloor, apply_floor_frame, fit_floor, guess_floor, rig_positions,
+                                up_prior)
+
+
+def truth_up_in_model(world) -> np.ndarray:
+    return world.model_from_truth.rotation.matrix() @ np.array([0.0, 0.0, 1.0])
+
+
+def angle_deg(a: np.ndarray, b: np.ndarray) -> float:
+    return float(np.degrees(np.arccos(np.clip(a @ b / np.linalg.norm(a) / np.linalg.norm(b), -1.0, 1.0))))
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_floor_is_found_among_walls_boxes_and_pillars(seed):
+    world = ring(seed=seed)
+    fit = fit_floor(world.reconstruction)
+    assert fit, fit
+    # 5 mm floor noise: the normal to ~0.01 deg, the heights to ~1 mm
+    assert angle_deg(fit.normal, truth_up_in_model(world)) < 0.05
+    for name, height in world.truth_heights.items():
+        assert fit.camera_heights[name] == pytest.approx(height, abs=3e-3)
+    assert fit.rms == pytest.approx(0.005, rel=0.3)
+    assert 590 <= fit.num_points <= 700  # the 600 floor points (+ a few wall points at its foot)
+    assert fit.points_by_source["sparse"] == fit.num_points
+    assert fit.up_prior_source == "camera x axes"
+    assert not fit.warnings
+
+
+def test_floor_frame_definition():
+    """z = 0 on the floor and up, origin under the rigs' centroid, x towards the first rig."""
+    world = ring(seed=3)
+    fit = fit_floor(world.reconstruction)
+    floor_from_truth = fit.floor_from_model * world.model_from_truth
+    rng = np.random.default_rng(0)
+    for p in rng.uniform(-20, 20, (10, 3)):  # z is preserved: the frames differ by a rotation about z + a shift
+        assert (floor_from_truth * p)[2] == pytest.approx(p[2], abs=5e-3)
+    rigs = rig_positions(world.reconstruction)
+    centroid = np.mean([c for _, c in rigs.values()], axis=0)
+    np.testing.assert_allclose((fit.floor_from_model * centroid)[:2], 0.0, atol=1e-9)
+    first = fit.floor_from_model * rigs[1][1]
+    assert fit.origin_rig == "rig01" and first[0] > 10 and first[1] == pytest.approx(0.0, abs=1e-9)
+    towards_3 = fit_floor(world.reconstruction, x_towards="rig03")
+    third = towards_3.floor_from_model * rigs[3][1]
+    assert third[0] > 10 and third[1] == pytest.approx(0.0, abs=1e-9)
+
+
+def test_apply_floor_frame_moves_everything_but_the_rig_calibration():
+    world = ring(seed=4)
+    rec = world.reconstruction
+    fit = fit_floor(rec)
+    before = {rig_id: {s: t.matrix().copy() for s, t in rig.non_ref_sensors.items()} for rig_id, rig in rec.rigs.items()}
+    apply_floor_frame(rec, fit)
+    for rig_id, rig in rec.rigs.items():
+        for sensor, transform in rig.non_ref_sensors.items():
+            np.testing.assert_array_equal(transform.matrix(), before[rig_id][sensor])
+    for image in rec.images.values():
+        assert image.projection_center()[2] == pytest.approx(fit.camera_heights[image.name], abs=1e-9)
+    floor = np.array([rec.points3D[i].xyz for i in fit.inlier_ids])
+    assert np.abs(floor[:, 2]).max() < 3 * fit.threshold
+    refit = fit_floor(rec)
+    assert angle_deg(refit.normal, np.array([0.0, 0.0, 1.0])) < 1e-6
+    assert abs(refit.offset) < 1e-9
+
+
+def test_a_similarity_with_scale_would_scale_sensor_from_rig():
+    """Why apply_floor_frame uses scale 1: COLMAP's Reconstruction.transform scales E^sl's translation too."""
+    rec = ring(seed=5).reconstruction
+    rig = rec.rigs[1]
+    sensor, before = next(iter(rig.non_ref_sensors.items()))
+    translation = before.translation.copy()
+    rec.transform(pycolmap.Sim3d(2.0, pycolmap.Rotation3d(), np.zeros(3)))
+    np.testing.assert_allclose(rec.rigs[1].non_ref_sensors[sensor].translation, 2.0 * translation)
+
+
+def test_no_floor_points_is_reported():
+    world = ring(seed=6, floor_points=0)
+    fit = fit_floor(world.reconstruction)
+    assert isinstance(fit, NoFloor) and not fit
+    assert "well below" in fit.reason or "box tops" in fit.reason
+
+
+def test_only_box_tops_below_the_cameras_is_not_a_floor():
+    world = ring(seed=7, floor_points=0, wall_points=0, pillar_points=0, box_points=200)
+    fit = fit_floor(world.reconstruction)
+    assert not fit and "box tops" in fit.reason
+
+
+def test_too_few_points_is_reported():
+    fit = fit_floor(ring(seed=8, floor_points=5, wall_points=0, box_points=0, pillar_points=0).reconstruction)
+    assert not fit and "only 5 sparse points" in fit.reason
+
+
+def test_walls_outnumbering_the_floor_and_a_ceiling_do_not_win():
+    world = ring(seed=9, floor_points=200, wall_points=6000, ceiling_points=3000)
+    fit = fit_floor(world.reconstruction)
+    assert fit and angle_deg(fit.normal, truth_up_in_model(world)) < 0.1
+
+
+def test_cameras_all_facing_one_way_use_the_minus_y_prior():
+    world = ring(seed=10, same_direction=True)
+    up, source = up_prior(world.reconstruction)
+    assert source == "camera -y axes"
+    # the cameras' x axes fix all but their pitch: the prior is off by the mean pitch (12 deg wide, 22 narrow)
+    assert 10.0 < angle_deg(up, truth_up_in_model(world)) < 25.0
+    fit = fit_floor(world.reconstruction)
+    assert fit and angle_deg(fit.normal, truth_up_in_model(world)) < 0.1
+
+
+def test_markers_off_the_floor_are_flagged():
+    world = ring(seed=11)
+    on_floor = world.model_from_truth * np.array([3.0, 4.0, 0.0])
+    raised = world.model_from_truth * np.array([5.0, -4.0, 0.5])
+    fit = fit_floor(world.reconstruction, markers=np.array([on_floor, raised]))
+    assert fit.marker_residuals == pytest.approx([0.0, 0.5], abs=0.01)
+    assert fit.points_by_source["markers"] == 1
+    assert any("markers on the floor" in w for w in fit.warnings)
+
+
+def test_markers_alone_guess_the_floor_height():
+    world = ring(seed=12, floor_points=0)
+    markers = np.array([world.model_from_truth * np.array([x, y, 0.0]) for x, y in ((3, 4), (-6, 2))])
+    normal, offset, how = guess_floor(world.reconstruction, markers)
+    assert how.startswith("markers")
+    for name, height in world.truth_heights.items():
+        centre = world.reconstruction.find_image_with_name(name).projection_center()
+        assert centre @ normal + offset == pytest.approx(height, abs=0.2)  # the up prior is off by the roll noise
+
+
+def test_fixed_threshold_option():
+    fit = fit_floor(ring(seed=13).reconstruction, options=FloorOptions(threshold=0.02))
+    assert fit and fit.threshold <= 0.02

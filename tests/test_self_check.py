@@ -1,0 +1,162 @@
+"""The epipolar self-check's pieces against brute force and OpenCV, and the whole check on narrow images rendered
+from a textured floor with exact cameras: it passes with the true geometry and fails, measuring the true
+distances, once a rig has turned by 0.1 degree."""
+
+from __future__ import annotations
+
+import itertools
+
+import cv2
+import numpy as np
+import pycolmap
+import pytest
+from synthetic_world import ring
+from test_floor_matching import HALF, render
+
+from rigsfm.core.ground import image_to_plane
+from rigsfm.run.deliver import narrow_poses
+from rigsfm.run.options import SelfCheckOptions, WorldOptions
+from rigsfm.run.self_check import (_candidates, _Features, _guided_matches, _segments, epipolar_self_check,
+                                   synchronised_frames)
+from rigsfm.run.uncertainty import correspondence_check
+from rigsfm.run.world import place_in_world
+
+
+def test_candidates_equal_brute_force():
+    world = ring(seed=40, model_from_truth=pycolmap.Rigid3d())
+    rec = world.reconstruction
+    i, j = (rec.find_image_with_name(f"rig0{k}/narrow/frame0000.png") for k in (1, 2))
+    data = narrow_poses(rec, metric=True, uncertainty=False)
+    f = np.asarray(next(p["F_ji"] for p in data["pairs"] if (p["i"], p["j"]) == (i.name, j.name)))
+    rng = np.random.default_rng(0)
+    xi = rng.uniform(0, [812, 617], (700, 2))
+    xj = rng.uniform(0, [812, 617], (900, 2))
+    lines = np.c_[xi, np.ones(len(xi))] @ f.T
+    lateral = np.abs(lines @ np.c_[xj, np.ones(len(xj))].T) / np.linalg.norm(lines[:, :2], axis=1)[:, None]
+    for segments in (None, _segments(i, j, xi, True)):
+        found = _candidates(f, lines, xj, segments, 6.0)
+        ok = lateral <= 6.0
+        if segments is not None:
+            a, b = np.nonzero(ok)
+            start, end, valid = segments
+            direction = end[a] - start[a]
+            length = np.linalg.norm(direction, axis=1)
+            along = np.einsum("ij,ij->i", xj[b] - start[a], direction) / length**2
+            margin = 6.0 / length
+            keep = valid[a] & (along >= -margin) & (along <= 1 + margin)
+            expected = set(zip(a[keep].tolist(), b[keep].tolist()))
+        else:
+            expected = set(zip(*(x.tolist() for x in np.nonzero(ok))))
+        assert len(expected) > 50
+        assert set(zip(found.a.tolist(), found.b.tolist())) == expected
+
+
+def test_guided_matches_equal_opencv_ratio_and_mutual_test():
+    rng = np.random.default_rng(1)
+    di = rng.integers(0, 60, (300, 128)).astype(np.float32)
+    dj = np.vstack([di[:200] + rng.normal(0, 4, (200, 128)), rng.integers(0, 60, (150, 128))]).astype(np.float32)
+    mask = (rng.random((300, 350)) < 0.1).astype(np.uint8)
+    mask[np.arange(200), np.arange(200)] = 1
+    a, b = np.nonzero(mask)
+    ours = {tuple(m) for m in _guided_matches(_Features(di, di, di), _Features(dj, dj, dj), a, b).tolist()}
+    matcher = cv2.BFMatcher(cv2.NORM_L2)
+    forward = {}
+    for m in matcher.knnMatch(di, dj, k=2, mask=mask):
+        if len(m) == 1 or (len(m) == 2 and m[0].distance < 0.7 * m[1].distance):
+            forward[m[0].queryIdx] = m[0].trainIdx
+    back = {m[0].queryIdx: m[0].trainIdx for m in matcher.knnMatch(dj, di, k=1, mask=np.ascontiguousarray(mask.T)) if m}
+    expected = {(q, t) for q, t in forward.items() if back.get(t) == q}
+    assert len(expected) > 150 and ours == expected
+
+
+def test_synchronised_frames_need_two_rigs():
+    rec = ring(seed=41, num_rigs=3).reconstruction
+    frames = synchronised_frames(rec)
+    assert list(frames) == ["frame0000.png"]
+    assert [im.name for im in frames["frame0000.png"]] == [f"rig0{k}/narrow/frame0000.png" for k in (1, 2, 3)]
+
+
+def fine_texture(seed: int) -> np.ndarray:
+    """1 cm texels over [-HALF, HALF]^2: dense small blobs, like a crowd seen from afar."""
+    rng = np.random.default_rng(seed)
+    size = int(2 * HALF / 0.01)
+    texture = np.full((size, size), 128, np.uint8)
+    for _ in range(60000):
+        centre = tuple(int(v) for v in rng.integers(0, size, 2))
+        cv2.circle(texture, centre, int(rng.integers(2, 12)), int(rng.integers(0, 256)), -1)
+    return cv2.GaussianBlur(texture, (0, 0), 1.0)
+
+
+@pytest.fixture(scope="module")
+def floor_scene(tmp_path_factory):
+    """Eight rigs round a textured floor (truth frame = floor frame), narrow images rendered exactly."""
+    world = ring(seed=42, num_rigs=8, model_from_truth=pycolmap.Rigid3d(), narrow_model="PINHOLE")
+    rec = world.reconstruction
+    place_in_world(rec, None, None, ["rig01"], WorldOptions())
+    root = tmp_path_factory.mktemp("narrow_floor")
+    texture = fine_texture(seed=3)
+    truth = pycolmap.Reconstruction(rec)
+    for image in rec.images.values():
+        path = root / image.name
+        path.parent.mkdir(parents=True, exist_ok=True)
+        cv2.imwrite(str(path), render(image, texture))
+    return rec, truth, root
+
+
+def checked(rec, root, band=1.0):
+    data = narrow_poses(rec, metric=True, uncertainty=False, world={"frame": "floor"})
+    for pair in data["pairs"]:
+        pair["epipolar_band_95_px"] = band
+    return epipolar_self_check(rec, root, data, SelfCheckOptions())
+
+
+def test_self_check_passes_on_the_true_geometry(floor_scene):
+    rec, _, root = floor_scene
+    check = checked(rec, root)
+    measured = [p for p in check.pairs if p.verdict in ("ok", "failed")]
+    assert len(measured) >= 8 and all(p.verdict == "ok" for p in measured)
+    assert all(p.median_px < 0.2 for p in measured)  # keypoint noise only
+    assert check.warnings == []
+
+
+def test_self_check_fails_and_measures_the_true_distances_when_a_rig_turned(floor_scene):
+    rec, truth, root = floor_scene
+    moved = pycolmap.Reconstruction(rec)
+    frame = moved.frame(moved.find_image_with_name("rig01/wide/frame0000.png").frame_id)
+    axis = np.array([1.0, 1.0, 0.0]) / np.sqrt(2.0)
+    half = np.radians(0.2) / 2  # 0.2 deg about the camera's x + y
+    turn = pycolmap.Rotation3d(np.r_[np.sin(half) * axis, np.cos(half)])
+    frame.rig_from_world = pycolmap.Rigid3d(turn, np.zeros(3)) * frame.rig_from_world
+    check = checked(moved, root)
+    involved = [p for p in check.pairs if "rig01/" in p.i + p.j and p.verdict in ("ok", "failed")]
+    assert len(involved) >= 3
+    failed = 0
+    for pair in involved:  # the true correspondences' distances from the moved model's lines
+        xy, ok = image_to_plane(truth.find_image_with_name(pair.i), pair.xy_i, 0.0)
+        true, _ = correspondence_check(moved, truth, pair.i, pair.j, np.c_[xy[ok], np.zeros(ok.sum())])
+        true_p95 = np.percentile(true, 95)
+        assert pair.median_px == pytest.approx(np.median(true), rel=0.2)
+        assert pair.p95_px == pytest.approx(true_p95, rel=0.2)
+        if abs(true_p95 - (pair.band_px + 1.0)) > 0.3:
+            assert (pair.verdict == "failed") == (true_p95 > pair.band_px + 1.0)
+        failed += pair.verdict == "failed"
+    assert failed >= 2
+    (warning,) = check.warnings
+    assert warning.startswith(f"EPIPOLAR CHECK FAILED: {failed} of ")
+    others = [p for p in check.pairs if "rig01/" not in p.i + p.j and p.verdict in ("ok", "failed")]
+    assert others and all(p.verdict == "ok" for p in others)
+
+
+def test_no_shared_frame_name_is_reported(tmp_path):
+    rec = ring(seed=43, num_rigs=2).reconstruction
+    for image in list(rec.images.values()):
+        if image.name.startswith("rig02/"):
+            image.name = image.name.replace("frame0000", "frame0001")
+    check = epipolar_self_check(rec, tmp_path, {"pairs": [], "world": {"frame": "floor"}, "metric": True})
+    assert check.skipped == "no frame name shared by narrow images of two or more rigs" and not check.pairs
+
+
+def test_pairs_are_from_different_rigs():
+    rec = ring(seed=44, num_rigs=3).reconstruction
+    names = [im.name for im in synchronised_frames(rec)["frame0000.png"]]
+    assert all(a.split("/")[0] != b.split("/")[0] for a, b in itertools.combinations(names, 2))

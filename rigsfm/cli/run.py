@@ -9,7 +9,7 @@ import typer
 from rich.table import Table
 
 from rigsfm.cli.common import StageProgress, configure_logging, console, fail_cleanly, finish, flag, progress_bars
-from rigsfm.run.options import Features, Mapper, MappingOptions, MatchingOptions, RunOptions
+from rigsfm.run.options import AdjustOptions, Calibration, Features, Mapper, MappingOptions, MatchingOptions, RunOptions
 
 VERBOSE = flag("--verbose", "-v", help="show rigsfm's log (info level) on the terminal")
 STRICT = flag("--strict", help="exit with code 4 when the result carries warnings (for scripts)")
@@ -79,6 +79,10 @@ def run_command(
         help="verify matches of two frames with both rigs' cameras at once [default: on, off with --narrow-features]",
         show_default=False)] = None,
     seed: Annotated[int, typer.Option("--seed", help="random seed of the mapper's RANSAC and sampling")] = 0,
+    fixed_calibration: Annotated[bool, flag("--fixed-calibration", help="hold rigs.yaml's intrinsics and E^sl "
+                                                                        "exactly and fit one scale to scale.yaml "
+                                                                        "afterwards, instead of refining them with "
+                                                                        "their sigmas and the measurements")] = False,
     overwrite: Annotated[bool, flag("--overwrite", help="replace an existing result in OUT (features and matches "
                                                         "made with the same settings are reused)")] = False,
     strict: Annotated[bool, STRICT] = False,
@@ -92,6 +96,7 @@ def run_command(
         matching=MatchingOptions(max_ratio=max_ratio, cross_check=cross_check, rig_verification=rig_verification,
                                  narrow_features=narrow_features, features=features),
         mapping=MappingOptions(mapper=mapper, seed=seed),
+        adjust=AdjustOptions(calibration=Calibration.FIXED if fixed_calibration else Calibration.REFINE),
         overwrite=overwrite,
         manual_matches=manual_matches,
     )

@@ -30,9 +30,11 @@ from rigsfm.run.manual_matches import read_manual_matches, validate_manual_match
 from rigsfm.run.manual_merge import add_manual_matches, manual_matches_summary
 from rigsfm.run.mapping import MappingResult, run_mapping
 from rigsfm.run.options import RunOptions
+from rigsfm.run.priors import CalibrationPriors, calibration_priors
 from rigsfm.run.scale_file import ScaleSpec, load_scale
 from rigsfm.run.summary import (CameraError, InputsSummary, MappingSummary, Registration, ScaleSummary,
                                 Summary)
+from rigsfm.run.uncertainty import estimate_uncertainty, uncertainty_summary
 
 logger = logging.getLogger(__name__)
 
@@ -45,6 +47,7 @@ class Inputs:
     rigs: list[RigCalibration]
     images: list[ImageEntry]
     scale: ScaleSpec | None
+    priors: CalibrationPriors | None = None  # the calibration's uncertainty (rigs.yaml's sigmas or defaults)
 
 
 @dataclass
@@ -57,9 +60,10 @@ class RunResult:
 def load_inputs(image_dir: Path, rigs_path: Path, scale_path: Path | None = None) -> Inputs:
     """Validate every input before any heavy work; raises ``InputError`` naming file and fix."""
     rigs = load_rigs(rigs_path)
+    priors = calibration_priors(rigs, rigs_path)
     images = scan_images(image_dir, rigs)
     scale = load_scale(scale_path, images) if scale_path is not None else None
-    return Inputs(Path(image_dir), rigs, images, scale)
+    return Inputs(Path(image_dir), rigs, images, scale, priors)
 
 
 class _Timings(dict):
@@ -122,6 +126,8 @@ def build_summary(inputs: Inputs, options: RunOptions, mapping: MappingResult, r
             " give a scale.yaml (rangefinder distance or known length)"
         )
     warnings.extend(check_reconstruction(reconstruction, result.scale, database))
+    if inputs.priors is not None and inputs.priors.warning():
+        warnings.append(inputs.priors.warning())
     if unregistered:
         warnings.append(f"{len(unregistered)} image(s) not registered: {', '.join(unregistered[:5])}")
     return Summary(
@@ -222,15 +228,19 @@ def _run_locked(workspace: Workspace, inputs: Inputs, manual_pairs: dict, option
             if progress:
                 progress("mapping", mapping.reconstruction.num_reg_frames(), num_wide)
         with timings.stage("adjust"):
-            result = adjust(mapping.reconstruction, inputs.rigs, inputs.scale, options.adjust)
+            result = adjust(mapping.reconstruction, inputs.rigs, inputs.scale, options.adjust, inputs.priors)
+        with timings.stage("uncertainty"):
+            uncertainty = estimate_uncertainty(result)
         metric = is_metric(result)
         with timings.stage("deliver"):
             write_model(result.reconstruction, workspace.sparse, overwrite=True)
-            write_narrow_poses(result.reconstruction, workspace.narrow_poses, metric=metric, overwrite=True)
+            write_narrow_poses(result.reconstruction, workspace.narrow_poses, metric=metric, overwrite=True,
+                               bands=uncertainty.bands)
             write_points_ply(result.reconstruction, workspace.points_ply, overwrite=True)
     summary = build_summary(inputs, options, mapping, result, timings, workspace.database)
     if options.manual_matches is not None:
         summary.manual_matches = manual_matches_summary(options.manual_matches, manual_reports)
+    summary.uncertainty = uncertainty_summary(result, uncertainty)
     write_json_atomic(workspace.summary, summary.to_json())
     write_report(workspace.root)
     return RunResult(workspace, result.reconstruction, summary)

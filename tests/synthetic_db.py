@@ -95,10 +95,10 @@ def make_network(root: Path, num_rigs: int = 4, seed: int = 0, noise_px: float =
 
 def perturbed_model(ground_truth: pycolmap.Reconstruction, seed: int, narrow_observations: bool = False,
                     scale: float = 0.37) -> pycolmap.Reconstruction:
-    """A deterministic stand-in for a mapped model (no mapper run): ``ground_truth`` with 0.5 px noise on every
-    observation, rig poses and points moved (1 mrad, 1 cm), then moved by a similarity of ``scale`` (arbitrary
-    units, as the mapper leaves a model without narrow observations); narrow observations dropped unless
-    ``narrow_observations``."""
+    """A deterministic stand-in for a mapped model (no mapper run): ``ground_truth`` with every observation the exact
+    projection of its point (through the rigs' own cameras) plus 0.5 px noise, rig poses and points moved (1 mrad,
+    1 cm), then moved by a similarity of ``scale`` (arbitrary units, as the mapper leaves a model without narrow
+    observations); narrow observations dropped unless ``narrow_observations``."""
     rng = np.random.default_rng(seed)
     rec = pycolmap.Reconstruction(ground_truth)
     if not narrow_observations:
@@ -108,8 +108,13 @@ def perturbed_model(ground_truth: pycolmap.Reconstruction, seed: int, narrow_obs
                     if point.has_point3D():
                         rec.delete_observation(image.image_id, k)
     for image_id in sorted(rec.images):
-        for point in rec.images[image_id].points2D:
-            point.xy = point.xy + rng.normal(0, 0.5, 2)
+        image = rec.images[image_id]
+        camera = rec.cameras[image.camera_id]
+        for point in image.points2D:
+            if point.has_point3D():
+                xyz = rec.points3D[point.point3D_id].xyz
+                exact = np.asarray(camera.img_from_cam(image.cam_from_world() * xyz[None]))[0]
+                point.xy = exact + rng.normal(0, 0.5, 2)
     for frame_id in sorted(rec.frames):
         frame = rec.frame(frame_id)
         pose = frame.rig_from_world

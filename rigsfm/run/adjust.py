@@ -576,6 +576,9 @@ def _metres_per_mapping_unit(mapped: pycolmap.Reconstruction, adjusted: pycolmap
     return None if size <= 0 else float(np.sqrt(np.mean(np.sum((after - after.mean(axis=0)) ** 2, axis=1)))) / size
 
 
+MAX_SOLVES_PER_ROUND = 5
+
+
 def _adjust_refined(mapped: pycolmap.Reconstruction, rigs: Sequence[RigCalibration], scale_spec: ScaleSpec | None,
                     options: AdjustOptions, priors: CalibrationPriors) -> AdjustResult:
     rec = pycolmap.Reconstruction(mapped)
@@ -592,8 +595,14 @@ def _adjust_refined(mapped: pycolmap.Reconstruction, rigs: Sequence[RigCalibrati
         pixel_sigma = options.loss_scale_px
     problem, rounds = None, 0
     for rounds in range(1, options.max_rounds + 1):
-        problem = JointProblem(rec, rigs, priors, scale_spec, options, pixel_sigma, gauge=gauge, robust=True)
-        problem.solve()
+        # Round 1 with the squared loss: when the measurements reshape a network whose images leave its shape open
+        # (a 4-rig circle), a robust loss lets the images give up instead of following.
+        problem = JointProblem(rec, rigs, priors, scale_spec, options, pixel_sigma, gauge=gauge, robust=rounds > 1)
+        for _ in range(MAX_SOLVES_PER_ROUND):  # a long reshape: go on until Ceres converges, then judge outliers
+            summary = problem.solve()
+            logger.debug("Adjustment round %d: %s", rounds, summary.BriefReport())
+            if summary.termination_type != pyceres.TerminationType.NO_CONVERGENCE:
+                break
         removed = filter_outliers(rec, options.max_reprojection_error_px)
         new_sigma = estimate_pixel_sigma(rec, options.max_reprojection_error_px)
         logger.info("Adjustment round %d: %d observations dropped, pixel noise %.3f -> %.3f px", rounds, removed,

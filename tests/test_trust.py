@@ -26,8 +26,8 @@ from rigsfm.run.mapping import run_mapping
 from rigsfm.run.options import AdjustOptions, Calibration, MappingOptions
 from rigsfm.run.priors import calibration_priors, pose_prior_residual_covariance, tangent_covariance_from_residual
 from rigsfm.run.scale_file import CameraDistance, ScaleSpec
-from rigsfm.run.uncertainty import (_PairModel, band_points, correspondence_check, epipolar_lines, estimate_uncertainty,
-                                    line_distances, pooled_quantile)
+from rigsfm.run.uncertainty import (_PairModel, band_points, correspondence_check, distances_under, epipolar_lines,
+                                    estimate_uncertainty, line_distances, pooled_quantile, pooled_shifted_quantile)
 from rigsfm.synth.cameras import calibration_error_sigmas, perturb_rig_from
 
 DATA = Path(__file__).resolve().parent / "data"
@@ -317,6 +317,40 @@ def test_band_model_matches_the_exact_distances(refined_network):
         exact = _exact_distances(model, z, pixels, depths)
         np.testing.assert_allclose(jacobian @ z, exact, atol=1e-3 * np.abs(exact).max())
         assert np.abs(exact).max() > 1e-3  # the draw moves the lines: the comparison is not empty
+        # the sampled band's evaluator, on a reconstruction moved the same way, agrees
+        moved = _moved_reconstruction(model, z)
+        np.testing.assert_allclose(distances_under(rec, moved, image_i.name, image_j.name, pixels, depths), exact,
+                                   atol=1e-6 * np.abs(exact).max())
+
+
+def _moved_reconstruction(model: _PairModel, z: np.ndarray) -> pycolmap.Reconstruction:
+    """A copy of the model's reconstruction with its frames, E^sl and cameras moved by ``z`` (our tangents)."""
+    rec = pycolmap.Reconstruction(model.reconstruction)
+    for key in model.keys:
+        d = z[model.columns[key]]
+        if key[0] == "frame":
+            frame = rec.frame(key[1])
+            pose = frame.rig_from_world
+            frame.rig_from_world = pycolmap.Rigid3d(pycolmap.Rotation3d(d[:3]) * pose.rotation,
+                                                    np.asarray(pose.translation) + d[3:])
+        elif key[0] == "sensor_from_rig":
+            camera = rec.cameras[key[1]]
+            image = next(im for im in rec.images.values() if im.camera_id == key[1])
+            rig = rec.rig(rec.frame(image.frame_id).rig_id)
+            pose = rig.sensor_from_rig(camera.sensor_id)
+            rig.set_sensor_from_rig(camera.sensor_id, pycolmap.Rigid3d(pycolmap.Rotation3d(d[:3]) * pose.rotation,
+                                                                      np.asarray(pose.translation) + d[3:]))
+        else:
+            rec.cameras[key[1]].params = np.asarray(rec.cameras[key[1]].params) + d
+    return rec
+
+
+def test_pooled_shifted_quantile():
+    rng = np.random.default_rng(4)
+    shifts, sigmas = rng.normal(0, 3, (20, 30)), rng.uniform(0.5, 2, (20, 30))
+    band = pooled_shifted_quantile(shifts, sigmas, 0.95)
+    draws = np.abs(shifts[None] + rng.standard_normal((400, 20, 30)) * sigmas[None])
+    assert np.mean(draws <= band) == pytest.approx(0.95, abs=0.003)
 
 
 def test_pooled_quantile():

@@ -76,6 +76,7 @@ class UncertaintySummary:
     covariance: str | None = None  # posterior (refine) or consider (fixed); None when it could not be estimated
     pixel_sigma_px: float | None = None  # the images' weighting noise per coordinate (estimated x inflation)
     floor: str = "none"  # where the bands' analysis points lie: known_lengths, points, none (depths)
+    bands: str = "linear"  # linear in the covariance, or sampled (re-adjusted over calibration draws: <= 3 rigs)
     narrow: dict[str, NarrowUncertaintySummary] = field(default_factory=dict)  # per narrow image
     pairs: list[PairBandSummary] = field(default_factory=list)
     refined_calibration: dict[str, dict] = field(default_factory=dict)  # per camera: change and posterior sigma

@@ -965,6 +965,7 @@ def uncertainty_summary(result: AdjustResult, uncertainty: Uncertainty):
         covariance=None if covariance is None else covariance.kind,
         pixel_sigma_px=None if covariance is None else covariance.pixel_sigma,
         floor=uncertainty.floor,
+        bands="sampled" if uncertainty.sampled else "linear",
         narrow={name: NarrowUncertaintySummary(centre_sigma_mm=u.centre_sigma_mm, rotation_sigma_deg=u.rotation_sigma_deg)
                 for name, u in uncertainty.narrow.items()},
         pairs=[PairBandSummary(i=i, j=j, band_px=b.band_px, points=b.points, predicted_below_85=b.predicted_below_85)

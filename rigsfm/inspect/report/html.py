@@ -141,7 +141,10 @@ def uncertainty_section(narrow: dict, summary: Summary | None = None) -> str:
                  "points": "the floor found in the sparse points"}.get(u.floor, "no floor found: points at every depth")
         parts.append(
             f'<p class="note">From the joint covariance of rig poses, intrinsics and E^sl: {how}; image noise '
-            f"{fmt(u.pixel_sigma_px, 3)} px (weighting). The 95 % band holds the true correspondence of a point of "
+            f"{fmt(u.pixel_sigma_px, 3)} px (weighting)"
+            + ("; the bands re-adjust the network over 40 calibration draws (a small network answers a calibration "
+               "error far from linearly)" if u.bands == "sampled" else "")
+            + f". The 95 % band holds the true correspondence of a point of "
             f"narrow image i with 95 % probability, pooled over the analysis points ({floor}) and over that "
             "covariance: calibrated, not a bound. The calibration's error is one draw per pair, so a single pair may "
             "hold fewer of its points: the last column is the model's probability that fewer than 85 % do. Camera "

@@ -198,13 +198,17 @@ def adjust(
     scale_spec: ScaleSpec | None,
     options: AdjustOptions | None = None,
     priors: CalibrationPriors | None = None,
+    *,
+    with_covariance: bool = True,
 ) -> AdjustResult:
     """A metric reconstruction (a new object; ``mapped`` is not modified), its calibration refined with
-    ``priors`` (default: ``calibration_priors(rigs)``, a good board's) or held (``options.calibration``)."""
+    ``priors`` (default: ``calibration_priors(rigs)``, a good board's) or held (``options.calibration``).
+    ``with_covariance``: a refined metric result carries its joint covariance (and the scale's sigma from it)."""
     options = options or AdjustOptions()
     start = time.perf_counter()
     if options.calibration == Calibration.REFINE:
-        result = _adjust_refined(mapped, rigs, scale_spec, options, priors or calibration_priors(rigs))
+        result = _adjust_refined(mapped, rigs, scale_spec, options, priors or calibration_priors(rigs),
+                                 with_covariance)
     else:
         result = _adjust_fixed(mapped, rigs, scale_spec, options)
         result.priors, result.scale_spec, result.options = priors, scale_spec, options
@@ -580,7 +584,7 @@ MAX_SOLVES_PER_ROUND = 5
 
 
 def _adjust_refined(mapped: pycolmap.Reconstruction, rigs: Sequence[RigCalibration], scale_spec: ScaleSpec | None,
-                    options: AdjustOptions, priors: CalibrationPriors) -> AdjustResult:
+                    options: AdjustOptions, priors: CalibrationPriors, with_covariance: bool = True) -> AdjustResult:
     rec = pycolmap.Reconstruction(mapped)
     if rec.num_reg_frames() < 2:
         raise ReconstructionError("fewer than two rigs were registered; nothing to calibrate")
@@ -618,7 +622,7 @@ def _adjust_refined(mapped: pycolmap.Reconstruction, rigs: Sequence[RigCalibrati
                           float(rec.compute_mean_reprojection_error()), calibration=Calibration.REFINE, gauge=gauge,
                           rigs=tuple(rigs), priors=priors, scale_spec=scale_spec, options=options, pixel_sigma=pixel_sigma,
                           rounds=rounds)
-    if source != ScaleSource.NONE:
+    if source != ScaleSource.NONE and with_covariance:
         from rigsfm.run.uncertainty import joint_covariance, network_size_sigma
 
         result.covariance = joint_covariance(result)

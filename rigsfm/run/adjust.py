@@ -601,7 +601,8 @@ def _adjust_refined(mapped: pycolmap.Reconstruction, rigs: Sequence[RigCalibrati
     for rounds in range(1, options.max_rounds + 1):
         # Round 1 with the squared loss: when the measurements reshape a network whose images leave its shape open
         # (a 4-rig circle), a robust loss lets the images give up instead of following.
-        problem = JointProblem(rec, rigs, priors, scale_spec, options, pixel_sigma, gauge=gauge, robust=rounds > 1)
+        robust = rounds > 1 or options.max_rounds == 1  # a single round (from an adjusted model): robust
+        problem = JointProblem(rec, rigs, priors, scale_spec, options, pixel_sigma, gauge=gauge, robust=robust)
         for _ in range(MAX_SOLVES_PER_ROUND):  # a long reshape: go on until Ceres converges, then judge outliers
             summary = problem.solve()
             logger.debug("Adjustment round %d: %s", rounds, summary.BriefReport())
@@ -613,7 +614,7 @@ def _adjust_refined(mapped: pycolmap.Reconstruction, rigs: Sequence[RigCalibrati
                     pixel_sigma, new_sigma)
         settled = abs(new_sigma / pixel_sigma - 1.0) < 0.05
         pixel_sigma = new_sigma
-        if removed == 0 and settled:
+        if removed == 0 and settled and rounds > 1:  # the last round is a robust one
             break
     scale = problem.scale_estimate()
     for row in problem.unused:

@@ -49,6 +49,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import pyceres
 import pycolmap
+import scipy.linalg
 import scipy.sparse as sp
 from scipy.special import ndtr
 
@@ -169,16 +170,23 @@ def _reduced_system(jp: JointProblem):
 
 def _inverse(matrix: np.ndarray) -> np.ndarray | None:
     """Inverse of a symmetric positive definite matrix with Jacobi scaling (radians, metres, pixels and
-    distortion units differ by orders of magnitude); None when rank deficient."""
+    distortion units differ by orders of magnitude), by Cholesky; None when rank deficient (a pivot below
+    ``RANK_TOLERANCE`` of the largest)."""
     if matrix.size == 0:
         return matrix.copy()
     scaling = 1.0 / np.sqrt(np.clip(np.diag(matrix), 1e-300, None))
-    values, vectors = np.linalg.eigh(matrix * np.outer(scaling, scaling))
-    if values.min() <= RANK_TOLERANCE * values.max():
-        logger.warning("No joint covariance: the problem is rank deficient (smallest scaled eigenvalue %.3g of %.3g)",
-                       values.min(), values.max())
+    scaled = matrix * np.outer(scaling, scaling)
+    try:
+        factor = np.linalg.cholesky(scaled)
+    except np.linalg.LinAlgError:
+        factor = None
+    pivots = np.diag(factor) ** 2 if factor is not None else np.zeros(1)
+    if factor is None or pivots.min() <= RANK_TOLERANCE * pivots.max():
+        logger.warning("No joint covariance: the problem is rank deficient (smallest Cholesky pivot %.3g of %.3g)",
+                       pivots.min(), pivots.max())
         return None
-    return ((vectors / values) @ vectors.T) * np.outer(scaling, scaling)
+    inverse_factor = scipy.linalg.solve_triangular(factor, np.eye(len(factor)), lower=True)
+    return (inverse_factor.T @ inverse_factor) * np.outer(scaling, scaling)
 
 
 def _tangent_factors(variable) -> np.ndarray:
@@ -678,10 +686,20 @@ class _PairModel:
 
 
 def _draw_parameters(covariance: JointCovariance, num_samples: int, seed: int) -> np.ndarray:
-    """(S, all parameters): draws of the joint covariance (eigen-root: held parameters have zero rows)."""
-    values, vectors = np.linalg.eigh(covariance.covariance)
-    root = vectors * np.sqrt(np.clip(values, 0.0, None))
-    return np.random.default_rng(seed).standard_normal((num_samples, root.shape[1])) @ root.T
+    """(S, all parameters): draws of the joint covariance (Cholesky root over the parameters that are not held;
+    held ones, with zero rows, stay 0)."""
+    free = np.flatnonzero(np.diag(covariance.covariance) > 0)
+    sub = covariance.covariance[np.ix_(free, free)]
+    scaling = np.sqrt(np.diag(sub))
+    correlation = sub / np.outer(scaling, scaling)
+    try:
+        root = np.linalg.cholesky(correlation + 1e-12 * np.eye(len(free))) * scaling[:, None]
+    except np.linalg.LinAlgError:  # numerically semi-definite: the eigen-root
+        values, vectors = np.linalg.eigh(sub)
+        root = vectors * np.sqrt(np.clip(values, 0.0, None))
+    draws = np.zeros((num_samples, covariance.covariance.shape[0]))
+    draws[:, free] = np.random.default_rng(seed).standard_normal((num_samples, len(free))) @ root.T
+    return draws
 
 
 def pooled_quantile(sigmas: np.ndarray, probability: float = BAND_PROBABILITY) -> float:

@@ -91,3 +91,36 @@ def make_network(root: Path, num_rigs: int = 4, seed: int = 0, noise_px: float =
         database.clear_frames()
         pycolmap.apply_rig_config(rig_configs(rigs, images), database)
     return SyntheticNetwork(database_path, synthetic, rigs, images)
+
+
+def perturbed_model(ground_truth: pycolmap.Reconstruction, seed: int, narrow_observations: bool = False,
+                    scale: float = 0.37) -> pycolmap.Reconstruction:
+    """A deterministic stand-in for a mapped model (no mapper run): ``ground_truth`` with every observation the exact
+    projection of its point (through the rigs' own cameras) plus 0.5 px noise, rig poses and points moved (1 mrad,
+    1 cm), then moved by a similarity of ``scale`` (arbitrary units, as the mapper leaves a model without narrow
+    observations); narrow observations dropped unless ``narrow_observations``."""
+    rng = np.random.default_rng(seed)
+    rec = pycolmap.Reconstruction(ground_truth)
+    if not narrow_observations:
+        for image in rec.images.values():
+            if "/narrow/" in image.name:
+                for k, point in enumerate(image.points2D):
+                    if point.has_point3D():
+                        rec.delete_observation(image.image_id, k)
+    for image_id in sorted(rec.images):
+        image = rec.images[image_id]
+        camera = rec.cameras[image.camera_id]
+        for point in image.points2D:
+            if point.has_point3D():
+                xyz = rec.points3D[point.point3D_id].xyz
+                exact = np.asarray(camera.img_from_cam(image.cam_from_world() * xyz[None]))[0]
+                point.xy = exact + rng.normal(0, 0.5, 2)
+    for frame_id in sorted(rec.frames):
+        frame = rec.frame(frame_id)
+        pose = frame.rig_from_world
+        frame.rig_from_world = pycolmap.Rigid3d(pycolmap.Rotation3d(rng.normal(0, 1e-3, 3)) * pose.rotation,
+                                                np.asarray(pose.translation) + rng.normal(0, 0.01, 3))
+    for point_id in sorted(rec.points3D):
+        rec.points3D[point_id].xyz = rec.points3D[point_id].xyz + rng.normal(0, 0.01, 3)
+    rec.transform(pycolmap.Sim3d(scale, pycolmap.Rotation3d(np.array([0.1, -0.2, 0.3])), np.array([1.0, 2.0, -3.0])))
+    return rec

@@ -49,6 +49,16 @@ def test_run_writes_report_with_bands(result):
     assert page.count('src="data:image/jpeg;base64,') == 3  # the epipolar figures are JPEG
     assert page.count('<img alt="reprojection errors of ') == 3  # one histogram per camera with observations
     assert f"{narrow['pairs'][0]['epipolar_band_95_px']:.3g}" in page
+    # the uncertainty record: every narrow camera's sigmas and every pair's band, in summary.json and the report
+    uncertainty = json.loads((out / "summary.json").read_text())["uncertainty"]
+    assert uncertainty["calibration"] == "refine" and uncertainty["covariance"] == "posterior"
+    assert uncertainty["bands"] == "sampled"  # three rigs: re-adjusted over calibration draws
+    assert len(uncertainty["narrow"]) == 3 and len(uncertainty["pairs"]) == 3
+    for name, sigmas in uncertainty["narrow"].items():
+        assert 1.0 < sigmas["centre_sigma_mm"] < 200.0 and 0.01 < sigmas["rotation_sigma_deg"] < 1.0, name
+        assert f"{sigmas['centre_sigma_mm']:.3g}" in page
+    for pair in uncertainty["pairs"]:
+        assert 0.0 <= pair["predicted_below_85"] <= 0.5
 
 
 def test_report_opens_in_headless_chromium(result, tmp_path):

@@ -26,7 +26,7 @@ def test_candidates_equal_brute_force():
     world = ring(seed=40, model_from_truth=pycolmap.Rigid3d())
     rec = world.reconstruction
     i, j = (rec.find_image_with_name(f"rig0{k}/narrow/frame0000.png") for k in (1, 2))
-    data = narrow_poses(rec, metric=True, uncertainty=False)
+    data = narrow_poses(rec, metric=True)
     f = np.asarray(next(p["F_ji"] for p in data["pairs"] if (p["i"], p["j"]) == (i.name, j.name)))
     rng = np.random.default_rng(0)
     xi = rng.uniform(0, [812, 617], (700, 2))
@@ -104,7 +104,7 @@ def floor_scene(tmp_path_factory):
 
 
 def checked(rec, root, band=1.0):
-    data = narrow_poses(rec, metric=True, uncertainty=False, world={"frame": "floor"})
+    data = narrow_poses(rec, metric=True, world={"frame": "floor"})
     for pair in data["pairs"]:
         pair["epipolar_band_95_px"] = band
     return epipolar_self_check(rec, root, data, SelfCheckOptions())

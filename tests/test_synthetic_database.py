@@ -7,7 +7,7 @@ import pytest
 from rigsfm.synth.truth import compare_to_ground_truth, oracle
 from rigsfm.core.workspace import Workspace
 from rigsfm.run.mapping import run_mapping
-from rigsfm.run.options import Mapper, MappingOptions
+from rigsfm.run.options import AdjustOptions, Calibration, Mapper, MappingOptions
 from rigsfm.run.adjust import ScaleSource, adjust
 from rigsfm.run.scale_file import CameraDistance, ScaleSpec
 from synthetic_db import make_network
@@ -26,12 +26,12 @@ def test_rig_network_matches_ground_truth_and_oracle(tmp_path, num_rigs, mapper)
 
     a, b = "rig01/wide/frame0000.png", f"rig{num_rigs:02d}/wide/frame0000.png"
     spec = ScaleSpec(tmp_path / "scale.yaml", (CameraDistance(a, b, _gt_distance(net.ground_truth, a, b)),), ())
-    result = adjust(mapped, net.rigs, spec)
+    result = adjust(mapped, net.rigs, spec, AdjustOptions(calibration=Calibration.FIXED))
     rec = result.reconstruction
     assert result.scale_source == ScaleSource.MEASUREMENTS
     assert abs(result.scale.residuals()[0]["residual_percent"]) < 1e-6
 
-    # Calibration is held exactly: intrinsics and E^sl unchanged to 1e-9.
+    # --fixed-calibration holds it exactly: intrinsics and E^sl unchanged to 1e-9.
     for rig in net.rigs:
         for sensor in ("wide", "narrow"):
             image = rec.find_image_with_name(f"{rig.name}/{sensor}/frame0000.png")
@@ -53,6 +53,14 @@ def test_rig_network_matches_ground_truth_and_oracle(tmp_path, num_rigs, mapper)
     # Narrow centres are metric: pairwise distances within 0.5 % of the truth (the scale trap would
     # leave the 5 cm narrow offsets scaled by the arbitrary mapping units).
     assert metrics["distance_error_percent"]["max"] < 0.5
+
+    # The default refines the (here exact) calibration with a good board's priors: no worse than the oracle that
+    # holds it exactly, beyond the image noise (a few thousandths of a degree).
+    refined = adjust(mapped, net.rigs, spec)
+    metrics = compare_to_ground_truth(refined.reconstruction, net.ground_truth)
+    assert metrics["relative_rotation_deg"]["max"] <= 1.5 * limit["relative_rotation_deg"]["max"] + 2e-3
+    assert metrics["distance_error_percent"]["max"] < 0.5
+    assert abs(refined.scale.residuals()[0]["residual_percent"]) < 0.1  # inside the adjustment, weighed at 1 cm
 
 
 def test_scale_trap_is_avoided(tmp_path):

@@ -100,7 +100,7 @@ def test_ground_maps_in_narrow_poses_map_pixels_to_metres():
     rec = world.reconstruction
     result = place_in_world(rec, None, None, names(world), WorldOptions(plane_heights=(1.7,)))
     maps = ground_maps(rec, result.plane_heights)
-    data = json.loads(json.dumps(narrow_poses(rec, metric=True, uncertainty=False, world=result.to_dict(),
+    data = json.loads(json.dumps(narrow_poses(rec, metric=True, world=result.to_dict(),
                                               ground=maps)))
     assert data["world"]["frame"] == "floor" and data["ground"]["plane_heights_m"] == [0.0, 1.7]
     assert {"ground_from_image", "footprint_m", "gsd_mm_per_px", "ground_overlap_m2"} <= set(data["conventions"])

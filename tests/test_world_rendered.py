@@ -57,7 +57,7 @@ def arena(tmp_path_factory):
     inputs = load_inputs(dataset.images, dataset.rigs, dataset.scale)  # the oracle of the realistic run
     limit = oracle(pycolmap.Reconstruction(root / "realistic" / "sparse"), truth, inputs.rigs, inputs.scale)
     world = place_in_world(limit, dataset.images, inputs.scale, [r.name for r in inputs.rigs], HEADS.world)
-    narrow = narrow_poses(limit, metric=True, uncertainty=False, world=world.to_dict(),
+    narrow = narrow_poses(limit, metric=True, world=world.to_dict(),
                           ground=ground_maps(limit, world.plane_heights))
     results["oracle"] = {"numbers": world_numbers(narrow, limit, truth)}
     return results

@@ -9,7 +9,8 @@ import typer
 from rich.table import Table
 
 from rigsfm.cli.common import StageProgress, configure_logging, console, fail_cleanly, finish, flag, progress_bars
-from rigsfm.run.options import Features, Mapper, MappingOptions, MatchingOptions, RunOptions, WorldFrame, WorldOptions
+from rigsfm.run.options import (AdjustOptions, Calibration, Features, Mapper, MappingOptions, MatchingOptions,
+                                 RunOptions, WorldFrame, WorldOptions)
 
 VERBOSE = flag("--verbose", "-v", help="show rigsfm's log (info level) on the terminal")
 STRICT = flag("--strict", help="exit with code 4 when the result carries warnings (for scripts)")
@@ -106,6 +107,10 @@ def run_command(
     plane_height: Annotated[Optional[float], typer.Option(
         "--plane-height", help="also map every narrow image onto the plane this many metres above the floor "
                                "(e.g. 1.7 for heads) [default: the floor only]", show_default=False)] = None,
+    fixed_calibration: Annotated[bool, flag("--fixed-calibration", help="hold rigs.yaml's intrinsics and E^sl "
+                                                                        "exactly and fit one scale to scale.yaml "
+                                                                        "afterwards, instead of refining them with "
+                                                                        "their sigmas and the measurements")] = False,
     overwrite: Annotated[bool, flag("--overwrite", help="replace an existing result in OUT (features and matches "
                                                         "made with the same settings are reused)")] = False,
     strict: Annotated[bool, STRICT] = False,
@@ -120,6 +125,7 @@ def run_command(
                                  narrow_features=narrow_features, features=features),
         mapping=MappingOptions(mapper=mapper, seed=seed, incremental_time_limit_s=incremental_time_limit),
         world=WorldOptions(frame=world, plane_heights=() if plane_height is None else (plane_height,)),
+        adjust=AdjustOptions(calibration=Calibration.FIXED if fixed_calibration else Calibration.REFINE),
         overwrite=overwrite,
         manual_matches=manual_matches,
     )

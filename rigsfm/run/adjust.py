@@ -1,28 +1,61 @@
-"""Stage 4: hold every E^sl fixed, bring the network to metric scale, re-run bundle adjustment.
+"""Stage 4: the metric bundle adjustment with the rigs' calibration, two ways (``AdjustOptions.calibration``).
 
-The scale trap: without observations in the narrow images, the mapped world has arbitrary units while
-E^sl is metric, and ``Reconstruction.transform(Sim3d)`` scales every ``sensor_from_rig`` too. So: scale
-the world to metric first, then restore E^sl (and the calibrated intrinsics) from rigs.yaml, then adjust
-with both held constant. Narrow poses then follow as ``narrow_from_wide * wide_from_world``.
+``REFINE`` (default): one adjustment that uses everything the user knows, each with its weight. COLMAP's own
+bundle adjuster (``pycolmap.create_default_ceres_bundle_adjuster``) over every registered rig pose and point,
+with the intrinsics and every observed narrow ``sensor_from_rig`` (E^sl) refined; on its Ceres problem:
+
+- a Gaussian prior on every camera's params at rigs.yaml's values (``pyceres.factors.NormalPrior``), sigmas
+  from ``rigsfm.run.priors``; a sigma of 0 holds that parameter (``pyceres.SubsetManifold``);
+- COLMAP's pose prior (``pycolmap.cost_functions.AbsolutePosePriorCost``) on every E^sl block;
+- every scale.yaml camera distance as a residual between camera centres (``costs.CameraDistanceCost``; a narrow
+  centre through its E^sl), every known length as its two end points observed in their images
+  (``ReprojErrorCost`` / ``RigReprojErrorCost`` with the file's pixel sigma) tied by ``costs.LengthCost``;
+- COLMAP's robust loss on the reprojection residuals, outliers dropped between rounds.
+
+A parameter no image observes (intrinsics and E^sl of a narrow camera without points) is not in COLMAP's problem:
+it stays at rigs.yaml's value, and its prior enters the covariance as an independent block. Residuals are whitened
+and in pixels: priors and measurements are multiplied by the images' weighting noise (the estimated reprojection
+noise times ``pixel_sigma_inflation``). Gauge: one frame held when the scale is observed (measurements, or metric
+E^sl baselines with narrow observations), else COLMAP's TWO_CAMS_FROM_WORLD (which also holds the scale).
+Solved with ``pyceres.solve``: ``CeresBundleAdjuster.solve`` holds the GIL, and a Ceres worker thread that
+evaluates one of the Python measurement costs would wait for it forever.
+
+``FIXED`` (``--fixed-calibration``, rigsfm's stage before issue 13): hold every E^sl and intrinsic exactly, bring
+the network to metric scale with one similarity scale fitted to the measurements, re-run bundle adjustment.
+
+The scale trap (both): without observations in the narrow images, the mapped world has arbitrary units while E^sl
+is metric, and ``Reconstruction.transform(Sim3d)`` scales every ``sensor_from_rig`` too. So: scale the world to
+metric first, then restore E^sl (and the calibrated intrinsics) from rigs.yaml, then adjust. Narrow poses then
+follow as ``narrow_from_wide * wide_from_world``.
 """
 
 from __future__ import annotations
 
 import enum
 import logging
+import time
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
+import pyceres
 import pycolmap
+import pycolmap.cost_functions  # noqa: F401 - not imported by ``import pycolmap``
 
 from rigsfm.core.names import name_of
 from rigsfm.core.errors import ReconstructionError
 from rigsfm.core.residuals import reprojection_errors
 from rigsfm.core.rig import RigCalibration
-from rigsfm.run.scale import ScaleEstimate, estimate_scale
-from rigsfm.run.options import AdjustOptions
+from rigsfm.run.costs import CameraDistanceCost, CentreTerm, LengthCost, skew
+from rigsfm.run.priors import CalibrationPriors, calibration_priors, pose_prior_residual_covariance
+from rigsfm.run.scale import (Measurement, ScaleEstimate, UnusableMeasurement, estimate_scale,
+                              triangulate_in_images)
+from rigsfm.run.options import AdjustOptions, Calibration
 from rigsfm.run.scale_file import ScaleSpec
+
+if TYPE_CHECKING:
+    from rigsfm.run.uncertainty import JointCovariance
 
 logger = logging.getLogger(__name__)
 
@@ -60,6 +93,11 @@ def profile_scale_sigma(reconstruction: pycolmap.Reconstruction, rigs: Sequence[
     return float(np.sqrt(2.0 * noise_variance / curvature))
 
 
+class Gauge(enum.StrEnum):
+    RIGID = "rigid"  # one frame held; the scale is observed
+    TWO_CAMS_FROM_WORLD = "two_cams_from_world"  # COLMAP's: one frame and one coordinate of a second
+
+
 @dataclass
 class AdjustResult:
     reconstruction: pycolmap.Reconstruction
@@ -67,7 +105,17 @@ class AdjustResult:
     scale: ScaleEstimate | None  # measurements against the final model
     metres_per_mapping_unit: float | None
     mean_reprojection_error_px: float
-    scale_relative_sigma: float | None = None  # of a scale set by the narrow baselines
+    scale_relative_sigma: float | None = None  # of a scale set by the narrow baselines; REFINE: of the network's size
+    calibration: Calibration = Calibration.FIXED
+    gauge: Gauge = Gauge.TWO_CAMS_FROM_WORLD  # of the adjustment (and of its covariance)
+    rigs: tuple[RigCalibration, ...] = ()  # the calibration file the adjustment started from
+    priors: CalibrationPriors | None = None
+    scale_spec: ScaleSpec | None = None
+    options: AdjustOptions = field(default_factory=AdjustOptions)
+    pixel_sigma: float | None = None  # REFINE: estimated reprojection noise (px per image coordinate)
+    rounds: int = 0
+    seconds: float = 0.0
+    covariance: JointCovariance | None = None  # rigsfm.run.uncertainty.joint_covariance, once computed
 
 
 def restore_calibration(reconstruction: pycolmap.Reconstruction, rigs: Sequence[RigCalibration]) -> None:
@@ -149,9 +197,29 @@ def adjust(
     rigs: Sequence[RigCalibration],
     scale_spec: ScaleSpec | None,
     options: AdjustOptions | None = None,
+    priors: CalibrationPriors | None = None,
+    *,
+    with_covariance: bool = True,
 ) -> AdjustResult:
-    """Return a metric reconstruction (a new object) with E^sl and intrinsics exactly as calibrated."""
+    """A metric reconstruction (a new object; ``mapped`` is not modified), its calibration refined with
+    ``priors`` (default: ``calibration_priors(rigs)``, a good board's) or held (``options.calibration``).
+    ``with_covariance``: a refined metric result carries its joint covariance (and the scale's sigma from it)."""
     options = options or AdjustOptions()
+    start = time.perf_counter()
+    if options.calibration == Calibration.REFINE:
+        result = _adjust_refined(mapped, rigs, scale_spec, options, priors or calibration_priors(rigs),
+                                 with_covariance)
+    else:
+        result = _adjust_fixed(mapped, rigs, scale_spec, options)
+        result.priors, result.scale_spec, result.options = priors, scale_spec, options
+    result.rigs = tuple(rigs)
+    result.seconds = time.perf_counter() - start
+    return result
+
+
+def _adjust_fixed(mapped: pycolmap.Reconstruction, rigs: Sequence[RigCalibration], scale_spec: ScaleSpec | None,
+                  options: AdjustOptions) -> AdjustResult:
+    """Today's stage: E^sl and intrinsics exactly as calibrated."""
     reconstruction = pycolmap.Reconstruction(mapped)
     if reconstruction.num_reg_frames() < 2:
         raise ReconstructionError("fewer than two rigs were registered; nothing to calibrate")
@@ -187,4 +255,379 @@ def adjust(
         logger.info("Scale from the narrow baselines: relative uncertainty %.3g", relative_sigma)
     elif scale is not None:
         relative_sigma = scale.sigma / scale.metres_per_unit
-    return AdjustResult(reconstruction, source, scale, metres_per_unit, error, relative_sigma)
+    gauge = Gauge.RIGID if source == ScaleSource.NARROW_BASELINES else Gauge.TWO_CAMS_FROM_WORLD
+    return AdjustResult(reconstruction, source, scale, metres_per_unit, error, relative_sigma,
+                        calibration=Calibration.FIXED, gauge=gauge)
+
+
+# ------------------------------------------------------------------------------------------------------------
+# REFINE: the adjustment with calibration priors and measurement residuals
+
+
+def estimate_pixel_sigma(reconstruction: pycolmap.Reconstruction, max_error_px: float | None = None) -> float:
+    """Reprojection noise per image coordinate: ``sqrt(sum e^2 / dof)``, ``dof = 2 N - 3 P - 6 (F - 1)``
+    (observations N, points P, frames F); observations above ``max_error_px`` are left out."""
+    errors = np.concatenate(list(reprojection_errors(reconstruction).values()) or [np.zeros(0)])
+    if max_error_px is not None:
+        errors = errors[errors <= max_error_px]
+    dof = 2 * errors.size - 3 * reconstruction.num_points3D() - 6 * max(reconstruction.num_reg_frames() - 1, 0)
+    if dof <= 0:
+        raise ReconstructionError("too few observations to estimate the reprojection noise; register more images")
+    return float(np.sqrt(np.sum(errors**2) / dof))
+
+
+def sensor_from_rig_view(reconstruction: pycolmap.Reconstruction, rig_id: int,
+                         sensor_id: pycolmap.sensor_t) -> pycolmap.Rigid3d:
+    """The rig's own ``sensor_from_rig`` (its ``.params`` is the bundle adjuster's parameter block);
+    ``Rig.sensor_from_rig(sensor_id)`` returns a *copy*."""
+    return reconstruction.rig(rig_id).non_ref_sensors[sensor_id]
+
+
+def images_of_camera(reconstruction: pycolmap.Reconstruction, camera: str) -> list[pycolmap.Image]:
+    """Registered images of ``<rig>/<sensor>`` or of one image name (as scale.yaml names them)."""
+    images = [im for im in reconstruction.images.values()
+              if im.has_pose and (im.name == camera or im.name.startswith(camera + "/"))]
+    if not images:
+        raise UnusableMeasurement(f"{camera} was not registered")
+    return sorted(images, key=lambda im: im.image_id)
+
+
+@dataclass
+class _Measurement:
+    kind: str
+    label: str
+    meters: float
+    sigma: float  # of the measurement, plus what constant (unobserved) E^sl adds to it (metres)
+    length: object  # () -> metres in the current model
+
+
+class JointProblem:
+    """COLMAP's bundle adjuster over ``reconstruction`` (changed in place by :meth:`solve`) with intrinsics and
+    observed E^sl refined, plus priors (unless ``with_priors`` is False: then the calibration is in the problem,
+    for its Jacobian, but only sigma-0 parameters are held) and measurements. Keeps the Python cost functions
+    and the known lengths' end points alive as long as the problem."""
+
+    def __init__(self, reconstruction: pycolmap.Reconstruction, rigs: Sequence[RigCalibration],
+                 priors: CalibrationPriors, scale_spec: ScaleSpec | None, options: AdjustOptions,
+                 pixel_sigma: float, *, gauge: Gauge, robust: bool, with_priors: bool = True):
+        self.reconstruction = reconstruction
+        self.priors = priors
+        self.weight_sigma = float(pixel_sigma) * options.pixel_sigma_inflation  # the images' weighting noise
+        self.gauge = gauge
+        self.calibration = {rig.name: rig for rig in rigs}
+        self._keep: list = []  # cost functions and blocks the C++ problem refers to
+        self.end_points: list[np.ndarray] = []
+        self.measurements: list[_Measurement] = []
+        self.unused: list[str] = []
+        self.camera_names = {im.camera_id: name_of(im) for im in reconstruction.images.values()}
+
+        ba = pycolmap.BundleAdjustmentOptions(
+            refine_focal_length=True, refine_principal_point=True, refine_extra_params=True,
+            refine_sensor_from_rig=True, refine_rig_from_world=True, refine_points3D=True, print_summary=False)
+        ba.ceres.use_gpu = False
+        if robust:
+            ba.ceres.loss_function_type = pycolmap.LossFunctionType.__members__[str(options.loss)]
+            ba.ceres.loss_function_scale = options.loss_scale_px
+        else:
+            ba.ceres.loss_function_type = pycolmap.LossFunctionType.TRIVIAL
+        solver = ba.ceres.solver_options
+        solver.max_num_iterations = options.max_iterations
+        solver.function_tolerance = 1e-9
+        solver.gradient_tolerance = 1e-10
+        solver.parameter_tolerance = 1e-9
+        self.ba_options = ba
+        self.config = pycolmap.BundleAdjustmentConfig()
+        for image_id in reconstruction.reg_image_ids():
+            self.config.add_image(image_id)
+        self.frame_ids = sorted(reconstruction.reg_frame_ids())
+        self.fixed_frame_id = self.frame_ids[0]
+        if gauge == Gauge.RIGID:
+            self.config.set_constant_rig_from_world_pose(self.fixed_frame_id)
+        else:
+            self.config.fix_gauge(pycolmap.BundleAdjustmentGauge.TWO_CAMS_FROM_WORLD)
+        self.adjuster = pycolmap.create_default_ceres_bundle_adjuster(ba, self.config, reconstruction)
+        self.problem: pyceres.Problem = self.adjuster.problem
+        self.subset_frame = self._two_cams_subset() if gauge == Gauge.TWO_CAMS_FROM_WORLD else None
+        if scale_spec is not None:
+            self._add_camera_distances(scale_spec)
+            self._add_known_lengths(scale_spec)
+        self._add_camera_priors(with_priors)
+        if with_priors:
+            self._add_sensor_priors()
+
+    # -- blocks ----------------------------------------------------------------------------------------------
+    def has_variable(self, block: np.ndarray) -> bool:
+        return self.problem.has_parameter_block(block) and not self.problem.is_parameter_block_constant(block)
+
+    def frame_block(self, frame_id: int) -> np.ndarray:
+        return self.reconstruction.frame(frame_id).rig_from_world.params
+
+    def narrow_sensors(self):
+        """``(rig_id, sensor_id, camera_id, rig name)`` of every non-reference sensor with registered images."""
+        for rig_id, rig in self.reconstruction.rigs.items():
+            for sensor_id in rig.non_ref_sensors:
+                name = self.camera_names.get(sensor_id.id)
+                if name is not None and sensor_id.id in self.reconstruction.cameras:
+                    yield rig_id, sensor_id, sensor_id.id, name.rig
+
+    def camera_sigmas(self, camera_id: int) -> np.ndarray:
+        name = self.camera_names[camera_id]
+        return self.priors[name.rig].sensor(name.sensor)
+
+    def _two_cams_subset(self) -> tuple[int, int] | None:
+        """The (frame, translation coordinate) COLMAP's TWO_CAMS_FROM_WORLD gauge holds besides the first frame
+        (its own choice replicated: the first reference image with points, then the first reference image of
+        another frame with a non-zero baseline, its largest coordinate); checked against the block's tangent."""
+        rec = self.reconstruction
+        first = None
+        for image_id in sorted(rec.reg_image_ids()):
+            image = rec.image(image_id)
+            if not image.is_ref_in_frame() or image.num_points3D == 0:
+                continue
+            if first is None:
+                first = image
+                continue
+            if image.frame_id == first.frame_id or not self.problem.has_parameter_block(self.frame_block(image.frame_id)):
+                continue
+            baseline = np.asarray((rec.frame(first.frame_id).rig_from_world
+                                   * rec.frame(image.frame_id).rig_from_world.inverse()).translation)
+            if np.abs(baseline).max() > 1e-9:
+                frame_id, dim = image.frame_id, int(np.argmax(np.abs(baseline)))
+                if self.problem.parameter_block_tangent_size(self.frame_block(frame_id)) != 5:
+                    raise ReconstructionError("could not identify COLMAP's TWO_CAMS_FROM_WORLD gauge")
+                self.fixed_frame_id = first.frame_id
+                return frame_id, dim
+        return None
+
+    # -- measurements ----------------------------------------------------------------------------------------
+    def _centre_terms(self, camera: str, blocks: list[np.ndarray]) -> tuple[list[CentreTerm], np.ndarray]:
+        """Centre terms of a scale.yaml camera (appending the blocks they need to ``blocks``), and the 3x3
+        covariance its centre inherits from constant (unobserved) E^sl priors."""
+        terms, extra = [], np.zeros((3, 3))
+        images = images_of_camera(self.reconstruction, camera)
+
+        def index(block: np.ndarray) -> int:
+            for k, b in enumerate(blocks):
+                if b.__array_interface__["data"][0] == block.__array_interface__["data"][0]:
+                    return k
+            if not self.problem.has_parameter_block(block):  # a frame no point ties: constant
+                self.problem.add_parameter_block(block, 7)
+                self.problem.set_parameter_block_constant(block)
+            blocks.append(block)
+            return len(blocks) - 1
+
+        for image in images:
+            frame = self.reconstruction.frame(image.frame_id)
+            rig_index = index(frame.rig_from_world.params)
+            if image.is_ref_in_frame():
+                terms.append(CentreTerm(rig_index))
+                continue
+            sensor = sensor_from_rig_view(self.reconstruction, frame.rig_id,
+                                          self.reconstruction.cameras[image.camera_id].sensor_id)
+            if self.has_variable(sensor.params):
+                terms.append(CentreTerm(rig_index, sensor=index(sensor.params)))
+                continue
+            terms.append(CentreTerm(rig_index, sensor_from_rig=pycolmap.Rigid3d(sensor)))
+            cov = self.priors[name_of(image).rig].narrow_from_wide
+            r = frame.rig_from_world.rotation.matrix()
+            r_e, t_e = sensor.rotation.matrix(), np.asarray(sensor.translation)
+            jac = np.hstack([-r.T @ r_e.T @ skew(t_e), -r.T @ r_e.T]) / len(images)  # d centre / d [w, dt] of E^sl
+            extra += jac @ cov @ jac.T
+        return terms, extra
+
+    def _add_camera_distances(self, spec: ScaleSpec) -> None:
+        for d in spec.camera_distances:
+            label = f"{d.a} - {d.b}"
+            blocks: list[np.ndarray] = []
+            try:
+                terms_a, extra_a = self._centre_terms(d.a, blocks)
+                terms_b, extra_b = self._centre_terms(d.b, blocks)
+            except UnusableMeasurement as why:
+                self.unused.append(f"{label}: {why}")
+                continue
+            probe = CameraDistanceCost(terms_a, terms_b, len(blocks), d.meters, 1.0, 1.0)
+            (c_a, _), (c_b, _) = probe.centres(blocks)
+            u = (c_a - c_b) / max(np.linalg.norm(c_a - c_b), 1e-12)
+            sigma = float(np.sqrt(d.sigma**2 + u @ (extra_a + extra_b) @ u))
+            cost = CameraDistanceCost(terms_a, terms_b, len(blocks), d.meters, sigma, self.weight_sigma)
+            self.problem.add_residual_block(cost, None, blocks)
+            self._keep.append(cost)
+
+            def length(cost=cost, blocks=blocks) -> float:
+                (a, _), (b, _) = cost.centres(blocks)
+                return float(np.linalg.norm(a - b))
+
+            self.measurements.append(_Measurement("camera_distance", label, d.meters, sigma, length))
+
+    def _add_known_lengths(self, spec: ScaleSpec) -> None:
+        rec = self.reconstruction
+        by_name = {im.name: im for im in rec.images.values() if im.has_pose}
+        for i, item in enumerate(spec.known_lengths):
+            label = f"known_length[{i}]"
+            observations = [(by_name[o.image], o) for o in item.observations if o.image in by_name]
+            ends = []
+            for end in ("a", "b"):
+                xyz = triangulate_in_images(rec, [(image, np.asarray(getattr(o, end), dtype=np.float64))
+                                                  for image, o in observations])
+                ends.append(None if xyz is None else np.array(xyz, dtype=np.float64))
+            if any(e is None for e in ends):
+                self.unused.append(f"{label} ({item.meters} m): fewer than two of its images were registered")
+                continue
+            self.end_points.extend(ends)
+            point_cov = (spec.pixel_sigma / self.weight_sigma) ** 2 * np.eye(2)
+            for image, o in observations:
+                camera = rec.cameras[image.camera_id]
+                frame = rec.frame(image.frame_id)
+                if not self.problem.has_parameter_block(frame.rig_from_world.params):
+                    self.problem.add_parameter_block(frame.rig_from_world.params, 7)
+                    self.problem.set_parameter_block_constant(frame.rig_from_world.params)
+                if not self.problem.has_parameter_block(camera.params):
+                    self.problem.add_parameter_block(camera.params, len(camera.params))
+                    self.problem.set_parameter_block_constant(camera.params)
+                for end, xyz in zip(("a", "b"), ends, strict=True):
+                    xy = np.asarray(getattr(o, end), dtype=np.float64)
+                    if image.is_ref_in_frame():
+                        cost = pycolmap.cost_functions.ReprojErrorCost(camera.model, point_cov, xy)
+                        blocks = [xyz, frame.rig_from_world.params, camera.params]
+                    else:
+                        sensor = sensor_from_rig_view(rec, frame.rig_id, camera.sensor_id)
+                        if self.has_variable(sensor.params):
+                            cost = pycolmap.cost_functions.RigReprojErrorCost(camera.model, point_cov, xy)
+                            blocks = [xyz, sensor.params, frame.rig_from_world.params, camera.params]
+                        else:
+                            cost = pycolmap.cost_functions.RigReprojErrorCost(camera.model, point_cov, xy,
+                                                                              pycolmap.Rigid3d(sensor))
+                            blocks = [xyz, frame.rig_from_world.params, camera.params]
+                    self.problem.add_residual_block(cost, None, blocks)
+                    self._keep.append(cost)
+            cost = LengthCost(item.meters, item.sigma, self.weight_sigma)
+            self.problem.add_residual_block(cost, None, ends)
+            self._keep.append(cost)
+            self.measurements.append(_Measurement("known_length", label, item.meters, item.sigma,
+                                                  lambda ends=ends: float(np.linalg.norm(ends[0] - ends[1]))))
+
+    # -- priors ----------------------------------------------------------------------------------------------
+    def _add_camera_priors(self, with_priors: bool) -> None:
+        for camera_id, camera in self.reconstruction.cameras.items():
+            block = camera.params
+            if camera_id not in self.camera_names or not self.has_variable(block):
+                continue
+            sigmas = self.camera_sigmas(camera_id)
+            held = np.flatnonzero(sigmas == 0)
+            if len(held) == len(sigmas):
+                self.problem.set_parameter_block_constant(block)
+                continue
+            if len(held):
+                self.problem.set_manifold(block, pyceres.SubsetManifold(len(sigmas), held.tolist()))
+            if not with_priors:
+                continue
+            name = self.camera_names[camera_id]
+            mean = np.asarray(self.calibration[name.rig].camera(name.sensor).params, dtype=np.float64)
+            variances = np.where(sigmas > 0, sigmas, 1.0) ** 2 / self.weight_sigma**2  # held: any (no effect)
+            cost = pyceres.factors.NormalPrior(mean, np.diag(variances))
+            self.problem.add_residual_block(cost, None, [block])
+            self._keep.append(cost)
+
+    def _add_sensor_priors(self) -> None:
+        for rig_id, sensor_id, _, rig_name in self.narrow_sensors():
+            block = sensor_from_rig_view(self.reconstruction, rig_id, sensor_id).params
+            if not self.has_variable(block):
+                continue
+            prior = self.calibration[rig_name].narrow_from_wide
+            cov = pose_prior_residual_covariance(self.priors[rig_name].narrow_from_wide, prior) / self.weight_sigma**2
+            cost = pycolmap.cost_functions.AbsolutePosePriorCost(cov, prior)
+            self.problem.add_residual_block(cost, None, [block])
+            self._keep.append(cost)
+
+    # -- solve -----------------------------------------------------------------------------------------------
+    def solve(self) -> pyceres.SolverSummary:
+        """COLMAP's solver options (its choice of linear solver by problem size) with ``pyceres.solve``, which
+        releases the GIL (see the module docstring)."""
+        solver = self.ba_options.ceres.create_solver_options(self.config, self.problem)
+        solver.minimizer_progress_to_stdout = False
+        solver.logging_type = pyceres.LoggingType.SILENT
+        summary = pyceres.SolverSummary()
+        pyceres.solve(solver, self.problem, summary)
+        if summary.termination_type == pyceres.TerminationType.FAILURE or not np.isfinite(summary.final_cost):
+            raise ReconstructionError(f"bundle adjustment with calibration priors failed: {summary.BriefReport()}")
+        return summary
+
+    def scale_estimate(self) -> ScaleEstimate | None:
+        """The measurements against the current model, as a ``ScaleEstimate`` of 1 metre per unit (they are
+        inside the adjustment: no scale is fitted afterwards)."""
+        if not self.measurements and not self.unused:
+            return None
+        rows = tuple(Measurement(m.kind, m.label, m.meters, m.length(), m.sigma) for m in self.measurements)
+        return ScaleEstimate(1.0, float("nan"), rows, tuple(self.unused))
+
+
+def _choose_gauge(reconstruction: pycolmap.Reconstruction, scale_spec: ScaleSpec | None) -> tuple[ScaleSource, Gauge]:
+    if scale_spec is not None and (scale_spec.camera_distances or scale_spec.known_lengths):
+        return ScaleSource.MEASUREMENTS, Gauge.RIGID
+    if has_narrow_observations(reconstruction):
+        return ScaleSource.NARROW_BASELINES, Gauge.RIGID
+    logger.warning("No scale file and no narrow observations: the result is NOT metric")
+    return ScaleSource.NONE, Gauge.TWO_CAMS_FROM_WORLD
+
+
+def _metres_per_mapping_unit(mapped: pycolmap.Reconstruction, adjusted: pycolmap.Reconstruction) -> float | None:
+    """Ratio of the registered frames' spread after and before (RMS distance of the wide centres to their mean)."""
+    def spread(rec: pycolmap.Reconstruction) -> np.ndarray:
+        return np.array([rec.frame(f).rig_from_world.inverse().translation for f in sorted(adjusted.reg_frame_ids())])
+
+    before, after = spread(mapped), spread(adjusted)
+    size = float(np.sqrt(np.mean(np.sum((before - before.mean(axis=0)) ** 2, axis=1))))
+    return None if size <= 0 else float(np.sqrt(np.mean(np.sum((after - after.mean(axis=0)) ** 2, axis=1)))) / size
+
+
+MAX_SOLVES_PER_ROUND = 5
+
+
+def _adjust_refined(mapped: pycolmap.Reconstruction, rigs: Sequence[RigCalibration], scale_spec: ScaleSpec | None,
+                    options: AdjustOptions, priors: CalibrationPriors, with_covariance: bool = True) -> AdjustResult:
+    rec = pycolmap.Reconstruction(mapped)
+    if rec.num_reg_frames() < 2:
+        raise ReconstructionError("fewer than two rigs were registered; nothing to calibrate")
+    source, gauge = _choose_gauge(rec, scale_spec)
+    if source == ScaleSource.MEASUREMENTS:  # a metric first guess: scale the world, then restore E^sl
+        first = estimate_scale(rec, scale_spec)
+        rec.transform(pycolmap.Sim3d(first.metres_per_unit, pycolmap.Rotation3d(), np.zeros(3)))
+    restore_calibration(rec, rigs)
+    try:
+        pixel_sigma = estimate_pixel_sigma(rec, options.max_reprojection_error_px)
+    except ReconstructionError:  # a start far from the solution: most observations are beyond the threshold
+        pixel_sigma = options.loss_scale_px
+    problem, rounds = None, 0
+    for rounds in range(1, options.max_rounds + 1):
+        # Round 1 with the squared loss: when the measurements reshape a network whose images leave its shape open
+        # (a 4-rig circle), a robust loss lets the images give up instead of following.
+        robust = rounds > 1 or options.max_rounds == 1  # a single round (from an adjusted model): robust
+        problem = JointProblem(rec, rigs, priors, scale_spec, options, pixel_sigma, gauge=gauge, robust=robust)
+        for _ in range(MAX_SOLVES_PER_ROUND):  # a long reshape: go on until Ceres converges, then judge outliers
+            summary = problem.solve()
+            logger.debug("Adjustment round %d: %s", rounds, summary.BriefReport())
+            if summary.termination_type != pyceres.TerminationType.NO_CONVERGENCE:
+                break
+        removed = filter_outliers(rec, options.max_reprojection_error_px)
+        new_sigma = estimate_pixel_sigma(rec, options.max_reprojection_error_px)
+        logger.info("Adjustment round %d: %d observations dropped, pixel noise %.3f -> %.3f px", rounds, removed,
+                    pixel_sigma, new_sigma)
+        settled = abs(new_sigma / pixel_sigma - 1.0) < 0.05
+        pixel_sigma = new_sigma
+        if removed == 0 and settled and rounds > 1:  # the last round is a robust one
+            break
+    scale = problem.scale_estimate()
+    for row in problem.unused:
+        logger.warning("Scale measurement left out: %s", row)
+    result = AdjustResult(rec, source, scale, _metres_per_mapping_unit(mapped, rec),
+                          float(rec.compute_mean_reprojection_error()), calibration=Calibration.REFINE, gauge=gauge,
+                          rigs=tuple(rigs), priors=priors, scale_spec=scale_spec, options=options, pixel_sigma=pixel_sigma,
+                          rounds=rounds)
+    if source != ScaleSource.NONE and with_covariance:
+        from rigsfm.run.uncertainty import joint_covariance, network_size_sigma
+
+        result.covariance = joint_covariance(result)
+        result.scale_relative_sigma = network_size_sigma(result.covariance, rec)
+        if scale is not None and result.scale_relative_sigma is not None:
+            result.scale = ScaleEstimate(1.0, result.scale_relative_sigma, scale.measurements, scale.unused)
+    return result

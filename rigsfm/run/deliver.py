@@ -8,8 +8,9 @@
 - ``F_ji``: x_j^T F_ji x_i = 0 for homogeneous COLMAP pixels (first pixel centre (0.5, 0.5)) of the
   *undistorted* images (pinhole part of each camera); ``E_ji`` the same for normalised coordinates.
 - ``epipolar_band_95_px``: half-width of the band around the epipolar line in j (pinhole pixels of j) that
-  holds the true correspondence of a point of image i with 95 % probability, from the bundle-adjustment
-  covariance of the rig poses (see ``rigsfm.run.uncertainty``); null when it cannot be estimated.
+  holds the true correspondence of a floor point of image i with 95 % probability, pooled over the floor points
+  the two cameras share and over the joint uncertainty of poses and calibration (``rigsfm.run.uncertainty``);
+  null when it cannot be estimated or the images share no view.
 - ``world``: the frame of every pose (``rigsfm.run.world``): by default the floor frame (z = 0 on the floor, z
   up, metres, origin under the rigs' centroid, x towards the first rig), with how the floor was found.
 - per narrow image, ``ground``: one entry per plane z = h (the floor, then ``--plane-height``) with
@@ -31,7 +32,6 @@ from rigsfm.core.errors import WorkspaceError
 from rigsfm.core.conventions import euler_zyx_degrees
 from rigsfm.core.io import atomic_directory, write_json_atomic
 from rigsfm.core.serialise import camera_to_dict, pose_to_dict
-from rigsfm.run.uncertainty import narrow_epipolar_bands
 
 logger = logging.getLogger(__name__)
 
@@ -45,11 +45,15 @@ CONVENTIONS = {
     "F_ji": "x_j^T F_ji x_i = 0, homogeneous COLMAP pixels of undistorted images (pinhole K of each camera)",
     "E_ji": "[t]_x R of narrow_j_from_narrow_i",
     "epipolar_band_95_px": "half-width (pinhole px of j) of the band around the epipolar line of a point of i "
-                           "that holds its true correspondence with 95 % probability: the largest over a grid "
-                           "of image i and every depth at which the point appears in image j "
-                           "(epipolar_band_depth_range_m, metres in camera i); from the bundle-adjustment "
-                           "covariance of the rig poses with intrinsics and E^sl held exact (errors of "
-                           "rigs.yaml itself are not included); null if it could not be estimated",
+                           "that holds its true correspondence with 95 % probability, pooled over the analysis "
+                           "points (epipolar_band_points: 'floor' = the floor seen by both cameras on a 15x15 "
+                           "grid of image i; 'depths' = that grid at every depth at which it appears in j; "
+                           "their depths in camera i: epipolar_band_depth_range_m) and over the joint "
+                           "uncertainty of rig poses, intrinsics and E^sl (rigs.yaml's sigmas included). "
+                           "Calibrated, not a bound: the calibration's error is one draw per pair, so one pair "
+                           "may hold fewer of its points; epipolar_band_p_below_85 is the model's probability "
+                           "that under 85 % of this pair's points lie inside. null if it could not be estimated "
+                           "or the images share no view",
     "world": "the frame of every pose and point: see world.frame, world.origin, world.x_axis, world.z_axis",
     "ground_from_image": "3x3 H: (x, y, w) = H @ (u, v, 1) for an undistorted COLMAP pixel (u, v) of the camera's "
                          "pinhole K (as F_ji); the point on the plane z = plane_height_m is (x / w, y / w) in "
@@ -85,14 +89,12 @@ def narrow_images(reconstruction: pycolmap.Reconstruction) -> list[pycolmap.Imag
     )
 
 
-def narrow_poses(reconstruction: pycolmap.Reconstruction, *, metric: bool, uncertainty: bool = True,
+def narrow_poses(reconstruction: pycolmap.Reconstruction, *, metric: bool, bands: dict | None = None,
                  world: dict | None = None, ground=None) -> dict:
-    """The narrow-camera deliverable as a JSON-ready dict; ``world`` (``WorldResult.to_dict()``) and ``ground``
-    (:class:`rigsfm.run.world.GroundMaps`) when known."""
+    """The narrow-camera deliverable as a JSON-ready dict; ``bands``: ``(i, j) -> rigsfm.run.uncertainty.PairBand``;
+    ``world`` (``WorldResult.to_dict()``) and ``ground`` (:class:`rigsfm.run.world.GroundMaps`) when known."""
     images = narrow_images(reconstruction)
-    bands = {}
-    if uncertainty and len(images) >= 2:
-        bands = narrow_epipolar_bands(reconstruction, [(a.name, b.name) for a, b in itertools.combinations(images, 2)])
+    bands = bands or {}
     entries = []
     for image in images:
         camera = reconstruction.cameras[image.camera_id]
@@ -125,8 +127,7 @@ def narrow_poses(reconstruction: pycolmap.Reconstruction, *, metric: bool, uncer
                 "distance_m" if metric else "distance_units": distance,
                 "E_ji": np.asarray(pycolmap.essential_matrix_from_pose(j_from_i)).tolist(),
                 "F_ji": fundamental_matrix(j_from_i, camera_i, camera_j).tolist(),
-                "epipolar_band_95_px": bands.get((image_i.name, image_j.name), {}).get("band_px"),
-                "epipolar_band_depth_range_m": bands.get((image_i.name, image_j.name), {}).get("depth_range_m"),
+                **_band_entry(bands.get((image_i.name, image_j.name))),
             }
         )
         if ground is not None:
@@ -138,6 +139,15 @@ def narrow_poses(reconstruction: pycolmap.Reconstruction, *, metric: bool, uncer
     if ground is not None:
         data["ground"] = {"plane_heights_m": list(ground.heights), "seen_by_two_or_more_m2": ground.seen_twice_m2}
     return data
+
+
+def _band_entry(band) -> dict:
+    if band is None:
+        return {"epipolar_band_95_px": None, "epipolar_band_points": None, "epipolar_band_depth_range_m": None,
+                "epipolar_band_p_below_85": None}
+    return {"epipolar_band_95_px": band.band_px, "epipolar_band_points": band.points,
+            "epipolar_band_depth_range_m": list(band.depth_range_m),
+            "epipolar_band_p_below_85": band.predicted_below_85}
 
 
 def write_model(reconstruction: pycolmap.Reconstruction, path: Path, *, overwrite: bool) -> Path:
@@ -159,6 +169,6 @@ def write_points_ply(reconstruction: pycolmap.Reconstruction, path: Path, *, ove
 
 
 def write_narrow_poses(reconstruction: pycolmap.Reconstruction, path: Path, *, metric: bool, overwrite: bool,
-                       world: dict | None = None, ground=None) -> Path:
-    return write_json_atomic(path, narrow_poses(reconstruction, metric=metric, world=world, ground=ground),
-                             overwrite=overwrite)
+                       bands: dict | None = None, world: dict | None = None, ground=None) -> Path:
+    return write_json_atomic(path, narrow_poses(reconstruction, metric=metric, bands=bands, world=world,
+                                                ground=ground), overwrite=overwrite)

@@ -33,10 +33,12 @@ from rigsfm.run.manual_matches import read_manual_matches, validate_manual_match
 from rigsfm.run.manual_merge import add_manual_matches, manual_matches_summary
 from rigsfm.run.mapping import MappingResult, run_mapping
 from rigsfm.run.options import RunOptions
+from rigsfm.run.priors import CalibrationPriors, calibration_priors
 from rigsfm.run.scale_file import ScaleSpec, load_scale
 from rigsfm.run.summary import (CameraError, InputsSummary, MappingSummary, Registration, ScaleSummary,
                                 Summary)
-from rigsfm.run.world import ground_maps, place_in_world, validate_world_options
+from rigsfm.run.world import ground_maps, locate_world, validate_world_options
+from rigsfm.run.uncertainty import estimate_uncertainty, uncertainty_summary
 
 logger = logging.getLogger(__name__)
 
@@ -52,6 +54,7 @@ class Inputs:
     rigs: list[RigCalibration]
     images: list[ImageEntry]
     scale: ScaleSpec | None
+    priors: CalibrationPriors | None = None  # the calibration's uncertainty (rigs.yaml's sigmas or defaults)
 
 
 @dataclass
@@ -64,11 +67,12 @@ class RunResult:
 def load_inputs(image_dir: Path, rigs_path: Path, scale_path: Path | None = None) -> Inputs:
     """Validate every input before any heavy work; raises ``InputError`` naming file and fix."""
     rigs = load_rigs(rigs_path)
+    priors = calibration_priors(rigs, rigs_path)
     images = scan_images(image_dir, rigs)
     for line in rigs_without_narrow(image_dir, images, rigs):
         logger.warning("NO NARROW IMAGES: %s", line)
     scale = load_scale(scale_path, images, rigs) if scale_path is not None else None
-    return Inputs(Path(image_dir), rigs, images, scale)
+    return Inputs(Path(image_dir), rigs, images, scale, priors)
 
 
 class _Timings(dict):
@@ -133,6 +137,8 @@ def build_summary(inputs: Inputs, options: RunOptions, mapping: MappingResult, r
             " give a scale.yaml (rangefinder distance or known length)"
         )
     warnings.extend(check_reconstruction(reconstruction, result.scale, database))
+    if inputs.priors is not None and inputs.priors.warning():
+        warnings.append(inputs.priors.warning())
     if unregistered:
         warnings.append(f"{len(unregistered)} image(s) not registered: {', '.join(unregistered[:5])}")
     warnings.extend(f"NO NARROW IMAGES: {line}" for line in rigs_without_narrow(inputs.image_dir, inputs.images,
@@ -236,16 +242,19 @@ def _run_locked(workspace: Workspace, inputs: Inputs, manual_pairs: dict, option
             if progress:
                 progress("mapping", mapping.reconstruction.num_reg_frames(), num_wide)
         with timings.stage("adjust"):
-            result = in_child(adjust, mapping.reconstruction, inputs.rigs, inputs.scale, options.adjust)
+            result = in_child(adjust, mapping.reconstruction, inputs.rigs, inputs.scale, options.adjust, inputs.priors)
         metric = is_metric(result)
-        with timings.stage("world"):
-            world = place_in_world(result.reconstruction, inputs.image_dir, inputs.scale,
-                                   [rig.name for rig in inputs.rigs], options.world, metric=metric)
-            ground = ground_maps(result.reconstruction, world.plane_heights) if world.plane_heights else None
+        with timings.stage("world"):  # the floor, fitted in the adjusted model's frame; moved there after the bands
+            world = locate_world(result.reconstruction, inputs.image_dir, inputs.scale,
+                                 [rig.name for rig in inputs.rigs], options.world, metric=metric)
+        with timings.stage("uncertainty"):
+            uncertainty = in_child(estimate_uncertainty, result, floor=world.floor_plane())
         with timings.stage("deliver"):
+            world.apply(result.reconstruction)  # a rigid move: the bands and sigmas above are unchanged by it
+            ground = ground_maps(result.reconstruction, world.plane_heights) if world.plane_heights else None
             write_model(result.reconstruction, workspace.sparse, overwrite=True)
             write_narrow_poses(result.reconstruction, workspace.narrow_poses, metric=metric, overwrite=True,
-                               world=world.to_dict(), ground=ground)
+                               bands=uncertainty.bands, world=world.to_dict(), ground=ground)
             write_points_ply(result.reconstruction, workspace.points_ply, overwrite=True)
     self_check = None
     if options.self_check.enabled:
@@ -263,6 +272,7 @@ def _run_locked(workspace: Workspace, inputs: Inputs, manual_pairs: dict, option
         summary.warnings.extend(self_check.warnings)
     if options.manual_matches is not None:
         summary.manual_matches = manual_matches_summary(options.manual_matches, manual_reports)
+    summary.uncertainty = uncertainty_summary(result, uncertainty)
     write_json_atomic(workspace.summary, summary.to_json())
     write_report(workspace.root)
     return RunResult(workspace, result.reconstruction, summary)

@@ -52,6 +52,37 @@ class InputsSummary:
 
 
 @dataclass(kw_only=True)
+class NarrowUncertaintySummary:
+    """1 sigma of one narrow camera relative to the network (rigsfm.run.uncertainty.narrow_uncertainty)."""
+
+    centre_sigma_mm: float | None = None
+    rotation_sigma_deg: float | None = None
+
+
+@dataclass(kw_only=True)
+class PairBandSummary:
+    """One narrow pair's 95 % epipolar band (rigsfm.run.uncertainty.PairBand)."""
+
+    i: str = ""
+    j: str = ""
+    band_px: float | None = None
+    points: str | None = None  # floor or depths
+    predicted_below_85: float | None = None  # the model's probability that < 85 % of this pair's points are inside
+
+
+@dataclass(kw_only=True)
+class UncertaintySummary:
+    calibration: str = "fixed"  # refine or fixed (rigsfm.run.options.Calibration)
+    covariance: str | None = None  # posterior (refine) or consider (fixed); None when it could not be estimated
+    pixel_sigma_px: float | None = None  # the images' weighting noise per coordinate (estimated x inflation)
+    floor: str = "none"  # where the bands' analysis points lie: known_lengths, points, none (depths)
+    bands: str = "linear"  # linear in the covariance, or sampled (re-adjusted over calibration draws: <= 3 rigs)
+    narrow: dict[str, NarrowUncertaintySummary] = field(default_factory=dict)  # per narrow image
+    pairs: list[PairBandSummary] = field(default_factory=list)
+    refined_calibration: dict[str, dict] = field(default_factory=dict)  # per camera: change and posterior sigma
+
+
+@dataclass(kw_only=True)
 class Summary:
     rigsfm_version: str = ""
     pycolmap_version: str = ""
@@ -70,6 +101,7 @@ class Summary:
     manual_matches: dict | None = None  # rigsfm.run.manual_merge.manual_matches_summary
     world: dict | None = None  # the result's frame and its floor fit (rigsfm.run.world.WorldResult.to_dict)
     epipolar_self_check: dict | None = None  # rigsfm.run.self_check.SelfCheck.to_dict
+    uncertainty: UncertaintySummary | None = None  # rigsfm.run.uncertainty
 
     def to_json(self) -> dict:
         return asdict(self)
@@ -84,6 +116,11 @@ class Summary:
         values["registered"] = {k: _typed(Registration, v) for k, v in (values.get("registered") or {}).items()}
         values["reprojection_error"] = {k: _typed(CameraError, v)
                                         for k, v in (values.get("reprojection_error") or {}).items()}
+        if isinstance(values.get("uncertainty"), dict):
+            uncertainty = _typed(UncertaintySummary, values["uncertainty"])
+            uncertainty.narrow = {k: _typed(NarrowUncertaintySummary, v) for k, v in (uncertainty.narrow or {}).items()}
+            uncertainty.pairs = [_typed(PairBandSummary, v) for v in uncertainty.pairs or []]
+            values["uncertainty"] = uncertainty
         return cls(**values)
 
     @classmethod

@@ -79,6 +79,25 @@ class WorldResult:
     metric: bool = True
     warnings: list[str] = field(default_factory=list)
 
+    def floor_plane(self):
+        """The floor as ``rigsfm.run.uncertainty.Plane`` in the frame it was fitted in (before :meth:`apply`);
+        None unless the floor frame was found."""
+        if self.frame != WorldFrame.FLOOR:
+            return None
+        from rigsfm.run.uncertainty import Plane
+
+        fit = self.estimate.fit
+        return Plane(np.asarray(fit.normal, dtype=np.float64), float(fit.offset), int(fit.num_points))
+
+    def apply(self, reconstruction: pycolmap.Reconstruction) -> None:
+        """Move ``reconstruction`` (in place, scale 1) into this frame; nothing for the mapper's frame."""
+        if self.frame != WorldFrame.FLOOR:
+            return
+        fit = self.estimate.fit
+        apply_floor_frame(reconstruction, fit)
+        logger.info("World: floor frame (%d floor points: %s; RMS %.3g)", fit.num_points, fit.points_by_source,
+                    fit.rms)
+
     def to_dict(self) -> dict:
         data = {"asked": str(self.asked), "frame": str(self.frame)}
         if self.frame == WorldFrame.FLOOR:
@@ -110,9 +129,10 @@ def first_registered_rig(reconstruction: pycolmap.Reconstruction, rig_names: Seq
     return next((name for name in rig_names if name in registered), None)
 
 
-def place_in_world(reconstruction: pycolmap.Reconstruction, image_dir: Path | None, scale: ScaleSpec | None,
-                   rig_names: Sequence[str], options: WorldOptions, *, metric: bool = True) -> WorldResult:
-    """Move ``reconstruction`` (in place) into the frame ``options.frame`` asks for (module docstring)."""
+def locate_world(reconstruction: pycolmap.Reconstruction, image_dir: Path | None, scale: ScaleSpec | None,
+                 rig_names: Sequence[str], options: WorldOptions, *, metric: bool = True) -> WorldResult:
+    """Find the frame ``options.frame`` asks for (module docstring) without moving ``reconstruction``:
+    :meth:`WorldResult.apply` moves it."""
     if options.frame == WorldFrame.MAPPING:
         return WorldResult(options.frame, WorldFrame.MAPPING, metric=metric)
     x_rig = first_registered_rig(reconstruction, rig_names)
@@ -131,10 +151,16 @@ def place_in_world(reconstruction: pycolmap.Reconstruction, image_dir: Path | No
         warnings.append(f"PLANE HEIGHT IGNORED: the result is not metric, so {heights[0]:g} m has no meaning "
                         "here; give a scale.yaml")
         heights = ()
-    apply_floor_frame(reconstruction, fit)
-    logger.info("World: floor frame (%d floor points: %s; RMS %.3g)", fit.num_points, fit.points_by_source, fit.rms)
     return WorldResult(options.frame, WorldFrame.FLOOR, estimate, fit.origin_rig,
                        tuple(dict.fromkeys((0.0, *heights))), metric, warnings)
+
+
+def place_in_world(reconstruction: pycolmap.Reconstruction, image_dir: Path | None, scale: ScaleSpec | None,
+                   rig_names: Sequence[str], options: WorldOptions, *, metric: bool = True) -> WorldResult:
+    """Move ``reconstruction`` (in place) into the frame ``options.frame`` asks for (module docstring)."""
+    world = locate_world(reconstruction, image_dir, scale, rig_names, options, metric=metric)
+    world.apply(reconstruction)
+    return world
 
 
 # --- ground maps (narrow_poses.json) ---------------------------------------------------------------------

@@ -180,6 +180,28 @@ def perturb_rig_from(exact: RigCalibration, rng: np.random.Generator) -> RigCali
     )
 
 
+def _rms_uniform(low: float, high: float) -> float:
+    """RMS of a value uniform in [low, high] (with a random sign)."""
+    return float(np.sqrt((low * low + low * high + high * high) / 3.0))
+
+
+def calibration_error_sigmas(calibration: RigCalibration) -> dict:
+    """The 1-sigma uncertainties an honest calibration would write for the errors ``perturb_rig_from`` makes: the RMS
+    of each (focal 0.104 %, principal point 0.53 px, k1 / k2 4.2e-4 / 2.1e-4 wide and half that narrow, p1 / p2
+    5.8e-6; E^sl rotation 0.044 deg per axis, translation 0.58 mm per axis). As rigs.yaml's keys: ``wide``,
+    ``narrow`` (one per param), ``rotation_deg``, ``translation_m`` (per axis)."""
+    out = {}
+    for sensor, k_scale in (("wide", 1.0), ("narrow", 0.5)):
+        fx, fy = (float(p) for p in calibration.camera(sensor).params[:2])
+        out[sensor] = np.array([fx * _rms_uniform(0.0005, 0.0015), fy * _rms_uniform(0.0005, 0.0015),
+                                _rms_uniform(0.2, 0.8), _rms_uniform(0.2, 0.8),
+                                k_scale * _rms_uniform(0.0002, 0.0006), k_scale * _rms_uniform(0.0001, 0.0003),
+                                _rms_uniform(0.0, 1e-5), _rms_uniform(0.0, 1e-5)])
+    out["rotation_deg"] = np.full(3, _rms_uniform(0.05, 0.1) / np.sqrt(3.0))  # a random axis: a third per axis
+    out["translation_m"] = np.full(3, _rms_uniform(0.0, 0.001))
+    return out
+
+
 def user_calibration(rigs: list[RigTruth], options: SceneOptions) -> list[RigCalibration]:
     """What rigs.yaml holds: the exact calibration, perturbed if ``options.calibration_noise``."""
     exact = [rig.calibration() for rig in rigs]

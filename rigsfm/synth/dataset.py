@@ -3,7 +3,7 @@
 ```
 OUT/
   images/rig01/wide/frame0000.png, images/rig01/narrow/frame0000.png, ...
-  rigs.yaml          the calibration a user would have (perturbed if calibration_noise)
+  rigs.yaml          the calibration a user would have (perturbed if calibration_noise, with that error's sigmas)
   rigs_exact.yaml    the exact calibration used for rendering
   scale.yaml         camera_distance (rig01 to the farthest rig) + known_length (a 2 m bar)
   scene.yaml         the SceneOptions and the bar's world end points, for reference
@@ -29,8 +29,8 @@ from rigsfm.core.geometry import project_world
 from rigsfm.core.errors import WorkspaceError
 from rigsfm.core.names import SENSORS, ImageName, Sensor
 from rigsfm.core.io import write_text_atomic
-from rigsfm.core.rig import add_posed_rig, write_rigs
-from rigsfm.synth.cameras import RigTruth, make_rigs, user_calibration
+from rigsfm.core.rig import RigCalibration, add_posed_rig, rigs_to_yaml, write_rigs
+from rigsfm.synth.cameras import RigTruth, calibration_error_sigmas, make_rigs, user_calibration
 from rigsfm.synth.render import render_clean, to_uint8, visible
 from rigsfm.synth.scene import Arena, Bar, SceneOptions, build_arena
 
@@ -132,6 +132,19 @@ def _scale_yaml(rigs: list[RigTruth], bar: Bar | None, first: RigTruth, second: 
     return yaml.safe_dump(data, sort_keys=False, default_flow_style=None, width=120)
 
 
+def rigs_yaml_with_sigmas(calibrations: list[RigCalibration]) -> str:
+    """rigs.yaml with the sigmas of the synthetic calibration error (``cameras.calibration_error_sigmas``), as
+    ``rigsfm calibrate`` writes its own: the run then weighs rigs.yaml by its real uncertainty."""
+    from rigsfm.calibrate.uncertainty import RigSigmas, add_sigmas
+
+    data = yaml.safe_load(rigs_to_yaml(calibrations))
+    for entry, calibration in zip(data["rigs"], calibrations, strict=True):
+        sigmas = calibration_error_sigmas(calibration)
+        add_sigmas(entry, RigSigmas(wide=sigmas["wide"], narrow=sigmas["narrow"], rotation_deg=sigmas["rotation_deg"],
+                                    translation_m=sigmas["translation_m"]))
+    return yaml.safe_dump(data, sort_keys=False, default_flow_style=None, width=120)
+
+
 def _prepare(out_dir: Path, overwrite: bool) -> None:
     if out_dir.exists() and any(out_dir.iterdir()):
         if not overwrite:
@@ -171,7 +184,8 @@ def render_dataset(
                 names.append(name)
         logger.info("rendered %s (%d/%d)", truth.name, index + 1, len(rigs))
 
-    write_rigs(out_dir / "rigs.yaml", user_calibration(rigs, options), overwrite=True)
+    write_text_atomic(out_dir / "rigs.yaml", rigs_yaml_with_sigmas(user_calibration(rigs, options))
+                      if options.calibration_noise else rigs_to_yaml(user_calibration(rigs, options)))
     write_rigs(out_dir / "rigs_exact.yaml", [rig.calibration() for rig in rigs], overwrite=True)
     write_text_atomic(out_dir / "scale.yaml", _scale_yaml(rigs, bar, first, second))
     scene = {

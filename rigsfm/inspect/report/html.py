@@ -126,17 +126,57 @@ def pairs_section(narrow: dict) -> str:
                      "band 95 % (px)", "F_ji"], rows, left=2))
 
 
-def uncertainty_section(narrow: dict) -> str:
-    rows = [[esc(p["i"]), esc(p["j"]), fmt(p.get("epipolar_band_95_px"), 3),
-             "–" if not p.get("epipolar_band_depth_range_m") else
-             "{:.3g} – {:.3g}".format(*p["epipolar_band_depth_range_m"])] for p in narrow.get("pairs", [])]
-    return ("<h2>Uncertainty</h2>"
-            '<p class="note">From the bundle-adjustment covariance of the rig poses (COLMAP, intrinsics and E^sl '
-            "held exact, pixel noise estimated from the residuals), propagated through the fixed E^sl to every "
-            "narrow camera and sampled. The band holds the true correspondence of a point of image i with 95 % "
-            "probability for every point of a grid on image i at every depth at which it appears in image j "
-            "(depth range below, metres in camera i). Errors of rigs.yaml itself are not included.</p>"
-            + table(["narrow i", "narrow j", "band 95 % (px)", "depths seen in j (m)"], rows, left=2))
+def uncertainty_section(narrow: dict, summary: Summary | None = None) -> str:
+    u = summary.uncertainty if summary else None
+    parts = ["<h2>Uncertainty</h2>"]
+    if u is None or u.covariance is None:
+        parts.append('<p class="warn">No joint covariance of poses and calibration could be estimated: no bands.</p>'
+                     if u is not None else '<p class="note">summary.json has no uncertainty record.</p>')
+    else:
+        how = ("the posterior of the bundle adjustment that refined the calibration with rigs.yaml's sigmas as priors"
+               if u.covariance == "posterior" else
+               "the image noise of the rig poses plus rigs.yaml's calibration uncertainty pushed through the poses' "
+               "sensitivity to it (the calibration was held fixed)")
+        floor = {"floor_fit": "the floor the world stage fitted",
+                 "known_lengths": "the floor through scale.yaml's known lengths",
+                 "points": "the floor found in the sparse points"}.get(u.floor, "no floor found: points at every depth")
+        parts.append(
+            f'<p class="note">From the joint covariance of rig poses, intrinsics and E^sl: {how}; image noise '
+            f"{fmt(u.pixel_sigma_px, 3)} px (weighting)"
+            + ("; the bands re-adjust the network over 40 calibration draws (a small network answers a calibration "
+               "error far from linearly)" if u.bands == "sampled" else "")
+            + f". The 95 % band holds the true correspondence of a point of "
+            f"narrow image i with 95 % probability, pooled over the analysis points ({floor}) and over that "
+            "covariance: calibrated, not a bound. The calibration's error is one draw per pair, so a single pair may "
+            "hold fewer of its points: the last column is the model's probability that fewer than 85 % do. Camera "
+            "uncertainties are 1 sigma (root of the trace of the 3x3 covariance) relative to the network as a whole "
+            "(its mean centre and orientation held).</p>")
+        if u.narrow:
+            parts.append(table(["narrow camera", "centre σ (mm)", "rotation σ (deg)"],
+                               [[esc(name), fmt(v.centre_sigma_mm, 3), fmt(v.rotation_sigma_deg, 3)]
+                                for name, v in sorted(u.narrow.items())]))
+        if u.refined_calibration:
+            rows = [[esc(camera), fmt(c.get("focal_change_percent"), 3), fmt(c.get("principal_point_change_px"), 3),
+                     fmt(c.get("narrow_from_wide_rotation_change_deg"), 3),
+                     fmt(c.get("narrow_from_wide_rotation_sigma_deg"), 3),
+                     fmt(c.get("narrow_from_wide_translation_change_mm"), 3),
+                     fmt(c.get("narrow_from_wide_translation_sigma_mm"), 3), "yes" if c.get("observed") else "no"]
+                    for camera, c in sorted(u.refined_calibration.items())]
+            parts.append("<h3>Calibration refined from rigs.yaml</h3>" + table(
+                ["camera", "focal change (%)", "principal point change (px)", "E^sl rotation change (deg)",
+                 "E^sl rotation σ (deg)", "E^sl translation change (mm)", "E^sl translation σ (mm)",
+                 "observed by images"], rows))
+    ranges = {(p["i"], p["j"]): p for p in narrow.get("pairs", [])}
+    rows = []
+    for pair in (u.pairs if u is not None else []):
+        extra = ranges.get((pair.i, pair.j), {})
+        depth = extra.get("epipolar_band_depth_range_m")
+        rows.append([esc(pair.i), esc(pair.j), fmt(pair.band_px, 3), esc(pair.points or "–"),
+                     "–" if not depth else "{:.3g} – {:.3g}".format(*depth), fmt(pair.predicted_below_85, 2)])
+    if rows:
+        parts.append(table(["narrow i", "narrow j", "band 95 % (px)", "analysis points", "their depths in i (m)",
+                            "P(pair < 85 % inside)"], rows, left=2))
+    return "".join(parts)
 
 
 MAX_FIGURES = 12  # ~0.1 MB each as JPEG: the report stays < 5 MB at 16 rigs (120 narrow pairs)
@@ -292,7 +332,7 @@ def render_page(out: Path, summary: Summary | None, reconstruction: pycolmap.Rec
             reprojection_section(reconstruction),
             "<h2>Network (top view)</h2>" + topdown_svg(reconstruction, units=units),
             world_section(narrow, reconstruction),
-            pairs_section(narrow), uncertainty_section(narrow),
+            pairs_section(narrow), uncertainty_section(narrow, summary),
             epipolar_section(out, summary, reconstruction, narrow), self_check_section(summary)]
     if Workspace(out).track.poses_json.is_file():  # `rigsfm track` results, when there are any
         from rigsfm.track import track_report_section

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import resource
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import asdict, dataclass, replace
@@ -24,7 +25,7 @@ from rigsfm.run.adjust import AdjustResult, ScaleSource, adjust
 from rigsfm.run.database import create_database
 from rigsfm.run.deliver import write_model, write_narrow_poses, write_points_ply
 from rigsfm.run.diagnostics import check_reconstruction
-from rigsfm.run.features import drop_stale_work, extract_features, match_features
+from rigsfm.run.features import drop_stale_work, extract_features, match_features, pairs_report, select_pairs
 from rigsfm.run.inputs import ImageEntry, scan_images
 from rigsfm.run.manual_matches import read_manual_matches, validate_manual_matches
 from rigsfm.run.manual_merge import add_manual_matches, manual_matches_summary
@@ -62,15 +63,28 @@ def load_inputs(image_dir: Path, rigs_path: Path, scale_path: Path | None = None
     return Inputs(Path(image_dir), rigs, images, scale)
 
 
+def _cpu_seconds() -> float:
+    usage = resource.getrusage(resource.RUSAGE_SELF)  # every thread of this process
+    return usage.ru_utime + usage.ru_stime
+
+
 class _Timings(dict):
+    """Wall seconds per stage; ``cpu`` holds the process's CPU seconds per stage (all threads; on a shared
+    machine the wall time varies with the load, the CPU time much less)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.cpu: dict[str, float] = {}
+
     @contextlib.contextmanager
     def stage(self, name: str) -> Iterator[None]:
-        start = time.perf_counter()
+        start, cpu_start = time.perf_counter(), _cpu_seconds()
         try:
             yield
         finally:
             self[name] = round(time.perf_counter() - start, 3)
-            logger.info("Stage %s took %.1f s", name, self[name])
+            self.cpu[name] = round(_cpu_seconds() - cpu_start, 3)
+            logger.info("Stage %s took %.1f s (%.1f s CPU)", name, self[name], self.cpu[name])
 
 
 def reprojection_table(reconstruction: pycolmap.Reconstruction) -> dict[str, CameraError]:
@@ -194,10 +208,12 @@ def _run_locked(workspace: Workspace, inputs: Inputs, manual_pairs: dict, option
         with timings.stage("features"):
             drop_stale_work(workspace.database, workspace.feature_settings, options.matching)
             extract_features(workspace.database, inputs.image_dir, inputs.images, options.matching,
-                             report("features"), num_threads=threads)
+                             report("features"), num_threads=threads, executor=options.executor,
+                             address=options.address, workers=options.workers)
         with timings.stage("matching"):
+            selection = select_pairs(workspace.database, inputs.images, options.matching)
             match_features(workspace.database, inputs.images, options.matching, workspace.pairs, report("matching"),
-                           num_threads=threads)
+                           num_threads=threads, selection=selection)
         manual_reports = []
         if manual_pairs:
             with timings.stage("manual_matches"):
@@ -228,7 +244,13 @@ def _run_locked(workspace: Workspace, inputs: Inputs, manual_pairs: dict, option
             write_model(result.reconstruction, workspace.sparse, overwrite=True)
             write_narrow_poses(result.reconstruction, workspace.narrow_poses, metric=metric, overwrite=True)
             write_points_ply(result.reconstruction, workspace.points_ply, overwrite=True)
+        with timings.stage("check_pairs"):
+            pairs, pairs_warning = pairs_report(result.reconstruction, selection)
     summary = build_summary(inputs, options, mapping, result, timings, workspace.database)
+    summary.pairs = pairs
+    summary.cpu_s = dict(timings.cpu)
+    if pairs_warning:
+        summary.warnings.append(pairs_warning)
     if options.manual_matches is not None:
         summary.manual_matches = manual_matches_summary(options.manual_matches, manual_reports)
     write_json_atomic(workspace.summary, summary.to_json())

@@ -68,6 +68,8 @@ class Summary:
     timings_s: dict[str, float] = field(default_factory=dict)
     warnings: list[str] = field(default_factory=list)
     manual_matches: dict | None = None  # rigsfm.run.manual_merge.manual_matches_summary
+    pairs: dict | None = None  # rigsfm.run.features.pairs_report: pairs matched, skipped, missed
+    cpu_s: dict[str, float] = field(default_factory=dict)  # CPU seconds per stage (all threads)
 
     def to_json(self) -> dict:
         return asdict(self)

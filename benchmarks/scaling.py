@@ -30,6 +30,7 @@ import numpy as np  # noqa: E402
 import pycolmap  # noqa: E402
 
 from benchmarks.metrics import evaluate, ratios_to_oracle  # noqa: E402
+import benchmarks.run  # noqa: E402
 from benchmarks.run import machine, run_child  # noqa: E402
 from rigsfm.core.io import write_json_atomic, write_text_atomic  # noqa: E402
 from rigsfm.synth.dataset import render_dataset  # noqa: E402
@@ -197,6 +198,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--work", type=Path, default=REPO / "benchmarks" / "work_scaling")
     parser.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results_scaling")
     parser.add_argument("--report-only", action="store_true")
+    parser.add_argument("--append", action="store_true",
+                        help="add these runs to OUT/results.json (same size: methods added or replaced)")
+    parser.add_argument("--timeout", type=float, default=900, help="seconds one method may run")
     parser.add_argument("--free-initial-pair", action="store_true",
                         help="rigsfm: let COLMAP choose the initial pair (RIGSFM_BENCH_FREE_INITIAL_PAIR, see worker.py)")
     args = parser.parse_args(argv)
@@ -204,15 +208,31 @@ def main(argv: list[str] | None = None) -> int:
         os.environ["RIGSFM_BENCH_FREE_INITIAL_PAIR"] = "1"
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s", datefmt="%H:%M:%S")
     args.out.mkdir(parents=True, exist_ok=True)
+    benchmarks.run.TIMEOUT_S = args.timeout
+    existing = args.out / "results.json"
     if args.report_only:
-        results = json.loads((args.out / "results.json").read_text())
+        results = json.loads(existing.read_text())
     else:
         results = {"machine": machine(), "image_scale": args.image_scale, "methods": args.methods, "sizes": [],
                    "free_initial_pair": args.free_initial_pair}
+        if args.append and existing.exists():
+            results = json.loads(existing.read_text())
         for num_rigs in args.sizes:
             load = os.getloadavg()[0]
-            results["sizes"].append(run_size(num_rigs, args.image_scale, args.scenes, args.work, args.methods))
-            results["sizes"][-1]["load_average_start"] = round(load, 2)
+            size = run_size(num_rigs, args.image_scale, args.scenes, args.work, args.methods)
+            for run in size["runs"].values():
+                run["load_average_start"] = round(load, 2)
+            same = [s for s in results["sizes"] if s["num_rigs"] == num_rigs]
+            if same:
+                same[0]["runs"].update(size["runs"])
+                size = same[0]
+            else:
+                results["sizes"].append(size)
+            oracle = (size["runs"].get("oracle") or {}).get("accuracy", {}).get("narrow", {})
+            for run in size["runs"].values():
+                if "accuracy" in run:
+                    run["ratio_to_oracle"] = ratios_to_oracle(run["accuracy"]["narrow"], oracle)
+            results["sizes"].sort(key=lambda s: s["num_rigs"])
             write_json_atomic(args.out / "results.json", results)
     write_text_atomic(args.out / "results.md", markdown(results))
     plot(results, args.out / "scaling.png")

@@ -154,7 +154,7 @@ def test_extract_one_scales_large_images_like_colmap(circle, tmp_path):
     dataset, _, _ = circle
     inputs = load_inputs(dataset.images, dataset.rigs)
     name = _wide(3)
-    extraction = _extraction_options(MatchingOptions(), num_threads=1)
+    extraction = _extraction_options(MatchingOptions(), num_threads=1, first_octave=-1)
     extraction.max_image_size = 400
     db_path = create_database(tmp_path / "database.db", inputs.rigs, inputs.images)
     pycolmap.extract_features(db_path, dataset.images, image_names=[name], camera_mode=pycolmap.CameraMode.PER_IMAGE,

@@ -49,7 +49,32 @@ logger = logging.getLogger(__name__)
 Progress = Callable[[int, int], None]
 
 
-def _settings(options: MatchingOptions) -> dict:
+COARSE_SIFT_MIN_SIDE_PX = 1200  # images at least this large (longer side) ...
+COARSE_SIFT_MIN_FRAMES = 8  # ... in networks of at least this many wide frames skip SIFT's upsampled octave
+
+
+def resolved_first_octave(database_path: Path, images: Sequence[ImageEntry], options: MatchingOptions) -> int:
+    """SIFT's first octave: ``options.first_octave``, or when None, 0 for a network of at least
+    ``COARSE_SIFT_MIN_FRAMES`` wide frames whose wide images are at least ``COARSE_SIFT_MIN_SIDE_PX`` on their
+    longer side, else -1 (COLMAP's default).
+
+    At 16 rigs of 1624x1234 images, octave 0 took 16 instead of 54 CPU seconds to extract (5.5k instead of
+    12.6k keypoints per image), matching 7 instead of 23, peak memory 480 instead of 1370 MB; the narrow
+    errors were 3-5 % larger (rotation 0.106 vs 0.103 deg, distance 0.246 vs 0.235 %). Small networks and small
+    images keep every feature: they are cheap, and wide separations need every match."""
+    if options.first_octave is not None:
+        return options.first_octave
+    wide = [e.name for e in images if e.sensor == "wide"]
+    if len(wide) < COARSE_SIFT_MIN_FRAMES:
+        return -1
+    with pycolmap.Database.open(database_path) as database:
+        cameras = {c.camera_id: c for c in database.read_all_cameras()}
+        sides = [max(cameras[database.read_image_with_name(n).camera_id].width,
+                     cameras[database.read_image_with_name(n).camera_id].height) for n in wide]
+    return 0 if min(sides) >= COARSE_SIFT_MIN_SIDE_PX else -1
+
+
+def _settings(options: MatchingOptions, first_octave: int = -1) -> dict:
     """What the stored features and matches depend on (threads do not count)."""
     settings = {
         "features": {"type": str(options.features), "max_num_features": options.max_num_features,
@@ -60,18 +85,19 @@ def _settings(options: MatchingOptions) -> dict:
                      "pairs": str(options.pairs),
                      "neighbours": options.neighbours if options.pairs == Pairs.AUTO else None},
     }
-    if options.first_octave != -1:  # recorded only when not COLMAP's default, so older workspaces resume
-        settings["features"]["first_octave"] = options.first_octave
+    if first_octave != -1:  # recorded only when not COLMAP's default, so older workspaces resume
+        settings["features"]["first_octave"] = first_octave
     if use_gpu(options.device):  # GPU SIFT gives other features and matches than the CPU's
         settings["features"]["device"] = settings["matching"]["device"] = "cuda"
     return settings
 
 
-def drop_stale_work(database_path: Path, settings_path: Path, options: MatchingOptions) -> list[str]:
-    """Clear the features and matches a resumed workspace made with other settings than ``options``, so a
-    changed option takes effect instead of being silently ignored; records the settings. Returns what was
-    cleared (``"features"``, ``"matches"``)."""
-    now = _settings(options)
+def drop_stale_work(database_path: Path, settings_path: Path, options: MatchingOptions,
+                    first_octave: int = -1) -> list[str]:
+    """Clear the features and matches a resumed workspace made with other settings than ``options`` (and
+    ``first_octave``, :func:`resolved_first_octave`), so a changed option takes effect instead of being silently
+    ignored; records the settings. Returns what was cleared (``"features"``, ``"matches"``)."""
+    now = _settings(options, first_octave)
     before = json.loads(settings_path.read_text()) if settings_path.exists() else now
     cleared = []
     if before != now:
@@ -95,11 +121,12 @@ def featured_images(images: Sequence[ImageEntry], options: MatchingOptions) -> l
     return [e for e in images if e.sensor == "wide" or options.narrow_features]
 
 
-def _extraction_options(options: MatchingOptions, num_threads: int) -> pycolmap.FeatureExtractionOptions:
+def _extraction_options(options: MatchingOptions, num_threads: int,
+                        first_octave: int = -1) -> pycolmap.FeatureExtractionOptions:
     gpu = use_gpu(options.device)
     extraction = pycolmap.FeatureExtractionOptions(num_threads=num_threads, use_gpu=gpu)
     extraction.sift.max_num_features = options.max_num_features
-    extraction.sift.first_octave = options.first_octave
+    extraction.sift.first_octave = first_octave
     return extraction
 
 
@@ -154,7 +181,7 @@ def extract_features(
     images: Sequence[ImageEntry],
     options: MatchingOptions,
     progress: Progress | None = None,
-    batch_size: int = 2,
+    batch_size: int = 8,
     *,
     num_threads: int = -1,
     executor: str = Executor.LOCAL,
@@ -170,6 +197,7 @@ def extract_features(
         todo = [
             e.name for e in featured_images(images, options) if not database.exists_keypoints(ids[e.name])
         ]
+    first_octave = resolved_first_octave(database_path, images, options)
     if options.features == Features.ASIFT:
         from rigsfm.run.asift import extract_asift
 
@@ -177,7 +205,7 @@ def extract_features(
         logger.info("Extracted ASIFT for %d images (%d already done)", len(todo), len(images) - len(todo))
         return len(todo)
     if executor == Executor.RAY:
-        extraction = _extraction_options(options, num_threads=1)
+        extraction = _extraction_options(options, num_threads=1, first_octave=first_octave)
         done = [0]
         with pycolmap.Database.open(database_path) as database:
             def write(features: ImageFeatures) -> None:
@@ -194,7 +222,8 @@ def extract_features(
                           workers=workers, address=address, shared=(extraction,), prepare=_read_for_ray)
         logger.info("Extracted features for %d images on Ray (%d already done)", len(todo), len(images) - len(todo))
         return len(todo)
-    extraction = _extraction_options(options, num_threads)
+    extraction = _extraction_options(options, num_threads, first_octave)
+    logger.info("SIFT from octave %d", first_octave)
     for start in range(0, len(todo), batch_size):
         batch = todo[start : start + batch_size]
         pycolmap.extract_features(

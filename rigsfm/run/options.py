@@ -53,7 +53,10 @@ class MatchingOptions:
     max_ratio: float = 0.8  # Lowe's ratio test
     cross_check: bool = True  # mutual nearest neighbours
     max_num_features: int = 8192
-    first_octave: int = -1  # SIFT's first octave: -1 doubles the image first (COLMAP's default), 0 does not
+    # SIFT's first octave: -1 doubles the image first (COLMAP's default), 0 does not (3.3x less CPU, 2.9x less
+    # memory). None: 0 for networks of rigsfm.run.features.COARSE_SIFT_MIN_FRAMES wide frames or more whose
+    # images are COARSE_SIFT_MIN_SIDE_PX or larger, -1 otherwise (rigsfm.run.features.resolved_first_octave).
+    first_octave: int | None = None
     # Verify pairs of frames with the rigs' generalized relative pose. None: on unless narrow features
     # are extracted (with textured narrow views it took over 15 minutes for 24 images).
     rig_verification: bool | None = None

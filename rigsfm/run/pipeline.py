@@ -25,7 +25,8 @@ from rigsfm.run.adjust import AdjustResult, ScaleSource, adjust
 from rigsfm.run.database import create_database
 from rigsfm.run.deliver import write_model, write_narrow_poses, write_points_ply
 from rigsfm.run.diagnostics import check_reconstruction
-from rigsfm.run.features import drop_stale_work, extract_features, match_features, pairs_report, select_pairs
+from rigsfm.run.features import (drop_stale_work, extract_features, match_features, pairs_report, resolved_first_octave,
+                                 select_pairs)
 from rigsfm.run.inputs import ImageEntry, scan_images
 from rigsfm.run.manual_matches import read_manual_matches, validate_manual_matches
 from rigsfm.run.manual_merge import add_manual_matches, manual_matches_summary
@@ -206,7 +207,8 @@ def _run_locked(workspace: Workspace, inputs: Inputs, manual_pairs: dict, option
         with timings.stage("database"):
             create_database(workspace.database, inputs.rigs, inputs.images)
         with timings.stage("features"):
-            drop_stale_work(workspace.database, workspace.feature_settings, options.matching)
+            drop_stale_work(workspace.database, workspace.feature_settings, options.matching,
+                            resolved_first_octave(workspace.database, inputs.images, options.matching))
             extract_features(workspace.database, inputs.image_dir, inputs.images, options.matching,
                              report("features"), num_threads=threads, executor=options.executor,
                              address=options.address, workers=options.workers)

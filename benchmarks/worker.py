@@ -2,9 +2,9 @@
 
 ``python -m benchmarks.worker METHOD SCENE OUT [--estimate MODEL]`` writes ``OUT/model`` (a COLMAP
 model, if the method produced one) and ``OUT/worker.json`` (time of the method itself, after the common
-imports; per-stage timings; the process's peak RSS; method-specific facts). METHOD: rigsfm-incremental, rigsfm-global, paper, colmap, oracle
-(needs --estimate: the rigsfm model whose observations it re-uses), idle (imports only: the floor of
-the peak memory).
+imports; per-stage timings; the process's peak RSS; method-specific facts). METHOD: rigsfm-incremental, rigsfm-global, rigsfm-exhaustive (incremental, every pair matched), paper, colmap,
+recipe (the careful pycolmap rig recipe, baselines/colmap_recipe.py), oracle (needs --estimate: the rigsfm
+model whose observations it re-uses), idle (imports only: the floor of the peak memory).
 """
 
 from __future__ import annotations
@@ -12,13 +12,14 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import os
 import shutil
 import sys
 import time
 import traceback
 from pathlib import Path
 
-METHODS = ("rigsfm-incremental", "rigsfm-global", "paper", "colmap", "oracle", "idle")
+METHODS = ("rigsfm-incremental", "rigsfm-global", "rigsfm-exhaustive", "paper", "colmap", "recipe", "oracle", "idle")
 
 
 def import_common() -> None:
@@ -43,20 +44,40 @@ def peak_rss_mb() -> float | None:
     return None
 
 
+def cpu_seconds() -> float:
+    """User + system CPU time of this process, every thread included (robust to a shared machine's load)."""
+    import resource
+
+    usage = resource.getrusage(resource.RUSAGE_SELF)
+    return usage.ru_utime + usage.ru_stime
+
+
 def run_method(method: str, scene: Path, out: Path, estimate: Path | None) -> dict:
     import pycolmap
 
     if method == "idle":
         return {"timings_s": {}, "metric": False}
     if method.startswith("rigsfm-"):
-        from rigsfm.run.options import Mapper, MappingOptions
+        if os.environ.get("RIGSFM_BENCH_FREE_INITIAL_PAIR"):
+            # Let COLMAP choose the initial pair (what the fix of rigsfm.run.mapping.initial_pair, under way in
+            # parallel, does when the strongest pair is too narrow to start from): the forced pair of a full
+            # circle is rejected and retried 1000 times (~160 s at 16 rigs).
+            import rigsfm.run.mapping
+
+            rigsfm.run.mapping.initial_pair = lambda database_path: None
+        from rigsfm.run.options import Mapper, MappingOptions, MatchingOptions, Pairs
         from rigsfm.run.pipeline import RunOptions, run
 
-        options = RunOptions(mapping=MappingOptions(mapper=Mapper(method.removeprefix("rigsfm-"))))
+        if method == "rigsfm-exhaustive":
+            options = RunOptions(matching=MatchingOptions(pairs=Pairs.EXHAUSTIVE))
+        else:
+            options = RunOptions(mapping=MappingOptions(mapper=Mapper(method.removeprefix("rigsfm-"))))
         result = run(scene / "images", scene / "rigs.yaml", out / "run", scene / "scale.yaml", options)
         shutil.copytree(out / "run" / "sparse", out / "model")
-        return {"timings_s": result.summary.timings_s, "metric": result.summary.metric,
-                "scale": result.summary.scale.source, "warnings": result.summary.warnings}
+        return {"timings_s": result.summary.timings_s, "stage_cpu_s": getattr(result.summary, "cpu_s", {}),
+                "metric": result.summary.metric,
+                "scale": result.summary.scale.source, "warnings": result.summary.warnings,
+                "pairs": getattr(result.summary, "pairs", None), "mapper_used": result.summary.mapping.used}
     if method == "paper":
         from benchmarks.baselines.paper import run_paper
 
@@ -72,6 +93,15 @@ def run_method(method: str, scene: Path, out: Path, estimate: Path | None) -> di
             (out / "model").mkdir()
             rec.write(out / "model")
         return {**report, "metric": False}
+    if method == "recipe":
+        from benchmarks.baselines.colmap_recipe import run_colmap_recipe
+
+        rec, report = run_colmap_recipe(scene, out / "work")
+        if rec is not None:
+            (out / "model").mkdir()
+            rec.write(out / "model")
+        shutil.rmtree(out / "work", ignore_errors=True)
+        return {**report, "metric": rec is not None}
     if method == "oracle":
         from rigsfm.synth.truth import oracle
         from rigsfm.run.pipeline import load_inputs
@@ -99,7 +129,7 @@ def main(argv: list[str] | None = None) -> int:
     args.out.mkdir(parents=True, exist_ok=True)
     shutil.rmtree(args.out / "model", ignore_errors=True)
     import_common()
-    start = time.perf_counter()
+    start, cpu_start = time.perf_counter(), cpu_seconds()
     try:
         report = run_method(args.method, args.scene, args.out, args.estimate)
         report.update(ok=True, error=None)
@@ -107,6 +137,7 @@ def main(argv: list[str] | None = None) -> int:
         report = {"ok": False, "error": f"{type(error).__name__}: {error}", "traceback": traceback.format_exc()}
     report["method"] = args.method
     report["time_s"] = round(time.perf_counter() - start, 3)
+    report["cpu_s"] = round(cpu_seconds() - cpu_start, 3)
     report["peak_rss_mb"] = peak_rss_mb()
     (args.out / "worker.json").write_text(json.dumps(report, indent=1, default=str))
     return 0 if report["ok"] else 1

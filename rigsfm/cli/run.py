@@ -9,8 +9,8 @@ import typer
 from rich.table import Table
 
 from rigsfm.cli.common import StageProgress, configure_logging, console, fail_cleanly, finish, flag, progress_bars
-from rigsfm.run.options import (AdjustOptions, Calibration, Features, Mapper, MappingOptions, MatchingOptions,
-                                 RunOptions, WorldFrame, WorldOptions)
+from rigsfm.run.options import (AdjustOptions, Calibration, Device, Executor, Features, Mapper, MappingOptions,
+                                 MatchingOptions, Pairs, RunOptions, WorldFrame, WorldOptions)
 
 VERBOSE = flag("--verbose", "-v", help="show rigsfm's log (info level) on the terminal")
 STRICT = flag("--strict", help="exit with code 4 when the result carries warnings (for scripts)")
@@ -111,6 +111,20 @@ def run_command(
                                                                         "exactly and fit one scale to scale.yaml "
                                                                         "afterwards, instead of refining them with "
                                                                         "their sigmas and the measurements")] = False,
+    pairs: Annotated[Pairs, typer.Option("--pairs", help="image pairs to match: auto (each image's best partners, "
+                                                         "found by a cheap first pass) or exhaustive (every pair)")
+                     ] = Pairs.AUTO,
+    neighbours: Annotated[int, typer.Option("--neighbours", min=1, help="with --pairs auto: partners of other rigs "
+                                                                        "matched per image")] = 8,
+    executor: Annotated[Executor, typer.Option("--executor", help="feature extraction: local (this machine's cores) "
+                                                                  "or ray (one task per image on a Ray cluster)")
+                        ] = Executor.LOCAL,
+    address: Annotated[Optional[str], typer.Option(
+        "--address", help="Ray cluster address, e.g. auto or HEAD:6379 (with --executor ray) [default: start a local "
+                          "Ray instance]", show_default=False)] = None,
+    device: Annotated[Device, typer.Option("--device", help="SIFT on: auto (a CUDA GPU when pycolmap is the CUDA "
+                                                            "build, rigsfm\\[gpu], and one is found), cpu or cuda")
+                      ] = Device.AUTO,
     overwrite: Annotated[bool, flag("--overwrite", help="replace an existing result in OUT (features and matches "
                                                         "made with the same settings are reused)")] = False,
     strict: Annotated[bool, STRICT] = False,
@@ -122,12 +136,15 @@ def run_command(
 
     options = RunOptions(
         matching=MatchingOptions(max_ratio=max_ratio, cross_check=cross_check, rig_verification=rig_verification,
-                                 narrow_features=narrow_features, features=features),
+                                 narrow_features=narrow_features, features=features, pairs=pairs,
+                                 neighbours=neighbours, device=device),
         mapping=MappingOptions(mapper=mapper, seed=seed, incremental_time_limit_s=incremental_time_limit),
         world=WorldOptions(frame=world, plane_heights=() if plane_height is None else (plane_height,)),
         adjust=AdjustOptions(calibration=Calibration.FIXED if fixed_calibration else Calibration.REFINE),
         overwrite=overwrite,
         manual_matches=manual_matches,
+        executor=executor,
+        address=address,
     )
     with progress_bars() as progress:
         result = run(images, rigs, out, scale, options, progress=StageProgress(progress))

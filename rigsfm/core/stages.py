@@ -33,6 +33,7 @@ import multiprocessing
 import multiprocessing.connection
 import os
 import pickle
+import resource
 import signal
 import sys
 import tempfile
@@ -196,6 +197,7 @@ def _child(conn, fn, args, kwargs, callables, stdout: int, stderr: int, log_leve
             kwargs[key] = _Forward(conn, key)
     try:
         result = fn(*args, **kwargs)
+        _send(conn, ("cpu", cpu_seconds()))
     except BaseException as error:  # noqa: BLE001 - every failure goes back to the caller
         text = traceback.format_exc()
         try:
@@ -212,6 +214,18 @@ def _child(conn, fn, args, kwargs, callables, stdout: int, stderr: int, log_leve
 # --- the caller ----------------------------------------------------------------------------------------------
 
 _in_process = threading.local()
+_children_cpu = [0.0]  # CPU seconds of the stage processes that finished with a result
+
+
+def cpu_seconds() -> float:
+    """CPU seconds (every thread) of this process."""
+    usage = resource.getrusage(resource.RUSAGE_SELF)
+    return usage.ru_utime + usage.ru_stime
+
+
+def stage_cpu_seconds() -> float:
+    """CPU seconds of this process plus those of every stage process that finished here so far."""
+    return cpu_seconds() + _children_cpu[0]
 
 
 @contextlib.contextmanager
@@ -306,6 +320,8 @@ def in_child(fn: Callable[..., T], *args, **kwargs) -> T:
                 target = logging.getLogger(record.name)
                 if target.isEnabledFor(record.levelno):
                     target.handle(record)
+            elif kind == "cpu":
+                _children_cpu[0] += message[1]
             elif kind == "result":
                 return message[1]
             elif kind == "error":

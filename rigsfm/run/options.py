@@ -8,10 +8,12 @@ from __future__ import annotations
 import enum
 import math
 import numbers
+import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from rigsfm.core.errors import InputError
+from rigsfm.core.executors import Executor  # also the command line's
 
 
 def _check_range(name: str, value, low: float, high: float, *, low_open: bool = False, integer: bool = False) -> None:
@@ -37,6 +39,21 @@ class Features(enum.StrEnum):
     ASIFT = "asift"  # affine-simulated SIFT (rigsfm.run.asift), for large perspective changes between rigs
 
 
+class Pairs(enum.StrEnum):
+    """Which pairs of featured images are matched fully (rigsfm.run.features.select_pairs)."""
+
+    AUTO = "auto"  # a cheap first pass picks each image's best partners: about linear in the images
+    EXHAUSTIVE = "exhaustive"  # every pair: quadratic in the images
+
+
+class Device(enum.StrEnum):
+    """Where SIFT extraction and matching run (rigsfm.run.gpu.use_gpu)."""
+
+    AUTO = "auto"  # a CUDA GPU when pycolmap is built with CUDA (rigsfm[gpu]) and one is found, else the CPU
+    CPU = "cpu"
+    CUDA = "cuda"  # the GPU or a clear error
+
+
 class Mapper(enum.StrEnum):
     INCREMENTAL = "incremental"
     GLOBAL = "global"
@@ -57,12 +74,19 @@ class MatchingOptions:
     max_ratio: float = 0.8  # Lowe's ratio test
     cross_check: bool = True  # mutual nearest neighbours
     max_num_features: int = 8192
+    # SIFT's first octave: -1 doubles the image first (COLMAP's default), 0 does not (3.3x less CPU, 2.9x less
+    # memory). None: 0 for networks of rigsfm.run.features.COARSE_SIFT_MIN_FRAMES wide frames or more whose
+    # images are COARSE_SIFT_MIN_SIDE_PX or larger, -1 otherwise (rigsfm.run.features.resolved_first_octave).
+    first_octave: int | None = None
     # Verify pairs of frames with the rigs' generalized relative pose. None: on unless narrow features
     # are extracted (with textured narrow views it took over 15 minutes for 24 images).
     rig_verification: bool | None = None
     narrow_features: bool = False
     max_error_px: float = 4.0  # RANSAC threshold of the two-view geometry
     max_homography_inlier_ratio: float = 0.95
+    pairs: Pairs = Pairs.AUTO
+    neighbours: int = 8  # with pairs auto: the best partners kept per image (of other rigs)
+    device: Device = Device.AUTO
 
     def __post_init__(self) -> None:
         _check_range("--max-ratio (Lowe's ratio test)", self.max_ratio, 0.0, 1.0, low_open=True)
@@ -70,6 +94,9 @@ class MatchingOptions:
         _check_range("max_error_px", self.max_error_px, 0.0, 1000.0, low_open=True)
         _check_range("max_homography_inlier_ratio", self.max_homography_inlier_ratio, 0.0, 1.0, low_open=True)
         self.features = _choice(Features, self.features, "--features")
+        self.pairs = _choice(Pairs, self.pairs, "--pairs")
+        self.device = _choice(Device, self.device, "--device")
+        _check_range("--neighbours", self.neighbours, 1, 10_000, integer=True)
 
     @property
     def resolved_rig_verification(self) -> bool:
@@ -157,7 +184,16 @@ class RunOptions:
     manual_matches: Path | None = None  # CSV of correspondences between wide images (rigsfm.run.manual_matches)
     overwrite: bool = False
     num_threads: int = -1  # every stage; -1: all cores
+    # Feature extraction: local (pycolmap's threads on this machine) or ray (one task per image on a Ray
+    # cluster at ``address``; None starts a local Ray instance with ``workers`` CPUs). Same features either way.
+    executor: Executor = Executor.LOCAL
+    address: str | None = None
+    workers: int = field(default_factory=lambda: max(1, os.cpu_count() or 1))
 
     def __post_init__(self) -> None:
         if self.num_threads != -1:
             _check_range("num_threads (-1: all cores)", self.num_threads, 1, 4096, integer=True)
+        self.executor = _choice(Executor, self.executor, "--executor")
+        _check_range("workers", self.workers, 1, 100_000, integer=True)
+        if self.address is not None and self.executor != Executor.RAY:
+            raise InputError("--address is the address of a Ray cluster: use it with --executor ray")

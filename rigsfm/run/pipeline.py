@@ -20,6 +20,7 @@ from rigsfm.core.io import write_json_atomic
 from rigsfm.core.names import SENSORS, ImageName
 from rigsfm.core.residuals import reprojection_errors
 from rigsfm.core.rig import RigCalibration, load_rigs
+from rigsfm.core.executors import Executor, check_reachable
 from rigsfm.core.stages import in_child
 from rigsfm.core.workspace import Workspace, colmap_log_to, disk_errors_named
 from rigsfm.inspect.report import write_report
@@ -27,7 +28,8 @@ from rigsfm.run.adjust import AdjustResult, ScaleSource, adjust
 from rigsfm.run.database import create_database
 from rigsfm.run.deliver import write_model, write_narrow_poses, write_points_ply
 from rigsfm.run.diagnostics import check_reconstruction
-from rigsfm.run.features import drop_stale_work, extract_features, match_features
+from rigsfm.run.features import (drop_stale_work, extract_features, match_features, pairs_report, resolved_first_octave,
+                                 select_pairs)
 from rigsfm.run.inputs import ImageEntry, rigs_without_narrow, scan_images
 from rigsfm.run.manual_matches import read_manual_matches, validate_manual_matches
 from rigsfm.run.manual_merge import add_manual_matches, manual_matches_summary
@@ -76,16 +78,24 @@ def load_inputs(image_dir: Path, rigs_path: Path, scale_path: Path | None = None
 
 
 class _Timings(dict):
+    """Wall seconds per stage; ``cpu`` holds the CPU seconds per stage (all threads, the stage processes
+    included; on a shared machine the wall time varies with the load, the CPU time much less)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.cpu: dict[str, float] = {}
+
     @contextlib.contextmanager
     def stage(self, name: str) -> Iterator[None]:
-        start = time.perf_counter()
+        start, cpu_start = time.perf_counter(), stages.stage_cpu_seconds()
         try:
             yield
         except BaseException:
             logger.info("Stage %s stopped after %.1f s", name, time.perf_counter() - start)
             raise
         self[name] = round(time.perf_counter() - start, 3)
-        logger.info("Stage %s took %.1f s", name, self[name])
+        self.cpu[name] = round(stages.stage_cpu_seconds() - cpu_start, 3)
+        logger.info("Stage %s took %.1f s (%.1f s CPU)", name, self[name], self.cpu[name])
 
 
 def reprojection_table(reconstruction: pycolmap.Reconstruction) -> dict[str, CameraError]:
@@ -190,6 +200,8 @@ def run(
     with timings.stage("validate"):
         inputs = load_inputs(image_dir, rigs_path, scale_path)
         validate_world_options(options.world)
+        if options.executor == Executor.RAY and options.address:
+            check_reachable(options.address)  # before any work: ray.init would retry an unreachable one for ever
         manual_pairs = {} if options.manual_matches is None else validate_manual_matches(
             options.manual_matches, read_manual_matches(options.manual_matches), inputs.images, inputs.rigs)
     if options.mapping.few_matches is None:
@@ -213,12 +225,15 @@ def _run_locked(workspace: Workspace, inputs: Inputs, manual_pairs: dict, option
         with timings.stage("database"):
             create_database(workspace.database, inputs.rigs, inputs.images)
         with timings.stage("features"):
-            drop_stale_work(workspace.database, workspace.feature_settings, options.matching)
+            drop_stale_work(workspace.database, workspace.feature_settings, options.matching,
+                            resolved_first_octave(workspace.database, inputs.images, options.matching))
             in_child(extract_features, workspace.database, inputs.image_dir, inputs.images, options.matching,
-                     report("features"), num_threads=threads)
+                     report("features"), num_threads=threads, executor=options.executor,
+                     address=options.address, workers=options.workers)
         with timings.stage("matching"):
+            selection = in_child(select_pairs, workspace.database, inputs.images, options.matching)
             in_child(match_features, workspace.database, inputs.images, options.matching, workspace.pairs,
-                     report("matching"), num_threads=threads)
+                     report("matching"), num_threads=threads, selection=selection)
         manual_reports = []
         if manual_pairs:
             with timings.stage("manual_matches"):
@@ -256,6 +271,8 @@ def _run_locked(workspace: Workspace, inputs: Inputs, manual_pairs: dict, option
             write_narrow_poses(result.reconstruction, workspace.narrow_poses, metric=metric, overwrite=True,
                                bands=uncertainty.bands, world=world.to_dict(), ground=ground)
             write_points_ply(result.reconstruction, workspace.points_ply, overwrite=True)
+        with timings.stage("check_pairs"):
+            pairs, pairs_warning = pairs_report(result.reconstruction, selection)
     self_check = None
     if options.self_check.enabled:
         with timings.stage("self_check"):
@@ -270,6 +287,10 @@ def _run_locked(workspace: Workspace, inputs: Inputs, manual_pairs: dict, option
     if self_check is not None:
         summary.epipolar_self_check = self_check.to_dict()
         summary.warnings.extend(self_check.warnings)
+    summary.pairs = pairs
+    summary.cpu_s = dict(timings.cpu)
+    if pairs_warning:
+        summary.warnings.append(pairs_warning)
     if options.manual_matches is not None:
         summary.manual_matches = manual_matches_summary(options.manual_matches, manual_reports)
     summary.uncertainty = uncertainty_summary(result, uncertainty)

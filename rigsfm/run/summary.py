@@ -102,6 +102,8 @@ class Summary:
     world: dict | None = None  # the result's frame and its floor fit (rigsfm.run.world.WorldResult.to_dict)
     epipolar_self_check: dict | None = None  # rigsfm.run.self_check.SelfCheck.to_dict
     uncertainty: UncertaintySummary | None = None  # rigsfm.run.uncertainty
+    pairs: dict | None = None  # rigsfm.run.features.pairs_report: pairs matched, skipped, missed
+    cpu_s: dict[str, float] = field(default_factory=dict)  # CPU seconds per stage (all threads)
 
     def to_json(self) -> dict:
         return asdict(self)

@@ -2,14 +2,10 @@
 
 from __future__ import annotations
 
-import enum
 import os
 from dataclasses import dataclass, field
 
-
-class Executor(enum.StrEnum):
-    LOCAL = "local"  # a process pool on this machine
-    RAY = "ray"  # a Ray cluster (or a local Ray instance)
+from rigsfm.core.executors import Executor  # noqa: F401  (re-exported: rigsfm.track.options.Executor)
 
 
 @dataclass(frozen=True, kw_only=True)

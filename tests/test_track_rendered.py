@@ -19,6 +19,7 @@ from rigsfm.cli import app
 from rigsfm.track import (Executor, FrameTask, TrackOptions, load_reference, register_frame, track,
                           track_report_section)
 from rigsfm.synth.motion import render_recording, shaken_motions
+from support import start_local_ray
 
 NUM_FRAMES, BUMP_AT = 8, 4
 FIRST_BATCH = 5  # frames 0..4 with the local pool, then all with Ray: only 5..7 are new
@@ -47,7 +48,7 @@ def tracked(tmp_path_factory):
     local = track(root / "out", first, TrackOptions(executor=Executor.LOCAL, workers=2))
     import ray
 
-    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
+    start_local_ray(num_cpus=2)
     try:
         streamed = track(root / "out", recording.images, TrackOptions(executor=Executor.RAY))
     finally:

@@ -123,7 +123,7 @@ def run_ray(function: Callable, tasks: Sequence, on_result: OnResult, *, workers
             except (ConnectionError, TimeoutError, RuntimeError) as error:
                 raise InputError(f"cannot connect to the Ray cluster at {address}: {error}") from None
         else:
-            ray.init(num_cpus=max(1, workers), include_dashboard=False, log_to_driver=False)
+            ray.init(address="local", num_cpus=max(1, workers), include_dashboard=False, log_to_driver=False)
     try:
         cpus = int(ray.cluster_resources().get("CPU", workers)) or 1
         logger.info("Ray: %d CPUs on %d node(s), %d tasks", cpus, len(ray.nodes()), len(tasks))

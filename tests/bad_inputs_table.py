@@ -42,7 +42,7 @@ class Case:
     kept: str  # what is kept
     prepare: Callable[[Path], list]  # makes the inputs under the folder, returns the rigsfm arguments
     isolated: str = ""  # a shell prefix (unshare ...) the case needs: run in a child process
-    warning: bool = False  # the row shows the first warning (the run goes on)
+    warning: str = ""  # the row shows the first warning with this tag (the run goes on)
 
 
 def rigs_data() -> dict:
@@ -216,7 +216,7 @@ CASES = [
     Case("images directly in IMAGES/ instead of IMAGES/<rig>/<sensor>/", "nothing is written",
          with_images(lambda images: shutil.copy(images / "rig01" / "wide" / "f0.png", images / "f0.png"))),
     Case("a rig without a narrow folder (a warning: the run goes on)", "the run goes on; its narrow camera gets no pose",
-         with_images(lambda images: shutil.rmtree(images / "rig02" / "narrow")), warning=True),
+         with_images(lambda images: shutil.rmtree(images / "rig02" / "narrow")), warning="NO NARROW IMAGES"),
     # --- scale.yaml
     Case("scale.yaml naming a camera that does not exist", "nothing is written",
          with_scale({"camera_distance": [{"a": "rig01/wide", "b": "rig03/wide", "meters": 12.0}]})),
@@ -245,7 +245,7 @@ CASES = [
     Case("`--out` a folder with other files in it", "the folder is untouched",
          lambda root: (inputs(root), (root / "out").mkdir(), (root / "out" / "thesis.tex").write_text("x"), RUN)[3]),
     Case("`rigsfm run` again on a finished OUT without `--overwrite`", "the result is untouched",
-         on_workspace(lambda out: None, RUN)),
+         on_workspace(lambda out: (out / "summary.json").write_text("{}"), RUN)),  # summary.json: finished
     Case("a second `rigsfm run` on an OUT in use", "the first run goes on undisturbed", out_in_use),
     Case("OUT on a full disk", "finished stages are kept: free space and re-run to resume",
          lambda root: RUN, isolated="mount -t tmpfs -o size=300k tmpfs out &&"),
@@ -272,11 +272,13 @@ CASES = [
 ]
 
 
-def first_message(output: str, warning: bool = False) -> str:
-    """The error line (with ``warning``: the first warning line), else the usage error, of a command's output."""
+def first_message(output: str, warning: str = "") -> str:
+    """The error line (with ``warning``: the first warning line with that tag), else the usage error, of a
+    command's output."""
     lines = [line.strip() for line in output.splitlines() if line.strip()]
-    warnings = [re.sub(r"^WARNING\s+", "warning: ", line) for line in lines if line.startswith("WARNING")]
-    if warning and warnings:
+    warnings = [re.sub(r"^WARNING\s+", "warning: ", line) for line in lines
+                if line.startswith("WARNING") and warning and warning in line]
+    if warnings:
         return warnings[0]
     for prefix in ("error:", "internal error:"):
         found = [line for line in lines if line.startswith(prefix)]

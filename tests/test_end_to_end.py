@@ -15,20 +15,16 @@ from rigsfm.synth.demo import score
 from rigsfm.run.pipeline import RunResult
 from rigsfm.calibrate.uncertainty import load_sigmas
 from rigsfm.core.rig import load_rigs
-from rigsfm.synth.dataset import render_dataset
-from rigsfm.synth.scene import SceneOptions
+from conftest import copy_run
 
 
 @pytest.fixture(scope="module")
-def scene(tmp_path_factory):
-    root = tmp_path_factory.mktemp("e2e")
-    dataset = render_dataset(root / "scene", SceneOptions(num_rigs=3, arc_deg=120.0, image_scale=0.5, seed=1))
-    out = root / "out"
+def scene(three_rig_run, tmp_path_factory):
+    dataset, shared, output = three_rig_run  # the session's run (conftest), copied: these tests re-run in OUT
+    out = copy_run(shared, tmp_path_factory.mktemp("e2e") / "out")
     args = ["run", str(dataset.images), "--rigs", str(dataset.rigs), "--scale", str(dataset.scale),
             "--out", str(out)]
-    result = CliRunner().invoke(app, args)
-    assert result.exit_code == 0, result.output
-    return dataset, out, args, result.output
+    return dataset, out, args, output
 
 
 def test_every_camera_registered_metric_and_reported(scene):

@@ -17,6 +17,7 @@ import cv2
 import numpy as np
 import pycolmap
 import pytest
+from conftest import copy_run
 import yaml
 from typer.testing import CliRunner
 
@@ -25,9 +26,7 @@ from rigsfm.core.errors import InputError
 from rigsfm.core.workspace import Workspace
 from rigsfm.inspect.export import MANIFEST
 from rigsfm.run.pipeline import RunResult
-from rigsfm.synth.dataset import render_dataset
 from rigsfm.synth.demo import score
-from rigsfm.synth.scene import SceneOptions
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -44,13 +43,9 @@ def one_error_line(result) -> str:
 
 
 @pytest.fixture(scope="module")
-def scene(tmp_path_factory):
-    root = tmp_path_factory.mktemp("faults")
-    dataset = render_dataset(root / "scene", SceneOptions(num_rigs=3, arc_deg=120.0, image_scale=0.5, seed=1))
-    out = root / "out"
-    result = invoke("run", dataset.images, "--rigs", dataset.rigs, "--scale", dataset.scale, "--out", out)
-    assert result.exit_code == 0, result.output
-    return dataset, out
+def scene(three_rig_run, tmp_path_factory):
+    dataset, shared, _ = three_rig_run  # the session's run (conftest), copied: faults are made in OUT
+    return dataset, copy_run(shared, tmp_path_factory.mktemp("faults") / "out")
 
 
 def copy_workspace(out: Path, where: Path) -> Path:

@@ -11,6 +11,7 @@ import cv2
 import numpy as np
 import pycolmap
 import pytest
+from conftest import copy_run
 from typer.testing import CliRunner
 
 from support import launch_chromium
@@ -18,20 +19,15 @@ from rigsfm.core.errors import WorkspaceError
 from rigsfm.cli import app
 from rigsfm.inspect.export import export
 from rigsfm.inspect.options import ExportFormat, ExportOptions
-from rigsfm.run.pipeline import run
-from rigsfm.synth.dataset import render_dataset
-from rigsfm.synth.scene import SceneOptions
 from rigsfm.inspect.viewer import NARROW_RGB, WIDE_RGB
 
 NAMES = sorted(f"rig0{i}/{s}/frame0000.png" for i in (1, 2, 3) for s in ("narrow", "wide"))
 
 
 @pytest.fixture(scope="module")
-def result(tmp_path_factory):
-    root = tmp_path_factory.mktemp("report")
-    dataset = render_dataset(root / "scene", SceneOptions(num_rigs=3, arc_deg=120.0, image_scale=0.5, seed=1))
-    out = root / "out"
-    run(dataset.images, dataset.rigs, out, dataset.scale)
+def result(three_rig_run, tmp_path_factory):
+    dataset, shared, _ = three_rig_run  # the session's run (conftest), copied: reports are rewritten in OUT
+    out = copy_run(shared, tmp_path_factory.mktemp("report") / "out")
     return dataset, out, pycolmap.Reconstruction(out / "sparse")
 
 

@@ -12,13 +12,12 @@ import pytest
 from typer.testing import CliRunner
 
 from rigsfm.core.conventions import rotation_angle_deg
-from rigsfm.run.pipeline import RunOptions, run
-from rigsfm.synth.dataset import render_dataset
 from rigsfm.synth.scene import SceneOptions
 from rigsfm.cli import app
 from rigsfm.track import (Executor, FrameTask, TrackOptions, load_reference, register_frame, track,
                           track_report_section)
 from rigsfm.synth.motion import render_recording, shaken_motions
+from conftest import copy_run
 from support import start_local_ray
 
 NUM_FRAMES, BUMP_AT = 8, 4
@@ -26,11 +25,11 @@ FIRST_BATCH = 5  # frames 0..4 with the local pool, then all with Ray: only 5..7
 
 
 @pytest.fixture(scope="module")
-def tracked(tmp_path_factory):
+def tracked(three_rig_run, tmp_path_factory):
     root = tmp_path_factory.mktemp("track")
     scene = SceneOptions(num_rigs=3, arc_deg=120.0, image_scale=0.5, seed=1)
-    dataset = render_dataset(root / "scene", scene)
-    run(dataset.images, dataset.rigs, root / "out", dataset.scale, RunOptions())
+    dataset, shared, _ = three_rig_run  # the session's run of this scene (conftest), copied: track writes in OUT
+    copy_run(shared, root / "out")
     rng = np.random.default_rng(5)
     motions = {
         "rig01": shaken_motions(NUM_FRAMES, rng, (0.0, 0.0), (0.0, 0.0)),  # still

@@ -18,7 +18,7 @@ from synthetic_db import make_network, perturbed_model
 from rigsfm.calibrate.uncertainty import RigSigmas, add_sigmas
 from rigsfm.core.errors import InputError
 from rigsfm.core.geometry import project_world
-from rigsfm.core.rig import RigCalibration, rigs_to_yaml
+from rigsfm.core.rig import RigCalibration, load_rigs, rigs_to_yaml
 from rigsfm.core.workspace import Workspace
 from rigsfm.run.adjust import Gauge, JointProblem, ScaleSource, adjust, sensor_from_rig_view
 from rigsfm.run.costs import CameraDistanceCost, CentreTerm, LengthCost, quaternion_plus_jacobian
@@ -68,6 +68,7 @@ def test_missing_sigmas_get_the_good_board_defaults_and_a_warning_naming_the_rig
     cov = np.diag(np.r_[np.radians([0.02, 0.03, 0.01]), 2e-4, 3e-4, 4e-4] ** 2)
     cov[0, 4] = cov[4, 0] = 0.5 * np.sqrt(cov[0, 0] * cov[4, 4])
     path = _rigs_yaml(tmp_path, rigs, {"rig01": _honest(covariance=cov), "rig03": _honest(translation_m=None)})
+    rigs = load_rigs(path)  # the sigmas ride on RigCalibration.sigmas
     priors = calibration_priors(rigs, path)
     np.testing.assert_allclose(priors["rig01"].wide, _honest().wide)
     np.testing.assert_allclose(priors["rig01"].narrow_from_wide, cov, rtol=1e-6)  # correlations kept
@@ -87,15 +88,15 @@ def test_missing_sigmas_get_the_good_board_defaults_and_a_warning_naming_the_rig
     assert calibration_priors(rigs[:1], path).warning() is None
 
 
-@pytest.mark.parametrize("where, value, message", [
-    ("wide", -0.5, r"rig rig02 sensor wide sigmas .*expected 8 finite numbers >= 0"),  # load_sigmas' check
+@pytest.mark.parametrize("where, value, message", [  # rigsfm.core.rig.load_rigs refuses them at validation
+    ("wide", -0.5, r"rig rig02 sensor wide sigmas .*expected 8 finite numbers >= 0"),
     ("wide", float("nan"), r"rig rig02 sensor wide sigmas .*expected 8 finite numbers >= 0"),
-    ("narrow", 0.0, r"rig02 sensor narrow sigmas \(fx\): is 0"),
-    ("narrow", 400.0, r"rig02 sensor narrow sigmas \(fx\): 400 px is over 10 % of the focal length 3600"),
-    ("rotation", 6.0, r"rig02 narrow_from_wide sigma_rotation_deg: rotation sigma 6 deg about x is over 5 deg"),
-    ("rotation", 0.0, r"rig02 narrow_from_wide sigma_rotation_deg: every entry must be a finite number > 0"),
-    ("translation", 0.0, r"rig02 narrow_from_wide sigma_translation_m: every entry must be a finite number > 0"),
-    ("covariance", 0.0, r"rig02 narrow_from_wide covariance: must be positive definite"),
+    ("narrow", 0.0, r"rig rig02 sensor narrow sigmas .*the focal length's sigma 0 px must be > 0 and at most 10 %"),
+    ("narrow", 400.0, r"rig rig02 sensor narrow sigmas .*sigma 400 px must be > 0 and at most 10 % of 3600 px"),
+    ("rotation", 6.0, r"rig rig02 narrow_from_wide sigma_rotation_deg: each must be > 0 and at most 5 degrees"),
+    ("rotation", 0.0, r"rig rig02 narrow_from_wide sigma_rotation_deg: each must be > 0"),
+    ("translation", 0.0, r"rig rig02 narrow_from_wide sigma_translation_m: each must be > 0"),
+    ("covariance", 0.0, r"rig rig02 narrow_from_wide covariance: must be positive definite"),
 ])
 def test_bad_sigmas_are_refused_with_one_line_naming_rig_and_key(tmp_path, where, value, message):
     sigmas = _honest()
@@ -115,7 +116,7 @@ def test_bad_sigmas_are_refused_with_one_line_naming_rig_and_key(tmp_path, where
     path = tmp_path / "rigs.yaml"
     path.write_text(yaml.safe_dump(data, sort_keys=False))
     with pytest.raises(InputError, match=message) as error:
-        calibration_priors(rigs, path)
+        calibration_priors(load_rigs(path), path)
     assert "\n" not in str(error.value)
 
 

@@ -73,5 +73,5 @@ def self_check_truth(pair, estimate: pycolmap.Reconstruction, truth: pycolmap.Re
     image = truth.find_image_with_name(pair.i)
     xy, ok = image_to_plane(image, pair.xy_i, 0.0)
     world = np.c_[xy[ok], np.zeros(ok.sum())]
-    distances, _ = correspondence_check(estimate, truth, pair.i, pair.j, world)
+    distances = correspondence_check(estimate, truth, pair.i, pair.j, world)
     return distances

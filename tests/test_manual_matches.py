@@ -141,16 +141,16 @@ def test_simulated_clicks_are_exact_spread_and_on_every_kind_of_structure(scenes
 
 
 def test_weak_automatic_matches_are_flagged(scenes):
-    """160 degrees apart. SIFT matches one patch of the stands only: two exact poses, and the mapper picks
-    the wrong one (19 deg off). ASIFT finds 15 matches, 4 of them wrong, that fit a fundamental matrix but
-    no essential matrix (44 deg off). Both results must say so (the 60-degree pair above has no warning)."""
+    """160 degrees apart. SIFT matches one patch of the stands only: two exact poses, and which one the mapper
+    keeps is chance (the wrong one, 19 deg off, before the initial pair was checked with COLMAP's own test; the
+    right one, 0.3 deg, since). ASIFT finds 15 matches, 4 of them wrong, that fit a fundamental matrix but no
+    essential matrix. Both results must say so, right or wrong (the 60-degree pair above has no warning)."""
     root, _, _ = scenes
     apart = render_dataset(root / "160", replace(WIDE_APART, arc_deg=160.0))
     for features, weakness in (("sift", r"\d+ matches on one plane"),
                                ("asift", r"\d+ matches fitting no essential matrix of the calibrated cameras")):
         options = RunOptions(matching=MatchingOptions(features=Features(features)))
         result = run(apart.images, apart.rigs, root / f"160_{features}", apart.scale, options)
-        assert _narrow_rotation_error(result.reconstruction, apart) > 5.0
         (warning,) = [w for w in result.summary.warnings if w.startswith("POSE AMBIGUOUS")]
         assert re.search(f"rig01, rig02 are tied to the other rigs only by weak matches .rig01-rig02: {weakness}.",
                          warning), warning
@@ -158,7 +158,7 @@ def test_weak_automatic_matches_are_flagged(scenes):
 
 def test_manual_merge_is_idempotent_and_drops_stale_rows(scenes, tmp_path):
     _, apart, _ = scenes
-    rows, _ = synthetic_correspondences(apart, seed=3)
+    rows, outliers = synthetic_correspondences(apart, seed=3)
     options = RunOptions(manual_matches=write_manual_matches(tmp_path / "m.csv", rows), overwrite=True)
     run(apart.images, apart.rigs, tmp_path / "out", apart.scale, options)
     first = json.loads((tmp_path / "out" / "summary.json").read_text())["manual_matches"]
@@ -171,9 +171,10 @@ def test_manual_merge_is_idempotent_and_drops_stale_rows(scenes, tmp_path):
         assert db.read_two_view_geometry(1, 3).inlier_matches.shape[0] == first["pairs"][0]["inliers_after"]
     second = json.loads((tmp_path / "out" / "summary.json").read_text())["manual_matches"]
     assert second == first
-    # An edited CSV (fewer rows): the dropped rows' matches leave the database. (Few enough rows stay that the
-    # network still maps: with 11 kept matches COLMAP's initial-pair test accepts no pair and the run fails.)
-    options.manual_matches = write_manual_matches(tmp_path / "m.csv", rows[:-6])
+    # An edited CSV without two good rows: their matches leave the database. (Only two: with ~11 kept matches
+    # COLMAP's initial-pair test accepts no pair of this 170-degree network and the run stops with an error.)
+    good = [i for i, bad in enumerate(outliers) if not bad]
+    options.manual_matches = write_manual_matches(tmp_path / "m.csv", [r for i, r in enumerate(rows) if i not in good[-2:]])
     third = run(apart.images, apart.rigs, tmp_path / "out", apart.scale, options).summary.manual_matches
     with pycolmap.Database.open(tmp_path / "out" / "database.db") as db:
         assert [db.num_keypoints_for_image(i) for i in (1, 3)] == sizes

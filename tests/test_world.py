@@ -15,6 +15,7 @@ from typer.testing import CliRunner
 from rigsfm.cli import app
 from rigsfm.core.errors import InputError
 from rigsfm.core.ground import footprints, image_to_plane
+from rigsfm.inspect.report.figures import STEREO_SVG
 from rigsfm.run.deliver import narrow_poses
 from rigsfm.run.options import WorldFrame, WorldOptions
 from rigsfm.run.world import ground_maps, place_in_world, validate_world_options
@@ -164,7 +165,7 @@ def test_report_shows_the_floor_map_and_the_self_check(tmp_path):
     assert "sparse 6" in world and "towards the first registered rig of rigs.yaml (rig01)" in world
     svg = world[world.index("<svg"):world.index("</svg>")]
     assert svg.count("<title>rig0") == 4  # one footprint per narrow camera
-    assert 'fill="#28aa28"' in svg  # the areas seen by two or more narrow cameras
+    assert f'fill="{STEREO_SVG}"' in svg  # the areas seen by two or more narrow cameras
     assert "seen by two or more narrow cameras: " in world.replace("Area seen", "seen")
     check = page[page.index("<h2>Epipolar self-check"):]
     assert '<span class="warn">failed</span>' in check and "14" in check and "4.5" in check

@@ -198,8 +198,8 @@ def run(
     stages.start(preload=STAGE_MODULES)  # imports them in the stages' forkserver while the inputs are checked
     timings = _Timings()
     with timings.stage("validate"):
+        validate_world_options(options.world)  # the options first: no input warnings before their refusal
         inputs = load_inputs(image_dir, rigs_path, scale_path)
-        validate_world_options(options.world)
         if options.executor == Executor.RAY and options.address:
             check_reachable(options.address)  # before any work: ray.init would retry an unreachable one for ever
         manual_pairs = {} if options.manual_matches is None else validate_manual_matches(

@@ -12,6 +12,8 @@ from rigsfm.run.pipeline import RunOptions, run
 from rigsfm.synth.dataset import render_dataset
 from rigsfm.synth.scene import SceneOptions
 
+pytestmark = pytest.mark.slow  # end-to-end runs on rendered images (`-m 'not slow'` skips them)
+
 
 def test_descriptors_in_colmap_rootsift_form():
     rng = np.random.default_rng(0)

@@ -7,6 +7,8 @@ import numpy as np
 import pycolmap
 import pytest
 
+pytestmark = pytest.mark.slow  # end-to-end runs on rendered images (`-m 'not slow'` skips them)
+
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from benchmarks.baselines.paper import PairResult, relative_scale, run_paper

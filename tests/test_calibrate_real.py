@@ -141,6 +141,7 @@ def _jackknife(samples: np.ndarray) -> np.ndarray:
     return np.sqrt((k - 1) / k * ((samples - samples.mean(0)) ** 2).sum(0))
 
 
+@pytest.mark.slow  # 13 leave-one-pair-out calibrations
 def test_sigmas_match_the_leave_one_pair_out_spread(result, tmp_path):
     """The written sigmas against the jackknife spread of the calibration over the 13 leave-one-pair-out runs
     (ours, and OpenCV's stereo_calib recipe for scale). Corner errors on these real images are correlated

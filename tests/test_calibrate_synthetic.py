@@ -25,6 +25,8 @@ from rigsfm.core.conventions import rotation_angle_deg
 from rigsfm.core.errors import WorkspaceError
 from rigsfm.core.rig import load_rigs
 
+pytestmark = pytest.mark.slow  # end-to-end runs on rendered images (`-m 'not slow'` skips them)
+
 SPEC = {"type": "charuco", "squares": [11, 8], "square": 0.06, "marker": 0.045, "dictionary": "DICT_5X5_100"}
 RIG = default_hybrid_rig()  # wide f = 640 px, narrow f = 2560 px, 960x720, baseline 12 cm
 

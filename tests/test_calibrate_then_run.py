@@ -1,3 +1,4 @@
+import pytest
 """Calibrate the arena's rigs from rendered ChArUco views, then run the pipeline with the written rigs.yaml."""
 
 import numpy as np
@@ -14,6 +15,8 @@ from rigsfm.run.pipeline import RunResult
 from rigsfm.core.rig import load_rigs
 from rigsfm.synth.dataset import render_dataset
 from rigsfm.synth.scene import SceneOptions
+
+pytestmark = pytest.mark.slow  # end-to-end runs on rendered images (`-m 'not slow'` skips them)
 
 BOARD = {"type": "charuco", "squares": [11, 8], "square": 0.06, "marker": 0.045, "dictionary": "DICT_5X5_100"}
 

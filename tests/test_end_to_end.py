@@ -17,6 +17,8 @@ from rigsfm.calibrate.uncertainty import load_sigmas
 from rigsfm.core.rig import load_rigs
 from conftest import copy_run
 
+pytestmark = pytest.mark.slow  # end-to-end runs on rendered images (`-m 'not slow'` skips them)
+
 
 @pytest.fixture(scope="module")
 def scene(three_rig_run, tmp_path_factory):

@@ -28,6 +28,8 @@ from rigsfm.inspect.export import MANIFEST
 from rigsfm.run.pipeline import RunResult
 from rigsfm.synth.demo import score
 
+pytestmark = pytest.mark.slow  # end-to-end runs on rendered images (`-m 'not slow'` skips them)
+
 REPO = Path(__file__).resolve().parents[1]
 
 

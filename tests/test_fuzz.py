@@ -25,6 +25,8 @@ from rigsfm.run.inputs import ImageEntry
 from rigsfm.run.manual_matches import read_manual_matches, validate_manual_matches
 from rigsfm.run.scale_file import load_scale
 
+pytestmark = pytest.mark.slow  # hypothesis examples by the hundred (`-m 'not slow'` skips them)
+
 HEALTH = [HealthCheck.function_scoped_fixture, HealthCheck.too_slow]
 FUZZ = settings(max_examples=200, deadline=None, suppress_health_check=HEALTH)
 FUZZ_YAML = settings(max_examples=100, deadline=None, suppress_health_check=HEALTH)  # PyYAML parses ~10 ms a file

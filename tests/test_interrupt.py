@@ -34,6 +34,8 @@ from rigsfm.synth.dataset import render_dataset
 from rigsfm.synth.scene import SceneOptions
 from rigsfm.synth.truth import compare_to_ground_truth
 
+pytestmark = pytest.mark.slow  # end-to-end runs on rendered images (`-m 'not slow'` skips them)
+
 ROOT = Path(__file__).resolve().parent.parent
 SCENE = SceneOptions(num_rigs=4, arc_deg=90.0, textured_centre=True, image_scale=0.5, seed=0)
 

@@ -32,6 +32,8 @@ from rigsfm.synth.dataset import render_dataset
 from rigsfm.synth.scene import SceneOptions, build_arena
 from rigsfm.core.geometry import sampson_error_px
 
+pytestmark = pytest.mark.slow  # end-to-end runs on rendered images (`-m 'not slow'` skips them)
+
 A, B = "rig01/wide/frame0000.png", "rig02/wide/frame0000.png"
 # 170 degrees apart with wide-angle lenses (focal 500 px, 117 degrees across): the rigs nearly face each
 # other and share only the sides of the arena, seen from opposite directions; SIFT finds no match at all.

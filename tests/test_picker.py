@@ -14,6 +14,8 @@ from rigsfm.synth.clicks import farthest_points
 from rigsfm.synth.dataset import render_dataset
 from rigsfm.synth.scene import SceneOptions
 
+pytestmark = pytest.mark.slow  # end-to-end runs on rendered images (`-m 'not slow'` skips them)
+
 
 
 @pytest.fixture(scope="module")

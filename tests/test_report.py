@@ -21,6 +21,8 @@ from rigsfm.inspect.export import export
 from rigsfm.inspect.options import ExportFormat, ExportOptions
 from rigsfm.inspect.viewer import NARROW_RGB, WIDE_RGB
 
+pytestmark = pytest.mark.slow  # end-to-end runs on rendered images (`-m 'not slow'` skips them)
+
 NAMES = sorted(f"rig0{i}/{s}/frame0000.png" for i in (1, 2, 3) for s in ("narrow", "wide"))
 
 

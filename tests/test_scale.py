@@ -102,6 +102,7 @@ def _wide(rig: int) -> str:
     return f"rig{rig:02d}/wide/frame0000.png"
 
 
+@pytest.mark.slow  # the rendered 8-rig circle
 def test_auto_pairs_keep_each_rigs_circle_neighbours(circle):
     _, root, result = circle
     pairs = json.loads((root / "out" / "summary.json").read_text())["pairs"]
@@ -120,6 +121,7 @@ def test_auto_pairs_keep_each_rigs_circle_neighbours(circle):
     assert len(matched) == pairs["matched"]
 
 
+@pytest.mark.slow  # the rendered 8-rig circle
 def test_auto_pairs_reach_the_oracle(circle):
     dataset, _, result = circle
     accuracy = score(result, dataset)
@@ -131,24 +133,28 @@ def test_auto_pairs_reach_the_oracle(circle):
     assert not [w for w in result.summary.warnings if w.startswith("PAIRS MISSED")]
 
 
+@pytest.mark.slow  # the rendered 8-rig circle
 def test_a_skipped_strong_pair_is_flagged(circle):
-    """Skip rig01-rig02 (45 degrees apart) but match every pair 135 degrees apart: the model says the skipped
-    pair shares far more points than those, so it is reported; the run's own selection reports nothing."""
+    """Skip rig01-rig02 (45 degrees apart) but match every pair 90 degrees apart: the model says the skipped
+    pair shares over twice the points of those (1892 vs 784-871 here), so it is reported; the run's own
+    selection reports nothing. (Pairs 135 degrees apart share no point seen within 40 degrees: matched pairs that
+    share nothing in the model set no bar.)"""
     _, _, result = circle
     reconstruction = result.reconstruction
     n = NUM_RIGS
     near = [(_wide(i), _wide(i % n + 1)) for i in range(1, n + 1)]
-    far = [(_wide(i), _wide((i + 2) % n + 1)) for i in range(1, n + 1)]
+    far = [(_wide(i), _wide((i + 1) % n + 1)) for i in range(1, n + 1)]
     pairs = [tuple(sorted(p)) for p in near[1:] + far]
     skipped = tuple(sorted(near[0]))
     selection = PairSelection(Pairs.AUTO, pairs, 28, {p: 0 for p in [*pairs, skipped]})
     missed = missed_pairs(reconstruction, selection)
     assert [(m.image_a, m.image_b) for m in missed] == [skipped]
-    assert missed[0].predicted_points > 2 * missed[0].weakest_matched >= 0
+    assert missed[0].predicted_points > 2 * missed[0].weakest_matched > 0
     exhaustive = PairSelection(Pairs.EXHAUSTIVE, [*pairs, skipped], 28)
     assert missed_pairs(reconstruction, exhaustive) == []
 
 
+@pytest.mark.slow  # the rendered 8-rig circle
 def test_extract_one_scales_large_images_like_colmap(circle, tmp_path):
     """A 400-pixel limit makes COLMAP scale the 812-pixel images down; one task must do exactly the same."""
     dataset, _, _ = circle

@@ -20,6 +20,8 @@ from rigsfm.synth.motion import render_recording, shaken_motions
 from conftest import copy_run
 from support import start_local_ray
 
+pytestmark = pytest.mark.slow  # end-to-end runs on rendered images (`-m 'not slow'` skips them)
+
 NUM_FRAMES, BUMP_AT = 8, 4
 FIRST_BATCH = 5  # frames 0..4 with the local pool, then all with Ray: only 5..7 are new
 

@@ -10,6 +10,8 @@ import pytest
 from rigsfm.synth.dataset import render_dataset
 from rigsfm.synth.scene import SceneOptions
 
+pytestmark = pytest.mark.slow  # end-to-end runs on rendered images (`-m 'not slow'` skips them)
+
 WORKFLOWS = Path(__file__).resolve().parents[1] / "workflows"
 
 

@@ -47,7 +47,7 @@ logger = logging.getLogger(__name__)
 Progress = Callable[[str, int, int], None]
 
 # The heavy stages run in a child process (rigsfm.core.stages: Ctrl-C and SIGTERM stop them at once).
-STAGE_MODULES = ("rigsfm.run.features", "rigsfm.run.mapping", "rigsfm.run.adjust")
+STAGE_MODULES = ("rigsfm.run.features", "rigsfm.run.mapping", "rigsfm.run.adjust", "rigsfm.run.uncertainty")
 
 
 @dataclass(frozen=True)

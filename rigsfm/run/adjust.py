@@ -609,7 +609,11 @@ def _adjust_refined(mapped: pycolmap.Reconstruction, rigs: Sequence[RigCalibrati
             if summary.termination_type != pyceres.TerminationType.NO_CONVERGENCE:
                 break
         removed = filter_outliers(rec, options.max_reprojection_error_px)
-        new_sigma = estimate_pixel_sigma(rec, options.max_reprojection_error_px)
+        try:
+            new_sigma = estimate_pixel_sigma(rec, options.max_reprojection_error_px)
+        except ReconstructionError:  # fewer observations than unknowns (two rigs, a dozen matches): keep the last
+            logger.warning("Too few observations to re-estimate the pixel noise: %.3f px kept", pixel_sigma)
+            new_sigma = pixel_sigma
         logger.info("Adjustment round %d: %d observations dropped, pixel noise %.3f -> %.3f px", rounds, removed,
                     pixel_sigma, new_sigma)
         settled = abs(new_sigma / pixel_sigma - 1.0) < 0.05

@@ -274,7 +274,7 @@ def test_ray_address_nobody_listens_on_is_refused_at_once(scene, tmp_path):
     assert result.exit_code == 1
     assert (f"cannot reach the Ray cluster at 127.0.0.1:{port} (connection refused: nothing listens on that port)"
             in one_error_line(result))
-    from rigsfm.track.executors import check_reachable
+    from rigsfm.core.executors import check_reachable
 
     with pytest.raises(InputError, match=r"--address 'head': expected HOST:PORT, ray://HOST:PORT or auto"):
         check_reachable("head")

@@ -24,7 +24,7 @@ from rigsfm.run.adjust import Gauge, JointProblem, ScaleSource, adjust, sensor_f
 from rigsfm.run.costs import CameraDistanceCost, CentreTerm, LengthCost, quaternion_plus_jacobian
 from rigsfm.run.mapping import run_mapping
 from rigsfm.run.options import AdjustOptions, Calibration, MappingOptions
-from rigsfm.run.priors import calibration_priors, pose_prior_residual_covariance, tangent_covariance_from_residual
+from rigsfm.run.priors import calibration_priors, draw_calibration, pose_prior_residual_covariance, tangent_covariance_from_residual
 from rigsfm.run.scale_file import CameraDistance, ScaleSpec
 from rigsfm.run.uncertainty import (_PairModel, band_points, correspondence_check, distances_under, epipolar_lines,
                                     estimate_uncertainty, line_distances, pooled_quantile, pooled_shifted_quantile)
@@ -261,7 +261,7 @@ def refined_network(tmp_path_factory):
     root = tmp_path_factory.mktemp("refined")
     net = make_network(root, num_rigs=3, seed=8, noise_px=0.5)
     mapped = run_mapping(Workspace(root), root, MappingOptions(), num_wide=3).reconstruction
-    user = _perturbed_calibration(net.rigs, calibration_priors(net.rigs), np.random.default_rng(8))
+    user = draw_calibration(net.rigs, calibration_priors(net.rigs), np.random.default_rng(8))
     result = adjust(mapped, user, _scale_spec(root, net, 3))
     return net, result
 
@@ -400,24 +400,6 @@ def _scale_spec(root: Path, net, last: int) -> ScaleSpec:
     return ScaleSpec(root / "scale.yaml", (CameraDistance(a, b, metres),), ())
 
 
-def _perturbed_calibration(rigs, priors, rng) -> list[RigCalibration]:
-    """rigs.yaml as a board calibration with exactly the priors' uncertainty would leave it."""
-    out = []
-    for rig in rigs:
-        prior = priors[rig.name]
-        cameras = {}
-        for sensor in ("wide", "narrow"):
-            camera = rig.camera(sensor)
-            params = np.asarray(camera.params) + rng.standard_normal(len(camera.params)) * prior.sensor(sensor)
-            cameras[sensor] = pycolmap.Camera(model=camera.model, width=camera.width, height=camera.height,
-                                              params=params)
-        d = rng.multivariate_normal(np.zeros(6), prior.narrow_from_wide)
-        pose = rig.narrow_from_wide
-        out.append(RigCalibration(rig.name, cameras["wide"], cameras["narrow"], pycolmap.Rigid3d(
-            pycolmap.Rotation3d(d[:3]) * pose.rotation, np.asarray(pose.translation) + d[3:])))
-    return out
-
-
 def _true_points(truth: pycolmap.Reconstruction, name_i: str, name_j: str, rng, n: int = 3000) -> np.ndarray:
     """World points on random pixels of true narrow camera i at depths uniform in inverse depth between 0.1x and
     100x the pair's distance (the band's analysis points without a floor)."""
@@ -443,7 +425,7 @@ def test_band_coverage_on_networks_with_a_known_calibration_error(tmp_path):
         root.mkdir()
         net = make_network(root, num_rigs=4, seed=100 + seed, noise_px=0.5)
         mapped = run_mapping(Workspace(root), root, MappingOptions(), num_wide=4).reconstruction
-        user = _perturbed_calibration(net.rigs, calibration_priors(net.rigs), np.random.default_rng(seed))
+        user = draw_calibration(net.rigs, calibration_priors(net.rigs), np.random.default_rng(seed))
         result = adjust(mapped, user, _scale_spec(root, net, 4), AdjustOptions(pixel_sigma_inflation=1.0))
         assert result.scale_source == ScaleSource.MEASUREMENTS
         uncertainty = estimate_uncertainty(result)

@@ -24,6 +24,7 @@ import numpy as np
 import pycolmap
 
 from rigsfm.core.names import name_of
+from rigsfm.core.graph import DisjointSets
 from rigsfm.run.scale import ScaleEstimate
 from rigsfm.core.geometry import PLANAR, Config, sampson_error_px
 from rigsfm.run.database import open_database
@@ -58,20 +59,10 @@ def loosely_tied_rigs(reconstruction: pycolmap.Reconstruction) -> list[str]:
 
 def _groups(rigs: list[str], links: Iterable[tuple[str, str]]) -> list[list[str]]:
     """Connected components of the rigs under ``links``."""
-    parent = {rig: rig for rig in rigs}
-
-    def root(rig: str) -> str:
-        while parent[rig] != rig:
-            parent[rig] = parent[parent[rig]]
-            rig = parent[rig]
-        return rig
-
+    sets = DisjointSets(rigs)
     for a, b in links:
-        parent[root(a)] = root(b)
-    groups: dict[str, list[str]] = {}
-    for rig in rigs:
-        groups.setdefault(root(rig), []).append(rig)
-    return list(groups.values())
+        sets.union(a, b)
+    return sets.groups()
 
 
 WEAK = {**dict.fromkeys(PLANAR, "on one plane"),

@@ -39,6 +39,7 @@ import pycolmap
 
 from rigsfm.core.errors import InputError
 from rigsfm.core.executors import Executor, map_unordered
+from rigsfm.core.graph import DisjointSets
 from rigsfm.core.geometry import project_world
 from rigsfm.core.names import ImageName
 from rigsfm.run.gpu import use_gpu
@@ -344,21 +345,8 @@ def first_pass_scores(descriptors: dict[str, np.ndarray], pairs: Sequence[tuple[
 
 def _spanning_tree(nodes: Sequence[str], edges: dict[tuple[str, str], float]) -> list[tuple[str, str]]:
     """Maximum spanning forest (Kruskal) of ``nodes`` under ``edges`` (pair -> weight)."""
-    parent = {node: node for node in nodes}
-
-    def root(node: str) -> str:
-        while parent[node] != node:
-            parent[node] = parent[parent[node]]
-            node = parent[node]
-        return node
-
-    tree = []
-    for (a, b), _ in sorted(edges.items(), key=lambda item: (-item[1], item[0])):
-        ra, rb = root(a), root(b)
-        if ra != rb:
-            parent[ra] = rb
-            tree.append((a, b))
-    return tree
+    sets = DisjointSets(nodes)
+    return [(a, b) for (a, b), _ in sorted(edges.items(), key=lambda item: (-item[1], item[0])) if sets.union(a, b)]
 
 
 def select_pairs(database_path: Path, images: Sequence[ImageEntry], options: MatchingOptions) -> PairSelection:

@@ -121,13 +121,6 @@ def wide_pairs(database: pycolmap.Database) -> list[WidePair]:
     return sorted(pairs, reverse=True)
 
 
-def best_pair_inliers(database_path: Path) -> int:
-    """Verified inliers of the best wide-wide pair of two different rigs (0 if none)."""
-    with open_database(database_path) as database:
-        pairs = wide_pairs(database)
-    return pairs[0].inliers if pairs else 0
-
-
 # COLMAP relaxes a failed initialisation twice by halving init_min_num_inliers, then init_min_tri_angle.
 RELAXATIONS = ((1, 1), (2, 1), (2, 2), (4, 2), (4, 4))
 MAX_INITIAL_PAIR_TESTS = 100  # 0.05-0.1 s each

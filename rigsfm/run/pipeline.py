@@ -57,6 +57,7 @@ class Inputs:
     images: list[ImageEntry]
     scale: ScaleSpec | None
     priors: CalibrationPriors | None = None  # the calibration's uncertainty (rigs.yaml's sigmas or defaults)
+    without_narrow: tuple[str, ...] = ()  # rigsfm.run.inputs.rigs_without_narrow: one line per rig
 
 
 @dataclass
@@ -71,10 +72,11 @@ def load_inputs(image_dir: Path, rigs_path: Path, scale_path: Path | None = None
     rigs = load_rigs(rigs_path)
     priors = calibration_priors(rigs, rigs_path)
     images = scan_images(image_dir, rigs)
-    for line in rigs_without_narrow(image_dir, images, rigs):
+    without_narrow = tuple(rigs_without_narrow(image_dir, images, rigs))
+    for line in without_narrow:
         logger.warning("NO NARROW IMAGES: %s", line)
     scale = load_scale(scale_path, images, rigs) if scale_path is not None else None
-    return Inputs(Path(image_dir), rigs, images, scale, priors)
+    return Inputs(Path(image_dir), rigs, images, scale, priors, without_narrow)
 
 
 class _Timings(dict):
@@ -151,8 +153,7 @@ def build_summary(inputs: Inputs, options: RunOptions, mapping: MappingResult, r
         warnings.append(inputs.priors.warning())
     if unregistered:
         warnings.append(f"{len(unregistered)} image(s) not registered: {', '.join(unregistered[:5])}")
-    warnings.extend(f"NO NARROW IMAGES: {line}" for line in rigs_without_narrow(inputs.image_dir, inputs.images,
-                                                                               inputs.rigs))
+    warnings.extend(f"NO NARROW IMAGES: {line}" for line in inputs.without_narrow)
     return Summary(
         rigsfm_version=rigsfm.__version__,
         pycolmap_version=pycolmap.__version__,

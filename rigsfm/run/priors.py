@@ -258,3 +258,23 @@ def calibration_priors(rigs: Sequence[RigCalibration], rigs_path: Path | None = 
     for camera, names in held.items():
         logger.warning("No default uncertainty for %s's %s: held at rigs.yaml's values", camera, ", ".join(names))
     return result
+
+
+def draw_calibration(rigs: Sequence[RigCalibration], priors: CalibrationPriors,
+                     rng: np.random.Generator) -> list[RigCalibration]:
+    """rigs.yaml as it might have been: every intrinsic and E^sl moved by one draw of its prior (E^sl as
+    R = Exp(w) R, t + dt, the tangent of ``RigPrior.narrow_from_wide``)."""
+    out = []
+    for rig in rigs:
+        prior = priors[rig.name]
+        cameras = {}
+        for sensor in ("wide", "narrow"):
+            camera = rig.camera(sensor)
+            params = np.asarray(camera.params) + rng.standard_normal(len(camera.params)) * prior.sensor(sensor)
+            cameras[sensor] = pycolmap.Camera(model=camera.model, width=camera.width, height=camera.height,
+                                              params=params)
+        d = rng.multivariate_normal(np.zeros(6), prior.narrow_from_wide)
+        pose = rig.narrow_from_wide
+        out.append(RigCalibration(rig.name, cameras["wide"], cameras["narrow"], pycolmap.Rigid3d(
+            pycolmap.Rotation3d(d[:3]) * pose.rotation, np.asarray(pose.translation) + d[3:])))
+    return out

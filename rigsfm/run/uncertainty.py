@@ -59,7 +59,7 @@ from rigsfm.core.names import name_of
 from rigsfm.run.adjust import (AdjustResult, Gauge, JointProblem, ScaleSource, estimate_pixel_sigma,
                                sensor_from_rig_view)
 from rigsfm.run.options import Calibration
-from rigsfm.run.priors import calibration_priors
+from rigsfm.run.priors import calibration_priors, draw_calibration
 
 logger = logging.getLogger(__name__)
 
@@ -771,27 +771,6 @@ def distances_under(estimate: pycolmap.Reconstruction, draw: pycolmap.Reconstruc
     return out
 
 
-def _drawn_calibration(result: AdjustResult, rng: np.random.Generator) -> list:
-    """rigs.yaml as it might have been: every intrinsic and E^sl moved by one draw of its prior."""
-    from rigsfm.core.rig import RigCalibration
-
-    priors = result.priors or calibration_priors(result.rigs)
-    out = []
-    for rig in result.rigs:
-        prior = priors[rig.name]
-        cameras = {}
-        for sensor in ("wide", "narrow"):
-            camera = rig.camera(sensor)
-            params = np.asarray(camera.params) + rng.standard_normal(len(camera.params)) * prior.sensor(sensor)
-            cameras[sensor] = pycolmap.Camera(model=camera.model, width=camera.width, height=camera.height,
-                                              params=params)
-        d = rng.multivariate_normal(np.zeros(6), prior.narrow_from_wide)
-        pose = rig.narrow_from_wide
-        out.append(RigCalibration(rig.name, cameras["wide"], cameras["narrow"], pycolmap.Rigid3d(
-            pycolmap.Rotation3d(d[:3]) * pose.rotation, np.asarray(pose.translation) + d[3:])))
-    return out
-
-
 def pooled_shifted_quantile(shifts: np.ndarray, sigmas: np.ndarray, probability: float = BAND_PROBABILITY) -> float:
     """``b`` with ``mean P(|shift + N(0, sigma^2)| <= b) = probability`` over all entries (bisection)."""
     sigmas = np.where(sigmas > 0, sigmas, 1e-12)
@@ -823,9 +802,10 @@ def sampled_pair_bands(result: AdjustResult, plane: Plane | None, num_draws: int
     rng = np.random.default_rng(seed)
     draws = []
     options = replace(result.options, max_rounds=1)  # from the estimate, its outliers already gone: one solve
+    priors = result.priors or calibration_priors(result.rigs)
     for _ in range(num_draws):
         try:
-            draws.append(adjust(estimate, _drawn_calibration(result, rng), result.scale_spec, options,
+            draws.append(adjust(estimate, draw_calibration(result.rigs, priors, rng), result.scale_spec, options,
                                 result.priors, with_covariance=False).reconstruction)
         except ReconstructionError as error:
             logger.info("A calibration draw failed to adjust: %s", error)

@@ -14,7 +14,7 @@ from dataclasses import replace
 from pathlib import Path
 
 from rigsfm.core.errors import InputError
-from rigsfm.core.executors import Executor, check_reachable, map_unordered  # noqa: F401 (check_reachable: track's)
+from rigsfm.core.executors import Executor, map_unordered
 from rigsfm.track.options import RegistrationOptions
 from rigsfm.track.reference import ReferenceMap
 from rigsfm.track.register import FrameTask, register_frame

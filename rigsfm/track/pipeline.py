@@ -27,7 +27,8 @@ from rigsfm.core.io import write_bytes_atomic, write_json_atomic, write_text_ato
 from rigsfm.core.rig import RigCalibration
 from rigsfm.core.workspace import TrackPaths, Workspace
 from rigsfm.run.inputs import scan_images
-from rigsfm.track.executors import check_reachable, run_frames
+from rigsfm.core.executors import check_reachable
+from rigsfm.track.executors import run_frames
 from rigsfm.track.options import TrackOptions
 from rigsfm.track.plot import plot_rig
 from rigsfm.track.reference import ReferenceMap, load_reference

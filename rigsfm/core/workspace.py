@@ -334,11 +334,19 @@ def os_error_text(error: OSError) -> str:
     return causes.get(error.errno, error.strerror or type(error).__name__)
 
 
+class _LogFileHandler(logging.FileHandler):
+    """colmap.log's handler: a record it cannot write (a full disk) is dropped; the error itself reaches the user
+    as rigsfm's one line, not as logging's report on stderr."""
+
+    def handleError(self, record: logging.LogRecord) -> None:
+        pass
+
+
 @contextlib.contextmanager
 def colmap_log_to(path: Path) -> Iterator[None]:
     """Send COLMAP's log (glog on the process's stderr) and rigsfm's own log records to ``path``."""
     path.parent.mkdir(parents=True, exist_ok=True)
-    handler = logging.FileHandler(path)
+    handler = _LogFileHandler(path)
     handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
     root_logger = logging.getLogger("rigsfm")
     saved_level = root_logger.level
@@ -351,7 +359,10 @@ def colmap_log_to(path: Path) -> Iterator[None]:
     try:
         yield
     finally:
-        sys.stderr.flush()
+        try:
+            sys.stderr.flush()
+        except OSError:  # the log's disk is full: what Python held for it is lost, the terminal's stderr is not
+            pass
         os.dup2(saved_fd, 2)
         os.close(saved_fd)
         root_logger.removeHandler(handler)

@@ -9,7 +9,6 @@ from rigsfm.run.asift import asift_features, colmap_sift_descriptors
 from rigsfm.synth.truth import compare_to_ground_truth
 from rigsfm.run.options import Features, MatchingOptions
 from rigsfm.run.pipeline import RunOptions, run
-from rigsfm.synth.dataset import render_dataset
 from rigsfm.synth.scene import SceneOptions
 
 pytestmark = pytest.mark.slow  # end-to-end runs on rendered images (`-m 'not slow'` skips them)
@@ -32,9 +31,9 @@ def test_descriptors_in_colmap_rootsift_form():
 
 
 @pytest.fixture(scope="module")
-def pair(tmp_path_factory):
+def pair(tmp_path_factory, rendered):
     root = tmp_path_factory.mktemp("asift")
-    dataset = render_dataset(root / "scene", SceneOptions(num_rigs=2, arc_deg=60.0, image_scale=0.5, seed=2))
+    dataset = rendered(SceneOptions(num_rigs=2, arc_deg=60.0, image_scale=0.5, seed=2))
     return root, dataset
 
 

@@ -13,7 +13,6 @@ from rigsfm.core.conventions import opencv_from_colmap_pixels, rotation_angle_de
 from rigsfm.synth.demo import score
 from rigsfm.run.pipeline import RunResult
 from rigsfm.core.rig import load_rigs
-from rigsfm.synth.dataset import render_dataset
 from rigsfm.synth.scene import SceneOptions
 
 pytestmark = pytest.mark.slow  # end-to-end runs on rendered images (`-m 'not slow'` skips them)
@@ -29,8 +28,8 @@ def synth_camera(camera) -> SynthCamera:
     return SynthCamera(K, np.array([k1, k2, p1, p2, 0.0]), (camera.width, camera.height))
 
 
-def test_calibrated_rigs_yaml_drives_a_run(tmp_path):
-    dataset = render_dataset(tmp_path / "arena", SceneOptions(num_rigs=2, arc_deg=60.0, image_scale=0.5, seed=2))
+def test_calibrated_rigs_yaml_drives_a_run(tmp_path, rendered):
+    dataset = rendered(SceneOptions(num_rigs=2, arc_deg=60.0, image_scale=0.5, seed=2))
     exact = load_rigs(dataset.rigs_exact)
     spec = board_spec_from_dict(BOARD)
     for index, rig in enumerate(exact):

@@ -17,7 +17,8 @@ from typer.testing import CliRunner
 from rigsfm.cli import app
 from rigsfm.core.errors import ReconstructionError
 from rigsfm.synth.truth import compare_to_ground_truth
-from rigsfm.run.options import Features, MatchingOptions
+from rigsfm.run.options import (Features, MatchingOptions, SelfCheckOptions, WorldFrame,
+                                WorldOptions)
 from rigsfm.run.manual_matches import (
     Correspondence,
     DegenerateCorrespondencesError,
@@ -111,17 +112,23 @@ def test_sift_fails_and_manual_matches_register_the_pair(scenes):
     assert manual_error < 1.0
     # The pipeline adds nothing to the clicks' own limit: with exact clicks only the calibration errors of
     # rigs.yaml remain, within 2x of the SIFT pair (measured 0.13 vs 0.10 deg)...
+    # (Each click set re-runs the same workspace with --overwrite, as a user re-clicking would: the SIFT
+    # features are reused, the manual matches replaced; relative rotations need neither the floor frame nor the
+    # self-check.)
     exact_rows, _ = synthetic_correspondences(apart, noise_px=0.0, outlier_fraction=0.0)
-    exact = run(apart.images, apart.rigs, root / "exact", apart.scale,
-                RunOptions(manual_matches=write_manual_matches(root / "exact.csv", exact_rows)))
+    again = RunOptions(overwrite=True, world=WorldOptions(frame=WorldFrame.MAPPING),
+                       self_check=SelfCheckOptions(enabled=False))
+    exact = run(apart.images, apart.rigs, root / "sift_only", apart.scale,
+                replace(again, manual_matches=write_manual_matches(root / "exact.csv", exact_rows)))
     assert _narrow_rotation_error(exact.reconstruction, apart) < 2.0 * reference_error
     # ...and more clicks shrink the noise: with 60 clicks (48 good) the median over ten click sets is within
     # 2x (measured 0.144 deg, 1.4x; the sets range 0.096-0.336 deg; benchmarks/separation.py).
     errors = []
     for seed in range(10):
         rows, _ = synthetic_correspondences(apart, n=60, seed=seed)
-        result = run(apart.images, apart.rigs, root / f"sixty{seed}", apart.scale,
-                     RunOptions(manual_matches=write_manual_matches(root / f"sixty{seed}.csv", rows)))
+        result = run(apart.images, apart.rigs, root / "sift_only", apart.scale,
+                     replace(again, manual_matches=write_manual_matches(root / f"sixty{seed}.csv", rows)))
+        assert result.summary.manual_matches["pairs"][0]["given"] == 60  # this set's clicks, not the last set's
         errors.append(_narrow_rotation_error(result.reconstruction, apart))
     print(f"\nreference {reference_error:.3f}, 34 clicks {manual_error:.3f}, 60 clicks {np.round(errors, 3)} deg")
     assert np.median(errors) < 2.0 * reference_error

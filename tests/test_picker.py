@@ -11,7 +11,6 @@ from support import launch_chromium
 from rigsfm.run.manual_matches import read_manual_matches
 from rigsfm.pick import start_picker
 from rigsfm.synth.clicks import farthest_points
-from rigsfm.synth.dataset import render_dataset
 from rigsfm.synth.scene import SceneOptions
 
 pytestmark = pytest.mark.slow  # end-to-end runs on rendered images (`-m 'not slow'` skips them)
@@ -19,9 +18,8 @@ pytestmark = pytest.mark.slow  # end-to-end runs on rendered images (`-m 'not sl
 
 
 @pytest.fixture(scope="module")
-def dataset(tmp_path_factory):
-    root = tmp_path_factory.mktemp("picker")
-    return render_dataset(root / "scene", SceneOptions(num_rigs=2, arc_deg=60.0, image_scale=0.5, seed=4))
+def dataset(rendered):
+    return rendered(SceneOptions(num_rigs=2, arc_deg=60.0, image_scale=0.5, seed=4))
 
 
 @pytest.fixture()

@@ -28,7 +28,6 @@ from rigsfm.run.features import (PairSelection, extract_features, extract_one, f
 from rigsfm.run.gpu import cuda_device_count, decide, use_gpu
 from rigsfm.run.options import Device, MatchingOptions, Pairs, RunOptions
 from rigsfm.run.pipeline import load_inputs, run
-from rigsfm.synth.dataset import render_dataset
 from rigsfm.synth.demo import score
 from rigsfm.synth.scene import SceneOptions
 
@@ -90,9 +89,9 @@ def test_local_executor_runs_every_task_in_worker_processes():
 
 
 @pytest.fixture(scope="module")
-def circle(tmp_path_factory):
+def circle(tmp_path_factory, rendered):
     root = tmp_path_factory.mktemp("scale")
-    dataset = render_dataset(root / "scene", SceneOptions(num_rigs=NUM_RIGS, image_scale=0.5, seed=0))
+    dataset = rendered(SceneOptions(num_rigs=NUM_RIGS, image_scale=0.5, seed=0))
     options = RunOptions(matching=MatchingOptions(pairs=Pairs.AUTO, neighbours=2), num_threads=2)
     result = run(dataset.images, dataset.rigs, root / "out", dataset.scale, options)
     return dataset, root, result

@@ -32,8 +32,8 @@ def project(camera, pose, points):
 
 
 @pytest.fixture(scope="module")
-def dataset(tmp_path_factory):
-    return render_dataset(tmp_path_factory.mktemp("arena") / "data", OPTIONS)
+def dataset(rendered):
+    return rendered(OPTIONS)
 
 
 @pytest.fixture(scope="module")

@@ -7,7 +7,6 @@ from pathlib import Path
 
 import pytest
 
-from rigsfm.synth.dataset import render_dataset
 from rigsfm.synth.scene import SceneOptions
 
 pytestmark = pytest.mark.slow  # end-to-end runs on rendered images (`-m 'not slow'` skips them)
@@ -73,8 +72,8 @@ def test_four_rig_circle_is_flagged_as_undetermined(tmp_path):
     assert any(w.startswith("SHAPE NOT DETERMINED") for w in warnings)
 
 
-def test_own_folders(tmp_path):
-    dataset = render_dataset(tmp_path / "scene", SceneOptions(num_rigs=2, arc_deg=60.0, image_scale=0.5, seed=4))
+def test_own_folders(tmp_path, rendered):
+    dataset = rendered(SceneOptions(num_rigs=2, arc_deg=60.0, image_scale=0.5, seed=4))
     out = run_workflow("own_folders.py", dataset.images, dataset.rigs, tmp_path / "out", "--scale", dataset.scale)
     assert "rig01/narrow/frame0000.png -> rig02/narrow/frame0000.png" in out and "F_ji" in out
     poses = json.loads((tmp_path / "out" / "narrow_poses.json").read_text())

@@ -43,9 +43,9 @@ def world_numbers(narrow: dict, rec: pycolmap.Reconstruction, truth: pycolmap.Re
 
 
 @pytest.fixture(scope="module")
-def arena(tmp_path_factory):
+def arena(tmp_path_factory, rendered):
     root = tmp_path_factory.mktemp("arena")
-    dataset = render_dataset(root / "scene", SceneOptions(num_rigs=8, image_scale=0.5, seed=0))
+    dataset = rendered(SceneOptions(num_rigs=8, image_scale=0.5, seed=0))
     truth = dataset.load_ground_truth()
     results = {}
     for label, rigs in (("exact", dataset.rigs_exact), ("realistic", dataset.rigs)):

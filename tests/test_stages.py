@@ -66,6 +66,20 @@ def test_result_arguments_and_child_process():
     assert pid != os.getpid()
 
 
+def _allocate(megabytes):
+    import numpy as np
+
+    block = np.ones(int(megabytes * 2**20 // 8))  # touched: resident
+    return float(block[-1]), stages.cpu_seconds()
+
+
+def test_cpu_seconds_and_peak_memory_of_stage_processes_are_counted():
+    cpu_before, peak_before = stages.stage_cpu_seconds(), stages.stage_peak_rss_mb()
+    _, child_cpu = in_child(_allocate, peak_before + 300)  # more than this process ever held
+    assert stages.stage_peak_rss_mb() >= peak_before + 300 > stages.peak_rss_mb()
+    assert stages.stage_cpu_seconds() - cpu_before >= child_cpu > 0
+
+
 def test_in_process_switch_runs_in_the_caller():
     with stages.in_process():
         assert in_child(_add, 1, 1)[1] == os.getpid()

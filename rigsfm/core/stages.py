@@ -197,7 +197,7 @@ def _child(conn, fn, args, kwargs, callables, stdout: int, stderr: int, log_leve
             kwargs[key] = _Forward(conn, key)
     try:
         result = fn(*args, **kwargs)
-        _send(conn, ("cpu", cpu_seconds()))
+        _send(conn, ("cpu", cpu_seconds(), peak_rss_mb()))
     except BaseException as error:  # noqa: BLE001 - every failure goes back to the caller
         text = traceback.format_exc()
         try:
@@ -215,6 +215,7 @@ def _child(conn, fn, args, kwargs, callables, stdout: int, stderr: int, log_leve
 
 _in_process = threading.local()
 _children_cpu = [0.0]  # CPU seconds of the stage processes that finished with a result
+_children_peak_mb = [0.0]  # the largest peak resident memory of those processes
 
 
 def cpu_seconds() -> float:
@@ -226,6 +227,24 @@ def cpu_seconds() -> float:
 def stage_cpu_seconds() -> float:
     """CPU seconds of this process plus those of every stage process that finished here so far."""
     return cpu_seconds() + _children_cpu[0]
+
+
+def peak_rss_mb() -> float:
+    """This process's peak resident memory (MB, C++ allocations included): Linux's VmHWM (a stage process's
+    starts at the forkserver's resident size, the modules it preloaded), else ``ru_maxrss``."""
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("VmHWM:"):
+                return int(line.split()[1]) / 1024.0
+    except OSError:
+        pass
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def stage_peak_rss_mb() -> float:
+    """The peak resident memory (MB) of this process or of any stage process that finished here so far,
+    whichever is larger (a run's peak: the stages run one at a time)."""
+    return max(peak_rss_mb(), _children_peak_mb[0])
 
 
 @contextlib.contextmanager
@@ -322,6 +341,7 @@ def in_child(fn: Callable[..., T], *args, **kwargs) -> T:
                     target.handle(record)
             elif kind == "cpu":
                 _children_cpu[0] += message[1]
+                _children_peak_mb[0] = max(_children_peak_mb[0], message[2])
             elif kind == "result":
                 return message[1]
             elif kind == "error":

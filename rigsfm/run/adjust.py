@@ -332,9 +332,7 @@ class JointProblem:
             ba.ceres.loss_function_type = pycolmap.LossFunctionType.TRIVIAL
         solver = ba.ceres.solver_options
         solver.max_num_iterations = options.max_iterations
-        # 1e-6, not 1e-9: on a 32-rig circle the tighter tolerance took 55 + 40 LM iterations (0.35 s each) for a
-        # cost change of 3e-6 relative, and moved the poses by 2e-5 deg and 12 um (the bands are ~8 px wide).
-        solver.function_tolerance = 1e-6
+        solver.function_tolerance = 1e-9
         solver.gradient_tolerance = 1e-10
         solver.parameter_tolerance = 1e-9
         self.ba_options = ba

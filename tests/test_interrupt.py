@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import math
 import os
 import signal
 import subprocess
@@ -201,10 +202,25 @@ def _without_times(value):
     return value
 
 
+def _differences(a, b, where: str = "") -> list[str]:
+    """Where ``a`` and ``b`` (JSON values) differ: structure, strings, or numbers beyond a relative 1e-9."""
+    if isinstance(a, dict) and isinstance(b, dict):
+        if a.keys() != b.keys():
+            return [f"{where}: keys {sorted(a.keys() ^ b.keys())}"]
+        return [d for k in a for d in _differences(a[k], b[k], f"{where}/{k}")]
+    if isinstance(a, (list, tuple)) and isinstance(b, (list, tuple)):
+        if len(a) != len(b):
+            return [f"{where}: {len(a)} != {len(b)} entries"]
+        return [d for k, (x, y) in enumerate(zip(a, b)) for d in _differences(x, y, f"{where}[{k}]")]
+    if isinstance(a, float) and isinstance(b, float):
+        return [] if math.isclose(a, b, rel_tol=1e-9, abs_tol=1e-12) else [f"{where}: {a!r} != {b!r}"]
+    return [] if a == b else [f"{where}: {a!r} != {b!r}"]
+
+
 def _results(out: Path) -> tuple[dict, dict]:
     summary = json.loads((out / "summary.json").read_text())
     summary.pop("options")
-    return _without_times(summary), json.loads((out / "narrow_poses.json").read_text())
+    return _without_times(summary), _without_times(json.loads((out / "narrow_poses.json").read_text()))
 
 
 @pytest.mark.slow
@@ -280,4 +296,6 @@ def test_stages_in_a_child_give_the_same_result_as_in_process(scene, tmp_path):
         with context:
             run(scene.images, scene.rigs, tmp_path / mode, scene.scale)
         results[mode] = _results(tmp_path / mode)
-    assert results["child"] == results["in_process"]  # every number of summary.json and narrow_poses.json
+    # Every number of summary.json and narrow_poses.json, to rounding: the floor fit differs in its last digits
+    # (rms 0.007947384508614944 against ...615355), as a floating-point sum does with another memory layout.
+    assert _differences(results["child"], results["in_process"]) == []

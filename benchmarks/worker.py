@@ -32,16 +32,16 @@ def import_common() -> None:
     import rigsfm.run.pipeline  # noqa: F401
 
 
-def peak_rss_mb() -> float | None:
-    """This process's peak resident memory (VmHWM), C++ allocations included.
+def peak_rss_mb() -> float:
+    """The run's peak resident memory (MB, VmHWM, C++ allocations included): this process's or that of any of
+    rigsfm's stage processes, whichever is larger (``rigsfm.core.stages.stage_peak_rss_mb``).
 
     Not ``ru_maxrss`` from the parent's ``wait4``: Linux carries the parent's peak RSS at fork over
     the exec into the child's ru_maxrss, so every child would report at least the parent's size.
     """
-    for line in Path("/proc/self/status").read_text().splitlines():
-        if line.startswith("VmHWM:"):
-            return round(int(line.split()[1]) / 1024, 1)
-    return None
+    from rigsfm.core.stages import stage_peak_rss_mb
+
+    return round(stage_peak_rss_mb(), 1)
 
 
 def cpu_seconds() -> float:
@@ -138,9 +138,7 @@ def main(argv: list[str] | None = None) -> int:
     report["method"] = args.method
     report["time_s"] = round(time.perf_counter() - start, 3)
     report["cpu_s"] = round(cpu_seconds() - cpu_start, 3)
-    from rigsfm.core.stages import stage_peak_rss_mb
-
-    report["peak_rss_mb"] = max(peak_rss_mb() or 0.0, round(stage_peak_rss_mb(), 1))  # rigsfm's stage processes too
+    report["peak_rss_mb"] = peak_rss_mb()
     (args.out / "worker.json").write_text(json.dumps(report, indent=1, default=str))
     return 0 if report["ok"] else 1
 

@@ -552,6 +552,14 @@ class JointProblem:
             raise ReconstructionError(f"bundle adjustment with calibration priors failed: {summary.BriefReport()}")
         return summary
 
+    def solve_to_convergence(self) -> pyceres.SolverSummary:
+        """:meth:`solve` again (up to ``MAX_SOLVES_PER_ROUND`` times) while Ceres stops at its iteration limit."""
+        for _ in range(MAX_SOLVES_PER_ROUND):
+            summary = self.solve()
+            if summary.termination_type != pyceres.TerminationType.NO_CONVERGENCE:
+                break
+        return summary
+
     def scale_estimate(self) -> ScaleEstimate | None:
         """The measurements against the current model, as a ``ScaleEstimate`` of 1 metre per unit (they are
         inside the adjustment: no scale is fitted afterwards)."""
@@ -607,11 +615,8 @@ def _adjust_refined(mapped: pycolmap.Reconstruction, rigs: Sequence[RigCalibrati
         problem = JointProblem(rec, rigs, priors, scale_spec, options, pixel_sigma, gauge=gauge, robust=robust)
         problem.ba_options.ceres.solver_options.function_tolerance = (
             FINAL_FUNCTION_TOLERANCE if options.max_rounds == 1 else ROUND_FUNCTION_TOLERANCE)
-        for _ in range(MAX_SOLVES_PER_ROUND):  # a long reshape: go on until Ceres converges, then judge outliers
-            summary = problem.solve()
-            logger.debug("Adjustment round %d: %s", rounds, summary.BriefReport())
-            if summary.termination_type != pyceres.TerminationType.NO_CONVERGENCE:
-                break
+        summary = problem.solve_to_convergence()  # a long reshape: go on until Ceres converges, then judge outliers
+        logger.debug("Adjustment round %d: %s", rounds, summary.BriefReport())
         removed = filter_outliers(rec, options.max_reprojection_error_px)
         try:
             new_sigma = estimate_pixel_sigma(rec, options.max_reprojection_error_px)
@@ -630,9 +635,7 @@ def _adjust_refined(mapped: pycolmap.Reconstruction, rigs: Sequence[RigCalibrati
         # problem: the last round's refers to the observations and points filter_outliers may have deleted.
         problem = JointProblem(rec, rigs, priors, scale_spec, options, pixel_sigma, gauge=gauge, robust=True)
         problem.ba_options.ceres.solver_options.function_tolerance = FINAL_FUNCTION_TOLERANCE
-        for _ in range(MAX_SOLVES_PER_ROUND):
-            if problem.solve().termination_type != pyceres.TerminationType.NO_CONVERGENCE:
-                break
+        problem.solve_to_convergence()
     scale = problem.scale_estimate()
     for row in problem.unused:
         logger.warning("Scale measurement left out: %s", row)

@@ -15,9 +15,10 @@ os.environ.pop("COLUMNS", None)
 
 # The suite runs on one pytest-xdist worker per core (pyproject: ``-n auto --dist loadgroup``; ``-n 0`` for one
 # process, e.g. under a debugger). Each module goes to one worker whole, so its module fixtures (rendered scenes,
-# runs) are made once. The modules of SHARED_WORKER share one worker: they use the session's 3-rig run
-# (``three_rig_run``) or start Ray, and two Ray instances started at once on one machine would compete.
-SHARED_WORKER = {"test_end_to_end", "test_faults", "test_report", "test_track_rendered", "test_scale"}
+# runs) are made once. The modules of SHARED_WORKER share one worker: they start Ray, and two Ray instances
+# started at once on one machine would compete. Scenes and the 3-rig run are shared by every worker through
+# files (``rendered``, ``three_rig_run``).
+SHARED_WORKER = {"test_track_rendered", "test_scale"}
 
 
 @pytest.hookimpl(tryfirst=True)  # before xdist's own hook reads the groups
@@ -27,25 +28,37 @@ def pytest_collection_modifyitems(items):
         item.add_marker(pytest.mark.xdist_group("shared" if module in SHARED_WORKER else module))
 
 
+def _shared_root(tmp_path_factory) -> Path:
+    """A folder every xdist worker of this session sees (the workers' common base temp)."""
+    base = tmp_path_factory.getbasetemp()
+    root = (base.parent if os.environ.get("PYTEST_XDIST_WORKER") else base) / "shared"
+    root.mkdir(exist_ok=True)
+    return root
+
+
+def _once(root: Path, key: str, make):
+    """``make(folder)``'s picklable result, made by the first worker that asks for ``key`` in this session
+    (the others wait on its lock and read it back)."""
+    with open(root / f"{key}.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        done = root / f"{key}.pickle"
+        if not done.exists():
+            done.write_bytes(pickle.dumps(make(root / key)))
+        return pickle.loads(done.read_bytes())
+
+
 @pytest.fixture(scope="session")
 def rendered(tmp_path_factory):
     """``rendered(SceneOptions) -> SyntheticDataset``: each scene rendered once per test session, for every
-    module and every xdist worker (a folder of the session's base temp, a lock per scene). Read-only: a test that
-    changes a scene's files renders its own with ``render_dataset``."""
+    module and every xdist worker. Read-only: a test that changes a scene's files renders its own with
+    ``render_dataset``."""
     from rigsfm.synth.dataset import render_dataset
 
-    base = tmp_path_factory.getbasetemp()
-    root = (base.parent if os.environ.get("PYTEST_XDIST_WORKER") else base) / "scenes"
-    root.mkdir(exist_ok=True)
+    root = _shared_root(tmp_path_factory)
 
     def render(options):
         key = hashlib.sha1(repr(options).encode()).hexdigest()[:16]
-        with open(root / f"{key}.lock", "w") as lock:
-            fcntl.flock(lock, fcntl.LOCK_EX)  # another worker rendering this scene: wait for it
-            if not (root / f"{key}.pickle").exists():
-                dataset = render_dataset(root / key, options, overwrite=True)
-                (root / f"{key}.pickle").write_bytes(pickle.dumps(dataset))
-            return pickle.loads((root / f"{key}.pickle").read_bytes())
+        return _once(root, key, lambda folder: render_dataset(folder, options, overwrite=True))
 
     return render
 
@@ -53,21 +66,24 @@ def rendered(tmp_path_factory):
 @pytest.fixture(scope="session")
 def three_rig_run(tmp_path_factory):
     """The 3-rig 120° arc (seed 1, image scale 0.5) rendered once and run once through the CLI with its defaults,
-    shared by test_end_to_end, test_faults, test_report and test_track_rendered: ``(dataset, out, output)``.
-    Treat both as read-only: a module that writes into OUT works on :func:`copy_run`'s copy."""
+    for the whole session (every xdist worker), shared by test_end_to_end, test_faults, test_report and
+    test_track_rendered: ``(dataset, out, output)``. Treat both as read-only: a module that writes into OUT works
+    on :func:`copy_run`'s copy."""
     from typer.testing import CliRunner
 
     from rigsfm.cli import app
     from rigsfm.synth.dataset import render_dataset
     from rigsfm.synth.scene import SceneOptions
 
-    root = tmp_path_factory.mktemp("three_rigs")
-    dataset = render_dataset(root / "scene", SceneOptions(num_rigs=3, arc_deg=120.0, image_scale=0.5, seed=1))
-    out = root / "out"
-    result = CliRunner().invoke(app, ["run", str(dataset.images), "--rigs", str(dataset.rigs), "--scale",
-                                      str(dataset.scale), "--out", str(out)])
-    assert result.exit_code == 0, result.output
-    return dataset, out, result.output
+    def make(root: Path):
+        dataset = render_dataset(root / "scene", SceneOptions(num_rigs=3, arc_deg=120.0, image_scale=0.5, seed=1))
+        out = root / "out"
+        result = CliRunner().invoke(app, ["run", str(dataset.images), "--rigs", str(dataset.rigs), "--scale",
+                                          str(dataset.scale), "--out", str(out)])
+        assert result.exit_code == 0, result.output
+        return dataset, out, result.output
+
+    return _once(_shared_root(tmp_path_factory), "three_rigs", make)
 
 
 def copy_run(out: Path, where: Path) -> Path:

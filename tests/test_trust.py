@@ -266,6 +266,25 @@ def refined_network(tmp_path_factory):
     return net, result
 
 
+def test_images_that_disagree_with_the_priors_are_kept_and_flagged_not_emptied(tmp_path):
+    """Every observation of rig03 moved 40 px in a random direction: after the first round no observation of any
+    frame is within 4 px. Filtering them all left Ceres a problem without images, which crashed the process
+    (SIGSEGV; the 160-degree ASIFT pair of test_manual_matches). The images stay and the result says so."""
+    net = make_network(tmp_path, num_rigs=3, seed=8, noise_px=0.5)
+    mapped = perturbed_model(net.ground_truth, seed=8)
+    rng = np.random.default_rng(0)
+    for point in mapped.find_image_with_name("rig03/wide/frame0000.png").points2D:
+        if point.has_point3D():
+            angle = rng.uniform(0.0, 2.0 * np.pi)
+            point.xy = point.xy + 40.0 * np.array([np.cos(angle), np.sin(angle)])
+    result = adjust(mapped, net.rigs, _scale_spec(tmp_path, net, 3))
+    (warning,) = result.warnings
+    assert warning.startswith("ADJUSTMENT INCONSISTENT: after adjustment round 1") and "rig03" in warning
+    assert result.reconstruction.num_points3D() == mapped.num_points3D()
+    assert all(result.reconstruction.find_image_with_name(f"rig{k:02d}/wide/frame0000.png").num_points3D == 600
+               for k in (1, 2, 3))
+
+
 def _exact_distances(model: _PairModel, z: np.ndarray, pixels: np.ndarray, depths: np.ndarray) -> np.ndarray:
     """The band's quantity without linearisation: move frames, E^sl and cameras by ``z`` (our tangents), then the
     distance of the drawn truth's correspondence from the estimated line."""

@@ -116,6 +116,7 @@ class AdjustResult:
     rounds: int = 0
     seconds: float = 0.0
     covariance: JointCovariance | None = None  # rigsfm.run.uncertainty.joint_covariance, once computed
+    warnings: list[str] = field(default_factory=list)  # for the run's summary
 
 
 def restore_calibration(reconstruction: pycolmap.Reconstruction, rigs: Sequence[RigCalibration]) -> None:
@@ -190,6 +191,15 @@ def constrained_bundle_adjustment(
 def filter_outliers(reconstruction: pycolmap.Reconstruction, max_error_px: float) -> int:
     manager = pycolmap.ObservationManager(reconstruction)
     return manager.filter_all_points3D(max_error_px, 0.5)
+
+
+def frames_without_points(reconstruction: pycolmap.Reconstruction) -> list[str]:
+    """Rig names of the registered frames none of whose images observes a 3D point."""
+    observed = {reconstruction.image(i).frame_id for i in reconstruction.reg_image_ids()
+                if reconstruction.image(i).num_points3D > 0}
+    return sorted(name_of(reconstruction.image(next(d.id for d in reconstruction.frame(f).data_ids
+                                                         if d.sensor_id.type == pycolmap.SensorType.CAMERA))).rig
+                  for f in reconstruction.reg_frame_ids() if f not in observed)
 
 
 def adjust(
@@ -607,7 +617,7 @@ def _adjust_refined(mapped: pycolmap.Reconstruction, rigs: Sequence[RigCalibrati
         pixel_sigma = estimate_pixel_sigma(rec, options.max_reprojection_error_px)
     except ReconstructionError:  # a start far from the solution: most observations are beyond the threshold
         pixel_sigma = options.loss_scale_px
-    problem, rounds = None, 0
+    problem, rounds, warnings = None, 0, []
     for rounds in range(1, options.max_rounds + 1):
         # Round 1 with the squared loss: when the measurements reshape a network whose images leave its shape open
         # (a 4-rig circle), a robust loss lets the images give up instead of following.
@@ -617,6 +627,17 @@ def _adjust_refined(mapped: pycolmap.Reconstruction, rigs: Sequence[RigCalibrati
             FINAL_FUNCTION_TOLERANCE if options.max_rounds == 1 else ROUND_FUNCTION_TOLERANCE)
         summary = problem.solve_to_convergence()  # a long reshape: go on until Ceres converges, then judge outliers
         logger.debug("Adjustment round %d: %s", rounds, summary.BriefReport())
+        trial = pycolmap.Reconstruction(rec)  # this round's problem refers to rec's blocks: filter a copy first
+        filter_outliers(trial, options.max_reprojection_error_px)
+        emptied = frames_without_points(trial)
+        if emptied:  # the images no longer agree with the priors and measurements: keep them, stop filtering
+            inconsistent = (f"ADJUSTMENT INCONSISTENT: after adjustment round {rounds}, every observation of "
+                            f"{', '.join(emptied)} lies beyond {options.max_reprojection_error_px:g} px (or on too "
+                            "narrow an angle): the matches, rigs.yaml and scale.yaml disagree and the poses are "
+                            "unreliable; check the scale measurements and the weakest image pairs")
+            logger.warning(inconsistent)
+            warnings.append(inconsistent)
+            break
         removed = filter_outliers(rec, options.max_reprojection_error_px)
         try:
             new_sigma = estimate_pixel_sigma(rec, options.max_reprojection_error_px)
@@ -642,11 +663,14 @@ def _adjust_refined(mapped: pycolmap.Reconstruction, rigs: Sequence[RigCalibrati
     result = AdjustResult(rec, source, scale, _metres_per_mapping_unit(mapped, rec),
                           float(rec.compute_mean_reprojection_error()), calibration=Calibration.REFINE, gauge=gauge,
                           rigs=tuple(rigs), priors=priors, scale_spec=scale_spec, options=options, pixel_sigma=pixel_sigma,
-                          rounds=rounds)
+                          rounds=rounds, warnings=warnings)
     if source != ScaleSource.NONE and with_covariance:
         from rigsfm.run.uncertainty import joint_covariance, network_size_sigma
 
-        result.covariance = joint_covariance(result)
+        try:
+            result.covariance = joint_covariance(result)
+        except ReconstructionError as error:
+            logger.warning("No joint covariance: %s", error)
         result.scale_relative_sigma = network_size_sigma(result.covariance, rec)
         if scale is not None and result.scale_relative_sigma is not None:
             result.scale = ScaleEstimate(1.0, result.scale_relative_sigma, scale.measurements, scale.unused)

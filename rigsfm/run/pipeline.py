@@ -148,6 +148,7 @@ def build_summary(inputs: Inputs, options: RunOptions, mapping: MappingResult, r
             f"NOT METRIC: the narrow images' observations fix the scale only to +-{100 * result.scale_relative_sigma:.3g} %;"
             " give a scale.yaml (rangefinder distance or known length)"
         )
+    warnings.extend(result.warnings)
     warnings.extend(check_reconstruction(reconstruction, result.scale, database))
     if inputs.priors is not None and inputs.priors.warning():
         warnings.append(inputs.priors.warning())

@@ -158,7 +158,8 @@ def _reduced_system(jp: JointProblem):
         num_points = j_p.shape[1] // 3
         if not (np.array_equal(h_pp.indices, np.arange(num_points))
                 and np.array_equal(h_pp.indptr, np.arange(num_points + 1))):
-            raise RuntimeError("the points' normal matrix is not block diagonal")
+            raise ReconstructionError("some 3D points carry no information (every observation of them is degenerate "
+                                      "or cannot be projected): no covariance")
         inverse = np.linalg.inv(h_pp.data + DAMPING * np.eye(3))
         h_pp_inv = sp.bsr_matrix((inverse, np.arange(num_points), np.arange(num_points + 1)), shape=h_pp.shape)
         h_ap = (j_a.T @ j_p).tocsr()

@@ -88,19 +88,22 @@ def reprojection_section(reconstruction: pycolmap.Reconstruction) -> str:
         per_camera.setdefault(ImageName.parse(name).camera, []).append(errors)
     rows, figures = [], []
     merged = {k: np.concatenate(v) for k, v in sorted(per_camera.items())}
+    unprojectable = {k: int(np.sum(~np.isfinite(e))) for k, e in merged.items()}  # behind the camera, beyond its lens
+    merged = {k: e[np.isfinite(e)] for k, e in merged.items()}
     observed = [e for e in merged.values() if e.size]
     upper = float(np.percentile(np.concatenate(observed), 99)) * 1.2 if observed else 1.0
     upper = max(upper, 0.1)
     for camera, e in merged.items():
         rows.append([esc(camera), e.size, fmt(float(e.mean())) if e.size else "–",
                      fmt(float(np.sqrt(np.mean(e**2)))) if e.size else "–",
-                     fmt(float(np.percentile(e, 95))) if e.size else "–"])
+                     fmt(float(np.percentile(e, 95))) if e.size else "–", unprojectable[camera]])
         if e.size:
             colour = "narrow" if camera.endswith("/narrow") else "wide"
             figures.append(f'<img alt="reprojection errors of {esc(camera)}" '
                            f'src="{charts.data_uri(charts.histogram(e, camera, upper, colour=colour))}">')
     return ("<h2>Reprojection error per camera</h2>"
-            + table(["camera", "observations", "mean (px)", "RMS (px)", "95th pct (px)"], rows)
+            + table(["camera", "observations", "mean (px)", "RMS (px)", "95th pct (px)",
+                     "not projectable"], rows)
             + '<p class="note">Narrow cameras usually have no observations (homogeneous view): their poses '
               "follow from the wide camera through the fixed E^sl.</p>"
             + f'<div class="hists">{"".join(figures)}</div>')

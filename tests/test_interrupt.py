@@ -224,9 +224,6 @@ def _results(out: Path) -> tuple[dict, dict]:
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=False, reason="known defect since the merges of 2026-11-22: a SIGTERM that lands while a "
-                   "stage process is being spawned makes the forkserver print an EOFError traceback after rigsfm's "
-                   "one line (the stop itself works); intermittent: it depends on when the signal lands")
 def test_signals_stop_every_stage_and_the_same_command_resumes(scene, tmp_path):
     env = {**os.environ, "PYTHONPATH": str(ROOT), "COLUMNS": "80"}
     reference = tmp_path / "reference"

@@ -171,12 +171,20 @@ def initial_pair(cache: pycolmap.DatabaseCache, pipeline: pycolmap.IncrementalPi
     return None
 
 
-def _is_rig_scale_bug(error: IndexError) -> bool:
-    """pycolmap 4.2.1, after mapping: ``AlignReconstructionToOrigRigScales`` looks up every rig whose narrow
-    offset is non-zero and raises ``IndexError: Rig with ID n does not exist`` for a rig none of whose frames
-    registered. The model is finished by then, and that alignment would change nothing here (sensor_from_rig is
-    held fixed, so its scale ratio is 1): the model is kept as it is."""
-    return str(error).startswith("Rig with ID")
+def _run_past_rig_scale_bug(run: Callable[[], None]) -> bool:
+    """``run()`` (a mapper); True when it stopped at pycolmap 4.2.1's bug after mapping:
+    ``AlignReconstructionToOrigRigScales`` looks up every rig whose narrow offset is non-zero and raises
+    ``IndexError: Rig with ID n does not exist`` for a rig none of whose frames registered. The model is finished
+    by then, and that alignment would change nothing here (sensor_from_rig is held fixed, so its scale ratio is
+    1): the model is kept as it is."""
+    try:
+        run()
+    except IndexError as error:
+        if not str(error).startswith("Rig with ID"):
+            raise
+        logger.info("COLMAP's rig-scale alignment failed (%s); the model is kept as it is", error)
+        return True
+    return False
 
 
 @dataclass
@@ -196,12 +204,7 @@ def _run_incremental(cache: pycolmap.DatabaseCache, pipeline: pycolmap.Increment
     mapper = pycolmap.IncrementalPipeline(pipeline, cache, manager)
     if on_registered is not None:
         mapper.add_callback(pycolmap.IncrementalPipelineCallback.NEXT_IMAGE_REG_CALLBACK, on_registered)
-    try:
-        mapper.run()
-    except IndexError as error:
-        if not _is_rig_scale_bug(error):
-            raise
-        logger.info("COLMAP's rig-scale alignment failed (%s); the model is kept as it is", error)
+    _run_past_rig_scale_bug(mapper.run)
     return _Run([manager.get(i) for i in range(manager.size())], timed_out=mapper.check_reached_max_runtime())
 
 
@@ -239,12 +242,7 @@ def _global(database_path: Path, image_dir: Path, options: MappingOptions, num_w
     manager = pycolmap.ReconstructionManager()
     with open_database(database_path) as database:
         pipeline = pycolmap.GlobalPipeline(pipeline_options, database, manager)
-        try:
-            pipeline.run()
-        except IndexError as error:
-            if not _is_rig_scale_bug(error):
-                raise
-            logger.info("COLMAP's rig-scale alignment failed (%s); the model is kept as it is", error)
+        if _run_past_rig_scale_bug(pipeline.run):
             for i in range(manager.size()):  # what the global pipeline does after that alignment
                 manager.get(i).extract_colors_for_all_images(str(image_dir), num_threads)
     return _Run([manager.get(i) for i in range(manager.size())])

@@ -38,10 +38,8 @@ from __future__ import annotations
 
 import itertools
 import logging
-import os
 import time
 from collections.abc import Sequence
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -360,12 +358,9 @@ def epipolar_self_check(reconstruction: pycolmap.Reconstruction, image_dir: Path
     for frame in chosen:
         images = frames[frame]
         pairs = [p for p in _overlapping_pairs(reconstruction, images, floor_frame) if p in by_pair]
-        names = sorted({n for p in pairs for n in p})
-        with ThreadPoolExecutor(max_workers=max(1, min(len(names), os.cpu_count() or 1))) as pool:  # cv2 frees the GIL
-            loaded = dict(zip(names, pool.map(lambda name: _load(reconstruction.find_image_with_name(name),
-                                                                 Path(image_dir),
-                                                                 opt.warp_height_m if floor_frame else None),
-                                              names)))
+        loaded = {name: _load(reconstruction.find_image_with_name(name), Path(image_dir),
+                              opt.warp_height_m if floor_frame else None)
+                  for name in sorted({n for p in pairs for n in p})}
         for name_i, name_j in pairs:
             entry = by_pair[(name_i, name_j)]
             if loaded[name_i] is None or loaded[name_j] is None:

@@ -667,10 +667,7 @@ def _adjust_refined(mapped: pycolmap.Reconstruction, rigs: Sequence[RigCalibrati
     if source != ScaleSource.NONE and with_covariance:
         from rigsfm.run.uncertainty import joint_covariance, network_size_sigma
 
-        try:
-            result.covariance = joint_covariance(result)
-        except ReconstructionError as error:
-            logger.warning("No joint covariance: %s", error)
+        result.covariance = joint_covariance(result)
         result.scale_relative_sigma = network_size_sigma(result.covariance, rec)
         if scale is not None and result.scale_relative_sigma is not None:
             result.scale = ScaleEstimate(1.0, result.scale_relative_sigma, scale.measurements, scale.unused)

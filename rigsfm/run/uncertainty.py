@@ -109,7 +109,7 @@ def _csr(jacobian: pyceres.CRSMatrix) -> sp.csr_matrix:
 def _reduced_system(jp: JointProblem):
     """Ceres' Jacobian of ``jp`` (tangent space) with the points eliminated (Schur complement, 3x3 blocks): the
     reduced normal matrix over the other blocks, every entry ``(key, block or None, size, tangent dims)``, the
-    variable ones, and the prior-only covariances."""
+    variable ones, and the prior-only covariances; None (with a warning) when a point carries no information."""
     rec, problem = jp.reconstruction, jp.problem
     entries = []
     for frame_id in jp.frame_ids:
@@ -158,8 +158,9 @@ def _reduced_system(jp: JointProblem):
         num_points = j_p.shape[1] // 3
         if not (np.array_equal(h_pp.indices, np.arange(num_points))
                 and np.array_equal(h_pp.indptr, np.arange(num_points + 1))):
-            raise ReconstructionError("some 3D points carry no information (every observation of them is degenerate "
-                                      "or cannot be projected): no covariance")
+            logger.warning("No joint covariance: some 3D points carry no information (every observation of them is "
+                           "degenerate or cannot be projected)")
+            return None
         inverse = np.linalg.inv(h_pp.data + DAMPING * np.eye(3))
         h_pp_inv = sp.bsr_matrix((inverse, np.arange(num_points), np.arange(num_points + 1)), shape=h_pp.shape)
         h_ap = (j_a.T @ j_p).tocsr()
@@ -216,7 +217,7 @@ def _assemble(entries, variable, cov_a: np.ndarray, prior_only: dict) -> tuple:
 def joint_covariance(result: AdjustResult, image_only: bool = False) -> JointCovariance | None:
     """The joint covariance of ``result`` (not modified): the posterior for ``REFINE``, the consider covariance
     for ``FIXED`` (module docstring); with ``image_only`` the image noise's part alone (the consider covariance
-    of a calibration known exactly); None when the problem is rank deficient."""
+    of a calibration known exactly); None when the problem is rank deficient (a warning says why)."""
     start = time.perf_counter()
     rec = pycolmap.Reconstruction(result.reconstruction)
     rigs = result.rigs
@@ -227,7 +228,10 @@ def joint_covariance(result: AdjustResult, image_only: bool = False) -> JointCov
     refined = result.calibration == Calibration.REFINE and not image_only
     jp = JointProblem(rec, rigs, priors, result.scale_spec, options, pixel_sigma, gauge=gauge, robust=False,
                       with_priors=refined)
-    schur, entries, variable, prior_only = _reduced_system(jp)
+    reduced = _reduced_system(jp)
+    if reduced is None:
+        return None
+    schur, entries, variable, prior_only = reduced
     factors = _tangent_factors(variable)
     num_end = schur.shape[0] - len(factors)
     factors = np.r_[factors, np.ones(num_end)]

@@ -195,11 +195,13 @@ def filter_outliers(reconstruction: pycolmap.Reconstruction, max_error_px: float
 
 def frames_without_points(reconstruction: pycolmap.Reconstruction) -> list[str]:
     """Rig names of the registered frames none of whose images observes a 3D point."""
-    observed = {reconstruction.image(i).frame_id for i in reconstruction.reg_image_ids()
-                if reconstruction.image(i).num_points3D > 0}
-    return sorted(name_of(reconstruction.image(next(d.id for d in reconstruction.frame(f).data_ids
-                                                         if d.sensor_id.type == pycolmap.SensorType.CAMERA))).rig
-                  for f in reconstruction.reg_frame_ids() if f not in observed)
+    rig_of, observed = {}, set()
+    for image_id in reconstruction.reg_image_ids():
+        image = reconstruction.image(image_id)
+        rig_of[image.frame_id] = name_of(image).rig
+        if image.num_points3D > 0:
+            observed.add(image.frame_id)
+    return sorted(rig for frame_id, rig in rig_of.items() if frame_id not in observed)
 
 
 def adjust(

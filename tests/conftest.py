@@ -13,19 +13,13 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 # the CLI tests set their own width (COLUMNS in CliRunner's env), which needs the width left open here.
 os.environ.pop("COLUMNS", None)
 
-# The suite runs on one pytest-xdist worker per core (pyproject: ``-n auto --dist loadgroup``; ``-n 0`` for one
-# process, e.g. under a debugger). Each module goes to one worker whole, so its module fixtures (rendered scenes,
-# runs) are made once. The modules of SHARED_WORKER share one worker: they start Ray, and two Ray instances
-# started at once on one machine would compete. Scenes and the 3-rig run are shared by every worker through
-# files (``rendered``, ``three_rig_run``).
-SHARED_WORKER = {"test_track_rendered", "test_scale"}
+# The suite runs on one pytest-xdist worker per core (pyproject: ``-n auto``; ``-n 0`` for one process, e.g. under
+# a debugger), one test module per work unit (tests/scheduling.py), so its module fixtures (rendered scenes, runs)
+# are made once. Scenes and the 3-rig run are shared by every worker through files (``rendered``, ``three_rig_run``).
+def pytest_xdist_make_scheduler(config, log):
+    from scheduling import ModuleScheduling
 
-
-@pytest.hookimpl(tryfirst=True)  # before xdist's own hook reads the groups
-def pytest_collection_modifyitems(items):
-    for item in items:
-        module = item.path.stem
-        item.add_marker(pytest.mark.xdist_group("shared" if module in SHARED_WORKER else module))
+    return ModuleScheduling(config, log)
 
 
 def _shared_root(tmp_path_factory) -> Path:

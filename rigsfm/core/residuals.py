@@ -12,11 +12,11 @@ def reprojection_errors(reconstruction: pycolmap.Reconstruction) -> dict[str, np
     for image in reconstruction.images.values():
         if not image.has_pose:
             continue
-        observed = [p for p in image.points2D if p.has_point3D()]
-        if not observed:
+        observed = image.get_observation_points2D()  # in index order, like image.points2D
+        if len(observed) == 0:
             errors[image.name] = np.zeros(0)
             continue
-        xyz = np.array([reconstruction.points3D[p.point3D_id].xyz for p in observed])
+        xyz = np.array([reconstruction.point3D(p.point3D_id).xyz for p in observed])
         xy = np.array([p.xy for p in observed])
         camera = reconstruction.cameras[image.camera_id]
         projected = np.asarray(camera.img_from_cam(image.cam_from_world() * xyz))

@@ -458,7 +458,7 @@ class JointProblem:
                 self.unused.append(f"{label}: {why}")
                 continue
             probe = CameraDistanceCost(terms_a, terms_b, len(blocks), d.meters, 1.0, 1.0)
-            (c_a, _), (c_b, _) = probe.centres(blocks)
+            (c_a, _), (c_b, _) = probe.centres(blocks, with_jacobians=False)
             u = (c_a - c_b) / max(np.linalg.norm(c_a - c_b), 1e-12)
             sigma = float(np.sqrt(d.sigma**2 + u @ (extra_a + extra_b) @ u))
             cost = CameraDistanceCost(terms_a, terms_b, len(blocks), d.meters, sigma, self.weight_sigma)
@@ -466,7 +466,7 @@ class JointProblem:
             self._keep.append(cost)
 
             def length(cost=cost, blocks=blocks) -> float:
-                (a, _), (b, _) = cost.centres(blocks)
+                (a, _), (b, _) = cost.centres(blocks, with_jacobians=False)
                 return float(np.linalg.norm(a - b))
 
             self.measurements.append(_Measurement("camera_distance", label, d.meters, sigma, length))

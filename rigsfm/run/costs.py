@@ -28,8 +28,8 @@ def skew(v: np.ndarray) -> np.ndarray:
 
 def quaternion_plus_jacobian(q_xyzw: np.ndarray) -> np.ndarray:
     """4x3 ``d q' / d delta`` at delta = 0 of Ceres' EigenQuaternionManifold (xyzw storage)."""
-    v, w = np.asarray(q_xyzw[:3], dtype=np.float64), float(q_xyzw[3])
-    return np.vstack([w * np.eye(3) - skew(v), -v[None, :]])
+    x, y, z, w = (float(c) for c in q_xyzw)
+    return np.array([[w, z, -y], [-z, w, x], [y, -x, w], [-x, -y, -z]])  # [w I - [v]x; -v^T]
 
 
 def rotation_from_params(params: np.ndarray) -> np.ndarray:
@@ -55,9 +55,9 @@ class CentreTerm:
     sensor_from_rig: pycolmap.Rigid3d | None = None
 
 
-def camera_centre_and_jacobians(term: CentreTerm, blocks: Sequence[np.ndarray]):
+def camera_centre_and_jacobians(term: CentreTerm, blocks: Sequence[np.ndarray], with_jacobians: bool = True):
     """Centre ``c = -R^T (t + R_e^T t_e)`` of ``sensor_from_rig * rig_from_world``, with ``(dc/dw, dc/dt)`` of the
-    rig block and (when variable) of the sensor block."""
+    rig block and (when variable) of the sensor block (None for both without ``with_jacobians``)."""
     rig = blocks[term.rig]
     r, t = rotation_from_params(rig), np.asarray(rig[4:], dtype=np.float64)
     if term.sensor is not None:
@@ -69,6 +69,8 @@ def camera_centre_and_jacobians(term: CentreTerm, blocks: Sequence[np.ndarray]):
         r_e, t_e = np.eye(3), np.zeros(3)
     v = r_e.T @ t_e
     centre = -r.T @ (t + v)
+    if not with_jacobians:
+        return centre, None, None
     d_rig = (-r.T @ skew(t + v), -r.T)
     d_sensor = (-r.T @ r_e.T @ skew(t_e), -r.T @ r_e.T) if term.sensor is not None else None
     return centre, d_rig, d_sensor
@@ -88,13 +90,16 @@ class CameraDistanceCost(pyceres.CostFunction):
         self.set_num_residuals(1)
         self.set_parameter_block_sizes([7] * num_blocks)
 
-    def centres(self, blocks):
+    def centres(self, blocks, with_jacobians: bool = True):
+        """Both cameras' centres, each with its 3x7 ambient Jacobians per block (None: not in it, or not asked)."""
         out = []
         for terms in self.terms:
             centre, grads = np.zeros(3), [None] * self.num_blocks
             for term in terms:
-                c, d_rig, d_sensor = camera_centre_and_jacobians(term, blocks)
+                c, d_rig, d_sensor = camera_centre_and_jacobians(term, blocks, with_jacobians)
                 centre += c / len(terms)
+                if not with_jacobians:
+                    continue
                 for index, d in ((term.rig, d_rig), (term.sensor, d_sensor)):
                     if index is None:
                         continue
@@ -104,7 +109,7 @@ class CameraDistanceCost(pyceres.CostFunction):
         return out
 
     def Evaluate(self, parameters, residuals, jacobians):  # noqa: N802 - pyceres' name
-        (c_a, g_a), (c_b, g_b) = self.centres(parameters)
+        (c_a, g_a), (c_b, g_b) = self.centres(parameters, with_jacobians=jacobians is not None)
         diff = c_a - c_b
         distance = float(np.linalg.norm(diff))
         residuals[0] = self.weight * (distance - self.meters)

@@ -678,8 +678,9 @@ def _adjust_refined(mapped: pycolmap.Reconstruction, rigs: Sequence[RigCalibrati
             break
     if options.max_rounds > 1:
         # The rounds stop at a looser tolerance (Levenberg-Marquardt creeps near the minimum: 32 rigs, 55 and 40
-        # iterations of 0.35 s for a relative cost change of 3e-6); the result is this last, tight solve's. A new
-        # problem: the last round's refers to the observations and points filter_outliers may have deleted.
+        # iterations of 0.35 s for a relative cost change of 3e-6); the result is this last solve's, which goes on
+        # until less than FINAL_SETTLE_CHI2 is left to gain (SettledStop). A new problem: the last round's refers
+        # to the observations and points filter_outliers may have deleted.
         problem = JointProblem(rec, rigs, priors, scale_spec, options, pixel_sigma, gauge=gauge, robust=True)
         problem.ba_options.ceres.solver_options.function_tolerance = FINAL_FUNCTION_TOLERANCE
         problem.settle_chi2 = FINAL_SETTLE_CHI2

@@ -139,3 +139,11 @@ def test_markers_alone_guess_the_floor_height():
 def test_fixed_threshold_option():
     fit = fit_floor(ring(seed=13).reconstruction, options=FloorOptions(threshold=0.02))
     assert fit and fit.threshold <= 0.02
+
+
+def test_a_floor_of_few_points_among_many_is_found_every_time():
+    """40 floor points among ~720 candidates below the cameras (6 %): 3000 random triples hold ~0.6 all-floor ones,
+    and a fixed 3000 found the floor in 14 of these 20 rings (the rendered 3-rig arc's floor came and went with
+    pose changes of 1e-5 deg). Drawing triples until 99.9 % confident finds it in all 20."""
+    found = [bool(fit_floor(ring(seed=seed, floor_points=40).reconstruction)) for seed in range(20)]
+    assert all(found), found

@@ -16,7 +16,8 @@ Which sparse points are floor is decided from the geometry, not from labels:
    camera above them and few points well below them (the floor is the lowest surface: at most
    ``max_below_fraction`` points per inlier more than max(3 thresholds, 5 % of the camera height) below).
    Walls, stands and pillar sides fail the tilt test; a ceiling fails "cameras above"; box tops and terraces
-   have the floor (or the foot of the walls) below them.
+   have the floor (or the foot of the walls) below them. Triples are drawn until one lies on the best plane with
+   99.9 % confidence (at most enough for a plane holding ``min_inlier_fraction`` of the candidates).
 4. **Refinement.** Least-squares plane (SVD) on the inliers, re-thresholded at 3 robust sigmas (MAD) until
    the inlier set is stable. ``rms`` is the RMS point-to-plane residual of the final inliers.
 5. **No floor.** Too few candidates, no valid hypothesis, fewer than ``min_points`` inliers, inliers covering
@@ -223,6 +224,8 @@ def _ransac(points: np.ndarray, up: np.ndarray, max_tilt_deg: float, centres: np
     n = len(points)
 
     def needed(fraction: float) -> int:
+        if fraction >= 1.0:  # every candidate on the plane: one triple
+            return 1
         return int(np.ceil(np.log(1.0 - confidence) / np.log1p(-max(fraction, 1e-9) ** 3)))
 
     best, best_cost, best_inliers, drawn = None, np.inf, 0, 0

@@ -282,8 +282,7 @@ def test_the_final_solve_stops_where_little_chi2_is_left_to_gain(refined_network
                             gauge=result.gauge, robust=True)
 
     settling = problem()
-    settling.ba_options.ceres.solver_options.function_tolerance = 1e-9
-    settling.settle_chi2 = FINAL_SETTLE_CHI2
+    settling.stop_as(final=True)  # the adjustment's last solve: tolerance 1e-9, SettledStop
     assert settling.solve().termination_type == pyceres.TerminationType.USER_SUCCESS  # the rule ended it
     on = problem()
     solver = on.ba_options.ceres.solver_options

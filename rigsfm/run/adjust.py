@@ -568,6 +568,13 @@ class JointProblem:
             raise ReconstructionError(f"bundle adjustment with calibration priors failed: {summary.BriefReport()}")
         return summary
 
+    def stop_as(self, *, final: bool) -> None:
+        """Where :meth:`solve` stops: a round's (``ROUND_FUNCTION_TOLERANCE``) or the result's
+        (``FINAL_FUNCTION_TOLERANCE``, and :class:`SettledStop` with ``FINAL_SETTLE_CHI2`` left to gain)."""
+        self.ba_options.ceres.solver_options.function_tolerance = (
+            FINAL_FUNCTION_TOLERANCE if final else ROUND_FUNCTION_TOLERANCE)
+        self.settle_chi2 = FINAL_SETTLE_CHI2 if final else None
+
     def solve_to_convergence(self) -> pyceres.SolverSummary:
         """:meth:`solve` again (up to ``MAX_SOLVES_PER_ROUND`` times) while Ceres stops at its iteration limit."""
         for _ in range(MAX_SOLVES_PER_ROUND):
@@ -648,9 +655,7 @@ def _adjust_refined(mapped: pycolmap.Reconstruction, rigs: Sequence[RigCalibrati
         # (a 4-rig circle), a robust loss lets the images give up instead of following.
         robust = rounds > 1 or options.max_rounds == 1  # a single round (from an adjusted model): robust
         problem = JointProblem(rec, rigs, priors, scale_spec, options, pixel_sigma, gauge=gauge, robust=robust)
-        problem.ba_options.ceres.solver_options.function_tolerance = (
-            FINAL_FUNCTION_TOLERANCE if options.max_rounds == 1 else ROUND_FUNCTION_TOLERANCE)
-        problem.settle_chi2 = FINAL_SETTLE_CHI2 if options.max_rounds == 1 else None
+        problem.stop_as(final=options.max_rounds == 1)
         summary = problem.solve_to_convergence()  # a long reshape: go on until Ceres converges, then judge outliers
         logger.debug("Adjustment round %d: %s", rounds, summary.BriefReport())
         trial = pycolmap.Reconstruction(rec)  # this round's problem refers to rec's blocks: filter a copy first
@@ -682,8 +687,7 @@ def _adjust_refined(mapped: pycolmap.Reconstruction, rigs: Sequence[RigCalibrati
         # until less than FINAL_SETTLE_CHI2 is left to gain (SettledStop). A new problem: the last round's refers
         # to the observations and points filter_outliers may have deleted.
         problem = JointProblem(rec, rigs, priors, scale_spec, options, pixel_sigma, gauge=gauge, robust=True)
-        problem.ba_options.ceres.solver_options.function_tolerance = FINAL_FUNCTION_TOLERANCE
-        problem.settle_chi2 = FINAL_SETTLE_CHI2
+        problem.stop_as(final=True)
         problem.solve_to_convergence()
     scale = problem.scale_estimate()
     for row in problem.unused:

@@ -27,21 +27,22 @@ def project(camera: pycolmap.Camera, points_in_cam: np.ndarray, *, margin_px: fl
     image at least ``margin_px`` from its border. Pixels of points not seen are NaN.
     """
     points = np.asarray(points_in_cam, dtype=np.float64).reshape(-1, 3)
-    front = points[:, 2] > 1e-12
+    seen = points[:, 2] > 1e-12
     xy = np.full((len(points), 2), np.nan)
-    if front.any():
-        xy[front] = np.asarray(camera.img_from_cam(points[front], check_cheirality=False), dtype=np.float64)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            back = np.asarray(camera.cam_from_img(np.nan_to_num(xy[front])), dtype=np.float64)
-            normalised = points[front, :2] / points[front, 2:]
-            scale = np.maximum(1.0, np.abs(normalised))
-            folds = ~np.all(np.abs(back - normalised) <= ROUND_TRIP_TOLERANCE * scale, axis=1)
-        front[np.flatnonzero(front)[folds]] = False
-    seen = front & np.all(np.isfinite(xy), axis=1)
-    if margin_px is not None:
-        with np.errstate(invalid="ignore"):
+    if seen.any():
+        xy[seen] = np.asarray(camera.img_from_cam(points[seen], check_cheirality=False), dtype=np.float64)
+    with np.errstate(invalid="ignore"):
+        seen &= np.all(np.isfinite(xy), axis=1)
+        if margin_px is not None:
             seen &= (xy[:, 0] >= margin_px) & (xy[:, 0] <= camera.width - margin_px)
             seen &= (xy[:, 1] >= margin_px) & (xy[:, 1] <= camera.height - margin_px)
+    if seen.any():  # the round trip (an iterative undistortion) only where the pixel would count
+        with np.errstate(invalid="ignore", divide="ignore"):
+            back = np.asarray(camera.cam_from_img(xy[seen]), dtype=np.float64)
+            normalised = points[seen, :2] / points[seen, 2:]
+            scale = np.maximum(1.0, np.abs(normalised))
+            folds = ~np.all(np.abs(back - normalised) <= ROUND_TRIP_TOLERANCE * scale, axis=1)
+        seen[np.flatnonzero(seen)[folds]] = False
     xy[~seen] = np.nan
     return xy, seen
 

@@ -39,14 +39,14 @@ import pycolmap
 
 from rigsfm.core.errors import InputError
 from rigsfm.core.executors import Executor, map_unordered
-from rigsfm.core.graph import DisjointSets
 from rigsfm.core.geometry import project_world
+from rigsfm.core.graph import DisjointSets
+from rigsfm.core.io import write_json_atomic
 from rigsfm.core.names import ImageName
+from rigsfm.run.database import open_database
 from rigsfm.run.gpu import use_gpu
 from rigsfm.run.inputs import ImageEntry
 from rigsfm.run.options import Features, MatchingOptions, Pairs
-from rigsfm.core.io import write_json_atomic
-from rigsfm.run.database import open_database
 
 logger = logging.getLogger(__name__)
 
@@ -584,30 +584,34 @@ class MissedPair:
 
 
 def _observed_points(reconstruction: pycolmap.Reconstruction, image: pycolmap.Image) -> np.ndarray:
-    ids = [p.point3D_id for p in image.points2D if p.has_point3D()]
-    return np.array([reconstruction.points3D[i].xyz for i in ids]).reshape(-1, 3)
+    ids = [p.point3D_id for p in image.get_observation_points2D()]
+    return np.array([reconstruction.point3D(i).xyz for i in ids]).reshape(-1, 3)
 
 
-def covisible_points(reconstruction: pycolmap.Reconstruction, a: pycolmap.Image, b: pycolmap.Image,
-                     observed: dict[int, np.ndarray] | None = None) -> int:
-    """Points of the model observed in ``a`` (or ``b``) that the other image sees: in front, inside its image
-    and from a viewing direction within ``MISSED_MAX_VIEW_ANGLE_DEG`` of the observing image's (the larger of
-    the two counts). ``observed``: a cache of each image's observed points."""
-    observed = {} if observed is None else observed
-    count = 0
-    for one, other in ((a, b), (b, a)):
-        if one.image_id not in observed:
-            observed[one.image_id] = _observed_points(reconstruction, one)
-        xyz = observed[one.image_id]
-        if len(xyz) == 0:
-            continue
-        _, seen = project_world(reconstruction.cameras[other.camera_id], other.cam_from_world(), xyz)
-        ray_one = xyz - one.projection_center()
-        ray_other = xyz - other.projection_center()
-        cosine = np.sum(ray_one * ray_other, axis=1) / (
-            np.linalg.norm(ray_one, axis=1) * np.linalg.norm(ray_other, axis=1))
-        count = max(count, int(np.sum(seen & (cosine > np.cos(np.radians(MISSED_MAX_VIEW_ANGLE_DEG))))))
-    return count
+def covisible_points(reconstruction: pycolmap.Reconstruction, pairs: Sequence[tuple[str, str]]) -> list[int]:
+    """Per pair of registered image names: the points of the model observed in one image that the other sees
+    (in front, inside its image, from a viewing direction within ``MISSED_MAX_VIEW_ANGLE_DEG`` of the observing
+    image's), the larger of the two counts. Batched per observing image: a 64-rig circle asks for ~8 000 pairs."""
+    images = {im.name: im for im in reconstruction.images.values() if im.has_pose}
+    partners: dict[str, list[str]] = {}
+    for a, b in pairs:
+        partners.setdefault(a, []).append(b)
+        partners.setdefault(b, []).append(a)
+    cos_max = np.cos(np.radians(MISSED_MAX_VIEW_ANGLE_DEG))
+    seen_from: dict[tuple[str, str], int] = {}  # (observing image, other image) -> count
+    for name, others in partners.items():
+        xyz = _observed_points(reconstruction, images[name])
+        ray = xyz - images[name].projection_center()
+        ray /= np.linalg.norm(ray, axis=1, keepdims=True)
+        to_points = xyz[None] - np.array([images[o].projection_center() for o in others])[:, None]  # (M, N, 3)
+        cosine = np.einsum("nk,mnk->mn", ray, to_points) / np.linalg.norm(to_points, axis=2)
+        for other, close in zip(others, cosine > cos_max):
+            count = 0
+            if close.any():  # (most pairs of a large circle: no point within the angle)
+                camera = reconstruction.cameras[images[other].camera_id]
+                count = int(np.sum(project_world(camera, images[other].cam_from_world(), xyz[close])[1]))
+            seen_from[(name, other)] = count
+    return [max(seen_from[(a, b)], seen_from[(b, a)]) for a, b in pairs]
 
 
 def missed_pairs(reconstruction: pycolmap.Reconstruction, selection: PairSelection) -> list[MissedPair]:
@@ -622,22 +626,20 @@ def missed_pairs(reconstruction: pycolmap.Reconstruction, selection: PairSelecti
     matched = [(a, b) for a, b in selection.pairs if a in posed and b in posed
                and ImageName.parse(a).rig != ImageName.parse(b).rig]
     sensor = {name: ImageName.parse(name).sensor for name in posed}
+    # Wide and narrow images of two rigs are 4x the scale apart: SIFT rarely matches them, and the first pass
+    # found too few matches (MIN_NARROW_SCORE); their skipped pairs are not checked.
+    skipped = [(a, b) for a, b in selection.skipped if a in posed and b in posed and sensor[a] == sensor[b]
+               and ImageName.parse(a).rig != ImageName.parse(b).rig]
+    counts = covisible_points(reconstruction, matched + skipped)
     weakest: dict[tuple[str, str], int] = {}  # (image, sensor of the partner) -> weakest matched pair's count
-    observed: dict[int, np.ndarray] = {}
-    for a, b in matched:
-        shared = covisible_points(reconstruction, posed[a], posed[b], observed)
+    for (a, b), shared in zip(matched, counts):
         if shared < MISSED_MIN_POINTS:  # matched but sharing nothing in the model: no measure of the cut
             continue
         for one, other in ((a, b), (b, a)):
             key = (one, sensor[other])
             weakest[key] = min(weakest.get(key, shared), shared)
     missed = []
-    for a, b in selection.skipped:
-        if a not in posed or b not in posed or ImageName.parse(a).rig == ImageName.parse(b).rig:
-            continue
-        if sensor[a] != sensor[b]:  # a wide and a narrow image of two rigs: 4x the scale apart, SIFT rarely
-            continue  # matches them, and the first pass found too few matches (MIN_NARROW_SCORE)
-        shared = covisible_points(reconstruction, posed[a], posed[b], observed)
+    for (a, b), shared in zip(skipped, counts[len(matched):]):
         bar = max(weakest.get((a, sensor[b]), 0), weakest.get((b, sensor[a]), 0))
         if shared >= MISSED_MIN_POINTS and shared > MISSED_FACTOR * bar:
             missed.append(MissedPair(a, b, shared, bar))

@@ -1,4 +1,5 @@
-"""Guided matching (rigsfm.core.matching) against a plain loop over the candidates, on both of its paths."""
+"""Descriptor matching against its definitions: guided matching (rigsfm.core.matching) on both of its paths, and
+rigsfm track's all-against-all matching (rigsfm.track.register) block by block."""
 
 import numpy as np
 import pytest
@@ -47,3 +48,26 @@ def test_candidate_matches_equal_the_definition(seed, dense, monkeypatch):
     expected = reference_matches(di, dj, a, b, 0.8)
     assert len(expected) > 20
     np.testing.assert_array_equal(found, expected)
+
+
+def test_track_matching_equals_the_definition_block_by_block(monkeypatch):
+    """rigsfm track's all-against-all matching (rigsfm.track.register) against the full distance table in float64,
+    with tables cut into 64-row blocks; duplicated descriptors on both sides give exact ties."""
+    from rigsfm.track import register
+
+    rng = np.random.default_rng(7)
+    query = rng.integers(0, 60, (300, 128)).astype(np.uint8)
+    train = rng.integers(0, 60, (250, 128)).astype(np.uint8)
+    train[:120] = np.clip(query[:120].astype(int) + rng.integers(-3, 4, (120, 128)), 0, 255)
+    train[200:210], query[150:155] = train[:10], query[20:25]  # ties in both directions
+    monkeypatch.setattr(register, "MATCH_BLOCK_ROWS", 64)
+    rows, cols, distances = register.match_mutual_ratio(query, train, 0.8)
+
+    table = np.linalg.norm(query[:, None, :].astype(float) - train[None, :, :].astype(float), axis=2)
+    nearest = np.argmin(table, axis=1)
+    ranked = np.sort(table, axis=1)
+    keep = (np.argmin(table, axis=0)[nearest] == np.arange(len(query))) & (ranked[:, 0] < 0.8 * ranked[:, 1])
+    assert 80 < keep.sum() < 120  # the near copies, less the tied ones
+    np.testing.assert_array_equal(rows, np.flatnonzero(keep))
+    np.testing.assert_array_equal(cols, nearest[keep])
+    np.testing.assert_allclose(distances, ranked[keep, 0], rtol=1e-6)

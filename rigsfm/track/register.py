@@ -59,20 +59,41 @@ def extract_sift(image: np.ndarray, max_num_features: int) -> tuple[np.ndarray, 
 
 
 def match_mutual_ratio(query: np.ndarray, train: np.ndarray, max_ratio: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Indices (query, train) and L2 distances of matches passing the ratio test and the mutual check."""
+    """Indices (query, train) and L2 distances of matches passing the ratio test and the mutual check.
+
+    SIFT's uint8 descriptors make every squared distance an integer below 2**24, exact in float32 whatever the
+    order of summation: the table is computed in blocks of rows, once each way (a row's minimum is fast, a
+    column's is not), and the blocks agree exactly with each other."""
     if len(query) < 2 or len(train) < 2:
         return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0)
     q, t = query.astype(np.float32), train.astype(np.float32)
-    squared = (q * q).sum(1)[:, None] + (t * t).sum(1)[None, :] - 2.0 * (q @ t.T)
-    np.maximum(squared, 0.0, out=squared)
-    two = np.argpartition(squared, 1, axis=1)[:, :2]
+    best, first, second = _two_nearest(q, t)
+    best_query_of_train, _, _ = _two_nearest(t, q)
     rows = np.arange(len(q))
-    d0, d1 = squared[rows, two[:, 0]], squared[rows, two[:, 1]]
-    best = np.where(d0 <= d1, two[:, 0], two[:, 1])
-    first, second = np.minimum(d0, d1), np.maximum(d0, d1)
-    mutual = np.argmin(squared, axis=0)[best] == rows
-    keep = mutual & (np.sqrt(first) < max_ratio * np.sqrt(second))
+    keep = (best_query_of_train[best] == rows) & (np.sqrt(first) < max_ratio * np.sqrt(second))
     return rows[keep].astype(np.int64), best[keep].astype(np.int64), np.sqrt(first[keep]).astype(np.float64)
+
+
+MATCH_BLOCK_ROWS = 2048  # rows of the distance table at a time (64 MB against 8 192 descriptors)
+
+
+def _two_nearest(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """For each row of ``a``: the index of its nearest row of ``b`` (the first of ties) and the squared distances
+    to the nearest and the second nearest."""
+    norms_b = (b * b).sum(1)
+    best = np.empty(len(a), np.int64)
+    first, second = np.empty(len(a), np.float32), np.empty(len(a), np.float32)
+    for start in range(0, len(a), MATCH_BLOCK_ROWS):
+        block = a[start:start + MATCH_BLOCK_ROWS]
+        squared = (block * block).sum(1)[:, None] + norms_b[None, :] - 2.0 * (block @ b.T)
+        np.maximum(squared, 0.0, out=squared)
+        rows = np.arange(len(block))
+        nearest = np.argmin(squared, axis=1)
+        best[start:start + len(block)] = nearest
+        first[start:start + len(block)] = squared[rows, nearest]
+        squared[rows, nearest] = np.inf
+        second[start:start + len(block)] = squared.min(axis=1)
+    return best, first, second
 
 
 def match_to_map(descriptors: np.ndarray, reference: ReferenceMap, rig: ReferenceRig,

@@ -8,7 +8,6 @@ homography triangulates at 2-3 deg), which is what made a forced most-inliers pa
 
 from __future__ import annotations
 
-import contextlib
 import json
 import math
 import os
@@ -223,12 +222,20 @@ def _results(out: Path) -> tuple[dict, dict]:
     return _without_times(summary), _without_times(json.loads((out / "narrow_poses.json").read_text()))
 
 
-@pytest.mark.slow
-def test_signals_stop_every_stage_and_the_same_command_resumes(scene, tmp_path):
-    env = {**os.environ, "PYTHONPATH": str(ROOT), "COLUMNS": "80"}
-    reference = tmp_path / "reference"
-    code, stderr, _ = _run(scene, reference, env)
+ENV = {**os.environ, "PYTHONPATH": str(ROOT), "COLUMNS": "80"}
+
+
+@pytest.fixture(scope="module")
+def reference(scene, tmp_path_factory) -> Path:
+    """The command run once without interruption (stages in children, the default): OUT."""
+    out = tmp_path_factory.mktemp("reference") / "out"
+    code, stderr, _ = _run(scene, out, ENV)
     assert code == 0, stderr
+    return out
+
+
+@pytest.mark.slow
+def test_signals_stop_every_stage_and_the_same_command_resumes(scene, reference, tmp_path):
     out = tmp_path / "interrupted"
     steps = [
         # signal, sent when the log shows, to the process group?, the stage it stops, exit code, message
@@ -238,7 +245,7 @@ def test_signals_stop_every_stage_and_the_same_command_resumes(scene, tmp_path):
         (signal.SIGTERM, "Stage mapping took", False, "adjust", 143, "terminated (SIGTERM)"),
     ]
     for signum, when, group, stage, expected_code, message in steps:
-        code, stderr, log = _run(scene, out, env, signum=signum, when=when, group=group)
+        code, stderr, log = _run(scene, out, ENV, signum=signum, when=when, group=group)
         assert code == expected_code, (stage, stderr)
         lines = [line for line in stderr.splitlines() if line.strip()]
         assert len(lines) == 1 and lines[0].startswith(message) and "re-run the same command" in lines[0], stderr
@@ -246,7 +253,7 @@ def test_signals_stop_every_stage_and_the_same_command_resumes(scene, tmp_path):
         assert f"Stage {stage} stopped after" in log, f"not stopped in the {stage} stage; test is void"
         assert not (out / "summary.json").exists()
     assert not Workspace(out).leftovers()  # the killed mapping stage's temporary folder was swept
-    code, stderr, _ = _run(scene, out, env)
+    code, stderr, _ = _run(scene, out, ENV)
     assert code == 0, stderr
     assert _results(out) == _results(reference)
 
@@ -284,15 +291,12 @@ def test_stage_runs_in_a_child_by_default():
 
 
 @pytest.mark.slow
-def test_stages_in_a_child_give_the_same_result_as_in_process(scene, tmp_path):
+def test_stages_in_a_child_give_the_same_result_as_in_process(scene, reference, tmp_path):
+    """The command's run (stages in children) against the library's run with every stage in this process."""
     from rigsfm.run.pipeline import run
 
-    results = {}
-    for mode in ("child", "in_process"):
-        context = stages.in_process() if mode == "in_process" else contextlib.nullcontext()
-        with context:
-            run(scene.images, scene.rigs, tmp_path / mode, scene.scale)
-        results[mode] = _results(tmp_path / mode)
+    with stages.in_process():
+        run(scene.images, scene.rigs, tmp_path / "in_process", scene.scale)
     # Every number of summary.json and narrow_poses.json, to rounding: the floor fit differs in its last digits
     # (rms 0.007947384508614944 against ...615355), as a floating-point sum does with another memory layout.
-    assert _differences(results["child"], results["in_process"]) == []
+    assert _differences(_results(reference), _results(tmp_path / "in_process")) == []

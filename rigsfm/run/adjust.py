@@ -658,6 +658,8 @@ def _adjust_refined(mapped: pycolmap.Reconstruction, rigs: Sequence[RigCalibrati
         problem.stop_as(final=options.max_rounds == 1)
         summary = problem.solve_to_convergence()  # a long reshape: go on until Ceres converges, then judge outliers
         logger.debug("Adjustment round %d: %s", rounds, summary.BriefReport())
+        if options.max_rounds == 1:  # one solve from an adjusted model (the sampled band's draws use its cameras
+            break  # and poses): no outliers to judge, and pixel_sigma stays the one that weighted it
         trial = pycolmap.Reconstruction(rec)  # this round's problem refers to rec's blocks: filter a copy first
         filter_outliers(trial, options.max_reprojection_error_px)
         emptied = frames_without_points(trial)

@@ -9,6 +9,7 @@ import time
 from collections.abc import Callable, Iterator
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import pycolmap
@@ -42,6 +43,9 @@ from rigsfm.run.summary import (CameraError, InputsSummary, MappingSummary, Regi
 from rigsfm.run.world import ground_maps, locate_world, validate_world_options
 from rigsfm.run.uncertainty import estimate_uncertainty, uncertainty_summary
 
+if TYPE_CHECKING:
+    from rigsfm.run.self_check import SelfCheck
+
 logger = logging.getLogger(__name__)
 
 Progress = Callable[[str, int, int], None]
@@ -65,6 +69,7 @@ class RunResult:
     workspace: Workspace
     reconstruction: pycolmap.Reconstruction
     summary: Summary
+    self_check: SelfCheck | None = None  # every checked pair with its distances (summary.json keeps statistics)
 
 
 def load_inputs(image_dir: Path, rigs_path: Path, scale_path: Path | None = None) -> Inputs:
@@ -298,4 +303,4 @@ def _run_locked(workspace: Workspace, inputs: Inputs, manual_pairs: dict, option
     summary.uncertainty = uncertainty_summary(result, uncertainty)
     write_json_atomic(workspace.summary, summary.to_json())
     write_report(workspace.root)
-    return RunResult(workspace, result.reconstruction, summary)
+    return RunResult(workspace, result.reconstruction, summary, self_check)

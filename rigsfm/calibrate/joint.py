@@ -12,7 +12,7 @@ Covariance of the intrinsics and E^sl (board poses marginalised out): (J^T W J)^
 residual variance RSS_w / (2N - p), which assumes independent corner errors, then inflated per block (wide
 intrinsics, narrow intrinsics, E^sl) by sqrt(median over the block of jackknife variance / that variance),
 at least 1, the jackknife being the linearised delete-one-frame one. On rendered boards corner errors are
-independent, the factor is ~1 and the actual errors / sigmas have an RMS of 0.89-1.05 per parameter group
+independent, the factor is ~1 and the actual errors / sigmas have an RMS of 0.89-1.07 per parameter group
 over 24 calibrations (benchmarks/calibration_sigmas.py). On OpenCV's real chessboard pairs the residuals of
 neighbouring corners are correlated (0.3-0.5: lens-model misfit, a corner bias that repeats along the board),
 the independent-error sigmas are 2.2x (intrinsics) and 1.7x (E^sl) smaller than the leave-one-frame-out

@@ -20,7 +20,8 @@ from rigsfm.core.errors import InputError
 from rigsfm.core.geometry import project_world
 from rigsfm.core.rig import RigCalibration, load_rigs, rigs_to_yaml
 from rigsfm.core.workspace import Workspace
-from rigsfm.run.adjust import FINAL_SETTLE_CHI2, Gauge, JointProblem, ScaleSource, adjust, sensor_from_rig_view
+from rigsfm.run.adjust import (FINAL_SETTLE_CHI2, Gauge, JointProblem, ScaleSource, adjust, frames_without_points,
+                               sensor_from_rig_view)
 from rigsfm.run.costs import CameraDistanceCost, CentreTerm, LengthCost, quaternion_plus_jacobian
 from rigsfm.run.mapping import run_mapping
 from rigsfm.run.options import AdjustOptions, Calibration, MappingOptions
@@ -310,6 +311,39 @@ def test_images_that_disagree_with_the_priors_are_kept_and_flagged_not_emptied(t
     assert all(result.reconstruction.find_image_with_name(f"rig{k:02d}/wide/frame0000.png").num_points3D == 600
                for k in (1, 2, 3))
 
+
+
+def test_frames_without_points_name_each_frame_once():
+    """ADJUSTMENT INCONSISTENT's list: a rig with one registered frame by its name, a frame of a rig with several
+    as ``rig frame``; a rig whose two frames are emptied is not named twice."""
+    pycolmap.set_random_seed(0)
+    synthetic = pycolmap.synthesize_dataset(pycolmap.SyntheticDatasetOptions(
+        num_rigs=3, num_cameras_per_rig=2, num_frames_per_rig=2, num_points3D=200))
+    rig_names = {rig_id: f"rig{k:02d}" for k, rig_id in enumerate(sorted(synthetic.rigs), start=1)}
+    frames = {frame_id: f"frame{k:04d}.png" for k, frame_id in enumerate(sorted(synthetic.frames))}
+    for image in synthetic.images.values():
+        frame = synthetic.frame(image.frame_id)
+        sensor = "wide" if image.camera_id == synthetic.rig(frame.rig_id).ref_sensor_id.id else "narrow"
+        image.name = f"{rig_names[frame.rig_id]}/{sensor}/{frames[image.frame_id]}"
+    assert frames_without_points(synthetic) == []
+
+    def empty(rig: str, frame: str | None = None) -> None:
+        for image in list(synthetic.images.values()):
+            if image.name.startswith(f"{rig}/") and (frame is None or image.name.endswith(frame)):
+                for index in image.get_observation_point2D_idxs():
+                    synthetic.delete_observation(image.image_id, index)
+
+    empty("rig02")
+    first_of_rig03 = min(im.name for im in synthetic.images.values() if im.name.startswith("rig03/"))
+    empty("rig03", first_of_rig03.rsplit("/", 1)[1])
+    names = frames_without_points(synthetic)
+    assert len(names) == 3 and names[:2] == [f"rig02 {f}" for f in sorted(
+        {im.name.rsplit("/", 1)[1] for im in synthetic.images.values() if im.name.startswith("rig02/")})]
+    assert names[2] == f"rig03 {first_of_rig03.rsplit('/', 1)[1]}"
+    frame_ids = [im.frame_id for im in synthetic.images.values() if im.name.startswith("rig01/")]
+    synthetic.deregister_frame(max(frame_ids))  # rig01 left with one registered frame
+    empty("rig01")
+    assert frames_without_points(synthetic)[0] == "rig01"
 
 def _exact_distances(model: _PairModel, z: np.ndarray, pixels: np.ndarray, depths: np.ndarray) -> np.ndarray:
     """The band's quantity without linearisation: move frames, E^sl and cameras by ``z`` (our tangents), then the

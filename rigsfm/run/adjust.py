@@ -34,6 +34,7 @@ from __future__ import annotations
 import enum
 import logging
 import time
+from collections import Counter
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
@@ -194,14 +195,17 @@ def filter_outliers(reconstruction: pycolmap.Reconstruction, max_error_px: float
 
 
 def frames_without_points(reconstruction: pycolmap.Reconstruction) -> list[str]:
-    """Rig names of the registered frames none of whose images observes a 3D point."""
-    rig_of, observed = {}, set()
+    """The registered frames none of whose images observes a 3D point: the rig's name when it is the rig's only
+    registered frame, else ``rig frame`` (the frame's image file name), each frame once."""
+    frames, observed = {}, set()
     for image_id in reconstruction.reg_image_ids():
         image = reconstruction.image(image_id)
-        rig_of[image.frame_id] = name_of(image).rig
+        frames[image.frame_id] = name_of(image)
         if image.num_points3D > 0:
             observed.add(image.frame_id)
-    return sorted(rig for frame_id, rig in rig_of.items() if frame_id not in observed)
+    per_rig = Counter(name.rig for name in frames.values())
+    return sorted(name.rig if per_rig[name.rig] == 1 else f"{name.rig} {name.frame}"
+                  for frame_id, name in frames.items() if frame_id not in observed)
 
 
 def adjust(

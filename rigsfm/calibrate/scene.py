@@ -20,9 +20,11 @@ import cv2
 import numpy as np
 from scipy.optimize import least_squares
 
-from rigsfm.core.geometry import sampson
 from rigsfm.calibrate.board import read_gray
+from rigsfm.core.conventions import opencv_from_resized_pixels
 from rigsfm.core.errors import ReconstructionError
+from rigsfm.core.geometry import sampson
+from rigsfm.core.sift import opencv_sift
 
 logger = logging.getLogger(__name__)
 
@@ -95,14 +97,14 @@ def estimate_from_scene(frames: list[tuple[Path, Path]], K_wide: np.ndarray, dis
                         K_narrow: np.ndarray, dist_narrow: np.ndarray, where: str) -> SceneEstimate:
     """narrow_from_wide rotation and translation direction from synchronised (wide, narrow) scene images."""
     scale = float(np.clip(K_wide[0, 0] / K_narrow[0, 0], 0.05, 1.0))
-    sift = cv2.SIFT_create(nfeatures=MAX_FEATURES)
+    sift = opencv_sift(MAX_FEATURES)
     pts_w, pts_n = [], []
     for wide_path, narrow_path in frames:
         kw, dw = _sift(read_gray(wide_path), sift)
         narrow = read_gray(narrow_path)
         small = cv2.resize(narrow, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA) if scale < 1 else narrow
         kn, dn = _sift(small, sift)
-        kn = (kn + 0.5) / scale - 0.5  # back to full-resolution narrow pixels (OpenCV convention)
+        kn = opencv_from_resized_pixels(kn, 1 / scale)  # full-resolution narrow pixels
         m = mutual_ratio_matches(dw, dn)
         pts_w.append(kw[m[:, 0]] if len(m) else np.zeros((0, 2)))
         pts_n.append(kn[m[:, 1]] if len(m) else np.zeros((0, 2)))

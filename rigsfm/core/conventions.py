@@ -42,6 +42,12 @@ def opencv_from_colmap_pixels(xy_colmap: np.ndarray) -> np.ndarray:
     return np.asarray(xy_colmap, dtype=np.float64) - 0.5
 
 
+def opencv_from_resized_pixels(xy_resized: np.ndarray, factor: float) -> np.ndarray:
+    """OpenCV pixels of an image from those of its copy resized by ``cv2.resize`` to 1/``factor`` of its size
+    (either interpolation, area or linear): resized pixel k is centred on (k + 1/2) ``factor`` - 1/2."""
+    return factor * np.asarray(xy_resized, dtype=np.float64) + (factor - 1) / 2
+
+
 def opengl_c2w_from_cam_from_world(cam_from_world: pycolmap.Rigid3d) -> np.ndarray:
     """4x4 camera-to-world matrix with OpenGL camera axes (nerfstudio's transform_matrix)."""
     world_from_cam = cam_from_world.inverse().matrix()

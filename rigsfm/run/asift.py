@@ -23,6 +23,7 @@ import pycolmap
 
 from rigsfm.core.conventions import colmap_from_opencv_pixels
 from rigsfm.core.errors import InputError
+from rigsfm.core.sift import opencv_sift
 from rigsfm.run.database import open_database
 
 logger = logging.getLogger(__name__)
@@ -48,7 +49,7 @@ def colmap_keypoints(keypoints: Sequence[cv2.KeyPoint]) -> np.ndarray:
 
 def asift_features(gray: np.ndarray, max_num_features: int) -> tuple[np.ndarray, np.ndarray]:
     """ASIFT keypoints and descriptors of one grey image, the strongest ``max_num_features`` kept."""
-    detector = cv2.AffineFeature_create(cv2.SIFT_create())
+    detector = cv2.AffineFeature_create(opencv_sift())
     keypoints, descriptors = detector.detectAndCompute(gray, None)
     if descriptors is None or not keypoints:
         return np.zeros((0, 6), np.float32), np.zeros((0, 128), np.uint8)

@@ -47,9 +47,17 @@ import cv2
 import numpy as np
 import pycolmap
 
-from rigsfm.core.ground import footprints, ground_from_image, image_from_plane, pairwise_overlaps, undistort_pixels
+from rigsfm.core.conventions import colmap_from_opencv_pixels, opencv_from_colmap_pixels
+from rigsfm.core.ground import (
+    footprints,
+    ground_from_image,
+    image_from_plane,
+    pairwise_overlaps,
+    undistort_pixels,
+)
 from rigsfm.core.matching import candidate_matches
 from rigsfm.core.names import name_of
+from rigsfm.core.sift import detect, opencv_sift
 from rigsfm.run.floor_matching import grid_rays, plane_hits, plane_warp
 from rigsfm.run.options import SelfCheckOptions
 
@@ -147,7 +155,7 @@ def synchronised_frames(reconstruction: pycolmap.Reconstruction) -> dict[str, li
 
 
 def _sift():
-    return cv2.SIFT_create(nfeatures=8000, contrastThreshold=0.02)
+    return opencv_sift(8000, contrast_threshold=0.02)
 
 
 def _to_features(camera: pycolmap.Camera, xy_colmap: np.ndarray, descriptors: np.ndarray | None) -> _Features | None:
@@ -164,9 +172,8 @@ def _load(image: pycolmap.Image, image_dir: Path, warp_height: float | None) -> 
         logger.warning("self-check: cannot read %s as a %dx%d image", image_dir / image.name, image.camera.width,
                        image.camera.height)
         return None
-    keypoints, descriptors = _sift().detectAndCompute(gray, None)
-    xy = np.array([k.pt for k in keypoints], dtype=np.float64).reshape(-1, 2) + 0.5  # OpenCV -> COLMAP pixels
-    narrow = _Narrow(image, gray, _to_features(image.camera, xy, descriptors))
+    xy, descriptors = detect(_sift(), gray)
+    narrow = _Narrow(image, gray, _to_features(image.camera, colmap_from_opencv_pixels(xy), descriptors))
     if warp_height is not None:
         normalised, narrow.grid_shape = grid_rays(image.camera)
         narrow.hits = plane_hits(image, np.array([0.0, 0.0, 1.0]), -warp_height, np.inf, normalised)
@@ -303,10 +310,9 @@ def check_pair(first: _Narrow, second: _Narrow, f_ji: np.ndarray, band: float | 
         warp = plane_warp(first.hits, first.grid_shape, first.gray.shape, image_j, second.gray, 1000)
         if warp is None:
             return check
-        fi = fi.subset(warp.covers(fi.xy - 0.5))
-        keypoints, descriptors = _sift().detectAndCompute(warp.warped, warp.mask)
-        fj = _to_features(image_j.camera, warp.source_pixels(np.array([k.pt for k in keypoints]).reshape(-1, 2)),
-                          descriptors)
+        fi = fi.subset(warp.covers(opencv_from_colmap_pixels(fi.xy)))
+        xy, descriptors = detect(_sift(), warp.warped, warp.mask)
+        fj = _to_features(image_j.camera, warp.source_pixels(xy), descriptors)
     if fi is None or fj is None or len(fi.xy) < 2:
         return check
     f_ji = np.asarray(f_ji, dtype=np.float64)

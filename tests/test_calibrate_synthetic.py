@@ -4,26 +4,27 @@ from __future__ import annotations
 
 import dataclasses
 
+import cv2
 import numpy as np
 import pytest
 import yaml
 from scipy.spatial.transform import Rotation
 from typer.testing import CliRunner
 
-from rigsfm.calibrate.board import board_spec_from_dict
 from rigsfm.calibrate import CalibrateOptions, CalibrationResult, calibrate, calibrate_rigs, write_calibration
+from rigsfm.calibrate.board import board_spec_from_dict
 from rigsfm.calibrate.intrinsics import colmap_camera
+from rigsfm.calibrate.uncertainty import load_sigmas
 from rigsfm.cli import app
+from rigsfm.core.conventions import rotation_angle_deg
+from rigsfm.core.errors import WorkspaceError
+from rigsfm.core.rig import load_rigs
 from rigsfm.synth.boards import (
     board_views,
     default_hybrid_rig,
     write_board_dataset,
     write_scene_dataset,
 )
-from rigsfm.calibrate.uncertainty import load_sigmas
-from rigsfm.core.conventions import rotation_angle_deg
-from rigsfm.core.errors import WorkspaceError
-from rigsfm.core.rig import load_rigs
 
 pytestmark = pytest.mark.slow  # end-to-end runs on rendered images (`-m 'not slow'` skips them)
 
@@ -167,3 +168,20 @@ def test_from_scene(dataset, tmp_path):
     assert "scene" in (tmp_path / "rigs.calibration" / "rig01" / "report.txt").read_text()
     sigmas = load_sigmas(out)["rig01"]  # E^sl not from the board: no E^sl sigmas, intrinsics ones kept
     assert sigmas.wide is not None and sigmas.rotation_deg is None and sigmas.covariance is None
+
+
+@pytest.mark.parametrize("dist", [[-0.12, 0.035, 0.0006, -0.0004, 0.0], [-0.05, 0.1, 0.0, 0.0, 0.0],
+                                  [-0.45, 0.1, 0.002, -0.001, 0.05], [0.6, 0.0, 0.0, 0.0, 0.0]])
+def test_board_renderer_undistorts_like_opencv(dist):
+    """The renderer's Newton undistortion against cv2.undistortPoints, run to convergence, over a whole image
+    (the board rig's two cameras, a strong barrel, a pincushion); a lens it cannot undo is refused."""
+    from rigsfm.synth.boards import _undistort
+
+    K = np.array([[640.0, 0.0, 476.8], [0.0, 640.6, 364.7], [0.0, 0.0, 1.0]])
+    xs, ys = np.meshgrid(np.linspace(-0.5, 959.5, 97), np.linspace(-0.5, 719.5, 73))
+    pixels = np.c_[xs.ravel(), ys.ravel()]
+    criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 1000, 1e-15)
+    expected = cv2.undistortPoints(pixels.reshape(-1, 1, 2), K, np.array(dist), criteria=criteria).reshape(-1, 2)
+    np.testing.assert_allclose(_undistort(pixels, K, np.array(dist)), expected, atol=1e-12)
+    with pytest.raises(ValueError, match="cannot be undone at .* pixels"):
+        _undistort(pixels, K, np.array([-0.8, 0.0, 0.0, 0.0, 0.0]))  # r (1 - 0.8 r^2) <= 0.43: corners beyond

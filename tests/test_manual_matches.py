@@ -152,19 +152,21 @@ def test_simulated_clicks_are_exact_spread_and_on_every_kind_of_structure(scenes
 def test_weak_automatic_matches_are_flagged(scenes):
     """160 degrees apart. SIFT matches one patch of the stands only: two exact poses, and which one the mapper
     keeps is chance (the wrong one, 19 deg off, before the initial pair was checked with COLMAP's own test; the
-    right one, 0.3 deg, since). ASIFT finds 15 matches, 4 of them wrong, that fit a fundamental matrix but no
-    essential matrix. Both results must say so, right or wrong (the 60-degree pair above has no warning).
-    (With ASIFT the adjustment's second round once dropped all 11 points and Ceres crashed on the problem left;
-    test_trust's "disagree" test pins the fix.)"""
+    right one, 0.3 deg, since). ASIFT finds 15-17 matches, some of them wrong: with OpenCV's keypoints a quarter
+    pixel off (before rigsfm.core.sift) 15 that fit a fundamental matrix but no essential matrix; with exact
+    keypoints 17 that an essential matrix fits, from which only the global mapper builds a pose, 1.7 deg off,
+    that contradicts them (median 16 px). Each result must say so, right or wrong (the 60-degree pair above has
+    no warning). (With ASIFT the adjustment's second round once dropped all 11 points and Ceres crashed on the
+    problem left; test_trust's "disagree" test pins the fix.)"""
     root, _, _ = scenes
     apart = render_dataset(root / "160", replace(WIDE_APART, arc_deg=160.0))
-    for features, weakness in (("sift", r"\d+ matches on one plane"),
-                               ("asift", r"\d+ matches fitting no essential matrix of the calibrated cameras")):
+    pair = "rig01, rig02 are tied to the other rigs only by weak matches .rig01-rig02: "
+    for features, flag in (("sift", rf"POSE AMBIGUOUS: {pair}\d+ matches on one plane."),
+                           ("asift", rf"POSE AMBIGUOUS: {pair}\d+ matches fitting no essential matrix of the "
+                                     r"calibrated cameras.|MATCHES CONTRADICT THE MODEL: rig01-rig02: \d+ matches")):
         options = RunOptions(matching=MatchingOptions(features=Features(features)))
         result = run(apart.images, apart.rigs, root / f"160_{features}", apart.scale, options)
-        (warning,) = [w for w in result.summary.warnings if w.startswith("POSE AMBIGUOUS")]
-        assert re.search(f"rig01, rig02 are tied to the other rigs only by weak matches .rig01-rig02: {weakness}.",
-                         warning), warning
+        assert any(re.match(flag, w) for w in result.summary.warnings), (features, result.summary.warnings)
 
 
 def test_manual_merge_is_idempotent_and_drops_stale_rows(scenes, tmp_path):

@@ -10,7 +10,7 @@ from synthetic_world import HEIGHT, WIDTH, ring
 
 from rigsfm.core.errors import InputError
 from rigsfm.run.floor import estimate_floor
-from rigsfm.run.floor_matching import match_floor_points, plane_hits
+from rigsfm.run.floor_matching import match_floor_points, plane_hits, triangulate_pairs
 
 CELL = 0.01  # metres per texture pixel
 HALF = 20.0  # the texture covers [-HALF, HALF]^2
@@ -79,3 +79,20 @@ def test_missing_images_are_an_input_error(scene, tmp_path):
     world, _ = scene
     with pytest.raises(InputError, match="cannot be read"):
         match_floor_points(world.reconstruction, tmp_path, np.array([0.0, 0.0, 1.0]), 0.0)
+
+
+def test_triangulation_is_colmaps(scene):
+    """All matches at once, as pycolmap.triangulate_point one at a time (noisy pixels: not the exact points)."""
+    world, _ = scene
+    image_i, image_j = (world.reconstruction.image(i) for i in sorted(world.reconstruction.images)[:2])
+    rng = np.random.default_rng(0)
+    points = np.c_[rng.uniform(-5, 5, (200, 2)), rng.uniform(0, 2, 200)]
+    xy_i, xy_j = (np.asarray(im.camera.img_from_cam(points @ im.cam_from_world().rotation.matrix().T
+                                                     + im.cam_from_world().translation)) + rng.normal(0, 1, (200, 2))
+                  for im in (image_i, image_j))
+    one_by_one = [pycolmap.triangulate_point(image_i.cam_from_world().matrix(), image_j.cam_from_world().matrix(),
+                                             image_i.camera.cam_from_img(p), image_j.camera.cam_from_img(q))
+                  for p, q in zip(xy_i, xy_j)]
+    np.testing.assert_allclose(triangulate_pairs(image_i, image_j, xy_i, xy_j),
+                               np.array([np.ravel(x) for x in one_by_one]), rtol=1e-9, atol=1e-9)
+    assert np.abs(triangulate_pairs(image_i, image_j, xy_i, xy_j) - points).max() > 1e-3  # the noise shows

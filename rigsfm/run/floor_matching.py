@@ -33,6 +33,7 @@ import pycolmap
 from scipy.spatial import cKDTree
 
 from rigsfm.core.errors import InputError
+from rigsfm.core.geometry import project_world
 from rigsfm.core.matching import candidate_matches
 from rigsfm.core.names import name_of
 from rigsfm.core.sift import detect, opencv_sift, reduction_factor
@@ -164,30 +165,41 @@ def _sample(map_: np.ndarray, xy: np.ndarray) -> np.ndarray:
     return cv2.remap(map_, pts[..., 0], pts[..., 1], cv2.INTER_LINEAR).reshape(-1)
 
 
+def triangulate_pairs(image_i: pycolmap.Image, image_j: pycolmap.Image, xy_i: np.ndarray,
+                      xy_j: np.ndarray) -> np.ndarray:
+    """World points (N x 3; NaN where none) of matched COLMAP pixels of two posed images: COLMAP's linear
+    two-view triangulation (``pycolmap.triangulate_point``: the 4 x 4 DLT system's null vector), for all
+    matches at once."""
+    poses = (image_i.cam_from_world().matrix(), image_j.cam_from_world().matrix())
+    rows = []
+    for image, pose, xy in ((image_i, poses[0], xy_i), (image_j, poses[1], xy_j)):
+        rays = np.asarray(image.camera.cam_from_img(np.asarray(xy, np.float64).reshape(-1, 2)), np.float64)
+        rows += [rays[:, :1] * pose[2] - pose[0], rays[:, 1:] * pose[2] - pose[1]]
+    systems = np.stack(rows, axis=1)  # N x 4 x 4
+    points = np.full((len(systems), 3), np.nan)
+    ok = np.isfinite(systems).all(axis=(1, 2))
+    if ok.any():
+        null = np.linalg.svd(systems[ok])[2][:, 3]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            points[ok] = null[:, :3] / null[:, 3:]
+    return points
+
+
 def _triangulate(image_i: pycolmap.Image, image_j: pycolmap.Image, xy_i: np.ndarray, xy_j: np.ndarray,
                  max_px: float, min_angle_deg: float = 0.0) -> np.ndarray:
     """Triangulated points (COLMAP pixels in) that reproject within ``max_px`` in both images and whose rays
     meet at ``min_angle_deg`` or more."""
-    poses = (image_i.cam_from_world().matrix(), image_j.cam_from_world().matrix())
-    rays_i, rays_j = image_i.camera.cam_from_img(xy_i), image_j.camera.cam_from_img(xy_j)
-    points = []
-    for u, v, p, q in zip(rays_i, rays_j, xy_i, xy_j):
-        if not (np.isfinite(u).all() and np.isfinite(v).all()):
-            continue
-        x = pycolmap.triangulate_point(*poses, u, v)
-        if x is None:
-            continue
-        x = np.asarray(x).reshape(3)
-        rays = [x - image_i.projection_center(), x - image_j.projection_center()]
-        cos = rays[0] @ rays[1] / (np.linalg.norm(rays[0]) * np.linalg.norm(rays[1]))
-        good = np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))) >= min_angle_deg
-        for image, obs in ((image_i, p), (image_j, q)):
-            in_cam = image.cam_from_world() * x
-            proj = image.camera.img_from_cam(in_cam) if in_cam[2] > 0 else None
-            good &= proj is not None and float(np.linalg.norm(np.asarray(proj).reshape(2) - obs)) <= max_px
-        if good:
-            points.append(x)
-    return np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    points = triangulate_pairs(image_i, image_j, xy_i, xy_j)
+    good = np.isfinite(points).all(axis=1)
+    rays = [points - image.projection_center() for image in (image_i, image_j)]
+    with np.errstate(invalid="ignore"):
+        cos = np.einsum("ij,ij->i", *rays) / (np.linalg.norm(rays[0], axis=1) * np.linalg.norm(rays[1], axis=1))
+        good &= np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))) >= min_angle_deg
+    for image, observed in ((image_i, xy_i), (image_j, xy_j)):
+        xy, seen = project_world(image.camera, image.cam_from_world(), np.nan_to_num(points), margin_px=None)
+        with np.errstate(invalid="ignore"):
+            good &= seen & (np.linalg.norm(xy - observed, axis=1) <= max_px)
+    return points[good]
 
 
 @dataclass

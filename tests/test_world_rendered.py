@@ -24,8 +24,9 @@ import pytest
 from world_truth import floor_errors, ground_distance_errors, self_check_truth
 
 from rigsfm.run.deliver import narrow_poses
-from rigsfm.run.options import RunOptions, WorldOptions
+from rigsfm.run.options import RunOptions, SelfCheckOptions, WorldOptions
 from rigsfm.run.pipeline import load_inputs, run
+from rigsfm.run.self_check import MIN_MATCHES, epipolar_self_check
 from rigsfm.run.world import ground_maps, place_in_world
 from rigsfm.synth.dataset import render_dataset
 from rigsfm.synth.scene import SceneOptions
@@ -110,7 +111,9 @@ def crowd(tmp_path_factory):
         check = result.self_check  # the run's own, every pair with its distances
         measured = [p for p in check.pairs if p.verdict in ("ok", "failed")]
         true = [self_check_truth(p, result.reconstruction, truth) for p in measured]
-        results[label] = {"summary": result.summary, "pairs": measured, "true": true, "all": check.pairs}
+        results[label] = {"summary": result.summary, "pairs": measured, "true": true, "all": check.pairs,
+                          "reconstruction": result.reconstruction, "out": out}
+    results["dataset"] = dataset
     return results
 
 
@@ -134,6 +137,22 @@ def test_self_check_measures_the_true_distances_within_20_percent(crowd, label):
         if np.median(t) >= 1.0:
             assert pair.median_px == pytest.approx(np.median(t), rel=0.2)
         assert pair.p95_px == pytest.approx(np.percentile(t, 95), rel=0.2, abs=1.0)
+
+
+def test_self_check_on_reduced_images_measures_the_true_distances(crowd):
+    """SIFT on the narrow images halved (as on full-size 1624x1234 images, SelfCheckOptions.sift_size): fewer
+    matches (a median 158 instead of 339 here), the same distances."""
+    dataset, realistic = crowd["dataset"], crowd["realistic"]
+    rec = realistic["reconstruction"]
+    narrow_poses = json.loads((realistic["out"] / "narrow_poses.json").read_text())
+    check = epipolar_self_check(rec, dataset.images, narrow_poses, SelfCheckOptions(sift_size=406))  # 812x617 / 2
+    pairs = [p for p in check.pairs if p.verdict in ("ok", "failed")]
+    assert len(pairs) >= 10 and all(p.matches >= MIN_MATCHES for p in pairs)
+    assert np.median([p.matches for p in pairs]) < 0.7 * np.median([p.matches for p in realistic["pairs"]])
+    true = [self_check_truth(p, rec, dataset.load_ground_truth()) for p in pairs]
+    measured, truth = np.concatenate([p.distances_px for p in pairs]), np.concatenate(true)
+    assert np.median(measured) == pytest.approx(np.median(truth), rel=0.1)
+    assert np.percentile(measured, 95) == pytest.approx(np.percentile(truth, 95), rel=0.1)
 
 
 @pytest.mark.parametrize("label", ["realistic", "exact"])

@@ -5,7 +5,12 @@ is the same scene in both: real correspondences between them must lie on the epi
 ``F_ji``, within ``epipolar_band_95_px`` (read from narrow_poses.json) for 95 % of them. The check, per pair of
 such images whose footprints overlap (on the floor or at head height) by 5 % of the smaller one:
 
-1. **Features**: OpenCV SIFT in image i (once per image); in the floor frame, image j is first warped into i's
+1. **Features**: OpenCV SIFT (:mod:`rigsfm.core.sift`) in image i (once per image, on it reduced by the integer
+   factor that brings it nearest ``sift_size`` px: full-size 1624x1234 narrow images of a rendered 6-rig crowd,
+   realistic rigs.yaml, halved: 237 / 660 / 1 225 matches per pair (min / median / max) instead of
+   439 / 1 003 / 1 841, the check in 4.8 s instead of 18.3, the measured distances as close to the true ones:
+   pooled median / 95th percentile 2.368 / 6.590 px against 2.360 / 6.520 true, at full size 2.383 / 6.480
+   against 2.374 / 6.412); in the floor frame, image j is first warped into i's
    view through the plane z = ``warp_height_m`` (0: the floor) over the part of i that sees j, so the two long
    focal views, tens of degrees apart in azimuth, give comparable descriptors; SIFT runs on the warp and each
    keypoint is mapped back to j's own pixels (exact: the warp's own map). Keypoints are undistorted into
@@ -57,7 +62,7 @@ from rigsfm.core.ground import (
 )
 from rigsfm.core.matching import candidate_matches
 from rigsfm.core.names import name_of
-from rigsfm.core.sift import detect, opencv_sift
+from rigsfm.core.sift import detect, opencv_sift, reduction_factor
 from rigsfm.run.floor_matching import grid_rays, plane_hits, plane_warp
 from rigsfm.run.options import SelfCheckOptions
 
@@ -141,6 +146,7 @@ class _Narrow:
     image: pycolmap.Image
     gray: np.ndarray
     features: _Features | None
+    sift_factor: int = 1  # SIFT ran on it (and runs on warps into it) reduced by this (SelfCheckOptions.sift_size)
     hits: tuple[np.ndarray, np.ndarray] | None = None
     grid_shape: tuple[int, int] | None = None
 
@@ -166,14 +172,15 @@ def _to_features(camera: pycolmap.Camera, xy_colmap: np.ndarray, descriptors: np
     return _Features(xy_colmap[finite], undistorted[finite], descriptors[finite])
 
 
-def _load(image: pycolmap.Image, image_dir: Path, warp_height: float | None) -> _Narrow | None:
+def _load(image: pycolmap.Image, image_dir: Path, warp_height: float | None, sift_size: int) -> _Narrow | None:
     gray = cv2.imread(str(image_dir / image.name), cv2.IMREAD_GRAYSCALE)
     if gray is None or gray.shape != (image.camera.height, image.camera.width):
         logger.warning("self-check: cannot read %s as a %dx%d image", image_dir / image.name, image.camera.width,
                        image.camera.height)
         return None
-    xy, descriptors = detect(_sift(), gray)
-    narrow = _Narrow(image, gray, _to_features(image.camera, colmap_from_opencv_pixels(xy), descriptors))
+    factor = reduction_factor(gray.shape, sift_size)
+    xy, descriptors = detect(_sift(), gray, None, factor)
+    narrow = _Narrow(image, gray, _to_features(image.camera, colmap_from_opencv_pixels(xy), descriptors), factor)
     if warp_height is not None:
         normalised, narrow.grid_shape = grid_rays(image.camera)
         narrow.hits = plane_hits(image, np.array([0.0, 0.0, 1.0]), -warp_height, np.inf, normalised)
@@ -311,7 +318,7 @@ def check_pair(first: _Narrow, second: _Narrow, f_ji: np.ndarray, band: float | 
         if warp is None:
             return check
         fi = fi.subset(warp.covers(opencv_from_colmap_pixels(fi.xy)))
-        xy, descriptors = detect(_sift(), warp.warped, warp.mask)
+        xy, descriptors = detect(_sift(), warp.warped, warp.mask, first.sift_factor)
         fj = _to_features(image_j.camera, warp.source_pixels(xy), descriptors)
     if fi is None or fj is None or len(fi.xy) < 2:
         return check
@@ -365,7 +372,7 @@ def epipolar_self_check(reconstruction: pycolmap.Reconstruction, image_dir: Path
         images = frames[frame]
         pairs = [p for p in _overlapping_pairs(reconstruction, images, floor_frame) if p in by_pair]
         loaded = {name: _load(reconstruction.find_image_with_name(name), Path(image_dir),
-                              opt.warp_height_m if floor_frame else None)
+                              opt.warp_height_m if floor_frame else None, opt.sift_size)
                   for name in sorted({n for p in pairs for n in p})}
         for name_i, name_j in pairs:
             entry = by_pair[(name_i, name_j)]

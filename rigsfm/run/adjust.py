@@ -637,6 +637,11 @@ ROUND_FUNCTION_TOLERANCE = 1e-6  # the rounds (outliers, pixel noise)
 FINAL_FUNCTION_TOLERANCE = 1e-9  # the result
 FINAL_SETTLE_CHI2 = 0.04  # the result: stop with less than this chi^2 left to gain (0.2 sigma; SettledStop)
 SETTLE_STEPS = 20  # a creeping solve's remaining steps gain at most ~20 times its last (SettledStop)
+# A robust round that drops at most this share of the observations, with the pixel noise settled, is the last
+# (the final solve goes on without them). Full-size circles: 16 rigs dropped 0, 72 (0.14 %), 4 (0.008 %), 0 of
+# ~53 000 in their four rounds, 64 rigs 28, 562 (0.2 %), 32 (0.011 %), 4 of ~287 000; the fourth round took 1 and
+# 16 s.
+NEGLIGIBLE_DROP = 1e-3
 
 
 def _adjust_refined(mapped: pycolmap.Reconstruction, rigs: Sequence[RigCalibration], scale_spec: ScaleSpec | None,
@@ -675,6 +680,7 @@ def _adjust_refined(mapped: pycolmap.Reconstruction, rigs: Sequence[RigCalibrati
             logger.warning(inconsistent)
             warnings.append(inconsistent)
             break
+        observations = rec.compute_num_observations()
         removed = filter_outliers(rec, options.max_reprojection_error_px)
         try:
             new_sigma = estimate_pixel_sigma(rec, options.max_reprojection_error_px)
@@ -685,7 +691,7 @@ def _adjust_refined(mapped: pycolmap.Reconstruction, rigs: Sequence[RigCalibrati
                     pixel_sigma, new_sigma)
         settled = abs(new_sigma / pixel_sigma - 1.0) < 0.05
         pixel_sigma = new_sigma
-        if removed == 0 and settled and rounds > 1:  # the last round is a robust one
+        if removed <= NEGLIGIBLE_DROP * observations and settled and rounds > 1:  # the last round is a robust one
             break
     if options.max_rounds > 1:
         # The rounds stop at a looser tolerance (Levenberg-Marquardt creeps near the minimum: 32 rigs, 55 and 40

@@ -55,7 +55,7 @@ class FloorMatchOptions:
     max_features: int = 20000
     max_reprojection_px: float = 2.0
     min_angle_deg: float = 2.0  # triangulation angle; pairs of images of the same rig are never matched
-    neighbours: int = 6  # each image is matched with the images of this many nearest rigs (0: all)
+    neighbours: int = 4  # each image is matched with the images of this many nearest rigs (0: all)
     # Also match each feature of i among the warp's features within this many pixels of it (the warp puts the
     # floor where it is in i; a guessed plane a few decimetres off shifts it by tens of pixels). 0: no.
     search_radius_px: float = 40.0

@@ -225,10 +225,10 @@ def _ransac(points: np.ndarray, up: np.ndarray, max_tilt_deg: float, centres: np
     Triples are drawn in batches (``FIRST_TRIPLES``, doubling up to ``iterations``) until, with ``confidence``,
     one of them lies on the best plane found (adaptive RANSAC: ``log(1 - confidence) / log(1 - w^3)`` triples
     for its inlier fraction w), or on a plane holding ``min_inlier_fraction`` of the points when none is found.
-    (A first batch of 3000 scored every triple against all points: 0.5 s for the 17 000 floor matches of a
-    16-rig circle, where 10 triples were needed.) A fixed 3000 missed the floor of the
-    rendered 3-rig arc about one time in three: ~40 floor points among 550 candidates, 1.2 all-floor triples
-    expected in 3000; which run missed it depended on pose changes of 1e-5 deg."""
+    A first batch of 3000 cost 0.5 s on the 13 000 floor matches of a 16-rig circle, where 10 triples were
+    needed. A fixed 3000 missed the floor of the rendered 3-rig arc about one time in three: ~40 floor points
+    among 550 candidates, 1.2 all-floor triples expected in 3000; which run missed it depended on pose changes
+    of 1e-5 deg."""
     n = len(points)
 
     def needed(fraction: float) -> int:

@@ -312,7 +312,6 @@ def test_images_that_disagree_with_the_priors_are_kept_and_flagged_not_emptied(t
                for k in (1, 2, 3))
 
 
-
 def test_frames_without_points_name_each_frame_once():
     """ADJUSTMENT INCONSISTENT's list: a rig with one registered frame by its name, a frame of a rig with several
     as ``rig frame``; a rig whose two frames are emptied is not named twice."""
@@ -344,6 +343,7 @@ def test_frames_without_points_name_each_frame_once():
     synthetic.deregister_frame(max(frame_ids))  # rig01 left with one registered frame
     empty("rig01")
     assert frames_without_points(synthetic)[0] == "rig01"
+
 
 def _exact_distances(model: _PairModel, z: np.ndarray, pixels: np.ndarray, depths: np.ndarray) -> np.ndarray:
     """The band's quantity without linearisation: move frames, E^sl and cameras by ``z`` (our tangents), then the

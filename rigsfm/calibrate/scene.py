@@ -24,7 +24,7 @@ from rigsfm.calibrate.board import read_gray
 from rigsfm.core.conventions import opencv_from_resized_pixels
 from rigsfm.core.errors import ReconstructionError
 from rigsfm.core.geometry import sampson
-from rigsfm.core.sift import opencv_sift
+from rigsfm.core.sift import detect, opencv_sift
 
 logger = logging.getLogger(__name__)
 
@@ -45,10 +45,10 @@ class SceneEstimate:
 
 
 def _sift(gray: np.ndarray, sift) -> tuple[np.ndarray, np.ndarray]:
-    keypoints, descriptors = sift.detectAndCompute(gray, None)
+    xy, descriptors = detect(sift, gray)
     if descriptors is None:
         return np.zeros((0, 2)), np.zeros((0, 128), np.float32)
-    return np.array([k.pt for k in keypoints], np.float64), descriptors
+    return xy, descriptors
 
 
 def mutual_ratio_matches(d1: np.ndarray, d2: np.ndarray, ratio: float = RATIO) -> np.ndarray:

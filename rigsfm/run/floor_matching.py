@@ -32,6 +32,7 @@ import numpy as np
 import pycolmap
 from scipy.spatial import cKDTree
 
+from rigsfm.core.conventions import colmap_from_opencv_pixels, opencv_from_colmap_pixels
 from rigsfm.core.errors import InputError
 from rigsfm.core.geometry import project_world
 from rigsfm.core.matching import candidate_matches
@@ -106,7 +107,7 @@ def warp_maps(hits: np.ndarray, ok: np.ndarray, target: pycolmap.Image, shape: t
     map_x = np.full(len(hits), -1e6, np.float32)
     map_y = np.full(len(hits), -1e6, np.float32)
     if len(rows):
-        uv = np.asarray(target.camera.img_from_cam(in_target), dtype=np.float64) - 0.5  # COLMAP -> OpenCV
+        uv = opencv_from_colmap_pixels(target.camera.img_from_cam(in_target))
         finite = np.isfinite(uv).all(axis=1)
         map_x[rows[finite]], map_y[rows[finite]] = uv[finite, 0], uv[finite, 1]
     return map_x.reshape(shape), map_y.reshape(shape)
@@ -139,7 +140,7 @@ class PlaneWarp:
         xy = np.asarray(xy_warped, dtype=np.float64).reshape(-1, 2)
         if not len(xy):
             return np.zeros((0, 2))
-        return np.c_[_sample(self.map_x, xy), _sample(self.map_y, xy)] + 0.5
+        return colmap_from_opencv_pixels(np.c_[_sample(self.map_x, xy), _sample(self.map_y, xy)])
 
 
 def plane_warp(hits: tuple[np.ndarray, np.ndarray], grid_shape: tuple[int, int], shape_i: tuple[int, int],
@@ -317,7 +318,7 @@ def match_floor_points(reconstruction: pycolmap.Reconstruction, image_dir: Path 
         if not len(good):
             continue
         xy_j = warp.source_pixels(xy_w[good[:, 1]] - warp.origin)
-        xy_i_colmap = xy_i[good[:, 0]] + 0.5
+        xy_i_colmap = colmap_from_opencv_pixels(xy_i[good[:, 0]])
         found = _triangulate(image_i, image_j, xy_i_colmap, xy_j, opt.max_reprojection_px, opt.min_angle_deg)
         counts[(image_i.name, image_j.name)] = len(found)
         points.append(found)

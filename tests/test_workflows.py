@@ -1,7 +1,12 @@
-"""The workflows/ scripts run end to end on small rendered scenes and give accurate results."""
+"""The workflows/ scripts run end to end on small rendered scenes and give accurate results.
+
+Each script runs as ``python workflows/NAME.py ARGS`` would run it (``runpy``, as ``__main__``, with its
+``sys.argv``), in the test's own process: the scenes of one seed share their textures (generated once per
+process, ~7 s each) and the stages' forkserver starts once. Its printed lines are what a user reads.
+"""
 
 import json
-import subprocess
+import runpy
 import sys
 from pathlib import Path
 
@@ -14,11 +19,18 @@ pytestmark = pytest.mark.slow  # end-to-end runs on rendered images (`-m 'not sl
 WORKFLOWS = Path(__file__).resolve().parents[1] / "workflows"
 
 
-def run_workflow(name, *args):
-    completed = subprocess.run([sys.executable, str(WORKFLOWS / name), *map(str, args)],
-                               capture_output=True, text=True, timeout=600)
-    assert completed.returncode == 0, completed.stderr[-3000:]
-    return completed.stdout
+@pytest.fixture
+def run_workflow(capsys, monkeypatch):
+    """``run_workflow(NAME, *ARGS)``: what ``python workflows/NAME ARGS`` prints."""
+
+    def run(name, *args):
+        path = WORKFLOWS / name
+        monkeypatch.setattr(sys, "argv", [str(path), *map(str, args)])
+        capsys.readouterr()
+        runpy.run_path(str(path), run_name="__main__")
+        return capsys.readouterr().out
+
+    return run
 
 
 def test_every_workflow_has_a_docstring_and_usage():
@@ -27,7 +39,7 @@ def test_every_workflow_has_a_docstring_and_usage():
         assert text.startswith('"""') and "python workflows/" in text, path
 
 
-def test_full_circle(tmp_path):
+def test_full_circle(run_workflow, tmp_path):
     out = run_workflow("full_circle.py", tmp_path, "--num-rigs", 6, "--image-scale", 0.5)
     accuracy = json.loads((tmp_path / "accuracy.json").read_text())
     assert accuracy["narrow"]["registered"] == accuracy["narrow"]["total"] == 6
@@ -38,7 +50,7 @@ def test_full_circle(tmp_path):
 
 
 @pytest.mark.parametrize("mapper", ["incremental", "global"])
-def test_two_rigs_sixty_degrees_apart(tmp_path, mapper):
+def test_two_rigs_sixty_degrees_apart(run_workflow, tmp_path, mapper):
     out = run_workflow("two_rigs.py", tmp_path, "--mapper", mapper, "--image-scale", 0.5)
     accuracy = json.loads((tmp_path / "accuracy.json").read_text())
     assert accuracy["narrow"]["registered"] == 2
@@ -48,7 +60,7 @@ def test_two_rigs_sixty_degrees_apart(tmp_path, mapper):
     assert "narrow relative rotation error" in out
 
 
-def test_global_mapper(tmp_path):
+def test_global_mapper(run_workflow, tmp_path):
     out = run_workflow("global_mapper.py", tmp_path, "--num-rigs", 6, "--image-scale", 0.5)
     accuracy = json.loads((tmp_path / "accuracy.json").read_text())
     assert accuracy["narrow"]["registered"] == 6
@@ -58,7 +70,7 @@ def test_global_mapper(tmp_path):
     assert json.loads((tmp_path / "run" / "summary.json").read_text())["warnings"] == []
 
 
-def test_four_rig_circle_is_flagged_as_undetermined(tmp_path):
+def test_four_rig_circle_is_flagged_as_undetermined(run_workflow, tmp_path):
     """Four rigs 90 degrees apart share no point between three rigs: the images do not fix the rigs' distances.
 
     No accuracy is asserted: the global mapper's threads decide whether the loop closes. In 30 of 32 runs here
@@ -72,7 +84,7 @@ def test_four_rig_circle_is_flagged_as_undetermined(tmp_path):
     assert any(w.startswith("SHAPE NOT DETERMINED") for w in warnings)
 
 
-def test_own_folders(tmp_path, rendered):
+def test_own_folders(run_workflow, tmp_path, rendered):
     dataset = rendered(SceneOptions(num_rigs=2, arc_deg=60.0, image_scale=0.5, seed=4))
     out = run_workflow("own_folders.py", dataset.images, dataset.rigs, tmp_path / "out", "--scale", dataset.scale)
     assert "rig01/narrow/frame0000.png -> rig02/narrow/frame0000.png" in out and "F_ji" in out

@@ -39,10 +39,11 @@ from rigsfm.synth.scene import SceneOptions  # noqa: E402
 logger = logging.getLogger("benchmarks.scaling")
 
 METHODS = ("rigsfm-incremental", "rigsfm-global", "recipe", "oracle")
-LABELS = {"rigsfm-incremental": "rigsfm (incremental)", "rigsfm-global": "rigsfm (global)",
+LABELS = {"rigsfm-auto": "rigsfm (default: auto)", "rigsfm-incremental": "rigsfm (incremental)",
+          "rigsfm-global": "rigsfm (global)",
           "rigsfm-exhaustive": "rigsfm, every pair matched", "recipe": "pycolmap rig recipe",
           "oracle": "oracle (limit)"}
-COLOURS = {"rigsfm-incremental": (180, 90, 20), "rigsfm-global": (40, 160, 40), "rigsfm-exhaustive": (120, 120, 120),
+COLOURS = {"rigsfm-auto": (20, 20, 200), "rigsfm-incremental": (180, 90, 20), "rigsfm-global": (40, 160, 40), "rigsfm-exhaustive": (120, 120, 120),
            "recipe": (0, 140, 230)}  # BGR
 STAGES = ("features", "matching", "mapping", "adjust", "deliver")
 

@@ -23,12 +23,12 @@ import pytest
 
 from rigsfm.core import stages
 from rigsfm.core.rig import load_rigs
-from rigsfm.core.errors import WorkspaceError
+from rigsfm.core.errors import InputError, WorkspaceError
 from rigsfm.core.workspace import Workspace
 from rigsfm.run.database import create_database
 from rigsfm.run.features import extract_features, match_features
 from rigsfm.run.inputs import scan_images
-from rigsfm.run.mapping import RELAXATIONS, _incremental_options, initial_pair, run_mapping, wide_pairs
+from rigsfm.run.mapping import RELAXATIONS, _incremental_options, choose_mapper, initial_pair, run_mapping, wide_pairs
 from rigsfm.run.options import Mapper, MappingOptions, MatchingOptions
 from rigsfm.synth.dataset import render_dataset
 from rigsfm.synth.scene import SceneOptions
@@ -119,6 +119,20 @@ def test_mapping_from_the_chosen_pair_registers_every_rig(scene, matched):
     metrics = compare_to_ground_truth(mapped.reconstruction, scene.load_ground_truth(), "wide")
     assert metrics["registered"] == 4
     assert metrics["relative_rotation_deg"]["max"] < 0.5
+
+
+def test_auto_picks_the_global_mapper_from_its_threshold(scene, matched):
+    """``auto`` (the default; above: 4 frames, the incremental mapper) from ``global_from_frames`` on runs the
+    global mapper first; with every frame registered there is no fallback."""
+    assert [choose_mapper(MappingOptions(), n) for n in (2, 15, 16, 64)] == [Mapper.INCREMENTAL] * 2 + [Mapper.GLOBAL] * 2
+    assert choose_mapper(MappingOptions(mapper=Mapper.INCREMENTAL), 64) == Mapper.INCREMENTAL
+    mapped = run_mapping(matched, scene.images, MappingOptions(global_from_frames=4), num_wide=4)
+    assert (mapped.mapper, mapped.fallback) == (Mapper.GLOBAL, None)
+    metrics = compare_to_ground_truth(mapped.reconstruction, scene.load_ground_truth(), "wide")
+    assert metrics["registered"] == 4
+    assert metrics["relative_rotation_deg"]["max"] < 0.5
+    with pytest.raises(InputError, match="global_from_frames must be an integer >= 2"):
+        MappingOptions(global_from_frames=1)
 
 
 def test_time_limit_hands_over_to_the_global_mapper(scene, matched):

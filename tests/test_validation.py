@@ -240,7 +240,7 @@ def test_max_ratio_outside_0_1_is_refused(value):
     (lambda: MatchingOptions(max_error_px=0), r"max_error_px must be a number > 0"),
     (lambda: MatchingOptions(max_num_features=0), r"max_num_features must be an integer >= 1"),
     (lambda: MatchingOptions(features="surf"), r"--features must be one of sift, asift, got 'surf'"),
-    (lambda: MappingOptions(mapper="glomap"), r"--mapper must be one of incremental, global"),
+    (lambda: MappingOptions(mapper="glomap"), r"--mapper must be one of auto, incremental, global"),
     (lambda: MappingOptions(seed=-2), r"--seed \(-1: random\) must be an integer >= -1"),
     (lambda: AdjustOptions(loss_scale_px=math.nan), r"loss_scale_px must be a number > 0"),
     (lambda: AdjustOptions(max_iterations=0), r"max_iterations must be an integer >= 1"),

@@ -14,6 +14,8 @@ from rigsfm.run.options import (AdjustOptions, Calibration, Device, Executor, Fe
 
 VERBOSE = flag("--verbose", "-v", help="show rigsfm's log (info level) on the terminal")
 STRICT = flag("--strict", help="exit with code 4 when the result carries warnings (for scripts)")
+MAPPER_HELP = ("COLMAP's mapper for the wide images; auto: global from 16 wide frames (faster there, same accuracy), "
+               "incremental below")
 
 
 def print_summary(summary, out: Path) -> None:
@@ -80,7 +82,7 @@ def run_command(
     scale: Annotated[Optional[Path], typer.Option(
         "--scale", help="scale.yaml: rangefinder distances and known lengths [default: none, the result is not "
                         "metric]", show_default=False)] = None,
-    mapper: Annotated[Mapper, typer.Option("--mapper", help="COLMAP's mapper for the wide images")] = Mapper.INCREMENTAL,
+    mapper: Annotated[Mapper, typer.Option("--mapper", help=MAPPER_HELP)] = Mapper.AUTO,
     narrow_features: Annotated[bool, flag("--narrow-features", help="also extract and match features in the narrow "
                                                                     "images (textured or crowded narrow views)")] = False,
     features: Annotated[Features, typer.Option("--features", help="sift, or asift: affine-robust, for large perspective "
@@ -186,7 +188,7 @@ def demo_command(
                                                help="image size relative to 1624x1234 (0.5 renders 812x617)")] = 1.0,
     exact_calibration: Annotated[bool, flag("--exact-calibration", help="give the run the exact calibration "
                                                                         "(no calibration errors)")] = False,
-    mapper: Annotated[Mapper, typer.Option("--mapper", help="COLMAP's mapper for the wide images")] = Mapper.INCREMENTAL,
+    mapper: Annotated[Mapper, typer.Option("--mapper", help=MAPPER_HELP)] = Mapper.AUTO,
     seed: Annotated[int, typer.Option("--seed", help="seed of the rendered scene and of the mapper")] = 0,
     overwrite: Annotated[bool, flag("--overwrite", help="replace an earlier demo in OUT")] = False,
     strict: Annotated[bool, STRICT] = False,

@@ -1,4 +1,5 @@
-"""Stage 3: register the wide cameras with COLMAP's incremental or global mapper.
+"""Stage 3: register the wide cameras with COLMAP's incremental or global mapper (``auto``, the default: the
+global one from 16 wide frames, where it is the faster at the same accuracy; the incremental one below).
 
 Intrinsics and every ``sensor_from_rig`` (E^sl) stay fixed. Small networks (2-4 rigs) only have
 two-view tracks, which COLMAP ignores by default; they are allowed here, and the model-size and
@@ -274,6 +275,14 @@ def _map(database_path: Path, image_dir: Path, options: MappingOptions, num_wide
     return max(models, key=lambda rec: rec.num_reg_frames()), False
 
 
+def choose_mapper(options: MappingOptions, num_wide: int) -> Mapper:
+    """The mapper that runs first: the one asked for, or for ``auto`` the global mapper from
+    ``options.global_from_frames`` wide frames and the incremental one below (see :class:`MappingOptions`)."""
+    if options.mapper != Mapper.AUTO:
+        return options.mapper
+    return Mapper.GLOBAL if num_wide >= options.global_from_frames else Mapper.INCREMENTAL
+
+
 @dataclass
 class MappingResult:
     reconstruction: pycolmap.Reconstruction  # wide cameras registered, arbitrary units
@@ -292,11 +301,16 @@ def run_mapping(
 ) -> MappingResult:
     """Map the workspace's database, keep the largest model, write it to ``workspace.mapping``.
 
-    If the incremental mapper cannot register every wide frame (e.g. neighbouring rigs share no
+    ``auto`` runs the mapper :func:`choose_mapper` picks. If the incremental mapper cannot register every wide frame (e.g. neighbouring rigs share no
     three-view tracks) or does not finish within ``options.incremental_time_limit_s``, the global mapper
     is tried too and the model with more frames is kept; the result says so (``fallback``).
     """
-    kept, fallback_note = options.mapper, None
+    mapper = choose_mapper(options, num_wide)
+    if mapper != options.mapper:
+        logger.info("%d wide frames: the %s mapper (--mapper auto: global from %d)", num_wide, mapper,
+                    options.global_from_frames)
+    options = replace(options, mapper=mapper)
+    kept, fallback_note = mapper, None
     best, timed_out = _map(workspace.database, image_dir, options, num_wide, num_threads, on_registered)
     if options.mapper == Mapper.INCREMENTAL and (best is None or best.num_reg_frames() < num_wide):
         registered = 0 if best is None else best.num_reg_frames()

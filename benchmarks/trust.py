@@ -145,8 +145,7 @@ def prepare(scene: Scene, work: Path, force: bool = False) -> None:
             record["features_s"] = time.perf_counter() - t
             t = time.perf_counter()
             num_wide = sum(e.sensor == "wide" for e in inputs.images)
-            mapping = run_mapping(workspace, inputs.image_dir, MappingOptions(), num_wide=num_wide,
-                                  keep_narrow_offsets=scene.narrow_features)
+            mapping = run_mapping(workspace, inputs.image_dir, MappingOptions(), num_wide=num_wide)
             record["mapping_s"] = time.perf_counter() - t
             record["registered_frames"] = mapping.reconstruction.num_reg_frames()
     except Exception as error:  # noqa: BLE001 - a scene that fails is recorded, not fatal

@@ -28,7 +28,8 @@ from rigsfm.core.workspace import Workspace
 from rigsfm.run.database import create_database
 from rigsfm.run.features import extract_features, match_features
 from rigsfm.run.inputs import scan_images
-from rigsfm.run.mapping import RELAXATIONS, _incremental_options, choose_mapper, initial_pair, run_mapping, wide_pairs
+from rigsfm.run.mapping import (RELAXATIONS, _incremental_options, choose_mapper, initial_pair, run_mapping,
+                                wide_pairs)
 from rigsfm.run.options import Mapper, MappingOptions, MatchingOptions
 from rigsfm.synth.dataset import render_dataset
 from rigsfm.synth.scene import SceneOptions
@@ -122,9 +123,10 @@ def test_mapping_from_the_chosen_pair_registers_every_rig(scene, matched):
 
 
 def test_auto_picks_the_global_mapper_from_its_threshold(scene, matched):
-    """``auto`` (the default; above: 4 frames, the incremental mapper) from ``global_from_frames`` on runs the
-    global mapper first; with every frame registered there is no fallback."""
-    assert [choose_mapper(MappingOptions(), n) for n in (2, 15, 16, 64)] == [Mapper.INCREMENTAL] * 2 + [Mapper.GLOBAL] * 2
+    """``auto`` (the default) runs the incremental mapper below ``global_from_frames`` wide frames (the test above:
+    4 frames) and the global one from there; with every frame registered there is no fallback."""
+    picked = [choose_mapper(MappingOptions(), n) for n in (2, 15, 16, 64)]
+    assert picked == [Mapper.INCREMENTAL, Mapper.INCREMENTAL, Mapper.GLOBAL, Mapper.GLOBAL]
     assert choose_mapper(MappingOptions(mapper=Mapper.INCREMENTAL), 64) == Mapper.INCREMENTAL
     mapped = run_mapping(matched, scene.images, MappingOptions(global_from_frames=4), num_wide=4)
     assert (mapped.mapper, mapped.fallback) == (Mapper.GLOBAL, None)

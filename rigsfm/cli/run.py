@@ -14,8 +14,8 @@ from rigsfm.run.options import (AdjustOptions, Calibration, Device, Executor, Fe
 
 VERBOSE = flag("--verbose", "-v", help="show rigsfm's log (info level) on the terminal")
 STRICT = flag("--strict", help="exit with code 4 when the result carries warnings (for scripts)")
-MAPPER_HELP = ("COLMAP's mapper for the wide images; auto: global from 16 wide frames (faster there, same accuracy), "
-               "incremental below")
+MAPPER_HELP = ("COLMAP's mapper for the wide images; auto: global from 16 wide frames (faster there, same "
+               "accuracy), incremental below")
 
 
 def print_summary(summary, out: Path) -> None:

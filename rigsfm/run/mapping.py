@@ -301,9 +301,10 @@ def run_mapping(
 ) -> MappingResult:
     """Map the workspace's database, keep the largest model, write it to ``workspace.mapping``.
 
-    ``auto`` runs the mapper :func:`choose_mapper` picks. If the incremental mapper cannot register every wide frame (e.g. neighbouring rigs share no
-    three-view tracks) or does not finish within ``options.incremental_time_limit_s``, the global mapper
-    is tried too and the model with more frames is kept; the result says so (``fallback``).
+    ``auto`` runs the mapper :func:`choose_mapper` picks. If the incremental mapper cannot register every wide
+    frame (e.g. neighbouring rigs share no three-view tracks) or does not finish within
+    ``options.incremental_time_limit_s``, the global mapper is tried too and the model with more frames is kept;
+    the result says so (``fallback``).
     """
     mapper = choose_mapper(options, num_wide)
     if mapper != options.mapper:

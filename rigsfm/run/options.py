@@ -111,7 +111,7 @@ class MappingOptions:
     mapper: Mapper = Mapper.AUTO
     # AUTO: the global mapper from this many wide frames, the incremental one below. Measured on rendered full
     # circles at 1624x1234 (benchmarks/README.md): from 16 rigs the global mapper is faster at the same accuracy
-    # (16 rigs 39.5-41.7 s against 45.7-46.8 s end to end, 64 rigs 248 s); below, the incremental one, which hands
+    # (16 rigs 33.7-41.7 s against 38.7-46.8 s end to end, 64 rigs 248 s); below, the incremental one, which hands
     # the frames it cannot reach to the global mapper: alone, the global mapper registered 0 of 4 rigs of a
     # featureless 4-rig circle and once converged to a wrong shape on an 8-rig crowd.
     global_from_frames: int = 16

@@ -43,8 +43,8 @@ LABELS = {"rigsfm-auto": "rigsfm (default: auto)", "rigsfm-incremental": "rigsfm
           "rigsfm-global": "rigsfm (global)",
           "rigsfm-exhaustive": "rigsfm, every pair matched", "recipe": "pycolmap rig recipe",
           "oracle": "oracle (limit)"}
-COLOURS = {"rigsfm-auto": (20, 20, 200), "rigsfm-incremental": (180, 90, 20), "rigsfm-global": (40, 160, 40), "rigsfm-exhaustive": (120, 120, 120),
-           "recipe": (0, 140, 230)}  # BGR
+COLOURS = {"rigsfm-auto": (20, 20, 200), "rigsfm-incremental": (180, 90, 20), "rigsfm-global": (40, 160, 40),
+           "rigsfm-exhaustive": (120, 120, 120), "recipe": (0, 140, 230)}  # BGR
 STAGES = ("features", "matching", "mapping", "adjust", "deliver")
 
 

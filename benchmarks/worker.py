@@ -2,7 +2,8 @@
 
 ``python -m benchmarks.worker METHOD SCENE OUT [--estimate MODEL]`` writes ``OUT/model`` (a COLMAP
 model, if the method produced one) and ``OUT/worker.json`` (time of the method itself, after the common
-imports; per-stage timings; the process's peak RSS; method-specific facts). METHOD: rigsfm-auto (the default), rigsfm-incremental, rigsfm-global, rigsfm-exhaustive (incremental, every pair matched), paper, colmap,
+imports; per-stage timings; the process's peak RSS; method-specific facts). METHOD: rigsfm-auto (the default),
+rigsfm-incremental, rigsfm-global, rigsfm-exhaustive (incremental, every pair matched), paper, colmap,
 recipe (the careful pycolmap rig recipe, baselines/colmap_recipe.py), oracle (needs --estimate: the rigsfm
 model whose observations it re-uses), idle (imports only: the floor of the peak memory).
 """
@@ -19,7 +20,8 @@ import time
 import traceback
 from pathlib import Path
 
-METHODS = ("rigsfm-auto", "rigsfm-incremental", "rigsfm-global", "rigsfm-exhaustive", "paper", "colmap", "recipe", "oracle", "idle")
+METHODS = ("rigsfm-auto", "rigsfm-incremental", "rigsfm-global", "rigsfm-exhaustive", "paper", "colmap", "recipe",
+           "oracle", "idle")
 
 
 def import_common() -> None:

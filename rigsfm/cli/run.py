@@ -9,13 +9,13 @@ import typer
 from rich.table import Table
 
 from rigsfm.cli.common import StageProgress, configure_logging, console, fail_cleanly, finish, flag, progress_bars
-from rigsfm.run.options import (AdjustOptions, Calibration, Device, Executor, Features, Mapper, MappingOptions,
-                                 MatchingOptions, Pairs, RunOptions, WorldFrame, WorldOptions)
+from rigsfm.run.options import (GLOBAL_FROM_FRAMES, AdjustOptions, Calibration, Device, Executor, Features, Mapper,
+                                 MappingOptions, MatchingOptions, Pairs, RunOptions, WorldFrame, WorldOptions)
 
 VERBOSE = flag("--verbose", "-v", help="show rigsfm's log (info level) on the terminal")
 STRICT = flag("--strict", help="exit with code 4 when the result carries warnings (for scripts)")
-MAPPER_HELP = ("COLMAP's mapper for the wide images; auto: global from 16 wide frames (faster there, same "
-               "accuracy), incremental below")
+MAPPER_HELP = (f"COLMAP's mapper for the wide images; auto: global from {GLOBAL_FROM_FRAMES} wide frames (faster "
+               "there, same accuracy), incremental below")
 
 
 def print_summary(summary, out: Path) -> None:

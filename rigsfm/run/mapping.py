@@ -1,5 +1,5 @@
 """Stage 3: register the wide cameras with COLMAP's incremental or global mapper (``auto``, the default: the
-global one from 16 wide frames, where it is the faster at the same accuracy; the incremental one below).
+global one from 16 wide frames, where it is faster at the same accuracy; the incremental one below).
 
 Intrinsics and every ``sensor_from_rig`` (E^sl) stay fixed. Small networks (2-4 rigs) only have
 two-view tracks, which COLMAP ignores by default; they are allowed here, and the model-size and

@@ -106,15 +106,18 @@ class MatchingOptions:
         return (not self.narrow_features) if self.rig_verification is None else self.rig_verification
 
 
+# --mapper auto: the global mapper from this many wide frames, the incremental one below. Measured on rendered full
+# circles at 1624x1234 (benchmarks/README.md): from 16 rigs the global mapper is faster at the same accuracy
+# (16 rigs 33.7-41.7 s against 38.7-46.8 s end to end, 64 rigs 248 s); below, the incremental one, which hands
+# the frames it cannot reach to the global mapper: alone, the global mapper registered 0 of 4 rigs of a
+# featureless 4-rig circle and once converged to a wrong shape on an 8-rig crowd.
+GLOBAL_FROM_FRAMES = 16
+
+
 @dataclass(kw_only=True)
 class MappingOptions:
     mapper: Mapper = Mapper.AUTO
-    # AUTO: the global mapper from this many wide frames, the incremental one below. Measured on rendered full
-    # circles at 1624x1234 (benchmarks/README.md): from 16 rigs the global mapper is faster at the same accuracy
-    # (16 rigs 33.7-41.7 s against 38.7-46.8 s end to end, 64 rigs 248 s); below, the incremental one, which hands
-    # the frames it cannot reach to the global mapper: alone, the global mapper registered 0 of 4 rigs of a
-    # featureless 4-rig circle and once converged to a wrong shape on an 8-rig crowd.
-    global_from_frames: int = 16
+    global_from_frames: int = GLOBAL_FROM_FRAMES  # AUTO's threshold
     seed: int = 0
     # Lower COLMAP's match-count thresholds (rigsfm.run.mapping.relax_for_few_matches). None: on when manual
     # matches are given, off otherwise. Not on by default: relaxed, a pair of rigs with 21 wrong-but-consistent

@@ -20,6 +20,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from rigsfm.core.errors import InputError, RigsfmError
+from rigsfm.core.io import parse_yaml
 from rigsfm.core.rig import load_rigs
 from rigsfm.run.inputs import ImageEntry
 from rigsfm.run.manual_matches import read_manual_matches, validate_manual_matches
@@ -105,6 +106,8 @@ def documents(base):
 
 
 def test_the_valid_files_are_valid(tmp_path):
+    for document in (RIGS, SCALE):  # libyaml's parser (rigsfm's where PyYAML has it) reads what PyYAML's own reads
+        assert parse_yaml(dump(document)) == yaml.safe_load(dump(document)) == document
     rigs = tmp_path / "rigs.yaml"
     rigs.write_text(dump(RIGS))
     loaded = load_rigs(rigs)

@@ -15,7 +15,7 @@ import yaml
 
 from rigsfm.calibrate.uncertainty import add_sigmas, rig_sigmas
 from rigsfm.core.errors import WorkspaceError
-from rigsfm.core.io import load_yaml_or_json, write_text_atomic
+from rigsfm.core.io import load_yaml_or_json, parse_yaml, write_text_atomic
 from rigsfm.core.rig import RigCalibration, load_rigs, rigs_to_yaml
 
 if TYPE_CHECKING:
@@ -71,7 +71,7 @@ def write_outputs(result: CalibrationResult, out: Path, *, merge: bool = False, 
 def rigs_yaml_text(result: CalibrationResult, existing: list[RigCalibration], out: Path) -> str:
     """rigs.yaml with ``result``'s rigs and their uncertainties, after the ``existing`` rigs a merge keeps."""
     new = result.rig_calibrations()
-    entries = yaml.safe_load(rigs_to_yaml(new))["rigs"] if new else []
+    entries = parse_yaml(rigs_to_yaml(new))["rigs"] if new else []
     by_name = {e["name"]: add_sigmas(e, rig_sigmas(rig)) for e, rig in zip(entries, result.rigs)}
     kept = {}
     if existing:  # the entries as they are in the file (validated by load_rigs in check_output)

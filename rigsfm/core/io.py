@@ -103,12 +103,22 @@ def read_user_text(path: Path, what: str) -> str:
                          "in a spreadsheet)") from None
 
 
+# libyaml's parser where PyYAML was built with it (its wheels are): the same documents, ~9x faster than the pure-Python
+# one (a rigs.yaml with sigmas: 1.6 against 13.7 ms), which the fuzz tests' thousands of files felt.
+_SAFE_LOADER = getattr(yaml, "CSafeLoader", yaml.SafeLoader)
+
+
+def parse_yaml(text: str) -> Any:
+    """``yaml.safe_load`` with libyaml's parser where available (raises ``yaml.YAMLError`` alike)."""
+    return yaml.load(text, Loader=_SAFE_LOADER)  # noqa: S506  (a safe loader)
+
+
 def load_yaml_or_json(path: Path, what: str) -> Any:
     """Parse a YAML (or JSON, a subset of YAML) file, with an error that names the file."""
     path = Path(path)
     text = read_user_text(path, what)
     try:
-        data = yaml.safe_load(text)
+        data = parse_yaml(text)
     except RecursionError:
         raise InputError(f"{path}: nested too deeply to be a {what} file; fix the syntax") from None
     except yaml.YAMLError as e:

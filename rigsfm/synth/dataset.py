@@ -28,7 +28,7 @@ import yaml
 from rigsfm.core.geometry import project_world
 from rigsfm.core.errors import WorkspaceError
 from rigsfm.core.names import SENSORS, ImageName, Sensor
-from rigsfm.core.io import write_text_atomic
+from rigsfm.core.io import parse_yaml, write_text_atomic
 from rigsfm.core.rig import RigCalibration, add_posed_rig, rigs_to_yaml, write_rigs
 from rigsfm.synth.cameras import RigTruth, calibration_error_sigmas, make_rigs, user_calibration
 from rigsfm.synth.render import render_clean, to_uint8, visible
@@ -137,7 +137,7 @@ def rigs_yaml_with_sigmas(calibrations: list[RigCalibration]) -> str:
     ``rigsfm calibrate`` writes its own: the run then weighs rigs.yaml by its real uncertainty."""
     from rigsfm.calibrate.uncertainty import RigSigmas, add_sigmas
 
-    data = yaml.safe_load(rigs_to_yaml(calibrations))
+    data = parse_yaml(rigs_to_yaml(calibrations))
     for entry, calibration in zip(data["rigs"], calibrations, strict=True):
         sigmas = calibration_error_sigmas(calibration)
         add_sigmas(entry, RigSigmas(wide=sigmas["wide"], narrow=sigmas["narrow"], rotation_deg=sigmas["rotation_deg"],

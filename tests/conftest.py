@@ -41,6 +41,15 @@ def _once(root: Path, key: str, make):
         return pickle.loads(done.read_bytes())
 
 
+@pytest.fixture(scope="session", autouse=True)
+def shared_textures(tmp_path_factory):
+    """The synthetic scenes' textures (~6-9 s per seed and process) made once per session, for every worker and
+    every process they start (rigsfm.synth.scene, RIGSFM_TEXTURE_CACHE)."""
+    from rigsfm.synth.scene import TEXTURE_CACHE_ENV
+
+    os.environ[TEXTURE_CACHE_ENV] = str(_shared_root(tmp_path_factory) / "textures")
+
+
 @pytest.fixture(scope="session")
 def rendered(tmp_path_factory):
     """``rendered(SceneOptions) -> SyntheticDataset``: each scene rendered once per test session, for every

@@ -323,3 +323,25 @@ def test_pillars_occlude_the_wall(arena, gt):
         assert np.allclose(project(camera, pose, wall[None]), project(camera, pose, front[None]), atol=1e-6)
         assert not visible(arena, camera, pose, wall[None])[0]
     assert occluders >= 1
+
+
+def test_textures_are_shared_between_processes_through_the_cache_folder(tmp_path, monkeypatch):
+    """RIGSFM_TEXTURE_CACHE: the first process makes the arrays and leaves them whole in the folder; a later one
+    reads back the very same arrays without making them; unset, every call makes them."""
+    from rigsfm.synth.scene import TEXTURE_CACHE_ENV, _shared_arrays
+
+    made = []
+
+    def make():
+        made.append(1)
+        return np.random.default_rng(3).random((40, 30)).astype(np.float32), np.arange(5.0)
+
+    monkeypatch.setenv(TEXTURE_CACHE_ENV, str(tmp_path / "cache"))
+    first = _shared_arrays("k", make)
+    again = _shared_arrays("k", make)
+    assert len(made) == 1 and [p.name for p in (tmp_path / "cache").iterdir()] == ["k.npz"]
+    for a, b in zip(first, again, strict=True):
+        assert a.dtype == b.dtype and np.array_equal(a, b)
+    monkeypatch.delenv(TEXTURE_CACHE_ENV)
+    _shared_arrays("k", make)
+    assert len(made) == 2

@@ -4,13 +4,21 @@ World frame: metres, z up, origin on the ground at the arena centre. The ground 
 up to a cylindrical wall (the stands) of radius ``wall_radius``; inside ``centre_radius`` the ground
 is a homogeneous grey disc (what the narrow cameras see), outside it a richly textured ring.
 Pillars (vertical cylinders) and boxes stand on the ring behind the rigs.
+
+Textures take ~6-9 s per seed to generate; each process keeps its last few (``lru_cache``), and with
+``RIGSFM_TEXTURE_CACHE=DIR`` in the environment they are also kept in DIR for other processes (the test suite's
+workers share one; a later process reads the same arrays back, so its scenes are identical). DIR is keyed by the
+generator's parameters only: empty it when the texture code changes.
 """
 
 from __future__ import annotations
 
 import logging
+import os
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 from functools import lru_cache
+from pathlib import Path
 
 import numpy as np
 
@@ -132,19 +140,46 @@ class Hits:
 OBJECT_BAND = 12.0  # metres of the object texture's width that belong to each pillar or box
 
 
+TEXTURE_CACHE_ENV = "RIGSFM_TEXTURE_CACHE"
+
+
+def _shared_arrays(key: str, make: Callable[[], tuple[np.ndarray, ...]]) -> tuple[np.ndarray, ...]:
+    """``make()``, or the arrays an earlier call with ``key`` left in ``$RIGSFM_TEXTURE_CACHE`` (when set)."""
+    folder = os.environ.get(TEXTURE_CACHE_ENV)
+    if not folder:
+        return make()
+    path = Path(folder) / f"{key}.npz"
+    try:
+        with np.load(path) as data:
+            return tuple(data[f"a{i}"] for i in range(len(data.files)))
+    except (OSError, ValueError, KeyError):  # not made yet (or unreadable): make it here
+        pass
+    arrays = make()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    partial = path.with_name(f".{path.stem}.{os.getpid()}.tmp.npz")
+    np.savez(partial, **{f"a{i}": array for i, array in enumerate(arrays)})
+    os.replace(partial, path)  # whole or absent for a process reading it meanwhile
+    return arrays
+
+
 @lru_cache(maxsize=4)
 def _surround_textures(
     seed: int, wall_radius: float, wall_height: float, num_objects: int
 ) -> tuple[Texture, Texture, Texture]:
-    rng = np.random.default_rng([seed, 7])
-    circumference = 2 * np.pi * wall_radius
-    wall = procedural_texture(rng, circumference, wall_height, 0.025, wrap=True)
     side = 2 * wall_radius + 1.0
-    ground = procedural_texture(rng, side, side, 0.02, density=1.0, min_size=0.1, max_size=2.5)
-    # One band per object: no two pillars or boxes show the same patch (which gave SIFT false matches).
-    width = OBJECT_BAND * max(num_objects, 1)
-    objects = procedural_texture(rng, width, 12.0, 0.015, density=2.5, min_size=0.08, max_size=1.2, wrap=True)
-    logger.debug("generated wall, ground and object textures for seed %d", seed)
+
+    def make() -> tuple[np.ndarray, ...]:
+        rng = np.random.default_rng([seed, 7])
+        circumference = 2 * np.pi * wall_radius
+        wall = procedural_texture(rng, circumference, wall_height, 0.025, wrap=True)
+        ground = procedural_texture(rng, side, side, 0.02, density=1.0, min_size=0.1, max_size=2.5)
+        # One band per object: no two pillars or boxes show the same patch (which gave SIFT false matches).
+        width = OBJECT_BAND * max(num_objects, 1)
+        objects = procedural_texture(rng, width, 12.0, 0.015, density=2.5, min_size=0.08, max_size=1.2, wrap=True)
+        logger.debug("generated wall, ground and object textures for seed %d", seed)
+        return wall, ground, objects
+
+    wall, ground, objects = _shared_arrays(f"surround_{seed}_{wall_radius!r}_{wall_height!r}_{num_objects}", make)
     return (
         Texture(build_pyramid(wall), 0.025, (0.0, 0.0), wrap=True),
         Texture(build_pyramid(ground), 0.02, (-side / 2, -side / 2)),
@@ -154,9 +189,10 @@ def _surround_textures(
 
 @lru_cache(maxsize=2)
 def _crowd_texture(seed: int, centre_radius: float) -> Texture:
-    rng = np.random.default_rng([seed, 8])
     size = 2 * centre_radius + 2.0
-    return Texture(build_pyramid(crowd_texture(rng, size, 0.01)), 0.01, (-size / 2, -size / 2))
+    (crowd,) = _shared_arrays(f"crowd_{seed}_{centre_radius!r}",
+                              lambda: (crowd_texture(np.random.default_rng([seed, 8]), size, 0.01),))
+    return Texture(build_pyramid(crowd), 0.01, (-size / 2, -size / 2))
 
 
 def make_textures(options: SceneOptions) -> Textures:

@@ -534,6 +534,33 @@ def test_band_coverage_on_networks_with_a_known_calibration_error(tmp_path):
     assert 0.85 <= rms <= 1.2
 
 
+@pytest.mark.slow
+def test_sampled_band_coverage_on_two_rig_networks_with_a_known_calibration_error(tmp_path):
+    """The smallest networks' band (rigs.yaml's priors drawn 40 times and the network re-adjusted with each:
+    ``sampled_pair_bands``) on twelve 2-rig networks, each rigs.yaml off by one draw from its priors, as above: the
+    true correspondences lie inside at the stated 95 %, pooled. Measured: 0.912 here (one pair per network; the
+    networks of seeds 4 and 6 hold 14 % and 81 %), 0.947 over 40 networks (4 pairs under 85 %; the model predicts
+    9 % of pairs)."""
+    inside = []
+    for seed in range(12):
+        root = tmp_path / str(seed)
+        root.mkdir()
+        net = make_network(root, num_rigs=2, seed=100 + seed, noise_px=0.5)
+        mapped = run_mapping(Workspace(root), root, MappingOptions(), num_wide=2).reconstruction
+        user = draw_calibration(net.rigs, calibration_priors(net.rigs), np.random.default_rng(seed))
+        result = adjust(mapped, user, _scale_spec(root, net, 2), AdjustOptions(pixel_sigma_inflation=1.0))
+        uncertainty = estimate_uncertainty(result)
+        assert uncertainty.sampled
+        ((name_i, name_j), band), = uncertainty.bands.items()
+        points = _true_points(net.ground_truth, name_i, name_j, np.random.default_rng(seed))
+        distances = correspondence_check(result.reconstruction, net.ground_truth, name_i, name_j, points)
+        assert len(distances) > 20
+        inside.append(np.mean(distances <= band.band_px))
+    coverage = float(np.mean(inside))
+    print(f"coverage {coverage:.3f} over {len(inside)} pairs: {np.round(inside, 3)}")
+    assert 0.85 <= coverage <= 0.99
+
+
 def test_refined_calibration_stays_within_its_priors_and_unobserved_esl_is_exact(refined_network):
     """No narrow observations: E^sl and the narrow intrinsics are not in the problem and stay at rigs.yaml's values
     exactly (the scale trap: the narrow centres sit |t| of E^sl from the wide ones); the wide intrinsics move by

@@ -7,13 +7,17 @@ import time
 
 import cv2
 import numpy as np
+import pyceres
 import pytest
 import yaml
 from scipy.spatial.transform import Rotation
 
-from rigsfm.calibrate.joint import left_jacobian, view_noise
+from scipy.optimize import least_squares
+
+from rigsfm.calibrate.joint import _float64, _JointProblem, left_jacobian, view_noise, view_residuals
 from rigsfm.calibrate.uncertainty import RigSigmas, add_sigmas, colmap_param_sigmas, sigmas_from_entry
 from rigsfm.core.errors import InputError
+from rigsfm.synth.boards import board_views, default_hybrid_rig
 
 
 def test_left_jacobian_matches_finite_differences():
@@ -46,6 +50,57 @@ def test_view_noise_recovers_each_views_noise():
     noise, cameras = view_noise(residuals, Jw, view_of_row, np.array([0, 0, 0, 1, 1, 1]))
     np.testing.assert_allclose(noise, truth, rtol=0.2)
     assert cameras.shape == (2,)
+
+
+def test_joint_problem_ends_at_the_float64_minimum_of_scipys_lm():
+    """The joint refinement's Ceres problem (Schur complement on the board poses) ends where scipy's MINPACK
+    Levenberg-Marquardt ends on the same weighted problem: exact projections of an 11x8 board, 0.1 px noise,
+    float32 corners as detection gives them, 8 stereo and 4 wide-only views, a perturbed start."""
+    rng = np.random.default_rng(3)
+    rig = default_hybrid_rig()
+    grid = np.mgrid[0:11, 0:8].T.reshape(-1, 2) * 0.06 - [0.3, 0.21]
+    obj = np.column_stack([grid, np.zeros(len(grid))]).astype(np.float32)
+    blocks, poses = [], []
+    for i, (R, t) in enumerate(board_views(rng, 8, 4)):
+        rvec = cv2.Rodrigues(R)[0].ravel()
+        poses.append(np.concatenate([rvec, t]))
+        views = [(0, rig.wide, R, t)] + ([(1, rig.narrow, rig.R @ R, rig.R @ t + rig.t)] if i < 8 else [])
+        for cam, camera, Rc, tc in views:
+            img = cv2.projectPoints(obj.astype(np.float64), cv2.Rodrigues(Rc)[0], tc, camera.K, camera.dist)[0]
+            img = img.reshape(-1, 2) + rng.normal(0, 0.1, (len(obj), 2))
+            inside = np.all((img > 0) & (img < camera.size), axis=1)
+            assert inside.sum() >= 12
+            blocks.append((cam, i, f"{i:03d}", *_float64((obj[inside], img[inside].astype(np.float32)))))
+    intrinsics = [np.concatenate([[c.K[0, 0], c.K[1, 1], c.K[0, 2], c.K[1, 2]], c.dist[:4]])
+                  for c in (rig.wide, rig.narrow)]
+    truth = np.concatenate([*intrinsics, cv2.Rodrigues(rig.R)[0].ravel(), rig.t, *poses])
+    x0 = truth * (1 + rng.normal(0, 1e-3, len(truth))) + rng.normal(0, 1e-4, len(truth))
+    weights = rng.uniform(5, 20, len(blocks))
+
+    def weighted(x, jacobian: bool):
+        rows, jacs = [], []
+        for (cam, i, _, o, im), w in zip(blocks, weights):
+            intr = slice(0, 8) if cam == 0 else slice(8, 16)
+            pose = slice(22 + 6 * i, 28 + 6 * i)
+            r, d_intr, d_pose, d_e = view_residuals(o, im, x[intr], x[pose], x[16:22] if cam else None, jacobian)
+            rows.append(w * r)
+            if jacobian:
+                J = np.zeros((len(r), len(x)))
+                J[:, intr], J[:, pose] = w * d_intr, w * d_pose
+                if cam:
+                    J[:, 16:22] = w * d_e
+                jacs.append(J)
+        return np.vstack(jacs) if jacobian else np.concatenate(rows)
+
+    reference = least_squares(lambda x: weighted(x, False), x0, jac=lambda x: weighted(x, True), method="lm",
+                              x_scale="jac", xtol=1e-14, ftol=1e-14, gtol=1e-14, max_nfev=500).x
+    x, summary = _JointProblem(x0, blocks, 8, 8).solve(weights)
+    assert summary.termination_type == pyceres.TerminationType.CONVERGENCE
+    assert np.sum(weighted(x, False) ** 2) <= np.sum(weighted(reference, False) ** 2) * (1 + 1e-9)
+    np.testing.assert_allclose(x[:4], reference[:4], atol=1e-5)  # wide fx, fy, cx, cy (px)
+    np.testing.assert_allclose(x[8:12], reference[8:12], atol=1e-4)  # narrow
+    np.testing.assert_allclose(x[16:], reference[16:], atol=1e-8)  # E^sl and board poses (rad, m)
+    assert np.abs(x[:4] - truth[:4]).max() < 1.0  # and it is the right minimum
 
 
 def test_colmap_param_sigmas_pad_full_opencv():

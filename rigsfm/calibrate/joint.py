@@ -3,16 +3,18 @@
 ``stereoCalibrate`` with free intrinsics only sees the views both cameras share, where the wide camera
 sees the board small and central, so it tends to spoil the wide distortion. Here every view of either
 camera contributes (board pose in the wide frame; the narrow camera sees it through E^sl), so the wide
-periphery stays constrained. Levenberg-Marquardt (scipy ``least_squares``, method lm) on the pixel
-reprojection errors with the analytic Jacobian from ``cv2.projectPoints`` and ``cv2.composeRT``, each view's
-errors weighted by 1 / its corner noise (estimated from the fit: it varies 10x between frontal and tilted
-views; weighting halves the errors of the estimate on rendered boards).
+periphery stays constrained. Levenberg-Marquardt (Ceres, through pyceres, with a dense Schur complement that
+eliminates the board poses: the minimum of scipy's MINPACK LM to 1e-8, 2.5-5x sooner) on the pixel reprojection errors with the analytic Jacobian from
+``cv2.projectPoints`` and ``cv2.composeRT``, in float64 (detected corners are float32: left so, the residuals
+and the Jacobian are float32 too and the fit stalls short of the minimum), each view's errors weighted by
+1 / its corner noise (estimated from the fit: it varies 10x between frontal and tilted views; weighting halves
+the errors of the estimate on rendered boards).
 
 Covariance of the intrinsics and E^sl (board poses marginalised out): (J^T W J)^-1 scaled by the weighted
 residual variance RSS_w / (2N - p), which assumes independent corner errors, then inflated per block (wide
 intrinsics, narrow intrinsics, E^sl) by sqrt(median over the block of jackknife variance / that variance),
 at least 1, the jackknife being the linearised delete-one-frame one. On rendered boards corner errors are
-independent, the factor is ~1 and the actual errors / sigmas have an RMS of 0.89-1.07 per parameter group
+independent, the factor is ~1 and the actual errors / sigmas have an RMS of 0.90-1.08 per parameter group
 over 24 calibrations (benchmarks/calibration_sigmas.py). On OpenCV's real chessboard pairs the residuals of
 neighbouring corners are correlated (0.3-0.5: lens-model misfit, a corner bias that repeats along the board),
 the independent-error sigmas are 2.2x (intrinsics) and 1.7x (E^sl) smaller than the leave-one-frame-out
@@ -30,7 +32,7 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
-from scipy.optimize import least_squares
+import pyceres
 
 from rigsfm.calibrate.intrinsics import CameraCalibration
 
@@ -142,6 +144,91 @@ def _unpack_intr(p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return K, dist
 
 
+def _float64(pair: tuple[np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """A view's (object points Nx3, image points Nx2) as contiguous float64 arrays."""
+    obj, img = pair
+    return np.ascontiguousarray(obj, np.float64).reshape(-1, 3), np.ascontiguousarray(img, np.float64).reshape(-1, 2)
+
+
+def view_residuals(obj: np.ndarray, img: np.ndarray, intrinsics: np.ndarray, wide_from_board: np.ndarray,
+                   narrow_from_wide: np.ndarray | None, with_jacobian: bool = True):
+    """One view's reprojection errors (projected - detected, x0 y0 x1 ...: 2N) and their Jacobians with respect
+    to the camera's ``intrinsics`` (fx, fy, cx, cy, distortion), the view's board pose ``wide_from_board`` (OpenCV
+    rotation vector, translation) and, for the narrow camera, E^sl ``narrow_from_wide`` (likewise; None for the
+    wide camera: its Jacobian is None too). Jacobians are None unless ``with_jacobian``."""
+    K, dist = _unpack_intr(intrinsics)
+    r, t = wide_from_board[:3], wide_from_board[3:]
+    if narrow_from_wide is not None:  # narrow_from_board = E o wide_from_board
+        r3, t3, dr3dr1, dr3dt1, dr3dr2, dr3dt2, dt3dr1, dt3dt1, dt3dr2, dt3dt2 = cv2.composeRT(
+            r, t, narrow_from_wide[:3], narrow_from_wide[3:])
+        r, t = r3, t3
+    proj, J = cv2.projectPoints(obj, r, t, K, dist)
+    residual = (proj.reshape(-1, 2) - img).reshape(-1)
+    if not with_jacobian:
+        return residual, None, None, None
+    d_intr = np.hstack([J[:, 6:10], J[:, 10:10 + len(intrinsics) - 4]])
+    if narrow_from_wide is None:
+        return residual, d_intr, J[:, :6], None
+    A_r, A_t = J[:, :3], J[:, 3:6]
+    d_pose = np.hstack([A_r @ dr3dr1 + A_t @ dt3dr1, A_r @ dr3dt1 + A_t @ dt3dt1])
+    d_e = np.hstack([A_r @ dr3dr2 + A_t @ dt3dr2, A_r @ dr3dt2 + A_t @ dt3dt2])
+    return residual, d_intr, d_pose, d_e
+
+
+class _ViewCost(pyceres.CostFunction):
+    """``weight * view_residuals``: parameter blocks the camera's intrinsics, the view's ``wide_from_board`` and,
+    for the narrow camera, E^sl. ``weight`` (1 / the view's corner noise) may change between solves."""
+
+    def __init__(self, obj: np.ndarray, img: np.ndarray, num_intrinsics: int, narrow: bool):
+        super().__init__()
+        self.obj, self.img, self.narrow, self.weight = obj, img, narrow, 1.0
+        self.set_num_residuals(2 * len(obj))
+        self.set_parameter_block_sizes([num_intrinsics, 6] + ([6] if narrow else []))
+
+    def Evaluate(self, parameters, residuals, jacobians):  # noqa: N802 - pyceres' name
+        residual, *derivatives = view_residuals(self.obj, self.img, np.asarray(parameters[0]), np.asarray(parameters[1]),
+                                                np.asarray(parameters[2]) if self.narrow else None,
+                                                jacobians is not None)
+        residuals[:] = self.weight * residual
+        if jacobians is not None:
+            for out, d in zip(jacobians, derivatives):
+                if out is not None:
+                    out[:] = (self.weight * d).ravel()
+        return True
+
+
+class _JointProblem:
+    """The joint refinement's Ceres problem over x = [wide intrinsics, narrow intrinsics, E^sl, board poses]
+    (``joint_refine``'s layout, ``blocks`` its views), solved again with each set of per-view weights."""
+
+    def __init__(self, x0: np.ndarray, blocks: list, ni_w: int, ni_n: int):
+        off_e = ni_w + ni_n
+        self.parts = [x0[:ni_w].copy(), x0[ni_w:off_e].copy(), x0[off_e:off_e + 6].copy()]
+        poses = [x0[i:i + 6].copy() for i in range(off_e + 6, len(x0), 6)]
+        self.parts += poses
+        self.problem, self.costs = pyceres.Problem(), []
+        for cam, i, _, obj, img in blocks:
+            cost = _ViewCost(obj, img, ni_w if cam == 0 else ni_n, narrow=cam == 1)
+            self.costs.append(cost)
+            params = [self.parts[0], poses[i]] if cam == 0 else [self.parts[1], poses[i], self.parts[2]]
+            self.problem.add_residual_block(cost, None, params)
+        self.options = pyceres.SolverOptions()
+        self.options.linear_solver_type = pyceres.LinearSolverType.DENSE_SCHUR  # board poses eliminated
+        self.options.function_tolerance = self.options.gradient_tolerance = 1e-14
+        self.options.parameter_tolerance = 1e-14
+        self.options.max_num_iterations = 500
+        self.options.num_threads = 1
+        self.options.logging_type = pyceres.LoggingType.SILENT
+
+    def solve(self, view_weights: np.ndarray) -> tuple[np.ndarray, pyceres.SolverSummary]:
+        """Minimise from the current estimate with these per-view weights; returns (x, Ceres' summary)."""
+        for cost, weight in zip(self.costs, view_weights):
+            cost.weight = float(weight)
+        summary = pyceres.SolverSummary()
+        pyceres.solve(self.options, self.problem, summary)
+        return np.concatenate(self.parts), summary
+
+
 def joint_refine(wide: CameraCalibration, narrow: CameraCalibration, narrow_pairs: dict, R: np.ndarray,
                  T: np.ndarray, common: list[str]) -> JointFit:
     """``narrow_pairs``: view -> (object, image) points of the narrow camera, in the orientation consistent
@@ -164,37 +251,25 @@ def joint_refine(wide: CameraCalibration, narrow: CameraCalibration, narrow_pair
     blocks = []  # (camera, frame index, name, obj, img)
     for i, f in enumerate(frames):
         if f in wide.pairs:
-            blocks.append((0, i, f, *wide.pairs[f]))
+            blocks.append((0, i, f, *_float64(wide.pairs[f])))
         if f in narrow_pairs:
-            blocks.append((1, i, f, *narrow_pairs[f]))
+            blocks.append((1, i, f, *_float64(narrow_pairs[f])))
 
     def evaluate(x, with_jacobian: bool):
-        Kw, dw = _unpack_intr(x[:ni_w])
-        Kn, dn = _unpack_intr(x[ni_w:off_e])
-        rE, tE = x[off_e:off_e + 3], x[off_e + 3:off_f]
         out, jac, row = [], np.zeros((n_res, len(x))) if with_jacobian else None, 0
         for cam, i, _, obj, img in blocks:
-            p = x[off_f + 6 * i: off_f + 6 * i + 6]
             cols = slice(off_f + 6 * i, off_f + 6 * i + 6)
-            if cam == 0:
-                proj, J = cv2.projectPoints(obj, p[:3], p[3:], Kw, dw)
-            else:  # narrow_from_board = E o wide_from_board
-                r3, t3, dr3dr1, dr3dt1, dr3dr2, dr3dt2, dt3dr1, dt3dt1, dt3dr2, dt3dt2 = cv2.composeRT(
-                    p[:3], p[3:], rE, tE)
-                proj, J = cv2.projectPoints(obj, r3, t3, Kn, dn)
-            out.append((proj - img).reshape(-1))
+            intr_cols = slice(0, ni_w) if cam == 0 else slice(ni_w, off_e)
+            intr = x[intr_cols]
+            residual, d_intr, d_pose, d_e = view_residuals(obj, img, intr, x[cols], x[off_e:off_f] if cam else None,
+                                                           with_jacobian)
+            out.append(residual)
             if with_jacobian:
                 rows = slice(row, row + 2 * len(obj))
-                n_d = (ni_w if cam == 0 else ni_n) - 4
-                intr = np.hstack([J[:, 6:10], J[:, 10:10 + n_d]])
-                if cam == 0:
-                    jac[rows, cols] = J[:, :6]
-                    jac[rows, :ni_w] = intr
-                else:
-                    A_r, A_t = J[:, :3], J[:, 3:6]
-                    jac[rows, cols] = np.hstack([A_r @ dr3dr1 + A_t @ dt3dr1, A_r @ dr3dt1 + A_t @ dt3dt1])
-                    jac[rows, off_e:off_f] = np.hstack([A_r @ dr3dr2 + A_t @ dt3dr2, A_r @ dr3dt2 + A_t @ dt3dt2])
-                    jac[rows, ni_w:off_e] = intr
+                jac[rows, cols] = d_pose
+                jac[rows, intr_cols] = d_intr
+                if cam == 1:
+                    jac[rows, off_e:off_f] = d_e
                 row += 2 * len(obj)
         return np.concatenate(out), jac
 
@@ -205,21 +280,18 @@ def joint_refine(wide: CameraCalibration, narrow: CameraCalibration, narrow_pair
     # between cameras (the narrow one sees bigger squares), so each view's residuals are weighted by
     # 1 / (its noise), estimated from the fit itself; refit until the noise levels settle.
     noise = np.where(camera_of_view == 0, wide.rms, narrow.rms) / np.sqrt(2) + 1e-3
-    x = x0
+    solver = _JointProblem(x0, blocks, ni_w, ni_n)
     for _ in range(NOISE_ITERATIONS):
+        x, summary = solver.solve(1.0 / noise)
         weights = 1.0 / noise[view_of_row]
-        fit = least_squares(lambda x, w=weights: w * evaluate(x, False)[0], x,
-                            jac=lambda x, w=weights: w[:, None] * evaluate(x, True)[1], method="lm", x_scale="jac",
-                            xtol=1e-14, ftol=1e-14, gtol=1e-14, max_nfev=500)
-        x = fit.x
         previous = noise
-        noise, camera_noise = view_noise(fit.fun / weights, weights[:, None] * evaluate(x, True)[1], view_of_row,
-                                         camera_of_view)
+        residuals, jacobian = evaluate(x, True)
+        noise, camera_noise = view_noise(residuals, weights[:, None] * jacobian, view_of_row, camera_of_view)
         if np.all(np.abs(noise / previous - 1) < 0.02):
             break
     weights = 1.0 / noise[view_of_row]
-    fit.fun = evaluate(x, False)[0]  # unweighted pixel residuals from here on
-    r = fit.fun.reshape(-1, 2)
+    residuals = evaluate(x, False)[0]  # unweighted pixel residuals from here on
+    r = residuals.reshape(-1, 2)
     sq = np.sum(r ** 2, axis=1)
     # per block RMS
     start, per_block = 0, {}
@@ -230,8 +302,8 @@ def joint_refine(wide: CameraCalibration, narrow: CameraCalibration, narrow_pair
     names = np.repeat([b[2] for b in blocks], [len(b[3]) for b in blocks])
     in_common = np.isin(names, common)
     J = weights[:, None] * evaluate(x, True)[1]
-    dof = max(1, len(fit.fun) - len(x))
-    sigma2 = float(np.sum((weights * fit.fun) ** 2)) / dof  # ~1 once the noise levels are right
+    dof = max(1, len(residuals) - len(x))
+    sigma2 = float(np.sum((weights * residuals) ** 2)) / dof  # ~1 once the noise levels are right
     scale = np.linalg.norm(J, axis=0)
     scale[scale == 0] = 1
     JTJ = (J / scale).T @ (J / scale)
@@ -247,7 +319,7 @@ def joint_refine(wide: CameraCalibration, narrow: CameraCalibration, narrow_pair
         A[off_e:off_e + 3, off_e:off_e + 3] = left_jacobian(x[off_e:off_e + 3])
         covariance_iid = A @ cov[:off_f, :off_f] @ A.T
         frame_of_row = np.repeat([b[1] for b in blocks], [2 * len(b[3]) for b in blocks])
-        jackknife = A @ frame_jackknife(J, weights * fit.fun, frame_of_row, off_f, len(frames)) @ A.T
+        jackknife = A @ frame_jackknife(J, weights * residuals, frame_of_row, off_f, len(frames)) @ A.T
         ratio = np.diag(jackknife) / np.diag(covariance_iid)
         parts = np.split(np.arange(off_f), [ni_w, off_e])  # wide intrinsics, narrow intrinsics, E^sl
         inflation = np.array([np.sqrt(max(1.0, float(np.median(ratio[p])))) for p in parts])
@@ -268,5 +340,5 @@ def joint_refine(wide: CameraCalibration, narrow: CameraCalibration, narrow_pair
                       covariance_iid=covariance_iid, inflation=tuple(float(v) for v in inflation))
     logger.info("joint refinement: %d frames, RMS wide %.3f / narrow %.3f px, noise %.3f / %.3f px, sigma inflation "
                 "%.2f / %.2f / %.2f, cond %.2g, %s", len(frames), result.rms_wide, result.rms_narrow, *result.noise,
-                *inflation, condition, fit.message)
+                *inflation, condition, summary.message)
     return result

@@ -4,11 +4,11 @@
 sees the board small and central, so it tends to spoil the wide distortion. Here every view of either
 camera contributes (board pose in the wide frame; the narrow camera sees it through E^sl), so the wide
 periphery stays constrained. Levenberg-Marquardt (Ceres, through pyceres, with a dense Schur complement that
-eliminates the board poses: the minimum of scipy's MINPACK LM to 1e-8, 2.5-5x sooner) on the pixel reprojection errors with the analytic Jacobian from
-``cv2.projectPoints`` and ``cv2.composeRT``, in float64 (detected corners are float32: left so, the residuals
-and the Jacobian are float32 too and the fit stalls short of the minimum), each view's errors weighted by
-1 / its corner noise (estimated from the fit: it varies 10x between frontal and tilted views; weighting halves
-the errors of the estimate on rendered boards).
+eliminates the board poses: the minimum of scipy's MINPACK LM to 1e-8, 2.5-5x sooner) on the pixel
+reprojection errors with the analytic Jacobian from ``cv2.projectPoints`` and ``cv2.composeRT``, in float64
+(detected corners are float32: left so, the residuals and the Jacobian are float32 too and the fit stalls
+short of the minimum), each view's errors weighted by 1 / its corner noise (estimated from the fit: it
+varies 10x between frontal and tilted views; weighting halves the errors of the estimate on rendered boards).
 
 Covariance of the intrinsics and E^sl (board poses marginalised out): (J^T W J)^-1 scaled by the weighted
 residual variance RSS_w / (2N - p), which assumes independent corner errors, then inflated per block (wide
@@ -186,9 +186,9 @@ class _ViewCost(pyceres.CostFunction):
         self.set_parameter_block_sizes([num_intrinsics, 6] + ([6] if narrow else []))
 
     def Evaluate(self, parameters, residuals, jacobians):  # noqa: N802 - pyceres' name
-        residual, *derivatives = view_residuals(self.obj, self.img, np.asarray(parameters[0]), np.asarray(parameters[1]),
-                                                np.asarray(parameters[2]) if self.narrow else None,
-                                                jacobians is not None)
+        e = np.asarray(parameters[2]) if self.narrow else None
+        residual, *derivatives = view_residuals(self.obj, self.img, np.asarray(parameters[0]),
+                                                np.asarray(parameters[1]), e, jacobians is not None)
         residuals[:] = self.weight * residual
         if jacobians is not None:
             for out, d in zip(jacobians, derivatives):

@@ -10,9 +10,8 @@ import numpy as np
 import pyceres
 import pytest
 import yaml
-from scipy.spatial.transform import Rotation
-
 from scipy.optimize import least_squares
+from scipy.spatial.transform import Rotation
 
 from rigsfm.calibrate.joint import _float64, _JointProblem, left_jacobian, view_noise, view_residuals
 from rigsfm.calibrate.uncertainty import RigSigmas, add_sigmas, colmap_param_sigmas, sigmas_from_entry

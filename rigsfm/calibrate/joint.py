@@ -255,22 +255,22 @@ def joint_refine(wide: CameraCalibration, narrow: CameraCalibration, narrow_pair
         if f in narrow_pairs:
             blocks.append((1, i, f, *_float64(narrow_pairs[f])))
 
-    def evaluate(x, with_jacobian: bool):
-        out, jac, row = [], np.zeros((n_res, len(x))) if with_jacobian else None, 0
+    def evaluate(x):
+        """Unweighted pixel residuals of every view and their dense Jacobian (for the noise levels, the covariance
+        and the jackknife; the solver evaluates view by view)."""
+        out, jac, row = [], np.zeros((n_res, len(x))), 0
         for cam, i, _, obj, img in blocks:
             cols = slice(off_f + 6 * i, off_f + 6 * i + 6)
             intr_cols = slice(0, ni_w) if cam == 0 else slice(ni_w, off_e)
-            intr = x[intr_cols]
-            residual, d_intr, d_pose, d_e = view_residuals(obj, img, intr, x[cols], x[off_e:off_f] if cam else None,
-                                                           with_jacobian)
+            residual, d_intr, d_pose, d_e = view_residuals(obj, img, x[intr_cols], x[cols],
+                                                           x[off_e:off_f] if cam else None)
             out.append(residual)
-            if with_jacobian:
-                rows = slice(row, row + 2 * len(obj))
-                jac[rows, cols] = d_pose
-                jac[rows, intr_cols] = d_intr
-                if cam == 1:
-                    jac[rows, off_e:off_f] = d_e
-                row += 2 * len(obj)
+            rows = slice(row, row + 2 * len(obj))
+            jac[rows, cols] = d_pose
+            jac[rows, intr_cols] = d_intr
+            if cam == 1:
+                jac[rows, off_e:off_f] = d_e
+            row += 2 * len(obj)
         return np.concatenate(out), jac
 
     n_res = sum(2 * len(b[3]) for b in blocks)
@@ -285,13 +285,12 @@ def joint_refine(wide: CameraCalibration, narrow: CameraCalibration, narrow_pair
         x, summary = solver.solve(1.0 / noise)
         weights = 1.0 / noise[view_of_row]
         previous = noise
-        residuals, jacobian = evaluate(x, True)
+        residuals, jacobian = evaluate(x)
         noise, camera_noise = view_noise(residuals, weights[:, None] * jacobian, view_of_row, camera_of_view)
         if np.all(np.abs(noise / previous - 1) < 0.02):
             break
     weights = 1.0 / noise[view_of_row]
-    residuals = evaluate(x, False)[0]  # unweighted pixel residuals from here on
-    r = residuals.reshape(-1, 2)
+    r = residuals.reshape(-1, 2)  # the last fit's unweighted pixel residuals from here on
     sq = np.sum(r ** 2, axis=1)
     # per block RMS
     start, per_block = 0, {}
@@ -301,7 +300,7 @@ def joint_refine(wide: CameraCalibration, narrow: CameraCalibration, narrow_pair
     cams = np.repeat([b[0] for b in blocks], [len(b[3]) for b in blocks])
     names = np.repeat([b[2] for b in blocks], [len(b[3]) for b in blocks])
     in_common = np.isin(names, common)
-    J = weights[:, None] * evaluate(x, True)[1]
+    J = weights[:, None] * jacobian
     dof = max(1, len(residuals) - len(x))
     sigma2 = float(np.sum((weights * residuals) ** 2)) / dof  # ~1 once the noise levels are right
     scale = np.linalg.norm(J, axis=0)

@@ -491,6 +491,19 @@ def _true_points(truth: pycolmap.Reconstruction, name_i: str, name_j: str, rng, 
     return np.asarray(image_i.cam_from_world().inverse() * rays)
 
 
+def _network_with_a_drawn_calibration(tmp_path, seed: int, num_rigs: int):
+    """Network ``100 + seed`` of ``num_rigs`` rigs (0.5 px white keypoint noise) mapped, then adjusted with a
+    rigs.yaml off by one draw from the good board's sigmas (the priors' own model), the images' weight not
+    inflated: ``(network, adjustment, its uncertainty)``."""
+    root = tmp_path / str(seed)
+    root.mkdir()
+    net = make_network(root, num_rigs=num_rigs, seed=100 + seed, noise_px=0.5)
+    mapped = run_mapping(Workspace(root), root, MappingOptions(), num_wide=num_rigs).reconstruction
+    user = draw_calibration(net.rigs, calibration_priors(net.rigs), np.random.default_rng(seed))
+    result = adjust(mapped, user, _scale_spec(root, net, num_rigs), AdjustOptions(pixel_sigma_inflation=1.0))
+    return net, result, estimate_uncertainty(result)
+
+
 @pytest.mark.slow
 def test_band_coverage_on_networks_with_a_known_calibration_error(tmp_path):
     """Twelve 4-rig networks, each rigs.yaml off by one draw from the good board's sigmas (the priors' own model),
@@ -500,14 +513,8 @@ def test_band_coverage_on_networks_with_a_known_calibration_error(tmp_path):
     from 55 % to 100 % here), so 72 pairs of 12 draws leave a few percent of slack on the pooled coverage."""
     inside, normalised, predicted = [], [], []
     for seed in range(12):
-        root = tmp_path / str(seed)
-        root.mkdir()
-        net = make_network(root, num_rigs=4, seed=100 + seed, noise_px=0.5)
-        mapped = run_mapping(Workspace(root), root, MappingOptions(), num_wide=4).reconstruction
-        user = draw_calibration(net.rigs, calibration_priors(net.rigs), np.random.default_rng(seed))
-        result = adjust(mapped, user, _scale_spec(root, net, 4), AdjustOptions(pixel_sigma_inflation=1.0))
+        net, result, uncertainty = _network_with_a_drawn_calibration(tmp_path, seed, num_rigs=4)
         assert result.scale_source == ScaleSource.MEASUREMENTS
-        uncertainty = estimate_uncertainty(result)
         rng = np.random.default_rng(seed)
         rec, truth = result.reconstruction, net.ground_truth
         for (name_i, name_j), band in uncertainty.bands.items():
@@ -543,13 +550,7 @@ def test_sampled_band_coverage_on_two_rig_networks_with_a_known_calibration_erro
     9 % of pairs)."""
     inside = []
     for seed in range(12):
-        root = tmp_path / str(seed)
-        root.mkdir()
-        net = make_network(root, num_rigs=2, seed=100 + seed, noise_px=0.5)
-        mapped = run_mapping(Workspace(root), root, MappingOptions(), num_wide=2).reconstruction
-        user = draw_calibration(net.rigs, calibration_priors(net.rigs), np.random.default_rng(seed))
-        result = adjust(mapped, user, _scale_spec(root, net, 2), AdjustOptions(pixel_sigma_inflation=1.0))
-        uncertainty = estimate_uncertainty(result)
+        net, result, uncertainty = _network_with_a_drawn_calibration(tmp_path, seed, num_rigs=2)
         assert uncertainty.sampled
         ((name_i, name_j), band), = uncertainty.bands.items()
         points = _true_points(net.ground_truth, name_i, name_j, np.random.default_rng(seed))

@@ -24,6 +24,7 @@ def pytest_configure(config):
         for variable in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
             os.environ.setdefault(variable, "1")
 
+
 # The suite runs on one pytest-xdist worker per core (pyproject: ``-n auto``; ``-n 0`` for one process, e.g. under
 # a debugger), one test module per work unit (tests/scheduling.py), so its module fixtures (rendered scenes, runs)
 # are made once. Scenes and the 3-rig run are shared by every worker through files (``rendered``, ``three_rig_run``).

@@ -128,3 +128,22 @@ def test_mappers_benchmark_maps_adjusts_and_scores(three_rig_run, tmp_path, caps
     narrow = report["narrow"]
     assert narrow["registered"] == narrow["total"] == 3
     assert narrow["relative_rotation_deg"]["max"] < 0.3  # measured 0.196 deg, as the global and incremental mappers
+
+
+def test_three_rig_bands_table_pools_true_points_and_leaves_out_partial_networks():
+    """benchmarks/three_rig_bands.py's table (the rendered 3-rig row of benchmarks/README): coverage pooled over the
+    true correspondences (a pair's weight is its number of true points), networks without 3 frames left out."""
+    from benchmarks.three_rig_bands import table
+
+    def pairs(*rows):
+        return [{"num_true_points": n, "coverage": c, "band_px": b, "predicted_below_85": p} for n, c, b, p in rows]
+
+    results = [{"seed": 0, "frames": 3,
+                "sampled": {"seconds": 4.0, "pairs": pairs((300, 1.0, 10, 0.1), (100, 0.6, 12, 0.2))},
+                "linear": {"seconds": 0.02, "pairs": pairs((300, 0.9, 9, 0.0), (100, 0.5, 11, 0.1))}},
+               {"seed": 1, "frames": 2, "sampled": {"seconds": 9.0, "pairs": pairs((999, 0.0, 99, 1.0))},
+                "linear": {"seconds": 9.0, "pairs": pairs((999, 0.0, 99, 1.0))}},
+               {"seed": 2, "error": "mapping failed"}]
+    rows = table(results).splitlines()
+    assert rows[2] == "| sampled | 1 | 2 | 0.900 | 50.0 % / 15.0 % | 11.00 | 4.00 |"  # (300 + 60) / 400
+    assert rows[3] == "| linear | 1 | 2 | 0.800 | 50.0 % / 5.0 % | 10.00 | 0.02 |"  # (270 + 50) / 400

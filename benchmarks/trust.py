@@ -32,6 +32,7 @@ import logging
 import sys
 import time
 import traceback
+import zlib
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -195,7 +196,7 @@ def score_bands(estimate: pycolmap.Reconstruction, truth: pycolmap.Reconstructio
 
     rows = []
     for (name_i, name_j), band in sorted(bands.items()):
-        rng = np.random.default_rng(abs(hash((name_i, name_j))) % 2**32)
+        rng = np.random.default_rng(zlib.crc32(f"{name_i}|{name_j}".encode()))  # not hash(): salted per process
         distances = correspondence_check(estimate, truth, name_i, name_j, true_floor_points(truth, name_i, rng))
         if len(distances) < 10:
             continue

@@ -793,11 +793,11 @@ def pooled_shifted_quantile(shifts: np.ndarray, sigmas: np.ndarray, probability:
 def sampled_pair_bands(result: AdjustResult, plane: Plane | None, num_draws: int = 40,
                        seed: int = 0) -> dict[tuple[str, str], PairBand]:
     """The band of a small network without linearising the calibration's effect: ``num_draws`` times, rigs.yaml
-    moved by a draw of its priors and the network adjusted again as it was (from the estimate; with priors
-    centred on the draw when refining: "randomise then optimise", whose spread is the calibration's part of the
-    posterior, exactly so for a linear problem); each draw's exact distances plus the image noise's own (linear,
-    Gaussian) spread, pooled. The relative pose of two rigs can answer a calibration error far from linearly (a
-    2-rig scene here: half the error moved the baseline direction 1.6 mrad, the whole error 11 mrad).
+    moved by a draw of its priors and the network adjusted again (from the estimate; with priors centred on the
+    draw when refining, as in "randomise then optimise", but with the images weighted as below); each draw's exact
+    distances plus the image noise's own (linear, Gaussian) spread, pooled. The relative pose of two rigs can
+    answer a calibration error far from linearly (a 2-rig scene here: half the error moved the baseline direction
+    1.6 mrad, the whole error 11 mrad).
 
     Each draw weighs the images by the noise of its own starting residuals (the estimate's poses under the drawn
     calibration; 0.8-1.4 px on a rendered 3-rig run against the estimate's 0.18 px), not by the estimate's: the

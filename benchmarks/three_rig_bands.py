@@ -26,6 +26,7 @@ sys.path.insert(0, str(REPO))
 import numpy as np  # noqa: E402
 
 from benchmarks.trust import DEFAULT_WORK, Scene, ensure_sigmas, prepare, score_bands  # noqa: E402
+from rigsfm.core.io import write_json_atomic  # noqa: E402
 from rigsfm.synth.scene import SceneOptions  # noqa: E402
 
 
@@ -90,9 +91,7 @@ def main() -> None:
     with ProcessPoolExecutor(args.jobs) as pool:
         results = list(pool.map(measure, args.seeds, [args.work] * len(args.seeds)))
     skipped = [r for r in results if "error" in r or r["frames"] != 3]
-    write_path = args.work / "three_rig_bands.json"
-    write_path.parent.mkdir(parents=True, exist_ok=True)
-    write_path.write_text(json.dumps(results, indent=1))
+    write_json_atomic(args.work / "three_rig_bands.json", results)
     print(table(results))
     if skipped:
         left_out = [(r["seed"], r.get("error", r.get("frames"))) for r in skipped]

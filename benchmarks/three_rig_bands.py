@@ -13,7 +13,6 @@ epipolar lines against the band). Prints one table; writes WORK/three_rig_bands.
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import sys
 import time
@@ -25,7 +24,7 @@ sys.path.insert(0, str(REPO))
 
 import numpy as np  # noqa: E402
 
-from benchmarks.trust import DEFAULT_WORK, Scene, ensure_sigmas, prepare, score_bands  # noqa: E402
+from benchmarks.trust import DEFAULT_WORK, Scene, load_prepared, prepare, score_bands  # noqa: E402
 from rigsfm.core.io import write_json_atomic  # noqa: E402
 from rigsfm.synth.scene import SceneOptions  # noqa: E402
 
@@ -36,31 +35,21 @@ def scene(seed: int) -> Scene:
 
 
 def measure(seed: int, work: Path) -> dict:
-    import pycolmap
-
     from rigsfm.run.adjust import adjust
-    from rigsfm.run.pipeline import load_inputs
-    from rigsfm.run.priors import calibration_priors
     from rigsfm.run.uncertainty import estimate_uncertainty
 
     s = scene(seed)
     prepare(s, work)
-    root = work / "scenes" / s.name
-    prepared = json.loads((root / "prepared.json").read_text())
-    if "error" in prepared:
-        return {"seed": seed, "error": prepared["error"]}
-    ensure_sigmas(root / "scene")
-    inputs = load_inputs(root / "scene" / "images", root / "scene" / "rigs.yaml", root / "scene" / "scale.yaml")
-    priors = calibration_priors(inputs.rigs, root / "scene" / "rigs.yaml")
-    mapped = pycolmap.Reconstruction(str(root / "run" / "mapping"))
-    truth = pycolmap.Reconstruction(str(root / "scene" / "ground_truth"))
-    adjusted = adjust(mapped, inputs.rigs, inputs.scale, None, priors)
+    prepared = load_prepared(s, work)
+    if isinstance(prepared, str):
+        return {"seed": seed, "error": prepared}
+    adjusted = adjust(prepared.mapped, prepared.inputs.rigs, prepared.inputs.scale, None, prepared.priors)
     out = {"seed": seed, "frames": adjusted.reconstruction.num_reg_frames()}
     for band, sampled in (("sampled", True), ("linear", False)):
         start = time.perf_counter()
         uncertainty = estimate_uncertainty(adjusted, sampled=sampled)
         out[band] = {"seconds": time.perf_counter() - start,
-                     "pairs": score_bands(adjusted.reconstruction, truth, uncertainty.bands)}
+                     "pairs": score_bands(adjusted.reconstruction, prepared.truth, uncertainty.bands)}
     return out
 
 

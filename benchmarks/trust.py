@@ -35,6 +35,7 @@ import traceback
 import zlib
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
@@ -45,6 +46,10 @@ import yaml  # noqa: E402
 
 from rigsfm.core.io import write_json_atomic  # noqa: E402
 from rigsfm.synth.scene import SceneOptions  # noqa: E402
+
+if TYPE_CHECKING:
+    from rigsfm.run.pipeline import Inputs
+    from rigsfm.run.priors import CalibrationPriors
 
 logger = logging.getLogger("benchmarks.trust")
 DEFAULT_WORK = REPO / "benchmarks" / "results" / "trust"
@@ -208,31 +213,52 @@ def score_bands(estimate: pycolmap.Reconstruction, truth: pycolmap.Reconstructio
     return rows
 
 
-def measure(scene: Scene, work: Path, force: bool = False) -> dict | None:
-    from rigsfm.run.adjust import adjust
-    from rigsfm.run.options import AdjustOptions, Calibration
+@dataclass
+class Prepared:
+    """A prepared scene read back for measuring: its inputs (rigs.yaml with sigmas, the scale file), the
+    priors, the mapping model and the ground truth."""
+
+    inputs: Inputs
+    priors: CalibrationPriors
+    mapped: pycolmap.Reconstruction
+    truth: pycolmap.Reconstruction
+    scale_file: str
+
+
+def load_prepared(scene: Scene, work: Path) -> Prepared | str:
+    """The scene ``prepare`` made under ``work``, or the error that stopped it."""
     from rigsfm.run.pipeline import load_inputs
     from rigsfm.run.priors import calibration_priors
-    from rigsfm.run.uncertainty import estimate_uncertainty
-    from rigsfm.synth.truth import compare_to_ground_truth, oracle
 
     root = work / "scenes" / scene.name
-    out_path = work / "results" / f"{scene.name}.json"
-    if out_path.exists() and not force:
-        return json.loads(out_path.read_text())
     prepared = json.loads((root / "prepared.json").read_text())
     if "error" in prepared:
-        result = {"scene": scene.name, "group": scene.group, "error": prepared["error"]}
-        write_json_atomic(out_path, result)
-        return result
+        return prepared["error"]
     ensure_sigmas(root / "scene")
     scale_path = root / "scene" / ("scale_two_sides.yaml" if scene.two_sides else "scale.yaml")
     inputs = load_inputs(root / "scene" / "images", root / "scene" / "rigs.yaml", scale_path)
-    priors = calibration_priors(inputs.rigs, root / "scene" / "rigs.yaml")
-    mapped = pycolmap.Reconstruction(str(root / "run" / "mapping"))
-    truth = pycolmap.Reconstruction(str(root / "scene" / "ground_truth"))
+    return Prepared(inputs, calibration_priors(inputs.rigs, root / "scene" / "rigs.yaml"),
+                    pycolmap.Reconstruction(str(root / "run" / "mapping")),
+                    pycolmap.Reconstruction(str(root / "scene" / "ground_truth")), scale_path.name)
+
+
+def measure(scene: Scene, work: Path, force: bool = False) -> dict | None:
+    from rigsfm.run.adjust import adjust
+    from rigsfm.run.options import AdjustOptions, Calibration
+    from rigsfm.run.uncertainty import estimate_uncertainty
+    from rigsfm.synth.truth import compare_to_ground_truth, oracle
+
+    out_path = work / "results" / f"{scene.name}.json"
+    if out_path.exists() and not force:
+        return json.loads(out_path.read_text())
+    prepared = load_prepared(scene, work)
+    if isinstance(prepared, str):
+        result = {"scene": scene.name, "group": scene.group, "error": prepared}
+        write_json_atomic(out_path, result)
+        return result
+    inputs, priors, mapped, truth = prepared.inputs, prepared.priors, prepared.mapped, prepared.truth
     result = {"scene": scene.name, "group": scene.group, "frames": mapped.num_reg_frames(),
-              "points": mapped.num_points3D(), "scale_file": scale_path.name, "timings_s": {}, "variants": {}}
+              "points": mapped.num_points3D(), "scale_file": prepared.scale_file, "timings_s": {}, "variants": {}}
     estimates = {}
     for variant, calibration in (("fixed", Calibration.FIXED), ("refine", Calibration.REFINE)):
         t = time.perf_counter()

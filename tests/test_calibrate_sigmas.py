@@ -13,7 +13,7 @@ import yaml
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
-from rigsfm.calibrate.joint import _float64, _JointProblem, left_jacobian, view_noise, view_residuals
+from rigsfm.calibrate.joint import _float64, _JointProblem, dense_residuals, left_jacobian, view_noise
 from rigsfm.calibrate.uncertainty import RigSigmas, add_sigmas, colmap_param_sigmas, sigmas_from_entry
 from rigsfm.core.errors import InputError
 from rigsfm.synth.boards import board_views, default_hybrid_rig
@@ -75,21 +75,11 @@ def test_joint_problem_ends_at_the_float64_minimum_of_scipys_lm():
     truth = np.concatenate([*intrinsics, cv2.Rodrigues(rig.R)[0].ravel(), rig.t, *poses])
     x0 = truth * (1 + rng.normal(0, 1e-3, len(truth))) + rng.normal(0, 1e-4, len(truth))
     weights = rng.uniform(5, 20, len(blocks))
+    row_weights = np.repeat(weights, [2 * len(b[3]) for b in blocks])
 
     def weighted(x, jacobian: bool):
-        rows, jacs = [], []
-        for (cam, i, _, o, im), w in zip(blocks, weights):
-            intr = slice(0, 8) if cam == 0 else slice(8, 16)
-            pose = slice(22 + 6 * i, 28 + 6 * i)
-            r, d_intr, d_pose, d_e = view_residuals(o, im, x[intr], x[pose], x[16:22] if cam else None, jacobian)
-            rows.append(w * r)
-            if jacobian:
-                J = np.zeros((len(r), len(x)))
-                J[:, intr], J[:, pose] = w * d_intr, w * d_pose
-                if cam:
-                    J[:, 16:22] = w * d_e
-                jacs.append(J)
-        return np.vstack(jacs) if jacobian else np.concatenate(rows)
+        residuals, J = dense_residuals(x, blocks, 8, 8)
+        return row_weights[:, None] * J if jacobian else row_weights * residuals
 
     reference = least_squares(lambda x: weighted(x, False), x0, jac=lambda x: weighted(x, True), method="lm",
                               x_scale="jac", xtol=1e-14, ftol=1e-14, gtol=1e-14, max_nfev=500).x

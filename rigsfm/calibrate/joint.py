@@ -229,6 +229,28 @@ class _JointProblem:
         return np.concatenate(self.parts), summary
 
 
+def dense_residuals(x: np.ndarray, blocks: list, ni_w: int, ni_n: int) -> tuple[np.ndarray, np.ndarray]:
+    """Unweighted pixel residuals of every view in ``blocks`` ((camera, frame index, name, obj, img); camera 0
+    wide, 1 narrow) at x = [wide intrinsics (``ni_w``), narrow intrinsics (``ni_n``), E^sl, board poses], and their
+    dense Jacobian (for the noise levels, the covariance and the jackknife; the solver evaluates view by view)."""
+    off_e = ni_w + ni_n
+    off_f = off_e + 6
+    out, jac, row = [], np.zeros((sum(2 * len(b[3]) for b in blocks), len(x))), 0
+    for cam, i, _, obj, img in blocks:
+        cols = slice(off_f + 6 * i, off_f + 6 * i + 6)
+        intr_cols = slice(0, ni_w) if cam == 0 else slice(ni_w, off_e)
+        residual, d_intr, d_pose, d_e = view_residuals(obj, img, x[intr_cols], x[cols],
+                                                       x[off_e:off_f] if cam else None)
+        out.append(residual)
+        rows = slice(row, row + 2 * len(obj))
+        jac[rows, cols] = d_pose
+        jac[rows, intr_cols] = d_intr
+        if cam == 1:
+            jac[rows, off_e:off_f] = d_e
+        row += 2 * len(obj)
+    return np.concatenate(out), jac
+
+
 def joint_refine(wide: CameraCalibration, narrow: CameraCalibration, narrow_pairs: dict, R: np.ndarray,
                  T: np.ndarray, common: list[str]) -> JointFit:
     """``narrow_pairs``: view -> (object, image) points of the narrow camera, in the orientation consistent
@@ -255,25 +277,6 @@ def joint_refine(wide: CameraCalibration, narrow: CameraCalibration, narrow_pair
         if f in narrow_pairs:
             blocks.append((1, i, f, *_float64(narrow_pairs[f])))
 
-    def evaluate(x):
-        """Unweighted pixel residuals of every view and their dense Jacobian (for the noise levels, the covariance
-        and the jackknife; the solver evaluates view by view)."""
-        out, jac, row = [], np.zeros((n_res, len(x))), 0
-        for cam, i, _, obj, img in blocks:
-            cols = slice(off_f + 6 * i, off_f + 6 * i + 6)
-            intr_cols = slice(0, ni_w) if cam == 0 else slice(ni_w, off_e)
-            residual, d_intr, d_pose, d_e = view_residuals(obj, img, x[intr_cols], x[cols],
-                                                           x[off_e:off_f] if cam else None)
-            out.append(residual)
-            rows = slice(row, row + 2 * len(obj))
-            jac[rows, cols] = d_pose
-            jac[rows, intr_cols] = d_intr
-            if cam == 1:
-                jac[rows, off_e:off_f] = d_e
-            row += 2 * len(obj)
-        return np.concatenate(out), jac
-
-    n_res = sum(2 * len(b[3]) for b in blocks)
     view_of_row = np.repeat(np.arange(len(blocks)), [2 * len(b[3]) for b in blocks])
     camera_of_view = np.array([b[0] for b in blocks])
     # Corner noise differs between views by 10x (0.02 px on a frontal board, 0.2 px at 60+ deg tilt) and
@@ -285,7 +288,7 @@ def joint_refine(wide: CameraCalibration, narrow: CameraCalibration, narrow_pair
         x, summary = solver.solve(1.0 / noise)
         weights = 1.0 / noise[view_of_row]
         previous = noise
-        residuals, jacobian = evaluate(x)
+        residuals, jacobian = dense_residuals(x, blocks, ni_w, ni_n)
         noise, camera_noise = view_noise(residuals, weights[:, None] * jacobian, view_of_row, camera_of_view)
         if np.all(np.abs(noise / previous - 1) < 0.02):
             break

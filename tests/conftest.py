@@ -54,12 +54,16 @@ def _once(root: Path, key: str, make):
 
 
 @pytest.fixture(scope="session", autouse=True)
-def shared_textures(tmp_path_factory):
-    """The synthetic scenes' textures (~6-9 s per seed and process) made once per session, for every worker and
-    every process they start (rigsfm.synth.scene, RIGSFM_TEXTURE_CACHE)."""
+def shared_caches(tmp_path_factory):
+    """Made once per session, for every worker and every process they start: the synthetic scenes' textures
+    (~6-9 s per seed and process; rigsfm.synth.scene, RIGSFM_TEXTURE_CACHE) and the features of each rendered
+    image (many tests run the same scenes into new workspaces; rigsfm.run.feature_cache, RIGSFM_FEATURE_CACHE).
+    A test of extraction itself unsets the latter (``monkeypatch.delenv``)."""
+    from rigsfm.run.feature_cache import FEATURE_CACHE_ENV
     from rigsfm.synth.scene import TEXTURE_CACHE_ENV
 
     os.environ[TEXTURE_CACHE_ENV] = str(_shared_root(tmp_path_factory) / "textures")
+    os.environ[FEATURE_CACHE_ENV] = str(_shared_root(tmp_path_factory) / "features")
 
 
 @pytest.fixture(scope="session")

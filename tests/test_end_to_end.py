@@ -140,7 +140,7 @@ def test_rerun_refuses_to_overwrite_then_resumes(scene):
     assert again.exit_code == 0, again.output
     with pycolmap.Database.open(out / "database.db") as db:
         assert db.num_keypoints() == keypoints_before
-    assert "Extracted features for 0 images" in (out / "colmap.log").read_text()
+    assert "Features for 0 images: 0 extracted, 0 from the feature cache" in (out / "colmap.log").read_text()
     summary = json.loads((out / "summary.json").read_text())
     assert summary["registered"]["narrow"]["registered"] == 3
 

@@ -23,6 +23,7 @@ import pytest
 from rigsfm.core.errors import InputError
 from rigsfm.core.executors import Executor, check_executor, map_unordered
 from rigsfm.run.database import create_database
+from rigsfm.run.feature_cache import FEATURE_CACHE_ENV
 from rigsfm.run.features import (PairSelection, extract_features, extract_one, first_pass_scores, missed_pairs,
                                  _extraction_options, _spanning_tree)
 from rigsfm.run.gpu import cuda_device_count, decide, use_gpu
@@ -236,9 +237,11 @@ def ray_cluster(tmp_path):
 
 
 @pytest.mark.slow
-def test_ray_cluster_features_are_bit_identical(circle, ray_cluster, tmp_path):
+def test_ray_cluster_features_are_bit_identical(circle, ray_cluster, tmp_path, monkeypatch):
     """Every featured image extracted on a two-node Ray cluster (one CPU each) equals the local extraction."""
     import ray
+
+    monkeypatch.delenv(FEATURE_CACHE_ENV)  # extracted on the cluster, not read from the session's cache
 
     dataset, root, _ = circle
     assert ray.cluster_resources()["CPU"] == 2

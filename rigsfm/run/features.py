@@ -44,6 +44,7 @@ from rigsfm.core.graph import DisjointSets
 from rigsfm.core.io import write_json_atomic
 from rigsfm.core.names import ImageName
 from rigsfm.run.database import open_database
+from rigsfm.run.feature_cache import FeatureCache, features_from_cache, features_to_cache
 from rigsfm.run.gpu import use_gpu
 from rigsfm.run.inputs import ImageEntry
 from rigsfm.run.options import Features, MatchingOptions, Pairs
@@ -200,22 +201,57 @@ def extract_features(
     address: str | None = None,
     workers: int = 2,
 ) -> int:
-    """Extract SIFT (or ASIFT) for every image without keypoints yet; returns how many were extracted.
+    """Extract SIFT (or ASIFT) for every image without keypoints yet; returns how many images got features.
 
     ``executor="ray"``: one task per image on the Ray cluster at ``address`` (or a local Ray instance with
-    ``workers`` CPUs); the images travel as bytes, the features come back and are written here."""
+    ``workers`` CPUs); the images travel as bytes, the features come back and are written here. With
+    ``RIGSFM_FEATURE_CACHE`` set, features of the same image file and settings come from that cache
+    (:mod:`rigsfm.run.feature_cache`) and new ones are added to it."""
     with open_database(database_path) as database:
         ids = {image.name: image.image_id for image in database.read_all_images()}
         todo = [
             e.name for e in featured_images(images, options) if not database.exists_keypoints(ids[e.name])
         ]
     first_octave = resolved_first_octave(database_path, images, options)
+    paths = {e.name: e.path for e in images}
+    cache = FeatureCache.from_environment(_cache_settings(options, first_octave))
+    extract = todo
+    if cache is not None and todo:
+        with open_database(database_path) as database:
+            extract = features_from_cache(database, cache, paths, ids, todo)
+    cached = len(todo) - len(extract)
+    if progress and cached:
+        progress(cached, len(todo))
+    if extract:
+        shifted = (lambda done, _: progress(cached + done, len(todo))) if progress else None
+        _extract(database_path, image_dir, paths, ids, extract, options, first_octave, shifted, batch_size,
+                 num_threads, executor, address, workers)
+        if cache is not None:
+            with open_database(database_path) as database:
+                features_to_cache(database, cache, paths, ids, extract)
+    logger.info("Features for %d images: %d extracted, %d from the feature cache (%d already done)", len(todo),
+                len(extract), cached, len(images) - len(todo))
+    return len(todo)
+
+
+def _cache_settings(options: MatchingOptions, first_octave: int) -> dict:
+    """What an image's features depend on besides its file (rigsfm.run.feature_cache's key)."""
+    if options.features == Features.ASIFT:
+        return {"features": str(options.features), "max_num_features": options.max_num_features}
+    extraction = _extraction_options(options, num_threads=1, first_octave=first_octave).todict()
+    for threads in ("num_threads", "gpu_index"):
+        extraction.pop(threads, None)
+    return {"features": str(options.features), "extraction": extraction}
+
+
+def _extract(database_path: Path, image_dir: Path, paths: dict[str, Path], ids: dict[str, int], todo: list[str],
+             options: MatchingOptions, first_octave: int, progress: Progress | None, batch_size: int,
+             num_threads: int, executor: str, address: str | None, workers: int) -> None:
     if options.features == Features.ASIFT:
         from rigsfm.run.asift import extract_asift
 
         extract_asift(database_path, image_dir, todo, options.max_num_features, progress)
-        logger.info("Extracted ASIFT for %d images (%d already done)", len(todo), len(images) - len(todo))
-        return len(todo)
+        return
     if executor == Executor.RAY:
         extraction = _extraction_options(options, num_threads=1, first_octave=first_octave)
         done = [0]
@@ -229,11 +265,10 @@ def extract_features(
                 if progress:
                     progress(done[0], len(todo))
 
-            paths = {e.name: e.path for e in images}
             map_unordered(extract_one, [(name, paths[name]) for name in todo], write, executor=executor,
                           workers=workers, address=address, shared=(extraction,), prepare=_read_for_ray)
-        logger.info("Extracted features for %d images on Ray (%d already done)", len(todo), len(images) - len(todo))
-        return len(todo)
+        logger.info("Extracted features for %d images on Ray", len(todo))
+        return
     extraction = _extraction_options(options, num_threads, first_octave)
     logger.info("SIFT from octave %d", first_octave)
     for start in range(0, len(todo), batch_size):
@@ -247,8 +282,6 @@ def extract_features(
         )
         if progress:
             progress(start + len(batch), len(todo))
-    logger.info("Extracted features for %d images (%d already done)", len(todo), len(images) - len(todo))
-    return len(todo)
 
 
 def image_pairs(images: Sequence[ImageEntry], options: MatchingOptions) -> list[tuple[str, str]]:

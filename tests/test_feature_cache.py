@@ -44,7 +44,7 @@ def extract(tmp_path, caplog):
 
 
 def test_features_come_back_bit_identical_and_only_for_the_same_file_and_settings(rendered, extract, tmp_path,
-                                                                                   monkeypatch):
+                                                                                   monkeypatch, caplog):
     dataset = rendered(SCENE)
     cache = tmp_path / "cache"
     monkeypatch.setenv(FEATURE_CACHE_ENV, str(cache))
@@ -82,6 +82,13 @@ def test_features_come_back_bit_identical_and_only_for_the_same_file_and_setting
     assert (extracted, cached) == (2, 0)
     np.testing.assert_array_equal(repaired["rig01/wide/frame0000.png"][1], first["rig01/wide/frame0000.png"][1])
     assert extract(dataset.images, dataset.rigs, "after")[1:] == (0, 2)
+
+    # A cache that cannot be written: the features are extracted all the same, with a warning.
+    monkeypatch.setenv(FEATURE_CACHE_ENV, str(tmp_path / "not_a_folder"))
+    (tmp_path / "not_a_folder").write_text("")
+    assert extract(dataset.images, dataset.rigs, "unwritable")[1:] == (2, 0)
+    assert sum("not written" in r.getMessage() and r.levelno == logging.WARNING for r in caplog.records) == 2
+    monkeypatch.setenv(FEATURE_CACHE_ENV, str(cache))
 
     # Without the variable nothing is read or written.
     monkeypatch.delenv(FEATURE_CACHE_ENV)

@@ -15,6 +15,7 @@ its features for a re-run of that workspace.
 from __future__ import annotations
 
 import hashlib
+import io
 import json
 import logging
 import os
@@ -25,6 +26,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pycolmap
+
+from rigsfm.core.io import write_bytes_atomic
 
 logger = logging.getLogger(__name__)
 
@@ -64,11 +67,14 @@ class FeatureCache:
         return keypoints, descriptors
 
     def store(self, image: Path, keypoints: np.ndarray, descriptors: np.ndarray) -> None:
-        path = self._path(image)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        partial = path.with_name(f".{path.stem}.{os.getpid()}.tmp.npz")
-        np.savez(partial, keypoints=np.asarray(keypoints, np.float32), descriptors=np.asarray(descriptors, np.uint8))
-        os.replace(partial, path)
+        """Adds an entry; a cache that cannot be written (full, read-only) is only a warning."""
+        buffer = io.BytesIO()
+        np.savez(buffer, keypoints=np.asarray(keypoints, np.float32), descriptors=np.asarray(descriptors, np.uint8))
+        try:
+            write_bytes_atomic(self._path(image), buffer.getvalue())
+        except OSError as error:
+            logger.warning("Feature cache %s not written (%s): the features of %s are not kept", self.folder,
+                           error.strerror or error, image)
 
 
 def features_from_cache(database: pycolmap.Database, cache: FeatureCache, paths: dict[str, Path],

@@ -342,6 +342,10 @@ def test_textures_are_shared_between_processes_through_the_cache_folder(tmp_path
     assert len(made) == 1 and [p.name for p in (tmp_path / "cache").iterdir()] == ["k.npz"]
     for a, b in zip(first, again, strict=True):
         assert a.dtype == b.dtype and np.array_equal(a, b)
+    entry = tmp_path / "cache" / "k.npz"
+    entry.write_bytes(entry.read_bytes()[:200])  # unreadable (truncated): made again and replaced
+    _shared_arrays("k", make)
+    assert len(made) == 2 and np.array_equal(_shared_arrays("k", make)[0], first[0]) and len(made) == 2
     monkeypatch.delenv(TEXTURE_CACHE_ENV)
     _shared_arrays("k", make)
-    assert len(made) == 2
+    assert len(made) == 3

@@ -3,10 +3,12 @@
 from __future__ import annotations
 
 import contextlib
+import io
 import json
 import os
 import shutil
 import tempfile
+import zipfile
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -47,6 +49,27 @@ def write_bytes_atomic(path: Path, data: bytes, *, overwrite: bool = True) -> Pa
         Path(tmp).unlink(missing_ok=True)
         raise
     return path
+
+
+def write_npz_atomic(path: Path, arrays: dict[str, Any], *, overwrite: bool = True) -> Path:
+    """``numpy.savez`` of ``arrays`` written atomically (whole or absent for a process reading meanwhile)."""
+    import numpy as np
+
+    buffer = io.BytesIO()
+    np.savez(buffer, **arrays)
+    return write_bytes_atomic(path, buffer.getvalue(), overwrite=overwrite)
+
+
+def read_npz(path: Path) -> dict[str, Any] | None:
+    """The arrays of an ``.npz`` file, or None when it is missing or unreadable (truncated, not an npz): for
+    caches, whose entries are made again then."""
+    import numpy as np
+
+    try:
+        with np.load(path) as data:
+            return {key: data[key] for key in data.files}
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile):
+        return None
 
 
 def write_text_atomic(path: Path, text: str, *, overwrite: bool = True) -> Path:

@@ -15,11 +15,9 @@ its features for a re-run of that workspace.
 from __future__ import annotations
 
 import hashlib
-import io
 import json
 import logging
 import os
-import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -27,7 +25,7 @@ import cv2
 import numpy as np
 import pycolmap
 
-from rigsfm.core.io import write_bytes_atomic
+from rigsfm.core.io import read_npz, write_npz_atomic
 
 logger = logging.getLogger(__name__)
 
@@ -56,11 +54,10 @@ class FeatureCache:
 
     def load(self, image: Path) -> tuple[np.ndarray, np.ndarray] | None:
         """``(keypoints (N, 6) float32, descriptors (N, 128) uint8)`` stored for ``image``, or None."""
-        try:
-            with np.load(self._path(image)) as data:
-                keypoints, descriptors = data["keypoints"], data["descriptors"]
-        except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile):  # not stored yet, or unreadable
+        arrays = read_npz(self._path(image))  # None: not stored yet, or unreadable
+        if arrays is None or set(arrays) != {"keypoints", "descriptors"}:
             return None
+        keypoints, descriptors = arrays["keypoints"], arrays["descriptors"]
         if (keypoints.dtype != np.float32 or keypoints.ndim != 2 or keypoints.shape[1] != 6
                 or descriptors.dtype != np.uint8 or descriptors.shape != (len(keypoints), 128)):
             return None
@@ -68,10 +65,9 @@ class FeatureCache:
 
     def store(self, image: Path, keypoints: np.ndarray, descriptors: np.ndarray) -> None:
         """Adds an entry; a cache that cannot be written (full, read-only) is only a warning."""
-        buffer = io.BytesIO()
-        np.savez(buffer, keypoints=np.asarray(keypoints, np.float32), descriptors=np.asarray(descriptors, np.uint8))
+        arrays = {"keypoints": np.asarray(keypoints, np.float32), "descriptors": np.asarray(descriptors, np.uint8)}
         try:
-            write_bytes_atomic(self._path(image), buffer.getvalue())
+            write_npz_atomic(self._path(image), arrays)
         except OSError as error:
             logger.warning("Feature cache %s not written (%s): the features of %s are not kept", self.folder,
                            error.strerror or error, image)

@@ -22,6 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
+from rigsfm.core.io import read_npz, write_npz_atomic
 from rigsfm.synth.textures import Texture, build_pyramid, crowd_texture, procedural_texture
 
 logger = logging.getLogger(__name__)
@@ -149,16 +150,11 @@ def _shared_arrays(key: str, make: Callable[[], tuple[np.ndarray, ...]]) -> tupl
     if not folder:
         return make()
     path = Path(folder) / f"{key}.npz"
-    try:
-        with np.load(path) as data:
-            return tuple(data[f"a{i}"] for i in range(len(data.files)))
-    except (OSError, ValueError, KeyError):  # not made yet (or unreadable): make it here
-        pass
+    stored = read_npz(path)  # None: not made yet (or unreadable): make it here
+    if stored is not None and set(stored) == {f"a{i}" for i in range(len(stored))}:
+        return tuple(stored[f"a{i}"] for i in range(len(stored)))
     arrays = make()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    partial = path.with_name(f".{path.stem}.{os.getpid()}.tmp.npz")
-    np.savez(partial, **{f"a{i}": array for i, array in enumerate(arrays)})
-    os.replace(partial, path)  # whole or absent for a process reading it meanwhile
+    write_npz_atomic(path, {f"a{i}": array for i, array in enumerate(arrays)})
     return arrays
 
 

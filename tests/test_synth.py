@@ -349,3 +349,23 @@ def test_textures_are_shared_between_processes_through_the_cache_folder(tmp_path
     monkeypatch.delenv(TEXTURE_CACHE_ENV)
     _shared_arrays("k", make)
     assert len(made) == 3
+
+
+def test_ray_cull_by_sectors_picks_exactly_the_rays_of_its_definition():
+    """rigsfm.synth.scene._rays_towards tests only the rays of the azimuth sectors around an object; it must return
+    the very indices that testing every ray gives (objects behind the +-pi seam, near and far, around the origin)."""
+    from rigsfm.synth.scene import _rays_towards, _sectors
+
+    rng = np.random.default_rng(0)
+    azimuth = np.concatenate([rng.uniform(-np.pi, np.pi, 200_000), [-np.pi, np.pi, 0.0]])
+    sectors = _sectors(azimuth)
+    origin = np.array([1.0, -2.0, 1.5])
+    objects = [(-20.0, -2.0 + 1e-9, 0.05), (-20.0, -2.1, 0.5), (-20.0, -1.9, 0.5),  # at the seam, either side
+               (15.0, 3.0, 2.0), (1.0, -1.0, 0.9), (1.0, -1.0, 1.1), (1.0, 10.0, 0.3)]  # near (and around), far
+    objects += [(x, y, abs(r) / 10) for x, y, r in rng.uniform(-20, 20, (40, 3))]
+    for x, y, reach in objects:
+        dist = np.hypot(x - origin[0], y - origin[1])
+        expected = (np.arange(len(azimuth)) if dist <= reach + 1e-6 else np.flatnonzero(
+            np.abs(np.mod(azimuth - np.arctan2(y - origin[1], x - origin[0]) + np.pi, 2 * np.pi) - np.pi)
+            <= np.arcsin(reach / dist) + 1e-3))
+        np.testing.assert_array_equal(_rays_towards(origin, azimuth, sectors, x, y, reach), expected)

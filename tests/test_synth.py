@@ -357,7 +357,7 @@ def test_ray_cull_by_sectors_picks_exactly_the_rays_of_its_definition():
     from rigsfm.synth.scene import _rays_towards, _sectors
 
     rng = np.random.default_rng(0)
-    azimuth = np.concatenate([rng.uniform(-np.pi, np.pi, 200_000), [-np.pi, np.pi, 0.0]])
+    azimuth = np.concatenate([rng.uniform(-np.pi, np.pi, 200_000), [-np.pi, np.pi, 0.0, np.nan]])
     sectors = _sectors(azimuth)
     origin = np.array([1.0, -2.0, 1.5])
     objects = [(-20.0, -2.0 + 1e-9, 0.05), (-20.0, -2.1, 0.5), (-20.0, -1.9, 0.5),  # at the seam, either side

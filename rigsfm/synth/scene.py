@@ -250,8 +250,9 @@ SECTORS = 4096  # azimuth sectors of the rays' first cull (_rays_towards)
 
 
 def _sectors(azimuth: np.ndarray) -> np.ndarray:
-    """Each ray's azimuth sector, 0..SECTORS-1 over [-pi, pi]."""
-    return np.minimum((azimuth + np.pi) * (SECTORS / (2 * np.pi)), SECTORS - 1).astype(np.int16)
+    """Each ray's azimuth sector, 0..SECTORS-1 over [-pi, pi] (0 for a NaN ray: the exact test leaves it out)."""
+    sector = np.minimum((azimuth + np.pi) * (SECTORS / (2 * np.pi)), SECTORS - 1)
+    return np.where(np.isfinite(sector), sector, 0.0).astype(np.int16)
 
 
 def _rays_towards(o: np.ndarray, azimuth: np.ndarray, sectors: np.ndarray, x: float, y: float,

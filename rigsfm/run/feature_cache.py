@@ -47,14 +47,16 @@ class FeatureCache:
         versions = {"pycolmap": pycolmap.__version__, "opencv": cv2.__version__}
         return cls(Path(folder), json.dumps({**settings, "versions": versions}, sort_keys=True, default=str))
 
-    def _path(self, image: Path) -> Path:
+    def entry(self, image: Path) -> Path:
+        """Where the features of ``image`` (its file's bytes with these settings) are kept."""
         digest = hashlib.sha256(self.settings.encode())
         digest.update(Path(image).read_bytes())
         return self.folder / f"{digest.hexdigest()}.npz"
 
-    def load(self, image: Path) -> tuple[np.ndarray, np.ndarray] | None:
-        """``(keypoints (N, 6) float32, descriptors (N, 128) uint8)`` stored for ``image``, or None."""
-        arrays = read_npz(self._path(image))  # None: not stored yet, or unreadable
+    @staticmethod
+    def load(entry: Path) -> tuple[np.ndarray, np.ndarray] | None:
+        """``(keypoints (N, 6) float32, descriptors (N, 128) uint8)`` kept in ``entry``, or None."""
+        arrays = read_npz(entry)  # None: not stored yet, or unreadable
         if arrays is None or set(arrays) != {"keypoints", "descriptors"}:
             return None
         keypoints, descriptors = arrays["keypoints"], arrays["descriptors"]
@@ -63,22 +65,24 @@ class FeatureCache:
             return None
         return keypoints, descriptors
 
-    def store(self, image: Path, keypoints: np.ndarray, descriptors: np.ndarray) -> None:
+    @staticmethod
+    def store(entry: Path, keypoints: np.ndarray, descriptors: np.ndarray) -> None:
         """Adds an entry; a cache that cannot be written (full, read-only) is only a warning."""
         arrays = {"keypoints": np.asarray(keypoints, np.float32), "descriptors": np.asarray(descriptors, np.uint8)}
         try:
-            write_npz_atomic(self._path(image), arrays)
+            write_npz_atomic(entry, arrays)
         except OSError as error:
-            logger.warning("Feature cache %s not written (%s): the features of %s are not kept", self.folder,
-                           error.strerror or error, image)
+            logger.warning("Feature cache entry %s not written (%s): these features are not kept", entry,
+                           error.strerror or error)
 
 
-def features_from_cache(database: pycolmap.Database, cache: FeatureCache, paths: dict[str, Path],
-                        ids: dict[str, int], names: list[str]) -> list[str]:
-    """Writes the cached features of ``names`` into ``database``; returns the names still to extract."""
+def features_from_cache(database: pycolmap.Database, cache: FeatureCache, entries: dict[str, Path],
+                        ids: dict[str, int]) -> list[str]:
+    """Writes the cached features of the images of ``entries`` (name -> :meth:`FeatureCache.entry`) into
+    ``database``; returns the names still to extract."""
     missing = []
-    for name in names:
-        found = cache.load(paths[name])
+    for name, entry in entries.items():
+        found = cache.load(entry)
         if found is None:
             missing.append(name)
             continue
@@ -87,14 +91,15 @@ def features_from_cache(database: pycolmap.Database, cache: FeatureCache, paths:
             database.write_keypoints(ids[name], keypoints)
             database.write_descriptors(
                 ids[name], pycolmap.FeatureDescriptors(pycolmap.FeatureExtractorType.SIFT, descriptors))
-    if len(missing) < len(names):
-        logger.info("Features of %d images read from the feature cache %s", len(names) - len(missing), cache.folder)
+    if len(missing) < len(entries):
+        logger.info("Features of %d images read from the feature cache %s", len(entries) - len(missing),
+                    cache.folder)
     return missing
 
 
-def features_to_cache(database: pycolmap.Database, cache: FeatureCache, paths: dict[str, Path],
+def features_to_cache(database: pycolmap.Database, cache: FeatureCache, entries: dict[str, Path],
                       ids: dict[str, int], names: list[str]) -> None:
-    """Stores the features ``database`` holds for ``names`` (just extracted) in the cache."""
+    """Stores the features ``database`` holds for ``names`` (just extracted) in their ``entries``."""
     for name in names:
         if database.exists_keypoints(ids[name]):
-            cache.store(paths[name], database.read_keypoints(ids[name]), database.read_descriptors(ids[name]).data)
+            cache.store(entries[name], database.read_keypoints(ids[name]), database.read_descriptors(ids[name]).data)

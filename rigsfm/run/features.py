@@ -215,10 +215,11 @@ def extract_features(
     first_octave = resolved_first_octave(database_path, images, options)
     paths = {e.name: e.path for e in images}
     cache = FeatureCache.from_environment(_cache_settings(options, first_octave))
-    extract = todo
+    extract, entries = todo, {}
     if cache is not None and todo:
+        entries = {name: cache.entry(paths[name]) for name in todo}  # each image file read once for its key
         with open_database(database_path) as database:
-            extract = features_from_cache(database, cache, paths, ids, todo)
+            extract = features_from_cache(database, cache, entries, ids)
     cached = len(todo) - len(extract)
     if progress and cached:
         progress(cached, len(todo))
@@ -228,7 +229,7 @@ def extract_features(
                  num_threads, executor, address, workers)
         if cache is not None:
             with open_database(database_path) as database:
-                features_to_cache(database, cache, paths, ids, extract)
+                features_to_cache(database, cache, entries, ids, extract)
     logger.info("Features for %d images: %d extracted, %d from the feature cache (%d already done)", len(todo),
                 len(extract), cached, len(images) - len(todo))
     return len(todo)

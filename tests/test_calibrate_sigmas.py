@@ -132,7 +132,7 @@ def test_sigma_keys_round_trip_and_are_checked():
 @pytest.mark.slow
 def test_written_sigmas_are_honest(tmp_path):
     """Seeds 0..11 of benchmarks/calibration_sigmas.py (2 per setup: 24/16/12 common views, 4:1 and 3:1 rigs):
-    per parameter group RMS(actual error / written sigma) within [0.7, 1.4]. ~100 s alone on the 2-core
+    per parameter group RMS(actual error / written sigma) within [0.7, 1.4]. ~90 s alone on the 2-core
     machine, mostly rendering (calibration ~3.4 s per seed); the benchmark runs 24 seeds. Fewer seeds are too
     few: seeds 6..11 alone give 0.60 for the wide focal group."""
     from benchmarks.calibration_sigmas import HONEST, calibrate_and_compare, summary, table

@@ -19,16 +19,31 @@ import numpy as np
 from rigsfm.calibrate.board import BoardSpec
 
 SUPERSAMPLE = 2
+# 1 / depth (1 / m) below which a ray misses a plane: a ray this close to parallel would meet it beyond 1000 km, and
+# cv2.perspectiveTransform maps it to texture pixel (0, 0) (it zeroes 1 / w for |w| < FLT_EPSILON).
+MIN_NEARNESS = np.float32(1e-6)
 
 
 @dataclass(frozen=True)
 class NormalisedPixels:
     """Normalised image coordinates of a camera's supersampled pixel centres (read-only float32): ``xy``
-    (h*ss, w*ss, 2) for ``cv2.perspectiveTransform``, and ``x``, ``y`` each contiguous for fast arithmetic."""
+    (h*ss, w*ss, 2) for ``cv2.perspectiveTransform``, and ``x``, ``y`` each contiguous for fast arithmetic;
+    ``x_of_column`` (2, w*ss): the least and greatest x of each column, ``y_of_row`` (2, h*ss) the same of y."""
 
     xy: np.ndarray
     x: np.ndarray
     y: np.ndarray
+    x_of_column: np.ndarray
+    y_of_row: np.ndarray
+
+    def window(self, x_range: tuple[float, float], y_range: tuple[float, float]) -> tuple[slice, slice] | None:
+        """The rows and columns (slices) outside which no pixel's (x, y) lies in ``x_range`` x ``y_range``: a
+        column whose x all lie outside ``x_range`` holds none, nor does such a row for y. None: no pixel does."""
+        columns = np.flatnonzero((self.x_of_column[1] >= x_range[0]) & (self.x_of_column[0] <= x_range[1]))
+        rows = np.flatnonzero((self.y_of_row[1] >= y_range[0]) & (self.y_of_row[0] <= y_range[1]))
+        if len(columns) == 0 or len(rows) == 0:
+            return None
+        return slice(rows[0], rows[-1] + 1), slice(columns[0], columns[-1] + 1)
 
 
 def _newton_undistort(u: np.ndarray, v: np.ndarray, dist: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -86,8 +101,10 @@ def _normalised_pixels(key: bytes, K: tuple, dist: tuple, size: tuple[int, int])
     uu, vv = np.meshgrid(u, v)
     pix = np.stack([uu, vv], -1).reshape(-1, 2)
     xy = _undistort(pix, np.array(K).reshape(3, 3), np.array(dist)).reshape(uu.shape + (2,)).astype(np.float32)
-    pixels = NormalisedPixels(xy, np.ascontiguousarray(xy[..., 0]), np.ascontiguousarray(xy[..., 1]))
-    for array in (pixels.xy, pixels.x, pixels.y):
+    x, y = np.ascontiguousarray(xy[..., 0]), np.ascontiguousarray(xy[..., 1])
+    pixels = NormalisedPixels(xy, x, y, np.stack([x.min(axis=0), x.max(axis=0)]),
+                              np.stack([y.min(axis=1), y.max(axis=1)]))
+    for array in (pixels.xy, pixels.x, pixels.y, pixels.x_of_column, pixels.y_of_row):
         array.flags.writeable = False
     return pixels
 
@@ -123,9 +140,28 @@ class TexturedPlane:
     background: float = 128.0
 
 
+def _plane_window(camera: SynthCamera, pixels: NormalisedPixels, H: np.ndarray,
+                  plane: TexturedPlane) -> tuple[slice, slice] | None:
+    """Rows and columns of the supersampled image outside which ``plane``'s texture shows in no pixel (None:
+    in none at all); the whole image where the plane reaches behind the camera. With the texture's rectangle
+    wholly in front, what it covers in normalised coordinates is the convex hull of its corners' images,
+    inside their bounding box (widened by 4 pixels for float32's rounding of the texture coordinates)."""
+    h, w = plane.texture.shape
+    corners = (np.array([[0, 0], [w, 0], [w, h], [0, h]], float) - plane.origin_px) * plane.texel
+    rays = np.column_stack([corners, np.ones(4)]) @ H.T  # (x, y, 1) * depth
+    if not np.all(rays[:, 2] > 0):
+        return slice(None), slice(None)
+    xy = rays[:, :2] / rays[:, 2:]
+    margin = 4.0 / min(camera.K[0, 0], camera.K[1, 1])
+    return pixels.window((xy[:, 0].min() - margin, xy[:, 0].max() + margin),
+                         (xy[:, 1].min() - margin, xy[:, 1].max() + margin))
+
+
 def render(camera: SynthCamera, cam_from_world: tuple[np.ndarray, np.ndarray], planes: list[TexturedPlane],
            rng: np.random.Generator, blur: float = 0.6, noise: float = 1.5, background: float = 110.0) -> np.ndarray:
-    """Ray-cast ``planes`` into ``camera``; nearest plane in front wins; returns a uint8 image."""
+    """Ray-cast ``planes`` into ``camera``; nearest plane in front wins; returns a uint8 image. Each plane is
+    cast only over the window of pixels its texture can reach (:func:`_plane_window`): every step is per pixel,
+    so the image is the one casting every pixel gives."""
     R, t = cam_from_world
     pixels = camera.normalised_pixels()
     shape = pixels.x.shape
@@ -136,17 +172,21 @@ def render(camera: SynthCamera, cam_from_world: tuple[np.ndarray, np.ndarray], p
         cR = R @ plane.rotation
         ct = R @ plane.translation + t
         H = np.column_stack([cR[:, 0], cR[:, 1], ct])  # normalised ray (x, y, 1) ~ H [X, Y, 1]
+        window = _plane_window(camera, pixels, H, plane)
+        if window is None:
+            continue
         a = np.linalg.inv(H)
         texture_from_ray = np.array([[1.0 / plane.texel, 0.0, plane.origin_px[0] - 0.5],
                                      [0.0, 1.0 / plane.texel, plane.origin_px[1] - 0.5], [0.0, 0.0, 1.0]]) @ a
-        maps = cv2.perspectiveTransform(pixels.xy, texture_from_ray)  # texture pixel of every ray
+        maps = cv2.perspectiveTransform(pixels.xy[window], texture_from_ray)  # texture pixel of every ray
         # 1 / depth: the ray (x, y, 1) meets the plane at depth 1 / (a[2] . (x, y, 1)), in front if positive
-        near = np.float32(a[2, 0]) * pixels.x + np.float32(a[2, 1]) * pixels.y + np.float32(a[2, 2])
+        near = np.float32(a[2, 0]) * pixels.x[window] + np.float32(a[2, 1]) * pixels.y[window] + np.float32(a[2, 2])
         h, w = plane.texture.shape
-        visible = (near > nearness) & (cv2.inRange(maps, (-0.5, -0.5), (w - 0.5, h - 0.5)) > 0)
+        inside = cv2.inRange(maps, (-0.5, -0.5), (w - 0.5, h - 0.5)) > 0
+        visible = (near > np.maximum(nearness[window], MIN_NEARNESS)) & inside
         sampled = cv2.remap(plane.texture, maps, None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-        np.copyto(image, sampled, where=visible)
-        np.copyto(nearness, near, where=visible)
+        np.copyto(image[window], sampled, where=visible)
+        np.copyto(nearness[window], near, where=visible)
     w, h = camera.size
     image = cv2.resize(image, (w, h), interpolation=cv2.INTER_AREA)
     if blur > 0:

@@ -238,14 +238,17 @@ def _results(out: Path) -> tuple[dict, dict]:
     return _without_times(summary), _without_times(json.loads((out / "narrow_poses.json").read_text()))
 
 
-ENV = {**os.environ, "PYTHONPATH": str(ROOT), "COLUMNS": "80"}
+def _env() -> dict[str, str]:
+    """The command's environment: this process's as the test runs (with the session's texture and feature caches,
+    which tests/conftest.py sets after this module is imported), rigsfm importable, an 80-column terminal."""
+    return {**os.environ, "PYTHONPATH": str(ROOT), "COLUMNS": "80"}
 
 
 @pytest.fixture(scope="module")
 def reference(scene, tmp_path_factory) -> Path:
     """The command run once without interruption (stages in children, the default): OUT."""
     out = tmp_path_factory.mktemp("reference") / "out"
-    code, stderr, _ = _run(scene, out, ENV)
+    code, stderr, _ = _run(scene, out, _env())
     assert code == 0, stderr
     return out
 
@@ -261,7 +264,7 @@ def test_signals_stop_every_stage_and_the_same_command_resumes(scene, reference,
         (signal.SIGTERM, "Stage mapping took", False, "adjust", 143, "terminated (SIGTERM)"),
     ]
     for signum, when, group, stage, expected_code, message in steps:
-        code, stderr, log = _run(scene, out, ENV, signum=signum, when=when, group=group)
+        code, stderr, log = _run(scene, out, _env(), signum=signum, when=when, group=group)
         assert code == expected_code, (stage, stderr)
         lines = [line for line in stderr.splitlines() if line.strip()]
         assert len(lines) == 1 and lines[0].startswith(message) and "re-run the same command" in lines[0], stderr
@@ -269,7 +272,7 @@ def test_signals_stop_every_stage_and_the_same_command_resumes(scene, reference,
         assert f"Stage {stage} stopped after" in log, f"not stopped in the {stage} stage; test is void"
         assert not (out / "summary.json").exists()
     assert not Workspace(out).leftovers()  # the killed mapping stage's temporary folder was swept
-    code, stderr, _ = _run(scene, out, ENV)
+    code, stderr, _ = _run(scene, out, _env())
     assert code == 0, stderr
     assert _results(out) == _results(reference)
 

@@ -166,8 +166,8 @@ def refuse_turned_images(paths: Sequence[Path], *, folder: Path | None = None,
     """Raise one InputError naming the files among ``paths`` whose EXIF Orientation asks viewers to turn or
     mirror them, with the fix: remove the tag when the calibration was made on the pixels as stored, turn the
     pixels when it was made on the images as shown. ``calibration(path)`` gives (which camera, width, height)
-    to tell the two apart by size; ``folder`` is where the exiftool command should work (recursively);
-    ``then`` is added to the advice (e.g. to treat other images the same way)."""
+    to tell the two apart by size; ``folder`` is what the commands should work on (exiftool recursively,
+    the others by a glob); ``then`` is added to the advice (e.g. to treat other images the same way)."""
     turned = [(Path(p), o) for p in paths if is_turned(o := exif_orientation(p))]
     if not turned:
         return

@@ -101,6 +101,27 @@ def with_images(edit: Callable[[Path], None], extra: tuple = ()) -> Callable[[Pa
     return prepare
 
 
+def tagged_jpegs(images: Path) -> None:
+    """Every image as a JPEG of the same pixels tagged EXIF Orientation=6, as a camera mounted on its side writes
+    them."""
+    from support import write_tagged
+
+    for path in sorted(images.rglob("*.png")):
+        write_tagged(path.with_suffix(".jpg"), cv2.imread(str(path), cv2.IMREAD_UNCHANGED), 6)
+        path.unlink()
+
+
+def calibrated_turned(root: Path) -> list:
+    """Tagged JPEGs with a rigs.yaml made on the turned pixels (48x64), as OpenCV's default imread gives them."""
+    def turn(data: dict) -> None:
+        for rig in data["rigs"]:
+            for sensor in ("wide", "narrow"):
+                rig["sensors"][sensor] = dict(CAMERA, width=H, height=W)
+    inputs(root, turn)
+    tagged_jpegs(root / "images")
+    return RUN
+
+
 def workspace(root: Path) -> Path:
     """A small finished workspace: a posed two-rig model, narrow_poses.json and summary-less."""
     import pycolmap
@@ -208,6 +229,9 @@ CASES = [
     Case("an image at another resolution than calibrated", "nothing is written",
          with_images(lambda images: cv2.imwrite(str(images / "rig02" / "wide" / "f0.png"),
                                                 np.zeros((H * 2, W * 2), np.uint8)))),
+    Case("JPEGs tagged EXIF Orientation=6 (a camera on its side), rigs.yaml made on the pixels as stored",
+         "nothing is written", with_images(tagged_jpegs)),
+    Case("the same JPEGs with a rigs.yaml made on the turned images (48x64)", "nothing is written", calibrated_turned),
     Case("a corrupt image file", "nothing is written",
          with_images(lambda images: (images / "rig01" / "narrow" / "f0.png").write_bytes(b"\x89PNG\r\n\x1a\n cut"))),
     Case("a narrow image without its wide image", "nothing is written",

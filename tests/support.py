@@ -1,8 +1,11 @@
-"""What several test modules share: the real test images in the repository, and the browser."""
+"""What several test modules share: the real test images in the repository, EXIF-tagged image files, and the
+browser."""
 
 from __future__ import annotations
 
 import shutil
+import struct
+import zlib
 from pathlib import Path
 
 REAL_STEREO = Path(__file__).resolve().parent / "data" / "opencv-stereo"  # OpenCV's real stereo pairs
@@ -34,3 +37,35 @@ def start_local_ray(num_cpus: int = 2) -> None:
         import pytest
 
         pytest.fail(f"ray.init failed: {type(error).__name__}: {str(error)[:800]}\n{tails}", pytrace=False)
+
+
+def exif_block(orientation: int, big_endian: bool = False) -> bytes:
+    """An EXIF payload (``Exif\\0\\0`` and a TIFF structure) whose IFD0 holds only the Orientation tag."""
+    e = ">" if big_endian else "<"
+    return (b"Exif\x00\x00" + (b"MM" if big_endian else b"II") + struct.pack(e + "HI", 42, 8)
+            + struct.pack(e + "H", 1) + struct.pack(e + "HHI", 0x0112, 3, 1) + struct.pack(e + "HH", orientation, 0)
+            + struct.pack(e + "I", 0))
+
+
+def tag_orientation(data: bytes, orientation: int, big_endian: bool = False) -> bytes:
+    """A JPEG's or PNG's bytes with an EXIF Orientation tag added, the pixels untouched: a JPEG gets an APP1
+    segment after its start marker (as cameras write it), a PNG an eXIf chunk after IHDR."""
+    payload = exif_block(orientation, big_endian)
+    if data[:2] == b"\xff\xd8":
+        return data[:2] + b"\xff\xe1" + struct.pack(">H", len(payload) + 2) + payload + data[2:]
+    if data[:8] == b"\x89PNG\r\n\x1a\n":
+        body = payload[6:]  # PNG's eXIf holds the TIFF structure alone
+        chunk = struct.pack(">I", len(body)) + b"eXIf" + body + struct.pack(">I", zlib.crc32(b"eXIf" + body))
+        end_of_ihdr = 8 + 8 + struct.unpack(">I", data[8:12])[0] + 4
+        return data[:end_of_ihdr] + chunk + data[end_of_ihdr:]
+    raise ValueError("tag_orientation takes a JPEG or a PNG")
+
+
+def write_tagged(path: Path, pixels, orientation: int) -> Path:
+    """``pixels`` written as a JPEG or PNG (by ``path``'s suffix) that carries EXIF Orientation ``orientation``."""
+    import cv2
+
+    ok, data = cv2.imencode(Path(path).suffix, pixels)
+    assert ok
+    Path(path).write_bytes(tag_orientation(data.tobytes(), orientation))
+    return Path(path)

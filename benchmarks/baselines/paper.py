@@ -39,6 +39,7 @@ from benchmarks.baselines.two_view import (
     two_view_bundle_adjustment,
 )
 from rigsfm.core.conventions import opencv_from_colmap_pixels, rotation_angle_deg
+from rigsfm.core.image_files import read_image
 from rigsfm.run.pipeline import load_inputs
 from rigsfm.core.rig import RigCalibration, add_posed_rig
 
@@ -78,7 +79,7 @@ def opencv_intrinsics(camera: pycolmap.Camera) -> tuple[np.ndarray, np.ndarray]:
 
 
 def detect(path: Path, camera: pycolmap.Camera) -> Features:
-    gray = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+    gray = read_image(path, cv2.IMREAD_GRAYSCALE)
     if gray is None:
         raise OSError(f"cannot read {path}")
     keypoints, descriptors = cv2.SIFT_create(nfeatures=MAX_FEATURES).detectAndCompute(gray, None)

@@ -16,6 +16,7 @@ import cv2
 import numpy as np
 
 from rigsfm.core.errors import InputError
+from rigsfm.core.image_files import read_image
 from rigsfm.core.io import load_yaml_or_json
 
 logger = logging.getLogger(__name__)
@@ -139,7 +140,7 @@ class Detection:
 
 
 def read_gray(path: Path) -> np.ndarray:
-    image = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+    image = read_image(path, cv2.IMREAD_GRAYSCALE)
     if image is None:
         raise InputError(f"cannot read image {path}; is it a valid image file?")
     return image

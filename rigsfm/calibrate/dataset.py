@@ -12,6 +12,7 @@ from pathlib import Path
 import cv2
 
 from rigsfm.core.errors import InputError
+from rigsfm.core.image_files import read_image, refuse_turned_images
 
 IMAGE_EXTENSIONS = {".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".pgm", ".ppm", ".webp"}
 SENSORS = ("wide", "narrow")
@@ -66,15 +67,22 @@ def discover_rigs(root: Path, what: str = "board images") -> list[RigFrames]:
     if not root.is_dir():
         raise InputError(f"{what} folder {root} does not exist")
     if (root / "wide").is_dir() or (root / "narrow").is_dir():
-        return [_rig(root, root.resolve().name, what)]
-    folders = sorted(p for p in root.iterdir() if p.is_dir() and not p.name.startswith("."))
-    if not folders:
-        raise InputError(f"{what}: {root} has no rig folders; expected {root}/<rig>/wide and {root}/<rig>/narrow")
-    return [_rig(p, p.name, what) for p in folders]
+        rigs = [_rig(root, root.resolve().name, what)]
+    else:
+        folders = sorted(p for p in root.iterdir() if p.is_dir() and not p.name.startswith("."))
+        if not folders:
+            raise InputError(f"{what}: {root} has no rig folders; expected {root}/<rig>/wide and {root}/<rig>/narrow")
+        rigs = [_rig(p, p.name, what) for p in folders]
+    # the calibration is made in the pixels as stored, which `rigsfm run` and COLMAP use: a tag that turns them
+    # for viewers is refused here rather than calibrated in one frame and run in another
+    refuse_turned_images([path for rig in rigs for side in (rig.wide, rig.narrow) for path in side.values()],
+                         folder=root, then="; give the images of `rigsfm run` the same treatment, so that the "
+                         "calibration and the run see the same pixels")
+    return rigs
 
 
 def image_size(path: Path) -> tuple[int, int]:
-    image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    image = read_image(path, cv2.IMREAD_UNCHANGED)
     if image is None:
         raise InputError(f"cannot read image {path}; is it a valid image file?")
     return int(image.shape[1]), int(image.shape[0])

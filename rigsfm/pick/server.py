@@ -23,6 +23,7 @@ from urllib.parse import parse_qs, urlparse
 import cv2
 
 from rigsfm.core.errors import InputError, RigsfmError
+from rigsfm.core.image_files import exif_orientation, is_turned, read_image
 from rigsfm.core.workspace import os_error_text
 from rigsfm.pick.session import PickerSession, picker_image
 from rigsfm.core.rig import load_rigs
@@ -35,9 +36,12 @@ MAX_BODY = 5_000_000
 
 
 def _image_bytes(path: Path) -> tuple[bytes, str]:
-    if path.suffix.lower() in BROWSER_FORMATS:
+    """The file as the browser gets it: its own bytes where the browser shows them as stored, else a PNG of the
+    stored pixels (a browser turns a JPEG by its EXIF Orientation, and the clicks are in the stored frame)."""
+    if path.suffix.lower() in BROWSER_FORMATS and not is_turned(exif_orientation(path)):
         return path.read_bytes(), mimetypes.guess_type(path.name)[0] or "image/png"
-    ok, data = cv2.imencode(".png", cv2.imread(str(path), cv2.IMREAD_UNCHANGED))
+    image = read_image(path, cv2.IMREAD_UNCHANGED)
+    ok, data = (False, None) if image is None else cv2.imencode(".png", image)
     if not ok:
         raise RigsfmError(f"{path}: cannot be converted for the browser")
     return data.tobytes(), "image/png"

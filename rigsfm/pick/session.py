@@ -20,6 +20,7 @@ import cv2
 import numpy as np
 import pycolmap
 
+from rigsfm.core.image_files import read_image, refuse_turned_images
 from rigsfm.core.io import write_bytes_atomic
 from rigsfm.run.manual_matches import Correspondence, ManualMatchError, read_manual_matches, write_manual_matches
 from rigsfm.pick.epipolar import MIN_PAIRS, EpipolarModel, fit_model
@@ -39,10 +40,6 @@ class PickerImage:
 
 def picker_image(path: Path, rigs: list[RigCalibration] | None) -> PickerImage:
     path = Path(path)
-    image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if image is None:
-        raise ManualMatchError(f"{path}: cannot be read as an image; give a wide image file")
-    height, width = image.shape[:2]
     parts = path.resolve().parts
     name = "/".join(parts[-3:]) if len(parts) >= 3 else path.name
     camera = None
@@ -56,11 +53,18 @@ def picker_image(path: Path, rigs: list[RigCalibration] | None) -> PickerImage:
                 f"rigs there: {', '.join(sorted(by_name))}"
             )
         camera = by_name[parts[-3]].wide
-        if (camera.width, camera.height) != (width, height):
-            raise ManualMatchError(
-                f"{path} is {width}x{height} but {parts[-3]}'s wide camera is calibrated for "
-                f"{camera.width}x{camera.height}"
-            )
+    # the clicks are saved as COLMAP pixels of the image as stored, which a browser would show turned
+    refuse_turned_images([path], calibration=None if camera is None else (
+        lambda _: (f"{parts[-3]}'s wide camera", camera.width, camera.height)))
+    image = read_image(path, cv2.IMREAD_UNCHANGED)
+    if image is None:
+        raise ManualMatchError(f"{path}: cannot be read as an image; give a wide image file")
+    height, width = image.shape[:2]
+    if camera is not None and (camera.width, camera.height) != (width, height):
+        raise ManualMatchError(
+            f"{path} is {width}x{height} but {parts[-3]}'s wide camera is calibrated for "
+            f"{camera.width}x{camera.height}"
+        )
     return PickerImage(name, path, width, height, camera)
 
 

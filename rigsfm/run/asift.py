@@ -23,6 +23,7 @@ import pycolmap
 
 from rigsfm.core.conventions import colmap_from_opencv_pixels
 from rigsfm.core.errors import InputError
+from rigsfm.core.image_files import read_image
 from rigsfm.core.sift import opencv_sift
 from rigsfm.run.database import open_database
 
@@ -73,7 +74,7 @@ def extract_asift(
     with open_database(database_path) as database:
         ids = {image.name: image.image_id for image in database.read_all_images()}
         for done, name in enumerate(names, start=1):
-            gray = cv2.imread(str(Path(image_dir) / name), cv2.IMREAD_GRAYSCALE)
+            gray = read_image(Path(image_dir) / name, cv2.IMREAD_GRAYSCALE)
             if gray is None:
                 raise InputError(f"{Path(image_dir) / name}: cannot be read as an image; replace it")
             keypoints, descriptors = asift_features(gray, max_num_features)

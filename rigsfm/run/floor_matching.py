@@ -35,6 +35,7 @@ from scipy.spatial import cKDTree
 from rigsfm.core.conventions import colmap_from_opencv_pixels, opencv_from_colmap_pixels
 from rigsfm.core.errors import InputError
 from rigsfm.core.geometry import project_world
+from rigsfm.core.image_files import read_image
 from rigsfm.core.matching import candidate_matches
 from rigsfm.core.names import name_of
 from rigsfm.core.sift import detect, opencv_sift, reduction_factor
@@ -236,7 +237,7 @@ def load_floor_images(reconstruction: pycolmap.Reconstruction, image_dir: Path,
     result = []
     for image in sorted(first.values(), key=lambda im: im.name):
         path = image_dir / image.name
-        gray = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+        gray = read_image(path, cv2.IMREAD_GRAYSCALE)
         if gray is None:
             raise InputError(f"{path} cannot be read: floor matching needs the run's images (pass the IMAGES folder)")
         if gray.shape != (image.camera.height, image.camera.width):

@@ -14,6 +14,7 @@ from pathlib import Path
 import cv2
 
 from rigsfm.core.errors import InputError
+from rigsfm.core.image_files import read_image, refuse_turned_images
 from rigsfm.core.names import SENSORS, ImageName, Sensor
 from rigsfm.core.rig import RigCalibration
 
@@ -49,8 +50,9 @@ def scan_images(image_dir: Path, rigs: Sequence[RigCalibration], *, check_pixels
     """List and validate every image under ``image_dir``.
 
     Checks: the folder layout, that every folder is a rig in rigs.yaml and every rig has wide images,
-    that every narrow image has its wide partner, and (``check_pixels``) that each image decodes and has
-    the size its camera is calibrated for.
+    that every narrow image has its wide partner, that no image carries an EXIF Orientation that turns it
+    (:func:`~rigsfm.core.image_files.refuse_turned_images`), and (``check_pixels``) that each image decodes
+    and has the size its camera is calibrated for.
     """
     image_dir = Path(image_dir)
     if not image_dir.is_dir():
@@ -100,6 +102,15 @@ def scan_images(image_dir: Path, rigs: Sequence[RigCalibration], *, check_pixels
                 f"{rig_dir / 'narrow' / orphans[0]} has no wide image of the same name in {rig_dir / 'wide'}: "
                 "every frame is registered through its wide image; add it or remove the narrow one"
             )
+    by_path = {entry.path: entry for entry in entries}
+
+    def calibration(path: Path) -> tuple[str, int, int]:
+        entry = by_path[path]
+        camera = rig_by_name[entry.rig].camera(entry.sensor)
+        return f"rig {entry.rig}'s {entry.sensor} camera", camera.width, camera.height
+
+    # before the sizes: a calibration of the turned images would otherwise read as a wrong resolution
+    refuse_turned_images([entry.path for entry in entries], folder=image_dir, calibration=calibration)
     if check_pixels:
         for entry in entries:
             check_image(entry, rig_by_name[entry.rig].camera(entry.sensor))
@@ -117,7 +128,7 @@ def rigs_without_narrow(image_dir: Path, images: Sequence[ImageEntry], rigs: Seq
 
 def check_image(entry: ImageEntry, camera) -> None:
     """The image decodes and matches its camera's calibrated size."""
-    image = cv2.imread(str(entry.path), cv2.IMREAD_UNCHANGED)
+    image = read_image(entry.path, cv2.IMREAD_UNCHANGED)
     if image is None:
         raise InputError(f"{entry.path}: cannot be read as an image (corrupt or unsupported); replace it")
     height, width = image.shape[:2]

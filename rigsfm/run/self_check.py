@@ -60,6 +60,7 @@ from rigsfm.core.ground import (
     pairwise_overlaps,
     undistort_pixels,
 )
+from rigsfm.core.image_files import read_image
 from rigsfm.core.matching import candidate_matches
 from rigsfm.core.names import name_of
 from rigsfm.core.sift import detect, opencv_sift, reduction_factor
@@ -173,7 +174,7 @@ def _to_features(camera: pycolmap.Camera, xy_colmap: np.ndarray, descriptors: np
 
 
 def _load(image: pycolmap.Image, image_dir: Path, warp_height: float | None, sift_size: int) -> _Narrow | None:
-    gray = cv2.imread(str(image_dir / image.name), cv2.IMREAD_GRAYSCALE)
+    gray = read_image(image_dir / image.name, cv2.IMREAD_GRAYSCALE)
     if gray is None or gray.shape != (image.camera.height, image.camera.width):
         logger.warning("self-check: cannot read %s as a %dx%d image", image_dir / image.name, image.camera.width,
                        image.camera.height)

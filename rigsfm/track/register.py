@@ -18,6 +18,7 @@ import cv2
 import numpy as np
 import pycolmap
 
+from rigsfm.core.image_files import decode_image, read_image
 from rigsfm.track.options import RegistrationOptions
 from rigsfm.track.pose import estimate_rig_pose, pose_covariance, reprojection_errors
 from rigsfm.track.reference import ReferenceMap, ReferenceRig
@@ -47,8 +48,8 @@ def _extractor(max_num_features: int):
 
 def read_grey(source: Path | bytes) -> np.ndarray | None:
     if isinstance(source, (bytes, bytearray, memoryview)):
-        return cv2.imdecode(np.frombuffer(source, dtype=np.uint8), cv2.IMREAD_GRAYSCALE)
-    return cv2.imread(str(source), cv2.IMREAD_GRAYSCALE)
+        return decode_image(source, cv2.IMREAD_GRAYSCALE)
+    return read_image(source, cv2.IMREAD_GRAYSCALE)
 
 
 def extract_sift(image: np.ndarray, max_num_features: int) -> tuple[np.ndarray, np.ndarray]:

@@ -17,6 +17,7 @@ import pycolmap
 
 from rigsfm.core import charts
 from rigsfm.core.geometry import project
+from rigsfm.core.image_files import read_image as read_pixels
 from rigsfm.core.names import name_of
 from rigsfm.core.conventions import opencv_from_colmap_pixels
 
@@ -103,8 +104,7 @@ def epipolar_figure(image_i: np.ndarray, image_j: np.ndarray, camera_i: pycolmap
 
 
 def read_image(path: Path) -> np.ndarray | None:
-    image = cv2.imread(str(path), cv2.IMREAD_COLOR)
-    return image
+    return read_pixels(path, cv2.IMREAD_COLOR)  # as stored: the model's keypoints are in that frame
 
 
 def ground_frame(reconstruction: pycolmap.Reconstruction) -> tuple[np.ndarray, np.ndarray]:

@@ -69,7 +69,7 @@ wait_for_apt() {
       exit 1
     fi
     if ! $said; then
-      say "waiting up to ${apt_wait} s for another package manager: $who holds $lock (unattended-upgrades runs at boot)"
+      say "waiting up to ${apt_wait} s for $who, which holds $lock (another apt or dpkg: unattended-upgrades runs after boot)"
       said=true
     fi
     sleep 1

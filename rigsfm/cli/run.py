@@ -50,10 +50,10 @@ def print_world(summary) -> None:
                       f"cameras {heights.get('min', 0):.2f}-{heights.get('max', 0):.2f} m above the floor)")
     elif world:
         console.print("world: the mapper's frame" + ("" if world.get("asked") == "mapping" else " (no floor found)"))
-    verdicts = [p["verdict"] for p in check.get("pairs", [])]
-    if verdicts:
-        console.print(f"epipolar self-check: {verdicts.count('ok')} ok, {verdicts.count('failed')} failed, "
-                      f"{len(verdicts) - verdicts.count('ok') - verdicts.count('failed')} without verdict")
+    if check.get("pairs"):
+        from rigsfm.run.self_check import describe
+
+        console.print(f"epipolar self-check: {describe(check)}")
 
 
 def print_manual_matches(report: dict) -> None:

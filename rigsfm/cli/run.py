@@ -26,6 +26,9 @@ def print_summary(summary, out: Path) -> None:
     for camera, row in summary.reprojection_error.items():
         table.add_row(camera, str(row.observations), "-" if row.mean_px is None else f"{row.mean_px:.3f}")
     console.print(table)
+    if any(row.observations == 0 and camera.endswith("/narrow") for camera, row in summary.reprojection_error.items()):
+        console.print("narrow cameras with no observations ('-'): narrow images are matched only with "
+                      "--narrow-features; their poses follow from their wide camera through E^sl")
     reg, scale = summary.registered, summary.scale
     console.print(
         f"registered: wide {reg['wide'].registered}/{reg['wide'].total}, "
@@ -175,6 +178,9 @@ def print_accuracy(accuracy: dict) -> None:
     table.add_row("narrow registered", f"{run_['registered']}/{run_['total']}",
                   f"{limit['registered']}/{limit['total']}")
     console.print(table)
+    console.print("oracle: the same observations adjusted from the true poses with rigs.yaml's calibration held "
+                  "fixed; a reference, not a limit: rigsfm refines the calibration, and with a calibration that "
+                  "has errors it can land below the oracle")
 
 
 @fail_cleanly

@@ -239,3 +239,16 @@ def test_report_structure_top_view_bands_and_self_check(result):
     mixed = dict(featureless, pairs=[dict(pair, matches=120, verdict="ok")] + [pair] * 2)
     assert "<table" in self_check_section(dataclasses.replace(summary, epipolar_self_check=mixed))
     assert describe(mixed) == "1 ok, 0 failed, 2 without verdict: 2 fewer than 50 matches (featureless views)"
+
+
+def test_view_frustum_is_the_pyramid_alone():
+    """A frustum in `rigsfm view` is the camera's pyramid: Open3D's camera axes (lines as long as the frustum is
+    deep, out of the image sideways) are not drawn in the frustum's colour."""
+    from rigsfm.inspect.viewer import frustum
+
+    camera = pycolmap.Camera.create_from_model_name(1, "PINHOLE", 3600.0, 1624, 1234)
+    lines = frustum(camera, pycolmap.Rigid3d(), depth=2.0)
+    points, ends = np.asarray(lines.points), np.asarray(lines.lines)
+    assert len(ends) == 8
+    assert np.allclose(points[np.unique(ends)][1:, 2], 2.0)  # every line ends at the centre or at the image plane
+    assert np.abs(points[np.unique(ends)][:, :2]).max() < 0.5  # a narrow camera's pyramid is slim: no 2 m axes

@@ -179,8 +179,7 @@ def print_accuracy(accuracy: dict) -> None:
                   f"{limit['registered']}/{limit['total']}")
     console.print(table)
     console.print("oracle: the same observations adjusted from the true poses with rigs.yaml's calibration held "
-                  "fixed; a reference, not a limit: rigsfm refines the calibration, and with a calibration that "
-                  "has errors it can land below the oracle")
+                  "fixed: a reference, not a limit (rigsfm refines the calibration, so it can do better)")
 
 
 @fail_cleanly

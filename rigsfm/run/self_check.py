@@ -361,10 +361,9 @@ def describe(check: dict) -> str:
     needed = (check.get("settings") or {}).get("min_matches", MIN_MATCHES)
     if all(v == "too few matches" for v in verdicts):
         most = max(p.get("matches", 0) for p in pairs)
-        found = "not one match in any pair" if most == 0 else f"at most {most} matches in a pair"
-        return (f"none of the {len(pairs)} synchronised narrow pairs could be checked: {found} (a verdict needs "
-                f"{needed}); the narrow views are featureless, as in a homogeneous scene, so the bands rest on "
-                "the model alone")
+        found = "0 matches in each" if most == 0 else f"at most {most} matches"
+        return (f"none of the {len(pairs)} synchronised narrow pairs could be checked ({found}, {needed} needed): "
+                "featureless narrow views, as expected in a homogeneous scene; the bands are the model's alone")
     line = f"{verdicts.count('ok')} ok, {verdicts.count('failed')} failed"
     rest = [v for v in verdicts if v not in ("ok", "failed")]
     if rest:

@@ -189,3 +189,30 @@ def test_sigmas_match_the_leave_one_pair_out_spread(result, tmp_path):
         print(f"{group}: written / spread {ratio:.2f}, independent-error / spread "
               f"{np.sqrt(np.mean(iid[cut] ** 2) / np.mean(spread[cut] ** 2)):.2f}")
         assert 0.5 < ratio < 2.0, group
+
+
+def test_readme_calibrate_command(tmp_path):
+    """The README's `rigsfm calibrate` example, run as written (from a copy of the repository's data: it writes
+    beside its --out), gives what the README says it prints and writes."""
+    import os
+    import re
+    import shlex
+    import subprocess
+    import sys
+
+    readme = (DATA.parents[2] / "README.md").read_text()
+    command = re.search(r"```bash\n(\.venv/bin/rigsfm calibrate [^\n]*)\n```", readme).group(1)
+    argv = shlex.split(command)
+    assert argv[:3] == [".venv/bin/rigsfm", "calibrate", "tests/data/opencv-stereo/board"]
+    shutil.copytree(DATA, tmp_path / "tests" / "data" / "opencv-stereo")  # the board/ layout's links resolved
+    done = subprocess.run([sys.executable, "-m", "rigsfm", *argv[1:]], cwd=tmp_path, capture_output=True, text=True,
+                          timeout=300, env={**os.environ, "COLUMNS": "200"})
+    assert done.returncode == 0, done.stdout + done.stderr
+    printed = re.search(r"It prints a line per rig \(`(.*?)`\)", readme, re.S).group(1)
+    assert " ".join(printed.split()) in done.stdout, done.stdout
+    out = tmp_path / "out" / "calibration"
+    rig = yaml.safe_load((out / "rigs.yaml").read_text())["rigs"][0]
+    assert rig["name"] == "rig01" and len(rig["sensors"]["wide"]["sigmas"]) == 8
+    assert "E^sl rotation sigma (deg, R_true = Exp(w) R, w in narrow axes): 0.0894 0.1023 0.0100" in \
+        (out / "rigs.calibration" / "rig01" / "report.txt").read_text()
+    assert "0.0894 0.1023 0.0100" in readme and (out / "rigs.calibration" / "summary.txt").is_file()

@@ -198,3 +198,57 @@ def test_figures_are_capped_to_the_widest_and_narrowest_bands(result):
     assert page.count('src="data:image/jpeg;base64,') == 2 and "2 of 3 pairs are drawn" in page
     assert page.count(">widest band</td>") == 1 and page.count(">narrowest band</td>") == 1 and page.count(">–</td>") == 1
     assert page.count("<tr>") == 1 + 3  # the table: header and every pair
+
+
+def test_report_structure_top_view_bands_and_self_check(result):
+    """The top view is drawn in the floor frame as the floor map is, with a ring per wide and a dot per narrow
+    camera (their centres are centimetres apart); the pair bands sit under their own heading, before the refined
+    calibration; a self-check in which no pair could be checked is one sentence, not a table of empty rows."""
+    import dataclasses
+    import re
+
+    from rigsfm.inspect.report.html import self_check_section
+    from rigsfm.run.self_check import describe
+    from rigsfm.run.summary import Summary
+
+    _, out, rec = result
+    runner = CliRunner().invoke(app, ["report", str(out)])
+    assert runner.exit_code == 0, runner.output
+    page = (out / "report.html").read_text()
+    top = page[page.index("<h2>Network (top view)</h2>"):page.index("<h2>World frame and floor map</h2>")]
+    assert "as in the floor map" in top and "best-fit plane" not in top
+    assert top.count('<circle class="wide"') == 3 and top.count('<circle class="narrow"') == 3
+    uncertainty = page[page.index("<h2>Uncertainty</h2>"):page.index("<h2>Epipolar check</h2>")]
+    headings = re.findall(r"<h3>(.*?)</h3>", uncertainty)
+    assert headings[:2] == ["Epipolar band per pair", "Calibration refined from rigs.yaml"], headings
+    bands = uncertainty[uncertainty.index("<h3>Epipolar band per pair</h3>"):
+                        uncertainty.index("<h3>Calibration refined from rigs.yaml</h3>")]
+    assert bands.count("<tr>") == 1 + 3 and "P(pair &lt; 85 % inside)" in bands
+
+    summary = Summary.read(out / "summary.json")
+    pair = {"frame": "frame0000.png", "i": "rig01/narrow/frame0000.png", "j": "rig02/narrow/frame0000.png",
+            "band_px": 12.3, "matches": 0, "median_px": None, "p95_px": None, "within_band": None,
+            "band_matches": 0, "measured_within_px": None, "verdict": "too few matches"}
+    featureless = {"frames": ["frame0000.png"], "guided_by": "epipolar band", "skipped": None, "seconds": 5.3,
+                   "settings": {"min_matches": 50, "wide_factor": 5.0, "keypoint_noise_px": 1.0},
+                   "pairs": [pair] * 28}
+    section = self_check_section(dataclasses.replace(summary, epipolar_self_check=featureless))
+    assert "<table" not in section and "None of the 28 synchronised narrow pairs could be checked" in section
+    assert describe(featureless).startswith("none of the 28 synchronised narrow pairs could be checked (0 matches "
+                                            "in each, 50 needed): featureless narrow views")
+    mixed = dict(featureless, pairs=[dict(pair, matches=120, verdict="ok")] + [pair] * 2)
+    assert "<table" in self_check_section(dataclasses.replace(summary, epipolar_self_check=mixed))
+    assert describe(mixed) == "1 ok, 0 failed, 2 without verdict: 2 fewer than 50 matches (featureless views)"
+
+
+def test_view_frustum_is_the_pyramid_alone():
+    """A frustum in `rigsfm view` is the camera's pyramid: Open3D's camera axes (lines as long as the frustum is
+    deep, out of the image sideways) are not drawn in the frustum's colour."""
+    from rigsfm.inspect.viewer import frustum
+
+    camera = pycolmap.Camera.create_from_model_name(1, "PINHOLE", 3600.0, 1624, 1234)
+    lines = frustum(camera, pycolmap.Rigid3d(), depth=2.0)
+    points, ends = np.asarray(lines.points), np.asarray(lines.lines)
+    assert len(ends) == 8
+    assert np.allclose(points[np.unique(ends)][1:, 2], 2.0)  # every line ends at the centre or at the image plane
+    assert np.abs(points[np.unique(ends)][:, :2]).max() < 0.5  # a narrow camera's pyramid is slim: no 2 m axes

@@ -2,7 +2,8 @@
 
 Renders the built-in synthetic arena (1624x1234 sensors, ~4 mm wide and ~16 mm narrow lenses, 6 cm rig
 baselines, realistic calibration errors and a rangefinder distance), runs the whole pipeline with the
-incremental mapper, and prints the narrow cameras' accuracy next to the oracle (the accuracy limit).
+incremental mapper, and prints the narrow cameras' accuracy next to the oracle (the fixed-calibration
+adjustment from the true poses: a reference, which the refined calibration can beat).
 
     python workflows/full_circle.py OUT [--num-rigs 8] [--image-scale 1.0]
 """

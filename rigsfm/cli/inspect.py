@@ -28,7 +28,8 @@ def view_command(
         "--screenshot", help="render the view headless into this PNG instead of opening a window [default: open a "
                              "window; needs a display]", show_default=False)] = None,
 ) -> None:
-    """Show the network in Open3D (needs a display): points, wide (blue) and narrow (orange) frustums, rig links."""
+    """Show the network in Open3D (needs a display): points, wide (blue) and narrow (orange) frustums, each rig's
+    wide-narrow link (green; a point when the baseline is centimetres) and the world axes (red x, green y, blue z)."""
     from rigsfm.inspect.viewer import screenshot, show
 
     if screenshot_path is not None:

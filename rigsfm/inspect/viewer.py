@@ -1,5 +1,8 @@
 """``rigsfm view OUT``: the network in Open3D — points, wide and narrow frustums, rig links, metric axes.
 
+Wide frustums are blue, narrow ones orange (and twice as deep); a green line joins a rig's wide and narrow centres
+(a point at the usual centimetre baselines); the world axes at the cameras' centroid are red x, green y, blue z.
+
 ``--screenshot FILE.png`` renders the same view headless with Open3D's OffscreenRenderer (Filament; on a
 machine without GPU it needs a software Vulkan driver, Debian's mesa-vulkan-drivers). Where that is
 impossible the same geometry is drawn by a small numpy/OpenCV rasteriser (lines and points, no shading)
@@ -48,9 +51,13 @@ def pinhole_intrinsic(camera: pycolmap.Camera) -> o3d.camera.PinholeCameraIntrin
 
 
 def frustum(camera: pycolmap.Camera, cam_from_world: pycolmap.Rigid3d, depth: float) -> o3d.geometry.LineSet:
+    """The camera's pyramid to ``depth``: its centre, the image corners and their rectangle (8 lines)."""
     intrinsic = pinhole_intrinsic(camera)
     extrinsic = np.vstack([cam_from_world.matrix(), [0, 0, 0, 1]])
-    return o3d.geometry.LineSet.create_camera_visualization(intrinsic, extrinsic, scale=depth)
+    full = o3d.geometry.LineSet.create_camera_visualization(intrinsic, extrinsic, scale=depth)
+    # Open3D adds the camera's own x, y, z axes, each `depth` long: painted in the frustum's colour they were long
+    # lines sticking out of every camera that nothing explained
+    return o3d.geometry.LineSet(full.points, o3d.utility.Vector2iVector(np.asarray(full.lines)[:8]))
 
 
 def _merge(line_sets: list[o3d.geometry.LineSet], colour) -> o3d.geometry.LineSet:
@@ -197,7 +204,8 @@ def has_display() -> bool:
 
 
 def show(out: Path) -> None:
-    """Open an Open3D window on the network: points, wide (blue) and narrow (orange) frustums, rig links, axes."""
+    """Open an Open3D window on the network: points, wide (blue) and narrow (orange) frustums, rig links (green),
+    world axes (red x, green y, blue z)."""
     if not has_display():
         raise WorkspaceError("no display here (DISPLAY and WAYLAND_DISPLAY are unset): `rigsfm view` opens a window; "
                              "use `rigsfm view OUT --screenshot view.png` to render the view into a file instead")

@@ -353,6 +353,28 @@ def check_pair(first: _Narrow, second: _Narrow, f_ji: np.ndarray, band: float | 
     return check
 
 
+def describe(check: dict) -> str:
+    """One line on a self-check record (``SelfCheck.to_dict``): the verdicts, and why pairs have none."""
+    pairs = check.get("pairs") or []
+    if not pairs:
+        return f"nothing checked: {check.get('skipped') or 'no pair of synchronised narrow images'}"
+    verdicts = [p["verdict"] for p in pairs]
+    needed = (check.get("settings") or {}).get("min_matches", MIN_MATCHES)
+    if all(v == "too few matches" for v in verdicts):
+        most = max(p.get("matches", 0) for p in pairs)
+        found = "0 matches in each" if most == 0 else f"at most {most} matches"
+        return (f"none of the {len(pairs)} synchronised narrow pairs could be checked ({found}, {needed} needed): "
+                "featureless narrow views, as expected in a homogeneous scene; the bands are the model's alone")
+    line = f"{verdicts.count('ok')} ok, {verdicts.count('failed')} failed"
+    rest = [v for v in verdicts if v not in ("ok", "failed")]
+    if rest:
+        why = {"too few matches": f"fewer than {needed} matches (featureless views)",
+               "inconclusive": "inconclusive (matches fill even the widest search)", "no band": "no band"}
+        line += f", {len(rest)} without verdict: " + ", ".join(
+            f"{rest.count(v)} {why.get(v, v)}" for v in sorted(set(rest), key=rest.index))
+    return line
+
+
 def epipolar_self_check(reconstruction: pycolmap.Reconstruction, image_dir: Path, narrow_poses: dict,
                         options: SelfCheckOptions | None = None) -> SelfCheck:
     """The self-check (module docstring) of the first ``options.max_frames`` synchronised frames, with the

@@ -1,4 +1,4 @@
-"""Accuracy against ground truth, and the oracle that defines the accuracy limit.
+"""Accuracy against ground truth, and the oracle: the fixed-calibration reference.
 
 The oracle is bundle adjustment started from the ground-truth poses with the *same* observations
 (tracks) and the *same* calibration file as the run, intrinsics and E^sl held fixed (``--fixed-calibration``

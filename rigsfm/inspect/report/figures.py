@@ -125,9 +125,10 @@ def ground_frame(reconstruction: pycolmap.Reconstruction) -> tuple[np.ndarray, n
 
 
 def topdown_svg(reconstruction: pycolmap.Reconstruction, size: int = 620, max_points: int = 4000,
-                units: str = "m") -> str:
-    """Top view of the network: points, wide and narrow cameras with their viewing directions, axes."""
-    origin, axes = ground_frame(reconstruction)
+                units: str = "m", floor_frame: bool = False) -> str:
+    """Top view of the network: points, wide and narrow cameras with their viewing directions, axes. In the floor
+    frame it is drawn in the floor's own x and y, as the floor map is; otherwise in the points' best-fit plane."""
+    origin, axes = (np.zeros(3), np.eye(3)) if floor_frame else ground_frame(reconstruction)
     images = [im for im in reconstruction.images.values() if im.has_pose]
     xyz = np.array([p.xyz for p in reconstruction.points3D.values()]) if reconstruction.num_points3D() else np.zeros((0, 3))
     if len(xyz) > max_points:
@@ -164,14 +165,20 @@ def topdown_svg(reconstruction: pycolmap.Reconstruction, size: int = 620, max_po
         view = image.cam_from_world().rotation.matrix()[2] @ axes[:2].T
         view = view / max(np.linalg.norm(view), 1e-9) * (0.12 if narrow else 0.07) * span
         (x0, y0), (x1, y1) = to_svg(centre), to_svg(centre + view)
+        # a rig's two centres are centimetres apart: the wide one is a ring round the narrow one's dot
+        marker = (f'r="3" fill="{colour}"' if narrow else f'r="6.5" fill="none" stroke="{colour}" stroke-width="2"')
         parts.append(f'<line x1="{x0:.1f}" y1="{y0:.1f}" x2="{x1:.1f}" y2="{y1:.1f}" stroke="{colour}" '
-                     f'stroke-width="2"/><circle cx="{x0:.1f}" cy="{y0:.1f}" r="4" fill="{colour}"/>')
+                     f'stroke-width="2"/><circle class="{"narrow" if narrow else "wide"}" cx="{x0:.1f}" '
+                     f'cy="{y0:.1f}" {marker}/>')
         if not narrow:
             parts.append(f'<text x="{x0 + 6:.1f}" y="{y0 - 6:.1f}" font-size="11">'
                          f'{html.escape(name_of(image).rig)}</text>')
-    parts.append(f'<text x="{pad}" y="16" font-size="11">grid {step:g} {units}; '
-                 f'<tspan fill="{WIDE_SVG}">wide</tspan>, <tspan fill="{NARROW_SVG}">narrow</tspan> cameras '
-                 'with viewing directions; grey: sparse points (top view of their best-fit plane)</text></svg>')
+    frame = ("the floor frame's x (right) and y (up), as in the floor map" if floor_frame else
+             "seen from above the points' best-fit plane (not the floor map's axes)")
+    parts.append(f'<text x="{pad}" y="14" font-size="11">grid {step:g} {units}; '
+                 f'<tspan fill="{WIDE_SVG}">wide (ring)</tspan>, <tspan fill="{NARROW_SVG}">narrow (dot)</tspan> '
+                 f'cameras with viewing directions; grey: sparse points</text>'
+                 f'<text class="frame" x="{pad}" y="28" font-size="11">{frame}</text></svg>')
     return "".join(parts)
 
 

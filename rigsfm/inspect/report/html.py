@@ -104,8 +104,9 @@ def reprojection_section(reconstruction: pycolmap.Reconstruction) -> str:
     return ("<h2>Reprojection error per camera</h2>"
             + table(["camera", "observations", "mean (px)", "RMS (px)", "95th pct (px)",
                      "not projectable"], rows)
-            + '<p class="note">Narrow cameras usually have no observations (homogeneous view): their poses '
-              "follow from the wide camera through the fixed E^sl.</p>"
+            + '<p class="note">Narrow images are matched only with --narrow-features, and homogeneous views give '
+              "few features anyway: a narrow camera without observations takes its pose from its wide camera "
+              "through E^sl.</p>"
             + f'<div class="hists">{"".join(figures)}</div>')
 
 
@@ -131,7 +132,7 @@ def pairs_section(narrow: dict) -> str:
 
 def uncertainty_section(narrow: dict, summary: Summary | None = None) -> str:
     u = summary.uncertainty if summary else None
-    parts = ["<h2>Uncertainty</h2>"]
+    parts, calibration = ["<h2>Uncertainty</h2>"], []
     if u is None or u.covariance is None:
         parts.append('<p class="warn">No joint covariance of poses and calibration could be estimated: no bands.</p>'
                      if u is not None else '<p class="note">summary.json has no uncertainty record.</p>')
@@ -165,7 +166,7 @@ def uncertainty_section(narrow: dict, summary: Summary | None = None) -> str:
                      fmt(c.get("narrow_from_wide_translation_change_mm"), 3),
                      fmt(c.get("narrow_from_wide_translation_sigma_mm"), 3), "yes" if c.get("observed") else "no"]
                     for camera, c in sorted(u.refined_calibration.items())]
-            parts.append("<h3>Calibration refined from rigs.yaml</h3>" + table(
+            calibration.append("<h3>Calibration refined from rigs.yaml</h3>" + table(
                 ["camera", "focal change (%)", "principal point change (px)", "E^sl rotation change (deg)",
                  "E^sl rotation σ (deg)", "E^sl translation change (mm)", "E^sl translation σ (mm)",
                  "observed by images"], rows))
@@ -177,9 +178,10 @@ def uncertainty_section(narrow: dict, summary: Summary | None = None) -> str:
         rows.append([esc(pair.i), esc(pair.j), fmt(pair.band_px, 3), esc(pair.points or "–"),
                      "–" if not depth else "{:.3g} – {:.3g}".format(*depth), fmt(pair.predicted_below_85, 2)])
     if rows:
-        parts.append(table(["narrow i", "narrow j", "band 95 % (px)", "analysis points", "their depths in i (m)",
-                            "P(pair < 85 % inside)"], rows, left=2))
-    return "".join(parts)
+        parts.append("<h3>Epipolar band per pair</h3>" + table(
+            ["narrow i", "narrow j", "band 95 % (px)", "analysis points", "their depths in i (m)",
+             "P(pair < 85 % inside)"], rows, left=2))
+    return "".join(parts + calibration)
 
 
 MAX_FIGURES = 12  # ~0.1 MB each as JPEG: the report stays < 5 MB at 16 rigs (120 narrow pairs)
@@ -309,8 +311,15 @@ def self_check_section(summary: Summary | None) -> str:
     if check.get("skipped"):
         parts.append(f'<p class="note">Nothing checked: {esc(check["skipped"])}.</p>')
         return "".join(parts)
+    from rigsfm.run.self_check import describe
+
+    pairs = check.get("pairs", [])
+    parts.append(f'<p class="note">{esc(describe(check)[0].upper() + describe(check)[1:])}.</p>')
+    if all(p["verdict"] == "too few matches" for p in pairs):  # a table of empty rows would say nothing more
+        parts.append(f'<p class="note">{fmt(check.get("seconds"), 3)} s.</p>')
+        return "".join(parts)
     rows = []
-    for p in check.get("pairs", []):
+    for p in pairs:
         verdict = esc(p["verdict"])
         if p["verdict"] == "failed":
             verdict = f'<span class="warn">{verdict}</span>'
@@ -333,7 +342,8 @@ def render_page(out: Path, summary: Summary | None, reconstruction: pycolmap.Rec
             f'<p class="note">rigsfm {esc(version)}; workspace {esc(out.resolve())}</p>',
             summary_section(summary, reconstruction, narrow),
             reprojection_section(reconstruction),
-            "<h2>Network (top view)</h2>" + topdown_svg(reconstruction, units=units),
+            "<h2>Network (top view)</h2>" + topdown_svg(
+                reconstruction, units=units, floor_frame=(narrow.get("world") or {}).get("frame") == "floor"),
             world_section(narrow, reconstruction),
             pairs_section(narrow), uncertainty_section(narrow, summary),
             epipolar_section(out, summary, reconstruction, narrow), self_check_section(summary)]

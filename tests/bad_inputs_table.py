@@ -284,6 +284,8 @@ CASES = [
     Case("`database.db` removed while a run matched (COLMAP then leaves an empty one)", "the database is made again, "
          "with its features and matches; the run goes on", with_database(empty_colmap_database), warning="database.db"),
     Case("a `database.db` in OUT that is not COLMAP's", "the file is untouched", with_database(foreign_database)),
+    Case("a damaged `database.db` for `rigsfm track`", "nothing is written",
+         on_workspace(lambda out: (out / "database.db").write_bytes(b"not a database\n" * 300), ["track", "out", "images"])),
     Case("`export --dest OUT` (the workspace itself)", "the workspace is untouched",
          on_workspace(lambda out: None, ["export", "out", "--format", "json", "--dest", "out", "--overwrite"])),
     Case("`export --dest` a folder with other files", "the folder is untouched",

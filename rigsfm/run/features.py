@@ -134,7 +134,7 @@ def drop_stale_work(database_path: Path, settings_path: Path, options: MatchingO
     return cleared
 
 
-def image_contents(images: Sequence[ImageEntry]) -> dict[str, str]:
+def image_digests(images: Sequence[ImageEntry]) -> dict[str, str]:
     """Per image name, the SHA-256 of its file (the feature cache's hash, :func:`rigsfm.core.io.file_sha256`)."""
     contents = {}
     for entry in images:
@@ -161,10 +161,10 @@ def _recorded_contents(record_path: Path) -> dict[str, str]:
 def drop_changed_images(database_path: Path, record_path: Path, images: Sequence[ImageEntry]) -> list[str]:
     """Clear the features and matches of every image whose file is not the one they were made from (a new
     recording copied over the same names), so that the run works on the images it is given; records each image's
-    content (:func:`image_contents`) in ``record_path``. Work in the database for an image the record does not
+    content (:func:`image_digests`) in ``record_path``. Work in the database for an image the record does not
     name (a workspace of an older rigsfm, a removed record) is cleared too: what it was made from is unknown.
     Unchanged images keep their work. Returns the names whose work was cleared."""
-    now = image_contents(images)
+    now = image_digests(images)
     before = _recorded_contents(record_path)
     with open_database(database_path) as database:
         ids = {image.name: image.image_id for image in database.read_all_images()}

@@ -122,6 +122,33 @@ def calibrated_turned(root: Path) -> list:
     return RUN
 
 
+def with_database(make: Callable[[Path], None]) -> Callable[[Path], list]:
+    """The inputs and an OUT of an earlier run whose ``database.db`` is what ``make(path)`` leaves."""
+    def prepare(root: Path) -> list:
+        from rigsfm.core.workspace import MARKER
+
+        inputs(root)
+        (root / "out").mkdir()
+        (root / "out" / MARKER).touch()
+        make(root / "out" / "database.db")
+        return RUN
+    return prepare
+
+
+def empty_colmap_database(path: Path) -> None:
+    """What COLMAP's next stage leaves when database.db is removed under a run: it opens the path, an empty one."""
+    import pycolmap
+
+    pycolmap.Database.open(path).close()
+
+
+def foreign_database(path: Path) -> None:
+    import sqlite3
+
+    with contextlib.closing(sqlite3.connect(path)) as connection, connection:
+        connection.execute("CREATE TABLE notes (text TEXT)")
+
+
 def workspace(root: Path) -> Path:
     """A small finished workspace: a posed two-rig model, narrow_poses.json and summary-less."""
     import pycolmap
@@ -275,6 +302,14 @@ CASES = [
          lambda root: RUN, isolated="mount -t tmpfs -o size=300k tmpfs out &&"),
     Case("OUT on a read-only file system", "nothing is written",
          lambda root: RUN, isolated="mount -t tmpfs -o ro tmpfs out &&"),
+    Case("a damaged `database.db` in OUT (random bytes, cut short)", "the database is made again, with its features "
+         "and matches; the run goes on", with_database(lambda db: db.write_bytes(b"not a database\n" * 300)),
+         warning="database.db"),
+    Case("`database.db` removed while a run matched (COLMAP then leaves an empty one)", "the database is made again, "
+         "with its features and matches; the run goes on", with_database(empty_colmap_database), warning="database.db"),
+    Case("a `database.db` in OUT that is not COLMAP's", "the file is untouched", with_database(foreign_database)),
+    Case("a damaged `database.db` for `rigsfm track`", "nothing is written",
+         on_workspace(lambda out: (out / "database.db").write_bytes(b"not a database\n" * 300), ["track", "out", "images"])),
     Case("`export --dest OUT` (the workspace itself)", "the workspace is untouched",
          on_workspace(lambda out: None, ["export", "out", "--format", "json", "--dest", "out", "--overwrite"])),
     Case("`export --dest` a folder with other files", "the folder is untouched",

@@ -27,6 +27,7 @@ from rigsfm.core.workspace import Workspace
 from rigsfm.inspect.export import MANIFEST
 from rigsfm.run.pipeline import RunResult
 from rigsfm.synth.demo import score
+from rigsfm.synth.scene import SceneOptions
 
 pytestmark = pytest.mark.slow  # end-to-end runs on rendered images (`-m 'not slow'` skips them)
 
@@ -312,6 +313,69 @@ def test_a_reused_frame_name_with_new_content_is_registered_again(scene, tmp_pat
     saved = json.loads((copy / "track" / "poses.json").read_text())
     assert saved["rigs"]["rig02"]["frames"][0]["files"] == moved["files"]
     assert len(saved["rigs"]["rig02"]["frames"]) == 1
+
+
+# --- run: a new recording copied over the old file names; database.db removed under a run ---------------------------
+
+MOVED = SceneOptions(num_rigs=3, arc_deg=120.0, image_scale=0.5, seed=1, radius=17.0, wide_pitch_deg=15.0)
+
+
+def invoke_wide(*args):
+    """``invoke`` with lines as wide as the longest (rich breaks a long path where the terminal's width ends)."""
+    return CliRunner().invoke(app, [str(a) for a in args], env={"COLUMNS": "400"})
+
+
+def test_a_new_recording_under_the_same_names_is_run_on_its_own_content(scene, rendered, tmp_path):
+    """The rigs moved (1 m further out, 3 deg more pitch), the new recording is copied over the images of the
+    last run, rigs.yaml unchanged: the re-run makes the changed images' features and matches again, says so, and
+    delivers the new recording's poses (the old features' are degrees off the new truth)."""
+    dataset, out = scene
+    moved = rendered(MOVED)
+    assert moved.rigs.read_text() == dataset.rigs.read_text()
+    copy = copy_workspace(out, tmp_path)
+    images = tmp_path / "images"
+    shutil.copytree(dataset.images, images)
+    args = ["run", images, "--rigs", dataset.rigs, "--scale", moved.scale, "--out", copy, "--overwrite"]
+    shutil.copytree(moved.images, images, dirs_exist_ok=True)
+    result = invoke_wide(*args)
+    assert result.exit_code == 0, result.output
+    assert ("3 images changed since the last run in this workspace (rig01/wide/frame0000.png, "
+            "rig02/wide/frame0000.png, rig03/wide/frame0000.png): their features and matches are made again"
+            in result.output), result.output
+    accuracy = score(RunResult(None, pycolmap.Reconstruction(copy / "sparse"), {}), moved)
+    assert accuracy["narrow"]["registered"] == 3
+    assert accuracy["narrow"]["relative_rotation_deg"]["max"] < 0.3, accuracy["narrow"]
+
+
+def test_a_database_removed_during_matching_is_named_then_made_again(scene, tmp_path, monkeypatch):
+    """COLMAP opens database.db by its path at every step: removed under a run, the next step makes an empty one
+    and the mapper found no matches. The run names the file instead, and the same command then makes it again."""
+    import rigsfm.run.pipeline
+    from rigsfm.core import stages
+
+    dataset, out = scene
+    copy = copy_workspace(out, tmp_path)
+    args = ["run", dataset.images, "--rigs", dataset.rigs, "--scale", dataset.scale, "--out", copy, "--overwrite"]
+    matched = rigsfm.run.pipeline.match_features
+
+    def match_then_lose_the_database(database, *rest, **options):
+        done = matched(database, *rest, **options)
+        Path(database).unlink()
+        pycolmap.Database.open(database).close()  # what COLMAP's matcher leaves, opening the path again
+        return done
+
+    monkeypatch.setattr(rigsfm.run.pipeline, "match_features", match_then_lose_the_database)
+    with stages.in_process():  # the stage runs the patched function here
+        lost = invoke_wide(*args)
+    assert lost.exit_code == 1
+    assert one_error_line(lost) == (f"error: {copy / 'database.db'} was removed or replaced while this run wrote it: "
+                                    "re-run the same command (the database is made again)")
+    monkeypatch.undo()
+    again = invoke_wide(*args)
+    assert again.exit_code == 0, again.output
+    assert (f"{copy / 'database.db'} holds no images (removed or replaced while a run wrote it?): it is made again"
+            in again.output), again.output
+    assert json.loads((copy / "summary.json").read_text())["registered"]["narrow"]["registered"] == 3
 
 
 # --- picker: a save that drops the saved pairs keeps a backup ---------------------------------------------------------

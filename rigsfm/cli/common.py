@@ -8,7 +8,9 @@ from __future__ import annotations
 
 import functools
 import logging
+import os
 import signal
+import sys
 import tempfile
 import traceback
 
@@ -105,9 +107,26 @@ def configure_logging(verbose: bool) -> None:
     """rigsfm's own log on the terminal (warnings, or everything with -v); COLMAP's goes to OUT/colmap.log."""
     from rich.logging import RichHandler
 
-    handler = RichHandler(console=err_console, level=logging.INFO if verbose else logging.WARNING,
+    handler = RichHandler(console=_log_console(), level=logging.INFO if verbose else logging.WARNING,
                           show_path=False, show_time=False)
     logging.basicConfig(level=logging.INFO, handlers=[handler], format="%(message)s", force=True)
+
+
+_LOG_CONSOLE: list[Console] = []
+
+
+def _log_console() -> Console:
+    """Where rigsfm's log reaches the terminal: a console on a copy of the process's stderr (file descriptor 2),
+    which ``colmap_log_to`` points at OUT/colmap.log while the stages run (their warnings are for the user);
+    ``err_console`` when stderr is no file descriptor (a test's captured output)."""
+    try:
+        if sys.stderr.fileno() != 2:
+            return err_console
+    except (AttributeError, OSError, ValueError):
+        return err_console
+    if not _LOG_CONSOLE:
+        _LOG_CONSOLE.append(Console(file=os.fdopen(os.dup(2), "w", buffering=1), stderr=True))
+    return _LOG_CONSOLE[0]
 
 
 def progress_bars() -> Progress:

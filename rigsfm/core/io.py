@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import io
 import json
 import os
@@ -101,6 +102,17 @@ def atomic_directory(path: Path, *, overwrite: bool = True) -> Iterator[Path]:
             tmp.rename(path)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
+
+
+def file_sha256(path: Path, prefix: bytes = b"") -> str:
+    """SHA-256 (hex) of ``prefix`` followed by the file's bytes: what an image's features are recognised by (the
+    feature cache's key, the workspace's record of each input image), read in chunks so a large image costs no
+    second copy in memory."""
+    digest = hashlib.sha256(prefix)
+    with open(path, "rb") as file:
+        for chunk in iter(lambda: file.read(1 << 20), b""):
+            digest.update(chunk)
+    return digest.hexdigest()
 
 
 BOMS = ((b"\xef\xbb\xbf", "utf-8-sig"), (b"\xff\xfe", "utf-16"), (b"\xfe\xff", "utf-16"))

@@ -6,6 +6,7 @@ OUT/
   .rigsfm.lock        held while a command writes OUT (a second one is refused)
   database.db         COLMAP database: cameras, rigs with E^sl, features, verified matches
   features.json       the settings the features and matches were made with
+  images.json         the content (SHA-256) of each image file they were made from
   pairs.txt           the image pairs being matched (transient)
   mapping/            the mapper's raw model (arbitrary units)
   sparse/             the final metric model            narrow_poses.json  points3D.ply  summary.json
@@ -77,6 +78,12 @@ class Workspace:
     def feature_settings(self) -> Path:
         """The settings the database's features and matches were made with (``features.drop_stale_work``)."""
         return self.root / "features.json"
+
+    @property
+    def image_contents(self) -> Path:
+        """The SHA-256 of each image file the database's features and matches were made from
+        (``features.drop_changed_images``): a new recording under the same names is recognised by its content."""
+        return self.root / "images.json"
 
     @property
     def pairs(self) -> Path:
@@ -183,8 +190,8 @@ class Workspace:
         ``mapping.db`` (and ``.tmp``), the database copy older versions mapped from."""
         if not self.root.is_dir():
             return []
-        names = {path.name for path in (self.database, self.feature_settings, self.pairs, self.mapping, *self.results,
-                                        self.report)}
+        names = {path.name for path in (self.database, self.feature_settings, self.image_contents, self.pairs,
+                                        self.mapping, *self.results, self.report)}
         pattern = re.compile(r"\.(?P<name>.+)\.(?:[a-z0-9_]{8}\.tmp|old)")
         found = []
         for path in self.root.iterdir():

@@ -10,6 +10,7 @@ from __future__ import annotations
 import contextlib
 import ctypes
 import logging
+import sqlite3
 from collections.abc import Iterator, Sequence
 from pathlib import Path
 
@@ -64,15 +65,16 @@ def _same_camera(a: pycolmap.Camera, b: pycolmap.Camera) -> bool:
     )
 
 
-def _check_existing(database: pycolmap.Database, rigs: Sequence[RigCalibration], images: Sequence[ImageEntry]) -> None:
+def _check_existing(database: pycolmap.Database, database_path: Path, rigs: Sequence[RigCalibration],
+                    images: Sequence[ImageEntry]) -> None:
     """An existing database must hold exactly these images and cameras to be resumed."""
     db_images = {image.name: image for image in database.read_all_images()}
     wanted = {entry.name for entry in images}
     if set(db_images) != wanted:
         diff = sorted(set(db_images) ^ wanted)
         raise WorkspaceError(
-            f"the workspace database holds other images than the image folder (e.g. {diff[0]}); "
-            "use another --out or delete its database.db"
+            f"the workspace database {database_path} holds other images than the image folder (e.g. {diff[0]}); "
+            f"use another --out or delete {database_path}"
         )
     cameras = {camera.camera_id: camera for camera in database.read_all_cameras()}
     by_name = {rig.name: rig for rig in rigs}
@@ -80,8 +82,8 @@ def _check_existing(database: pycolmap.Database, rigs: Sequence[RigCalibration],
         camera = cameras[db_images[entry.name].camera_id]
         if not _same_camera(camera, by_name[entry.rig].camera(entry.sensor)):
             raise WorkspaceError(
-                f"the workspace database was made with another calibration for {entry.rig}/{entry.sensor}; "
-                "use another --out or delete its database.db"
+                f"the workspace database {database_path} was made with another calibration for "
+                f"{entry.rig}/{entry.sensor}; use another --out or delete {database_path}"
             )
 
 
@@ -109,16 +111,62 @@ def open_database(path: Path) -> Iterator[pycolmap.Database]:
             raise
 
 
+def damage(path: Path) -> str | None:
+    """What is wrong with the database file ``path`` that rebuilding it mends ("is empty", "is not a database",
+    "is damaged (...)"), or None (COLMAP's own words for all three are those of a full disk, "No registered
+    database factory succeeded"). A sound SQLite database without COLMAP's tables is not rigsfm's: refused."""
+    path = Path(path)
+    if path.stat().st_size == 0:
+        return "is empty"
+    try:
+        with contextlib.closing(sqlite3.connect(path)) as connection:
+            found = [row[0] for row in connection.execute("PRAGMA quick_check")]
+            tables = {row[0] for row in connection.execute("SELECT name FROM sqlite_master WHERE type = 'table'")}
+    except sqlite3.OperationalError:  # locked, unreadable, a full disk: COLMAP's open says which
+        return None
+    except sqlite3.DatabaseError as error:  # "file is not a database", "database disk image is malformed"
+        return "is not a database" if "not a database" in str(error) else f"is damaged ({error})"
+    if found != ["ok"]:
+        return f"is damaged ({found[0] if found else 'no answer to its check'})"
+    if tables and "images" not in tables:
+        raise WorkspaceError(f"{path} is not a COLMAP database (rigsfm did not write it); choose another --out or "
+                             "move it away")
+    return None
+
+
+def check_database_kept(database_path: Path, images: Sequence[ImageEntry]) -> None:
+    """Raise a ``WorkspaceError`` when the database no longer holds ``images``: it was removed or replaced while
+    this run wrote it (COLMAP's next stage then makes an empty one in its place and fails for want of matches)."""
+    database_path = Path(database_path)
+    found = None
+    if database_path.is_file() and damage(database_path) is None:
+        with open_database(database_path) as database:
+            found = {image.name for image in database.read_all_images()}
+    if found != {entry.name for entry in images}:
+        raise WorkspaceError(f"{database_path} was removed or replaced while this run wrote it: re-run the same "
+                             "command (the database is made again)")
+
+
 def create_database(
     database_path: Path, rigs: Sequence[RigCalibration], images: Sequence[ImageEntry]
 ) -> Path:
     """Create the database (or check that an existing one matches these inputs) and return its path."""
     database_path = Path(database_path)
     if database_path.exists():
-        with open_database(database_path) as database:
-            _check_existing(database, rigs, images)
-        logger.info("Reusing database %s", database_path)
-        return database_path
+        problem = damage(database_path)
+        if problem is None:
+            with open_database(database_path) as database:
+                if database.num_images() == 0:
+                    problem = "holds no images (removed or replaced while a run wrote it?)"
+                else:
+                    _check_existing(database, database_path, rigs, images)
+        if problem is None:
+            logger.info("Reusing database %s", database_path)
+            return database_path
+        # Only rigsfm writes this file in its workspace, and what it held is lost anyway: made again in its place.
+        logger.warning("%s %s: it is made again, and so are its features and matches", database_path, problem)
+        for journal in ("-journal", "-wal", "-shm"):  # SQLite's of the old file: never to be applied to the new one
+            database_path.with_name(database_path.name + journal).unlink(missing_ok=True)
     tmp_path = database_path.with_name(database_path.name + ".tmp")
     tmp_path.unlink(missing_ok=True)
     with open_database(tmp_path) as database:

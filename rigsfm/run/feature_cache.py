@@ -14,7 +14,6 @@ its features for a re-run of that workspace.
 
 from __future__ import annotations
 
-import hashlib
 import json
 import logging
 import os
@@ -25,7 +24,7 @@ import cv2
 import numpy as np
 import pycolmap
 
-from rigsfm.core.io import read_npz, write_npz_atomic
+from rigsfm.core.io import file_sha256, read_npz, write_npz_atomic
 
 logger = logging.getLogger(__name__)
 
@@ -49,9 +48,7 @@ class FeatureCache:
 
     def entry(self, image: Path) -> Path:
         """Where the features of ``image`` (its file's bytes with these settings) are kept."""
-        digest = hashlib.sha256(self.settings.encode())
-        digest.update(Path(image).read_bytes())
-        return self.folder / f"{digest.hexdigest()}.npz"
+        return self.folder / f"{file_sha256(image, self.settings.encode())}.npz"
 
     @staticmethod
     def load(entry: Path) -> tuple[np.ndarray, np.ndarray] | None:

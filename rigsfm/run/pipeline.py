@@ -26,11 +26,11 @@ from rigsfm.core.stages import in_child
 from rigsfm.core.workspace import Workspace, colmap_log_to, disk_errors_named
 from rigsfm.inspect.report import write_report
 from rigsfm.run.adjust import AdjustResult, ScaleSource, adjust
-from rigsfm.run.database import create_database
+from rigsfm.run.database import check_database_kept, create_database
 from rigsfm.run.deliver import write_model, write_narrow_poses, write_points_ply
 from rigsfm.run.diagnostics import check_reconstruction
-from rigsfm.run.features import (drop_stale_work, extract_features, match_features, pairs_report, resolved_first_octave,
-                                 select_pairs)
+from rigsfm.run.features import (drop_changed_images, drop_stale_work, extract_features, match_features, pairs_report,
+                                 resolved_first_octave, select_pairs)
 from rigsfm.run.inputs import ImageEntry, rigs_without_narrow, scan_images
 from rigsfm.run.manual_matches import read_manual_matches, validate_manual_matches
 from rigsfm.run.manual_merge import add_manual_matches, manual_matches_summary
@@ -234,6 +234,7 @@ def _run_locked(workspace: Workspace, inputs: Inputs, manual_pairs: dict, option
         with timings.stage("features"):
             drop_stale_work(workspace.database, workspace.feature_settings, options.matching,
                             resolved_first_octave(workspace.database, inputs.images, options.matching))
+            drop_changed_images(workspace.database, workspace.image_contents, inputs.images)
             in_child(extract_features, workspace.database, inputs.image_dir, inputs.images, options.matching,
                      report("features"), num_threads=threads, executor=options.executor,
                      address=options.address, workers=options.workers)
@@ -241,6 +242,7 @@ def _run_locked(workspace: Workspace, inputs: Inputs, manual_pairs: dict, option
             selection = in_child(select_pairs, workspace.database, inputs.images, options.matching)
             in_child(match_features, workspace.database, inputs.images, options.matching, workspace.pairs,
                      report("matching"), num_threads=threads, selection=selection)
+            check_database_kept(workspace.database, inputs.images)
         manual_reports = []
         if manual_pairs:
             with timings.stage("manual_matches"):
@@ -257,6 +259,7 @@ def _run_locked(workspace: Workspace, inputs: Inputs, manual_pairs: dict, option
                 mapping = in_child(run_mapping, workspace, inputs.image_dir, options.mapping, num_wide=num_wide,
                                    num_threads=threads, on_registered=on_registered)
             except ReconstructionError as error:
+                check_database_kept(workspace.database, inputs.images)  # its loss is the cause, not the images
                 if not manual_reports:
                     raise
                 kept = "; ".join(f"{r.image_a} <-> {r.image_b}: {r.kept} of {r.given} kept" for r in manual_reports)

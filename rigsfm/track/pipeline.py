@@ -11,7 +11,6 @@ series on every run (with the thresholds of that run).
 
 from __future__ import annotations
 
-import hashlib
 import logging
 import os
 import time
@@ -23,7 +22,7 @@ import pycolmap
 
 from rigsfm.core import charts
 from rigsfm.core.errors import InputError
-from rigsfm.core.io import write_bytes_atomic, write_json_atomic, write_text_atomic
+from rigsfm.core.io import file_sha256, write_bytes_atomic, write_json_atomic, write_text_atomic
 from rigsfm.core.rig import RigCalibration
 from rigsfm.core.workspace import TrackPaths, Workspace
 from rigsfm.run.inputs import scan_images
@@ -77,11 +76,7 @@ def fingerprint(path: Path, known: dict | None = None) -> dict:
     stat = Path(path).stat()
     if known and known.get("size") == stat.st_size and known.get("mtime_ns") == stat.st_mtime_ns:
         return dict(known)
-    digest = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            digest.update(block)
-    return {"size": stat.st_size, "mtime_ns": stat.st_mtime_ns, "sha256": digest.hexdigest()}
+    return {"size": stat.st_size, "mtime_ns": stat.st_mtime_ns, "sha256": file_sha256(path)}
 
 
 def task_fingerprints(task: FrameTask, known: dict | None = None) -> dict:

@@ -25,6 +25,7 @@ from rigsfm.core.errors import ReconstructionError, WorkspaceError
 from rigsfm.track.options import RegistrationOptions
 from rigsfm.track.pose import estimate_rig_pose, pose_covariance
 from rigsfm.core.workspace import Workspace
+from rigsfm.run.database import damage
 
 logger = logging.getLogger(__name__)
 
@@ -157,6 +158,9 @@ def load_reference(out: Path, neighbours: int = DEFAULT_NEIGHBOURS,
     workspace.require_result()
     if not workspace.database.is_file():
         raise WorkspaceError(f"{workspace.database} is missing: track needs the descriptors of the reference run")
+    problem = damage(workspace.database)  # COLMAP's words for it are a full disk's
+    if problem is not None:
+        raise WorkspaceError(f"{workspace.database} {problem}: {workspace.rerun_hint}")
     rec = workspace.read_sparse()
     with_points = sorted((im for im in rec.images.values() if im.has_pose and im.num_points3D > 0),
                          key=lambda im: im.name)

@@ -122,8 +122,9 @@ def test_corrupt_image(tmp_path):
 
 def test_malformed_yaml(tmp_path):
     images, rigs_path, _ = make_inputs(tmp_path)
-    rigs_path.write_text("rigs: [unclosed")
-    expect(tmp_path, r"rigs.yaml: not valid YAML/JSON", images, rigs_path)
+    rigs_path.write_text("rigs: [unclosed\n")
+    expect(tmp_path, r"rigs.yaml line 2, column 1: not valid YAML/JSON \(did not find expected ',' or '\]' while "
+           r"parsing a flow sequence\); fix the syntax", images, rigs_path)
 
 
 def test_scale_observation_naming_a_missing_image(tmp_path):

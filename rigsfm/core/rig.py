@@ -172,6 +172,10 @@ def parse_camera(spec, where: str) -> pycolmap.Camera:
     return camera
 
 
+_KINDS = {"int": "a number", "float": "a number", "bool": "true/false", "list": "a list", "dict": "a mapping",
+          "date": "a date", "datetime": "a date", "bytes": "binary data"}
+
+
 def _short(value, limit: int = 40) -> str:
     """``repr(value)``, cut to ``limit`` characters (a 300-digit number is not repeated back in full)."""
     text = repr(value) if not isinstance(value, int) or isinstance(value, bool) or abs(value) < 10**30 \
@@ -401,7 +405,8 @@ def load_rigs(path: Path) -> list[RigCalibration]:
             raise InputError(f"{where}: every rig needs a 'name' (its folder name under IMAGES)")
         name = entry["name"]
         if not isinstance(name, str):
-            raise InputError(f"{where}: rig name {_short(name)} is read as a {type(name).__name__}, not text; quote it "
+            kind = _KINDS.get(type(name).__name__, "no text")
+            raise InputError(f"{where}: rig name {_short(name)} is read as {kind}, not text; quote it "
                              f"(name: \"{name}\") exactly as its folder under IMAGES is spelled")
         if "/" in name or "\\" in name or name.startswith(".") or "\0" in name:
             raise InputError(f"{where}: rig name {name!r} must be a plain folder name")

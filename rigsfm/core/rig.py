@@ -127,8 +127,9 @@ def check_keys(spec: dict, known: Sequence[str], where: str) -> None:
         if key in known:
             continue
         if isinstance(key, numbers.Integral) and not isinstance(key, bool) and spec[key] is None:
-            raise InputError(f"{where}: unknown key {key!r}, which a decimal comma makes: inside {{...}} or [...], "
-                             f"'25,{key}' is two values, 25 and {key}; write decimals with a point (25.{key})")
+            raise InputError(f"{where}: unknown key {key!r} with no value: a decimal comma? Inside {{...}} or [...], "
+                             f"a comma separates values ('25,{key}' is 25 and {key}); write decimals with a point "
+                             f"(25.{key})")
         hint = difflib.get_close_matches(str(key), [str(k) for k in known], n=1, cutoff=0.5)
         raise InputError(f"{where}: unknown key {key!r}" + (f" (did you mean {hint[0]!r}?)" if hint else "")
                          + f"; the keys here are {', '.join(known)}")

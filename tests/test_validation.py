@@ -685,3 +685,18 @@ def test_a_thousand_rig_file_is_validated_whole(tmp_path):
     path.write_text(yaml.safe_dump(data, sort_keys=False))
     with pytest.raises(InputError, match=r"repeated: rig0000 \(rigs\[0\] and rigs\[999\]\)"):
         load_rigs(path)
+
+
+def test_a_rigs_yaml_too_large_for_any_network_is_refused_before_parsing(tmp_path, monkeypatch):
+    import rigsfm.core.rig as rig_module
+
+    images, rigs_path, data = make_inputs(tmp_path)
+    with rigs_path.open("a") as f:
+        f.write(("# " + "x" * 1022 + "\n") * (33 * 1024))  # 33 MiB of comments: parsing them alone took seconds
+    with pytest.raises(InputError, match=r"rig calibration file \S+ is 33.0 MiB, over the 32 MiB any real one "
+                                         r"takes; is it the right file\?"):
+        load_rigs(rigs_path)
+    write_rigs(rigs_path, data)
+    monkeypatch.setattr(rig_module, "MAX_RIGS", 1)
+    with pytest.raises(InputError, match=r"rigs.yaml: 2 rigs, more than the 1 any network has; is it the right file"):
+        load_rigs(rigs_path)

@@ -156,8 +156,8 @@ def read_user_text(path: Path, what: str, *, max_bytes: int | None = None) -> st
     path = Path(path)
     info = check_regular_file(path, what)
     if max_bytes is not None and info.st_size > max_bytes:
-        raise InputError(f"{what} file {path} is {info.st_size / 1e6:.1f} MB, over the {max_bytes / 1e6:g} MB any real "
-                         f"one takes; is it the right file?")
+        raise InputError(f"{what} file {path} is {info.st_size / 2**20:.1f} MiB, over the {max_bytes / 2**20:g} MiB any "
+                         "real one takes; is it the right file?")
     try:
         data = path.read_bytes()
     except OSError as error:
@@ -186,7 +186,9 @@ class _UniqueKeyLoader(_SAFE_LOADER):
             for key_node, _ in node.value:
                 if key_node.tag == "tag:yaml.org,2002:merge":  # '<<: *anchor' may be overridden by design
                     continue
-                key = self.construct_object(key_node, deep=True)
+                # a plain string key is itself (cheap: rigs.yaml has thousands); others as constructed
+                key = key_node.value if key_node.tag == "tag:yaml.org,2002:str" \
+                    else self.construct_object(key_node, deep=True)
                 try:
                     first = seen.setdefault(key, key_node)
                 except TypeError:  # an unhashable key: SafeConstructor refuses it with its own message

@@ -61,7 +61,7 @@ MIN_SIGMA_ROTATION_DEG = 1e-6
 MIN_SIGMA_TRANSLATION_M = 1e-7
 MAX_IMAGE_SIDE = 100_000  # pixels: the largest sensors have ~20 000; COLMAP keeps sizes in C++ ints
 MAX_RIGS = 10_000  # a network far beyond any mapped with rigsfm: more is a wrong file
-MAX_RIGS_FILE_BYTES = 64 << 20  # ~6 KB a rig with every sigma and covariance: MAX_RIGS fit with room
+MAX_RIGS_FILE_BYTES = 32 << 20  # ~1 KB a rig with every sigma and covariance: MAX_RIGS fit 3x over
 # Lens parameters with a bounded domain (COLMAP's models): EUCM's alpha in [0, 1] and beta > 0; FOV's omega, the
 # field of view in radians, in (0, pi).
 PARAM_RANGES = {("EUCM", "alpha"): (0.0, 1.0), ("EUCM", "beta"): (1e-6, 100.0), ("FOV", "omega"): (1e-6, np.pi)}
@@ -204,18 +204,18 @@ def check_lens(camera: pycolmap.Camera, where: str) -> None:
     cx, cy = camera.principal_point_x, camera.principal_point_y
     reach = CENTRE_FRACTION * min(camera.width, camera.height)
     steps = np.linspace(0.0, 1.0, 9)[1:]
-    for dx, dy, focal in ((1, 0, camera.focal_length_x), (-1, 0, camera.focal_length_x),
-                          (0, 1, camera.focal_length_y), (0, -1, camera.focal_length_y)):
-        pixels = np.stack([cx + dx * reach * steps, cy + dy * reach * steps], axis=1)
-        with np.errstate(all="ignore"):
-            rays = np.asarray(camera.cam_ray_from_img(pixels), dtype=np.float64)
-            angles = np.arctan2(np.hypot(rays[:, 0], rays[:, 1]), rays[:, 2])
-            ratio = angles[-1] / np.arctan(reach / focal)
-        if not (np.all(np.isfinite(angles)) and np.all(np.diff(angles) > 0)
-                and CENTRE_ANGLE_RATIO[0] <= ratio <= CENTRE_ANGLE_RATIO[1]):
-            raise InputError(f"{where}: these {model} params ({', '.join(f'{n}={v:g}' for n, v in zip(names, params))}) "
-                             "bend the image centre beyond any lens (the rays there do not spread as a lens's do); "
-                             "check the distortion coefficients' order, signs and digits")
+    directions = np.array([[1.0, 0.0], [-1.0, 0.0], [0.0, 1.0], [0.0, -1.0]])
+    pixels = np.array([cx, cy]) + reach * (directions[:, None, :] * steps[None, :, None])  # 4 rays out, 8 steps
+    focal = np.array([camera.focal_length_x, camera.focal_length_x, camera.focal_length_y, camera.focal_length_y])
+    with np.errstate(all="ignore"):
+        rays = np.asarray(camera.cam_ray_from_img(pixels.reshape(-1, 2)), dtype=np.float64).reshape(4, len(steps), 3)
+        angles = np.arctan2(np.hypot(rays[..., 0], rays[..., 1]), rays[..., 2])
+        ratio = angles[:, -1] / np.arctan(reach / focal)
+    if not (np.all(np.isfinite(angles)) and np.all(np.diff(angles, axis=1) > 0)
+            and np.all((CENTRE_ANGLE_RATIO[0] <= ratio) & (ratio <= CENTRE_ANGLE_RATIO[1]))):
+        raise InputError(f"{where}: these {model} params ({', '.join(f'{n}={v:g}' for n, v in zip(names, params))}) "
+                         "bend the image centre beyond any lens (the rays there do not spread as a lens's do); "
+                         "check the distortion coefficients' order, signs and digits")
 
 
 def check_plausible_camera(camera: pycolmap.Camera, where: str) -> None:

@@ -587,12 +587,12 @@ def test_real_lenses_of_every_kind_are_accepted(tmp_path, model, params):
 
 @pytest.mark.parametrize("data,words", [
     ({"camera_distance": [{"a": "rig01/wide", "b": "rig02/wide", "meters": "1e308"}]},
-     r"camera_distance\[0\]: 'meters' must be a finite number 0.001 - 2000 m, got '1e308': a measured distance in "
-     r"metres"),
+     r"camera_distance\[0\]: 'meters' must be a finite number 0.001 - 2000 m, got '1e308': a measured size in "
+     r"metres \(millimetres or another unit\?\)"),
     ({"camera_distance": [{"a": "rig01/wide", "b": "rig02/wide", "meters": 1e308}]}, r"'meters' must be a finite"),
-    ({"camera_distance": [{"a": "rig01/wide", "b": "rig02/wide", "meters": math.inf}]}, r"got inf: a measured"),
-    ({"camera_distance": [{"a": "rig01/wide", "b": "rig02/wide", "meters": 0}]}, r"got 0: a measured"),
-    ({"camera_distance": [{"a": "rig01/wide", "b": "rig02/wide", "meters": -3}]}, r"got -3: a measured"),
+    ({"camera_distance": [{"a": "rig01/wide", "b": "rig02/wide", "meters": math.inf}]}, r"got inf: a measurement is a finite number of metres"),
+    ({"camera_distance": [{"a": "rig01/wide", "b": "rig02/wide", "meters": 0}]}, r"got 0: a measured size is more than zero"),
+    ({"camera_distance": [{"a": "rig01/wide", "b": "rig02/wide", "meters": -3}]}, r"got -3: a measured size is more than zero"),
     ({"camera_distance": [{"a": "rig01/wide", "b": "rig02/wide", "meters": 0.005}]},
      r"'meters' = 0.005 m between two rigs, which stand at least 0.01 m apart"),
     ({"camera_distance": [{"a": "rig01/wide", "b": "rig02/wide", "meters": 12, "sigma": 1e-300}]},

@@ -22,6 +22,7 @@ narrow_from_wide fixes it already; one that contradicts it is named with both nu
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -99,8 +100,14 @@ def _positive(value, where: str, low: float = 1e-12, high: float = 1e12, unit: s
 
 
 def _meters(value, where: str, low: float) -> float:
-    return _number(value, f"{where}: 'meters'", low, MAX_METERS, "m",
-                   "a measured distance in metres (millimetres or another unit?)")
+    try:
+        number = float(value)
+    except (TypeError, ValueError, OverflowError):
+        number = math.nan
+    why = ("a measured size is more than zero" if number <= 0 else "a measurement is a finite number of metres"
+           if not math.isfinite(number) and not math.isnan(number) else
+           "a measured size in metres (millimetres or another unit?)")
+    return _number(value, f"{where}: 'meters'", low, MAX_METERS, "m", why)
 
 
 def _list(data: dict, key: str, path: Path) -> list:

@@ -308,6 +308,8 @@ CASES = [
     Case("`--incremental-time-limit 2147483648` (beyond COLMAP's int)", "nothing is written",
          lambda root: (inputs(root), [*RUN, "--incremental-time-limit", "2147483648"])[1]),
     Case("`--plane-height nan`", "nothing is written", lambda root: (inputs(root), [*RUN, "--plane-height", "nan"])[1]),
+    Case("`demo --image-scale 0.05` (too small to register)", "nothing is written",
+         lambda root: ["demo", "demo", "--image-scale", "0.05"]),
     Case("`track --translation-threshold-mm inf`", "nothing is written",
          on_workspace(lambda out: None, ["track", "out", "images", "--translation-threshold-mm", "inf"])),
     # --- the workspace

@@ -700,3 +700,15 @@ def test_a_rigs_yaml_too_large_for_any_network_is_refused_before_parsing(tmp_pat
     monkeypatch.setattr(rig_module, "MAX_RIGS", 1)
     with pytest.raises(InputError, match=r"rigs.yaml: 2 rigs, more than the 1 any network has; is it the right file"):
         load_rigs(rigs_path)
+
+
+@pytest.mark.parametrize("scale", [0.05, 0.09])
+def test_demo_refuses_an_image_scale_it_cannot_register_before_rendering(tmp_path, scale):
+    from rigsfm.synth.demo import MIN_IMAGE_SCALE, run_demo
+    from rigsfm.synth.scene import SceneOptions
+
+    assert MIN_IMAGE_SCALE == 0.1
+    with pytest.raises(InputError, match=rf"--image-scale {scale:g} is below 0.1, the smallest at which the demo's "
+                                         r"rigs register \(162x123 images\); give 0.1 or more"):
+        run_demo(tmp_path / "demo", SceneOptions(image_scale=scale))
+    assert not (tmp_path / "demo").exists()

@@ -712,3 +712,15 @@ def test_demo_refuses_an_image_scale_it_cannot_register_before_rendering(tmp_pat
                                          r"rigs register \(162x123 images\); give 0.1 or more"):
         run_demo(tmp_path / "demo", SceneOptions(image_scale=scale))
     assert not (tmp_path / "demo").exists()
+
+
+def test_a_failed_atomic_write_names_the_users_file_not_the_temporary_one(tmp_path):
+    from rigsfm.core.io import write_text_atomic
+
+    target = tmp_path / "rigs.yaml"
+    target.mkdir()  # the rename onto a folder fails
+    (target / "keep").write_text("x")
+    with pytest.raises(OSError) as caught:
+        write_text_atomic(target, "units: meters\n")
+    assert caught.value.filename == str(target) and ".tmp" not in str(caught.value)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["rigs.yaml"]  # the temporary file is gone

@@ -44,7 +44,9 @@ def write_bytes_atomic(path: Path, data: bytes, *, overwrite: bool = True) -> Pa
         os.replace(tmp, path)
     except OSError as error:
         Path(tmp).unlink(missing_ok=True)
-        if error.filename is None:  # a full disk fails the write itself, which names no file
+        # a full disk fails the write itself, which names no file; a failed rename names the temporary file, which
+        # the user never made: both are the user's path
+        if error.filename is None or str(error.filename) == str(tmp):
             raise OSError(error.errno, error.strerror, str(path)) from None
         raise
     except BaseException:

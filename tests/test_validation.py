@@ -724,3 +724,18 @@ def test_a_failed_atomic_write_names_the_users_file_not_the_temporary_one(tmp_pa
         write_text_atomic(target, "units: meters\n")
     assert caught.value.filename == str(target) and ".tmp" not in str(caught.value)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["rigs.yaml"]  # the temporary file is gone
+
+
+def test_manual_matches_name_a_decomposed_rig_folder_in_composed_form(tmp_path):
+    from rigsfm.run.manual_matches import validate_manual_matches
+
+    images, rigs_path, composed, decomposed = _nfd_inputs(tmp_path)
+    rng = np.random.default_rng(1)
+    a, b = rng.uniform(4, 44, (8, 2)), rng.uniform(4, 44, (8, 2))  # spread: no line, no degenerate pose
+    rows = [f"{composed}/wide/f0.png,{xa:.2f},{ya:.2f},rig02/wide/f0.png,{xb:.2f},{yb:.2f}"
+            for (xa, ya), (xb, yb) in zip(a, b)]
+    path = tmp_path / "matches.csv"
+    path.write_text("image_a,x_a,y_a,image_b,x_b,y_b\n" + "\n".join(rows) + "\n")
+    inputs = load_inputs(images, rigs_path)
+    pairs = validate_manual_matches(path, read_manual_matches(path), inputs.images, inputs.rigs)
+    assert [set(pair) for pair in pairs] == [{f"{decomposed}/wide/f0.png", "rig02/wide/f0.png"}]

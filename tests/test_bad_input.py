@@ -122,8 +122,9 @@ def test_corrupt_image(tmp_path):
 
 def test_malformed_yaml(tmp_path):
     images, rigs_path, _ = make_inputs(tmp_path)
-    rigs_path.write_text("rigs: [unclosed")
-    expect(tmp_path, r"rigs.yaml: not valid YAML/JSON", images, rigs_path)
+    rigs_path.write_text("rigs: [unclosed\n")
+    expect(tmp_path, r"rigs.yaml line 2, column 1: not valid YAML/JSON \(did not find expected ',' or '\]' while "
+           r"parsing a flow sequence\); fix the syntax", images, rigs_path)
 
 
 def test_scale_observation_naming_a_missing_image(tmp_path):
@@ -178,3 +179,22 @@ def test_cli_turns_an_internal_error_into_one_line(tmp_path, monkeypatch):
     assert result.exit_code == 3
     lines = [line for line in result.output.splitlines() if line.strip()]
     assert "internal error: ZeroDivisionError: simulated bug" in " ".join(lines) and "Traceback" not in result.output
+
+
+@pytest.mark.slow  # a real run of the rendered 3-rig arc (~1 min)
+def test_a_rig_without_narrow_images_finishes_with_exit_0_and_the_warning(tmp_path, rendered):
+    """The README's row: a rig without a narrow folder is legitimate; the run warns and finishes (exit 0)."""
+    import shutil
+
+    from rigsfm.synth.scene import SceneOptions
+
+    dataset = rendered(SceneOptions(num_rigs=3, arc_deg=120.0, image_scale=0.5, seed=1))
+    images = tmp_path / "images"
+    shutil.copytree(dataset.images, images)
+    shutil.rmtree(images / "rig03" / "narrow")
+    result = CliRunner().invoke(app, ["run", str(images), "--rigs", str(dataset.rigs), "--scale", str(dataset.scale),
+                                      "--out", str(tmp_path / "out")], env={"COLUMNS": "400"})
+    assert result.exit_code == 0, result.output
+    assert "NO NARROW IMAGES: rig rig03 has no narrow images" in result.output
+    poses = json.loads((tmp_path / "out" / "narrow_poses.json").read_text())
+    assert "rig03/narrow" not in json.dumps(poses) and "rig01/narrow" in json.dumps(poses)

@@ -259,3 +259,133 @@ def test_picker_errors_are_rigsfm_errors(picker):
         picker.session.set_pairs([[1.0, 2.0, "x", 4.0]])
     with pytest.raises(RigsfmError):
         picker.session.set_pairs({"a": 1})
+
+
+# --- keys given twice, Unicode spellings, what is not a regular file ---------------------------------------------
+
+@st.composite
+def duplicated_line(draw, base):
+    """``base`` as YAML with one of its lines repeated right after itself (a key given twice where it is a key)."""
+    lines = dump(base).splitlines(keepends=True)
+    k = draw(st.integers(0, len(lines) - 1))
+    return "".join(lines[:k + 1] + [lines[k]] + lines[k + 1:])
+
+
+def mapping_keys_unique(text: str) -> bool:
+    """Whether every mapping of the YAML ``text`` gives each key once (PyYAML's own nodes, no rigsfm code)."""
+    def unique(node) -> bool:
+        if isinstance(node, yaml.MappingNode):
+            keys = [k.value for k, _ in node.value]
+            return len(keys) == len(set(keys)) and all(unique(v) for _, v in node.value)
+        if isinstance(node, yaml.SequenceNode):
+            return all(unique(v) for v in node.value)
+        return True
+
+    return unique(yaml.compose(text))
+
+
+@FUZZ_YAML
+@given(text=st.one_of(duplicated_line(RIGS), duplicated_line(SCALE)))
+def test_a_key_given_twice_is_never_silently_dropped(tmp_path, text):
+    path = tmp_path / "input.yaml"
+    path.write_text(text)
+    try:
+        if text.startswith("units"):
+            load_rigs(path)
+        else:
+            rigs_path = tmp_path / "rigs.yaml"
+            rigs_path.write_text(dump(RIGS))
+            load_scale(path, IMAGES, load_rigs(rigs_path))
+    except InputError as error:
+        if not mapping_keys_unique(text):
+            assert "is given twice" in str(error)
+        return
+    assert mapping_keys_unique(text)  # accepted: no key was repeated (a list item may be)
+
+
+NAMES = st.text(st.characters(codec="utf-8", exclude_categories=("Cs", "Cc", "Zl", "Zp")), min_size=1,
+                max_size=8).filter(lambda n: "/" not in n and "\\" not in n and not n.startswith(".")
+                                   and n.strip() == n and len(n.encode()) < 200)
+
+
+@FUZZ_YAML
+@given(names=st.lists(NAMES, min_size=2, max_size=3, unique_by=lambda n: __import__("unicodedata").normalize("NFC", n)),
+       folder_form=st.sampled_from(["NFC", "NFD"]), file_form=st.sampled_from(["NFC", "NFD"]))
+def test_rig_names_match_their_folders_in_any_unicode_form(tmp_path_factory, names, folder_form, file_form):
+    import unicodedata
+
+    from rigsfm.run.pipeline import load_inputs
+
+    root = tmp_path_factory.mktemp("nfd")
+    data = copy.deepcopy(RIGS)
+    data["rigs"] = [dict(copy.deepcopy(RIGS["rigs"][0]), name=unicodedata.normalize(file_form, n)) for n in names]
+    image = np.zeros((H, W), np.uint8)
+    for name in names:
+        folder = root / "images" / unicodedata.normalize(folder_form, name) / "wide"
+        folder.mkdir(parents=True)
+        ok, png = cv2.imencode(".png", image)
+        (folder / "f0.png").write_bytes(png.tobytes())
+    (root / "rigs.yaml").write_text(dump(data))
+    inputs = load_inputs(root / "images", root / "rigs.yaml")
+    assert [r.name for r in inputs.rigs] == [unicodedata.normalize(folder_form, n) for n in names]
+    assert all((root / "images" / e.name).is_file() for e in inputs.images)
+
+
+def _make_non_regular(path, kind):
+    import os
+    import socket
+
+    if kind == "fifo":
+        os.mkfifo(path)
+    elif kind == "device":
+        os.symlink("/dev/null", path)
+    elif kind == "socket":
+        server = socket.socket(socket.AF_UNIX)
+        server.bind(str(path))
+        return server
+    elif kind == "folder":
+        path.mkdir()
+    elif kind == "loop":
+        os.symlink(path.name, path)
+    elif kind == "broken":
+        os.symlink("missing", path)
+    return None
+
+
+@FUZZ
+@given(kind=st.sampled_from(["fifo", "device", "socket", "folder", "loop", "broken"]),
+       rig=st.sampled_from(["rig01", "rig02"]), sensor=st.sampled_from(["wide", "narrow"]),
+       name=st.sampled_from(["f1.png", "f0.jpg", "x.TIFF", "notes.txt", "f1"]))
+def test_what_is_not_a_regular_file_is_refused_or_ignored_never_read(tmp_path_factory, kind, rig, sensor, name):
+    import threading
+
+    from rigsfm.run.inputs import IMAGE_SUFFIXES
+    from rigsfm.run.pipeline import load_inputs
+
+    root = tmp_path_factory.mktemp("special")
+    image = np.zeros((H, W), np.uint8)
+    for r in ("rig01", "rig02"):
+        for s in ("wide", "narrow"):
+            (root / "images" / r / s).mkdir(parents=True)
+            cv2.imwrite(str(root / "images" / r / s / "f0.png"), image)
+    (root / "rigs.yaml").write_text(dump(RIGS))
+    held = _make_non_regular(root / "images" / rig / sensor / name, kind)
+    outcome = {}
+
+    def load():
+        try:
+            outcome["inputs"] = load_inputs(root / "images", root / "rigs.yaml")
+        except InputError as error:
+            outcome["error"] = str(error)
+
+    thread = threading.Thread(target=load, daemon=True)  # a FIFO that is read blocks forever: a daemon is left
+    thread.start()
+    thread.join(60)
+    if held is not None:
+        held.close()
+    assert outcome, "validation blocked (reading a FIFO?)"
+    image_like = "." in name and "." + name.rsplit(".", 1)[1].lower() in IMAGE_SUFFIXES
+    if image_like or kind == "folder":
+        assert name in outcome.get("error", "")  # refused, naming the file
+    else:
+        assert "inputs" in outcome

@@ -66,9 +66,9 @@ def test_mapping_frame_is_kept_when_asked():
     np.testing.assert_array_equal(rec.images[1].cam_from_world().matrix(), pose)
 
 
-@pytest.mark.parametrize("height", [-0.5, float("nan")])
-def test_negative_plane_height_is_refused(height):
-    with pytest.raises(InputError, match="below the floor"):
+@pytest.mark.parametrize("height,words", [(-0.5, "below the floor"), (float("nan"), "nan is not a height")])
+def test_negative_plane_height_is_refused(height, words):
+    with pytest.raises(InputError, match=words):
         validate_world_options(WorldOptions(plane_heights=(height,)))
 
 

@@ -189,7 +189,7 @@ def demo_command(
     num_rigs: Annotated[int, typer.Option("--num-rigs", min=2, help="rigs round the arena")] = 8,
     arc_deg: Annotated[float, typer.Option("--arc-deg", min=1.0, max=360.0,
                                            help="angular span of the rigs; 360 = full circle")] = 360.0,
-    image_scale: Annotated[float, typer.Option("--image-scale", min=0.05, max=2.0,
+    image_scale: Annotated[float, typer.Option("--image-scale", max=2.0,
                                                help="image size relative to 1624x1234 (0.5 renders 812x617)")] = 1.0,
     exact_calibration: Annotated[bool, flag("--exact-calibration", help="give the run the exact calibration "
                                                                         "(no calibration errors)")] = False,
@@ -200,8 +200,10 @@ def demo_command(
 ) -> None:
     """Render a synthetic full circle of hybrid rigs, reconstruct it, and print accuracy vs ground truth."""
     configure_logging(False)
-    from rigsfm.synth.demo import run_demo
+    from rigsfm.synth.demo import check_image_scale, run_demo
     from rigsfm.synth.scene import SceneOptions
+
+    check_image_scale(image_scale)
 
     scene = SceneOptions(num_rigs=num_rigs, arc_deg=arc_deg, image_scale=image_scale, seed=seed,
                          calibration_noise=not exact_calibration)

@@ -3,11 +3,13 @@
 from __future__ import annotations
 
 import contextlib
+import errno
 import hashlib
 import io
 import json
 import os
 import shutil
+import stat
 import tempfile
 import zipfile
 from collections.abc import Iterator
@@ -43,7 +45,9 @@ def write_bytes_atomic(path: Path, data: bytes, *, overwrite: bool = True) -> Pa
         os.replace(tmp, path)
     except OSError as error:
         Path(tmp).unlink(missing_ok=True)
-        if error.filename is None:  # a full disk fails the write itself, which names no file
+        # a full disk fails the write itself, which names no file; a failed rename names the temporary file, which
+        # the user never made: both are the user's path
+        if error.filename is None or str(error.filename) == str(tmp):
             raise OSError(error.errno, error.strerror, str(path)) from None
         raise
     except BaseException:
@@ -118,18 +122,60 @@ def file_sha256(path: Path, prefix: bytes = b"") -> str:
 BOMS = ((b"\xef\xbb\xbf", "utf-8-sig"), (b"\xff\xfe", "utf-16"), (b"\xfe\xff", "utf-16"))
 
 
-def read_user_text(path: Path, what: str) -> str:
-    """A text file a user made: UTF-8, with or without the byte-order mark spreadsheets and Windows editors write,
-    or UTF-16 with its mark ("Unicode text" in Excel); anything else is refused naming the file and the fix."""
+def file_kind(mode: int) -> str | None:
+    """What a non-regular file is, in words (None for a regular file)."""
+    for test, words in ((stat.S_ISDIR, "a folder"), (stat.S_ISFIFO, "a FIFO (named pipe)"),
+                        (stat.S_ISCHR, "a character device"), (stat.S_ISBLK, "a block device"),
+                        (stat.S_ISSOCK, "a socket")):
+        if test(mode):
+            return words
+    return None if stat.S_ISREG(mode) else "not a regular file"
+
+
+def access_problem(path: Path, error: OSError) -> str:
+    """Why ``path`` cannot be opened, with the fix (the true cause: a missing file, a broken link, a link loop,
+    a permission), for a message that starts with the path."""
+    if error.errno == errno.ELOOP:
+        return "is a symbolic link loop (it points, through links, back at itself); point it at the real file"
+    if error.errno == errno.ENOENT:
+        if os.path.islink(path):
+            return f"is a symbolic link to {os.readlink(path)}, which does not exist; point it at the real file"
+        return "does not exist; check the path"
+    if error.errno in (errno.EACCES, errno.EPERM):
+        return ("cannot be read: permission denied (on it or a folder above it); give yourself read permission "
+                "(chmod u+r, and u+x on the folders) or copy it somewhere you can read")
+    if error.errno == errno.ENOTDIR:
+        return "does not exist: a part of its path is a file, not a folder; check the path"
+    return f"cannot be read ({error.strerror or type(error).__name__}); check the path"
+
+
+def check_regular_file(path: Path, what: str) -> os.stat_result:
+    """``path`` is a regular file rigsfm can open (following links); an ``InputError`` with the true cause and the
+    fix otherwise: a folder, FIFO or device is no ``what`` file (and a FIFO would block the read forever)."""
     path = Path(path)
-    if not path.is_file():
-        raise InputError(f"{what} file {path} does not exist")
+    try:
+        info = os.stat(path)
+    except OSError as error:
+        raise InputError(f"{what} file {path} {access_problem(path, error)}") from None
+    kind = file_kind(info.st_mode)
+    if kind is not None:
+        raise InputError(f"{what} file {path} is {kind}, not a regular file; give the path of the {what} file itself")
+    return info
+
+
+def read_user_text(path: Path, what: str, *, max_bytes: int | None = None) -> str:
+    """A text file a user made: UTF-8, with or without the byte-order mark spreadsheets and Windows editors write,
+    or UTF-16 with its mark ("Unicode text" in Excel); anything else is refused naming the file and the fix.
+    A file over ``max_bytes`` is refused before it is read (no such file is a real one: a wrong file)."""
+    path = Path(path)
+    info = check_regular_file(path, what)
+    if max_bytes is not None and info.st_size > max_bytes:
+        raise InputError(f"{what} file {path} is {info.st_size / 2**20:.1f} MiB, over the {max_bytes / 2**20:g} MiB any "
+                         "real one takes; is it the right file?")
     try:
         data = path.read_bytes()
     except OSError as error:
-        from rigsfm.core.workspace import os_error_text
-
-        raise InputError(f"cannot read {what} file {path}: {os_error_text(error)}") from None
+        raise InputError(f"{what} file {path} {access_problem(path, error)}") from None
     encoding = next((name for bom, name in BOMS if data.startswith(bom)), "utf-8")
     try:
         return data.decode(encoding)
@@ -143,22 +189,62 @@ def read_user_text(path: Path, what: str) -> str:
 _SAFE_LOADER = getattr(yaml, "CSafeLoader", yaml.SafeLoader)
 
 
+class DuplicateKeyError(yaml.constructor.ConstructorError):
+    """A mapping gives one key twice (YAML and JSON parsers otherwise keep the last silently)."""
+
+
+class _UniqueKeyLoader(_SAFE_LOADER):
+    def construct_mapping(self, node, deep=False):
+        if isinstance(node, yaml.MappingNode):
+            seen: dict = {}
+            for key_node, _ in node.value:
+                if key_node.tag == "tag:yaml.org,2002:merge":  # '<<: *anchor' may be overridden by design
+                    continue
+                # a plain string key is itself (cheap: rigs.yaml has thousands); others as constructed
+                key = key_node.value if key_node.tag == "tag:yaml.org,2002:str" \
+                    else self.construct_object(key_node, deep=True)
+                try:
+                    first = seen.setdefault(key, key_node)
+                except TypeError:  # an unhashable key: SafeConstructor refuses it with its own message
+                    continue
+                if first is not key_node:
+                    raise DuplicateKeyError(
+                        None, None, f"the key {key!r} is given twice (first on line {first.start_mark.line + 1}), "
+                        "and only one can count; keep one", key_node.start_mark)
+        return super().construct_mapping(node, deep=deep)
+
+
 def parse_yaml(text: str) -> Any:
-    """``yaml.safe_load`` with libyaml's parser where available (raises ``yaml.YAMLError`` alike)."""
-    return yaml.load(text, Loader=_SAFE_LOADER)  # noqa: S506  (a safe loader)
+    """``yaml.safe_load`` with libyaml's parser where available (raises ``yaml.YAMLError`` alike), refusing a key
+    given twice in one mapping (:class:`DuplicateKeyError`)."""
+    return yaml.load(text, Loader=_UniqueKeyLoader)  # noqa: S506  (a safe loader)
 
 
-def load_yaml_or_json(path: Path, what: str) -> Any:
-    """Parse a YAML (or JSON, a subset of YAML) file, with an error that names the file."""
+def yaml_error_parts(error: yaml.YAMLError) -> tuple[str, str]:
+    """(`` line L, column C`` or "", the cause) of a YAML/JSON error."""
+    mark = getattr(error, "problem_mark", None)
+    problem = getattr(error, "problem", None)
+    if mark is None or problem is None:
+        return "", str(error).splitlines()[0] if str(error) else type(error).__name__
+    context = getattr(error, "context", None)
+    cause = f"{problem} {context}" if context and not isinstance(error, DuplicateKeyError) else problem
+    return f" line {mark.line + 1}, column {mark.column + 1}", cause
+
+
+def load_yaml_or_json(path: Path, what: str, *, max_bytes: int | None = None) -> Any:
+    """Parse a YAML (or JSON, a subset of YAML) file, with an error that names the file, the line and the cause."""
     path = Path(path)
-    text = read_user_text(path, what)
+    text = read_user_text(path, what, max_bytes=max_bytes)
     try:
         data = parse_yaml(text)
     except RecursionError:
         raise InputError(f"{path}: nested too deeply to be a {what} file; fix the syntax") from None
+    except DuplicateKeyError as e:
+        where, cause = yaml_error_parts(e)
+        raise InputError(f"{path}{where}: {cause}") from None
     except yaml.YAMLError as e:
-        first_line = str(e).splitlines()[0] if str(e) else type(e).__name__
-        raise InputError(f"{path}: not valid YAML/JSON ({first_line}); fix the syntax") from e
+        where, cause = yaml_error_parts(e)
+        raise InputError(f"{path}{where}: not valid YAML/JSON ({cause}); fix the syntax") from None
     if not isinstance(data, dict):
         raise InputError(f"{path}: expected a mapping at the top level of the {what} file")
     return data

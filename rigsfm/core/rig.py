@@ -17,14 +17,18 @@ Intrinsics use COLMAP's pixel convention (first pixel centre at (0.5, 0.5)). Opt
 
 Besides the syntax, :func:`load_rigs` refuses what cannot be a real rig, one line naming the rig, the key and
 the fix: unknown keys (with a "did you mean"), an E^sl baseline outside 1 mm - 5 m (millimetres written as
-metres), a principal point outside the image, a focal length implausible for the image width, and sigmas that
-are not positive, finite and plausible.
+metres), a principal point outside the image, a focal length implausible for the image width, an image size no
+camera has, lens parameters outside their model's domain or bending the image centre beyond any lens, sigmas that
+are not positive, finite and plausible, a key given twice, and rig names that are equal once Unicode-normalised
+(NFC: macOS writes folder names decomposed, editors compose them).
 """
 
 from __future__ import annotations
 
 import copy
 import difflib
+import numbers
+import unicodedata
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -51,6 +55,21 @@ FOCAL_ASPECT_RANGE = (1 / 3, 3.0)  # fx / fy: anamorphic lenses reach 2
 MAX_SIGMA_ROTATION_DEG = 5.0
 MAX_SIGMA_FOCAL = 0.10  # relative to the focal length
 MAX_SIGMA_PRINCIPAL_POINT = 0.10  # relative to the image size
+# below these a calibration claims more than any board gives, and the adjustment's weights overflow
+MIN_SIGMA_FOCAL_PX = 1e-4
+MIN_SIGMA_ROTATION_DEG = 1e-6
+MIN_SIGMA_TRANSLATION_M = 1e-7
+MAX_IMAGE_SIDE = 100_000  # pixels: the largest sensors have ~20 000; COLMAP keeps sizes in C++ ints
+MAX_RIGS = 10_000  # a network far beyond any mapped with rigsfm: more is a wrong file
+MAX_RIGS_FILE_BYTES = 32 << 20  # ~1 KB a rig with every sigma and covariance: MAX_RIGS fit 3x over
+# Lens parameters with a bounded domain (COLMAP's models): EUCM's alpha in [0, 1] and beta > 0; FOV's omega, the
+# field of view in radians, in (0, pi).
+PARAM_RANGES = {("EUCM", "alpha"): (0.0, 1.0), ("EUCM", "beta"): (1e-6, 100.0), ("FOV", "omega"): (1e-6, np.pi)}
+MAX_DISTORTION_COEFFICIENT = 1e3  # |k|, |p|, |s|: real fits stay within ~10; 1e6 is a typo
+# Within this fraction of the shorter image side around the principal point, where every lens (fisheyes
+# included) images, the ray angle must grow outwards and stay within this factor of the pinhole's angle.
+CENTRE_FRACTION = 0.25
+CENTRE_ANGLE_RATIO = (0.5, 2.0)
 
 TOP_KEYS = ("units", "rigs")
 RIG_KEYS = ("name", "sensors", "narrow_from_wide")
@@ -96,11 +115,21 @@ class RigCalibration:
         return self.wide if sensor == "wide" else self.narrow
 
 
+def nfc(name: str) -> str:
+    """``name`` in Unicode's composed form (NFC), the one form in which names are compared: macOS writes folder
+    and file names decomposed (NFD), which an editor's composed 'é' in rigs.yaml would otherwise not match."""
+    return unicodedata.normalize("NFC", name)
+
+
 def check_keys(spec: dict, known: Sequence[str], where: str) -> None:
     """Refuse a key that is not in ``known``, suggesting the closest known one (a typo is never ignored)."""
     for key in spec:
         if key in known:
             continue
+        if isinstance(key, numbers.Integral) and not isinstance(key, bool) and spec[key] is None:
+            raise InputError(f"{where}: unknown key {key!r} with no value: a decimal comma? Inside {{...}} or [...], "
+                             f"a comma separates values ('25,{key}' is 25 and {key}); write decimals with a point "
+                             f"(25.{key})")
         hint = difflib.get_close_matches(str(key), [str(k) for k in known], n=1, cutoff=0.5)
         raise InputError(f"{where}: unknown key {key!r}" + (f" (did you mean {hint[0]!r}?)" if hint else "")
                          + f"; the keys here are {', '.join(known)}")
@@ -119,13 +148,17 @@ def parse_camera(spec, where: str) -> pycolmap.Camera:
         raise InputError(
             f"{where}: unknown camera model {spec['model']!r}; use one of {', '.join(CAMERA_MODELS)}"
         )
+    for key in ("width", "height"):
+        value = spec[key]
+        if isinstance(value, bool) or not isinstance(value, numbers.Real) or not float(value).is_integer() \
+                or not 0 < value <= MAX_IMAGE_SIDE:
+            raise InputError(f"{where}: {key} must be a whole number of pixels, 1 to {MAX_IMAGE_SIDE}, got "
+                             f"{_short(value)}")
+    width, height = int(spec["width"]), int(spec["height"])
     try:
-        width, height = int(spec["width"]), int(spec["height"])
         params = [float(p) for p in spec["params"]]
     except (TypeError, ValueError, OverflowError) as e:
-        raise InputError(f"{where}: width/height must be integers and params a list of numbers") from e
-    if width <= 0 or height <= 0:
-        raise InputError(f"{where}: width and height must be positive, got {width}x{height}")
+        raise InputError(f"{where}: params must be a list of numbers, got {_short(spec['params'])}") from e
     camera = pycolmap.Camera(model=model, width=width, height=height, params=params)
     expected = [p.strip() for p in camera.params_info.split(",")]
     if len(params) != len(expected):
@@ -136,7 +169,53 @@ def parse_camera(spec, where: str) -> pycolmap.Camera:
     if not np.all(np.isfinite(params)) or min(camera.focal_length_x, camera.focal_length_y) <= 0:
         raise InputError(f"{where}: params must be finite with positive focal lengths")
     check_plausible_camera(camera, where)
+    check_lens(camera, where)
     return camera
+
+
+_KINDS = {"int": "a number", "float": "a number", "bool": "true/false", "list": "a list", "dict": "a mapping",
+          "date": "a date", "datetime": "a date", "bytes": "binary data"}
+
+
+def _short(value, limit: int = 40) -> str:
+    """``repr(value)``, cut to ``limit`` characters (a 300-digit number is not repeated back in full)."""
+    text = repr(value) if not isinstance(value, int) or isinstance(value, bool) or abs(value) < 10**30 \
+        else f"a {len(str(abs(value)))}-digit number"
+    return text if len(text) <= limit else text[:limit - 3] + "..."
+
+
+def check_lens(camera: pycolmap.Camera, where: str) -> None:
+    """Refuse lens parameters outside their model's domain (EUCM alpha, FOV omega), absurd distortion
+    coefficients, and a model that bends the image centre beyond any lens: around the principal point every
+    lens, fisheyes included, images, and there the ray angle grows outwards within a factor of 2 of the
+    pinhole's (k1 = 1e6 squeezes it to nothing; a runaway polynomial folds it back)."""
+    model = camera.model.name
+    names = [p.strip() for p in camera.params_info.split(",")]
+    params = np.asarray(camera.params, dtype=np.float64)
+    for name, value in zip(names, params, strict=True):
+        if (model, name) in PARAM_RANGES:
+            low, high = PARAM_RANGES[(model, name)]
+            if not low <= value <= high:
+                raise InputError(f"{where}: {model}'s {name} = {value:g} lies outside its domain {low:g} - {high:g}; "
+                                 "check the params' order and values")
+        elif name[0] in "kps" and abs(value) > MAX_DISTORTION_COEFFICIENT:
+            raise InputError(f"{where}: distortion coefficient {name} = {value:g} is beyond any lens (real ones stay "
+                             f"within ~10, at most {MAX_DISTORTION_COEFFICIENT:g}); check the params' order and digits")
+    cx, cy = camera.principal_point_x, camera.principal_point_y
+    reach = CENTRE_FRACTION * min(camera.width, camera.height)
+    steps = np.linspace(0.0, 1.0, 9)[1:]
+    directions = np.array([[1.0, 0.0], [-1.0, 0.0], [0.0, 1.0], [0.0, -1.0]])
+    pixels = np.array([cx, cy]) + reach * (directions[:, None, :] * steps[None, :, None])  # 4 rays out, 8 steps
+    focal = np.array([camera.focal_length_x, camera.focal_length_x, camera.focal_length_y, camera.focal_length_y])
+    with np.errstate(all="ignore"):
+        rays = np.asarray(camera.cam_ray_from_img(pixels.reshape(-1, 2)), dtype=np.float64).reshape(4, len(steps), 3)
+        angles = np.arctan2(np.hypot(rays[..., 0], rays[..., 1]), rays[..., 2])
+        ratio = angles[:, -1] / np.arctan(reach / focal)
+    if not (np.all(np.isfinite(angles)) and np.all(np.diff(angles, axis=1) > 0)
+            and np.all((CENTRE_ANGLE_RATIO[0] <= ratio) & (ratio <= CENTRE_ANGLE_RATIO[1]))):
+        raise InputError(f"{where}: these {model} params ({', '.join(f'{n}={v:g}' for n, v in zip(names, params))}) "
+                         "bend the image centre beyond any lens (the rays there do not spread as a lens's do); "
+                         "check the distortion coefficients' order, signs and digits")
 
 
 def check_plausible_camera(camera: pycolmap.Camera, where: str) -> None:
@@ -210,46 +289,59 @@ def _sigma_vector(value, n: int, where: str) -> np.ndarray:
     return out
 
 
-def _check_camera_sigmas(sigmas: np.ndarray, spec: dict, where: str) -> None:
-    """Focal length and principal point sigmas must be positive and below 10 % (a zero would hold them exactly,
-    more is no calibration); distortion terms may be 0 (held fixed)."""
-    camera = pycolmap.Camera(model=str(spec["model"]).upper(), width=int(spec["width"]),
-                             height=int(spec["height"]), params=[float(p) for p in spec["params"]])
-    params = np.asarray(camera.params)
-    for i in camera.focal_length_idxs():
-        if not 0 < sigmas[i] <= MAX_SIGMA_FOCAL * params[i]:
-            raise InputError(f"{where}: the focal length's sigma {sigmas[i]:g} px must be > 0 and at most "
-                             f"{100 * MAX_SIGMA_FOCAL:g} % of {params[i]:g} px; recalibrate, or remove 'sigmas'")
-    for i, size in zip(camera.principal_point_idxs(), (camera.width, camera.height)):
-        if not 0 < sigmas[i] <= MAX_SIGMA_PRINCIPAL_POINT * size:
-            raise InputError(f"{where}: the principal point's sigma {sigmas[i]:g} px must be > 0 and at most "
-                             f"{100 * MAX_SIGMA_PRINCIPAL_POINT:g} % of the image size; recalibrate, or remove "
-                             "'sigmas'")
+FOCAL_NAMES = ("f", "fx", "fy")
+PRINCIPAL_NAMES = ("cx", "cy")
 
 
-def sigmas_from_entry(entry: dict, where: str) -> RigSigmas:
-    """Read and check the uncertainty keys of one rig entry of rigs.yaml (absent keys stay None)."""
+def check_camera_sigmas(sigmas: np.ndarray, camera: pycolmap.Camera, where: str) -> None:
+    """The one check of a camera's sigmas (rigs.yaml's and the run's priors): each finite and >= 0; focal length
+    and principal point ones > 0 (no calibration knows them exactly), the focal's at least 1e-4 px and at most
+    10 % of the focal length, the principal point's at most 10 % of the image size; distortion terms may be 0
+    (held fixed)."""
+    names = [p.strip() for p in camera.params_info.split(",")]
+    params = np.asarray(camera.params, dtype=np.float64)
+    sizes = {"cx": camera.width, "cy": camera.height, "f": camera.width}
+    for name, sigma, value in zip(names, np.asarray(sigmas, dtype=np.float64), params, strict=True):
+        key = f"{where} ({name})"
+        if not np.isfinite(sigma) or sigma < 0:
+            raise InputError(f"{key}: must be a finite number >= 0, got {sigma}; recalibrate, or remove 'sigmas'")
+        if name in FOCAL_NAMES and not MIN_SIGMA_FOCAL_PX <= sigma <= MAX_SIGMA_FOCAL * abs(value):
+            raise InputError(f"{key}: the focal length's sigma {sigma:g} px must be at least {MIN_SIGMA_FOCAL_PX:g} px "
+                             f"(no calibration knows it better) and at most {100 * MAX_SIGMA_FOCAL:g} % of {value:g} px; "
+                             "recalibrate (pixels, 1 sigma), or remove 'sigmas'")
+        if name in PRINCIPAL_NAMES and not MIN_SIGMA_FOCAL_PX <= sigma <= MAX_SIGMA_PRINCIPAL_POINT * sizes[name]:
+            raise InputError(f"{key}: the principal point's sigma {sigma:g} px must be at least {MIN_SIGMA_FOCAL_PX:g} "
+                             f"px and at most {100 * MAX_SIGMA_PRINCIPAL_POINT:g} % of the image size; recalibrate "
+                             "(pixels, 1 sigma), or remove 'sigmas'")
+
+
+def sigmas_from_entry(entry: dict, where: str, cameras: dict[str, pycolmap.Camera] | None = None) -> RigSigmas:
+    """Read and check the uncertainty keys of one rig entry of rigs.yaml (absent keys stay None); ``cameras``: the
+    entry's parsed cameras (parsed here when not given)."""
     out = RigSigmas()
+    if cameras is None:
+        cameras = {sensor: parse_camera(entry["sensors"][sensor], f"{where} sensor {sensor}") for sensor in SENSORS}
     for sensor in SENSORS:
         spec = entry["sensors"][sensor]
         if "sigmas" in spec:
             what = f"{where} sensor {sensor} sigmas (one per entry of params)"
             vector = _sigma_vector(spec["sigmas"], len(spec["params"]), what)
-            _check_camera_sigmas(vector, spec, what)
+            check_camera_sigmas(vector, cameras[sensor], what)
             setattr(out, sensor, vector)
     pose = entry["narrow_from_wide"]
     if "sigma_rotation_deg" in pose:
         what = f"{where} narrow_from_wide sigma_rotation_deg"
         out.rotation_deg = _sigma_vector(pose["sigma_rotation_deg"], 3, what)
-        if not np.all((out.rotation_deg > 0) & (out.rotation_deg <= MAX_SIGMA_ROTATION_DEG)):
-            raise InputError(f"{what}: each must be > 0 and at most {MAX_SIGMA_ROTATION_DEG:g} degrees, got "
+        if not np.all((out.rotation_deg >= MIN_SIGMA_ROTATION_DEG) & (out.rotation_deg <= MAX_SIGMA_ROTATION_DEG)):
+            raise InputError(f"{what}: each must be {MIN_SIGMA_ROTATION_DEG:g} - {MAX_SIGMA_ROTATION_DEG:g} degrees, got "
                              f"{pose['sigma_rotation_deg']}; recalibrate, or remove the key")
     if "sigma_translation_m" in pose:
         what = f"{where} narrow_from_wide sigma_translation_m"
         out.translation_m = _sigma_vector(pose["sigma_translation_m"], 3, what)
         baseline = float(np.linalg.norm(np.asarray(pose["translation"], dtype=np.float64)))
-        if not np.all((out.translation_m > 0) & (out.translation_m <= baseline)):
-            raise InputError(f"{what}: each must be > 0 and below the baseline |t| = {baseline:g} m, got "
+        if not np.all((out.translation_m >= MIN_SIGMA_TRANSLATION_M) & (out.translation_m <= baseline)):
+            raise InputError(f"{what}: each must be at least {MIN_SIGMA_TRANSLATION_M:g} m and below the baseline "
+                             f"|t| = {baseline:g} m, got "
                              f"{pose['sigma_translation_m']}; recalibrate, or remove the key")
     if "covariance" in pose:
         what = f"{where} narrow_from_wide covariance"
@@ -295,22 +387,34 @@ def add_sigmas(entry: dict, sigmas: RigSigmas) -> dict:
 def load_rigs(path: Path) -> list[RigCalibration]:
     """Read and validate rigs.yaml (or the same structure as JSON)."""
     path = Path(path)
-    data = load_yaml_or_json(path, "rig calibration")
+    data = load_yaml_or_json(path, "rig calibration", max_bytes=MAX_RIGS_FILE_BYTES)
     check_keys(data, TOP_KEYS, str(path))
     units = data.get("units", "meters")
     if units not in ("meters", "metres", "m"):
-        raise InputError(f"{path}: units must be meters (got {units!r}); convert translations to metres")
+        raise InputError(f"{path}: units must be meters (got {_short(units)}); convert translations to metres")
     entries = data.get("rigs")
     if not isinstance(entries, list) or not entries:
         raise InputError(f"{path}: expected a non-empty list under 'rigs'")
+    if len(entries) > MAX_RIGS:
+        raise InputError(f"{path}: {len(entries)} rigs, more than the {MAX_RIGS} any network has; is it the right "
+                         "file?")
     rigs: list[RigCalibration] = []
+    first_index: dict[str, int] = {}
     for index, entry in enumerate(entries):
         where = f"{path}: rigs[{index}]"
-        if not isinstance(entry, dict) or not isinstance(entry.get("name"), str) or not entry["name"]:
+        if not isinstance(entry, dict) or entry.get("name") is None or entry.get("name") == "":
             raise InputError(f"{where}: every rig needs a 'name' (its folder name under IMAGES)")
         name = entry["name"]
-        if "/" in name or name.startswith("."):
+        if not isinstance(name, str):
+            kind = _KINDS.get(type(name).__name__, "no text")
+            raise InputError(f"{where}: rig name {_short(name)} is read as {kind}, not text; quote it "
+                             f"(name: \"{name}\") exactly as its folder under IMAGES is spelled")
+        if "/" in name or "\\" in name or name.startswith(".") or "\0" in name:
             raise InputError(f"{where}: rig name {name!r} must be a plain folder name")
+        if nfc(name) in first_index:
+            raise InputError(f"{path}: rig names must be unique, repeated: {name} (rigs[{first_index[nfc(name)]}] and "
+                             f"rigs[{index}])")
+        first_index[nfc(name)] = index
         where = f"{path}: rig {name}"
         check_keys(entry, RIG_KEYS, where)
         sensors = entry.get("sensors")
@@ -322,13 +426,9 @@ def load_rigs(path: Path) -> list[RigCalibration]:
         narrow = parse_camera(sensors["narrow"], f"{where} sensor narrow")
         narrow_from_wide = parse_rigid3d(entry.get("narrow_from_wide"), f"{where} narrow_from_wide")
         check_baseline(narrow_from_wide, f"{where} narrow_from_wide")
-        sigmas = sigmas_from_entry(entry, where)
+        sigmas = sigmas_from_entry(entry, where, {"wide": wide, "narrow": narrow})
         rigs.append(RigCalibration(name=name, wide=wide, narrow=narrow, narrow_from_wide=narrow_from_wide,
                                    sigmas=None if sigmas.is_empty() else sigmas))
-    names = [r.name for r in rigs]
-    duplicates = sorted({n for n in names if names.count(n) > 1})
-    if duplicates:
-        raise InputError(f"{path}: rig names must be unique, repeated: {', '.join(duplicates)}")
     return rigs
 
 

@@ -1,22 +1,28 @@
 """The image folder contract: ``IMAGES/<rig>/<sensor>/<frame file>``, validated against rigs.yaml.
 
 Files with the same name under one rig are one synchronised frame. Every frame needs its wide image;
-the narrow image is optional. Image names inside the workspace are ``<rig>/<sensor>/<frame file>``.
+the narrow image is optional. Image names inside the workspace are ``<rig>/<sensor>/<frame file>``, spelled as on
+disk; a rig folder matches its rigs.yaml name Unicode-normalised (NFC: macOS writes names decomposed), and
+:func:`with_folder_names` gives each rig its folder's spelling so that every name reads its file. What sits where
+an image should but is no regular file (a FIFO, which would block the read forever, a device, a socket, a folder
+named like an image, a broken link) is refused with one line.
 """
 
 from __future__ import annotations
 
 import logging
+import os
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import cv2
 
 from rigsfm.core.errors import InputError
 from rigsfm.core.image_files import read_image, refuse_turned_images
+from rigsfm.core.io import access_problem, file_kind
 from rigsfm.core.names import SENSORS, ImageName, Sensor
-from rigsfm.core.rig import RigCalibration
+from rigsfm.core.rig import RigCalibration, nfc
 
 logger = logging.getLogger(__name__)
 
@@ -46,6 +52,68 @@ def _is_hidden(path: Path) -> bool:
     return path.name.startswith(".")
 
 
+def check_image_folder(image_dir: Path) -> Path:
+    """``image_dir`` is a folder rigsfm can list; an ``InputError`` with the true cause and the fix otherwise."""
+    image_dir = Path(image_dir)
+    try:
+        info = os.stat(image_dir)
+    except OSError as error:
+        raise InputError(f"image folder {image_dir} {access_problem(image_dir, error)}") from None
+    kind = file_kind(info.st_mode)
+    if kind != "a folder":
+        raise InputError(f"image folder {image_dir} is {kind or 'a file'}, not a folder; give the folder that holds "
+                         "<rig>/<sensor>/<frame file>")
+    _listing(image_dir)
+    return image_dir
+
+
+def _listing(folder: Path) -> list[Path]:
+    """The entries of ``folder``; an unreadable one is refused with its cause (never taken for an empty one)."""
+    try:
+        return sorted(folder.iterdir())
+    except OSError as error:
+        raise InputError(f"folder {folder} {access_problem(folder, error)}") from None
+
+
+def _problem(path: Path, what: str) -> str | None:
+    """Why ``path`` (following links) is no regular file or folder, in words after the path, ending with the fix
+    for ``what`` it should be; None when it is one."""
+    try:
+        mode = os.stat(path).st_mode
+    except OSError as error:
+        return access_problem(path, error)
+    kind = file_kind(mode)
+    if kind in (None, "a folder"):
+        return None
+    return f"is {kind}, not {what}; replace it with {what} or move it out of the image folder"
+
+
+def rig_folders(image_dir: Path) -> dict[str, Path]:
+    """The rig folders under ``image_dir`` by their NFC name; two folders whose names are equal in NFC are
+    refused (the same rig twice, spelled two ways)."""
+    folders: dict[str, Path] = {}
+    for path in _listing(Path(image_dir)):
+        if _is_hidden(path) or not path.is_dir():
+            continue
+        key = nfc(path.name)
+        if key in folders:
+            raise InputError(f"{image_dir}: folders {folders[key].name!r} and {path.name!r} are the same name in two "
+                             "Unicode spellings (composed and decomposed); merge them into one")
+        folders[key] = path
+    return folders
+
+
+def with_folder_names(image_dir: Path, rigs: Sequence[RigCalibration]) -> list[RigCalibration]:
+    """``rigs`` each named as its folder under ``image_dir`` is spelled on disk where the two differ only in their
+    Unicode form (a decomposed macOS folder, a composed rigs.yaml): image names then read their files."""
+    folders = rig_folders(image_dir)
+    out = []
+    for rig in rigs:
+        folder = folders.get(nfc(rig.name))
+        out.append(rig if folder is None or folder.name == rig.name else replace(rig, name=folder.name))
+    return out
+
+
 def scan_images(image_dir: Path, rigs: Sequence[RigCalibration], *, check_pixels: bool = True) -> list[ImageEntry]:
     """List and validate every image under ``image_dir``.
 
@@ -54,17 +122,17 @@ def scan_images(image_dir: Path, rigs: Sequence[RigCalibration], *, check_pixels
     (:func:`~rigsfm.core.image_files.refuse_turned_images`), and (``check_pixels``) that each image decodes
     and has the size its camera is calibrated for.
     """
-    image_dir = Path(image_dir)
-    if not image_dir.is_dir():
-        raise InputError(f"image folder {image_dir} does not exist")
+    image_dir = check_image_folder(image_dir)
     rig_by_name = {rig.name: rig for rig in rigs}
-    folders = sorted(p for p in image_dir.iterdir() if not _is_hidden(p))
-    stray = [p.name for p in folders if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES]
+    known = {nfc(rig.name) for rig in rigs}
+    folders = [p for p in _listing(image_dir) if not _is_hidden(p)]
+    stray = [p.name for p in folders if not p.is_dir() and p.suffix.lower() in IMAGE_SUFFIXES]
     if stray:
         raise InputError(
             f"{image_dir}: images must sit in <rig>/<sensor>/ folders, found {stray[0]} at the top level"
         )
-    unknown = [p.name for p in folders if p.is_dir() and p.name not in rig_by_name]
+    by_name = rig_folders(image_dir)
+    unknown = [path.name for key, path in by_name.items() if key not in known]
     if unknown:
         raise InputError(
             f"{image_dir}: folder(s) {', '.join(unknown)} have no rig in the calibration file; "
@@ -72,18 +140,21 @@ def scan_images(image_dir: Path, rigs: Sequence[RigCalibration], *, check_pixels
         )
     entries: list[ImageEntry] = []
     for rig in rigs:
-        rig_dir = image_dir / rig.name
-        if not rig_dir.is_dir():
-            raise InputError(f"rig {rig.name} from the calibration file has no folder {rig_dir}")
-        extra = [p.name for p in rig_dir.iterdir() if not _is_hidden(p) and p.name not in SENSORS]
+        rig_dir = by_name.get(nfc(rig.name))
+        if rig_dir is None:
+            raise InputError(f"rig {rig.name} from the calibration file has no folder {image_dir / rig.name}")
+        extra = [p.name for p in _listing(rig_dir) if not _is_hidden(p) and p.name not in SENSORS]
         if extra:
             raise InputError(f"{rig_dir}: unexpected {', '.join(sorted(extra))}; only 'wide' and 'narrow' belong here")
         frames: dict[str, set[str]] = {}
         for sensor in SENSORS:
             sensor_dir = rig_dir / sensor
             if not sensor_dir.is_dir():
+                problem = _problem(sensor_dir, f"the folder of the rig's {sensor} images")
+                if problem is not None and os.path.lexists(sensor_dir):
+                    raise InputError(f"{sensor_dir} {problem}")
                 continue
-            for path in sorted(sensor_dir.iterdir()):
+            for path in _listing(sensor_dir):
                 if _is_hidden(path):
                     continue
                 if path.is_dir():
@@ -91,7 +162,14 @@ def scan_images(image_dir: Path, rigs: Sequence[RigCalibration], *, check_pixels
                 if path.suffix.lower() not in IMAGE_SUFFIXES:
                     logger.warning("Ignoring %s: not an image file", path)
                     continue
-                frames.setdefault(sensor, set()).add(path.name)
+                problem = _problem(path, "an image file")
+                if problem is not None:
+                    raise InputError(f"{path} {problem}")
+                frame = nfc(path.name)
+                if frame in frames.get(sensor, set()):
+                    raise InputError(f"{sensor_dir}: two files are named {path.name!r} in two Unicode spellings "
+                                     "(composed and decomposed); keep one")
+                frames.setdefault(sensor, set()).add(frame)
                 entries.append(ImageEntry(rig.name, sensor, path.name, path))
         wide, narrow = frames.get("wide", set()), frames.get("narrow", set())
         if not wide:
@@ -128,6 +206,11 @@ def rigs_without_narrow(image_dir: Path, images: Sequence[ImageEntry], rigs: Seq
 
 def check_image(entry: ImageEntry, camera) -> None:
     """The image decodes and matches its camera's calibrated size."""
+    try:
+        with open(entry.path, "rb"):  # cv2.imread says None for a permission denial as for a corrupt file
+            pass
+    except OSError as error:
+        raise InputError(f"{entry.path} {access_problem(entry.path, error)}") from None
     image = read_image(entry.path, cv2.IMREAD_UNCHANGED)
     if image is None:
         raise InputError(f"{entry.path}: cannot be read as an image (corrupt or unsupported); replace it")

@@ -25,7 +25,7 @@ import io
 import logging
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -34,7 +34,7 @@ import pycolmap
 from rigsfm.core.errors import InputError
 from rigsfm.run.inputs import ImageEntry
 from rigsfm.core.io import read_user_text, write_text_atomic
-from rigsfm.core.rig import RigCalibration
+from rigsfm.core.rig import RigCalibration, nfc
 
 logger = logging.getLogger(__name__)
 
@@ -160,6 +160,9 @@ def validate_manual_matches(
     if not rows:
         raise TooFewCorrespondencesError(f"{path} holds no correspondences; add lines {','.join(HEADER)}")
     entries = {e.name: e for e in images}
+    on_disk = {nfc(e.name): e.name for e in images}  # names are compared Unicode-normalised, kept as on disk
+    rows = [replace(row, image_a=on_disk.get(nfc(row.image_a), row.image_a),
+                    image_b=on_disk.get(nfc(row.image_b), row.image_b)) for row in rows]
     wide = sorted(n for n, e in entries.items() if e.sensor == "wide")
     cameras = {rig.name: rig.wide for rig in rigs}
     for row in rows:

@@ -27,6 +27,9 @@ def _check_range(name: str, value, low: float, high: float, *, low_open: bool = 
         raise InputError(f"{name} must be {kind} {bounds}, got {value!r}")
 
 
+INT_MAX = 2**31 - 1  # COLMAP's C++ options are ints: a larger number fails there, after the heavy stages
+
+
 def _choice(kind: type[enum.StrEnum], value, name: str):
     try:
         return kind(value)
@@ -130,7 +133,10 @@ class MappingOptions:
     def __post_init__(self) -> None:
         self.mapper = _choice(Mapper, self.mapper, "--mapper")
         _check_range("global_from_frames", self.global_from_frames, 2, 10**9, integer=True)
-        _check_range("--seed (-1: random)", self.seed, -1, 2**31 - 1, integer=True)
+        _check_range("--seed (-1: random)", self.seed, -1, INT_MAX, integer=True)
+        if self.incremental_time_limit_s is not None:
+            _check_range("--incremental-time-limit (seconds)", self.incremental_time_limit_s, 0, INT_MAX,
+                         integer=True)
 
 
 class Calibration(enum.StrEnum):
@@ -189,6 +195,11 @@ class SelfCheckOptions:
     # side nearest this: 1624x1234 -> 2 (a 6-rig crowd: 3.8x faster, a median 660 instead of 1 003 matches per
     # pair, the measured distances as close to the truth; rigsfm.run.self_check), 812x617 -> 1.
     sift_size: int = 800
+
+    def __post_init__(self) -> None:
+        _check_range("self-check max_frames", self.max_frames, 1, 1_000_000, integer=True)
+        _check_range("self-check warp_height_m", self.warp_height_m, -1000.0, 1000.0)
+        _check_range("self-check sift_size", self.sift_size, 16, 100_000, integer=True)
 
 
 @dataclass(kw_only=True)

@@ -16,7 +16,7 @@ import pycolmap
 
 import rigsfm
 from rigsfm.core import stages
-from rigsfm.core.errors import ReconstructionError
+from rigsfm.core.errors import InputError, ReconstructionError
 from rigsfm.core.io import write_json_atomic
 from rigsfm.core.names import SENSORS, ImageName
 from rigsfm.core.residuals import reprojection_errors
@@ -31,7 +31,7 @@ from rigsfm.run.deliver import write_model, write_narrow_poses, write_points_ply
 from rigsfm.run.diagnostics import check_reconstruction
 from rigsfm.run.features import (drop_changed_images, drop_stale_work, extract_features, match_features, pairs_report,
                                  resolved_first_octave, select_pairs)
-from rigsfm.run.inputs import ImageEntry, rigs_without_narrow, scan_images
+from rigsfm.run.inputs import ImageEntry, check_image_folder, rigs_without_narrow, scan_images, with_folder_names
 from rigsfm.run.manual_matches import read_manual_matches, validate_manual_matches
 from rigsfm.run.manual_merge import add_manual_matches, manual_matches_summary
 from rigsfm.run.mapping import MappingResult, run_mapping
@@ -72,9 +72,21 @@ class RunResult:
     self_check: SelfCheck | None = None  # every checked pair with its distances (summary.json keeps statistics)
 
 
+def check_out_outside_images(out: Path, image_dir: Path) -> None:
+    """Refuse an output folder inside the image folder (or the image folder itself): its sub-folders would be
+    taken for rigs by every later run on that image folder."""
+    try:
+        out_real, images_real = out.resolve(), image_dir.resolve()
+    except (OSError, RuntimeError):  # a link loop: the image folder's own check names it
+        return
+    if out_real == images_real or images_real in out_real.parents:
+        raise InputError(f"--out {out} lies inside the image folder {image_dir}, whose every folder must be a rig; "
+                         "choose an output folder outside it")
+
+
 def load_inputs(image_dir: Path, rigs_path: Path, scale_path: Path | None = None) -> Inputs:
     """Validate every input before any heavy work; raises ``InputError`` naming file and fix."""
-    rigs = load_rigs(rigs_path)
+    rigs = with_folder_names(check_image_folder(image_dir), load_rigs(rigs_path))
     priors = calibration_priors(rigs, rigs_path)
     images = scan_images(image_dir, rigs)
     without_narrow = tuple(rigs_without_narrow(image_dir, images, rigs))
@@ -206,6 +218,7 @@ def run(
     timings = _Timings()
     with timings.stage("validate"):
         validate_world_options(options.world)  # the options first: no input warnings before their refusal
+        check_out_outside_images(Path(out), Path(image_dir))
         inputs = load_inputs(image_dir, rigs_path, scale_path)
         if options.executor == Executor.RAY and options.address:
             check_reachable(options.address)  # before any work: ray.init would retry an unreachable one for ever

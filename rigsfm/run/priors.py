@@ -31,12 +31,11 @@ import numpy as np
 import pycolmap
 
 from rigsfm.core.errors import InputError
-from rigsfm.core.rig import RigCalibration
+from rigsfm.core.rig import MAX_SIGMA_ROTATION_DEG, RigCalibration, check_camera_sigmas
 
 logger = logging.getLogger(__name__)
 
-MAX_ROTATION_SIGMA_DEG = 5.0
-MAX_FOCAL_SIGMA_RELATIVE = 0.10
+MAX_ROTATION_SIGMA_DEG = MAX_SIGMA_ROTATION_DEG
 FOCAL_NAMES = ("f", "fx", "fy")
 PRINCIPAL_NAMES = ("cx", "cy")
 _RADIAL = re.compile(r"^k(\d?)$")
@@ -160,19 +159,8 @@ def _skew(v: np.ndarray) -> np.ndarray:
 
 
 def _check_camera_sigmas(sigmas: np.ndarray, camera: pycolmap.Camera, where: str) -> None:
-    """One line naming rig, sensor and parameter for a sigma that is NaN, negative, zero where a board always
-    estimates it, or a focal sigma over 10 %."""
-    for name, sigma, value in zip(param_names(camera), sigmas, np.asarray(camera.params, dtype=np.float64),
-                                  strict=True):
-        key = f"{where} sigmas ({name})"
-        if not np.isfinite(sigma) or sigma < 0:
-            raise InputError(f"{key}: must be a finite number >= 0, got {sigma}")
-        if sigma == 0 and name in FOCAL_NAMES + PRINCIPAL_NAMES:
-            raise InputError(f"{key}: is 0, but no calibration knows the {'focal length' if name in FOCAL_NAMES else 'principal point'} "
-                             "exactly; give its real 1-sigma uncertainty (pixels)")
-        if name in FOCAL_NAMES and sigma > MAX_FOCAL_SIGMA_RELATIVE * abs(value):
-            raise InputError(f"{key}: {sigma:g} px is over {100 * MAX_FOCAL_SIGMA_RELATIVE:g} % of the focal length "
-                             f"{value:g} px; recalibrate (or check the units: pixels, 1 sigma)")
+    """rigsfm.core.rig's check, the one place its bounds live (rigs.yaml's sigmas pass it when read)."""
+    check_camera_sigmas(sigmas, camera, f"{where} sigmas")
 
 
 def _check_pose_covariance(covariance: np.ndarray, where: str, source: str) -> None:

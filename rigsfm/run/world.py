@@ -46,7 +46,10 @@ def validate_world_options(options: WorldOptions) -> None:
     """Refuse impossible world options before any heavy work (the camera heights are checked once the floor
     is known, :func:`check_plane_heights`)."""
     for height in options.plane_heights:
-        if not np.isfinite(height) or height < 0:
+        if not np.isfinite(height):
+            raise InputError(f"--plane-height {height} is not a height: give one above the floor in metres (e.g. 1.7 "
+                             "for heads)")
+        if height < 0:
             raise InputError(f"--plane-height {height:g} m is below the floor: give a height above it in metres "
                              "(e.g. 1.7 for heads)")
     if options.plane_heights and options.frame == WorldFrame.MAPPING:

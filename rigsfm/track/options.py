@@ -6,6 +6,7 @@ import os
 from dataclasses import dataclass, field
 
 from rigsfm.core.executors import Executor  # noqa: F401  (re-exported: rigsfm.track.options.Executor)
+from rigsfm.run.options import INT_MAX, _check_range
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -19,6 +20,14 @@ class Thresholds:
     persist_fraction: float = 0.75
     step_to_spread: float = 2.0  # a step must be this many times the frames' median spread about their level
 
+    def __post_init__(self) -> None:  # an infinite threshold fails the verdict after every frame is registered
+        _check_range("--rotation-threshold-deg", self.rotation_deg, 0.0, 180.0)
+        _check_range("--translation-threshold-mm", self.translation_mm, 0.0, 1e6)
+        _check_range("significance_chi2", self.significance_chi2, 0.0, 1e6, low_open=True)
+        _check_range("min_persist_frames", self.min_persist_frames, 1, INT_MAX, integer=True)
+        _check_range("persist_fraction", self.persist_fraction, 0.0, 1.0, low_open=True)
+        _check_range("step_to_spread", self.step_to_spread, 0.0, 1e6, low_open=True)
+
 
 @dataclass(frozen=True, kw_only=True)
 class RegistrationOptions:
@@ -31,6 +40,14 @@ class RegistrationOptions:
     min_inliers: int = 30  # fewer: the frame is reported as not registered
     use_narrow: bool | None = None  # None: narrow images only for rigs whose narrow image has map points
     seed: int = 0
+
+    def __post_init__(self) -> None:
+        _check_range("max_ratio", self.max_ratio, 0.0, 1.0, low_open=True)
+        _check_range("max_num_features", self.max_num_features, 1, 1_000_000, integer=True)
+        _check_range("max_error_px", self.max_error_px, 0.0, 1000.0, low_open=True)
+        _check_range("min_matches", self.min_matches, 1, INT_MAX, integer=True)
+        _check_range("min_inliers", self.min_inliers, 1, INT_MAX, integer=True)
+        _check_range("seed", self.seed, -1, INT_MAX, integer=True)
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -23,9 +23,9 @@ import pycolmap
 from rigsfm.core import charts
 from rigsfm.core.errors import InputError
 from rigsfm.core.io import file_sha256, write_bytes_atomic, write_json_atomic, write_text_atomic
-from rigsfm.core.rig import RigCalibration
+from rigsfm.core.rig import RigCalibration, nfc
 from rigsfm.core.workspace import TrackPaths, Workspace
-from rigsfm.run.inputs import scan_images
+from rigsfm.run.inputs import check_image_folder, rig_folders, scan_images
 from rigsfm.core.executors import check_reachable
 from rigsfm.track.executors import run_frames
 from rigsfm.track.options import TrackOptions
@@ -47,11 +47,11 @@ class TrackResult:
 
 def frame_tasks(new_images: Path, reference: ReferenceMap) -> list[FrameTask]:
     """One task per (rig, frame) under NEW_IMAGES/<rig>/<wide|narrow>/<frame file>."""
-    new_images = Path(new_images)
-    if not new_images.is_dir():
-        raise InputError(f"image folder {new_images} does not exist")
-    present = sorted(p.name for p in new_images.iterdir() if p.is_dir() and not p.name.startswith("."))
-    unknown = [name for name in present if name not in reference.rigs]
+    new_images = check_image_folder(new_images)
+    by_nfc = {nfc(name): name for name in reference.rigs}  # folders match rigs Unicode-normalised
+    folders = rig_folders(new_images)
+    unknown = sorted(path.name for key, path in folders.items() if key not in by_nfc)
+    present = sorted(by_nfc[key] for key in folders if key in by_nfc)
     if unknown:
         raise InputError(f"{new_images}: folder(s) {', '.join(unknown)} are not rigs of the reference model "
                          f"{reference.sparse}; move them out or track them against their own reference")

@@ -207,7 +207,7 @@ def rigs_without_narrow(image_dir: Path, images: Sequence[ImageEntry], rigs: Seq
 def check_image(entry: ImageEntry, camera) -> None:
     """The image decodes and matches its camera's calibrated size."""
     try:
-        with open(entry.path, "rb"):  # cv2.imread says None for a permission denial as for a corrupt file
+        with open(entry.path, "rb"):  # OpenCV reads a permission denial as a corrupt file
             pass
     except OSError as error:
         raise InputError(f"{entry.path} {access_problem(entry.path, error)}") from None

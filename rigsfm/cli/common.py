@@ -15,25 +15,38 @@ import traceback
 import typer
 from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+from rich.text import Text
 
-console = Console()
-err_console = Console(stderr=True)
-
-EXIT_ERROR, EXIT_INTERNAL, EXIT_WARNINGS, EXIT_INTERRUPTED, EXIT_TERMINATED = 1, 3, 4, 130, 143
-
-
-class Terminated(BaseException):
-    """SIGTERM, raised in the main thread like KeyboardInterrupt so the same cleanup runs."""
+from rigsfm.cli import _signals
+from rigsfm.cli._signals import EXIT_INTERRUPTED, EXIT_TERMINATED, Terminated  # noqa: F401  (re-exported)
 
 
-def _raise_terminated(signum, frame) -> None:
-    raise Terminated()
+class _Console(Console):
+    """Plain text, never Rich markup: messages hold user names and paths (``frame[cam].png``, ``[/]``) that
+    markup would eat or choke on; styles come from :func:`styled`. Output that is not a terminal keeps each
+    line whole (no wrapping at an assumed 80 columns), so scripts and logs can grep it."""
+
+    def __init__(self, **kwargs):
+        super().__init__(markup=False, highlight=False, **kwargs)
+
+    @property
+    def soft_wrap(self) -> bool:  # looked up at each print: the stream may be swapped (tests, redirection)
+        return not self.is_terminal
+
+    @soft_wrap.setter
+    def soft_wrap(self, value: bool) -> None:
+        pass
 
 
-def _import_native_libraries() -> None:
-    """pycolmap's import (glog's failure handler) takes SIGTERM over, printing a C stack trace and no message;
-    imported before ``fail_cleanly`` sets its handler, it cannot (0.2 s, which most commands spend anyway)."""
-    import pycolmap  # noqa: F401
+console = _Console()
+err_console = _Console(stderr=True)
+
+EXIT_ERROR, EXIT_INTERNAL, EXIT_WARNINGS = 1, 3, 4
+
+
+def styled(head: str, style: str, rest: str) -> Text:
+    """``head`` in ``style``, then ``rest`` verbatim."""
+    return Text.assemble((head, style), " ", rest)
 
 
 def flag(*names: str, help: str) -> typer.models.OptionInfo:
@@ -42,7 +55,12 @@ def flag(*names: str, help: str) -> typer.models.OptionInfo:
 
 
 def say_error(message: str) -> None:
-    err_console.print(f"[bold red]error:[/] {message}", highlight=False, soft_wrap=True)
+    err_console.print(styled("error:", "bold red", message))
+
+
+def say_stopped(signum: int) -> None:
+    head, rest = _signals.message(signum)
+    err_console.print(styled(head, "bold red", rest))
 
 
 def fail_cleanly(command):
@@ -54,35 +72,37 @@ def fail_cleanly(command):
         from rigsfm.core.errors import RigsfmError
         from rigsfm.core.workspace import os_error_text
 
-        _import_native_libraries()  # first: their import replaces the SIGTERM handler
-        previous = signal.signal(signal.SIGTERM, _raise_terminated)
         try:
-            return command(*args, **kwargs)
+            with _signals.raising():
+                _signals.import_native()
+                return command(*args, **kwargs)
         except RigsfmError as error:
             say_error(str(error))
             raise typer.Exit(EXIT_ERROR) from None
         except KeyboardInterrupt:
-            err_console.print("[bold red]interrupted[/] (Ctrl-C): nothing finished was lost; re-run the same command "
-                              "to resume", soft_wrap=True)
+            say_stopped(signal.SIGINT)
             raise typer.Exit(EXIT_INTERRUPTED) from None
         except Terminated:
-            err_console.print("[bold red]terminated[/] (SIGTERM): nothing finished was lost; re-run the same command "
-                              "to resume", soft_wrap=True)
+            say_stopped(signal.SIGTERM)
             raise typer.Exit(EXIT_TERMINATED) from None
         except OSError as error:  # disk full, read-only, permission: the user's to fix, with the path
+            if _signals.received() is not None:  # a signal inside a library's call, which turned it into this
+                say_stopped(_signals.received())
+                raise typer.Exit(_signals.exit_code(_signals.received())) from None
             where = f"{error.filename}: " if error.filename else ""
             say_error(f"{where}{os_error_text(error)}; {os_error_advice(error)}")
             raise typer.Exit(EXIT_ERROR) from None
         except typer.Exit:
             raise
         except Exception as error:  # a bug, not the user's input: one line, the traceback in a file
+            if _signals.received() is not None:  # e.g. an import that wrapped the KeyboardInterrupt
+                say_stopped(_signals.received())
+                raise typer.Exit(_signals.exit_code(_signals.received())) from None
             with tempfile.NamedTemporaryFile("w", prefix="rigsfm-error-", suffix=".txt", delete=False) as f:
                 traceback.print_exc(file=f)
-            err_console.print(f"[bold red]internal error:[/] {type(error).__name__}: {error} "
-                              f"(traceback in {f.name}; please report it)", highlight=False, soft_wrap=True)
+            err_console.print(styled("internal error:", "bold red", f"{type(error).__name__}: {error} "
+                                     f"(traceback in {f.name}; please report it)"))
             raise typer.Exit(EXIT_INTERNAL) from None
-        finally:
-            signal.signal(signal.SIGTERM, previous)
 
     return wrapper
 
@@ -105,9 +125,14 @@ def configure_logging(verbose: bool) -> None:
     """rigsfm's own log on the terminal (warnings, or everything with -v); COLMAP's goes to OUT/colmap.log."""
     from rich.logging import RichHandler
 
-    handler = RichHandler(console=err_console, level=logging.INFO if verbose else logging.WARNING,
-                          show_path=False, show_time=False)
-    logging.basicConfig(level=logging.INFO, handlers=[handler], format="%(message)s", force=True)
+    level = logging.INFO if verbose else logging.WARNING
+    if err_console.is_terminal:
+        handler = RichHandler(console=err_console, level=level, show_path=False, show_time=False)
+    else:  # one whole line per record where it is read by a program or a file
+        handler = logging.StreamHandler()
+        handler.setLevel(level)
+        handler.setFormatter(logging.Formatter("%(levelname)-8s %(message)s"))  # as RichHandler shows it
+    logging.basicConfig(level=logging.INFO, handlers=[handler], force=True)
 
 
 def progress_bars() -> Progress:
@@ -131,8 +156,8 @@ class StageProgress:
 def finish(warnings: list[str], strict: bool) -> None:
     """Print the warnings; under ``--strict`` any warning makes the exit code non-zero (4)."""
     for warning in warnings:
-        console.print(f"[bold yellow]warning:[/] {warning}", highlight=False, soft_wrap=True)
+        console.print(styled("warning:", "bold yellow", warning))
     if strict and warnings:
-        err_console.print(f"[bold red]{len(warnings)} warning(s)[/] and --strict: exit code {EXIT_WARNINGS}")
+        err_console.print(styled(f"{len(warnings)} warning(s)", "bold red", f"and --strict: exit code {EXIT_WARNINGS}"))
         raise typer.Exit(EXIT_WARNINGS)
 

@@ -100,7 +100,14 @@ def start(preload: Iterable[str] = ()) -> None:
     _context.set_forkserver_preload(_PRELOAD)
     from multiprocessing import forkserver
 
-    forkserver.ensure_running()
+    # The server starts with SIGINT and SIGTERM blocked (a new process inherits the mask), so a signal during its
+    # imports neither prints a traceback (SIGINT, before multiprocessing ignores it there) nor glog's stack
+    # (SIGTERM, once pycolmap is imported); rigsfm.core._forkserver unblocks them when its handlers are set.
+    previous = signal.pthread_sigmask(signal.SIG_BLOCK, (signal.SIGINT, signal.SIGTERM))
+    try:
+        forkserver.ensure_running()
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, previous)
 
 
 # --- the child -----------------------------------------------------------------------------------------------

@@ -100,6 +100,23 @@ def import_native() -> None:
         import pycolmap  # noqa: F401
 
 
+def hold_back() -> None:
+    """The command is over (its result or its message is out): a signal from now on would only replace its exit
+    code (Python's finalisation restores the default actions first), so the command's process ignores them."""
+    if _installed:
+        signal.pthread_sigmask(signal.SIG_BLOCK, SIGNALS)
+
+
+def forget_unhandled_interrupt() -> None:
+    """Python exits by killing itself with SIGINT (exit status -2, not 130) when a KeyboardInterrupt once left code
+    run through ``PyRun_String`` (native libraries' embedded Python), even if it was caught later; running any
+    such code clears that mark."""
+    import ctypes
+
+    with contextlib.suppress(Exception):
+        ctypes.pythonapi.PyRun_SimpleString(b"")
+
+
 @contextlib.contextmanager
 def raising() -> Iterator[None]:
     """Within the block a signal raises (``KeyboardInterrupt`` / :class:`Terminated`) instead of exiting."""

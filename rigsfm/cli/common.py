@@ -9,6 +9,7 @@ from __future__ import annotations
 import functools
 import logging
 import signal
+import sys
 import tempfile
 import traceback
 
@@ -76,33 +77,37 @@ def fail_cleanly(command):
             with _signals.raising():
                 _signals.import_native()
                 return command(*args, **kwargs)
-        except RigsfmError as error:
-            say_error(str(error))
-            raise typer.Exit(EXIT_ERROR) from None
-        except KeyboardInterrupt:
-            say_stopped(signal.SIGINT)
-            raise typer.Exit(EXIT_INTERRUPTED) from None
-        except Terminated:
-            say_stopped(signal.SIGTERM)
-            raise typer.Exit(EXIT_TERMINATED) from None
-        except OSError as error:  # disk full, read-only, permission: the user's to fix, with the path
-            if _signals.received() is not None:  # a signal inside a library's call, which turned it into this
-                say_stopped(_signals.received())
-                raise typer.Exit(_signals.exit_code(_signals.received())) from None
-            where = f"{error.filename}: " if error.filename else ""
-            say_error(f"{where}{os_error_text(error)}; {os_error_advice(error)}")
-            raise typer.Exit(EXIT_ERROR) from None
         except typer.Exit:
             raise
-        except Exception as error:  # a bug, not the user's input: one line, the traceback in a file
-            if _signals.received() is not None:  # e.g. an import that wrapped the KeyboardInterrupt
-                say_stopped(_signals.received())
-                raise typer.Exit(_signals.exit_code(_signals.received())) from None
+        except BaseException as error:
+            # After a signal, whatever comes out is the stop: a library may have wrapped the KeyboardInterrupt
+            # (ImportError, RuntimeError) or failed because of it.
+            signum = _signals.received()
+            if signum is None and isinstance(error, (KeyboardInterrupt, Terminated)):
+                signum = signal.SIGINT if isinstance(error, KeyboardInterrupt) else signal.SIGTERM
+            if signum is not None:
+                if "rigsfm.core.stages" in sys.modules:
+                    sys.modules["rigsfm.core.stages"].stop()
+                _signals.forget_unhandled_interrupt()
+                say_stopped(signum)
+                raise typer.Exit(_signals.exit_code(signum)) from None
+            if isinstance(error, RigsfmError):
+                say_error(str(error))
+                raise typer.Exit(EXIT_ERROR) from None
+            if isinstance(error, OSError):  # disk full, read-only, permission: the user's to fix, with the path
+                where = f"{error.filename}: " if error.filename else ""
+                say_error(f"{where}{os_error_text(error)}; {os_error_advice(error)}")
+                raise typer.Exit(EXIT_ERROR) from None
+            if not isinstance(error, Exception):  # SystemExit and the like: not ours to reword
+                raise
+            # A bug, not the user's input: one line, the traceback in a file.
             with tempfile.NamedTemporaryFile("w", prefix="rigsfm-error-", suffix=".txt", delete=False) as f:
                 traceback.print_exc(file=f)
             err_console.print(styled("internal error:", "bold red", f"{type(error).__name__}: {error} "
                                      f"(traceback in {f.name}; please report it)"))
             raise typer.Exit(EXIT_INTERNAL) from None
+        finally:
+            _signals.hold_back()
 
     return wrapper
 

@@ -28,11 +28,9 @@ def pick_command(
     from rigsfm.pick.server import start_picker
 
     server = start_picker(image_a, image_b, out, rigs, port, flag_px)
-    console.print(
-        f"picker for {server.session.images[0].name} <-> {server.session.images[1].name}: "
-        f"open {server.url} (saves to {out} on every change); Ctrl-C to stop"
-    )
     try:
+        console.print(f"picker for {server.session.images[0].name} <-> {server.session.images[1].name}: "
+                      f"open {server.url} (saves to {out} on every change); Ctrl-C to stop")
         threading.Event().wait()
     except KeyboardInterrupt:  # Ctrl-C is how the picker is meant to stop: done, not interrupted
         pass

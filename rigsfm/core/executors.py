@@ -75,6 +75,9 @@ def run_local(function: Callable, tasks: Sequence, on_result: OnResult, *, worke
         return
     import multiprocessing
     from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+    from multiprocessing import resource_tracker
+
+    resource_tracker.ensure_running()  # first: starting it unblocks SIGINT and SIGTERM in this thread
 
     context = multiprocessing.get_context("spawn")  # no fork of a process holding pycolmap/OpenCV threads
     pool = ProcessPoolExecutor(max_workers=min(workers, len(tasks)), mp_context=context,

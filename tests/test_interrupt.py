@@ -391,3 +391,22 @@ def test_ctrl_c_ends_pick_with_where_the_pairs_are(tmp_path):
     assert stdout.splitlines()[-1] == "stopped: 0 pairs in m.csv (for `rigsfm run ... --manual-matches m.csv`)"
     code, lines, _ = _stop(args, tmp_path, signal.SIGTERM, 0.0, ready="Ctrl-C to stop")
     assert code == 143 and len(lines) == 1 and lines[0].startswith("terminated (SIGTERM): "), lines
+
+
+@pytest.mark.parametrize("verb", ["calibrate", "report", "view", "export", "track", "demo"])
+def test_every_verb_stops_with_one_line(tmp_path, verb):
+    """The other verbs, stopped while they start (imports, pycolmap's among them)."""
+    sys.path.insert(0, str(ROOT / "tests"))
+    import bad_inputs_table
+
+    bad_inputs_table.workspace(tmp_path)
+    (tmp_path / "board.yaml").write_text("type: chessboard\ninner_corners: [9, 6]\nsquare: 0.025\n")
+    args = {"calibrate": ["images", "--board", "board.yaml", "--out", "r.yaml"], "report": ["out"],
+            "view": ["out", "--screenshot", "v.png"], "export": ["out", "--format", "json", "--overwrite"],
+            "track": ["out", "images"], "demo": ["demo", "--num-rigs", "2", "--image-scale", "0.1"]}[verb]
+    for signum, delay in ((signal.SIGINT, 0.0), (signal.SIGTERM, 0.0), (signal.SIGINT, 0.3), (signal.SIGTERM, 0.3)):
+        code, lines, _ = _stop([verb, *args], tmp_path, signum, delay)
+        if code in (0, 1) and (not lines or lines[-1].startswith("error: ")):
+            continue  # it had already finished
+        expected = (130, "interrupted (Ctrl-C): ") if signum == signal.SIGINT else (143, "terminated (SIGTERM): ")
+        assert (code, len(lines)) == (expected[0], 1) and lines[0].startswith(expected[1]), (signum, delay, lines)

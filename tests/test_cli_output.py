@@ -91,3 +91,34 @@ def test_piped_output_keeps_whole_lines(tmp_path):
     done = _rigsfm(["export", "out", "--format", "json", "--dest", dest], tmp_path, COLUMNS="")
     assert done.returncode == 0, done.stderr
     assert f"exported json: {dest}" in done.stdout.splitlines(), done.stdout
+
+
+def test_stage_bars_count_time_from_the_stage_start(tmp_path):
+    """Feature extraction and matching report their count only as they finish on small inputs: each stage
+    announces its start (stage, 0, 0), and the bar's clock runs from there."""
+    from rich.progress import Progress
+
+    from rigsfm.cli.common import StageProgress, progress_bars
+    from rigsfm.core.errors import ReconstructionError
+    from rigsfm.run.pipeline import run
+
+    table.inputs(tmp_path)
+    calls = []
+    with pytest.raises(ReconstructionError):  # two 64x48 noise images: no model, after features and matching
+        run(tmp_path / "images", tmp_path / "rigs.yaml", tmp_path / "out",
+            progress=lambda *call: calls.append(call))
+    for stage in ("features", "matching", "mapping"):
+        first = next(call for call in calls if call[0] == stage)
+        assert first[1] == 0, calls
+    assert calls[0] == ("features", 0, 0)
+
+    now = [100.0]
+    bars = progress_bars()
+    progress = Progress(*bars.columns, get_time=lambda: now[0], auto_refresh=False, disable=True)
+    report = StageProgress(progress)
+    report("features", 0, 0)
+    now[0] += 21.0
+    report("features", 12, 12)
+    task = progress.tasks[0]
+    assert (task.completed, task.total) == (12, 12)
+    assert progress.columns[-1].render(task).plain == "0:00:21"

@@ -153,9 +153,13 @@ class StageProgress:
         self.tasks: dict[str, int] = {}
 
     def __call__(self, stage: str, done: int, total: int) -> None:
+        total_or_unknown = total or None  # (stage, 0, 0): the stage started, its total comes later
         if stage not in self.tasks:
-            self.tasks[stage] = self.progress.add_task(stage, total=total)
-        self.progress.update(self.tasks[stage], completed=done, total=total)
+            self.tasks[stage] = self.progress.add_task(stage, total=total_or_unknown)
+        if total_or_unknown is None:
+            self.progress.update(self.tasks[stage], completed=done)
+        else:
+            self.progress.update(self.tasks[stage], completed=done, total=total)
 
 
 def finish(warnings: list[str], strict: bool) -> None:

@@ -410,3 +410,54 @@ def test_every_verb_stops_with_one_line(tmp_path, verb):
             continue  # it had already finished
         expected = (130, "interrupted (Ctrl-C): ") if signum == signal.SIGINT else (143, "terminated (SIGTERM): ")
         assert (code, len(lines)) == (expected[0], 1) and lines[0].startswith(expected[1]), (signum, delay, lines)
+
+
+POOL_SCRIPT = '''
+import signal, sys, time
+
+def wait(seconds, rigid):  # a task holding pycolmap (glog's handlers) in the worker
+    time.sleep(seconds)
+
+def stop(signum, frame):
+    raise KeyboardInterrupt
+
+if __name__ == "__main__":
+    import pycolmap
+    from rigsfm.core.executors import map_unordered
+
+    signal.signal(signal.SIGTERM, stop)
+    try:
+        map_unordered(wait, [600.0] * 4, print, workers=2, shared=(pycolmap.Rigid3d(),))
+    except KeyboardInterrupt:
+        print("stopped", file=sys.stderr)
+'''
+
+
+def test_a_stopped_process_pool_ends_its_workers_at_once(tmp_path):
+    """`rigsfm track`'s local executor: Ctrl-C (SIGINT to the process group) stops the caller at once (it waited
+    for the tasks the workers held) and the workers end without a word (each printed a traceback)."""
+    script = tmp_path / "pool.py"
+    script.write_text(POOL_SCRIPT)
+    process = subprocess.Popen([sys.executable, str(script)], env=_env(), text=True, stdout=subprocess.PIPE,
+                               stderr=subprocess.PIPE, start_new_session=True, preexec_fn=_as_from_a_terminal)
+    def holds_pycolmap(pid: int) -> bool:
+        try:
+            return "pycolmap" in Path(f"/proc/{pid}/maps").read_text(errors="replace")
+        except OSError:
+            return False
+
+    while process.poll() is None and sum(map(holds_pycolmap, _descendants(process.pid))) < 2:
+        time.sleep(0.05)  # until both workers have started and hold pycolmap
+    helpers = _descendants(process.pid)
+    os.killpg(process.pid, signal.SIGINT)
+    try:
+        _, stderr = process.communicate(timeout=120)  # the tasks would take 600 s
+    except subprocess.TimeoutExpired:
+        os.killpg(process.pid, signal.SIGKILL)
+        raise
+    assert stderr.strip() == "stopped", stderr
+    for _ in range(500):
+        if not any(_alive(pid) for pid in helpers):
+            break
+        time.sleep(0.02)
+    assert not [pid for pid in helpers if _alive(pid)]

@@ -433,9 +433,10 @@ if __name__ == "__main__":
 '''
 
 
-def test_a_stopped_process_pool_ends_its_workers_at_once(tmp_path):
-    """`rigsfm track`'s local executor: Ctrl-C (SIGINT to the process group) stops the caller at once (it waited
-    for the tasks the workers held) and the workers end without a word (each printed a traceback)."""
+@pytest.mark.parametrize("signum, group", [(signal.SIGINT, True), (signal.SIGTERM, False)])
+def test_a_stopped_process_pool_ends_its_workers_at_once(tmp_path, signum, group):
+    """`rigsfm track`'s local executor, stopped by Ctrl-C (SIGINT to the process group: each worker printed a
+    traceback) or by `kill PID` (SIGTERM to the caller only: it waited for the tasks its workers held)."""
     script = tmp_path / "pool.py"
     script.write_text(POOL_SCRIPT)
     process = subprocess.Popen([sys.executable, str(script)], env=_env(), text=True, stdout=subprocess.PIPE,
@@ -449,7 +450,7 @@ def test_a_stopped_process_pool_ends_its_workers_at_once(tmp_path):
     while process.poll() is None and sum(map(holds_pycolmap, _descendants(process.pid))) < 2:
         time.sleep(0.05)  # until both workers have started and hold pycolmap
     helpers = _descendants(process.pid)
-    os.killpg(process.pid, signal.SIGINT)
+    (os.killpg if group else os.kill)(process.pid, signum)
     try:
         _, stderr = process.communicate(timeout=120)  # the tasks would take 600 s
     except subprocess.TimeoutExpired:

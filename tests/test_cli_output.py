@@ -122,3 +122,27 @@ def test_stage_bars_count_time_from_the_stage_start(tmp_path):
     task = progress.tasks[0]
     assert (task.completed, task.total) == (12, 12)
     assert progress.columns[-1].render(task).plain == "0:00:21"
+
+
+@pytest.mark.slow
+def test_demo_says_where_its_result_is_and_its_commands_work(tmp_path):
+    """The demo's last lines name OUT/run and the exact view and export commands; the export one runs as printed."""
+    import shlex
+
+    out = tmp_path / "a demo"  # a space: the printed commands quote it
+    done = _rigsfm(["demo", out, "--num-rigs", "4", "--arc-deg", "90", "--image-scale", "0.3"], tmp_path)
+    assert done.returncode == 0, done.stderr
+    lines = done.stdout.splitlines()
+    run = shlex.quote(str(out / "run"))
+    assert f"result: {out / 'run'} (scene: {out / 'scene'}, accuracy against ground truth: {out / 'accuracy.json'})" \
+        in lines
+    assert f"  look at it:  rigsfm view {run}   (without a display: rigsfm view {run} --screenshot view.png)" in lines
+    export = next(line for line in lines if line.startswith("  export it:   rigsfm export "))
+    command = shlex.split(export.split(":", 1)[1].split("   (or")[0])
+    assert command[:2] == ["rigsfm", "export"]
+    exported = _rigsfm(command[1:], tmp_path)
+    assert exported.returncode == 0, exported.stderr
+    assert (out / "run" / "export" / "json").is_dir()
+    # The demo's folder itself, given to view/export/report, names its run/.
+    refused = _rigsfm(["report", out], tmp_path)
+    assert refused.returncode == 1 and f"use {out / 'run'}" in refused.stderr, refused.stderr

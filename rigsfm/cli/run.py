@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import shlex
 from pathlib import Path
 from typing import Annotated, Optional
 
@@ -9,6 +10,7 @@ import typer
 from rich.table import Table
 
 from rigsfm.cli.common import StageProgress, configure_logging, console, fail_cleanly, finish, flag, progress_bars
+from rigsfm.inspect.options import ExportFormat
 from rigsfm.run.options import (GLOBAL_FROM_FRAMES, AdjustOptions, Calibration, Device, Executor, Features, Mapper,
                                  MappingOptions, MatchingOptions, Pairs, RunOptions, WorldFrame, WorldOptions)
 
@@ -206,8 +208,9 @@ def demo_command(
     print_summary(result.run.summary, out / "run")
     print_accuracy(result.accuracy)
     run_dir = out / "run"
-    console.print(f"the result is in {run_dir} (scene: {out / 'scene'}, accuracy: {out / 'accuracy.json'}); "
-                  f"look at it with `rigsfm view {run_dir}` (without a display: `rigsfm view {run_dir} --screenshot "
-                  f"view.png`) or open {result.run.workspace.report}; export it with `rigsfm export {run_dir} --format "
-                  "json` (or colmap-bin, open3d, nerfstudio, opencv, toml)")
+    where = shlex.quote(str(run_dir))
+    console.print(f"result: {run_dir} (scene: {out / 'scene'}, accuracy against ground truth: {out / 'accuracy.json'})")
+    console.print(f"  look at it:  rigsfm view {where}   (without a display: rigsfm view {where} --screenshot view.png)")
+    console.print(f"  report:      {result.run.workspace.report}")
+    console.print(f"  export it:   rigsfm export {where} --format json   (or {', '.join(f for f in ExportFormat if f != 'json')})")
     finish(result.run.summary.warnings, strict)

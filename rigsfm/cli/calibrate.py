@@ -45,5 +45,5 @@ def calibrate_command(
                       f"RMS {rig.narrow.rms:.3f}px, baseline {1000 * float((rig.T ** 2).sum() ** 0.5):.1f} mm, "
                       f"E^sl RMS {f.rms:.3f}px ({'joint' if rig.stereo.use_joint else 'fixed intrinsics'})")
     for warning in result.warnings:
-        err_console.print(styled("warning:", "bold yellow", warning))
+        err_console.print(styled("warning:", "bold yellow", warning), soft_wrap=True)
     console.print(f"wrote {rigs_path} and {report}/")

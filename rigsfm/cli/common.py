@@ -56,12 +56,12 @@ def flag(*names: str, help: str) -> typer.models.OptionInfo:
 
 
 def say_error(message: str) -> None:
-    err_console.print(styled("error:", "bold red", message))
+    err_console.print(styled("error:", "bold red", message), soft_wrap=True)  # one line, however long
 
 
 def say_stopped(signum: int) -> None:
     head, rest = _signals.message(signum)
-    err_console.print(styled(head, "bold red", rest))
+    err_console.print(styled(head, "bold red", rest), soft_wrap=True)
 
 
 def fail_cleanly(command):
@@ -104,7 +104,7 @@ def fail_cleanly(command):
             with tempfile.NamedTemporaryFile("w", prefix="rigsfm-error-", suffix=".txt", delete=False) as f:
                 traceback.print_exc(file=f)
             err_console.print(styled("internal error:", "bold red", f"{type(error).__name__}: {error} "
-                                     f"(traceback in {f.name}; please report it)"))
+                                     f"(traceback in {f.name}; please report it)"), soft_wrap=True)
             raise typer.Exit(EXIT_INTERNAL) from None
         finally:
             _signals.hold_back()
@@ -165,7 +165,7 @@ class StageProgress:
 def finish(warnings: list[str], strict: bool) -> None:
     """Print the warnings; under ``--strict`` any warning makes the exit code non-zero (4)."""
     for warning in warnings:
-        console.print(styled("warning:", "bold yellow", warning))
+        console.print(styled("warning:", "bold yellow", warning), soft_wrap=True)
     if strict and warnings:
         err_console.print(styled(f"{len(warnings)} warning(s)", "bold red", f"and --strict: exit code {EXIT_WARNINGS}"))
         raise typer.Exit(EXIT_WARNINGS)

@@ -28,8 +28,9 @@ def view_command(
         "--screenshot", help="render the view headless into this PNG instead of opening a window (no display "
                              "needed)  [default: open a window; needs a display]", show_default=False)] = None,
 ) -> None:
-    """Show the network in an Open3D window: points, wide (blue) and narrow (orange) frustums, rig links. The
-    window needs a display; --screenshot renders a PNG without one."""
+    """Show the network in an Open3D window: points, wide (blue) and narrow (orange) frustums, each rig's
+    wide-narrow link (green; a point when the baseline is centimetres) and the world axes (red x, green y, blue z).
+    The window needs a display; --screenshot renders a PNG without one."""
     from rigsfm.inspect.viewer import screenshot, show
 
     if screenshot_path is not None:

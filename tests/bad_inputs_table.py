@@ -295,6 +295,8 @@ CASES = [
          with_rigs_text(lambda text: text + ("# " + "x" * 1022 + "\n") * (40 * 1024))),
     # --- images
     Case("the image folder misspelt", "nothing is written", lambda root: (inputs(root), ["run", "image", *RUN[2:]])[1]),
+    Case("an image folder named with brackets (`img[/]x`) that does not exist", "nothing is written",
+         lambda root: (inputs(root), ["run", "img[/]x", *RUN[2:]])[1]),
     Case("a folder under IMAGES that is not a rig of rigs.yaml", "nothing is written",
          with_images(lambda images: shutil.copytree(images / "rig02", images / "rig03"))),
     Case("a rig of rigs.yaml without its folder", "nothing is written",
@@ -310,6 +312,9 @@ CASES = [
     Case("a narrow image without its wide image", "nothing is written",
          with_images(lambda images: (images / "rig02" / "narrow" / "f0.png").rename(
              images / "rig02" / "narrow" / "f1.png"))),
+    Case("a narrow image named with brackets (`frame[cam].png`) without its wide image", "nothing is written",
+         with_images(lambda images: (images / "rig02" / "narrow" / "f0.png").rename(
+             images / "rig02" / "narrow" / "frame[cam].png"))),
     Case("images directly in IMAGES/ instead of IMAGES/<rig>/<sensor>/", "nothing is written",
          with_images(lambda images: shutil.copy(images / "rig01" / "wide" / "f0.png", images / "f0.png"))),
     Case("a rig without a narrow folder (a warning: the run goes on and exits 0 when it finishes; this table's "
@@ -330,6 +335,8 @@ CASES = [
          with_scale({"known_length": [{"meters": 2.0, "observations": [
              {"image": "rig01/wide/f0.png", "a": [10, 10], "b": [20, 12]},
              {"image": "rig02/wide/f0.png", "a": [30, 20], "b": [30, 20]}]}]})),
+    Case("a distance in scale.yaml that is not a number (`meters: \"[/]\"`)", "nothing is written",
+         with_scale({"camera_distance": [{"a": "rig01/wide", "b": "rig02/wide", "meters": "[/]"}]})),
     Case("a misspelt key in scale.yaml (`camera_distances`)", "nothing is written",
          with_scale({"camera_distances": [{"a": "rig01/wide", "b": "rig02/wide", "meters": 12.0}]})),
     Case("`camera_distance` given twice in scale.yaml", "nothing is written",
@@ -363,6 +370,8 @@ CASES = [
          lambda root: ["demo", "demo", "--image-scale", "0.05"]),
     Case("`track --translation-threshold-mm inf`", "nothing is written",
          on_workspace(lambda out: None, ["track", "out", "images", "--translation-threshold-mm", "inf"])),
+    Case("`--device cuda` with pycolmap's CPU build", "nothing is written",
+         lambda root: (inputs(root), [*RUN, "--device", "cuda"])[1]),
     # --- the workspace
     Case("`--out` a folder with other files in it", "the folder is untouched",
          lambda root: (inputs(root), (root / "out").mkdir(), (root / "out" / "thesis.tex").write_text("x"), RUN)[3]),
@@ -386,6 +395,9 @@ CASES = [
     Case("`export --dest` a folder with other files", "the folder is untouched",
          on_workspace(lambda out: (out.parent / "notes").mkdir() or (out.parent / "notes" / "a.txt").write_text("x"),
                       ["export", "out", "--format", "json", "--dest", "notes", "--overwrite"])),
+    Case("`rigsfm export` given a demo's folder instead of its run/", "nothing is written",
+         on_workspace(lambda out: (out.parent / "demo").mkdir() or out.rename(out.parent / "demo" / "run"),
+                      ["export", "demo", "--format", "json"])),
     Case("`rigsfm report` on a folder without a result", "nothing is written",
          lambda root: (inputs(root), ["report", "images"])[1]),
     Case("a truncated `sparse/images.bin`", "nothing is written",
@@ -414,7 +426,7 @@ def first_message(output: str, warning: str = "") -> str:
         found = [line for line in lines if line.startswith(prefix)]
         if found:
             return found[0]
-    usage = [line.strip("│ ").strip() for line in lines if "Invalid value" in line]
+    usage = [line.strip("│ ").strip().removeprefix("Error: ") for line in lines if "Invalid value" in line]
     return usage[0] if usage else (lines[-1] if lines else "")
 
 

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 import os
 import signal
 import subprocess
@@ -319,3 +320,145 @@ def test_stages_in_a_child_give_the_same_result_as_in_process(scene, reference, 
     # Every number of summary.json and narrow_poses.json, to rounding: the floor fit differs in its last digits
     # (rms 0.007947384508614944 against ...615355), as a floating-point sum does with another memory layout.
     assert _differences(_results(reference), _results(tmp_path / "in_process")) == []
+
+
+# --- signals at any moment, every verb ---------------------------------------------------------------------------
+
+
+def _catches_sigterm(pid: int) -> bool:
+    """Whether the process has a handler for SIGTERM (rigsfm's is installed as its command starts)."""
+    try:
+        status = Path(f"/proc/{pid}/status").read_text()
+    except OSError:
+        return False
+    caught = int(re.search(r"^SigCgt:\s*([0-9a-f]+)$", status, re.M).group(1), 16)
+    return bool(caught >> (signal.SIGTERM - 1) & 1)
+
+
+def _stop(args: list[str], cwd: Path, signum: int, delay: float, ready: str = "") -> tuple[int, list[str], str]:
+    """Start ``rigsfm ARGS``, send ``signum`` to its process group ``delay`` s after its handler is in place (or
+    once its output shows ``ready``); returns the exit code, its error lines (log warnings left out) and its
+    output."""
+    process = subprocess.Popen([sys.executable, "-m", "rigsfm", *args], cwd=cwd, env=_env(), text=True,
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, start_new_session=True,
+                               preexec_fn=_as_from_a_terminal)
+    while process.poll() is None and not _catches_sigterm(process.pid):
+        time.sleep(0.002)
+    time.sleep(delay)
+    shown = ""
+    while ready and ready not in shown and process.poll() is None:
+        shown += process.stdout.readline()
+    helpers = _descendants(process.pid)
+    os.killpg(process.pid, signum)
+    stdout, stderr = process.communicate(timeout=60)
+    for _ in range(500):
+        if not any(_alive(pid) for pid in helpers):
+            break
+        time.sleep(0.02)
+    assert not [pid for pid in helpers if _alive(pid)], "processes left running after the command ended"
+    lines = [line for line in stderr.splitlines() if line.strip() and not line.startswith("WARNING")]
+    return process.returncode, lines, shown + stdout
+
+
+# From the handler's first instant through the imports (pycolmap's at ~0.2-0.6 s, glog's handler), the forkserver's
+# start and the first stages of a small run (features, matching, mapping: ~3 s in all).
+MOMENTS = (0.0, 0.1, 0.25, 0.4, 0.55, 0.7, 0.9, 1.2, 1.6, 2.0)
+
+
+@pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM])
+def test_a_signal_at_any_moment_gives_one_line(tmp_path, signum):
+    sys.path.insert(0, str(ROOT / "tests"))
+    import bad_inputs_table
+
+    bad_inputs_table.inputs(tmp_path)
+    expected = (130, "interrupted (Ctrl-C): ") if signum == signal.SIGINT else (143, "terminated (SIGTERM): ")
+    for k, delay in enumerate(MOMENTS):
+        code, lines, _ = _stop(["run", "images", "--rigs", "rigs.yaml", "--out", f"out{k}"], tmp_path, signum, delay)
+        if code == 1 and lines and lines[-1].startswith("error: the mapper registered no wide images"):
+            continue  # the small run had already ended (its images share no matches): nothing to stop
+        assert (code, len(lines)) == (expected[0], 1) and lines[0].startswith(expected[1]), (delay, code, lines)
+        assert "re-run the same command" in lines[0]
+
+
+def test_ctrl_c_ends_pick_with_where_the_pairs_are(tmp_path):
+    sys.path.insert(0, str(ROOT / "tests"))
+    import bad_inputs_table
+
+    bad_inputs_table.inputs(tmp_path)
+    args = ["pick", "images/rig01/wide/f0.png", "images/rig02/wide/f0.png", "--out", "m.csv"]
+    code, lines, stdout = _stop(args, tmp_path, signal.SIGINT, 0.0, ready="Ctrl-C to stop")  # how it stops
+    assert (code, lines) == (0, []), lines
+    assert stdout.splitlines()[-1] == "stopped: 0 pairs in m.csv (for `rigsfm run ... --manual-matches m.csv`)"
+    code, lines, _ = _stop(args, tmp_path, signal.SIGTERM, 0.0, ready="Ctrl-C to stop")
+    assert code == 143 and len(lines) == 1 and lines[0].startswith("terminated (SIGTERM): "), lines
+
+
+@pytest.mark.parametrize("verb", ["calibrate", "report", "view", "export", "track", "demo"])
+def test_every_verb_stops_with_one_line(tmp_path, verb):
+    """The other verbs, stopped while they start (imports, pycolmap's among them)."""
+    sys.path.insert(0, str(ROOT / "tests"))
+    import bad_inputs_table
+
+    bad_inputs_table.workspace(tmp_path)
+    (tmp_path / "board.yaml").write_text("type: chessboard\ninner_corners: [9, 6]\nsquare: 0.025\n")
+    args = {"calibrate": ["images", "--board", "board.yaml", "--out", "r.yaml"], "report": ["out"],
+            "view": ["out", "--screenshot", "v.png"], "export": ["out", "--format", "json", "--overwrite"],
+            "track": ["out", "images"], "demo": ["demo", "--num-rigs", "2", "--image-scale", "0.1"]}[verb]
+    for signum, delay in ((signal.SIGINT, 0.0), (signal.SIGTERM, 0.0), (signal.SIGINT, 0.3), (signal.SIGTERM, 0.3)):
+        code, lines, _ = _stop([verb, *args], tmp_path, signum, delay)
+        if code in (0, 1) and (not lines or lines[-1].startswith("error: ")):
+            continue  # it had already finished
+        expected = (130, "interrupted (Ctrl-C): ") if signum == signal.SIGINT else (143, "terminated (SIGTERM): ")
+        assert (code, len(lines)) == (expected[0], 1) and lines[0].startswith(expected[1]), (signum, delay, lines)
+
+
+POOL_SCRIPT = '''
+import signal, sys, time
+
+def wait(seconds, rigid):  # a task holding pycolmap (glog's handlers) in the worker
+    time.sleep(seconds)
+
+def stop(signum, frame):
+    raise KeyboardInterrupt
+
+if __name__ == "__main__":
+    import pycolmap
+    from rigsfm.core.executors import map_unordered
+
+    signal.signal(signal.SIGTERM, stop)
+    try:
+        map_unordered(wait, [600.0] * 4, print, workers=2, shared=(pycolmap.Rigid3d(),))
+    except KeyboardInterrupt:
+        print("stopped", file=sys.stderr)
+'''
+
+
+@pytest.mark.parametrize("signum, group", [(signal.SIGINT, True), (signal.SIGTERM, False)])
+def test_a_stopped_process_pool_ends_its_workers_at_once(tmp_path, signum, group):
+    """`rigsfm track`'s local executor, stopped by Ctrl-C (SIGINT to the process group: each worker printed a
+    traceback) or by `kill PID` (SIGTERM to the caller only: it waited for the tasks its workers held)."""
+    script = tmp_path / "pool.py"
+    script.write_text(POOL_SCRIPT)
+    process = subprocess.Popen([sys.executable, str(script)], env=_env(), text=True, stdout=subprocess.PIPE,
+                               stderr=subprocess.PIPE, start_new_session=True, preexec_fn=_as_from_a_terminal)
+    def holds_pycolmap(pid: int) -> bool:
+        try:
+            return "pycolmap" in Path(f"/proc/{pid}/maps").read_text(errors="replace")
+        except OSError:
+            return False
+
+    while process.poll() is None and sum(map(holds_pycolmap, _descendants(process.pid))) < 2:
+        time.sleep(0.05)  # until both workers have started and hold pycolmap
+    helpers = _descendants(process.pid)
+    (os.killpg if group else os.kill)(process.pid, signum)
+    try:
+        _, stderr = process.communicate(timeout=120)  # the tasks would take 600 s
+    except subprocess.TimeoutExpired:
+        os.killpg(process.pid, signal.SIGKILL)
+        raise
+    assert stderr.strip() == "stopped", stderr
+    for _ in range(500):
+        if not any(_alive(pid) for pid in helpers):
+            break
+        time.sleep(0.02)
+    assert not [pid for pid in helpers if _alive(pid)]

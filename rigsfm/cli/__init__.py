@@ -6,25 +6,42 @@ it runs), so ``rigsfm --help`` answers at once.
 
 from __future__ import annotations
 
-import typer
+from rigsfm.cli import _signals
 
-from rigsfm.cli.calibrate import calibrate_command
-from rigsfm.cli.inspect import export_command, report_command, view_command
-from rigsfm.cli.pick import pick_command
-from rigsfm.cli.run import demo_command, run_command
-from rigsfm.cli.track import track_command
+if _signals.is_the_command():
+    _signals.install()  # before anything else: a signal at any moment gives rigsfm's one line
 
-app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False,
+import typer  # noqa: E402
+
+from rigsfm.cli.calibrate import calibrate_command  # noqa: E402
+from rigsfm.cli.inspect import export_command, report_command, view_command  # noqa: E402
+from rigsfm.cli.pick import pick_command  # noqa: E402
+from rigsfm.cli.run import demo_command, run_command  # noqa: E402
+from rigsfm.cli.track import track_command  # noqa: E402
+
+
+
+class Command(typer.core.TyperCommand):
+    """Usage lines name arguments as their help does (``IMAGES``, not ``{IMAGES}``)."""
+
+    def collect_usage_pieces(self, ctx) -> list[str]:
+        return [piece[1:-1] if piece.startswith("{") and piece.endswith("}") else piece
+                for piece in super().collect_usage_pieces(ctx)]
+
+
+# Click's plain help (not Rich's boxes): at 80 columns Rich's table cut option names and wrapped the
+# descriptions at ~15 characters.
+app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False, rich_markup_mode=None,
                   context_settings={"help_option_names": ["-h", "--help"]})
 
-app.command("calibrate")(calibrate_command)
-app.command("run")(run_command)
-app.command("report")(report_command)
-app.command("view")(view_command)
-app.command("export")(export_command)
-app.command("pick")(pick_command)
-app.command("track")(track_command)
-app.command("demo")(demo_command)
+app.command("calibrate", cls=Command)(calibrate_command)
+app.command("run", cls=Command)(run_command)
+app.command("report", cls=Command)(report_command)
+app.command("view", cls=Command)(view_command)
+app.command("export", cls=Command)(export_command)
+app.command("pick", cls=Command)(pick_command)
+app.command("track", cls=Command)(track_command)
+app.command("demo", cls=Command)(demo_command)
 
 
 @app.callback()

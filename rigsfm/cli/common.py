@@ -17,25 +17,38 @@ import traceback
 import typer
 from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+from rich.text import Text
 
-console = Console()
-err_console = Console(stderr=True)
-
-EXIT_ERROR, EXIT_INTERNAL, EXIT_WARNINGS, EXIT_INTERRUPTED, EXIT_TERMINATED = 1, 3, 4, 130, 143
-
-
-class Terminated(BaseException):
-    """SIGTERM, raised in the main thread like KeyboardInterrupt so the same cleanup runs."""
+from rigsfm.cli import _signals
+from rigsfm.cli._signals import EXIT_INTERRUPTED, EXIT_TERMINATED, Terminated  # noqa: F401  (re-exported)
 
 
-def _raise_terminated(signum, frame) -> None:
-    raise Terminated()
+class _Console(Console):
+    """Plain text, never Rich markup: messages hold user names and paths (``frame[cam].png``, ``[/]``) that
+    markup would eat or choke on; styles come from :func:`styled`. Output that is not a terminal keeps each
+    line whole (no wrapping at an assumed 80 columns), so scripts and logs can grep it."""
+
+    def __init__(self, **kwargs):
+        super().__init__(markup=False, highlight=False, **kwargs)
+
+    @property
+    def soft_wrap(self) -> bool:  # looked up at each print: the stream may be swapped (tests, redirection)
+        return not self.is_terminal
+
+    @soft_wrap.setter
+    def soft_wrap(self, value: bool) -> None:
+        pass
 
 
-def _import_native_libraries() -> None:
-    """pycolmap's import (glog's failure handler) takes SIGTERM over, printing a C stack trace and no message;
-    imported before ``fail_cleanly`` sets its handler, it cannot (0.2 s, which most commands spend anyway)."""
-    import pycolmap  # noqa: F401
+console = _Console()
+err_console = _Console(stderr=True)
+
+EXIT_ERROR, EXIT_INTERNAL, EXIT_WARNINGS = 1, 3, 4
+
+
+def styled(head: str, style: str, rest: str) -> Text:
+    """``head`` in ``style``, then ``rest`` verbatim."""
+    return Text.assemble((head, style), " ", rest)
 
 
 def flag(*names: str, help: str) -> typer.models.OptionInfo:
@@ -44,7 +57,12 @@ def flag(*names: str, help: str) -> typer.models.OptionInfo:
 
 
 def say_error(message: str) -> None:
-    err_console.print(f"[bold red]error:[/] {message}", highlight=False, soft_wrap=True)
+    err_console.print(styled("error:", "bold red", message), soft_wrap=True)  # one line, however long
+
+
+def say_stopped(signum: int) -> None:
+    head, rest = _signals.message(signum)
+    err_console.print(styled(head, "bold red", rest), soft_wrap=True)
 
 
 def fail_cleanly(command):
@@ -56,35 +74,41 @@ def fail_cleanly(command):
         from rigsfm.core.errors import RigsfmError
         from rigsfm.core.workspace import os_error_text
 
-        _import_native_libraries()  # first: their import replaces the SIGTERM handler
-        previous = signal.signal(signal.SIGTERM, _raise_terminated)
         try:
-            return command(*args, **kwargs)
-        except RigsfmError as error:
-            say_error(str(error))
-            raise typer.Exit(EXIT_ERROR) from None
-        except KeyboardInterrupt:
-            err_console.print("[bold red]interrupted[/] (Ctrl-C): nothing finished was lost; re-run the same command "
-                              "to resume", soft_wrap=True)
-            raise typer.Exit(EXIT_INTERRUPTED) from None
-        except Terminated:
-            err_console.print("[bold red]terminated[/] (SIGTERM): nothing finished was lost; re-run the same command "
-                              "to resume", soft_wrap=True)
-            raise typer.Exit(EXIT_TERMINATED) from None
-        except OSError as error:  # disk full, read-only, permission: the user's to fix, with the path
-            where = f"{error.filename}: " if error.filename else ""
-            say_error(f"{where}{os_error_text(error)}; {os_error_advice(error)}")
-            raise typer.Exit(EXIT_ERROR) from None
+            with _signals.raising():
+                _signals.import_native()
+                return command(*args, **kwargs)
         except typer.Exit:
             raise
-        except Exception as error:  # a bug, not the user's input: one line, the traceback in a file
+        except BaseException as error:
+            # After a signal, whatever comes out is the stop: a library may have wrapped the KeyboardInterrupt
+            # (ImportError, RuntimeError) or failed because of it.
+            signum = _signals.received()
+            if signum is None and isinstance(error, (KeyboardInterrupt, Terminated)):
+                signum = signal.SIGINT if isinstance(error, KeyboardInterrupt) else signal.SIGTERM
+            if signum is not None:
+                if "rigsfm.core.stages" in sys.modules:
+                    sys.modules["rigsfm.core.stages"].stop()
+                _signals.forget_unhandled_interrupt()
+                say_stopped(signum)
+                raise typer.Exit(_signals.exit_code(signum)) from None
+            if isinstance(error, RigsfmError):
+                say_error(str(error))
+                raise typer.Exit(EXIT_ERROR) from None
+            if isinstance(error, OSError):  # disk full, read-only, permission: the user's to fix, with the path
+                where = f"{error.filename}: " if error.filename else ""
+                say_error(f"{where}{os_error_text(error)}; {os_error_advice(error)}")
+                raise typer.Exit(EXIT_ERROR) from None
+            if not isinstance(error, Exception):  # SystemExit and the like: not ours to reword
+                raise
+            # A bug, not the user's input: one line, the traceback in a file.
             with tempfile.NamedTemporaryFile("w", prefix="rigsfm-error-", suffix=".txt", delete=False) as f:
                 traceback.print_exc(file=f)
-            err_console.print(f"[bold red]internal error:[/] {type(error).__name__}: {error} "
-                              f"(traceback in {f.name}; please report it)", highlight=False, soft_wrap=True)
+            err_console.print(styled("internal error:", "bold red", f"{type(error).__name__}: {error} "
+                                     f"(traceback in {f.name}; please report it)"), soft_wrap=True)
             raise typer.Exit(EXIT_INTERNAL) from None
         finally:
-            signal.signal(signal.SIGTERM, previous)
+            _signals.hold_back()
 
     return wrapper
 
@@ -107,9 +131,15 @@ def configure_logging(verbose: bool) -> None:
     """rigsfm's own log on the terminal (warnings, or everything with -v); COLMAP's goes to OUT/colmap.log."""
     from rich.logging import RichHandler
 
-    handler = RichHandler(console=_log_console(), level=logging.INFO if verbose else logging.WARNING,
-                          show_path=False, show_time=False)
-    logging.basicConfig(level=logging.INFO, handlers=[handler], format="%(message)s", force=True)
+    level = logging.INFO if verbose else logging.WARNING
+    console = _log_console()
+    if console.is_terminal:
+        handler = RichHandler(console=console, level=level, show_path=False, show_time=False)
+    else:  # one whole line per record where it is read by a program or a file
+        handler = logging.StreamHandler(console.file)
+        handler.setLevel(level)
+        handler.setFormatter(logging.Formatter("%(levelname)-8s %(message)s"))  # as RichHandler shows it
+    logging.basicConfig(level=logging.INFO, handlers=[handler], force=True)
 
 
 _LOG_CONSOLE: list[Console] = []
@@ -142,16 +172,20 @@ class StageProgress:
         self.tasks: dict[str, int] = {}
 
     def __call__(self, stage: str, done: int, total: int) -> None:
+        total_or_unknown = total or None  # (stage, 0, 0): the stage started, its total comes later
         if stage not in self.tasks:
-            self.tasks[stage] = self.progress.add_task(stage, total=total)
-        self.progress.update(self.tasks[stage], completed=done, total=total)
+            self.tasks[stage] = self.progress.add_task(stage, total=total_or_unknown)
+        if total_or_unknown is None:
+            self.progress.update(self.tasks[stage], completed=done)
+        else:
+            self.progress.update(self.tasks[stage], completed=done, total=total)
 
 
 def finish(warnings: list[str], strict: bool) -> None:
     """Print the warnings; under ``--strict`` any warning makes the exit code non-zero (4)."""
     for warning in warnings:
-        console.print(f"[bold yellow]warning:[/] {warning}", highlight=False, soft_wrap=True)
+        console.print(styled("warning:", "bold yellow", warning), soft_wrap=True)
     if strict and warnings:
-        err_console.print(f"[bold red]{len(warnings)} warning(s)[/] and --strict: exit code {EXIT_WARNINGS}")
+        err_console.print(styled(f"{len(warnings)} warning(s)", "bold red", f"and --strict: exit code {EXIT_WARNINGS}"))
         raise typer.Exit(EXIT_WARNINGS)
 

@@ -10,7 +10,7 @@ import typer
 from rigsfm.cli.common import console, fail_cleanly, flag
 from rigsfm.inspect.options import ExportFormat, ExportOptions
 
-WORKSPACE = typer.Argument(help="workspace folder of a finished `rigsfm run`", show_default=False)
+WORKSPACE = typer.Argument(metavar="OUT", help="workspace folder of a finished `rigsfm run`", show_default=False)
 
 
 @fail_cleanly
@@ -25,11 +25,12 @@ def report_command(out: Annotated[Path, WORKSPACE]) -> None:
 def view_command(
     out: Annotated[Path, WORKSPACE],
     screenshot_path: Annotated[Optional[Path], typer.Option(
-        "--screenshot", help="render the view headless into this PNG instead of opening a window [default: open a "
-                             "window; needs a display]", show_default=False)] = None,
+        "--screenshot", help="render the view headless into this PNG instead of opening a window (no display "
+                             "needed)  [default: open a window; needs a display]", show_default=False)] = None,
 ) -> None:
-    """Show the network in Open3D (needs a display): points, wide (blue) and narrow (orange) frustums, each rig's
-    wide-narrow link (green; a point when the baseline is centimetres) and the world axes (red x, green y, blue z)."""
+    """Show the network in an Open3D window: points, wide (blue) and narrow (orange) frustums, each rig's
+    wide-narrow link (green; a point when the baseline is centimetres) and the world axes (red x, green y, blue z).
+    The window needs a display; --screenshot renders a PNG without one."""
     from rigsfm.inspect.viewer import screenshot, show
 
     if screenshot_path is not None:
@@ -43,7 +44,7 @@ def export_command(
     out: Annotated[Path, WORKSPACE],
     fmt: Annotated[ExportFormat, typer.Option("--format", help="what to write", show_default=False)],
     dest: Annotated[Optional[Path], typer.Option(
-        "--dest", help="folder to write [default: OUT/export/FORMAT]; a new or empty one, or an earlier export",
+        "--dest", help="folder to write: a new or empty one, or an earlier export  [default: OUT/export/FORMAT]",
         show_default=False)] = None,
     overwrite: Annotated[bool, flag("--overwrite", help="replace an earlier export in DEST (only the files rigsfm "
                                                         "wrote there are removed)")] = False,

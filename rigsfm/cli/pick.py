@@ -13,27 +13,28 @@ from rigsfm.cli.common import console, fail_cleanly
 
 @fail_cleanly
 def pick_command(
-    image_a: Annotated[Path, typer.Argument(help="first wide image, IMAGES/<rig>/wide/<file>", show_default=False)],
-    image_b: Annotated[Path, typer.Argument(help="second wide image", show_default=False)],
+    image_a: Annotated[Path, typer.Argument(metavar="IMAGE_A", help="first wide image, IMAGES/<rig>/wide/<file>", show_default=False)],
+    image_b: Annotated[Path, typer.Argument(metavar="IMAGE_B", help="second wide image", show_default=False)],
     out: Annotated[Path, typer.Option("--out", help="CSV to write (and to resume from if it exists)",
                                       show_default=False)],
     rigs: Annotated[Optional[Path], typer.Option(
-        "--rigs", help="rigs.yaml: epipolar curves through the calibrated lenses [default: straight lines from the "
+        "--rigs", help="rigs.yaml: epipolar curves through the calibrated lenses  [default: straight lines from the "
                        "pixels]", show_default=False)] = None,
-    port: Annotated[int, typer.Option("--port", min=0, max=65535, help="port on 127.0.0.1; 0 picks a free one")] = 0,
-    flag_px: Annotated[float, typer.Option("--flag-px", min=0.0,
+    port: Annotated[int, typer.Option("--port", min=0, max=65535, metavar="PORT", help="port on 127.0.0.1; 0 picks a free one")] = 0,
+    flag_px: Annotated[float, typer.Option("--flag-px", min=0.0, metavar="PX",
                                            help="flag pairs farther than this from their epipolar line (px)")] = 4.0,
 ) -> None:
     """Pick correspondences between two wide images in the browser (for run --manual-matches)."""
     from rigsfm.pick.server import start_picker
 
     server = start_picker(image_a, image_b, out, rigs, port, flag_px)
-    console.print(
-        f"picker for {server.session.images[0].name} <-> {server.session.images[1].name}: "
-        f"open [bold]{server.url}[/] (saves to {out} on every change); Ctrl-C to stop"
-    )
     try:
+        console.print(f"picker for {server.session.images[0].name} <-> {server.session.images[1].name}: "
+                      f"open {server.url} (saves to {out} on every change); Ctrl-C to stop")
         threading.Event().wait()
+    except KeyboardInterrupt:  # Ctrl-C is how the picker is meant to stop: done, not interrupted
+        pass
     finally:
         server.close()
-        console.print(f"{len(server.session.pairs)} pairs in {out}")
+    console.print(f"stopped: {len(server.session.pairs)} pairs in {out} (for `rigsfm run ... --manual-matches "
+                  f"{out}`)")

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import shlex
 from pathlib import Path
 from typing import Annotated, Optional
 
@@ -9,6 +10,7 @@ import typer
 from rich.table import Table
 
 from rigsfm.cli.common import StageProgress, configure_logging, console, fail_cleanly, finish, flag, progress_bars
+from rigsfm.inspect.options import ExportFormat
 from rigsfm.run.options import (GLOBAL_FROM_FRAMES, AdjustOptions, Calibration, Device, Executor, Features, Mapper,
                                  MappingOptions, MatchingOptions, Pairs, RunOptions, WorldFrame, WorldOptions)
 
@@ -72,18 +74,18 @@ def print_manual_matches(report: dict) -> None:
             error = "-" if row["epipolar_error_px"] is None else f"{row['epipolar_error_px']:.1f} px"
             console.print(f"  rejected line {row['line']}: {pair['image_a']} ({row['xy_a'][0]:.1f}, "
                           f"{row['xy_a'][1]:.1f}) <-> {pair['image_b']} ({row['xy_b'][0]:.1f}, {row['xy_b'][1]:.1f}),"
-                          f" epipolar error {error}", highlight=False)
+                          f" epipolar error {error}")
 
 
 @fail_cleanly
 def run_command(
-    images: Annotated[Path, typer.Argument(help="image folder: IMAGES/<rig>/<wide|narrow>/<frame file>",
+    images: Annotated[Path, typer.Argument(metavar="IMAGES", help="image folder: IMAGES/<rig>/<wide|narrow>/<frame file>",
                                            show_default=False)],
     rigs: Annotated[Path, typer.Option("--rigs", help="rigs.yaml: intrinsics and narrow_from_wide per rig",
                                        show_default=False)],
     out: Annotated[Path, typer.Option("--out", help="output workspace folder", show_default=False)],
     scale: Annotated[Optional[Path], typer.Option(
-        "--scale", help="scale.yaml: rangefinder distances and known lengths [default: none, the result is not "
+        "--scale", help="scale.yaml: rangefinder distances and known lengths  [default: none, the result is not "
                         "metric]", show_default=False)] = None,
     mapper: Annotated[Mapper, typer.Option("--mapper", help=MAPPER_HELP)] = Mapper.AUTO,
     narrow_features: Annotated[bool, flag("--narrow-features", help="also extract and match features in the narrow "
@@ -92,16 +94,16 @@ def run_command(
                                                                   "changes between rigs (slower)")] = Features.SIFT,
     manual_matches: Annotated[Optional[Path], typer.Option(
         "--manual-matches", help="CSV image_a,x_a,y_a,image_b,x_b,y_b of hand-picked correspondences between wide "
-                                 "images (COLMAP pixels; see `rigsfm pick`) [default: none]", show_default=False)] = None,
-    max_ratio: Annotated[float, typer.Option("--max-ratio", help="Lowe's ratio test threshold of the SIFT matching, "
+                                 "images (COLMAP pixels; see `rigsfm pick`)  [default: none]", show_default=False)] = None,
+    max_ratio: Annotated[float, typer.Option("--max-ratio", metavar="RATIO", help="Lowe's ratio test threshold of the SIFT matching, "
                                                                  "in (0, 1]")] = 0.8,
     cross_check: Annotated[bool, typer.Option("--cross-check/--no-cross-check",
                                               help="keep only mutual nearest-neighbour matches")] = True,
     rig_verification: Annotated[Optional[bool], typer.Option(
         "--rig-verification/--no-rig-verification",
-        help="verify matches of two frames with both rigs' cameras at once [default: on, off with --narrow-features]",
+        help="verify matches of two frames with both rigs' cameras at once  [default: on, off with --narrow-features]",
         show_default=False)] = None,
-    seed: Annotated[int, typer.Option("--seed", help="random seed of the mapper's RANSAC and sampling")] = 0,
+    seed: Annotated[int, typer.Option("--seed", metavar="N", help="random seed of the mapper's RANSAC and sampling")] = 0,
     incremental_time_limit: Annotated[int, typer.Option(
         "--incremental-time-limit", min=0, metavar="SECONDS",
         help="after this long the incremental mapper stops and the global mapper's model is used (with a warning)"
@@ -110,8 +112,8 @@ def run_command(
         "--world", help="floor: z = 0 on the floor, z up, origin under the rigs' centroid, x towards the first rig; "
                         "mapping: the mapper's frame")] = WorldFrame.FLOOR,
     plane_height: Annotated[Optional[float], typer.Option(
-        "--plane-height", help="also map every narrow image onto the plane this many metres above the floor "
-                               "(e.g. 1.7 for heads) [default: the floor only]", show_default=False)] = None,
+        "--plane-height", metavar="M", help="also map every narrow image onto the plane this many metres above the floor "
+                               "(e.g. 1.7 for heads)  [default: the floor only]", show_default=False)] = None,
     fixed_calibration: Annotated[bool, flag("--fixed-calibration", help="hold rigs.yaml's intrinsics and E^sl "
                                                                         "exactly and fit one scale to scale.yaml "
                                                                         "afterwards, instead of refining them with "
@@ -119,16 +121,16 @@ def run_command(
     pairs: Annotated[Pairs, typer.Option("--pairs", help="image pairs to match: auto (each image's best partners, "
                                                          "found by a cheap first pass) or exhaustive (every pair)")
                      ] = Pairs.AUTO,
-    neighbours: Annotated[int, typer.Option("--neighbours", min=1, help="with --pairs auto: partners of other rigs "
+    neighbours: Annotated[int, typer.Option("--neighbours", min=1, metavar="N", help="with --pairs auto: partners of other rigs "
                                                                         "matched per image")] = 8,
     executor: Annotated[Executor, typer.Option("--executor", help="feature extraction: local (this machine's cores) "
                                                                   "or ray (one task per image on a Ray cluster)")
                         ] = Executor.LOCAL,
     address: Annotated[Optional[str], typer.Option(
-        "--address", help="Ray cluster address, e.g. auto or HEAD:6379 (with --executor ray) [default: start a local "
+        "--address", metavar="ADDRESS", help="Ray cluster address, e.g. auto or HEAD:6379 (with --executor ray)  [default: start a local "
                           "Ray instance]", show_default=False)] = None,
     device: Annotated[Device, typer.Option("--device", help="SIFT on: auto (a CUDA GPU when pycolmap is the CUDA "
-                                                            "build, rigsfm\\[gpu], and one is found), cpu or cuda")
+                                                            "build, rigsfm[gpu], and one is found), cpu or cuda")
                       ] = Device.AUTO,
     overwrite: Annotated[bool, flag("--overwrite", help="replace an existing result in OUT (features and matches "
                                                         "made with the same settings are reused)")] = False,
@@ -184,17 +186,17 @@ def print_accuracy(accuracy: dict) -> None:
 
 @fail_cleanly
 def demo_command(
-    out: Annotated[Path, typer.Argument(help="folder for the rendered scene, the run and accuracy.json",
+    out: Annotated[Path, typer.Argument(metavar="OUT", help="folder for the rendered scene, the run and accuracy.json",
                                         show_default=False)],
-    num_rigs: Annotated[int, typer.Option("--num-rigs", min=2, help="rigs round the arena")] = 8,
-    arc_deg: Annotated[float, typer.Option("--arc-deg", min=1.0, max=360.0,
+    num_rigs: Annotated[int, typer.Option("--num-rigs", min=2, metavar="N", help="rigs round the arena")] = 8,
+    arc_deg: Annotated[float, typer.Option("--arc-deg", min=1.0, max=360.0, metavar="DEG",
                                            help="angular span of the rigs; 360 = full circle")] = 360.0,
-    image_scale: Annotated[float, typer.Option("--image-scale", max=2.0,
+    image_scale: Annotated[float, typer.Option("--image-scale", max=2.0, metavar="FACTOR",
                                                help="image size relative to 1624x1234 (0.5 renders 812x617)")] = 1.0,
     exact_calibration: Annotated[bool, flag("--exact-calibration", help="give the run the exact calibration "
                                                                         "(no calibration errors)")] = False,
     mapper: Annotated[Mapper, typer.Option("--mapper", help=MAPPER_HELP)] = Mapper.AUTO,
-    seed: Annotated[int, typer.Option("--seed", help="seed of the rendered scene and of the mapper")] = 0,
+    seed: Annotated[int, typer.Option("--seed", metavar="N", help="seed of the rendered scene and of the mapper")] = 0,
     overwrite: Annotated[bool, flag("--overwrite", help="replace an earlier demo in OUT")] = False,
     strict: Annotated[bool, STRICT] = False,
 ) -> None:
@@ -212,5 +214,10 @@ def demo_command(
         result = run_demo(out, scene, options, progress=StageProgress(progress))
     print_summary(result.run.summary, out / "run")
     print_accuracy(result.accuracy)
-    console.print(f"scene: {out / 'scene'}   result: {out / 'run'}   accuracy: {out / 'accuracy.json'}")
+    run_dir = out / "run"
+    where = shlex.quote(str(run_dir))
+    console.print(f"result: {run_dir} (scene: {out / 'scene'}, accuracy against ground truth: {out / 'accuracy.json'})")
+    console.print(f"  look at it:  rigsfm view {where}   (without a display: rigsfm view {where} --screenshot view.png)")
+    console.print(f"  report:      {result.run.workspace.report}")
+    console.print(f"  export it:   rigsfm export {where} --format json   (or {', '.join(f for f in ExportFormat if f != 'json')})")
     finish(result.run.summary.warnings, strict)

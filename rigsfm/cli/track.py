@@ -15,19 +15,19 @@ from rigsfm.track.options import Executor, Thresholds, TrackOptions
 
 @fail_cleanly
 def track_command(
-    out: Annotated[Path, typer.Argument(help="workspace of `rigsfm run` (sparse/, database.db)", show_default=False)],
-    new_images: Annotated[Path, typer.Argument(help="NEW_IMAGES/<rig>/<wide|narrow>/<frame file>, many frames",
+    out: Annotated[Path, typer.Argument(metavar="OUT", help="workspace of `rigsfm run` (sparse/, database.db)", show_default=False)],
+    new_images: Annotated[Path, typer.Argument(metavar="NEW_IMAGES", help="NEW_IMAGES/<rig>/<wide|narrow>/<frame file>, many frames",
                                                show_default=False)],
     executor: Annotated[Executor, typer.Option("--executor", help="local (process pool) or ray")] = Executor.LOCAL,
     address: Annotated[Optional[str], typer.Option(
-        "--address", help="Ray cluster address, e.g. auto or ray://HEAD:10001 (with --executor ray) [default: start "
+        "--address", metavar="ADDRESS", help="Ray cluster address, e.g. auto or ray://HEAD:10001 (with --executor ray)  [default: start "
                           "a local Ray instance]", show_default=False)] = None,
-    workers: Annotated[int, typer.Option("--workers", min=1, help="processes (local) / CPUs of a local Ray instance "
-                                                                  "[default: all cores]", show_default=False)] =
+    workers: Annotated[int, typer.Option("--workers", min=1, metavar="N", help="processes (local) / CPUs of a local Ray "
+                                                                         f"instance  [default: all cores, {os.cpu_count() or 1}]", show_default=False)] =
     max(1, os.cpu_count() or 1),
-    rotation_threshold_deg: Annotated[float, typer.Option("--rotation-threshold-deg", min=0.0,
+    rotation_threshold_deg: Annotated[float, typer.Option("--rotation-threshold-deg", min=0.0, metavar="DEG",
                                                           help="flag a rotation change above this")] = 0.05,
-    translation_threshold_mm: Annotated[float, typer.Option("--translation-threshold-mm", min=0.0,
+    translation_threshold_mm: Annotated[float, typer.Option("--translation-threshold-mm", min=0.0, metavar="MM",
                                                             help="flag a centre shift above this")] = 5.0,
     overwrite: Annotated[bool, flag("--overwrite", help="discard earlier results and register every frame again "
                                                         "(required after `rigsfm run --overwrite`)")] = False,

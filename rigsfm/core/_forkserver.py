@@ -1,7 +1,9 @@
 """Imported last by the forkserver of :mod:`rigsfm.core.stages`, only there.
 
 pycolmap's import installs glog's failure handler for SIGTERM, which prints a C stack trace; a forkserver
-terminated with its process group (systemd, Slurm) should just end, as it would without pycolmap.
+terminated with its process group (systemd, Slurm) should just end, as it would without pycolmap. It was started
+with SIGINT and SIGTERM blocked (:func:`rigsfm.core.stages.start`): they are let through here, SIGTERM ending
+it quietly and SIGINT ignored (a terminal's Ctrl-C reaches the whole group: the caller decides).
 
 A child forked here first reads its work from the caller. When the caller is stopped by a signal in the middle of
 ``Process.start`` (it printed its one line and left), the child finds the pipe closed (``EOFError``) or the work
@@ -15,6 +17,8 @@ import signal
 import sys
 
 signal.signal(signal.SIGTERM, signal.SIG_DFL)
+signal.signal(signal.SIGINT, signal.SIG_IGN)
+signal.pthread_sigmask(signal.SIG_UNBLOCK, (signal.SIGINT, signal.SIGTERM))
 
 
 def _caller_left(kind, value) -> bool:

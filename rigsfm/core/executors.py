@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import enum
 import logging
+import signal
 import socket
 from collections.abc import Callable, Iterable, Sequence
 from typing import Any
@@ -41,9 +42,17 @@ RAY_CONNECT_TIMEOUT_S = 10.0
 _WORKER: dict = {}
 
 
+_STOPS = (signal.SIGINT, signal.SIGTERM)
+
+
 def _init_worker(function: Callable, shared: tuple) -> None:
     import cv2
 
+    # Started with SIGINT and SIGTERM blocked (run_local): the caller decides on Ctrl-C and kills the workers; a
+    # SIGTERM to the process group ends a worker quietly, not with glog's stack trace (pycolmap is imported).
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, _STOPS)
     cv2.setNumThreads(1)
     _WORKER["function"], _WORKER["shared"] = function, shared
 
@@ -66,20 +75,32 @@ def run_local(function: Callable, tasks: Sequence, on_result: OnResult, *, worke
         return
     import multiprocessing
     from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+    from multiprocessing import resource_tracker
+
+    resource_tracker.ensure_running()  # first: starting it unblocks SIGINT and SIGTERM in this thread
 
     context = multiprocessing.get_context("spawn")  # no fork of a process holding pycolmap/OpenCV threads
-    with ProcessPoolExecutor(max_workers=min(workers, len(tasks)), mp_context=context,
-                             initializer=_init_worker, initargs=(function, shared)) as pool:
-        pending = {pool.submit(_call_in_worker, task) for task in tasks}
+    pool = ProcessPoolExecutor(max_workers=min(workers, len(tasks)), mp_context=context,
+                               initializer=_init_worker, initargs=(function, shared))
+    try:
+        # The workers are spawned by these submits; they inherit the blocked signals until _init_worker.
+        previous = signal.pthread_sigmask(signal.SIG_BLOCK, _STOPS)
         try:
-            while pending:
-                done, pending = wait(pending, return_when=FIRST_COMPLETED)
-                for future in done:
-                    on_result(future.result())
-        except BaseException:
-            for future in pending:
-                future.cancel()
-            raise
+            pending = {pool.submit(_call_in_worker, task) for task in tasks}
+        finally:
+            signal.pthread_sigmask(signal.SIG_SETMASK, previous)
+        while pending:
+            done, pending = wait(pending, return_when=FIRST_COMPLETED)
+            for future in done:
+                on_result(future.result())
+    except BaseException:
+        # Stopped (Ctrl-C, SIGTERM) or failed: kill the workers now; shutting down would first finish the tasks
+        # they hold. Python 3.11 has no public way to (ProcessPoolExecutor.kill_workers is 3.14's).
+        for process in list((getattr(pool, "_processes", None) or {}).values()):
+            process.kill()
+        pool.shutdown(wait=False, cancel_futures=True)
+        raise
+    pool.shutdown(wait=True)
 
 
 def import_ray():

@@ -82,8 +82,9 @@ copyreg.pickle(pycolmap.Reconstruction, _reduce_reconstruction)
 
 # --- the forkserver ------------------------------------------------------------------------------------------
 
-# rigsfm.core._forkserver last: it undoes what the others' imports did to the forkserver's signal handlers.
-_PRELOAD = ["pycolmap", __name__, "rigsfm.core._forkserver"]
+# rigsfm.core._forkserver right after pycolmap: it undoes glog's SIGTERM handler and lets the signals through, so
+# that a signal during the other (slow) imports ends the server at once.
+_PRELOAD = ["pycolmap", "rigsfm.core._forkserver", __name__]
 _context: multiprocessing.context.ForkServerContext | None = None
 
 
@@ -96,11 +97,30 @@ def start(preload: Iterable[str] = ()) -> None:
         return
     if _context is None:
         _context = multiprocessing.get_context("forkserver")
-    _PRELOAD[-1:-1] = [name for name in preload if name not in _PRELOAD]
+    _PRELOAD.extend(name for name in preload if name not in _PRELOAD)
     _context.set_forkserver_preload(_PRELOAD)
+    from multiprocessing import forkserver, resource_tracker
+
+    resource_tracker.ensure_running()  # first: starting it unblocks SIGINT and SIGTERM in this thread
+    # The server starts with SIGINT and SIGTERM blocked (a new process inherits the mask), so a signal during its
+    # imports neither prints a traceback (SIGINT, before multiprocessing ignores it there) nor glog's stack
+    # (SIGTERM, once pycolmap is imported); rigsfm.core._forkserver unblocks them when its handlers are set.
+    previous = signal.pthread_sigmask(signal.SIG_BLOCK, (signal.SIGINT, signal.SIGTERM))
+    try:
+        forkserver.ensure_running()
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, previous)
+
+
+def stop() -> None:
+    """End the forkserver now (its stage processes die with it): a stopped command need not wait for it to
+    finish its imports, which would hold the command's output pipes open for seconds."""
     from multiprocessing import forkserver
 
-    forkserver.ensure_running()
+    pid = getattr(forkserver._forkserver, "_forkserver_pid", None)
+    if pid is not None:
+        with contextlib.suppress(OSError):
+            os.kill(pid, signal.SIGKILL)
 
 
 # --- the child -----------------------------------------------------------------------------------------------

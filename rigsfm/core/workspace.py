@@ -141,6 +141,10 @@ class Workspace:
         if not self.root.is_dir():
             raise WorkspaceError(f"{self.root} does not exist: run `rigsfm run IMAGES --rigs rigs.yaml --out {self.root}`"
                                  " first")
+        demo_run = Workspace(self.root / "run")
+        if not (self.sparse / "images.bin").is_file() and demo_run.has_result():
+            raise WorkspaceError(f"{self.root} is a `rigsfm demo` folder, whose result is in its run/ folder: use "
+                                 f"{demo_run.root} (e.g. `rigsfm view {demo_run.root}`)")
         if not (self.sparse / "images.bin").is_file():
             raise WorkspaceError(f"{self.root} holds no result ({self.sparse} is missing): run `rigsfm run ... --out "
                                  f"{self.root}` first")

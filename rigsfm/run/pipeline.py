@@ -48,6 +48,7 @@ if TYPE_CHECKING:
 
 logger = logging.getLogger(__name__)
 
+# progress(stage, done, total); (stage, 0, 0) when a stage starts, before its total is known.
 Progress = Callable[[str, int, int], None]
 
 # The heavy stages run in a child process (rigsfm.core.stages: Ctrl-C and SIGTERM stop them at once).
@@ -237,7 +238,12 @@ def run(
 def _run_locked(workspace: Workspace, inputs: Inputs, manual_pairs: dict, options: RunOptions, timings: _Timings,
                 progress: Progress | None) -> RunResult:
     def report(stage: str) -> Callable[[int, int], None] | None:
-        return (lambda done, total: progress(stage, done, total)) if progress else None
+        """The stage's progress callback; called as the stage starts, so that its clock starts there too (its
+        first count may come only at its end)."""
+        if not progress:
+            return None
+        progress(stage, 0, 0)
+        return lambda done, total: progress(stage, done, total)
 
     threads = options.num_threads
     num_wide = sum(e.sensor == "wide" for e in inputs.images)
@@ -245,16 +251,18 @@ def _run_locked(workspace: Workspace, inputs: Inputs, manual_pairs: dict, option
         with timings.stage("database"):
             create_database(workspace.database, inputs.rigs, inputs.images)
         with timings.stage("features"):
+            features_progress = report("features")
             drop_stale_work(workspace.database, workspace.feature_settings, options.matching,
                             resolved_first_octave(workspace.database, inputs.images, options.matching))
             drop_changed_images(workspace.database, workspace.image_contents, inputs.images)
             in_child(extract_features, workspace.database, inputs.image_dir, inputs.images, options.matching,
-                     report("features"), num_threads=threads, executor=options.executor,
+                     features_progress, num_threads=threads, executor=options.executor,
                      address=options.address, workers=options.workers)
         with timings.stage("matching"):
+            matching_progress = report("matching")
             selection = in_child(select_pairs, workspace.database, inputs.images, options.matching)
             in_child(match_features, workspace.database, inputs.images, options.matching, workspace.pairs,
-                     report("matching"), num_threads=threads, selection=selection)
+                     matching_progress, num_threads=threads, selection=selection)
             check_database_kept(workspace.database, inputs.images)
         manual_reports = []
         if manual_pairs:
@@ -262,6 +270,8 @@ def _run_locked(workspace: Workspace, inputs: Inputs, manual_pairs: dict, option
                 manual_reports = add_manual_matches(workspace.database, manual_pairs, options.matching.max_error_px)
         with timings.stage("mapping"):
             done = [0]
+            if progress:
+                progress("mapping", 0, num_wide)
 
             def on_registered() -> None:
                 done[0] += 1

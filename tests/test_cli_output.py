@@ -1,0 +1,148 @@
+"""What the command line prints: messages verbatim (no Rich markup), help readable at 80 columns, whole lines
+when the output is not a terminal, a demo folder pointed to its run/."""
+
+from __future__ import annotations
+
+import os
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import bad_inputs_table as table  # noqa: E402
+
+ROOT = Path(__file__).resolve().parent.parent
+VERBS = ("calibrate", "run", "report", "view", "export", "pick", "track", "demo")
+
+
+def _rigsfm(args, cwd, **env) -> subprocess.CompletedProcess:
+    """``rigsfm ARGS`` as a user runs it, its output piped (not a terminal)."""
+    return subprocess.run([sys.executable, "-m", "rigsfm", *map(str, args)], cwd=cwd, capture_output=True,
+                          text=True, env={**os.environ, "PYTHONPATH": str(ROOT), **env}, timeout=300)
+
+
+def _case(did: str) -> table.Case:
+    return next(case for case in table.CASES if case.did == did)
+
+
+@pytest.mark.parametrize("did, shown", [
+    ("an image folder named with brackets (`img[/]x`) that does not exist", "image folder img[/]x does not exist"),
+    ("a narrow image named with brackets (`frame[cam].png`) without its wide image",
+     "images/rig02/narrow/frame[cam].png has no wide image"),
+    ('a distance in scale.yaml that is not a number (`meters: "[/]"`)', "'meters' must be a number, got '[/]'"),
+    ("`--device cuda` with pycolmap's CPU build", "pip install 'rigsfm[gpu]'"),
+])
+def test_messages_are_printed_verbatim(tmp_path, did, shown):
+    """Brackets in names and advice are text: Rich markup ate ``[cam]`` and ``[gpu]`` and raised MarkupError on
+    ``[/]`` (a traceback instead of the message)."""
+    code, message = table.run_case(_case(did), tmp_path / "case")
+    if "cuda" in did and "built without CUDA" not in message:
+        pytest.skip("pycolmap here is the CUDA build")
+    assert code == 1 and message.startswith("error: ") and shown in message, message
+
+
+def test_a_demo_folder_points_to_its_run(tmp_path):
+    code, message = table.run_case(_case("`rigsfm export` given a demo's folder instead of its run/"), tmp_path / "c")
+    assert code == 1
+    assert message == "error: demo is a `rigsfm demo` folder, whose result is in its run/ folder: use demo/run (e.g. " \
+                      "`rigsfm view demo/run`)"
+    assert not (tmp_path / "c" / "demo" / "export").exists()
+
+
+def _options(help_text: str) -> list[tuple[str, str]]:
+    """(names and metavar, description) of each option in click's help."""
+    block = help_text.split("\nOptions:\n", 1)[1]
+    options: list[list[str]] = []
+    for line in block.splitlines():
+        if re.match(r"^  -", line):
+            name, _, rest = line.strip().partition("  ")
+            options.append([name, rest.strip()])
+        elif line.strip() and options:
+            options[-1][1] += " " + line.strip()
+    return [(name, text) for name, text in options]
+
+
+@pytest.mark.parametrize("verb", VERBS)
+def test_help_at_80_columns(tmp_path, verb):
+    done = _rigsfm([verb, "--help"], tmp_path, COLUMNS="80")
+    assert done.returncode == 0, done.stderr
+    text = done.stdout
+    assert "…" not in text and "<bool>" not in text and " range>" not in text
+    assert max(len(line) for line in text.splitlines()) <= 80
+    usage = text.splitlines()[0]
+    assert usage.startswith(f"Usage: rigsfm {verb} [OPTIONS]") and "{" not in usage, usage
+    options = _options(text)
+    assert options
+    for name, description in options:
+        flag = " " not in name.split(", ")[-1] and "/" not in name  # --overwrite: no value, off unless given
+        if name.startswith("-h") or flag or "[required]" in description:
+            continue
+        assert "[default: " in description, (verb, name, description)
+    assert len(text.splitlines()) < 100  # descriptions wrapped at ~45 columns, not ~15
+
+
+def test_piped_output_keeps_whole_lines(tmp_path):
+    """Output that is not a terminal is not wrapped at an assumed 80 columns."""
+    table.workspace(tmp_path)
+    dest = tmp_path / ("an export folder with a name long enough to pass eighty columns on its own " + "x" * 20)
+    done = _rigsfm(["export", "out", "--format", "json", "--dest", dest], tmp_path, COLUMNS="")
+    assert done.returncode == 0, done.stderr
+    assert f"exported json: {dest}" in done.stdout.splitlines(), done.stdout
+
+
+def test_stage_bars_count_time_from_the_stage_start(tmp_path):
+    """Feature extraction and matching report their count only as they finish on small inputs: each stage
+    announces its start (stage, 0, 0), and the bar's clock runs from there."""
+    from rich.progress import Progress
+
+    from rigsfm.cli.common import StageProgress, progress_bars
+    from rigsfm.core.errors import ReconstructionError
+    from rigsfm.run.pipeline import run
+
+    table.inputs(tmp_path)
+    calls = []
+    with pytest.raises(ReconstructionError):  # two 64x48 noise images: no model, after features and matching
+        run(tmp_path / "images", tmp_path / "rigs.yaml", tmp_path / "out",
+            progress=lambda *call: calls.append(call))
+    for stage in ("features", "matching", "mapping"):
+        first = next(call for call in calls if call[0] == stage)
+        assert first[1] == 0, calls
+    assert calls[0] == ("features", 0, 0)
+
+    now = [100.0]
+    bars = progress_bars()
+    progress = Progress(*bars.columns, get_time=lambda: now[0], auto_refresh=False, disable=True)
+    report = StageProgress(progress)
+    report("features", 0, 0)
+    now[0] += 21.0
+    report("features", 12, 12)
+    task = progress.tasks[0]
+    assert (task.completed, task.total) == (12, 12)
+    assert progress.columns[-1].render(task).plain == "0:00:21"
+
+
+@pytest.mark.slow
+def test_demo_says_where_its_result_is_and_its_commands_work(tmp_path):
+    """The demo's last lines name OUT/run and the exact view and export commands; the export one runs as printed."""
+    import shlex
+
+    out = tmp_path / "a demo"  # a space: the printed commands quote it
+    done = _rigsfm(["demo", out, "--num-rigs", "4", "--arc-deg", "90", "--image-scale", "0.3"], tmp_path)
+    assert done.returncode == 0, done.stderr
+    lines = done.stdout.splitlines()
+    run = shlex.quote(str(out / "run"))
+    assert f"result: {out / 'run'} (scene: {out / 'scene'}, accuracy against ground truth: {out / 'accuracy.json'})" \
+        in lines
+    assert f"  look at it:  rigsfm view {run}   (without a display: rigsfm view {run} --screenshot view.png)" in lines
+    export = next(line for line in lines if line.startswith("  export it:   rigsfm export "))
+    command = shlex.split(export.split(":", 1)[1].split("   (or")[0])
+    assert command[:2] == ["rigsfm", "export"]
+    exported = _rigsfm(command[1:], tmp_path)
+    assert exported.returncode == 0, exported.stderr
+    assert (out / "run" / "export" / "json").is_dir()
+    # The demo's folder itself, given to view/export/report, names its run/.
+    refused = _rigsfm(["report", out], tmp_path)
+    assert refused.returncode == 1 and f"use {out / 'run'}" in refused.stderr, refused.stderr

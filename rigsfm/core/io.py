@@ -51,6 +51,15 @@ def write_bytes_atomic(path: Path, data: bytes, *, overwrite: bool = True) -> Pa
     return path
 
 
+def sha256_file(path: Path) -> str:
+    """The SHA-256 of a file's content (hex): what a manifest records so that a later command removes a file only
+    while it is still what rigsfm wrote."""
+    import hashlib
+
+    with open(path, "rb") as f:
+        return hashlib.file_digest(f, "sha256").hexdigest()
+
+
 def write_npz_atomic(path: Path, arrays: dict[str, Any], *, overwrite: bool = True) -> Path:
     """``numpy.savez`` of ``arrays`` written atomically (whole or absent for a process reading meanwhile)."""
     import numpy as np

@@ -245,6 +245,14 @@ def read_model(folder: Path, fix: str) -> pycolmap.Reconstruction:
     if missing or empty:
         what = "; ".join(filter(None, [missing and f"{', '.join(missing)} missing", empty and f"{', '.join(empty)} empty"]))
         raise WorkspaceError(f"{folder} holds no complete COLMAP model ({what}): {fix}")
+    from rigsfm.core.model_files import ModelFileError, check_model_files
+
+    try:
+        check_model_files(folder)  # pycolmap allocates whatever a damaged count says, for minutes
+    except ModelFileError as error:
+        raise WorkspaceError(f"{error.path} is truncated or damaged ({error.what}): {fix}") from None
+    except OSError as error:
+        raise WorkspaceError(f"cannot read the COLMAP model in {folder}: {os_error_text(error)}: {fix}") from None
     try:
         return pycolmap.Reconstruction(str(folder))
     except Exception as error:  # ValueError, IndexError ("unordered_map::at"), MemoryError, ... by where it is cut

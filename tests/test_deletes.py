@@ -184,3 +184,62 @@ def test_a_listed_link_is_not_followed(out, tmp_path):
     (dest / MANIFEST).write_text(json.dumps(manifest))
     assert export_json(out, dest, "--overwrite").exit_code == 0
     assert (dest / "link.txt").is_symlink() and target.read_text() == "precious"
+
+
+# --- demo / render_dataset: only the files a render wrote are replaced ---------------------------------------------
+
+SMALL = dict(num_rigs=2, arc_deg=60.0, image_scale=0.25, calibration_noise=False, seed=3)
+
+
+def tree(root: Path) -> dict[str, str]:
+    return {p.relative_to(root).as_posix(): sha256_file(p) for p in sorted(root.rglob("*")) if p.is_file()}
+
+
+def test_demo_overwrite_keeps_the_users_files_in_the_scene_folder(tmp_path):
+    from rigsfm.synth.dataset import render_dataset
+    from rigsfm.synth.scene import SceneOptions
+
+    options = SceneOptions(**SMALL)
+    scene = tmp_path / "demo" / "scene"
+    render_dataset(scene, options)
+    (scene / "images" / "rig01" / "wide" / "mine.png").write_bytes(b"the user's image")
+    (scene / "ground_truth" / "notes.txt").write_text("the user's notes")
+    before = tree(scene)
+    result = invoke("demo", tmp_path / "demo", "--overwrite", "--num-rigs", 2, "--image-scale", 0.25)
+    assert result.exit_code == 1
+    line = one_error_line(result)
+    assert (f"{scene} holds files rigsfm did not write there, or changed since (ground_truth/notes.txt, "
+            "images/rig01/wide/mine.png); move them away or choose a new folder (nothing was removed)") in line, line
+    assert tree(scene) == before
+
+    # Without them, a render over its own earlier render replaces exactly its files (same seed: same bytes).
+    (scene / "images" / "rig01" / "wide" / "mine.png").unlink()
+    (scene / "ground_truth" / "notes.txt").unlink()
+    own = tree(scene)
+    render_dataset(scene, options, overwrite=True)
+    assert tree(scene) == own
+
+    # One of its own images edited since: refused too, the edit kept.
+    edited = scene / "images" / "rig02" / "narrow" / "frame0000.png"
+    edited.write_bytes(b"retouched")
+    from rigsfm.core.errors import WorkspaceError
+
+    with pytest.raises(WorkspaceError, match=r"changed since \(images/rig02/narrow/frame0000.png\)"):
+        render_dataset(scene, options, overwrite=True)
+    assert edited.read_bytes() == b"retouched"
+
+
+def test_a_render_into_a_folder_from_elsewhere_is_refused(tmp_path):
+    """A folder without the render's manifest (the user's, or an older version's) is never emptied."""
+    from rigsfm.core.errors import WorkspaceError
+    from rigsfm.synth.dataset import render_dataset
+    from rigsfm.synth.scene import SceneOptions
+
+    scene = tmp_path / "scene"
+    (scene / "images" / "rig01" / "wide").mkdir(parents=True)
+    (scene / "images" / "rig01" / "wide" / "frame0000.png").write_bytes(b"a real photo")
+    (scene / "rigs.yaml").write_text("my calibration")
+    with pytest.raises(WorkspaceError, match=r"holds files rigsfm did not write there"):
+        render_dataset(scene, SceneOptions(**SMALL), overwrite=True)
+    assert (scene / "images" / "rig01" / "wide" / "frame0000.png").read_bytes() == b"a real photo"
+    assert (scene / "rigs.yaml").read_text() == "my calibration"

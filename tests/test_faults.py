@@ -118,7 +118,9 @@ def test_export_overwrite_removes_only_the_files_of_its_manifest(scene, tmp_path
     manifest = json.loads((dest / MANIFEST).read_text())
     assert manifest["files"] == ["poses.json"]
     (dest / "stale.json").write_text("{}")  # an earlier export's file, listed in its manifest
-    (dest / MANIFEST).write_text(json.dumps({**manifest, "files": ["poses.json", "stale.json"]}))
+    (dest / MANIFEST).write_text(json.dumps({**manifest, "files": ["poses.json", "stale.json"],
+                                             "sha256": {**manifest["sha256"],
+                                                        "stale.json": hashlib.sha256(b"{}").hexdigest()}}))
     result = invoke("export", out, "--format", "json", "--dest", dest)
     assert result.exit_code == 1 and "pass --overwrite" in one_error_line(result)
     assert invoke("export", out, "--format", "json", "--dest", dest, "--overwrite").exit_code == 0

@@ -243,3 +243,143 @@ def test_a_render_into_a_folder_from_elsewhere_is_refused(tmp_path):
         render_dataset(scene, SceneOptions(**SMALL), overwrite=True)
     assert (scene / "images" / "rig01" / "wide" / "frame0000.png").read_bytes() == b"a real photo"
     assert (scene / "rigs.yaml").read_text() == "my calibration"
+
+
+# --- picker: stale pages add to the newer pairs; every backup generation is kept; a failed save is told -----------
+
+def picker_images(root: Path) -> list[Path]:
+    import cv2
+
+    rng = np.random.default_rng(0)
+    paths = []
+    for rig in ("rig01", "rig02"):
+        path = root / "images" / rig / "wide" / "f0.png"
+        path.parent.mkdir(parents=True)
+        cv2.imwrite(str(path), rng.integers(0, 255, (60, 80), dtype=np.uint8))
+        paths.append(path)
+    return paths
+
+
+def request(url: str, method: str = "GET", body=None) -> tuple[int, dict]:
+    import urllib.error
+    import urllib.request
+
+    data = json.dumps(body).encode() if body is not None else None
+    req = urllib.request.Request(url, data=data, method=method, headers={"Content-Type": "application/json"})
+    try:
+        with urllib.request.urlopen(req, timeout=30) as answer:
+            return answer.status, json.loads(answer.read())
+    except urllib.error.HTTPError as error:
+        return error.code, json.loads(error.read())
+
+
+def pair(i: int) -> list[float]:
+    return [1.0 + i, 1.0 + i / 2, 2.0 + i, 50.0 - i / 2]
+
+
+@pytest.fixture()
+def picker(tmp_path):
+    from rigsfm.pick.server import PickerServer
+    from rigsfm.pick.session import PickerSession, picker_image
+
+    paths = picker_images(tmp_path)
+    csv = tmp_path / "matches.csv"
+    server = PickerServer(PickerSession(picker_image(paths[0], None), picker_image(paths[1], None), csv))
+    yield server, csv
+    server.close()
+
+
+def test_stale_pages_add_their_pairs_to_the_newer_ones(picker):
+    from rigsfm.run.manual_matches import read_manual_matches
+
+    server, csv = picker
+    _, opened = request(server.url + "api/state")  # three pages opened on the empty CSV
+    status, first = request(server.url + "api/pairs", "PUT", {"pairs": [pair(i) for i in range(30)],
+                                                              "revision": opened["revision"]})
+    assert status == 200 and len(first["pairs"]) == 30
+    answers = []
+    for extra in (30, 31):  # the two stale pages each save one pair
+        status, answer = request(server.url + "api/pairs", "PUT", {"pairs": [pair(extra)],
+                                                                   "revision": opened["revision"]})
+        assert status == 200 and "backup" not in answer
+        answers.append(answer)
+    rows = read_manual_matches(csv)
+    assert [[*r.xy_a, *r.xy_b] for r in rows] == [pair(i) for i in range(32)]
+    assert not list(csv.parent.glob("matches.csv*.bak"))
+    # The first of them, now behind the second, undoes its pair: only that one goes.
+    seen = [[*p["a"], *p["b"]] for p in answers[0]["pairs"]]
+    assert seen == [pair(i) for i in range(31)]
+    status, answer = request(server.url + "api/pairs", "PUT", {"pairs": seen[:-1], "revision": answers[0]["revision"]})
+    assert status == 200 and [[*p["a"], *p["b"]] for p in answer["pairs"]] == [pair(i) for i in (*range(30), 31)]
+    assert len(read_manual_matches(csv)) == 31
+    # A page of another picker process: refused, nothing changed.
+    status, answer = request(server.url + "api/pairs", "PUT", {"pairs": [], "revision": "0123abcd-1"})
+    assert status == 409 and "reload the page" in answer["error"] and len(read_manual_matches(csv)) == 31
+
+
+def test_every_backup_generation_is_kept(picker):
+    from rigsfm.run.manual_matches import read_manual_matches
+
+    server, csv = picker
+    generations = []
+    for count in (30, 5, 3):  # a script saving whole lists, then emptying the CSV each time
+        assert request(server.url + "api/pairs", "PUT", {"pairs": [pair(i) for i in range(count)]})[0] == 200
+        generations.append(csv.read_bytes())
+        status, answer = request(server.url + "api/pairs", "PUT", {"pairs": []})
+        assert status == 200 and "backup" in answer
+    backups = sorted(csv.parent.glob("matches.csv*.bak"), key=lambda p: p.stat().st_mtime_ns)
+    assert [p.read_bytes() for p in backups] == generations
+    assert [len(read_manual_matches(p)) for p in backups] == [30, 5, 3]
+    assert server.session.backups() == backups
+
+
+def test_a_csv_folder_made_a_file_is_told_and_nothing_is_claimed_saved(tmp_path):
+    """`rigsfm pick` as a user runs it: a save after the CSV's folder became a file fails with a message (no
+    traceback); Ctrl-C then names the file keeping the unsaved pairs instead of "nothing finished was lost"."""
+    import signal
+    import socket
+    import time
+
+    from rigsfm.run.manual_matches import read_manual_matches
+
+    picker_images(tmp_path)
+    (tmp_path / "sub").mkdir()
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    env = {**os.environ, "PYTHONPATH": str(REPO), "COLUMNS": "400"}
+    process = subprocess.Popen([sys.executable, "-m", "rigsfm", "pick", "images/rig01/wide/f0.png",
+                                "images/rig02/wide/f0.png", "--out", "sub/m.csv", "--port", str(port)],
+                               cwd=tmp_path, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        url = f"http://127.0.0.1:{port}/"
+        for _ in range(300):
+            try:
+                _, state = request(url + "api/state")
+                break
+            except OSError:
+                time.sleep(0.1)
+        status, state = request(url + "api/pairs", "PUT", {"pairs": [pair(i) for i in range(3)],
+                                                           "revision": state["revision"]})
+        assert status == 200 and len(read_manual_matches(tmp_path / "sub" / "m.csv")) == 3
+        (tmp_path / "sub" / "m.csv").unlink()
+        (tmp_path / "sub").rmdir()
+        (tmp_path / "sub").write_text("a file where the folder was")
+        status, answer = request(url + "api/pairs", "PUT", {"pairs": [pair(i) for i in range(4)],
+                                                            "revision": state["revision"]})
+        assert status == 500
+        assert "cannot write sub/m.csv: a part of the path is a file, not a folder" in answer["error"]
+        rescue = Path(answer["error"].split("are kept in ")[1].split(";")[0])
+        assert [[*r.xy_a, *r.xy_b] for r in read_manual_matches(rescue)] == [pair(i) for i in range(4)]
+        process.send_signal(signal.SIGINT)
+        stdout, stderr = process.communicate(timeout=60)
+    finally:
+        if process.poll() is None:
+            process.kill()
+            process.communicate()
+    assert process.returncode == 1, stderr
+    assert "Traceback" not in stderr + stdout and "nothing finished was lost" not in stderr
+    assert "pairs in sub/m.csv" not in stdout
+    assert (f"the last save of 4 pairs of rig01/wide/f0.png <-> rig02/wide/f0.png failed (cannot write sub/m.csv: a "
+            f"part of the path is a file, not a folder); they are kept in {rescue}") in " ".join(stderr.split())
+    rescue.unlink()

@@ -348,12 +348,12 @@ def test_picker_put_that_empties_the_csv_keeps_a_backup(tmp_path):
         csv.write_text(csv.read_text() + other)
         session.reload()
         assert "backup" not in put(pairs[:-1])  # an undo drops one pair: no backup
-        assert not session.backup_path.exists()
+        assert not session.backups()
         full = csv.read_text()
         answer = put([])
-        assert answer["backup"] == str(session.backup_path) and answer["pairs"] == []
-        assert session.backup_path.read_text() == full
+        assert session.backups() == [Path(answer["backup"])] and answer["pairs"] == []
+        assert Path(answer["backup"]).read_text() == full
         assert [r.image_a for r in read_manual_matches(csv)] == ["rig03/wide/f0.png"]  # other pairs kept
-        assert len(read_manual_matches(session.backup_path)) == 10
+        assert len(read_manual_matches(answer["backup"])) == 10
     finally:
         server.close()

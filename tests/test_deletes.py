@@ -383,3 +383,36 @@ def test_a_csv_folder_made_a_file_is_told_and_nothing_is_claimed_saved(tmp_path)
     assert (f"the last save of 4 pairs of rig01/wide/f0.png <-> rig02/wide/f0.png failed (cannot write sub/m.csv: a "
             f"part of the path is a file, not a folder); they are kept in {rescue}") in " ".join(stderr.split())
     rescue.unlink()
+
+
+# --- the other places rigsfm replaces a folder ----------------------------------------------------------------------
+
+def test_calibrate_refuses_a_report_folder_with_the_users_files_before_calibrating(tmp_path):
+    from bad_inputs_table import inputs
+
+    inputs(tmp_path)
+    (tmp_path / "board.yaml").write_text("type: chessboard\ninner_corners: [9, 6]\nsquare: 0.03\n")
+    mine = tmp_path / "reports" / "rig02" / "my_notes.txt"
+    mine.parent.mkdir(parents=True)
+    mine.write_text("the user's notes")
+    result = invoke("calibrate", tmp_path / "images", "--board", tmp_path / "board.yaml", "--out",
+                    tmp_path / "new_rigs.yaml", "--report-dir", tmp_path / "reports")
+    assert result.exit_code == 1
+    assert (f"{mine.parent} holds files rigsfm did not write (my_notes.txt); move them away or choose another "
+            "--report-dir (nothing was written)") in one_error_line(result)
+    assert mine.read_text() == "the user's notes" and not (tmp_path / "new_rigs.yaml").exists()
+
+
+def test_a_model_folder_is_replaced_only_while_it_holds_rigsfm_files(out):
+    from rigsfm.core.errors import WorkspaceError
+    from rigsfm.run.deliver import write_model
+
+    model = pycolmap.Reconstruction(out / "sparse")
+    write_model(model, out / "sparse", overwrite=True)  # an earlier model: replaced
+    (out / "sparse" / "notes.txt").write_text("the user's notes")
+    before = tree(out / "sparse")
+    with pytest.raises(WorkspaceError, match=r"sparse holds files rigsfm did not write there \(notes.txt\); move them "
+                                             r"away \(nothing was replaced\)"):
+        write_model(model, out / "sparse", overwrite=True)
+    assert tree(out / "sparse") == before
+    assert sorted(p.name for p in out.iterdir() if p.name.endswith(".tmp") or p.name.endswith(".old")) == []

@@ -25,6 +25,7 @@ import os
 import re
 import shutil
 import sys
+import tempfile
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -283,9 +284,9 @@ def _write_probe(folder: Path) -> str | None:
     """Create ``folder`` (and parents) and a file in it; why that fails (``os_error_text``), or None."""
     try:
         folder.mkdir(parents=True, exist_ok=True)
-        probe = folder / f".rigsfm-write-test-{os.getpid()}"
-        probe.write_bytes(b"")
-        probe.unlink()
+        fd, probe = tempfile.mkstemp(prefix=".rigsfm-write-test-", dir=folder)  # a new file: never one of the user's
+        os.close(fd)
+        Path(probe).unlink()
     except OSError as error:
         return os_error_text(error)
     return None

@@ -368,7 +368,7 @@ def test_a_csv_folder_made_a_file_is_told_and_nothing_is_claimed_saved(tmp_path)
         status, answer = request(url + "api/pairs", "PUT", {"pairs": [pair(i) for i in range(4)],
                                                             "revision": state["revision"]})
         assert status == 500
-        assert "cannot write sub/m.csv: a part of the path is a file, not a folder" in answer["error"]
+        assert "cannot save to sub/m.csv: a part of the path is a file, not a folder" in answer["error"]
         rescue = Path(answer["error"].split("are kept in ")[1].split(";")[0])
         assert [[*r.xy_a, *r.xy_b] for r in read_manual_matches(rescue)] == [pair(i) for i in range(4)]
         process.send_signal(signal.SIGINT)
@@ -380,7 +380,7 @@ def test_a_csv_folder_made_a_file_is_told_and_nothing_is_claimed_saved(tmp_path)
     assert process.returncode == 1, stderr
     assert "Traceback" not in stderr + stdout and "nothing finished was lost" not in stderr
     assert "pairs in sub/m.csv" not in stdout
-    assert (f"the last save of 4 pairs of rig01/wide/f0.png <-> rig02/wide/f0.png failed (cannot write sub/m.csv: a "
+    assert (f"the last save of 4 pairs of rig01/wide/f0.png <-> rig02/wide/f0.png failed (cannot save to sub/m.csv: a "
             f"part of the path is a file, not a folder); they are kept in {rescue}") in " ".join(stderr.split())
     rescue.unlink()
 
@@ -416,3 +416,28 @@ def test_a_model_folder_is_replaced_only_while_it_holds_rigsfm_files(out):
         write_model(model, out / "sparse", overwrite=True)
     assert tree(out / "sparse") == before
     assert sorted(p.name for p in out.iterdir() if p.name.endswith(".tmp") or p.name.endswith(".old")) == []
+
+
+def test_a_csv_broken_while_the_picker_runs_is_left_as_it_is(picker):
+    server, csv = picker
+    status, state = request(server.url + "api/pairs", "PUT", {"pairs": [pair(0), pair(1)]})
+    assert status == 200
+    csv.write_text("image_a;x_a\nhalf an edit\n")  # edited by hand into something that is not a matches CSV
+    status, answer = request(server.url + "api/pairs", "PUT", {"pairs": [pair(0), pair(1), pair(2)],
+                                                               "revision": state["revision"]})
+    assert status == 500 and f"cannot save to {csv}" in answer["error"]
+    assert csv.read_text() == "image_a;x_a\nhalf an edit\n"
+    rescue = Path(answer["error"].split("are kept in ")[1].split(";")[0])
+    from rigsfm.run.manual_matches import read_manual_matches
+
+    assert [[*r.xy_a, *r.xy_b] for r in read_manual_matches(rescue)] == [pair(0), pair(1), pair(2)]
+    assert server.session.unsaved is not None and len(server.session.pairs) == 2
+    rescue.unlink()
+
+
+def test_demo_never_replaces_an_accuracy_json_without_overwrite(tmp_path):
+    (tmp_path / "accuracy.json").write_text('{"mine": true}')
+    result = invoke("demo", tmp_path, "--num-rigs", 2, "--image-scale", 0.1)
+    assert result.exit_code == 1
+    assert f"{tmp_path / 'accuracy.json'} already exists: pass --overwrite" in one_error_line(result)
+    assert (tmp_path / "accuracy.json").read_text() == '{"mine": true}' and not (tmp_path / "scene").exists()

@@ -202,11 +202,9 @@ class PickerSession:
         """The dated backups of the CSV, oldest first."""
         return sorted(self.csv_path.parent.glob(f"{self.csv_path.name}.*.bak"), key=lambda p: (p.stat().st_mtime, p.name))
 
-    def _keep_unsaved(self, rows: list[Correspondence], error: OSError) -> SaveFailed:
+    def _keep_unsaved(self, rows: list[Correspondence], cause: str) -> SaveFailed:
         """Remember the pairs a failed save held, in a file outside the CSV's folder, and say so."""
-        blocked = any(folder.exists() and not folder.is_dir() for folder in self.csv_path.parents)
-        cause = "a part of the path is a file, not a folder" if blocked else os_error_text(error)  # mkdir: EEXIST
-        self.save_error = f"cannot write {self.csv_path}: {cause}"
+        self.save_error = f"cannot save to {self.csv_path}: {cause}"
         try:
             if self.rescue is None:
                 fd, name = tempfile.mkstemp(prefix="rigsfm-pick-unsaved-", suffix=".csv")
@@ -232,7 +230,13 @@ class PickerSession:
             base = self._base(revision) if revision is not None else None
             current, others = self.pairs, self.others  # the CSV gone (or its folder): what was last saved here
             if self.csv_path.is_file():
-                current, others = self._read()
+                try:
+                    current, others = self._read()
+                except (ManualMatchError, OSError) as error:  # edited into a broken file meanwhile: left as it is
+                    self.unsaved = clean
+                    cause = str(error) if isinstance(error, ManualMatchError) else os_error_text(error)
+                    raise self._keep_unsaved(others + [Correspondence(a, (p[0], p[1]), b, (p[2], p[3]))
+                                                       for p in clean], cause) from None
             result = merge(current, base, clean) if base is not None else clean
             if base is not None and result is not clean:
                 logger.warning("A page behind the saved pairs of %s <-> %s saved: its edit was applied to the %d newer "
@@ -248,7 +252,9 @@ class PickerSession:
                                    "in %s", len(lost), len(current), a, b, backup)
                 write_manual_matches(self.csv_path, rows)
             except OSError as error:
-                raise self._keep_unsaved(rows, error) from None
+                blocked = any(folder.exists() and not folder.is_dir() for folder in self.csv_path.parents)
+                cause = "a part of the path is a file, not a folder" if blocked else os_error_text(error)  # EEXIST
+                raise self._keep_unsaved(rows, cause) from None
             self.unsaved, self.save_error = None, ""
             self.pairs, self.others = result, others
             self._advance(result)

@@ -165,45 +165,51 @@ def _images(path: Path, ids: ModelIds, with_frames: bool) -> None:
 
 def _points3d(path: Path, ids: ModelIds) -> None:
     cursor = _Cursor(path)
-    data, unpack, size = cursor.data, POINT3D.unpack_from, POINT3D.size
-    end = len(data)
+    data, size, end = cursor.data, POINT3D.size, len(cursor.data)
+    track_at = size - U64.size  # the track length ends the fixed part of a point
+    track_length = U64.unpack_from
     starts, lengths = [], []
-    for i in range(cursor.count(U64, size, "3D points")):
-        if cursor.offset + size > end:
+    offset = None
+    for i in range(cursor.count(U64, size, "3D points")):  # the one loop per point: kept to the bare reads
+        offset = cursor.offset
+        if offset + size > end:
             raise cursor.fail(f"cut short in 3D point {i + 1}")
-        track = unpack(data, cursor.offset)[-1]
-        start = cursor.offset + size
-        if track * TRACK_ELEMENT > end - start:
-            raise cursor.fail(f"cut short in 3D point {i + 1}'s track of {track}")
-        starts.append(start)
+        (track,) = track_length(data, offset + track_at)
+        offset += size
+        starts.append(offset)
         lengths.append(track)
-        cursor.offset = start + track * TRACK_ELEMENT
+        cursor.offset = offset + TRACK_ELEMENT * track
+        if cursor.offset > end:
+            raise cursor.fail(f"cut short in 3D point {i + 1}'s track of {track}")
     cursor.finish()
     _check_tracks(cursor, np.asarray(starts, np.int64), np.asarray(lengths, np.int64), ids.images)
 
 
 def _check_tracks(cursor: _Cursor, starts: np.ndarray, lengths: np.ndarray, images: dict[int, int]) -> None:
     """Every track element names an image of images.bin and one of its 2D points (pycolmap indexes with it)."""
-    raw = np.frombuffer(cursor.data, np.uint8)
+    data = cursor.data
+    words = [np.frombuffer(data, "<u4", count=(len(data) - r) // 4, offset=r) for r in range(4)]  # by alignment
     known = np.array(sorted(images), np.int64)
     counts = np.array([images[k] for k in sorted(images)], np.int64)
-    bytes8 = np.arange(TRACK_ELEMENT)
-    for first in range(0, len(starts), 1 << 16):  # bounded memory: a chunk of points at a time
-        s, n = starts[first:first + (1 << 16)], lengths[first:first + (1 << 16)]
-        if not n.sum():
+    chunk = 1 << 16  # points at a time: bounded memory
+    for first in range(0, len(starts), chunk):
+        s, n = starts[first:first + chunk], lengths[first:first + chunk]
+        total = int(n.sum())
+        if not total:
             continue
         point = np.repeat(np.arange(len(s)), n)
-        within = np.arange(len(point)) - np.repeat(np.cumsum(n) - n, n)
-        offsets = s[point] + within * TRACK_ELEMENT
-        elements = raw[offsets[:, None] + bytes8].copy().view("<u4")  # (image_id, point2D_idx) rows
-        slot = np.clip(np.searchsorted(known, elements[:, 0]), 0, max(len(known) - 1, 0))
-        ok = (known[slot] == elements[:, 0]) & (elements[:, 1] < counts[slot]) if len(known) else \
-            np.zeros(len(elements), bool)
+        offsets = s[point] + (np.arange(total) - np.repeat(np.cumsum(n) - n, n)) * TRACK_ELEMENT
+        image_ids, point2d = np.empty(total, np.int64), np.empty(total, np.int64)
+        for r in range(4):
+            mask = (offsets & 3) == r
+            index = (offsets[mask] - r) >> 2
+            image_ids[mask], point2d[mask] = words[r][index], words[r][index + 1]
+        slot = np.clip(np.searchsorted(known, image_ids), 0, max(len(known) - 1, 0))
+        ok = ((known[slot] == image_ids) & (point2d < counts[slot])) if len(known) else np.zeros(total, bool)
         if not ok.all():
             bad = int(np.argmin(ok))
-            image_id, point2d = (int(v) for v in elements[bad])
-            raise cursor.fail(f"3D point {first + int(point[bad]) + 1} is seen by 2D point {point2d} of image "
-                              f"{image_id}, which images.bin does not hold")
+            raise cursor.fail(f"3D point {first + int(point[bad]) + 1} is seen by 2D point {point2d[bad]} of image "
+                              f"{image_ids[bad]}, which images.bin does not hold")
 
 
 def check_model_files(folder: Path) -> None:

@@ -59,7 +59,9 @@ class SyntheticDataset:
     image_names: tuple[str, ...]
 
     def load_ground_truth(self) -> pycolmap.Reconstruction:
-        return pycolmap.Reconstruction(str(self.ground_truth))
+        from rigsfm.core.workspace import read_model
+
+        return read_model(self.ground_truth, f"render the scene again (overwrite=True) into {self.root}")
 
 
 def image_name(rig: str, sensor: str, frame: int) -> str:

@@ -180,6 +180,43 @@ def on_workspace(edit: Callable[[Path], None], args: list) -> Callable[[Path], l
     return prepare
 
 
+def exported(out: Path) -> Path:
+    """An earlier `export --format json --dest exported` next to the workspace."""
+    from rigsfm.inspect.export import export
+    from rigsfm.inspect.options import ExportFormat, ExportOptions
+
+    return export(out, ExportOptions(format=ExportFormat.JSON, dest=out.parent / "exported"))
+
+
+def edited_export(out: Path) -> None:
+    (exported(out) / "poses.json").write_text('{"edited": "by hand"}')
+
+
+def forged_manifest(out: Path) -> None:
+    import json
+
+    from rigsfm.inspect.export import MANIFEST
+
+    manifest = exported(out) / MANIFEST
+    data = json.loads(manifest.read_text())
+    manifest.write_text(json.dumps({**data, "files": [*data["files"], "../out/database.db"]}))
+    (out / "database.db").write_bytes(b"SQLite format 3\0")
+
+
+def users_scene(root: Path) -> list:
+    (root / "demo" / "scene" / "images").mkdir(parents=True)
+    (root / "demo" / "scene" / "images" / "holiday.jpg").write_bytes(b"a photo")
+    return ["demo", "demo", "--overwrite", "--num-rigs", "2", "--image-scale", "0.1"]
+
+
+def report_dir_in_use(root: Path) -> list:
+    inputs(root)
+    (root / "board.yaml").write_text("type: chessboard\ninner_corners: [9, 6]\nsquare: 0.03\n")
+    (root / "reports" / "rig01").mkdir(parents=True)
+    (root / "reports" / "rig01" / "notes.txt").write_text("mine")
+    return ["calibrate", "images", "--board", "board.yaml", "--out", "new_rigs.yaml", "--report-dir", "reports"]
+
+
 def free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
@@ -403,6 +440,19 @@ CASES = [
     Case("a truncated `sparse/images.bin`", "nothing is written",
          on_workspace(lambda out: (out / "sparse" / "images.bin").write_bytes(
              (out / "sparse" / "images.bin").read_bytes()[:30]), ["report", "out"])),
+    Case("a `sparse/points3D.bin` cut short", "nothing is written",
+         on_workspace(lambda out: (out / "sparse" / "points3D.bin").write_bytes(
+             (out / "sparse" / "points3D.bin").read_bytes()[:4]), ["report", "out"])),
+    Case("`export --overwrite` over an exported file edited since", "the edited file and the export are untouched",
+         on_workspace(edited_export, ["export", "out", "--format", "json", "--dest", "exported", "--overwrite"])),
+    Case("`export --overwrite` with a manifest listing `../out/database.db` (a warning: the export goes on)",
+         "every file outside the export, and every listed file not as rigsfm wrote it",
+         on_workspace(forged_manifest, ["export", "out", "--format", "json", "--dest", "exported", "--overwrite"]),
+         warning="database.db"),
+    Case("`demo --overwrite` on a scene folder holding the user's files", "the scene folder is untouched",
+         users_scene),
+    Case("`calibrate --report-dir` whose rig folder holds other files", "nothing is written",
+         report_dir_in_use),
     Case("a damaged `narrow_poses.json`", "nothing is written",
          on_workspace(lambda out: (out / "narrow_poses.json").write_text('{"narrow": ['), ["report", "out"])),
     Case("`rigsfm view` on a machine without a display", "nothing is written",

@@ -147,3 +147,23 @@ def test_state_survives_a_new_server_and_foreign_hosts_are_refused(page, dataset
         assert connection.getresponse().status == 403
     finally:
         again.close()
+
+
+def test_a_tab_left_open_adds_its_pair_to_the_newer_ones(page, dataset):
+    """Two tabs on one picker: the second, opened before the first saved anything, clicks one pair; the CSV keeps
+    the first tab's three and adds it, and the second tab then shows all four."""
+    page, server, csv = page
+    other = page.context.browser.new_page(viewport={"width": 1800, "height": 1100})
+    other.goto(server.url)
+    other.evaluate("window.picker.ready")
+    rows = spread_correspondences(dataset, 4, seed=5)
+    for row in rows[:3]:
+        click(page, "a", row.xy_a)
+        click(page, "b", row.xy_b)
+    settle(page, 3)
+    click(other, "a", rows[3].xy_a)
+    click(other, "b", rows[3].xy_b)
+    settle(other, 4)
+    saved = read_manual_matches(csv)
+    assert np.allclose([r.xy_a for r in saved], [r.xy_a for r in rows], atol=0.5)
+    assert "NOT SAVED" not in other.locator("#status").inner_text()

@@ -188,11 +188,13 @@ def write_calibration(result: CalibrationResult, out: Path, *, merge: bool = Fal
 def calibrate(board_images: Path, out: Path, options: CalibrateOptions) -> tuple[CalibrationResult, Path, Path]:
     """``rigsfm calibrate``: calibrate every rig under ``board_images`` and write rigs.yaml to ``out`` (checked
     before the slow part) and its report; returns the result, the rigs.yaml and the report folder."""
-    from rigsfm.calibrate.output import check_output
+    from rigsfm.calibrate.output import check_output, default_report_dir
+    from rigsfm.calibrate.report import check_report_dir
 
     spec = load_board_spec(options.board)
     names = [r.name for r in discover_rigs(board_images, "board images")]
     check_output(out, names, merge=options.merge, overwrite=options.overwrite)
+    check_report_dir(options.report_dir if options.report_dir is not None else default_report_dir(Path(out)), names)
     result = calibrate_rigs(board_images, spec, distortion=options.distortion, scene_dir=options.scene_dir,
                             baseline=options.baseline)
     rigs_path, report = write_calibration(result, out, merge=options.merge, overwrite=options.overwrite,

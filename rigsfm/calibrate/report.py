@@ -17,6 +17,7 @@ from rigsfm.core import charts
 from rigsfm.calibrate.intrinsics import COVERAGE_GRID, OUTLIER_FACTOR, CameraCalibration
 from rigsfm.calibrate.stereo import StereoFit
 from rigsfm.core.conventions import euler_zyx_degrees
+from rigsfm.core.errors import WorkspaceError
 from rigsfm.core.io import atomic_directory, write_text_atomic
 
 if TYPE_CHECKING:
@@ -156,8 +157,29 @@ def _sigma_text(rig: RigResult) -> list[str]:
     return lines
 
 
+REPORT_FILES = frozenset({"report.txt", "stereo_view_errors.png", "wide_view_errors.png", "narrow_view_errors.png",
+                          "wide_coverage.png", "narrow_coverage.png"})  # a rig's folder: all a new report replaces
+
+
+def check_report_dir(report_dir: Path, rig_names: list[str]) -> None:
+    """Refuse a rig's report folder that holds anything a new report would not write again (it replaces the
+    folder whole): the user's files are never removed."""
+    for name in rig_names:
+        folder = Path(report_dir) / name
+        if folder.is_symlink() or (folder.exists() and not folder.is_dir()):
+            raise WorkspaceError(f"{folder} exists and is not a report folder; move it away or choose another "
+                                 "--report-dir (nothing was written)")
+        foreign = sorted(p.name for p in folder.iterdir() if p.name not in REPORT_FILES or not p.is_file()
+                         or p.is_symlink()) if folder.is_dir() else []
+        if foreign:
+            raise WorkspaceError(f"{folder} holds files rigsfm did not write ({', '.join(foreign[:3])}"
+                                 f"{', ...' if len(foreign) > 3 else ''}); move them away or choose another "
+                                 "--report-dir (nothing was written)")
+
+
 def write_report(result: CalibrationResult, report_dir: Path) -> Path:
     report_dir = Path(report_dir)
+    check_report_dir(report_dir, [rig.name for rig in result.rigs])  # every rig first: a refusal changes nothing
     report_dir.mkdir(parents=True, exist_ok=True)
     summary = [f"Board: {result.board.describe()}", ""]
     for rig in result.rigs:

@@ -7,7 +7,7 @@ from typing import Annotated, Optional
 
 import typer
 
-from rigsfm.cli.common import console, fail_cleanly, flag
+from rigsfm.cli.common import configure_logging, console, fail_cleanly, flag
 from rigsfm.inspect.options import ExportFormat, ExportOptions
 
 WORKSPACE = typer.Argument(metavar="OUT", help="workspace folder of a finished `rigsfm run`", show_default=False)
@@ -53,4 +53,5 @@ def export_command(
     as plain JSON poses."""
     from rigsfm.inspect.export import export
 
+    configure_logging(False)  # the files an --overwrite keeps, named as warnings
     console.print(f"exported {fmt}: {export(out, ExportOptions(format=fmt, dest=dest, overwrite=overwrite))}")

@@ -36,5 +36,12 @@ def pick_command(
         pass
     finally:
         server.close()
-    console.print(f"stopped: {len(server.session.pairs)} pairs in {out} (for `rigsfm run ... --manual-matches "
-                  f"{out}`)")
+    session = server.session
+    if session.unsaved is not None:  # the last save failed: say so instead of "nothing finished was lost"
+        from rigsfm.core.errors import WorkspaceError
+
+        where = (f"they are kept in {session.rescue}: copy it to where the CSV should be"
+                 if session.rescue is not None else "nothing could keep them")
+        raise WorkspaceError(f"the last save of {len(session.unsaved)} pairs of {session.images[0].name} <-> "
+                             f"{session.images[1].name} failed ({session.save_error}); {where}") from None
+    console.print(f"stopped: {len(session.pairs)} pairs in {out} (for `rigsfm run ... --manual-matches {out}`)")

@@ -56,6 +56,15 @@ def write_bytes_atomic(path: Path, data: bytes, *, overwrite: bool = True) -> Pa
     return path
 
 
+def sha256_file(path: Path) -> str:
+    """The SHA-256 of a file's content (hex): what a manifest records so that a later command removes a file only
+    while it is still what rigsfm wrote."""
+    import hashlib
+
+    with open(path, "rb") as f:
+        return hashlib.file_digest(f, "sha256").hexdigest()
+
+
 def write_npz_atomic(path: Path, arrays: dict[str, Any], *, overwrite: bool = True) -> Path:
     """``numpy.savez`` of ``arrays`` written atomically (whole or absent for a process reading meanwhile)."""
     import numpy as np
@@ -86,9 +95,17 @@ def write_json_atomic(path: Path, data: Any, *, overwrite: bool = True) -> Path:
     return write_text_atomic(path, json.dumps(data, indent=2) + "\n", overwrite=overwrite)
 
 
+def _foreign_entries(old: Path, new: Path) -> list[str]:
+    """What in ``old`` the folder ``new`` does not write again as a plain file: not rigsfm's to remove."""
+    names = {p.name for p in new.iterdir()}
+    return sorted(p.name for p in old.iterdir() if p.name not in names or p.is_symlink() or not p.is_file())
+
+
 @contextlib.contextmanager
 def atomic_directory(path: Path, *, overwrite: bool = True) -> Iterator[Path]:
-    """Yield a temporary directory that replaces ``path`` only if the block succeeds."""
+    """Yield a temporary directory that replaces ``path`` only if the block succeeds. The folder it replaces may
+    hold only plain files of the names the new one holds (an earlier version of it); anything else there (a
+    sub-folder, a link, a file of another name) is refused with nothing replaced."""
     path = Path(path)
     _check_overwrite(path, overwrite)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -96,6 +113,12 @@ def atomic_directory(path: Path, *, overwrite: bool = True) -> Iterator[Path]:
     os.chmod(tmp, 0o777 & ~_umask())  # mkdtemp makes 0700
     try:
         yield tmp
+        if path.is_symlink() or (path.exists() and not path.is_dir()):
+            raise WorkspaceError(f"{path} exists and is not a folder rigsfm wrote; move it away (nothing was replaced)")
+        foreign = _foreign_entries(path, tmp) if path.exists() else []
+        if foreign:
+            raise WorkspaceError(f"{path} holds files rigsfm did not write there ({', '.join(foreign[:3])}"
+                                 f"{', ...' if len(foreign) > 3 else ''}); move them away (nothing was replaced)")
         if path.exists():
             old = path.with_name(f".{path.name}.old")
             shutil.rmtree(old, ignore_errors=True)

@@ -26,6 +26,7 @@ import os
 import re
 import shutil
 import sys
+import tempfile
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -256,6 +257,14 @@ def read_model(folder: Path, fix: str) -> pycolmap.Reconstruction:
     if missing or empty:
         what = "; ".join(filter(None, [missing and f"{', '.join(missing)} missing", empty and f"{', '.join(empty)} empty"]))
         raise WorkspaceError(f"{folder} holds no complete COLMAP model ({what}): {fix}")
+    from rigsfm.core.model_files import ModelFileError, check_model_files
+
+    try:
+        check_model_files(folder)  # pycolmap allocates whatever a damaged count says, for minutes
+    except ModelFileError as error:
+        raise WorkspaceError(f"{error.path} is truncated or damaged ({error.what}): {fix}") from None
+    except OSError as error:
+        raise WorkspaceError(f"cannot read the COLMAP model in {folder}: {os_error_text(error)}: {fix}") from None
     try:
         return pycolmap.Reconstruction(str(folder))
     except Exception as error:  # ValueError, IndexError ("unordered_map::at"), MemoryError, ... by where it is cut
@@ -286,9 +295,9 @@ def _write_probe(folder: Path) -> str | None:
     """Create ``folder`` (and parents) and a file in it; why that fails (``os_error_text``), or None."""
     try:
         folder.mkdir(parents=True, exist_ok=True)
-        probe = folder / f".rigsfm-write-test-{os.getpid()}"
-        probe.write_bytes(b"")
-        probe.unlink()
+        fd, probe = tempfile.mkstemp(prefix=".rigsfm-write-test-", dir=folder)  # a new file: never one of the user's
+        os.close(fd)
+        Path(probe).unlink()
     except OSError as error:
         return os_error_text(error)
     return None

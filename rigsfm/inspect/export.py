@@ -23,7 +23,9 @@ import json
 import logging
 import os
 import shutil
+import stat
 import tempfile
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -32,7 +34,7 @@ import pycolmap
 from rigsfm.core.serialise import camera_to_dict, pose_to_dict
 from rigsfm.core.conventions import opengl_c2w_from_cam_from_world
 from rigsfm.core.errors import InputError, WorkspaceError
-from rigsfm.core.io import write_json_atomic
+from rigsfm.core.io import sha256_file, write_json_atomic
 from rigsfm.core.names import name_of
 from rigsfm.core.workspace import Workspace
 from rigsfm.inspect.camera_files import write_opencv, write_toml
@@ -42,7 +44,7 @@ from rigsfm.run.summary import Summary
 
 logger = logging.getLogger(__name__)
 
-MANIFEST = ".rigsfm-export.json"  # the files rigsfm wrote into an export folder: all --overwrite may remove
+MANIFEST = ".rigsfm-export.json"  # the files rigsfm wrote into an export folder and their SHA-256: all --overwrite may remove
 
 
 def registered_images(reconstruction: pycolmap.Reconstruction) -> list[pycolmap.Image]:
@@ -152,11 +154,58 @@ def world_metadata(workspace: Workspace) -> dict[str, str]:
     return {"world": "the mapper's frame (no floor frame)"} if world else {}
 
 
-def check_destination(dest: Path, workspace: Workspace, *, overwrite: bool) -> list[str]:
-    """What an export into ``dest`` may replace: the files of an earlier export listed in its manifest.
+@dataclass(frozen=True)
+class Previous:
+    """An earlier export in DEST, by its manifest: ``ours`` are files still as rigsfm wrote them (their checksum
+    matches), ``changed`` listed files that are not (edited, replaced, no checksum, not a plain file), ``invalid``
+    entries that name no file of DEST (absolute, ``..``, a sub-folder): only ``ours`` are ever removed."""
 
-    Refuses the workspace itself or a folder that holds it, a folder with files rigsfm did not write, and
-    an earlier export without ``overwrite``."""
+    ours: tuple[str, ...] = ()
+    changed: tuple[str, ...] = ()
+    invalid: tuple[str, ...] = ()
+
+
+def _is_plain_name(name: object) -> bool:
+    """A file directly in DEST: relative, one component, not the manifest itself."""
+    return (isinstance(name, str) and name not in ("", ".", "..", MANIFEST) and "/" not in name and "\\" not in name
+            and "\0" not in name and not Path(name).is_absolute())
+
+
+def read_manifest(dest: Path) -> tuple[list[str], dict[str, str], list[str]]:
+    """(listed plain names, their recorded SHA-256, entries that are not plain names) of DEST's manifest; nothing
+    for a manifest that is missing, a link, or not one rigsfm writes."""
+    manifest = dest / MANIFEST
+    if manifest.is_symlink() or not manifest.is_file():
+        return [], {}, []
+    try:
+        data = json.loads(manifest.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return [], {}, []
+    files = data.get("files") if isinstance(data, dict) else None
+    if not isinstance(files, list):
+        return [], {}, []
+    sums = data.get("sha256") if isinstance(data.get("sha256"), dict) else {}
+    listed = [name for name in files if _is_plain_name(name)]
+    invalid = [str(name) for name in files if not _is_plain_name(name)]
+    return listed, {name: sums[name] for name in listed if isinstance(sums.get(name), str)}, invalid
+
+
+def _still_ours(path: Path, checksum: str | None) -> bool:
+    """Whether ``path`` is a plain file (not a link) whose content is what rigsfm recorded writing."""
+    try:
+        if checksum is None or not stat.S_ISREG(os.lstat(path).st_mode):
+            return False
+        return sha256_file(path) == checksum
+    except OSError:
+        return False
+
+
+def check_destination(dest: Path, workspace: Workspace, *, overwrite: bool) -> Previous:
+    """What an export into ``dest`` may replace: the files of an earlier export listed in its manifest and still
+    as rigsfm wrote them.
+
+    Refuses the workspace itself or a folder that holds it, a folder with files no manifest lists, and an earlier
+    export without ``overwrite``."""
     resolved, root = dest.resolve(), workspace.root.resolve()
     if resolved == root or root.is_relative_to(resolved):
         raise WorkspaceError(f"--dest {dest} is the workspace or a folder that holds it; choose a folder of its own "
@@ -165,19 +214,13 @@ def check_destination(dest: Path, workspace: Workspace, *, overwrite: bool) -> l
         raise WorkspaceError(f"--dest {dest} is inside the workspace's own files; use {root / 'export'}/... or a folder "
                              "outside the workspace")
     if not dest.exists():
-        return []
+        return Previous()
     if not dest.is_dir():
         raise WorkspaceError(f"--dest {dest} exists and is not a folder; choose a new or empty folder")
     present = sorted(p.name for p in dest.iterdir())
     if not present:
-        return []
-    manifest = dest / MANIFEST
-    listed: list[str] = []
-    if manifest.is_file():
-        try:
-            listed = [str(name) for name in json.loads(manifest.read_text(encoding="utf-8"))["files"]]
-        except (ValueError, KeyError, TypeError):
-            listed = []
+        return Previous()
+    listed, sums, invalid = read_manifest(dest)
     foreign = [name for name in present if name != MANIFEST and name not in listed]
     if foreign:
         raise WorkspaceError(f"--dest {dest} holds files rigsfm did not write ({', '.join(foreign[:3])}"
@@ -185,12 +228,32 @@ def check_destination(dest: Path, workspace: Workspace, *, overwrite: bool) -> l
                              "written or removed)")
     if not overwrite:
         raise WorkspaceError(f"{dest} already holds an export: pass --overwrite to replace it")
-    return listed
+    there = [name for name in listed if os.path.lexists(dest / name)]
+    ours = tuple(name for name in there if _still_ours(dest / name, sums.get(name)))
+    return Previous(ours, tuple(name for name in there if name not in ours), tuple(invalid))
+
+
+def _replace_previous(dest: Path, previous: Previous, written: list[str]) -> None:
+    """Refuse to write over a listed file that is no longer rigsfm's; remove the earlier export's own files that
+    this one does not write again (those it does are replaced by the rename); keep the others with a warning."""
+    collide = [name for name in previous.changed if name in written]
+    if collide:
+        raise WorkspaceError(f"{dest / collide[0]} is not what an earlier export wrote there (edited or replaced "
+                             "since); move it away or choose another --dest (nothing was written or removed)")
+    for name in previous.changed:
+        logger.warning("Kept %s: its content is not what rigsfm wrote there (edited or replaced since), so it is no "
+                       "longer part of the export", dest / name)
+    for name in previous.invalid:
+        logger.warning("Ignored %r in %s: not a file of %s, so nothing was removed for it", name, dest / MANIFEST, dest)
+    for name in previous.ours:
+        if name not in written:
+            (dest / name).unlink(missing_ok=True)
 
 
 def export(out: Path, options: ExportOptions) -> Path:
     """Write the workspace's result in ``options.format`` into ``options.dest`` (default ``OUT/export/<format>``)
-    and return that folder. Only an earlier export's own files are ever replaced (see ``check_destination``)."""
+    and return that folder. Only an earlier export's own files, unchanged since, are ever replaced (see
+    ``check_destination``)."""
     workspace = Workspace(Path(out))
     workspace.require_result()
     fmt = ExportFormat(options.format)
@@ -216,17 +279,13 @@ def export(out: Path, options: ExportOptions) -> Path:
             write_json_poses(reconstruction, tmp)
         written = sorted(p.name for p in tmp.iterdir())
         write_json_atomic(tmp / MANIFEST, {"format": str(fmt), "workspace": str(workspace.root.resolve()),
-                                            "files": written})
+                                            "files": written,
+                                            "sha256": {name: sha256_file(tmp / name) for name in written}})
         dest.mkdir(exist_ok=True)
-        for name in previous:  # only what an earlier export wrote
-            target = dest / name
-            if target.is_dir() and not target.is_symlink():
-                shutil.rmtree(target)
-            else:
-                target.unlink(missing_ok=True)
+        _replace_previous(dest, previous, written)
         for name in [*written, MANIFEST]:
             os.replace(tmp / name, dest / name)
     finally:
-        shutil.rmtree(tmp, ignore_errors=True)
+        shutil.rmtree(tmp, ignore_errors=True)  # the temporary folder made above: only rigsfm's files
     logger.info("Exported %s to %s", fmt, dest)
     return dest

@@ -25,7 +25,7 @@ import cv2
 from rigsfm.core.errors import InputError, RigsfmError
 from rigsfm.core.image_files import exif_orientation, is_turned, read_image
 from rigsfm.core.workspace import os_error_text
-from rigsfm.pick.session import PickerSession, picker_image
+from rigsfm.pick.session import PickerSession, SaveFailed, StalePage, picker_image
 from rigsfm.core.rig import load_rigs
 
 logger = logging.getLogger(__name__)
@@ -122,7 +122,14 @@ class _Handler(BaseHTTPRequestHandler):
             body = json.loads(self.rfile.read(length) or b"{}")
             if not isinstance(body, dict) or "pairs" not in body:
                 raise ValueError('expected {"pairs": [[x_a, y_a, x_b, y_b], ...]}')
-            self._json(self.session.set_pairs(body["pairs"]))
+            self._json(self.session.set_pairs(body["pairs"], body.get("revision")))
+        except StalePage as error:
+            self._json({"error": str(error), "stale": True}, HTTPStatus.CONFLICT)
+        except SaveFailed as error:
+            self._json({"error": str(error)}, HTTPStatus.INTERNAL_SERVER_ERROR)
+        except OSError as error:  # the CSV unreadable: the page is told, the terminal gets no traceback
+            where = f"{error.filename}: " if error.filename else ""
+            self._json({"error": f"{where}{os_error_text(error)}"}, HTTPStatus.INTERNAL_SERVER_ERROR)
         except (RigsfmError, ValueError, RecursionError) as error:
             self._json({"error": str(error) or type(error).__name__}, HTTPStatus.BAD_REQUEST)
 

@@ -8,14 +8,21 @@ OUT/
   scale.yaml         camera_distance (rig01 to the farthest rig) + known_length (a 2 m bar)
   scene.yaml         the SceneOptions and the bar's world end points, for reference
   ground_truth/      pycolmap.Reconstruction (binary): cameras, rigs, frames, images; no points
+  .rigsfm-dataset.json  every file above and its SHA-256: all that overwrite=True may remove
 ```
 """
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
+import hashlib
+import json
 import logging
-import shutil
+import os
+import re
+import stat
+import tempfile
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -28,8 +35,8 @@ import yaml
 from rigsfm.core.geometry import project_world
 from rigsfm.core.errors import WorkspaceError
 from rigsfm.core.names import SENSORS, ImageName, Sensor
-from rigsfm.core.io import parse_yaml, write_text_atomic
-from rigsfm.core.rig import RigCalibration, add_posed_rig, rigs_to_yaml, write_rigs
+from rigsfm.core.io import parse_yaml, sha256_file, write_bytes_atomic, write_json_atomic
+from rigsfm.core.rig import RigCalibration, add_posed_rig, rigs_to_yaml
 from rigsfm.synth.cameras import RigTruth, calibration_error_sigmas, make_rigs, user_calibration
 from rigsfm.synth.render import render_clean, to_uint8, visible
 from rigsfm.synth.scene import Arena, Bar, SceneOptions, build_arena
@@ -52,7 +59,9 @@ class SyntheticDataset:
     image_names: tuple[str, ...]
 
     def load_ground_truth(self) -> pycolmap.Reconstruction:
-        return pycolmap.Reconstruction(str(self.ground_truth))
+        from rigsfm.core.workspace import read_model
+
+        return read_model(self.ground_truth, f"render the scene again (overwrite=True) into {self.root}")
 
 
 def image_name(rig: str, sensor: str, frame: int) -> str:
@@ -145,12 +154,87 @@ def rigs_yaml_with_sigmas(calibrations: list[RigCalibration]) -> str:
     return yaml.safe_dump(data, sort_keys=False, default_flow_style=None, width=120)
 
 
+MANIFEST = ".rigsfm-dataset.json"
+_LEFTOVER = re.compile(r"\.(?P<name>.+)\.[a-z0-9_]{8}\.tmp")  # what an atomic write that was killed leaves
+
+
+class _Written:
+    """The files a render wrote under its folder with their SHA-256, saved in its manifest as they are written, so
+    that a later ``overwrite`` removes exactly those (and only while they are unchanged)."""
+
+    def __init__(self, root: Path):
+        self.root, self.files = root, {}
+
+    def write(self, path: Path, data: bytes) -> None:
+        self.files[path.relative_to(self.root).as_posix()] = hashlib.sha256(data).hexdigest()  # listed first: a
+        write_bytes_atomic(path, data)  # stop between the two leaves a listed name, never an unlisted file
+
+    def record(self, path: Path) -> None:
+        self.files[path.relative_to(self.root).as_posix()] = sha256_file(path)
+
+    def save(self) -> None:
+        write_json_atomic(self.root / MANIFEST, {"written_by": "rigsfm.synth.render_dataset", "files": self.files})
+
+
+def _listed(out_dir: Path) -> dict[str, str]:
+    """The manifest's entries that name a file under ``out_dir`` (relative, no ``..``), with their SHA-256."""
+    manifest = out_dir / MANIFEST
+    if manifest.is_symlink() or not manifest.is_file():
+        return {}
+    try:
+        data = json.loads(manifest.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return {}
+    files = data.get("files") if isinstance(data, dict) else None
+    if not isinstance(files, dict):
+        return {}
+    return {name: digest for name, digest in files.items()
+            if isinstance(name, str) and isinstance(digest, str) and name and not name.startswith("/")
+            and "\\" not in name and all(part not in ("", ".", "..") for part in name.split("/"))}
+
+
+def _ours(out_dir: Path) -> tuple[list[Path], list[str]]:
+    """(the files under ``out_dir`` a render wrote and that are unchanged since, those it did not write or that
+    changed: relative names). Links are never followed and never ours."""
+    listed = _listed(out_dir)
+    ours, foreign = [], []
+    for folder, dirs, files in os.walk(out_dir):
+        here = Path(folder)
+        for name in [*files, *(d for d in dirs if (here / d).is_symlink())]:
+            path = here / name
+            rel = path.relative_to(out_dir).as_posix()
+            if rel == MANIFEST:
+                continue
+            leftover = _LEFTOVER.fullmatch(name)
+            if leftover and (here / leftover["name"]).relative_to(out_dir).as_posix() in listed:
+                ours.append(path)
+            elif (rel in listed and stat.S_ISREG(os.lstat(path).st_mode) and sha256_file(path) == listed[rel]):
+                ours.append(path)
+            else:
+                foreign.append(rel)
+    return ours, sorted(foreign)
+
+
 def _prepare(out_dir: Path, overwrite: bool) -> None:
+    """Make ``out_dir``; with ``overwrite``, first remove the files an earlier render wrote there, refusing (with
+    nothing removed) when it holds any other file or one changed since."""
+    if out_dir.exists() and not out_dir.is_dir():
+        raise WorkspaceError(f"{out_dir} exists and is not a folder; choose another one")
     if out_dir.exists() and any(out_dir.iterdir()):
         if not overwrite:
             raise WorkspaceError(f"{out_dir} is not empty: pass overwrite=True (--overwrite) to replace it")
-        for name in ("images", "ground_truth"):
-            shutil.rmtree(out_dir / name, ignore_errors=True)
+        ours, foreign = _ours(out_dir)
+        if foreign:
+            raise WorkspaceError(f"{out_dir} holds files rigsfm did not write there, or changed since "
+                                 f"({', '.join(foreign[:3])}{', ...' if len(foreign) > 3 else ''}); move them away or "
+                                 "choose a new folder (nothing was removed)")
+        for path in ours:
+            path.unlink(missing_ok=True)
+        for folder in sorted({p.parent for p in ours}, key=lambda p: len(p.parts), reverse=True):
+            while folder != out_dir and folder.is_relative_to(out_dir):
+                with contextlib.suppress(OSError):  # a folder that still holds something stays
+                    folder.rmdir()
+                folder = folder.parent
     out_dir.mkdir(parents=True, exist_ok=True)
 
 
@@ -169,33 +253,43 @@ def render_dataset(
     arena = arena.with_bar(bar)
 
     names = []
-    for index, truth in enumerate(rigs):
-        for s, sensor in enumerate(SENSORS):
-            camera = truth.wide if sensor == "wide" else truth.narrow
-            pose = truth.wide_from_world if sensor == "wide" else truth.narrow_from_world
-            clean = render_clean(arena, camera, pose)
-            for frame in range(options.frames_per_rig):
-                rng = np.random.default_rng([options.seed, 41, index, s, frame])
-                name = image_name(truth.name, sensor, frame)
-                path = out_dir / "images" / name
-                path.parent.mkdir(parents=True, exist_ok=True)
-                if not cv2.imwrite(str(path), to_uint8(clean, rng, options.noise_sigma)):
-                    raise OSError(f"could not write {path}")
-                names.append(name)
-        logger.info("rendered %s (%d/%d)", truth.name, index + 1, len(rigs))
+    written = _Written(out_dir)
+    try:
+        for index, truth in enumerate(rigs):
+            for s, sensor in enumerate(SENSORS):
+                camera = truth.wide if sensor == "wide" else truth.narrow
+                pose = truth.wide_from_world if sensor == "wide" else truth.narrow_from_world
+                clean = render_clean(arena, camera, pose)
+                for frame in range(options.frames_per_rig):
+                    rng = np.random.default_rng([options.seed, 41, index, s, frame])
+                    name = image_name(truth.name, sensor, frame)
+                    ok, png = cv2.imencode(".png", to_uint8(clean, rng, options.noise_sigma))
+                    if not ok:
+                        raise OSError(f"could not encode {out_dir / 'images' / name}")
+                    written.write(out_dir / "images" / name, png.tobytes())
+                    names.append(name)
+            written.save()
+            logger.info("rendered %s (%d/%d)", truth.name, index + 1, len(rigs))
 
-    write_text_atomic(out_dir / "rigs.yaml", rigs_yaml_with_sigmas(user_calibration(rigs, options))
-                      if options.calibration_noise else rigs_to_yaml(user_calibration(rigs, options)))
-    write_rigs(out_dir / "rigs_exact.yaml", [rig.calibration() for rig in rigs], overwrite=True)
-    write_text_atomic(out_dir / "scale.yaml", _scale_yaml(rigs, bar, first, second))
-    scene = {
-        "options": dataclasses.asdict(options),
-        "bar": {"a": [float(v) for v in bar.a], "b": [float(v) for v in bar.b]} if bar is not None else None,
-    }
-    write_text_atomic(out_dir / "scene.yaml", yaml.safe_dump(scene, sort_keys=False, default_flow_style=None))
-    gt_dir = out_dir / "ground_truth"
-    gt_dir.mkdir(parents=True, exist_ok=True)
-    ground_truth_reconstruction(rigs, options.frames_per_rig).write(str(gt_dir))
+        rigs_text = (rigs_yaml_with_sigmas(user_calibration(rigs, options)) if options.calibration_noise
+                     else rigs_to_yaml(user_calibration(rigs, options)))
+        written.write(out_dir / "rigs.yaml", rigs_text.encode("utf-8"))
+        written.write(out_dir / "rigs_exact.yaml", rigs_to_yaml([rig.calibration() for rig in rigs]).encode("utf-8"))
+        written.write(out_dir / "scale.yaml", _scale_yaml(rigs, bar, first, second).encode("utf-8"))
+        scene = {
+            "options": dataclasses.asdict(options),
+            "bar": {"a": [float(v) for v in bar.a], "b": [float(v) for v in bar.b]} if bar is not None else None,
+        }
+        written.write(out_dir / "scene.yaml",
+                      yaml.safe_dump(scene, sort_keys=False, default_flow_style=None).encode("utf-8"))
+        gt_dir = out_dir / "ground_truth"
+        gt_dir.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryDirectory(prefix="rigsfm-ground-truth-") as tmp:  # outside OUT: no leftover there
+            ground_truth_reconstruction(rigs, options.frames_per_rig).write(tmp)
+            for path in sorted(Path(tmp).iterdir()):
+                written.write(gt_dir / path.name, path.read_bytes())
+    finally:
+        written.save()
     logger.info("wrote %d images to %s in %.1f s", len(names), out_dir, time.perf_counter() - start)
     return SyntheticDataset(
         out_dir,

@@ -13,6 +13,7 @@ from pathlib import Path
 
 from rigsfm.synth.truth import centre_errors_mm, compare_to_ground_truth, oracle
 from rigsfm.core.errors import InputError
+from rigsfm.core.errors import WorkspaceError
 from rigsfm.core.io import write_json_atomic
 from rigsfm.run.pipeline import Progress, RunOptions, RunResult, load_inputs, run
 from rigsfm.synth.dataset import SyntheticDataset, render_dataset
@@ -62,6 +63,8 @@ def run_demo(out: Path, scene: SceneOptions | None = None, options: RunOptions |
     options = options or RunOptions()
     scene = scene or SceneOptions()
     check_image_scale(scene.image_scale)
+    if (out / "accuracy.json").exists() and not options.overwrite:
+        raise WorkspaceError(f"{out / 'accuracy.json'} already exists: pass --overwrite to replace the demo in {out}")
     if progress:
         progress("render", 0, 1)
     dataset = render_dataset(out / "scene", scene, overwrite=options.overwrite)

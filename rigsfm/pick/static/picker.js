@@ -129,6 +129,7 @@ function redraw() { SIDES.forEach(draw); drawTable(); describe(); }
 
 function applyState(data) {
   state.info = data;
+  state.revision = data.revision;
   state.images = data.images;
   state.pairs = data.pairs;
   state.model = data.model;
@@ -150,6 +151,18 @@ async function updateEpipolar() {
 // Saves go to the server one at a time, each with the newest pairs. A response is applied only when no
 // change came after its request: an older response must not replace newer clicks (fast clicking on a slow
 // server lost pairs that way), and an older request must not overwrite a newer CSV.
+// Another tab or script may have saved meanwhile: the server applies this page's edit on top of the newer pairs
+// (by the revision sent), and newer clicks here are redone on top of what it saved (rebase).
+function pairKey(p) { return [...p.a, ...p.b].map((v) => v.toFixed(3)).join(","); }
+function rebase(saved, base, now) {
+  const same = (x, y) => x.length === y.length && x.every((p, i) => pairKey(p) === pairKey(y[i]));
+  if (same(saved, base)) return now;
+  const before = new Set(base.map(pairKey)), after = new Set(now.map(pairKey));
+  const kept = saved.filter((p) => !(before.has(pairKey(p)) && !after.has(pairKey(p))));
+  const have = new Set(kept.map(pairKey));
+  return kept.concat(now.filter((p) => !before.has(pairKey(p)) && !have.has(pairKey(p))));
+}
+
 let saveQueue = Promise.resolve();
 let changes = 0;
 function save() {
@@ -158,8 +171,15 @@ function save() {
   saveQueue = saveQueue.then(async () => {
     if (change !== changes) return;  // a later save sends these pairs too
     try {
-      const data = await api("PUT", "/api/pairs", { pairs: state.pairs.map((p) => [...p.a, ...p.b]) });
-      if (change !== changes) return;
+      const sent = state.pairs.slice();
+      const data = await api("PUT", "/api/pairs", {
+        pairs: sent.map((p) => [...p.a, ...p.b]), revision: state.revision,
+      });
+      state.revision = data.revision;  // the next save starts from this one
+      if (change !== changes) {  // newer clicks came meanwhile: they are redone on what the server saved
+        state.pairs = rebase(data.pairs, sent, state.pairs);
+        return;
+      }
       applyState(data);
       await updateEpipolar();
     } catch (error) {

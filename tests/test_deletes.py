@@ -1,0 +1,443 @@
+"""rigsfm deletes only what it wrote and reads damaged binary models safely: export's manifest, the demo's scene
+folder, the picker's backups and stale pages, and every COLMAP model file cut short or damaged."""
+
+import hashlib
+import json
+import os
+import struct
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pycolmap
+import pytest
+from bad_inputs_table import workspace
+from typer.testing import CliRunner
+
+from rigsfm.cli import app
+from rigsfm.inspect.export import MANIFEST
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def sha256_file(path: Path) -> str:
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+
+
+def invoke(*args):
+    return CliRunner().invoke(app, [str(a) for a in args], env={"COLUMNS": "400"})
+
+
+def one_error_line(result) -> str:
+    lines = [line for line in result.output.splitlines() if line.strip()]
+    errors = [line for line in lines if line.startswith("error:")]
+    assert len(errors) == 1 and "Traceback" not in result.output, result.output
+    return errors[0]
+
+
+@pytest.fixture()
+def out(tmp_path):
+    """A small finished workspace whose model has 3D points (300, each seen by the four images)."""
+    out = workspace(tmp_path)
+    rec = pycolmap.Reconstruction(out / "sparse")
+    rng = np.random.default_rng(0)
+    for image in rec.images.values():
+        image.points2D = pycolmap.Point2DList([pycolmap.Point2D(rng.uniform(0, 40, 2)) for _ in range(300)])
+    for k in range(300):
+        track = pycolmap.Track()
+        for image_id in sorted(rec.images):
+            track.add_element(image_id, k)
+        rec.add_point3D(rng.normal(size=3) + [0.0, 0.0, 5.0], track, np.array([1, 2, 3], np.uint8))
+    rec.write(out / "sparse")
+    return out
+
+
+# --- binary models: sizes checked before pycolmap allocates ---------------------------------------------------------
+
+def cut(path: Path, size: int) -> None:
+    path.write_bytes(path.read_bytes()[:size])
+
+
+@pytest.mark.parametrize("name,size", [("points3D.bin", 1000), ("points3D.bin", 24000), ("images.bin", 100),
+                                       ("images.bin", 20000), ("cameras.bin", 50), ("rigs.bin", 60),
+                                       ("frames.bin", 100)])
+def test_a_cut_model_file_is_named_by_every_reader(out, tmp_path, name, size):
+    cut(out / "sparse" / name, size)
+    for args in (["report", out], ["export", out, "--format", "json"],
+                 ["view", out, "--screenshot", tmp_path / "v.png"]):
+        result = invoke(*args)
+        assert result.exit_code == 1, (args, result.output)
+        line = one_error_line(result)
+        assert f"sparse/{name} is truncated or damaged ({size} B; " in line, line
+        assert line.endswith(f"re-run `rigsfm run IMAGES --rigs rigs.yaml --out {out} --overwrite`"), line
+
+
+def test_a_huge_count_is_refused_before_anything_is_allocated(out):
+    """A count of 10^9 points in an intact file: pycolmap alone reserves and loops until memory runs out (here a
+    2 GiB address-space limit, so that the old behaviour fails the test instead of filling the machine)."""
+    path = out / "sparse" / "points3D.bin"
+    data = bytearray(path.read_bytes())
+    data[:8] = struct.pack("<Q", 10**9)
+    path.write_bytes(bytes(data))
+    code = ("import resource, sys; resource.setrlimit(resource.RLIMIT_AS, (2 << 30, 2 << 30)); "
+            "from rigsfm.cli import app; app(['report', sys.argv[1]], prog_name='rigsfm')")
+    env = {**os.environ, "PYTHONPATH": str(REPO), "COLUMNS": "400"}
+    done = subprocess.run([sys.executable, "-c", code, str(out)], capture_output=True, text=True, env=env,
+                          timeout=300)
+    assert done.returncode == 1, done.stderr
+    assert "points3D.bin is truncated or damaged (24908 B; says 1000000000 3D points but only 24900 B follow)" in \
+        done.stderr, done.stderr
+
+
+def test_damaged_references_between_files_are_named(out):
+    from rigsfm.core.model_files import ModelFileError, check_model_files
+
+    check_model_files(out / "sparse")  # the intact model passes
+    path = out / "sparse" / "points3D.bin"
+    data = bytearray(path.read_bytes())
+    offset = 8 + 51  # the first point's first track element: image id, then 2D point index
+    data[offset + 4:offset + 8] = struct.pack("<I", 5000)
+    path.write_bytes(bytes(data))
+    with pytest.raises(ModelFileError, match=r"3D point 1 is seen by 2D point 5000 of image 1, which images.bin"):
+        check_model_files(out / "sparse")
+
+
+# --- export: the manifest is checked before anything is removed -----------------------------------------------------
+
+def export_json(out, dest, *extra):
+    return invoke("export", out, "--format", "json", "--dest", dest, *extra)
+
+
+def test_a_forged_manifest_deletes_nothing_outside_the_export(out, tmp_path):
+    """Entries that leave DEST, absolute paths and the user's own images listed without a checksum are all kept."""
+    dest = tmp_path / "dest"
+    assert export_json(out, dest).exit_code == 0
+    database = out / "database.db"
+    database.write_bytes(b"SQLite format 3\0 the user's database")
+    outside = tmp_path / "elsewhere.txt"
+    outside.write_text("keep me")
+    (dest / "IMG_0001.jpg").write_bytes(b"the user's photo")
+    manifest = json.loads((dest / MANIFEST).read_text())
+    manifest["files"] += ["../out/database.db", str(outside), str(database), "IMG_0001.jpg", "..", "."]
+    (dest / MANIFEST).write_text(json.dumps(manifest))
+    result = export_json(out, dest, "--overwrite")
+    assert result.exit_code == 0, result.output
+    assert database.read_bytes() == b"SQLite format 3\0 the user's database"
+    assert outside.read_text() == "keep me"
+    assert (dest / "IMG_0001.jpg").read_bytes() == b"the user's photo"
+    assert "IMG_0001.jpg: its content is not what rigsfm wrote" in result.output.replace("\n", " ")
+    assert "../out/database.db" in result.output
+    new = json.loads((dest / MANIFEST).read_text())
+    assert new["files"] == ["poses.json"] and new["sha256"] == {"poses.json": sha256_file(dest / "poses.json")}
+    # The kept photo is the user's now: the next --overwrite refuses to write among it.
+    result = export_json(out, dest, "--overwrite")
+    assert result.exit_code == 1 and "holds files rigsfm did not write (IMG_0001.jpg)" in one_error_line(result)
+
+
+def test_an_edited_export_file_is_kept_and_named(out, tmp_path):
+    dest = tmp_path / "dest"
+    assert invoke("export", out, "--format", "colmap-bin", "--dest", dest).exit_code == 0
+    assert invoke("export", out, "--format", "colmap-bin", "--dest", dest, "--overwrite").exit_code == 0
+    (dest / "cameras.bin").write_bytes(b"edited by hand")
+    result = invoke("export", out, "--format", "colmap-bin", "--dest", dest, "--overwrite")
+    assert result.exit_code == 1
+    assert (f"{dest / 'cameras.bin'} is not what an earlier export wrote there (edited or replaced since); move it "
+            "away or choose another --dest (nothing was written or removed)") in one_error_line(result)
+    assert (dest / "cameras.bin").read_bytes() == b"edited by hand"
+    # A stale file of an earlier export, changed since and not written again: kept with a warning.
+    (dest / "cameras.bin").unlink()
+    (dest / "old.bin").write_bytes(b"mine now")
+    manifest = json.loads((dest / MANIFEST).read_text())
+    manifest["files"].append("old.bin")
+    manifest["sha256"]["old.bin"] = "0" * 64
+    (dest / MANIFEST).write_text(json.dumps(manifest))
+    result = invoke("export", out, "--format", "colmap-bin", "--dest", dest, "--overwrite")
+    assert result.exit_code == 0, result.output
+    assert (dest / "old.bin").read_bytes() == b"mine now"
+    assert "old.bin: its content is not what rigsfm wrote" in result.output.replace("\n", " ")
+
+
+def test_an_unchanged_earlier_export_is_replaced_and_its_stale_files_removed(out, tmp_path):
+    dest = tmp_path / "dest"
+    assert export_json(out, dest).exit_code == 0
+    (dest / "stale.json").write_text("{}")  # an earlier export's file, listed with its checksum
+    manifest = json.loads((dest / MANIFEST).read_text())
+    manifest["files"].append("stale.json")
+    manifest["sha256"]["stale.json"] = sha256_file(dest / "stale.json")
+    (dest / MANIFEST).write_text(json.dumps(manifest))
+    result = export_json(out, dest, "--overwrite")
+    assert result.exit_code == 0, result.output
+    assert sorted(p.name for p in dest.iterdir()) == sorted([MANIFEST, "poses.json"])
+    assert "warning" not in result.output.lower()
+
+
+def test_a_listed_link_is_not_followed(out, tmp_path):
+    dest = tmp_path / "dest"
+    assert export_json(out, dest).exit_code == 0
+    target = tmp_path / "precious.txt"
+    target.write_text("precious")
+    (dest / "link.txt").symlink_to(target)
+    manifest = json.loads((dest / MANIFEST).read_text())
+    manifest["files"].append("link.txt")
+    manifest["sha256"]["link.txt"] = sha256_file(target)  # the checksum of what it points to
+    (dest / MANIFEST).write_text(json.dumps(manifest))
+    assert export_json(out, dest, "--overwrite").exit_code == 0
+    assert (dest / "link.txt").is_symlink() and target.read_text() == "precious"
+
+
+# --- demo / render_dataset: only the files a render wrote are replaced ---------------------------------------------
+
+SMALL = dict(num_rigs=2, arc_deg=60.0, image_scale=0.25, calibration_noise=False, seed=3)
+
+
+def tree(root: Path) -> dict[str, str]:
+    return {p.relative_to(root).as_posix(): sha256_file(p) for p in sorted(root.rglob("*")) if p.is_file()}
+
+
+def test_demo_overwrite_keeps_the_users_files_in_the_scene_folder(tmp_path):
+    from rigsfm.synth.dataset import render_dataset
+    from rigsfm.synth.scene import SceneOptions
+
+    options = SceneOptions(**SMALL)
+    scene = tmp_path / "demo" / "scene"
+    render_dataset(scene, options)
+    (scene / "images" / "rig01" / "wide" / "mine.png").write_bytes(b"the user's image")
+    (scene / "ground_truth" / "notes.txt").write_text("the user's notes")
+    before = tree(scene)
+    result = invoke("demo", tmp_path / "demo", "--overwrite", "--num-rigs", 2, "--image-scale", 0.25)
+    assert result.exit_code == 1
+    line = one_error_line(result)
+    assert (f"{scene} holds files rigsfm did not write there, or changed since (ground_truth/notes.txt, "
+            "images/rig01/wide/mine.png); move them away or choose a new folder (nothing was removed)") in line, line
+    assert tree(scene) == before
+
+    # Without them, a render over its own earlier render replaces exactly its files (same seed: same bytes).
+    (scene / "images" / "rig01" / "wide" / "mine.png").unlink()
+    (scene / "ground_truth" / "notes.txt").unlink()
+    own = tree(scene)
+    render_dataset(scene, options, overwrite=True)
+    assert tree(scene) == own
+
+    # One of its own images edited since: refused too, the edit kept.
+    edited = scene / "images" / "rig02" / "narrow" / "frame0000.png"
+    edited.write_bytes(b"retouched")
+    from rigsfm.core.errors import WorkspaceError
+
+    with pytest.raises(WorkspaceError, match=r"changed since \(images/rig02/narrow/frame0000.png\)"):
+        render_dataset(scene, options, overwrite=True)
+    assert edited.read_bytes() == b"retouched"
+
+
+def test_a_render_into_a_folder_from_elsewhere_is_refused(tmp_path):
+    """A folder without the render's manifest (the user's, or an older version's) is never emptied."""
+    from rigsfm.core.errors import WorkspaceError
+    from rigsfm.synth.dataset import render_dataset
+    from rigsfm.synth.scene import SceneOptions
+
+    scene = tmp_path / "scene"
+    (scene / "images" / "rig01" / "wide").mkdir(parents=True)
+    (scene / "images" / "rig01" / "wide" / "frame0000.png").write_bytes(b"a real photo")
+    (scene / "rigs.yaml").write_text("my calibration")
+    with pytest.raises(WorkspaceError, match=r"holds files rigsfm did not write there"):
+        render_dataset(scene, SceneOptions(**SMALL), overwrite=True)
+    assert (scene / "images" / "rig01" / "wide" / "frame0000.png").read_bytes() == b"a real photo"
+    assert (scene / "rigs.yaml").read_text() == "my calibration"
+
+
+# --- picker: stale pages add to the newer pairs; every backup generation is kept; a failed save is told -----------
+
+def picker_images(root: Path) -> list[Path]:
+    import cv2
+
+    rng = np.random.default_rng(0)
+    paths = []
+    for rig in ("rig01", "rig02"):
+        path = root / "images" / rig / "wide" / "f0.png"
+        path.parent.mkdir(parents=True)
+        cv2.imwrite(str(path), rng.integers(0, 255, (60, 80), dtype=np.uint8))
+        paths.append(path)
+    return paths
+
+
+def request(url: str, method: str = "GET", body=None) -> tuple[int, dict]:
+    import urllib.error
+    import urllib.request
+
+    data = json.dumps(body).encode() if body is not None else None
+    req = urllib.request.Request(url, data=data, method=method, headers={"Content-Type": "application/json"})
+    try:
+        with urllib.request.urlopen(req, timeout=30) as answer:
+            return answer.status, json.loads(answer.read())
+    except urllib.error.HTTPError as error:
+        return error.code, json.loads(error.read())
+
+
+def pair(i: int) -> list[float]:
+    return [1.0 + i, 1.0 + i / 2, 2.0 + i, 50.0 - i / 2]
+
+
+@pytest.fixture()
+def picker(tmp_path):
+    from rigsfm.pick.server import PickerServer
+    from rigsfm.pick.session import PickerSession, picker_image
+
+    paths = picker_images(tmp_path)
+    csv = tmp_path / "matches.csv"
+    server = PickerServer(PickerSession(picker_image(paths[0], None), picker_image(paths[1], None), csv))
+    yield server, csv
+    server.close()
+
+
+def test_stale_pages_add_their_pairs_to_the_newer_ones(picker):
+    from rigsfm.run.manual_matches import read_manual_matches
+
+    server, csv = picker
+    _, opened = request(server.url + "api/state")  # three pages opened on the empty CSV
+    status, first = request(server.url + "api/pairs", "PUT", {"pairs": [pair(i) for i in range(30)],
+                                                              "revision": opened["revision"]})
+    assert status == 200 and len(first["pairs"]) == 30
+    answers = []
+    for extra in (30, 31):  # the two stale pages each save one pair
+        status, answer = request(server.url + "api/pairs", "PUT", {"pairs": [pair(extra)],
+                                                                   "revision": opened["revision"]})
+        assert status == 200 and "backup" not in answer
+        answers.append(answer)
+    rows = read_manual_matches(csv)
+    assert [[*r.xy_a, *r.xy_b] for r in rows] == [pair(i) for i in range(32)]
+    assert not list(csv.parent.glob("matches.csv*.bak"))
+    # The first of them, now behind the second, undoes its pair: only that one goes.
+    seen = [[*p["a"], *p["b"]] for p in answers[0]["pairs"]]
+    assert seen == [pair(i) for i in range(31)]
+    status, answer = request(server.url + "api/pairs", "PUT", {"pairs": seen[:-1], "revision": answers[0]["revision"]})
+    assert status == 200 and [[*p["a"], *p["b"]] for p in answer["pairs"]] == [pair(i) for i in (*range(30), 31)]
+    assert len(read_manual_matches(csv)) == 31
+    # A page of another picker process: refused, nothing changed.
+    status, answer = request(server.url + "api/pairs", "PUT", {"pairs": [], "revision": "0123abcd-1"})
+    assert status == 409 and "reload the page" in answer["error"] and len(read_manual_matches(csv)) == 31
+
+
+def test_every_backup_generation_is_kept(picker):
+    from rigsfm.run.manual_matches import read_manual_matches
+
+    server, csv = picker
+    generations = []
+    for count in (30, 5, 3):  # a script saving whole lists, then emptying the CSV each time
+        assert request(server.url + "api/pairs", "PUT", {"pairs": [pair(i) for i in range(count)]})[0] == 200
+        generations.append(csv.read_bytes())
+        status, answer = request(server.url + "api/pairs", "PUT", {"pairs": []})
+        assert status == 200 and "backup" in answer
+    backups = sorted(csv.parent.glob("matches.csv*.bak"), key=lambda p: p.stat().st_mtime_ns)
+    assert [p.read_bytes() for p in backups] == generations
+    assert [len(read_manual_matches(p)) for p in backups] == [30, 5, 3]
+    assert server.session.backups() == backups
+
+
+def test_a_csv_folder_made_a_file_is_told_and_nothing_is_claimed_saved(tmp_path):
+    """`rigsfm pick` as a user runs it: a save after the CSV's folder became a file fails with a message (no
+    traceback); Ctrl-C then names the file keeping the unsaved pairs instead of "nothing finished was lost"."""
+    import signal
+    import socket
+    import time
+
+    from rigsfm.run.manual_matches import read_manual_matches
+
+    picker_images(tmp_path)
+    (tmp_path / "sub").mkdir()
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    env = {**os.environ, "PYTHONPATH": str(REPO), "COLUMNS": "400"}
+    process = subprocess.Popen([sys.executable, "-m", "rigsfm", "pick", "images/rig01/wide/f0.png",
+                                "images/rig02/wide/f0.png", "--out", "sub/m.csv", "--port", str(port)],
+                               cwd=tmp_path, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        url = f"http://127.0.0.1:{port}/"
+        for _ in range(300):
+            try:
+                _, state = request(url + "api/state")
+                break
+            except OSError:
+                time.sleep(0.1)
+        status, state = request(url + "api/pairs", "PUT", {"pairs": [pair(i) for i in range(3)],
+                                                           "revision": state["revision"]})
+        assert status == 200 and len(read_manual_matches(tmp_path / "sub" / "m.csv")) == 3
+        (tmp_path / "sub" / "m.csv").unlink()
+        (tmp_path / "sub").rmdir()
+        (tmp_path / "sub").write_text("a file where the folder was")
+        status, answer = request(url + "api/pairs", "PUT", {"pairs": [pair(i) for i in range(4)],
+                                                            "revision": state["revision"]})
+        assert status == 500
+        assert "cannot save to sub/m.csv: a part of the path is a file, not a folder" in answer["error"]
+        rescue = Path(answer["error"].split("are kept in ")[1].split(";")[0])
+        assert [[*r.xy_a, *r.xy_b] for r in read_manual_matches(rescue)] == [pair(i) for i in range(4)]
+        process.send_signal(signal.SIGINT)
+        stdout, stderr = process.communicate(timeout=60)
+    finally:
+        if process.poll() is None:
+            process.kill()
+            process.communicate()
+    assert process.returncode == 1, stderr
+    assert "Traceback" not in stderr + stdout and "nothing finished was lost" not in stderr
+    assert "pairs in sub/m.csv" not in stdout
+    assert (f"the last save of 4 pairs of rig01/wide/f0.png <-> rig02/wide/f0.png failed (cannot save to sub/m.csv: a "
+            f"part of the path is a file, not a folder); they are kept in {rescue}") in " ".join(stderr.split())
+    rescue.unlink()
+
+
+# --- the other places rigsfm replaces a folder ----------------------------------------------------------------------
+
+def test_calibrate_refuses_a_report_folder_with_the_users_files_before_calibrating(tmp_path):
+    from bad_inputs_table import inputs
+
+    inputs(tmp_path)
+    (tmp_path / "board.yaml").write_text("type: chessboard\ninner_corners: [9, 6]\nsquare: 0.03\n")
+    mine = tmp_path / "reports" / "rig02" / "my_notes.txt"
+    mine.parent.mkdir(parents=True)
+    mine.write_text("the user's notes")
+    result = invoke("calibrate", tmp_path / "images", "--board", tmp_path / "board.yaml", "--out",
+                    tmp_path / "new_rigs.yaml", "--report-dir", tmp_path / "reports")
+    assert result.exit_code == 1
+    assert (f"{mine.parent} holds files rigsfm did not write (my_notes.txt); move them away or choose another "
+            "--report-dir (nothing was written)") in one_error_line(result)
+    assert mine.read_text() == "the user's notes" and not (tmp_path / "new_rigs.yaml").exists()
+
+
+def test_a_model_folder_is_replaced_only_while_it_holds_rigsfm_files(out):
+    from rigsfm.core.errors import WorkspaceError
+    from rigsfm.run.deliver import write_model
+
+    model = pycolmap.Reconstruction(out / "sparse")
+    write_model(model, out / "sparse", overwrite=True)  # an earlier model: replaced
+    (out / "sparse" / "notes.txt").write_text("the user's notes")
+    before = tree(out / "sparse")
+    with pytest.raises(WorkspaceError, match=r"sparse holds files rigsfm did not write there \(notes.txt\); move them "
+                                             r"away \(nothing was replaced\)"):
+        write_model(model, out / "sparse", overwrite=True)
+    assert tree(out / "sparse") == before
+    assert sorted(p.name for p in out.iterdir() if p.name.endswith(".tmp") or p.name.endswith(".old")) == []
+
+
+def test_a_csv_broken_while_the_picker_runs_is_left_as_it_is(picker):
+    server, csv = picker
+    status, state = request(server.url + "api/pairs", "PUT", {"pairs": [pair(0), pair(1)]})
+    assert status == 200
+    csv.write_text("image_a;x_a\nhalf an edit\n")  # edited by hand into something that is not a matches CSV
+    status, answer = request(server.url + "api/pairs", "PUT", {"pairs": [pair(0), pair(1), pair(2)],
+                                                               "revision": state["revision"]})
+    assert status == 500 and f"cannot save to {csv}" in answer["error"]
+    assert csv.read_text() == "image_a;x_a\nhalf an edit\n"
+    rescue = Path(answer["error"].split("are kept in ")[1].split(";")[0])
+    from rigsfm.run.manual_matches import read_manual_matches
+
+    assert [[*r.xy_a, *r.xy_b] for r in read_manual_matches(rescue)] == [pair(0), pair(1), pair(2)]
+    assert server.session.unsaved is not None and len(server.session.pairs) == 2
+    rescue.unlink()
+
+
+def test_demo_never_replaces_an_accuracy_json_without_overwrite(tmp_path):
+    (tmp_path / "accuracy.json").write_text('{"mine": true}')
+    result = invoke("demo", tmp_path, "--num-rigs", 2, "--image-scale", 0.1)
+    assert result.exit_code == 1
+    assert f"{tmp_path / 'accuracy.json'} already exists: pass --overwrite" in one_error_line(result)
+    assert (tmp_path / "accuracy.json").read_text() == '{"mine": true}' and not (tmp_path / "scene").exists()

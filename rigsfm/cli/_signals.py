@@ -107,6 +107,12 @@ def hold_back() -> None:
         signal.pthread_sigmask(signal.SIG_BLOCK, SIGNALS)
 
 
+def handled() -> None:
+    """The command took the signal as its normal end (``pick``'s Ctrl-C): what it raises next is its own outcome,
+    not the stop."""
+    _state["received"] = None
+
+
 def forget_unhandled_interrupt() -> None:
     """Python exits by killing itself with SIGINT (exit status -2, not 130) when a KeyboardInterrupt once left code
     run through ``PyRun_String`` (native libraries' embedded Python), even if it was caught later; running any

@@ -8,6 +8,7 @@ from typing import Annotated, Optional
 
 import typer
 
+from rigsfm.cli import _signals
 from rigsfm.cli.common import console, fail_cleanly
 
 
@@ -33,7 +34,7 @@ def pick_command(
                       f"open {server.url} (saves to {out} on every change); Ctrl-C to stop")
         threading.Event().wait()
     except KeyboardInterrupt:  # Ctrl-C is how the picker is meant to stop: done, not interrupted
-        pass
+        _signals.handled()
     finally:
         server.close()
     session = server.session

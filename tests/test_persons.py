@@ -44,34 +44,42 @@ def _crowd(options: SceneOptions, times=(0.0,)):
     return crowd
 
 
-def test_culled_ray_casting_equals_testing_every_person():
+def test_culled_ray_casting_equals_testing_every_person(monkeypatch):
     """intersect's (azimuth, elevation) grid and nearest-first pruning return the very hits that testing every ray
-    against every person gives: for a camera's rays, for rays in every direction (across the +-pi seam), and from
-    an eye inside the crowd."""
-    options = SceneOptions(persons_per_m2=2.0, seed=1)
+    against every person gives: a camera's rays stopped by the static scene, rays in every direction from amid the
+    crowd (persons across the grid's +-pi seam whichever way it falls), and from an eye inside a person."""
+    from rigsfm.synth import persons as module
+
+    monkeypatch.setattr(module, "PAIRS_PER_CHUNK", 3000)  # many chunks: the pruning between them is exercised
+    options = SceneOptions(persons_per_m2=2.0, seed=1, image_scale=0.1)
     persons = _crowd(options).at(0.0)
     rng = np.random.default_rng(0)
-    rig = make_rigs(SceneOptions(image_scale=0.1))[2]
+    rig = make_rigs(options)[2]
     world_from_cam = rig.narrow_from_world.inverse().matrix()
-    cases = [(world_from_cam[:, 3], pixel_rays(rig.narrow) @ world_from_cam[:, :3].T)]
+    camera_rays = pixel_rays(rig.narrow) @ world_from_cam[:, :3].T
+    static = trace(build_arena(options), world_from_cam[:, 3], camera_rays).t
     everywhere = rng.normal(size=(20000, 3))
     everywhere[:, 2] = -np.abs(everywhere[:, 2]) * 0.3
-    cases.append((np.array([-13.0, 0.3, 2.5]), everywhere / np.linalg.norm(everywhere, axis=1, keepdims=True)))
-    inside = persons.xy[7] + np.array([0.05, 0.0])
-    cases.append((np.array([*inside, 1.0]), everywhere / np.linalg.norm(everywhere, axis=1, keepdims=True)))
-    for origin, dirs in cases:
-        found = intersect(persons, origin, dirs)
-        best = np.full(len(dirs), np.inf)
+    everywhere /= np.linalg.norm(everywhere, axis=1, keepdims=True)
+    grid = np.stack(np.meshgrid(np.linspace(-3, 3, 61), np.linspace(-3, 3, 61)), axis=-1).reshape(-1, 2)
+    gap = np.min(np.linalg.norm(grid[:, None] - persons.xy[None], axis=2), axis=1)
+    amid = grid[np.argmax(gap)]
+    assert gap.max() > 0.3
+    cases = [(world_from_cam[:, 3], camera_rays, static), (np.array([*amid, 2.5]), everywhere, None),
+             (np.array([*(persons.xy[7] + [0.05, 0.0]), 1.0]), everywhere, None)]
+    for origin, dirs, bound in cases:
+        found = intersect(persons, origin, dirs, bound)
+        best = np.full(len(dirs), np.inf) if bound is None else bound.copy()
         who = np.full(len(dirs), -1)
         for p in range(len(persons)):  # every person, every ray
             t, _ = _pair_hits(persons, origin, dirs, np.arange(len(dirs)), np.full(len(dirs), p))
             closer = t < best
             best[closer], who[closer] = t[closer], p
-        expected = np.flatnonzero(np.isfinite(best))
+        expected = np.flatnonzero(who >= 0)
         assert len(expected) > 200
         np.testing.assert_array_equal(found.rows, expected)
         np.testing.assert_array_equal(found.person, who[expected])
-        np.testing.assert_allclose(found.t, best[expected], rtol=0, atol=1e-12)
+        np.testing.assert_array_equal(found.t, best[expected])
 
 
 def test_persons_keep_heights_separation_and_the_disc_while_walking():

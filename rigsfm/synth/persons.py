@@ -357,7 +357,9 @@ def intersect(persons: Persons, origin: np.ndarray, dirs: np.ndarray, bound: np.
     if len(persons) and valid.any():
         order, who, start, end = _candidate_slices(persons, o, d, valid)
         # Nearest persons first: a ray that already met something nearer than a person's cylinder skips it.
-        nearest = np.maximum(np.hypot(persons.xy[:, 0] - o[0], persons.xy[:, 1] - o[1]) - REACH, 0.0)
+        # (the distance from the eye to the person's bounding cylinder: no hit on the person is nearer)
+        across = np.maximum(np.hypot(persons.xy[:, 0] - o[0], persons.xy[:, 1] - o[1]) - REACH, 0.0)
+        nearest = np.hypot(across, np.maximum(o[2] - persons.height, np.maximum(-o[2], 0.0)))
         nearest /= max(float(np.linalg.norm(d[valid], axis=1).max()), 1e-12)
         by_distance = np.argsort(nearest[who], kind="stable")
         who, start, end = who[by_distance], start[by_distance], end[by_distance]

@@ -181,7 +181,7 @@ def test_a_head_behind_another_is_invisible():
 
 def test_frame_offsets_shift_the_persons_by_exactly_those_frames(tmp_path):
     """rig02 with offset 1 sees at its frame k the crowd rig02 of a synchronised dataset sees at frame k + 1 (same
-    heads, same visibility, same pixels); offset 0.5 sees the crowd half a frame later; the static scene does not move."""
+    heads, same visibility, same pixels); offset 0.5 sees the crowd half a frame later."""
     base = SceneOptions(num_rigs=2, image_scale=0.1, persons_per_m2=2.0, frames_per_rig=2, seed=4)
     from dataclasses import replace
 

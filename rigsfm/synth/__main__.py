@@ -26,6 +26,9 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument("--image-scale", type=float, default=1.0, help="0.5 -> 812x617 images")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--radius", type=float, default=15.0, help="rig circle radius (m)")
+    parser.add_argument("--rig-height", type=float, default=3.5,
+                        help="mean wide-camera height (m); e.g. --radius 20 --rig-height 8 sees a crowd from 15-30 m")
     parser.add_argument("--frames-per-rig", type=int, default=1)
     parser.add_argument("--textured-centre", action="store_true", help="crowd-like centre instead of uniform")
     parser.add_argument("--persons-per-m2", type=float, default=0.0,
@@ -46,6 +49,8 @@ def main(argv: list[str] | None = None) -> int:
             arc_deg=args.arc_deg,
             image_scale=args.image_scale,
             seed=args.seed,
+            radius=args.radius,
+            rig_height=args.rig_height,
             frames_per_rig=args.frames_per_rig,
             textured_centre=args.textured_centre,
             calibration_noise=not args.no_calibration_noise,

@@ -232,7 +232,8 @@ def render_dataset(
     bar = choose_bar(arena, first, second)
     arena = arena.with_bar(bar)
 
-    times = sorted({frame + options.frame_offset(rig.name) for rig in rigs for frame in range(options.frames_per_rig)})
+    times = sorted({frame + options.frame_offset(rig.name) for rig in rigs
+                    for frame in range(options.frames_per_rig)})
     crowd = build_crowd(options, times)
     suffix = image_suffix(options)
     names, gains, person_rows = [], {}, []

@@ -24,7 +24,7 @@ Truth, beside the ground truth (``render_dataset`` writes it when there are pers
   persons/frame0000.json   {"frame": k, "period_s": P, "head_radius_m": r,
                             "rigs": {"rig01": {"offset_frames": o, "time_s": t, "instant": i}, ...},
                             "instants": [{"time_s": t, "heads": [[x, y, z], ...]}, ...]}  (world metres,
-                           heads[person] is that person's head centre; rigs captured at the same time share an instant)
+                           heads[person] is that person's head centre; rigs captured at one time share an instant)
 
 :func:`read_person_truth` reads both back.
 """
@@ -209,8 +209,8 @@ def build_crowd(options: SceneOptions, times_frames: list[float] | tuple[float, 
     last = max(int(math.ceil(max(times_frames) * substeps - 1e-9)), 0)
     forward_xy, forward_heading = [xy0], [heading0]
     for k in range(last):
-        xy, heading = _step(forward_xy[-1], forward_heading[-1], speed, dt, np.random.default_rng([options.seed, 53, 0, k]),
-                            options.person_separation, radius)
+        xy, heading = _step(forward_xy[-1], forward_heading[-1], speed, dt,
+                            np.random.default_rng([options.seed, 53, 0, k]), options.person_separation, radius)
         forward_xy.append(xy)
         forward_heading.append(heading)
     backward_xy, backward_heading = [], []

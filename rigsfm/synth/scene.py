@@ -87,7 +87,8 @@ class SceneOptions:
         rigs = {f"rig{i + 1:02d}" for i in range(self.num_rigs)}
         unknown = sorted(name for name, _ in self.frame_offsets if name not in rigs)
         if unknown:
-            raise ValueError(f"frame offsets name unknown rigs {', '.join(unknown)} (rigs are rig01..rig{self.num_rigs:02d})")
+            raise ValueError(f"frame offsets name unknown rigs {', '.join(unknown)} "
+                             f"(rigs are rig01..rig{self.num_rigs:02d})")
 
     def frame_offset(self, rig: str) -> float:
         """Rig ``rig``'s frame k is taken at time ``(k + offset) * frame_period_s``."""

@@ -268,3 +268,24 @@ def test_bad_person_options_say_what_to_fix(capsys, tmp_path):
     assert main([str(tmp_path / "out"), "--jpeg-quality", "101"]) == 2
     with pytest.raises(InputError, match="no heads.csv"):
         read_person_truth(tmp_path)
+
+
+def test_known_length_bar_is_chosen_in_front_of_the_crowd():
+    """Across the arena the crowd hides the bar the empty scene would take (two rigs 60 degrees apart): with the
+    crowd there is none; where there is room (15 degrees apart) the bar's ends are unoccluded in both wide images."""
+    from rigsfm.synth.dataset import choose_bar
+    from rigsfm.synth.render import visible
+
+    for num_rigs, arc, expect_bar in ((2, 60.0, False), (3, 30.0, True)):
+        options = SceneOptions(num_rigs=num_rigs, arc_deg=arc, image_scale=0.25, persons_per_m2=1.0, seed=3)
+        rigs, arena, crowd = make_rigs(options), build_arena(options), _crowd(options)
+        crowded = arena.with_persons(crowd.at(0.0))
+        bar = choose_bar(arena, rigs[0], rigs[1], crowd)
+        assert (bar is not None) == expect_bar
+        if bar is None:
+            empty_choice = choose_bar(arena, rigs[0], rigs[1])
+            ends = np.stack([empty_choice.a, empty_choice.b])
+            assert not all(visible(crowded, rig.wide, rig.wide_from_world, ends).all() for rig in rigs[:2])
+            continue
+        for rig in rigs[:2]:
+            assert visible(crowded.with_bar(bar), rig.wide, rig.wide_from_world, np.stack([bar.a, bar.b])).all()

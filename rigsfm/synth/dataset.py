@@ -38,8 +38,8 @@ from rigsfm.core.io import parse_yaml, write_text_atomic
 from rigsfm.core.rig import RigCalibration, add_posed_rig, rigs_to_yaml, write_rigs
 from rigsfm.synth.cameras import RigTruth, calibration_error_sigmas, make_rigs, user_calibration
 from rigsfm.synth.render import render_clean, to_uint8, visible
-from rigsfm.synth.persons import Crowd, HeadsInImage, build_crowd, head_samples, heads_csv, HEAD, HEAD_RADIUS, \
-    VISIBILITY_SAMPLES
+from rigsfm.synth.persons import (HEAD, HEAD_RADIUS, VISIBILITY_SAMPLES, Crowd, HeadsInImage, build_crowd,
+                                  head_samples, heads_csv)
 from rigsfm.synth.scene import PERSON, Arena, Bar, SceneOptions, build_arena, trace
 
 logger = logging.getLogger(__name__)
@@ -72,9 +72,10 @@ def image_suffix(options: SceneOptions) -> str:
     return ".jpg" if options.jpeg_quality > 0 else ".png"
 
 
-def choose_bar(arena: Arena, first: RigTruth, second: RigTruth) -> Bar | None:
-    """A bar on the textured ground, fully visible in both wide images, as long in pixels as possible;
-    None when the two views share no room for it (rigs nearly facing each other with narrow lenses)."""
+def choose_bar(arena: Arena, first: RigTruth, second: RigTruth, crowd: Crowd | None = None) -> Bar | None:
+    """A bar on the textured ground, fully visible in both wide images (frame 0, in front of the ``crowd`` of that
+    instant), as long in pixels as possible; None when the two views share no room for it (rigs nearly facing each
+    other with narrow lenses)."""
     opt = arena.options
     radii = np.linspace(opt.centre_radius + 1.5, opt.wall_radius - 1.5, 10)
     angles = np.radians(np.arange(0.0, 360.0, 3.0))
@@ -96,8 +97,9 @@ def choose_bar(arena: Arena, first: RigTruth, second: RigTruth) -> Bar | None:
     for rig in (first, second):
         cam, pose = rig.wide, rig.wide_from_world
         margin = 0.06 * cam.width
+        seen = arena if crowd is None else arena.with_persons(crowd.at(arena.options.frame_offset(rig.name)))
         for p in (a, mid, b, a - tangent * ring, b + tangent * ring):
-            ok &= visible(arena, cam, pose, p, margin)
+            ok &= visible(seen, cam, pose, p, margin)
         ends = [project_world(cam, pose, end, margin_px=None)[0] for end in (a, b)]
         length = np.linalg.norm(ends[0] - ends[1], axis=1)
         score = np.minimum(score, np.nan_to_num(length, nan=0.0))
@@ -130,7 +132,8 @@ def _scale_yaml(rigs: list[RigTruth], bar: Bar | None, first: RigTruth, second: 
     for rig in (first, second) if bar is not None else ():
         a, b = project_world(rig.wide, rig.wide_from_world, np.stack([bar.a, bar.b]), margin_px=None)[0]
         observations.append(
-            {"image": image_name(rig.name, "wide", 0, suffix), "a": [float(v) for v in a], "b": [float(v) for v in b]}
+            {"image": image_name(rig.name, "wide", 0, suffix), "a": [float(v) for v in a],
+             "b": [float(v) for v in b]}
         )
     data = {
         "camera_distance": [
@@ -229,12 +232,12 @@ def render_dataset(
     arena = build_arena(options)
     rigs = make_rigs(options)
     first, second = rigs[0], rigs[1]
-    bar = choose_bar(arena, first, second)
-    arena = arena.with_bar(bar)
-
     times = sorted({frame + options.frame_offset(rig.name) for rig in rigs
                     for frame in range(options.frames_per_rig)})
     crowd = build_crowd(options, times)
+    bar = choose_bar(arena, first, second, crowd)
+    arena = arena.with_bar(bar)
+
     suffix = image_suffix(options)
     names, gains, person_rows = [], {}, []
     for index, truth in enumerate(rigs):

@@ -9,7 +9,12 @@ OUT/
   scene.yaml         the SceneOptions and the bar's world end points, for reference
   ground_truth/      pycolmap.Reconstruction (binary): cameras, rigs, frames, images; no points
   .rigsfm-dataset.json  every file above and its SHA-256: all that overwrite=True may remove
+  persons/           with persons_per_m2 > 0: every head's truth (rigsfm.synth.persons: heads.csv, frameNNNN.json)
 ```
+
+Rig ``r``'s frame ``k`` is taken at time ``(k + offset_r) * frame_period_s`` (``frame_offsets``); only the persons
+move. With ``jpeg_quality`` the images are ``frameNNNN.jpg``; with ``exposure_jitter`` each image's brightness is
+scaled by its own gain (scene.yaml lists them).
 """
 
 from __future__ import annotations
@@ -39,7 +44,9 @@ from rigsfm.core.io import parse_yaml, sha256_file, write_bytes_atomic, write_js
 from rigsfm.core.rig import RigCalibration, add_posed_rig, rigs_to_yaml
 from rigsfm.synth.cameras import RigTruth, calibration_error_sigmas, make_rigs, user_calibration
 from rigsfm.synth.render import render_clean, to_uint8, visible
-from rigsfm.synth.scene import Arena, Bar, SceneOptions, build_arena
+from rigsfm.synth.persons import (HEAD, HEAD_RADIUS, VISIBILITY_SAMPLES, Crowd, HeadsInImage, build_crowd,
+                                  head_samples, heads_csv)
+from rigsfm.synth.scene import PERSON, Arena, Bar, SceneOptions, build_arena, trace
 
 logger = logging.getLogger(__name__)
 
@@ -64,14 +71,19 @@ class SyntheticDataset:
         return read_model(self.ground_truth, f"render the scene again (overwrite=True) into {self.root}")
 
 
-def image_name(rig: str, sensor: str, frame: int) -> str:
+def image_name(rig: str, sensor: str, frame: int, suffix: str = ".png") -> str:
     """Image name relative to ``images/``, as in the ground truth: ``rig01/wide/frame0000.png``."""
-    return str(ImageName(rig, Sensor(sensor), f"frame{frame:04d}.png"))
+    return str(ImageName(rig, Sensor(sensor), f"frame{frame:04d}{suffix}"))
 
 
-def choose_bar(arena: Arena, first: RigTruth, second: RigTruth) -> Bar | None:
-    """A bar on the textured ground, fully visible in both wide images, as long in pixels as possible;
-    None when the two views share no room for it (rigs nearly facing each other with narrow lenses)."""
+def image_suffix(options: SceneOptions) -> str:
+    return ".jpg" if options.jpeg_quality > 0 else ".png"
+
+
+def choose_bar(arena: Arena, first: RigTruth, second: RigTruth, crowd: Crowd | None = None) -> Bar | None:
+    """A bar on the textured ground, fully visible in both wide images (frame 0, in front of the ``crowd`` of that
+    instant), as long in pixels as possible; None when the two views share no room for it (rigs nearly facing each
+    other with narrow lenses)."""
     opt = arena.options
     radii = np.linspace(opt.centre_radius + 1.5, opt.wall_radius - 1.5, 10)
     angles = np.radians(np.arange(0.0, 360.0, 3.0))
@@ -93,8 +105,9 @@ def choose_bar(arena: Arena, first: RigTruth, second: RigTruth) -> Bar | None:
     for rig in (first, second):
         cam, pose = rig.wide, rig.wide_from_world
         margin = 0.06 * cam.width
+        seen = arena if crowd is None else arena.with_persons(crowd.at(arena.options.frame_offset(rig.name)))
         for p in (a, mid, b, a - tangent * ring, b + tangent * ring):
-            ok &= visible(arena, cam, pose, p, margin)
+            ok &= visible(seen, cam, pose, p, margin)
         ends = [project_world(cam, pose, end, margin_px=None)[0] for end in (a, b)]
         length = np.linalg.norm(ends[0] - ends[1], axis=1)
         score = np.minimum(score, np.nan_to_num(length, nan=0.0))
@@ -109,23 +122,26 @@ def choose_bar(arena: Arena, first: RigTruth, second: RigTruth) -> Bar | None:
     return Bar(a[best], b[best])
 
 
-def ground_truth_reconstruction(rigs: list[RigTruth], frames_per_rig: int) -> pycolmap.Reconstruction:
+def ground_truth_reconstruction(rigs: list[RigTruth], frames_per_rig: int, suffix: str = ".png",
+                                ) -> pycolmap.Reconstruction:
     """Exact cameras, one pycolmap.Rig per rig (wide = reference sensor), frames and images."""
     rec = pycolmap.Reconstruction()
     for index, truth in enumerate(rigs):
-        frames = [{sensor: image_name(truth.name, sensor, frame) for sensor in SENSORS}
+        frames = [{sensor: image_name(truth.name, sensor, frame, suffix) for sensor in SENSORS}
                   for frame in range(frames_per_rig)]
         add_posed_rig(rec, index + 1, truth.calibration(), truth.wide_from_world, frames)
     return rec
 
 
-def _scale_yaml(rigs: list[RigTruth], bar: Bar | None, first: RigTruth, second: RigTruth) -> str:
+def _scale_yaml(rigs: list[RigTruth], bar: Bar | None, first: RigTruth, second: RigTruth, suffix: str = ".png",
+                ) -> str:
     far = max(rigs[1:], key=lambda rig: float(np.linalg.norm(rig.centre() - rigs[0].centre())))
     observations = []
     for rig in (first, second) if bar is not None else ():
         a, b = project_world(rig.wide, rig.wide_from_world, np.stack([bar.a, bar.b]), margin_px=None)[0]
         observations.append(
-            {"image": image_name(rig.name, "wide", 0), "a": [float(v) for v in a], "b": [float(v) for v in b]}
+            {"image": image_name(rig.name, "wide", 0, suffix), "a": [float(v) for v in a],
+             "b": [float(v) for v in b]}
         )
     data = {
         "camera_distance": [
@@ -238,6 +254,56 @@ def _prepare(out_dir: Path, overwrite: bool) -> None:
     out_dir.mkdir(parents=True, exist_ok=True)
 
 
+def _encode_image(path: Path, image: np.ndarray, options: SceneOptions) -> bytes:
+    params = [cv2.IMWRITE_JPEG_QUALITY, options.jpeg_quality] if options.jpeg_quality > 0 else []
+    ok, data = cv2.imencode(path.suffix, image, params)
+    if not ok:
+        raise OSError(f"could not encode {path}")
+    return data.tobytes()
+
+
+def heads_in_image(arena: Arena, camera: pycolmap.Camera, cam_from_world: pycolmap.Rigid3d) -> HeadsInImage:
+    """The heads of ``arena.persons`` whose centre projects inside the image, with their visibility (the share of
+    rays to points over each head's silhouette that first meet that head; the first point is the centre)."""
+    persons = arena.persons
+    centres = persons.head_centres()
+    xy, inside = project_world(camera, cam_from_world, centres, margin_px=0.0)
+    ids = np.flatnonzero(inside)
+    if not len(ids):
+        return HeadsInImage(ids, np.zeros((0, 2)), np.zeros(0, bool), np.zeros(0))
+    eye = np.asarray(cam_from_world.inverse().translation, dtype=np.float64)
+    points = head_samples(centres[ids], eye).reshape(-1, 3)
+    rays = points - eye
+    rays /= np.linalg.norm(rays, axis=1, keepdims=True)
+    hits = trace(arena, eye, rays)
+    own = (hits.kind == PERSON) & (hits.object_index == np.repeat(ids, VISIBILITY_SAMPLES))
+    own &= hits.u == HEAD
+    own = own.reshape(len(ids), -1)
+    return HeadsInImage(ids, xy[ids], own[:, 0], own.mean(axis=1))
+
+
+def _write_person_truth(written: _Written, folder: Path, options: SceneOptions, rigs: list[RigTruth], crowd: Crowd,
+                        rows: list[tuple[str, HeadsInImage]]) -> None:
+    for frame in range(options.frames_per_rig):
+        instants: dict[float, int] = {}
+        entries = {}
+        for rig in rigs:
+            time_frames = frame + options.frame_offset(rig.name)
+            instant = instants.setdefault(time_frames, len(instants))
+            entries[rig.name] = {"offset_frames": options.frame_offset(rig.name),
+                                 "time_s": time_frames * options.frame_period_s, "instant": instant}
+        data = {
+            "frame": frame,
+            "period_s": options.frame_period_s,
+            "head_radius_m": HEAD_RADIUS,
+            "rigs": entries,
+            "instants": [{"time_s": t * options.frame_period_s,
+                          "heads": np.round(crowd.at(t).head_centres(), 6).tolist()} for t in instants],
+        }
+        written.write(folder / f"frame{frame:04d}.json", json.dumps(data, separators=(",", ":")).encode("utf-8"))
+    written.write(folder / "heads.csv", heads_csv(rows).encode("utf-8"))
+
+
 def render_dataset(
     out_dir: Path, options: SceneOptions | None = None, *, overwrite: bool = False
 ) -> SyntheticDataset:
@@ -249,43 +315,64 @@ def render_dataset(
     arena = build_arena(options)
     rigs = make_rigs(options)
     first, second = rigs[0], rigs[1]
-    bar = choose_bar(arena, first, second)
+    times = sorted({frame + options.frame_offset(rig.name) for rig in rigs
+                    for frame in range(options.frames_per_rig)})
+    crowd = build_crowd(options, times)
+    bar = choose_bar(arena, first, second, crowd)
     arena = arena.with_bar(bar)
 
-    names = []
+    suffix = image_suffix(options)
+    names, gains, person_rows = [], {}, []
     written = _Written(out_dir)
     try:
         for index, truth in enumerate(rigs):
             for s, sensor in enumerate(SENSORS):
                 camera = truth.wide if sensor == "wide" else truth.narrow
                 pose = truth.wide_from_world if sensor == "wide" else truth.narrow_from_world
-                clean = render_clean(arena, camera, pose)
+                clean, instant = None, None
                 for frame in range(options.frames_per_rig):
+                    time_frames = frame + options.frame_offset(truth.name)
+                    if clean is None or (crowd is not None and time_frames != instant):
+                        scene = arena if crowd is None else arena.with_persons(crowd.at(time_frames))
+                        clean, instant = render_clean(scene, camera, pose), time_frames
+                        if crowd is not None:
+                            heads = heads_in_image(scene, camera, pose)
                     rng = np.random.default_rng([options.seed, 41, index, s, frame])
-                    name = image_name(truth.name, sensor, frame)
-                    ok, png = cv2.imencode(".png", to_uint8(clean, rng, options.noise_sigma))
-                    if not ok:
-                        raise OSError(f"could not encode {out_dir / 'images' / name}")
-                    written.write(out_dir / "images" / name, png.tobytes())
+                    name = image_name(truth.name, sensor, frame, suffix)
+                    image = clean
+                    if options.exposure_jitter > 0:
+                        gain = np.random.default_rng([options.seed, 43, index, s, frame]).uniform(
+                            1 - options.exposure_jitter, 1 + options.exposure_jitter)
+                        gains[name] = float(gain)
+                        image = clean * gain
+                    written.write(out_dir / "images" / name,
+                                  _encode_image(out_dir / "images" / name, to_uint8(image, rng, options.noise_sigma),
+                                                options))
                     names.append(name)
+                    if crowd is not None:
+                        person_rows.append((name, heads))
             written.save()
             logger.info("rendered %s (%d/%d)", truth.name, index + 1, len(rigs))
+        if crowd is not None:
+            _write_person_truth(written, out_dir / "persons", options, rigs, crowd, person_rows)
 
         rigs_text = (rigs_yaml_with_sigmas(user_calibration(rigs, options)) if options.calibration_noise
                      else rigs_to_yaml(user_calibration(rigs, options)))
         written.write(out_dir / "rigs.yaml", rigs_text.encode("utf-8"))
         written.write(out_dir / "rigs_exact.yaml", rigs_to_yaml([rig.calibration() for rig in rigs]).encode("utf-8"))
-        written.write(out_dir / "scale.yaml", _scale_yaml(rigs, bar, first, second).encode("utf-8"))
+        written.write(out_dir / "scale.yaml", _scale_yaml(rigs, bar, first, second, suffix).encode("utf-8"))
         scene = {
             "options": dataclasses.asdict(options),
             "bar": {"a": [float(v) for v in bar.a], "b": [float(v) for v in bar.b]} if bar is not None else None,
         }
+        if gains:
+            scene["exposure_gain"] = gains
         written.write(out_dir / "scene.yaml",
                       yaml.safe_dump(scene, sort_keys=False, default_flow_style=None).encode("utf-8"))
         gt_dir = out_dir / "ground_truth"
         gt_dir.mkdir(parents=True, exist_ok=True)
         with tempfile.TemporaryDirectory(prefix="rigsfm-ground-truth-") as tmp:  # outside OUT: no leftover there
-            ground_truth_reconstruction(rigs, options.frames_per_rig).write(tmp)
+            ground_truth_reconstruction(rigs, options.frames_per_rig, suffix).write(tmp)
             for path in sorted(Path(tmp).iterdir()):
                 written.write(gt_dir / path.name, path.read_bytes())
     finally:

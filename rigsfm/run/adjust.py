@@ -35,7 +35,7 @@ import enum
 import logging
 import time
 from collections import Counter
-from collections.abc import Sequence
+from collections.abc import Collection, Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
@@ -117,6 +117,8 @@ class AdjustResult:
     rounds: int = 0
     seconds: float = 0.0
     covariance: JointCovariance | None = None  # rigsfm.run.uncertainty.joint_covariance, once computed
+    held_rigs: frozenset[str] = frozenset()  # REFINE: rigs whose calibration was held at rigs.yaml's (hold_or_refine)
+    decisions: list[CalibrationDecision] = field(default_factory=list)  # REFINE: per rig, held or refined and why
     warnings: list[str] = field(default_factory=list)  # for the run's summary
 
 
@@ -216,15 +218,17 @@ def adjust(
     priors: CalibrationPriors | None = None,
     *,
     with_covariance: bool = True,
+    held_rigs: Collection[str] | None = None,
 ) -> AdjustResult:
     """A metric reconstruction (a new object; ``mapped`` is not modified), its calibration refined with
     ``priors`` (default: ``calibration_priors(rigs)``, a good board's) or held (``options.calibration``).
-    ``with_covariance``: a refined metric result carries its joint covariance (and the scale's sigma from it)."""
+    ``with_covariance``: a refined metric result carries its joint covariance (and the scale's sigma from it).
+    ``held_rigs``: refining, hold these rigs' calibration instead of testing each rig's (:func:`hold_or_refine`)."""
     options = options or AdjustOptions()
     start = time.perf_counter()
     if options.calibration == Calibration.REFINE:
         result = _adjust_refined(mapped, rigs, scale_spec, options, priors or calibration_priors(rigs),
-                                 with_covariance)
+                                 with_covariance, held_rigs)
     else:
         result = _adjust_fixed(mapped, rigs, scale_spec, options)
         result.priors, result.scale_spec, result.options = priors, scale_spec, options
@@ -325,8 +329,13 @@ class JointProblem:
 
     def __init__(self, reconstruction: pycolmap.Reconstruction, rigs: Sequence[RigCalibration],
                  priors: CalibrationPriors, scale_spec: ScaleSpec | None, options: AdjustOptions,
-                 pixel_sigma: float, *, gauge: Gauge, robust: bool, with_priors: bool = True):
+                 pixel_sigma: float, *, gauge: Gauge, robust: bool, with_priors: bool = True,
+                 held_rigs: frozenset[str] = frozenset(), consider_held: bool = False):
         self.reconstruction = reconstruction
+        # held_rigs: their intrinsics and E^sl stay at rigs.yaml's values (constant blocks); with consider_held they
+        # are variable but without prior, for the Jacobian of the covariance that considers their prior
+        self.held_rigs = frozenset(held_rigs)
+        self.consider_held = consider_held
         self.priors = priors
         self.weight_sigma = float(pixel_sigma) * options.pixel_sigma_inflation  # the images' weighting noise
         self.gauge = gauge
@@ -365,6 +374,8 @@ class JointProblem:
         self.adjuster = pycolmap.create_default_ceres_bundle_adjuster(ba, self.config, reconstruction)
         self.problem: pyceres.Problem = self.adjuster.problem
         self.subset_frame = self._two_cams_subset() if gauge == Gauge.TWO_CAMS_FROM_WORLD else None
+        if not consider_held:
+            self._hold_rigs()
         if scale_spec is not None:
             self._add_camera_distances(scale_spec)
             self._add_known_lengths(scale_spec)
@@ -524,6 +535,18 @@ class JointProblem:
                                                   lambda ends=ends: float(np.linalg.norm(ends[0] - ends[1]))))
 
     # -- priors ----------------------------------------------------------------------------------------------
+    def _hold_rigs(self) -> None:
+        """The held rigs' camera and E^sl blocks constant (before the measurements, which then carry a held E^sl's
+        prior in their sigma as for an unobserved one)."""
+        for camera_id, camera in self.reconstruction.cameras.items():
+            name = self.camera_names.get(camera_id)
+            if name is not None and name.rig in self.held_rigs and self.has_variable(camera.params):
+                self.problem.set_parameter_block_constant(camera.params)
+        for rig_id, sensor_id, _, rig_name in self.narrow_sensors():
+            block = sensor_from_rig_view(self.reconstruction, rig_id, sensor_id).params
+            if rig_name in self.held_rigs and self.has_variable(block):
+                self.problem.set_parameter_block_constant(block)
+
     def _add_camera_priors(self, with_priors: bool) -> None:
         for camera_id, camera in self.reconstruction.cameras.items():
             block = camera.params
@@ -536,9 +559,9 @@ class JointProblem:
                 continue
             if len(held):
                 self.problem.set_manifold(block, pyceres.SubsetManifold(len(sigmas), held.tolist()))
-            if not with_priors:
-                continue
             name = self.camera_names[camera_id]
+            if not with_priors or name.rig in self.held_rigs:
+                continue
             mean = np.asarray(self.calibration[name.rig].camera(name.sensor).params, dtype=np.float64)
             variances = np.where(sigmas > 0, sigmas, 1.0) ** 2 / self.weight_sigma**2  # held: any (no effect)
             cost = pyceres.factors.NormalPrior(mean, np.diag(variances))
@@ -548,7 +571,7 @@ class JointProblem:
     def _add_sensor_priors(self) -> None:
         for rig_id, sensor_id, _, rig_name in self.narrow_sensors():
             block = sensor_from_rig_view(self.reconstruction, rig_id, sensor_id).params
-            if not self.has_variable(block):
+            if not self.has_variable(block) or rig_name in self.held_rigs:
                 continue
             prior = self.calibration[rig_name].narrow_from_wide
             cov = pose_prior_residual_covariance(self.priors[rig_name].narrow_from_wide, prior) / self.weight_sigma**2
@@ -613,6 +636,126 @@ class SettledStop(pyceres.IterationCallback):
         return pyceres.CallbackReturnType.SOLVER_CONTINUE
 
 
+@dataclass(frozen=True)
+class CalibrationDecision:
+    """One rig's calibration after :func:`hold_or_refine`: ``held`` at rigs.yaml's values or refined, and why."""
+
+    rig: str
+    held: bool
+    reason: str  # one clause
+    informed: int = 0  # directions of its calibration the images inform more than rigs.yaml's sigmas do
+    chi2: float = 0.0  # the refinement's change against the spread the images explain (consistency test)
+    dof: int = 0
+    largest_gain: float = 0.0  # the largest share of a direction's prior variance the images removed
+
+
+def _rig_calibration_change(result: AdjustResult, covariance: JointCovariance, rig: str):
+    """The refined-minus-rigs.yaml change of one rig's observed calibration (tangent of the covariance), its prior
+    covariance and its posterior covariance, over the parameters with a non-zero prior sigma; None when the images
+    observe none of them."""
+    rec, priors = result.reconstruction, result.priors
+    calibration = {r.name: r for r in result.rigs}[rig]
+    keys, changes, prior_blocks = [], [], []
+    for image in sorted(rec.images.values(), key=lambda im: im.image_id):
+        name = name_of(image)
+        if name.rig != rig or not image.has_pose:
+            continue
+        key = ("camera", image.camera_id)
+        if key in covariance.offsets and key not in covariance.prior_only and key not in keys:
+            keys.append(key)
+            changes.append(np.asarray(rec.cameras[image.camera_id].params)
+                           - np.asarray(calibration.camera(name.sensor).params))
+            prior_blocks.append(np.diag(priors[rig].sensor(name.sensor) ** 2))
+        key = ("sensor_from_rig", image.camera_id)
+        if name.is_narrow and key in covariance.offsets and key not in covariance.prior_only and key not in keys:
+            keys.append(key)
+            sensor = sensor_from_rig_view(rec, rec.frame(image.frame_id).rig_id, rec.cameras[image.camera_id].sensor_id)
+            prior = calibration.narrow_from_wide
+            delta = sensor.rotation * prior.rotation.inverse()
+            angle = delta.angle()
+            quat = np.asarray(delta.quat)  # x, y, z, w
+            axis = quat[:3] / max(np.linalg.norm(quat[:3]), 1e-300) * np.sign(quat[3] or 1.0)
+            changes.append(np.r_[axis * angle, np.asarray(sensor.translation) - np.asarray(prior.translation)])
+            prior_blocks.append(priors[rig].narrow_from_wide)
+    if not keys:
+        return None
+    size = sum(len(c) for c in changes)
+    prior = np.zeros((size, size))
+    at = 0
+    for block in prior_blocks:
+        prior[at:at + len(block), at:at + len(block)] = block
+        at += len(block)
+    keep = np.diag(prior) > 0  # sigma 0: held exactly by the prior itself
+    posterior = covariance.sub(keys)
+    return (np.concatenate(changes)[keep], prior[np.ix_(keep, keep)], posterior[np.ix_(keep, keep)])
+
+
+def hold_or_refine(result: AdjustResult, covariance: JointCovariance | None) -> list[CalibrationDecision]:
+    """Per rig, whether its refined calibration is kept or held at rigs.yaml's values.
+
+    In the prior's whitened coordinates (``u = L^-1 (c - c_yaml)``, ``Sigma = L L^T``), the images' information
+    removes a share ``g_k`` of the prior variance along each eigen-direction ``v_k`` of ``I - L^-1 P L^-T``
+    (``P`` the posterior covariance). Two tests, both needed to refine:
+
+    - observability: some direction with ``g_k >= 1/2``, i.e. the images inform it more than rigs.yaml's sigmas do;
+      below that the posterior is mostly the prior, and a change is mostly whatever the images' unmodelled errors
+      (wrong clicks, systematic feature offsets) pulled it to;
+    - consistency: were priors and images both right, the change ``u`` would be distributed as ``N(0, I - Q)``
+      (the posterior mean's spread), so ``sum_k (v_k . u)^2 / g_k`` over the directions the images inform at all
+      (``g_k > MIN_GAIN``) is chi-square with that many degrees of freedom; above its ``HOLD_QUANTILE`` quantile
+      the images moved the calibration further than their information allows, and the move is not trusted.
+
+    Without a covariance (rank-deficient problem) every rig is held."""
+    from scipy.stats import chi2 as chi2_distribution
+
+    decisions = []
+    for rig in sorted({r.name for r in result.rigs}):
+        if not any(name_of(im).rig == rig and im.has_pose for im in result.reconstruction.images.values()):
+            continue
+        if covariance is None:
+            decisions.append(CalibrationDecision(rig, True, "no covariance to test its refinement against"))
+            continue
+        change = _rig_calibration_change(result, covariance, rig)
+        if change is None:
+            decisions.append(CalibrationDecision(rig, True, "no image observes its calibration"))
+            continue
+        delta, prior, posterior = change
+        factor = np.linalg.cholesky(prior)
+        inverse = scipy_solve_triangular(factor, np.eye(len(factor)))
+        gains, vectors = np.linalg.eigh(np.eye(len(prior)) - inverse @ posterior @ inverse.T)
+        z = vectors.T @ (inverse @ delta)
+        tested = gains > MIN_GAIN
+        chi2 = float(np.sum(z[tested] ** 2 / gains[tested]))
+        dof = int(tested.sum())
+        informed = int(np.sum(gains >= 0.5))
+        largest = float(gains.max(initial=0.0))
+        limit = float(chi2_distribution.ppf(HOLD_QUANTILE, dof)) if dof else 0.0
+        if informed == 0:
+            reason = (f"the images inform no direction of its calibration more than rigs.yaml's sigmas do (at most "
+                      f"{100 * max(largest, 0.0):.0f} % of a direction's prior variance)")
+            held = True
+        elif chi2 > limit:
+            reason = (f"the refinement moved it further than the images' information allows (chi-square {chi2:.1f} "
+                      f"> {limit:.1f}, {dof} dof)")
+            held = True
+        else:
+            reason = (f"the images inform {informed} direction{'s' if informed > 1 else ''} of its calibration more "
+                      f"than rigs.yaml's sigmas do, and agree with them (chi-square {chi2:.1f} <= {limit:.1f})")
+            held = False
+        decisions.append(CalibrationDecision(rig, held, reason, informed, chi2, dof, largest))
+    return decisions
+
+
+def scipy_solve_triangular(factor: np.ndarray, rhs: np.ndarray) -> np.ndarray:
+    import scipy.linalg
+
+    return scipy.linalg.solve_triangular(factor, rhs, lower=True)
+
+
+MIN_GAIN = 0.01  # directions whose prior variance the images reduce by less are left out of the consistency test
+HOLD_QUANTILE = 0.95  # of the consistency test
+
+
 def _choose_gauge(reconstruction: pycolmap.Reconstruction, scale_spec: ScaleSpec | None) -> tuple[ScaleSource, Gauge]:
     if scale_spec is not None and (scale_spec.camera_distances or scale_spec.known_lengths):
         return ScaleSource.MEASUREMENTS, Gauge.RIGID
@@ -645,7 +788,39 @@ NEGLIGIBLE_DROP = 1e-3
 
 
 def _adjust_refined(mapped: pycolmap.Reconstruction, rigs: Sequence[RigCalibration], scale_spec: ScaleSpec | None,
-                    options: AdjustOptions, priors: CalibrationPriors, with_covariance: bool = True) -> AdjustResult:
+                    options: AdjustOptions, priors: CalibrationPriors, with_covariance: bool = True,
+                    held_rigs: Collection[str] | None = None) -> AdjustResult:
+    """Every rig's calibration refined, then each rig's refinement tested (:func:`hold_or_refine`); the rigs whose
+    refinement fails are held at rigs.yaml's values and the network adjusted again. ``held_rigs`` given: those
+    held, no test (the sampled band's draws repeat the estimate's choice)."""
+    decide = held_rigs is None
+    result = _refine(mapped, rigs, scale_spec, options, priors, frozenset(held_rigs or ()))
+    if decide and result.scale_source != ScaleSource.NONE:
+        from rigsfm.run.uncertainty import joint_covariance
+
+        result.decisions = hold_or_refine(result, joint_covariance(result))
+        held = frozenset(d.rig for d in result.decisions if d.held)
+        for decision in result.decisions:
+            logger.info("Calibration of %s %s: %s", decision.rig, "HELD" if decision.held else "refined",
+                        decision.reason)
+        if held:
+            decisions = result.decisions
+            result = _refine(mapped, rigs, scale_spec, options, priors, held)
+            result.decisions = decisions
+    if result.scale_source != ScaleSource.NONE and with_covariance:
+        from rigsfm.run.uncertainty import joint_covariance, network_size_sigma
+
+        result.covariance = joint_covariance(result)
+        result.scale_relative_sigma = network_size_sigma(result.covariance, result.reconstruction)
+        if result.scale is not None and result.scale_relative_sigma is not None:
+            result.scale = ScaleEstimate(1.0, result.scale_relative_sigma, result.scale.measurements,
+                                         result.scale.unused)
+    return result
+
+
+def _refine(mapped: pycolmap.Reconstruction, rigs: Sequence[RigCalibration], scale_spec: ScaleSpec | None,
+            options: AdjustOptions, priors: CalibrationPriors, held: frozenset[str]) -> AdjustResult:
+    """The refined adjustment (without its covariance), the ``held`` rigs' calibration at rigs.yaml's values."""
     rec = pycolmap.Reconstruction(mapped)
     if rec.num_reg_frames() < 2:
         raise ReconstructionError("fewer than two rigs were registered; nothing to calibrate")
@@ -663,7 +838,8 @@ def _adjust_refined(mapped: pycolmap.Reconstruction, rigs: Sequence[RigCalibrati
         # Round 1 with the squared loss: when the measurements reshape a network whose images leave its shape open
         # (a 4-rig circle), a robust loss lets the images give up instead of following.
         robust = rounds > 1 or options.max_rounds == 1  # a single round (from an adjusted model): robust
-        problem = JointProblem(rec, rigs, priors, scale_spec, options, pixel_sigma, gauge=gauge, robust=robust)
+        problem = JointProblem(rec, rigs, priors, scale_spec, options, pixel_sigma, gauge=gauge, robust=robust,
+                               held_rigs=held)
         problem.stop_as(final=options.max_rounds == 1)
         summary = problem.solve_to_convergence()  # a long reshape: go on until Ceres converges, then judge outliers
         logger.debug("Adjustment round %d: %s", rounds, summary.BriefReport())
@@ -698,7 +874,8 @@ def _adjust_refined(mapped: pycolmap.Reconstruction, rigs: Sequence[RigCalibrati
         # iterations of 0.35 s for a relative cost change of 3e-6); the result is this last solve's, which goes on
         # until less than FINAL_SETTLE_CHI2 is left to gain (SettledStop). A new problem: the last round's refers
         # to the observations and points filter_outliers may have deleted.
-        problem = JointProblem(rec, rigs, priors, scale_spec, options, pixel_sigma, gauge=gauge, robust=True)
+        problem = JointProblem(rec, rigs, priors, scale_spec, options, pixel_sigma, gauge=gauge, robust=True,
+                               held_rigs=held)
         problem.stop_as(final=True)
         problem.solve_to_convergence()
     scale = problem.scale_estimate()
@@ -707,12 +884,5 @@ def _adjust_refined(mapped: pycolmap.Reconstruction, rigs: Sequence[RigCalibrati
     result = AdjustResult(rec, source, scale, _metres_per_mapping_unit(mapped, rec),
                           float(rec.compute_mean_reprojection_error()), calibration=Calibration.REFINE, gauge=gauge,
                           rigs=tuple(rigs), priors=priors, scale_spec=scale_spec, options=options, pixel_sigma=pixel_sigma,
-                          rounds=rounds, warnings=warnings)
-    if source != ScaleSource.NONE and with_covariance:
-        from rigsfm.run.uncertainty import joint_covariance, network_size_sigma
-
-        result.covariance = joint_covariance(result)
-        result.scale_relative_sigma = network_size_sigma(result.covariance, rec)
-        if scale is not None and result.scale_relative_sigma is not None:
-            result.scale = ScaleEstimate(1.0, result.scale_relative_sigma, scale.measurements, scale.unused)
+                          rounds=rounds, warnings=warnings, held_rigs=held)
     return result

@@ -263,8 +263,26 @@ def refined_network(tmp_path_factory):
     net = make_network(root, num_rigs=3, seed=8, noise_px=0.5)
     mapped = run_mapping(Workspace(root), root, MappingOptions(), num_wide=3).reconstruction
     user = draw_calibration(net.rigs, calibration_priors(net.rigs), np.random.default_rng(8))
-    result = adjust(mapped, user, _scale_spec(root, net, 3))
+    # Every rig refined: by default all three are held (test_a_barely_informed_network_holds_its_calibration)
+    result = adjust(mapped, user, _scale_spec(root, net, 3), held_rigs=frozenset())
     return net, result
+
+
+def test_a_barely_informed_network_holds_its_calibration(refined_network):
+    """The same network adjusted by default: the images (0.5 px noise, weighted as 1.5 px) remove at most ~20 % of
+    any direction's prior variance, less than rigs.yaml's sigmas give, so every rig is held and the adjustment is
+    --fixed-calibration's (the same poses), whose band is the consider covariance's."""
+    _, refined = refined_network
+    result = adjust(refined.reconstruction, refined.rigs, refined.scale_spec)
+    fixed = adjust(refined.reconstruction, refined.rigs, refined.scale_spec,
+                   AdjustOptions(calibration=Calibration.FIXED))
+    assert [d.held for d in result.decisions] == [True, True, True]
+    assert all(d.largest_gain < 0.5 and "inform no direction" in d.reason for d in result.decisions)
+    assert result.calibration == Calibration.FIXED and result.options.calibration == Calibration.FIXED
+    for image in fixed.reconstruction.images.values():
+        np.testing.assert_allclose(result.reconstruction.image(image.image_id).cam_from_world().matrix(),
+                                   image.cam_from_world().matrix(), atol=1e-12)
+    assert estimate_uncertainty(result, sampled=False).covariance.kind == "consider"
 
 
 def test_the_final_solve_stops_where_little_chi2_is_left_to_gain(refined_network):

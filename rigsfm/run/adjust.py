@@ -36,11 +36,12 @@ import logging
 import time
 from collections import Counter
 from collections.abc import Collection, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING
 
 import numpy as np
 import pyceres
+import scipy.linalg
 import pycolmap
 import pycolmap.cost_functions  # noqa: F401 - not imported by ``import pycolmap``
 
@@ -643,42 +644,49 @@ class CalibrationDecision:
     rig: str
     held: bool
     reason: str  # one clause
-    informed: int = 0  # directions of its calibration the images inform more than rigs.yaml's sigmas do
+    largest_gain: float = 0.0  # the largest share of one direction's prior variance the images removed (this rig)
     chi2: float = 0.0  # the refinement's change against the spread the images explain (consistency test)
     dof: int = 0
-    largest_gain: float = 0.0  # the largest share of a direction's prior variance the images removed
+    limit: float = 0.0  # the chi-square's HOLD_QUANTILE quantile
 
 
-def _rig_calibration_change(result: AdjustResult, covariance: JointCovariance, rig: str):
-    """The refined-minus-rigs.yaml change of one rig's observed calibration (tangent of the covariance), its prior
-    covariance and its posterior covariance, over the parameters with a non-zero prior sigma; None when the images
-    observe none of them."""
+@dataclass(frozen=True)
+class _CalibrationChange:
+    """The refined-minus-rigs.yaml change of the observed calibration (the covariance's tangent), over the parameters
+    with a non-zero prior sigma: ``delta``, the prior and posterior covariances, and each coordinate's rig."""
+
+    delta: np.ndarray
+    prior: np.ndarray
+    posterior: np.ndarray
+    rigs: np.ndarray
+
+
+def _calibration_change(result: AdjustResult, covariance: JointCovariance) -> _CalibrationChange:
     rec, priors = result.reconstruction, result.priors
-    calibration = {r.name: r for r in result.rigs}[rig]
-    keys, changes, prior_blocks = [], [], []
+    calibration = {r.name: r for r in result.rigs}
+    keys, changes, prior_blocks, owners = [], [], [], []
     for image in sorted(rec.images.values(), key=lambda im: im.image_id):
         name = name_of(image)
-        if name.rig != rig or not image.has_pose:
+        if not image.has_pose or name.rig not in calibration:
             continue
         key = ("camera", image.camera_id)
         if key in covariance.offsets and key not in covariance.prior_only and key not in keys:
             keys.append(key)
             changes.append(np.asarray(rec.cameras[image.camera_id].params)
-                           - np.asarray(calibration.camera(name.sensor).params))
-            prior_blocks.append(np.diag(priors[rig].sensor(name.sensor) ** 2))
+                           - np.asarray(calibration[name.rig].camera(name.sensor).params))
+            prior_blocks.append(np.diag(priors[name.rig].sensor(name.sensor) ** 2))
+            owners += [name.rig] * len(changes[-1])
         key = ("sensor_from_rig", image.camera_id)
         if name.is_narrow and key in covariance.offsets and key not in covariance.prior_only and key not in keys:
             keys.append(key)
             sensor = sensor_from_rig_view(rec, rec.frame(image.frame_id).rig_id, rec.cameras[image.camera_id].sensor_id)
-            prior = calibration.narrow_from_wide
-            delta = sensor.rotation * prior.rotation.inverse()
-            angle = delta.angle()
+            prior = calibration[name.rig].narrow_from_wide
+            delta = sensor.rotation * prior.rotation.inverse()  # R = Exp(w) R_yaml: w is its rotation vector
             quat = np.asarray(delta.quat)  # x, y, z, w
-            axis = quat[:3] / max(np.linalg.norm(quat[:3]), 1e-300) * np.sign(quat[3] or 1.0)
-            changes.append(np.r_[axis * angle, np.asarray(sensor.translation) - np.asarray(prior.translation)])
-            prior_blocks.append(priors[rig].narrow_from_wide)
-    if not keys:
-        return None
+            axis = quat[:3] / max(float(np.linalg.norm(quat[:3])), 1e-300) * (1.0 if quat[3] >= 0 else -1.0)
+            changes.append(np.r_[axis * delta.angle(), np.asarray(sensor.translation) - np.asarray(prior.translation)])
+            prior_blocks.append(priors[name.rig].narrow_from_wide)
+            owners += [name.rig] * 6
     size = sum(len(c) for c in changes)
     prior = np.zeros((size, size))
     at = 0
@@ -686,73 +694,79 @@ def _rig_calibration_change(result: AdjustResult, covariance: JointCovariance, r
         prior[at:at + len(block), at:at + len(block)] = block
         at += len(block)
     keep = np.diag(prior) > 0  # sigma 0: held exactly by the prior itself
-    posterior = covariance.sub(keys)
-    return (np.concatenate(changes)[keep], prior[np.ix_(keep, keep)], posterior[np.ix_(keep, keep)])
+    posterior = covariance.sub(keys) if keys else np.zeros((0, 0))
+    delta = np.concatenate(changes) if changes else np.zeros(0)
+    return _CalibrationChange(delta[keep], prior[np.ix_(keep, keep)], posterior[np.ix_(keep, keep)],
+                              np.asarray(owners, dtype=object)[keep])
+
+
+def _gains(prior: np.ndarray, posterior: np.ndarray, delta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The share ``g_k`` of the prior variance the images removed along each eigen-direction of ``I - Q`` (``Q`` the
+    posterior in the prior's whitened coordinates) and the whitened change's coordinates along them."""
+    inverse = scipy.linalg.solve_triangular(np.linalg.cholesky(prior), np.eye(len(prior)), lower=True)
+    gains, vectors = np.linalg.eigh(np.eye(len(prior)) - inverse @ posterior @ inverse.T)
+    return gains, vectors.T @ (inverse @ delta)
 
 
 def hold_or_refine(result: AdjustResult, covariance: JointCovariance | None) -> list[CalibrationDecision]:
     """Per rig, whether its refined calibration is kept or held at rigs.yaml's values.
 
-    In the prior's whitened coordinates (``u = L^-1 (c - c_yaml)``, ``Sigma = L L^T``), the images' information
-    removes a share ``g_k`` of the prior variance along each eigen-direction ``v_k`` of ``I - L^-1 P L^-T``
-    (``P`` the posterior covariance). Two tests, both needed to refine:
+    In the prior's whitened coordinates (``u = L^-1 (c - c_yaml)``, ``Sigma = L L^T``) the images remove a share
+    ``g_k`` of the prior variance along each eigen-direction ``v_k`` of ``I - L^-1 P L^-T`` (``P`` the posterior
+    covariance). Three tests:
 
-    - observability: some direction with ``g_k >= 1/2``, i.e. the images inform it more than rigs.yaml's sigmas do;
-      below that the posterior is mostly the prior, and a change is mostly whatever the images' unmodelled errors
-      (wrong clicks, systematic feature offsets) pulled it to;
-    - consistency: were priors and images both right, the change ``u`` would be distributed as ``N(0, I - Q)``
-      (the posterior mean's spread), so ``sum_k (v_k . u)^2 / g_k`` over the directions the images inform at all
-      (``g_k > MIN_GAIN``) is chi-square with that many degrees of freedom; above its ``HOLD_QUANTILE`` quantile
-      the images moved the calibration further than their information allows, and the move is not trusted.
+    - the network's observability: refine only if some direction of the whole calibration (over all rigs: the
+      images inform combinations, such as two rigs' focal lengths against each other) has ``g_k >= 1/2``, i.e. the
+      images inform it more than rigs.yaml's sigmas do; below that the posterior is mostly the prior, and a change
+      is mostly whatever the images' unmodelled errors (wrong clicks, systematic feature offsets) pulled it to;
+    - each rig's observability: ``g_k >= MIN_GAIN`` in some direction of its own calibration (its marginal);
+    - each rig's consistency: were priors and images both right, its change would be distributed as ``N(0, I - Q)``
+      (the spread of the posterior mean), so ``sum_k (v_k . u)^2 / g_k`` over its directions with ``g_k >=
+      MIN_GAIN`` is chi-square with that many degrees of freedom; above the ``HOLD_QUANTILE`` quantile the images
+      moved the calibration further than their information allows, and the move is not trusted.
 
-    Without a covariance (rank-deficient problem) every rig is held."""
-    from scipy.stats import chi2 as chi2_distribution
+    Without a covariance (a rank-deficient problem) every rig is held."""
+    from scipy.stats import chi2 as chi2_distribution  # scipy.stats takes a while to import
 
+    rigs = sorted({name_of(im).rig for im in result.reconstruction.images.values() if im.has_pose}
+                  & {r.name for r in result.rigs})
+    if covariance is None:
+        return [CalibrationDecision(rig, True, "no covariance to test its refinement against") for rig in rigs]
+    change = _calibration_change(result, covariance)
+    network_gain = float(_gains(change.prior, change.posterior, change.delta)[0].max(initial=0.0)) \
+        if len(change.delta) else 0.0
     decisions = []
-    for rig in sorted({r.name for r in result.rigs}):
-        if not any(name_of(im).rig == rig and im.has_pose for im in result.reconstruction.images.values()):
-            continue
-        if covariance is None:
-            decisions.append(CalibrationDecision(rig, True, "no covariance to test its refinement against"))
-            continue
-        change = _rig_calibration_change(result, covariance, rig)
-        if change is None:
+    for rig in rigs:
+        mine = change.rigs == rig
+        if not mine.any():
             decisions.append(CalibrationDecision(rig, True, "no image observes its calibration"))
             continue
-        delta, prior, posterior = change
-        factor = np.linalg.cholesky(prior)
-        inverse = scipy_solve_triangular(factor, np.eye(len(factor)))
-        gains, vectors = np.linalg.eigh(np.eye(len(prior)) - inverse @ posterior @ inverse.T)
-        z = vectors.T @ (inverse @ delta)
-        tested = gains > MIN_GAIN
-        chi2 = float(np.sum(z[tested] ** 2 / gains[tested]))
-        dof = int(tested.sum())
-        informed = int(np.sum(gains >= 0.5))
-        largest = float(gains.max(initial=0.0))
+        gains, z = _gains(change.prior[np.ix_(mine, mine)], change.posterior[np.ix_(mine, mine)], change.delta[mine])
+        tested = gains >= MIN_GAIN
+        chi2, dof = float(np.sum(z[tested] ** 2 / gains[tested])), int(tested.sum())
         limit = float(chi2_distribution.ppf(HOLD_QUANTILE, dof)) if dof else 0.0
-        if informed == 0:
-            reason = (f"the images inform no direction of its calibration more than rigs.yaml's sigmas do (at most "
-                      f"{100 * max(largest, 0.0):.0f} % of a direction's prior variance)")
-            held = True
+        largest = float(gains.max())
+        if network_gain < 0.5:
+            held, reason = True, (f"the images inform no direction of the network's calibration more than rigs.yaml's "
+                                  f"sigmas do (they remove at most {100 * max(network_gain, 0.0):.0f} % of one's prior "
+                                  "variance)")
+        elif not dof:
+            held, reason = True, (f"the images barely observe its calibration (at most {100 * max(largest, 0.0):.0f} % "
+                                  "of a direction's prior variance removed)")
         elif chi2 > limit:
-            reason = (f"the refinement moved it further than the images' information allows (chi-square {chi2:.1f} "
-                      f"> {limit:.1f}, {dof} dof)")
-            held = True
+            held, reason = True, (f"the refinement moved it further than the images' information allows (chi-square "
+                                  f"{chi2:.1f} > {limit:.1f}, {dof} dof)")
         else:
-            reason = (f"the images inform {informed} direction{'s' if informed > 1 else ''} of its calibration more "
-                      f"than rigs.yaml's sigmas do, and agree with them (chi-square {chi2:.1f} <= {limit:.1f})")
-            held = False
-        decisions.append(CalibrationDecision(rig, held, reason, informed, chi2, dof, largest))
+            held, reason = False, (f"the images inform it (up to {100 * largest:.0f} % of a direction's prior variance "
+                                   f"removed) and agree with rigs.yaml (chi-square {chi2:.1f} <= {limit:.1f}, {dof} dof)")
+        decisions.append(CalibrationDecision(rig, held, reason, largest, chi2, dof, limit))
     return decisions
 
 
-def scipy_solve_triangular(factor: np.ndarray, rhs: np.ndarray) -> np.ndarray:
-    import scipy.linalg
-
-    return scipy.linalg.solve_triangular(factor, rhs, lower=True)
-
-
-MIN_GAIN = 0.01  # directions whose prior variance the images reduce by less are left out of the consistency test
+# Directions whose prior variance the images reduce by less are left out of the consistency test: the final solve
+# stops with up to FINAL_SETTLE_CHI2 (0.04) of chi^2 left to gain, which adds up to 0.04 / g to the test along a
+# direction of gain g (0.4 at this floor), and a rig none of whose directions reaches it is barely observed.
+MIN_GAIN = 0.1
 HOLD_QUANTILE = 0.95  # of the consistency test
 
 
@@ -791,26 +805,32 @@ def _adjust_refined(mapped: pycolmap.Reconstruction, rigs: Sequence[RigCalibrati
                     options: AdjustOptions, priors: CalibrationPriors, with_covariance: bool = True,
                     held_rigs: Collection[str] | None = None) -> AdjustResult:
     """Every rig's calibration refined, then each rig's refinement tested (:func:`hold_or_refine`); the rigs whose
-    refinement fails are held at rigs.yaml's values and the network adjusted again. ``held_rigs`` given: those
+    refinement fails are held at rigs.yaml's values and the network adjusted again (every rig held: the result is
+    ``--fixed-calibration``'s, its ``calibration`` FIXED). ``held_rigs`` given: those
     held, no test (the sampled band's draws repeat the estimate's choice)."""
-    decide = held_rigs is None
-    result = _refine(mapped, rigs, scale_spec, options, priors, frozenset(held_rigs or ()))
-    if decide and result.scale_source != ScaleSource.NONE:
-        from rigsfm.run.uncertainty import joint_covariance
+    from rigsfm.run.uncertainty import joint_covariance, network_size_sigma
 
-        result.decisions = hold_or_refine(result, joint_covariance(result))
+    result = _refine(mapped, rigs, scale_spec, options, priors, frozenset(held_rigs or ()))
+    if held_rigs is None and result.scale_source != ScaleSource.NONE:
+        result.covariance = joint_covariance(result)
+        result.decisions = hold_or_refine(result, result.covariance)
         held = frozenset(d.rig for d in result.decisions if d.held)
         for decision in result.decisions:
-            logger.info("Calibration of %s %s: %s", decision.rig, "HELD" if decision.held else "refined",
+            logger.info("Calibration of %s %s: %s", decision.rig, "held at rigs.yaml" if decision.held else "refined",
                         decision.reason)
+        decisions = result.decisions
+        if held and all(d.held for d in decisions):  # holding the calibration is --fixed-calibration's adjustment
+            result = _adjust_fixed(mapped, rigs, scale_spec, options)
+            result.priors, result.scale_spec, result.rigs = priors, scale_spec, tuple(rigs)
+            result.options = replace(options, calibration=Calibration.FIXED)  # the sampled band's draws: held too
+            result.decisions = decisions
+            return result
         if held:
-            decisions = result.decisions
             result = _refine(mapped, rigs, scale_spec, options, priors, held)
             result.decisions = decisions
     if result.scale_source != ScaleSource.NONE and with_covariance:
-        from rigsfm.run.uncertainty import joint_covariance, network_size_sigma
-
-        result.covariance = joint_covariance(result)
+        if result.covariance is None:
+            result.covariance = joint_covariance(result)
         result.scale_relative_sigma = network_size_sigma(result.covariance, result.reconstruction)
         if result.scale is not None and result.scale_relative_sigma is not None:
             result.scale = ScaleEstimate(1.0, result.scale_relative_sigma, result.scale.measurements,

@@ -12,6 +12,12 @@ with the intrinsics and every observed narrow ``sensor_from_rig`` (E^sl) refined
   (``ReprojErrorCost`` / ``RigReprojErrorCost`` with the file's pixel sigma) tied by ``costs.LengthCost``;
 - COLMAP's robust loss on the reprojection residuals, outliers dropped between rounds.
 
+Then each rig's refinement is tested (:func:`hold_or_refine`: the images must inform some direction of the network's
+calibration more than rigs.yaml's sigmas do, and a rig's change must be consistent with the information they give
+about it); a rig that fails is held at rigs.yaml's values and the network adjusted again, with every rig held the
+adjustment is ``FIXED``'s. On a weak network (two rigs registered from a few dozen clicks) the images cannot inform
+the calibration, and refining it anyway moved the narrow cameras further from the truth than holding it.
+
 A parameter no image observes (intrinsics and E^sl of a narrow camera without points) is not in COLMAP's problem:
 it stays at rigs.yaml's value, and its prior enters the covariance as an independent block. Residuals are whitened
 and in pixels: priors and measurements are multiplied by the images' weighting noise (the estimated reprojection

@@ -824,9 +824,10 @@ def _adjust_refined(mapped: pycolmap.Reconstruction, rigs: Sequence[RigCalibrati
         for decision in result.decisions:
             logger.info("Calibration of %s %s: %s", decision.rig, "held at rigs.yaml" if decision.held else "refined",
                         decision.reason)
-        decisions = result.decisions
+        decisions, warnings = result.decisions, result.warnings  # the refined pass's warnings stay true of the input
         if held and all(d.held for d in decisions):  # holding the calibration is --fixed-calibration's adjustment
             result = _adjust_fixed(mapped, rigs, scale_spec, options)
+            result.warnings = list(dict.fromkeys(warnings + result.warnings))
             result.priors, result.scale_spec, result.rigs = priors, scale_spec, tuple(rigs)
             result.options = replace(options, calibration=Calibration.FIXED)  # the sampled band's draws: held too
             result.decisions = decisions
@@ -834,6 +835,7 @@ def _adjust_refined(mapped: pycolmap.Reconstruction, rigs: Sequence[RigCalibrati
         if held:
             result = _refine(mapped, rigs, scale_spec, options, priors, held)
             result.decisions = decisions
+            result.warnings = list(dict.fromkeys(warnings + result.warnings))
     if result.scale_source != ScaleSource.NONE and with_covariance:
         if result.covariance is None:
             result.covariance = joint_covariance(result)

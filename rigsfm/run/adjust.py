@@ -829,6 +829,10 @@ def _adjust_refined(mapped: pycolmap.Reconstruction, rigs: Sequence[RigCalibrati
             result = _adjust_fixed(mapped, rigs, scale_spec, options)
             result.warnings = list(dict.fromkeys(warnings + result.warnings))
             result.priors, result.scale_spec, result.rigs = priors, scale_spec, tuple(rigs)
+            try:  # the images' noise, as the refined result reports it (and the covariance would estimate it)
+                result.pixel_sigma = estimate_pixel_sigma(result.reconstruction, options.max_reprojection_error_px)
+            except ReconstructionError:
+                pass
             result.options = replace(options, calibration=Calibration.FIXED)  # the sampled band's draws: held too
             result.decisions = decisions
             return result

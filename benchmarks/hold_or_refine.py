@@ -1,21 +1,21 @@
-"""Refine the calibration or hold it: the default adjustment against ``--fixed-calibration`` on weak and strong networks.
+"""Refine the calibration or hold it: the default adjustment against ``--fixed-calibration``, weak and strong networks.
 
     python benchmarks/hold_or_refine.py [--work DIR] [--scenes NAME ...] [--click-sets 3] [--out FILE]
 
 Scenes (rendered arenas at 1624x1234 with the realistic calibration error in rigs.yaml, and its sigmas):
 
-- ``clicks150_s<seed>``: 2 rigs 150 deg apart, wide f = 500 px (``benchmarks/separation.py``'s pair), SIFT merged with 34
-  simulated clicks (``rigsfm.synth.clicks``: 1 px noise, 20 % gross outliers), one run per click set;
-  ``clicksonly150_s<seed>``: the same scene registered from the clicks alone (no SIFT matches: the paper's case);
-- ``r2_60_s<seed>``: 2 rigs 60 deg apart; ``r3_120``: 3 rigs over 120 deg; ``demo``: the 8-rig circle of ``rigsfm demo``.
+- ``clicks150_s<seed>``: 2 rigs 150 deg apart, wide f = 500 px (``benchmarks/separation.py``'s pair), SIFT merged
+  with 34 simulated clicks (``rigsfm.synth.clicks``: 1 px noise, 20 % gross outliers), one run per click set;
+- ``clicksonly150_s<seed>``: the same scene registered from the clicks alone (no SIFT matches: the paper's case);
+- ``r2_60_s<seed>``: 2 rigs 60 deg apart; ``r3_120``: 3 rigs over 120 deg; ``demo``: ``rigsfm demo``'s 8-rig circle.
 
-Each scene is rendered and mapped once (cached under WORK); the default adjustment (``AdjustOptions()``) and the fixed
-one then start from the same mapping model. Two more variants: every rig's calibration refined
-(``held_rigs=frozenset()``: the default before the hold-or-refine test), and every rig's held in the same adjustment
-(measurements inside it, unlike ``--fixed-calibration``'s fitted scale). Scores against the exact ground truth: the largest narrow relative-rotation
-error (deg) and the 95th percentile of the true epipolar distance (px; true floor points of narrow i, their true
-correspondences in narrow j against the estimated epipolar lines, ``uncertainty.correspondence_check``), worst pair.
-Prints one table (ratios to fixed) and writes OUT (JSON).
+Each scene is rendered and mapped once (cached under WORK); the default adjustment (``AdjustOptions()``) and the
+fixed one then start from the same mapping model. Two more variants: every rig's calibration refined
+(``held_rigs=frozenset()``: the default before the hold-or-refine test), and every rig's held in the same
+adjustment (measurements inside it, unlike ``--fixed-calibration``'s fitted scale). Scores against the exact ground
+truth: the largest narrow relative-rotation error (deg) and the 95th percentile of the true epipolar distance (px;
+true floor points of narrow i, their true correspondences in narrow j against the estimated epipolar lines,
+``uncertainty.correspondence_check``), worst pair. Prints one table (ratios to fixed) and writes OUT (JSON).
 """
 
 from __future__ import annotations

@@ -14,9 +14,10 @@ with the intrinsics and every observed narrow ``sensor_from_rig`` (E^sl) refined
 
 Then each rig's refinement is tested (:func:`hold_or_refine`: the images must inform some direction of the network's
 calibration more than rigs.yaml's sigmas do, and a rig's change must be consistent with the information they give
-about it); a rig that fails is held at rigs.yaml's values and the network adjusted again, with every rig held the
-adjustment is ``FIXED``'s. On a weak network (two rigs registered from a few dozen clicks) the images cannot inform
-the calibration, and refining it anyway moved the narrow cameras further from the truth than holding it.
+about it); a rig that fails is held at rigs.yaml's values and the network adjusted again; with every rig held, and
+the network's shape fixed by the images, the adjustment is ``FIXED``'s. On a weak network (two rigs registered from
+a few dozen clicks) the images cannot inform the calibration, and refining it anyway moved the narrow cameras further
+from the truth than holding it.
 
 A parameter no image observes (intrinsics and E^sl of a narrow camera without points) is not in COLMAP's problem:
 it stays at rigs.yaml's value, and its prior enters the covariance as an independent block. Residuals are whitened
@@ -55,6 +56,7 @@ from rigsfm.core.names import name_of
 from rigsfm.core.errors import ReconstructionError
 from rigsfm.core.residuals import reprojection_errors
 from rigsfm.core.rig import RigCalibration
+from rigsfm.run.diagnostics import loosely_tied_rigs
 from rigsfm.run.costs import CameraDistanceCost, CentreTerm, LengthCost, skew
 from rigsfm.run.priors import CalibrationPriors, calibration_priors, pose_prior_residual_covariance
 from rigsfm.run.scale import (Measurement, ScaleEstimate, UnusableMeasurement, estimate_scale,
@@ -811,8 +813,8 @@ def _adjust_refined(mapped: pycolmap.Reconstruction, rigs: Sequence[RigCalibrati
                     options: AdjustOptions, priors: CalibrationPriors, with_covariance: bool = True,
                     held_rigs: Collection[str] | None = None) -> AdjustResult:
     """Every rig's calibration refined, then each rig's refinement tested (:func:`hold_or_refine`); the rigs whose
-    refinement fails are held at rigs.yaml's values and the network adjusted again (every rig held: the result is
-    ``--fixed-calibration``'s, its ``calibration`` FIXED). ``held_rigs`` given: those
+    refinement fails are held at rigs.yaml's values and the network adjusted again (every rig held in a network whose
+    shape the images fix: the result is ``--fixed-calibration``'s, its ``calibration`` FIXED). ``held_rigs`` given: those
     held, no test (the sampled band's draws repeat the estimate's choice)."""
     from rigsfm.run.uncertainty import joint_covariance, network_size_sigma
 
@@ -825,7 +827,10 @@ def _adjust_refined(mapped: pycolmap.Reconstruction, rigs: Sequence[RigCalibrati
             logger.info("Calibration of %s %s: %s", decision.rig, "held at rigs.yaml" if decision.held else "refined",
                         decision.reason)
         decisions, warnings = result.decisions, result.warnings  # the refined pass's warnings stay true of the input
-        if held and all(d.held for d in decisions):  # holding the calibration is --fixed-calibration's adjustment
+        # Every rig held, in a network whose shape the images fix: --fixed-calibration's adjustment (one similarity
+        # scale). Where they leave it open (rigs not tied to the rest through three-rig points) the measurements
+        # must shape it inside the adjustment, which the refined path does with the calibration held.
+        if held and all(d.held for d in decisions) and not loosely_tied_rigs(result.reconstruction):
             result = _adjust_fixed(mapped, rigs, scale_spec, options)
             result.warnings = list(dict.fromkeys(warnings + result.warnings))
             result.priors, result.scale_spec, result.rigs = priors, scale_spec, tuple(rigs)

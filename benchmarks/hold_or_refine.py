@@ -1,4 +1,5 @@
-"""Refine the calibration or hold it: the default adjustment against ``--fixed-calibration``, weak and strong networks.
+"""Refine the calibration or hold it: the default adjustment against ``--fixed-calibration`` on weak and strong
+networks.
 
     python benchmarks/hold_or_refine.py [--work DIR] [--scenes NAME ...] [--click-sets 3] [--out FILE]
 
@@ -49,7 +50,8 @@ def scenes(click_sets: int, scene_seeds: int = 3) -> dict[str, tuple[SceneOption
                                   list(range(click_sets))) for seed in range(scene_seeds)},
         **{f"clicksonly150_s{seed}": (SceneOptions(num_rigs=2, arc_deg=150, seed=seed, wide_focal=500.0),
                                       list(range(click_sets))) for seed in range(scene_seeds)},
-        **{f"r2_60_s{seed}": (SceneOptions(num_rigs=2, arc_deg=60, seed=seed), [None]) for seed in range(scene_seeds)},
+        **{f"r2_60_s{seed}": (SceneOptions(num_rigs=2, arc_deg=60, seed=seed), [None])
+           for seed in range(scene_seeds)},
         "r3_120": (SceneOptions(num_rigs=3, arc_deg=120, seed=0), [None]),
         "demo": (SceneOptions(), [None]),
     }

@@ -756,10 +756,10 @@ def hold_or_refine(result: AdjustResult, covariance: JointCovariance | None) -> 
         largest = float(gains.max())
         if network_gain < 0.5:
             held, reason = True, (f"the images inform no direction of the network's calibration more than rigs.yaml's "
-                                  f"sigmas do (they remove at most {100 * max(network_gain, 0.0):.0f} % of one's prior "
+                                  f"sigmas do (they remove at most {int(100 * max(network_gain, 0.0))} % of one's prior "
                                   "variance)")
         elif not dof:
-            held, reason = True, (f"the images barely observe its calibration (at most {100 * max(largest, 0.0):.0f} % "
+            held, reason = True, (f"the images barely observe its calibration (at most {int(100 * max(largest, 0.0))} % "
                                   "of a direction's prior variance removed)")
         elif chi2 > limit:
             held, reason = True, (f"the refinement moved it further than the images' information allows (chi-square "

@@ -268,6 +268,24 @@ def refined_network(tmp_path_factory):
     return net, result
 
 
+def test_a_held_rig_keeps_its_calibration_and_the_band_considers_its_prior(refined_network):
+    """rig02 held, the others refined: its intrinsics stay at rigs.yaml's exactly, and the joint covariance carries
+    its prior unchanged (a consider parameter: the images did not improve it) next to the others' posterior."""
+    _, refined = refined_network
+    result = adjust(refined.reconstruction, refined.rigs, refined.scale_spec, held_rigs={"rig02"})
+    rec, cov = result.reconstruction, result.covariance
+    assert result.decisions == [] and cov.kind == "posterior"
+    for rig in result.rigs:
+        camera_id = rec.find_image_with_name(f"{rig.name}/wide/frame0000.png").camera_id
+        sigma, prior = cov.sigma(("camera", camera_id)), result.priors[rig.name].wide
+        if rig.name == "rig02":
+            np.testing.assert_array_equal(rec.cameras[camera_id].params, rig.wide.params)
+            np.testing.assert_allclose(sigma, prior, rtol=1e-9)
+        else:
+            assert np.abs(np.asarray(rec.cameras[camera_id].params) - rig.wide.params).max() > 0
+            assert np.all(sigma <= prior * (1 + 1e-9)) and np.any(sigma < 0.99 * prior)
+
+
 def test_the_final_solve_stops_where_little_chi2_is_left_to_gain(refined_network):
     """SettledStop ends a creeping solve once less than FINAL_SETTLE_CHI2 (0.04) of chi^2 is left to gain: from
     the refined result with every point moved 5 cm the robust solve creeps; the rule ends it after 13 steps, and
@@ -305,12 +323,16 @@ def test_images_that_disagree_with_the_priors_are_kept_and_flagged_not_emptied(t
         if point.has_point3D():
             angle = rng.uniform(0.0, 2.0 * np.pi)
             point.xy = point.xy + 40.0 * np.array([np.cos(angle), np.sin(angle)])
-    result = adjust(mapped, net.rigs, _scale_spec(tmp_path, net, 3))
+    result = adjust(mapped, net.rigs, _scale_spec(tmp_path, net, 3), held_rigs=frozenset())  # every rig refined
     (warning,) = result.warnings
     assert warning.startswith("ADJUSTMENT INCONSISTENT: after adjustment round 1") and "rig03" in warning
     assert result.reconstruction.num_points3D() == mapped.num_points3D()
     assert all(result.reconstruction.find_image_with_name(f"rig{k:02d}/wide/frame0000.png").num_points3D == 600
                for k in (1, 2, 3))
+    # By default the refinement is tested: these images inform no direction of the calibration, which is held
+    # (--fixed-calibration's adjustment), and the refined pass's warning is kept.
+    default = adjust(mapped, net.rigs, _scale_spec(tmp_path, net, 3))
+    assert all(d.held for d in default.decisions) and default.warnings == [warning]
 
 
 def test_frames_without_points_name_each_frame_once():

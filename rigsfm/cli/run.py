@@ -42,7 +42,17 @@ def print_summary(summary, out: Path) -> None:
         console.print(f"  {row['label']}: {row['reconstructed_meters']:.4f} m vs {row['meters']:.4f} m "
                       f"({row['residual_percent']:+.3f} %)")
     print_world(summary)
+    print_calibration_decisions(summary.calibration_decisions)
     console.print("timings (s): " + ", ".join(f"{k} {v:.1f}" for k, v in summary.timings_s.items()))
+
+
+def print_calibration_decisions(decisions: list[dict]) -> None:
+    """Which rigs' calibration the adjustment refined and which it held at rigs.yaml's values, and why."""
+    for held in (False, True):
+        rows = [d for d in decisions if d["held"] == held]
+        if rows:
+            console.print(f"calibration {'held at rigs.yaml' if held else 'refined'}: "
+                          + "; ".join(f"{d['rig']} ({d['reason']})" for d in rows))
 
 
 def print_world(summary) -> None:

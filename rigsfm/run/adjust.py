@@ -12,6 +12,13 @@ with the intrinsics and every observed narrow ``sensor_from_rig`` (E^sl) refined
   (``ReprojErrorCost`` / ``RigReprojErrorCost`` with the file's pixel sigma) tied by ``costs.LengthCost``;
 - COLMAP's robust loss on the reprojection residuals, outliers dropped between rounds.
 
+Then each rig's refinement is tested (:func:`hold_or_refine`: the images must inform some direction of the network's
+calibration more than rigs.yaml's sigmas do, and a rig's change must be consistent with the information they give
+about it); a rig that fails is held at rigs.yaml's values and the network adjusted again; with every rig held, and
+the network's shape fixed by the images, the adjustment is ``FIXED``'s. On a weak network (two rigs registered from
+a few dozen clicks) the images cannot inform the calibration, and refining it anyway moved the narrow cameras further
+from the truth than holding it.
+
 A parameter no image observes (intrinsics and E^sl of a narrow camera without points) is not in COLMAP's problem:
 it stays at rigs.yaml's value, and its prior enters the covariance as an independent block. Residuals are whitened
 and in pixels: priors and measurements are multiplied by the images' weighting noise (the estimated reprojection
@@ -35,12 +42,13 @@ import enum
 import logging
 import time
 from collections import Counter
-from collections.abc import Sequence
-from dataclasses import dataclass, field
+from collections.abc import Collection, Sequence
+from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING
 
 import numpy as np
 import pyceres
+import scipy.linalg
 import pycolmap
 import pycolmap.cost_functions  # noqa: F401 - not imported by ``import pycolmap``
 
@@ -48,6 +56,7 @@ from rigsfm.core.names import name_of
 from rigsfm.core.errors import ReconstructionError
 from rigsfm.core.residuals import reprojection_errors
 from rigsfm.core.rig import RigCalibration
+from rigsfm.run.diagnostics import loosely_tied_rigs
 from rigsfm.run.costs import CameraDistanceCost, CentreTerm, LengthCost, skew
 from rigsfm.run.priors import CalibrationPriors, calibration_priors, pose_prior_residual_covariance
 from rigsfm.run.scale import (Measurement, ScaleEstimate, UnusableMeasurement, estimate_scale,
@@ -117,6 +126,8 @@ class AdjustResult:
     rounds: int = 0
     seconds: float = 0.0
     covariance: JointCovariance | None = None  # rigsfm.run.uncertainty.joint_covariance, once computed
+    held_rigs: frozenset[str] = frozenset()  # REFINE: rigs whose calibration was held at rigs.yaml's (hold_or_refine)
+    decisions: list[CalibrationDecision] = field(default_factory=list)  # REFINE: per rig, held or refined and why
     warnings: list[str] = field(default_factory=list)  # for the run's summary
 
 
@@ -216,15 +227,17 @@ def adjust(
     priors: CalibrationPriors | None = None,
     *,
     with_covariance: bool = True,
+    held_rigs: Collection[str] | None = None,
 ) -> AdjustResult:
     """A metric reconstruction (a new object; ``mapped`` is not modified), its calibration refined with
     ``priors`` (default: ``calibration_priors(rigs)``, a good board's) or held (``options.calibration``).
-    ``with_covariance``: a refined metric result carries its joint covariance (and the scale's sigma from it)."""
+    ``with_covariance``: a refined metric result carries its joint covariance (and the scale's sigma from it).
+    ``held_rigs``: refining, hold these rigs' calibration instead of testing each rig's (:func:`hold_or_refine`)."""
     options = options or AdjustOptions()
     start = time.perf_counter()
     if options.calibration == Calibration.REFINE:
         result = _adjust_refined(mapped, rigs, scale_spec, options, priors or calibration_priors(rigs),
-                                 with_covariance)
+                                 with_covariance, held_rigs)
     else:
         result = _adjust_fixed(mapped, rigs, scale_spec, options)
         result.priors, result.scale_spec, result.options = priors, scale_spec, options
@@ -325,8 +338,13 @@ class JointProblem:
 
     def __init__(self, reconstruction: pycolmap.Reconstruction, rigs: Sequence[RigCalibration],
                  priors: CalibrationPriors, scale_spec: ScaleSpec | None, options: AdjustOptions,
-                 pixel_sigma: float, *, gauge: Gauge, robust: bool, with_priors: bool = True):
+                 pixel_sigma: float, *, gauge: Gauge, robust: bool, with_priors: bool = True,
+                 held_rigs: frozenset[str] = frozenset(), consider_held: bool = False):
         self.reconstruction = reconstruction
+        # held_rigs: their intrinsics and E^sl stay at rigs.yaml's values (constant blocks); with consider_held they
+        # are variable but without prior, for the Jacobian of the covariance that considers their prior
+        self.held_rigs = frozenset(held_rigs)
+        self.consider_held = consider_held
         self.priors = priors
         self.weight_sigma = float(pixel_sigma) * options.pixel_sigma_inflation  # the images' weighting noise
         self.gauge = gauge
@@ -365,6 +383,8 @@ class JointProblem:
         self.adjuster = pycolmap.create_default_ceres_bundle_adjuster(ba, self.config, reconstruction)
         self.problem: pyceres.Problem = self.adjuster.problem
         self.subset_frame = self._two_cams_subset() if gauge == Gauge.TWO_CAMS_FROM_WORLD else None
+        if not consider_held:
+            self._hold_rigs()
         if scale_spec is not None:
             self._add_camera_distances(scale_spec)
             self._add_known_lengths(scale_spec)
@@ -524,6 +544,18 @@ class JointProblem:
                                                   lambda ends=ends: float(np.linalg.norm(ends[0] - ends[1]))))
 
     # -- priors ----------------------------------------------------------------------------------------------
+    def _hold_rigs(self) -> None:
+        """The held rigs' camera and E^sl blocks constant (before the measurements, which then carry a held E^sl's
+        prior in their sigma as for an unobserved one)."""
+        for camera_id, camera in self.reconstruction.cameras.items():
+            name = self.camera_names.get(camera_id)
+            if name is not None and name.rig in self.held_rigs and self.has_variable(camera.params):
+                self.problem.set_parameter_block_constant(camera.params)
+        for rig_id, sensor_id, _, rig_name in self.narrow_sensors():
+            block = sensor_from_rig_view(self.reconstruction, rig_id, sensor_id).params
+            if rig_name in self.held_rigs and self.has_variable(block):
+                self.problem.set_parameter_block_constant(block)
+
     def _add_camera_priors(self, with_priors: bool) -> None:
         for camera_id, camera in self.reconstruction.cameras.items():
             block = camera.params
@@ -536,9 +568,9 @@ class JointProblem:
                 continue
             if len(held):
                 self.problem.set_manifold(block, pyceres.SubsetManifold(len(sigmas), held.tolist()))
-            if not with_priors:
-                continue
             name = self.camera_names[camera_id]
+            if not with_priors or name.rig in self.held_rigs:
+                continue
             mean = np.asarray(self.calibration[name.rig].camera(name.sensor).params, dtype=np.float64)
             variances = np.where(sigmas > 0, sigmas, 1.0) ** 2 / self.weight_sigma**2  # held: any (no effect)
             cost = pyceres.factors.NormalPrior(mean, np.diag(variances))
@@ -548,7 +580,7 @@ class JointProblem:
     def _add_sensor_priors(self) -> None:
         for rig_id, sensor_id, _, rig_name in self.narrow_sensors():
             block = sensor_from_rig_view(self.reconstruction, rig_id, sensor_id).params
-            if not self.has_variable(block):
+            if not self.has_variable(block) or rig_name in self.held_rigs:
                 continue
             prior = self.calibration[rig_name].narrow_from_wide
             cov = pose_prior_residual_covariance(self.priors[rig_name].narrow_from_wide, prior) / self.weight_sigma**2
@@ -613,6 +645,139 @@ class SettledStop(pyceres.IterationCallback):
         return pyceres.CallbackReturnType.SOLVER_CONTINUE
 
 
+@dataclass(frozen=True)
+class CalibrationDecision:
+    """One rig's calibration after :func:`hold_or_refine`: ``held`` at rigs.yaml's values or refined, and why."""
+
+    rig: str
+    held: bool
+    reason: str  # one clause
+    largest_gain: float = 0.0  # the largest share of one direction's prior variance the images removed (this rig)
+    chi2: float = 0.0  # the refinement's change against the spread the images explain (consistency test)
+    dof: int = 0
+    limit: float = 0.0  # the chi-square's HOLD_QUANTILE quantile
+
+
+@dataclass(frozen=True)
+class _CalibrationChange:
+    """The refined-minus-rigs.yaml change of the observed calibration (the covariance's tangent), over the parameters
+    with a non-zero prior sigma: ``delta``, the prior and posterior covariances, and each coordinate's rig."""
+
+    delta: np.ndarray
+    prior: np.ndarray
+    posterior: np.ndarray
+    rigs: np.ndarray
+
+
+def _calibration_change(result: AdjustResult, covariance: JointCovariance) -> _CalibrationChange:
+    rec, priors = result.reconstruction, result.priors
+    calibration = {r.name: r for r in result.rigs}
+    keys, changes, prior_blocks, owners = [], [], [], []
+    for image in sorted(rec.images.values(), key=lambda im: im.image_id):
+        name = name_of(image)
+        if not image.has_pose or name.rig not in calibration:
+            continue
+        key = ("camera", image.camera_id)
+        if key in covariance.offsets and key not in covariance.prior_only and key not in keys:
+            keys.append(key)
+            changes.append(np.asarray(rec.cameras[image.camera_id].params)
+                           - np.asarray(calibration[name.rig].camera(name.sensor).params))
+            prior_blocks.append(np.diag(priors[name.rig].sensor(name.sensor) ** 2))
+            owners += [name.rig] * len(changes[-1])
+        key = ("sensor_from_rig", image.camera_id)
+        if name.is_narrow and key in covariance.offsets and key not in covariance.prior_only and key not in keys:
+            keys.append(key)
+            sensor = sensor_from_rig_view(rec, rec.frame(image.frame_id).rig_id, rec.cameras[image.camera_id].sensor_id)
+            prior = calibration[name.rig].narrow_from_wide
+            delta = sensor.rotation * prior.rotation.inverse()  # R = Exp(w) R_yaml: w is its rotation vector
+            quat = np.asarray(delta.quat)  # x, y, z, w
+            axis = quat[:3] / max(float(np.linalg.norm(quat[:3])), 1e-300) * (1.0 if quat[3] >= 0 else -1.0)
+            changes.append(np.r_[axis * delta.angle(), np.asarray(sensor.translation) - np.asarray(prior.translation)])
+            prior_blocks.append(priors[name.rig].narrow_from_wide)
+            owners += [name.rig] * 6
+    size = sum(len(c) for c in changes)
+    prior = np.zeros((size, size))
+    at = 0
+    for block in prior_blocks:
+        prior[at:at + len(block), at:at + len(block)] = block
+        at += len(block)
+    keep = np.diag(prior) > 0  # sigma 0: held exactly by the prior itself
+    posterior = covariance.sub(keys) if keys else np.zeros((0, 0))
+    delta = np.concatenate(changes) if changes else np.zeros(0)
+    return _CalibrationChange(delta[keep], prior[np.ix_(keep, keep)], posterior[np.ix_(keep, keep)],
+                              np.asarray(owners, dtype=object)[keep])
+
+
+def _gains(prior: np.ndarray, posterior: np.ndarray, delta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The share ``g_k`` of the prior variance the images removed along each eigen-direction of ``I - Q`` (``Q`` the
+    posterior in the prior's whitened coordinates) and the whitened change's coordinates along them."""
+    inverse = scipy.linalg.solve_triangular(np.linalg.cholesky(prior), np.eye(len(prior)), lower=True)
+    gains, vectors = np.linalg.eigh(np.eye(len(prior)) - inverse @ posterior @ inverse.T)
+    return gains, vectors.T @ (inverse @ delta)
+
+
+def hold_or_refine(result: AdjustResult, covariance: JointCovariance | None) -> list[CalibrationDecision]:
+    """Per rig, whether its refined calibration is kept or held at rigs.yaml's values.
+
+    In the prior's whitened coordinates (``u = L^-1 (c - c_yaml)``, ``Sigma = L L^T``) the images remove a share
+    ``g_k`` of the prior variance along each eigen-direction ``v_k`` of ``I - L^-1 P L^-T`` (``P`` the posterior
+    covariance). Three tests:
+
+    - the network's observability: refine only if some direction of the whole calibration (over all rigs: the
+      images inform combinations, such as two rigs' focal lengths against each other) has ``g_k >= 1/2``, i.e. the
+      images inform it more than rigs.yaml's sigmas do; below that the posterior is mostly the prior, and a change
+      is mostly whatever the images' unmodelled errors (wrong clicks, systematic feature offsets) pulled it to;
+    - each rig's observability: ``g_k >= MIN_GAIN`` in some direction of its own calibration (its marginal);
+    - each rig's consistency: were priors and images both right, its change would be distributed as ``N(0, I - Q)``
+      (the spread of the posterior mean), so ``sum_k (v_k . u)^2 / g_k`` over its directions with ``g_k >=
+      MIN_GAIN`` is chi-square with that many degrees of freedom; above the ``HOLD_QUANTILE`` quantile the images
+      moved the calibration further than their information allows, and the move is not trusted.
+
+    Without a covariance (a rank-deficient problem) every rig is held."""
+    from scipy.stats import chi2 as chi2_distribution  # scipy.stats takes a while to import
+
+    rigs = sorted({name_of(im).rig for im in result.reconstruction.images.values() if im.has_pose}
+                  & {r.name for r in result.rigs})
+    if covariance is None:
+        return [CalibrationDecision(rig, True, "no covariance to test its refinement against") for rig in rigs]
+    change = _calibration_change(result, covariance)
+    network_gain = float(_gains(change.prior, change.posterior, change.delta)[0].max(initial=0.0)) \
+        if len(change.delta) else 0.0
+    decisions = []
+    for rig in rigs:
+        mine = change.rigs == rig
+        if not mine.any():
+            decisions.append(CalibrationDecision(rig, True, "no image observes its calibration"))
+            continue
+        gains, z = _gains(change.prior[np.ix_(mine, mine)], change.posterior[np.ix_(mine, mine)], change.delta[mine])
+        tested = gains >= MIN_GAIN
+        chi2, dof = float(np.sum(z[tested] ** 2 / gains[tested])), int(tested.sum())
+        limit = float(chi2_distribution.ppf(HOLD_QUANTILE, dof)) if dof else 0.0
+        largest = float(gains.max())
+        if network_gain < 0.5:
+            held, reason = True, (f"the images inform no direction of the network's calibration more than rigs.yaml's "
+                                  f"sigmas do (they remove at most {int(100 * max(network_gain, 0.0))} % of one's prior "
+                                  "variance)")
+        elif not dof:
+            held, reason = True, (f"the images barely observe its calibration (at most {int(100 * max(largest, 0.0))} % "
+                                  "of a direction's prior variance removed)")
+        elif chi2 > limit:
+            held, reason = True, (f"the refinement moved it further than the images' information allows (chi-square "
+                                  f"{chi2:.1f} > {limit:.1f}, {dof} dof)")
+        else:
+            held, reason = False, (f"the images inform it (up to {100 * largest:.0f} % of a direction's prior variance "
+                                   f"removed) and agree with rigs.yaml (chi-square {chi2:.1f} <= {limit:.1f}, {dof} dof)")
+        decisions.append(CalibrationDecision(rig, held, reason, largest, chi2, dof, limit))
+    return decisions
+
+
+# Directions whose prior variance the images reduce by less are left out of the consistency test: the final solve
+# stops with up to FINAL_SETTLE_CHI2 (0.04) of chi^2 left to gain, which adds up to 0.04 / g to the test along a
+# direction of gain g (0.4 at this floor), and a rig none of whose directions reaches it is barely observed.
+MIN_GAIN = 0.1
+HOLD_QUANTILE = 0.95  # of the consistency test
+
+
 def _choose_gauge(reconstruction: pycolmap.Reconstruction, scale_spec: ScaleSpec | None) -> tuple[ScaleSource, Gauge]:
     if scale_spec is not None and (scale_spec.camera_distances or scale_spec.known_lengths):
         return ScaleSource.MEASUREMENTS, Gauge.RIGID
@@ -645,7 +810,54 @@ NEGLIGIBLE_DROP = 1e-3
 
 
 def _adjust_refined(mapped: pycolmap.Reconstruction, rigs: Sequence[RigCalibration], scale_spec: ScaleSpec | None,
-                    options: AdjustOptions, priors: CalibrationPriors, with_covariance: bool = True) -> AdjustResult:
+                    options: AdjustOptions, priors: CalibrationPriors, with_covariance: bool = True,
+                    held_rigs: Collection[str] | None = None) -> AdjustResult:
+    """Every rig's calibration refined, then each rig's refinement tested (:func:`hold_or_refine`); the rigs whose
+    refinement fails are held at rigs.yaml's values and the network adjusted again (every rig held in a network whose
+    shape the images fix: the result is ``--fixed-calibration``'s, its ``calibration`` FIXED). ``held_rigs`` given: those
+    held, no test (the sampled band's draws repeat the estimate's choice)."""
+    from rigsfm.run.uncertainty import joint_covariance, network_size_sigma
+
+    result = _refine(mapped, rigs, scale_spec, options, priors, frozenset(held_rigs or ()))
+    if held_rigs is None and result.scale_source != ScaleSource.NONE:
+        result.covariance = joint_covariance(result)
+        result.decisions = hold_or_refine(result, result.covariance)
+        held = frozenset(d.rig for d in result.decisions if d.held)
+        for decision in result.decisions:
+            logger.info("Calibration of %s %s: %s", decision.rig, "held at rigs.yaml" if decision.held else "refined",
+                        decision.reason)
+        decisions, warnings = result.decisions, result.warnings  # the refined pass's warnings stay true of the input
+        # Every rig held, in a network whose shape the images fix: --fixed-calibration's adjustment (one similarity
+        # scale). Where they leave it open (rigs not tied to the rest through three-rig points) the measurements
+        # must shape it inside the adjustment, which the refined path does with the calibration held.
+        if held and all(d.held for d in decisions) and not loosely_tied_rigs(result.reconstruction):
+            result = _adjust_fixed(mapped, rigs, scale_spec, options)
+            result.warnings = list(dict.fromkeys(warnings + result.warnings))
+            result.priors, result.scale_spec, result.rigs = priors, scale_spec, tuple(rigs)
+            try:  # the images' noise, as the refined result reports it (and the covariance would estimate it)
+                result.pixel_sigma = estimate_pixel_sigma(result.reconstruction, options.max_reprojection_error_px)
+            except ReconstructionError:
+                pass
+            result.options = replace(options, calibration=Calibration.FIXED)  # the sampled band's draws: held too
+            result.decisions = decisions
+            return result
+        if held:
+            result = _refine(mapped, rigs, scale_spec, options, priors, held)
+            result.decisions = decisions
+            result.warnings = list(dict.fromkeys(warnings + result.warnings))
+    if result.scale_source != ScaleSource.NONE and with_covariance:
+        if result.covariance is None:
+            result.covariance = joint_covariance(result)
+        result.scale_relative_sigma = network_size_sigma(result.covariance, result.reconstruction)
+        if result.scale is not None and result.scale_relative_sigma is not None:
+            result.scale = ScaleEstimate(1.0, result.scale_relative_sigma, result.scale.measurements,
+                                         result.scale.unused)
+    return result
+
+
+def _refine(mapped: pycolmap.Reconstruction, rigs: Sequence[RigCalibration], scale_spec: ScaleSpec | None,
+            options: AdjustOptions, priors: CalibrationPriors, held: frozenset[str]) -> AdjustResult:
+    """The refined adjustment (without its covariance), the ``held`` rigs' calibration at rigs.yaml's values."""
     rec = pycolmap.Reconstruction(mapped)
     if rec.num_reg_frames() < 2:
         raise ReconstructionError("fewer than two rigs were registered; nothing to calibrate")
@@ -663,7 +875,8 @@ def _adjust_refined(mapped: pycolmap.Reconstruction, rigs: Sequence[RigCalibrati
         # Round 1 with the squared loss: when the measurements reshape a network whose images leave its shape open
         # (a 4-rig circle), a robust loss lets the images give up instead of following.
         robust = rounds > 1 or options.max_rounds == 1  # a single round (from an adjusted model): robust
-        problem = JointProblem(rec, rigs, priors, scale_spec, options, pixel_sigma, gauge=gauge, robust=robust)
+        problem = JointProblem(rec, rigs, priors, scale_spec, options, pixel_sigma, gauge=gauge, robust=robust,
+                               held_rigs=held)
         problem.stop_as(final=options.max_rounds == 1)
         summary = problem.solve_to_convergence()  # a long reshape: go on until Ceres converges, then judge outliers
         logger.debug("Adjustment round %d: %s", rounds, summary.BriefReport())
@@ -698,7 +911,8 @@ def _adjust_refined(mapped: pycolmap.Reconstruction, rigs: Sequence[RigCalibrati
         # iterations of 0.35 s for a relative cost change of 3e-6); the result is this last solve's, which goes on
         # until less than FINAL_SETTLE_CHI2 is left to gain (SettledStop). A new problem: the last round's refers
         # to the observations and points filter_outliers may have deleted.
-        problem = JointProblem(rec, rigs, priors, scale_spec, options, pixel_sigma, gauge=gauge, robust=True)
+        problem = JointProblem(rec, rigs, priors, scale_spec, options, pixel_sigma, gauge=gauge, robust=True,
+                               held_rigs=held)
         problem.stop_as(final=True)
         problem.solve_to_convergence()
     scale = problem.scale_estimate()
@@ -707,12 +921,5 @@ def _adjust_refined(mapped: pycolmap.Reconstruction, rigs: Sequence[RigCalibrati
     result = AdjustResult(rec, source, scale, _metres_per_mapping_unit(mapped, rec),
                           float(rec.compute_mean_reprojection_error()), calibration=Calibration.REFINE, gauge=gauge,
                           rigs=tuple(rigs), priors=priors, scale_spec=scale_spec, options=options, pixel_sigma=pixel_sigma,
-                          rounds=rounds, warnings=warnings)
-    if source != ScaleSource.NONE and with_covariance:
-        from rigsfm.run.uncertainty import joint_covariance, network_size_sigma
-
-        result.covariance = joint_covariance(result)
-        result.scale_relative_sigma = network_size_sigma(result.covariance, rec)
-        if scale is not None and result.scale_relative_sigma is not None:
-            result.scale = ScaleEstimate(1.0, result.scale_relative_sigma, scale.measurements, scale.unused)
+                          rounds=rounds, warnings=warnings, held_rigs=held)
     return result

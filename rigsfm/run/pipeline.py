@@ -188,6 +188,7 @@ def build_summary(inputs: Inputs, options: RunOptions, mapping: MappingResult, r
                                few_matches=bool(options.mapping.few_matches)),
         registered=counts,
         unregistered=unregistered,
+        calibration_decisions=[asdict(d) for d in result.decisions],
         num_points3D=reconstruction.num_points3D(),
         mean_reprojection_error_px=result.mean_reprojection_error_px,
         reprojection_error=reprojection_table(reconstruction),

@@ -102,6 +102,9 @@ class Summary:
     world: dict | None = None  # the result's frame and its floor fit (rigsfm.run.world.WorldResult.to_dict)
     epipolar_self_check: dict | None = None  # rigsfm.run.self_check.SelfCheck.to_dict
     uncertainty: UncertaintySummary | None = None  # rigsfm.run.uncertainty
+    # per rig, its calibration refined or held at rigs.yaml's values and why (rigsfm.run.adjust.hold_or_refine;
+    # empty with --fixed-calibration)
+    calibration_decisions: list[dict] = field(default_factory=list)
     pairs: dict | None = None  # rigsfm.run.features.pairs_report: pairs matched, skipped, missed
     cpu_s: dict[str, float] = field(default_factory=dict)  # CPU seconds per stage (all threads)
 

@@ -226,8 +226,9 @@ def joint_covariance(result: AdjustResult, image_only: bool = False) -> JointCov
     pixel_sigma = result.pixel_sigma or estimate_pixel_sigma(rec, options.max_reprojection_error_px)
     gauge = Gauge.TWO_CAMS_FROM_WORLD if result.scale_source == ScaleSource.NONE else Gauge.RIGID
     refined = result.calibration == Calibration.REFINE and not image_only
+    held = result.held_rigs if refined else frozenset()
     jp = JointProblem(rec, rigs, priors, result.scale_spec, options, pixel_sigma, gauge=gauge, robust=False,
-                      with_priors=refined)
+                      with_priors=refined, held_rigs=held, consider_held=True)
     reduced = _reduced_system(jp)
     if reduced is None:
         return None
@@ -235,7 +236,12 @@ def joint_covariance(result: AdjustResult, image_only: bool = False) -> JointCov
     factors = _tangent_factors(variable)
     num_end = schur.shape[0] - len(factors)
     factors = np.r_[factors, np.ones(num_end)]
-    if refined:
+    if refined and held:  # the refined rigs' posterior, the held rigs' calibration considered
+        cov = _consider(jp, schur, variable, factors, consider_rigs=held)
+        if cov is None:
+            return None
+        kind = "posterior"
+    elif refined:
         inverse = _inverse(schur)
         if inverse is None:
             return None
@@ -254,12 +260,14 @@ def joint_covariance(result: AdjustResult, image_only: bool = False) -> JointCov
 
 
 def _consider(jp: JointProblem, schur: np.ndarray, variable, factors: np.ndarray,
-              prior_weight: float = 1.0) -> np.ndarray | None:
-    """The consider covariance (our tangents) over the variable dimensions, end points last."""
+              prior_weight: float = 1.0, consider_rigs: frozenset[str] | None = None) -> np.ndarray | None:
+    """The consider covariance (our tangents) over the variable dimensions, end points last. ``consider_rigs``:
+    only these rigs' calibration is considered, the others' is estimated with the poses (their priors in
+    ``schur``); None: every rig's is considered."""
     pose_index, calibration_index, prior_blocks = [], [], []
     k = 0
     for key, _, _, dims in variable:
-        if key[0] == "frame":
+        if key[0] == "frame" or (consider_rigs is not None and jp.camera_names[key[1]].rig not in consider_rigs):
             pose_index.extend(range(k, k + len(dims)))
         else:
             if key[0] == "camera":
@@ -817,7 +825,7 @@ def sampled_pair_bands(result: AdjustResult, plane: Plane | None, num_draws: int
     for _ in range(num_draws):
         try:
             draws.append(adjust(estimate, draw_calibration(result.rigs, priors, rng), result.scale_spec, options,
-                                result.priors, with_covariance=False).reconstruction)
+                                result.priors, with_covariance=False, held_rigs=result.held_rigs).reconstruction)
         except ReconstructionError as error:
             logger.info("A calibration draw failed to adjust: %s", error)
     images = {im.name: im for im in _narrow_images(estimate)}

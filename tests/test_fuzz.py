@@ -7,6 +7,7 @@ queries against a real PickerServer on 127.0.0.1. 100-200 examples per parser, 5
 """
 
 import copy
+import io
 import json
 import math
 import urllib.error
@@ -389,3 +390,59 @@ def test_what_is_not_a_regular_file_is_refused_or_ignored_never_read(tmp_path_fa
         assert name in outcome.get("error", "")  # refused, naming the file
     else:
         assert "inputs" in outcome
+
+
+@FUZZ
+@given(name=st.text(alphabet=st.sampled_from("[]/\\@:=#*_`~ab1 .éß"), min_size=1, max_size=24))
+def test_messages_with_markup_characters_print_verbatim(name):
+    """Whatever a message holds (Rich markup's brackets and slashes, backslashes, emphasis marks), the CLI's error
+    line shows it exactly, on one line, and printing it never raises."""
+    from rich.console import Console
+
+    from rigsfm.cli import common
+
+    message = f"image folder {name} does not exist; check the path"
+    console = Console(width=40, record=True, file=io.StringIO(), color_system=None)
+    original, common.err_console = common.err_console, console
+    try:
+        common.say_error(message)
+    finally:
+        common.err_console = original
+    assert console.export_text() == f"error: {message}\n"
+
+
+@st.composite
+def damaged_exif(draw):
+    """A small JPEG or PNG with an EXIF block whose Orientation is any 16-bit value, then cut, extended or with
+    bytes changed anywhere in its header."""
+    from support import tag_orientation
+
+    suffix = draw(st.sampled_from([".jpg", ".png"]))
+    ok, data = cv2.imencode(suffix, np.full((8, 8), 128, np.uint8))
+    assert ok
+    data = bytearray(tag_orientation(data.tobytes(), draw(st.integers(0, 0xFFFF)), draw(st.booleans())))
+    for _ in range(draw(st.integers(0, 4))):
+        data[draw(st.integers(0, min(len(data), 80) - 1))] = draw(st.integers(0, 255))
+    cut = draw(st.one_of(st.none(), st.integers(0, len(data))))
+    return suffix, bytes(data if cut is None else data[:cut])
+
+
+@FUZZ
+@given(case=damaged_exif())
+def test_exif_orientation_of_any_header_is_a_tag_or_none(tmp_path, case):
+    """A damaged or odd EXIF header gives an orientation 1-8 or None (no tag to act on), never an exception; the
+    refusal is an InputError exactly for the orientations that turn or mirror the image."""
+    from rigsfm.core.image_files import exif_orientation, is_turned, refuse_turned_images
+
+    suffix, data = case
+    path = tmp_path / f"f0{suffix}"
+    path.write_bytes(data)
+    orientation = exif_orientation(path)
+    assert orientation is None or 1 <= orientation <= 8
+    assert exif_orientation(data) == orientation
+    try:
+        refuse_turned_images([path], folder=tmp_path)
+    except InputError as error:
+        assert is_turned(orientation) and path.name in str(error)
+    else:
+        assert not is_turned(orientation)

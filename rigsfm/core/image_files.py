@@ -45,16 +45,18 @@ def decode_image(data: bytes | bytearray | memoryview, flags: int = cv2.IMREAD_C
 
 
 def exif_orientation(source: Path | str | bytes | bytearray | memoryview) -> int | None:
-    """The EXIF Orientation value of a JPEG, PNG, TIFF or WebP file (a path or the file's bytes), None when it
-    has none or the file cannot be parsed (a damaged file is left to the decoder's own check). Reads the headers
-    only, a few small reads per file."""
+    """The EXIF Orientation value (1-8) of a JPEG, PNG, TIFF or WebP file (a path or the file's bytes), None when
+    it has none, an undefined value (which viewers ignore), or the file cannot be parsed (a damaged file is left to
+    the decoder's own check). Reads the headers only, a few small reads per file."""
     try:
         if isinstance(source, (bytes, bytearray, memoryview)):
-            return _orientation(io.BytesIO(bytes(source)))
-        with open(source, "rb") as f:
-            return _orientation(f)
+            value = _orientation(io.BytesIO(bytes(source)))
+        else:
+            with open(source, "rb") as f:
+                value = _orientation(f)
     except (OSError, struct.error, ValueError):
         return None
+    return value if value is not None and 1 <= value <= 8 else None
 
 
 def is_turned(orientation: int | None) -> bool:

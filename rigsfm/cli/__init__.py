@@ -9,6 +9,7 @@ from __future__ import annotations
 import typer
 
 from rigsfm.cli.calibrate import calibrate_command
+from rigsfm.cli.explore import explore_command
 from rigsfm.cli.inspect import export_command, report_command, view_command
 from rigsfm.cli.pick import pick_command
 from rigsfm.cli.run import demo_command, run_command
@@ -23,6 +24,7 @@ app.command("report")(report_command)
 app.command("view")(view_command)
 app.command("export")(export_command)
 app.command("pick")(pick_command)
+app.command("explore")(explore_command)
 app.command("track")(track_command)
 app.command("demo")(demo_command)
 
@@ -32,6 +34,7 @@ def main() -> None:
     """rigsfm: metric calibration of hybrid (wide + narrow) stereo-rig networks.
 
     calibrate (board images -> rigs.yaml), run (image folders -> metric narrow poses, E_ji, F_ji), report /
-    view / export (look at a result, hand it to other tools), pick (hand-picked correspondences), track
+    view / export (look at a result, hand it to other tools), pick (hand-picked correspondences), explore (check a result on people you
+    recognise, label them), track
     (rig poses over time), demo (a rendered example with exact ground truth).
     """

@@ -1,0 +1,202 @@
+"""`rigsfm explore` in a real headless Chromium on the rendered 3-rig run: a click's band in the other views drawn
+where the ground truth says, triangulation against the truth, saving and resuming, foreign rows, --check, refusals.
+
+``RIGSFM_SCREENSHOT_DIR=docs`` also copies the page's screenshot there (the README's docs/explore.png)."""
+
+import http.client
+import os
+import shutil
+
+import numpy as np
+import pycolmap
+import pytest
+from typer.testing import CliRunner
+
+import playwright.sync_api as playwright_api
+from support import launch_chromium
+from rigsfm.cli import app
+from rigsfm.core.errors import InputError
+from rigsfm.core.geometry import project_world
+from rigsfm.explore import ExploreOptions, check_labels, start_explorer
+from rigsfm.explore.geometry import distance_to_polyline, ray_at_heights
+from rigsfm.explore.labels import read_labels
+from rigsfm.explore.session import ExploreResult
+
+pytestmark = pytest.mark.slow  # end-to-end on a rendered run (`-m 'not slow'` skips it)
+
+@pytest.fixture(scope="module")
+def run(three_rig_run):
+    dataset, out, _ = three_rig_run
+    return dataset, out
+
+
+@pytest.fixture(scope="module")
+def truth(run):
+    """True world points between the floor and 2.2 m seen by two narrow views: (name_i, xy_i, name_j, xy_j, xyz in OUT's frame).
+
+    The points are made in OUT's floor frame, mapped into the truth's frame by the similarity that aligns the true
+    camera centres onto the estimated ones, and projected with the *true* cameras."""
+    dataset, out = run
+    result = ExploreResult(out)
+    names = result.frame_names(next(iter(result.frames)))
+    gt, est = dataset.load_ground_truth(), result.reconstruction
+    common = [im.name for im in est.images.values() if im.has_pose and gt.find_image_with_name(im.name)]
+    est_from_gt = pycolmap.estimate_sim3d(np.array([gt.find_image_with_name(n).projection_center() for n in common]),
+                                          np.array([est.find_image_with_name(n).projection_center() for n in common]))
+    rng = np.random.default_rng(0)
+    found = []
+    for trial in range(4000):
+        i, j = rng.choice(len(names), 2, replace=False)
+        view = result.views[names[i]]
+        pixel = rng.uniform(0.1, 0.9, 2) * [view.camera.width, view.camera.height]
+        xyz = ray_at_heights(view, pixel, rng.uniform(0.0, 2.2, 1))[0]
+        if not np.all(np.isfinite(xyz)):
+            continue
+        xy = []
+        for name in (names[i], names[j]):
+            image = gt.find_image_with_name(name)
+            p, ok = project_world(gt.cameras[image.camera_id], image.cam_from_world(), est_from_gt.inverse() * xyz,
+                                  margin_px=20)
+            xy.append(p[0] if ok[0] else None)
+        if all(p is not None for p in xy):
+            found.append((int(i), xy[0], int(j), xy[1], xyz))
+        if len(found) == 6:
+            break
+    assert len(found) == 6
+    return names, found
+
+
+@pytest.fixture()
+def page(run, tmp_path):
+    _, out = run
+    server = start_explorer(out, ExploreOptions(labels=tmp_path / "labels.csv"))
+    with playwright_api.sync_playwright() as p:
+        browser = launch_chromium(p)
+        page = browser.new_page(viewport={"width": 1800, "height": 1100})
+        page.goto(server.url)
+        page.evaluate("window.explore.ready")
+        yield page, server, tmp_path / "labels.csv"
+        browser.close()
+    server.close()
+
+
+def click(page, view, xy):
+    x, y = page.evaluate(f"window.explore.toScreen({view}, {xy[0]}, {xy[1]})")
+    page.mouse.click(round(x), round(y))
+    return page.evaluate(f"window.explore.toImage({view}, {round(x)}, {round(y)})")
+
+
+def polyline(page, selector):
+    return np.array([[float(v) for v in p.split(",")] for p in page.get_attribute(selector, "points").split()])
+
+
+def settle(page, persons):
+    page.wait_for_function(f"document.querySelectorAll('#persons tbody tr').length === {persons}")
+    page.evaluate("window.explore.saved()")
+
+
+def test_band_truth_triangulation_save_resume(page, run, truth, tmp_path):
+    page, server, csv = page
+    _, out = run
+    names, points = truth
+    checked = []
+    for n, (i, xy_i, j, xy_j, xyz) in enumerate(points[:3]):
+        clicked_i = click(page, i, xy_i)
+        page.wait_for_selector(f"#band-{j}")
+        # The band drawn in view j holds the true partner; the centre curve spans the heights 0-2.2 m.
+        centre = polyline(page, f"#centre-{j}")
+        half_width = float(page.get_attribute(f"#band-{j}", "stroke-width")) / 2
+        distance = distance_to_polyline(centre, xy_j)
+        assert len(centre) > 50 and distance <= half_width, (distance, half_width)
+        assert half_width == pytest.approx(server.session.result.bands[(names[i], names[j])])
+        ticks = page.locator(f"#svg-{j} circle.tick").count()
+        assert ticks >= 1
+        assert page.locator("#trace").count() == 1  # the ray's trace on the floor map
+        clicked_j = click(page, j, xy_j)
+        page.wait_for_selector(f"#ellipse-p{n + 1}")
+        page.evaluate("window.explore.saved()")
+        person = next(p for p in page.evaluate("window.explore.state.persons") if p["person"] == f"p{n + 1}")
+        # Triangulated from the two clicks: the truth lies within the stated uncertainty (3-D, 99.9 %).
+        point = np.array(person["point"]["xyz"])
+        covariance = np.array(person["point"]["covariance"])
+        error = point - xyz
+        assert float(error @ np.linalg.solve(covariance, error)) < 16.27, (error, np.sqrt(np.diag(covariance)))
+        second = person["clicks"][1]
+        assert second["distance_px"] == pytest.approx(distance_to_polyline(centre, clicked_j), abs=0.05)
+        assert second["band_units"] == pytest.approx(second["distance_px"] / half_width, abs=1e-3)
+        checked.append((clicked_i, clicked_j))
+        page.click("#next")
+    settle(page, 3)
+    page.screenshot(path=tmp_path / "explore.png")
+    assert (tmp_path / "explore.png").stat().st_size > 10_000
+    if os.environ.get("RIGSFM_SCREENSHOT_DIR"):
+        shutil.copy(tmp_path / "explore.png", os.environ["RIGSFM_SCREENSHOT_DIR"])
+
+    # Saved at once, exactly the clicked pixels; read back by a new page and by a new server.
+    labels, foreign = read_labels(csv, server.session.result.sizes)
+    assert not foreign and [label.person for label in labels] == ["p1", "p1", "p2", "p2", "p3", "p3"]
+    assert np.allclose([[label.x, label.y] for label in labels], [xy for pair in checked for xy in pair], atol=1e-3)
+    assert csv.read_text().splitlines()[0] == "image,x,y,person"
+    page.reload()
+    page.evaluate("window.explore.ready")
+    assert page.locator("#persons tbody tr").count() == 3
+    again = start_explorer(out, ExploreOptions(labels=csv))
+    try:
+        assert len(again.session.labels) == 6
+    finally:
+        again.close()
+    # A wrong partner (40 px across its band) is measured outside it, and --check counts it.
+    i, xy_i, j, xy_j, _ = points[3]
+    click(page, i, xy_i)
+    page.wait_for_selector(f"#centre-{j}")
+    centre = polyline(page, f"#centre-{j}")
+    k = int(np.argmin(np.linalg.norm(centre - xy_j, axis=1)))
+    tangent = centre[min(k + 1, len(centre) - 1)] - centre[max(k - 1, 0)]
+    normal = np.array([-tangent[1], tangent[0]]) / np.linalg.norm(tangent)
+    click(page, j, np.asarray(xy_j) + 40 * normal)
+    page.wait_for_function("document.querySelectorAll('#persons td.outside').length === 1")
+    page.evaluate("window.explore.saved()")
+    result = check_labels(out, csv)
+    assert (result.pairs, result.inside) == (4, 3)
+    cli = CliRunner().invoke(app, ["explore", str(out), "--check", str(csv)], env={"COLUMNS": "200"})
+    assert cli.exit_code == 0 and "3 of 4 labelled pairs inside their 95 % band (75.0 %)" in cli.output
+
+
+def test_foreign_rows_are_kept_with_a_backup(page, run, truth):
+    page, server, csv = page
+    names, points = truth
+    original = "image,x,y,person\nrig09/narrow/frame0000.png,10,10,p1\nnot,a,label\n"
+    csv.write_text(original)
+    page.click("#reload")
+    page.wait_for_function("document.querySelector('#status').textContent.includes('2 foreign rows')")
+    i, xy_i, j, xy_j, _ = points[0]
+    click(page, i, xy_i)
+    click(page, j, xy_j)
+    settle(page, 1)
+    lines = csv.read_text().splitlines()
+    assert lines[-2:] == ["rig09/narrow/frame0000.png,10,10,p1", "not,a,label"] and len(lines) == 5
+    assert csv.with_name("labels.csv.bak").read_text() == original
+
+
+def test_refusals(run, tmp_path):
+    dataset, out = run
+    with pytest.raises(InputError, match="frame 'nope' has no narrow images"):
+        start_explorer(out, ExploreOptions(frame="nope"))
+    server = start_explorer(out, ExploreOptions(labels=tmp_path / "labels.csv"))
+    try:
+        host, port = server.httpd.server_address
+        with pytest.raises(InputError, match="the port is in use"):
+            start_explorer(out, ExploreOptions(labels=tmp_path / "labels.csv"), port=port)
+        for path, status in [("/../../etc/passwd", 404), ("/image?view=3", 400), ("/image?view=-1", 400),
+                             ("/image?view=0&frame=../../etc/passwd", 400), ("/static/../server.py", 404),
+                             ("/explore.js/../../session.py", 404)]:
+            connection = http.client.HTTPConnection(host, port, timeout=5)
+            connection.request("GET", path)
+            assert connection.getresponse().status == status, path
+        connection = http.client.HTTPConnection(host, port, timeout=5)
+        connection.request("GET", "/api/state", headers={"Host": "evil.example:80"})
+        assert connection.getresponse().status == 403
+    finally:
+        server.close()
+    result = CliRunner().invoke(app, ["explore", str(dataset.root), "--frame", "x"], env={"COLUMNS": "200"})
+    assert result.exit_code != 0 and "holds no result" in result.output and "Traceback" not in result.output

@@ -8,7 +8,7 @@ from typing import Annotated, Optional
 
 import typer
 
-from rigsfm.cli.common import console, fail_cleanly
+from rigsfm.cli.common import configure_logging, console, fail_cleanly
 
 
 @fail_cleanly
@@ -32,11 +32,10 @@ def explore_command(
     from rigsfm.explore.server import start_explorer
     from rigsfm.explore.session import ExploreOptions, check_labels, parse_heights
 
+    configure_logging(False)
     options = ExploreOptions(frame=frame, labels=labels, images=images, heights=parse_heights(heights))
     if check is not None:
         result = check_labels(out, check, options)
-        if result.foreign_rows:
-            console.print(f"[yellow]{check}: {result.foreign_rows} foreign rows left out[/]")
         if not result.pairs:
             console.print(f"{check}: no labelled pair of two rigs' narrow images with a band"
                           + (f" ({result.without_band} whose band leaves the image)" if result.without_band else ""))

@@ -100,7 +100,9 @@ def read_labels(path: Path, sizes: dict[str, tuple[int, int]]) -> tuple[list[Lab
             labels.append(label)
     if foreign:
         first = foreign[0]
-        logger.warning("%s: %d foreign rows kept as they are (line %d: %s)", path, len(foreign), first.line,
+        logger.warning("FOREIGN ROWS: %s holds %d row%s that %s not labels of this result's narrow images, "
+                       "kept as %s and not used (line %d: %s)", path, len(foreign), "" if len(foreign) == 1 else "s",
+                       "is" if len(foreign) == 1 else "are", "it is" if len(foreign) == 1 else "they are", first.line,
                        first.why)
     return labels, foreign
 

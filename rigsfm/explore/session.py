@@ -195,7 +195,7 @@ class ExploreSession:
         by_name = {entry["name"]: entry for entry in self.result.narrow_poses.get("narrow", [])}
         for k, name in enumerate(names):
             ground = (by_name.get(name) or {}).get("ground") or []
-            floor = next((g for g in ground if abs(float(g.get("height_m", 0.0) or 0.0)) < 1e-9), ground[0]
+            floor = next((g for g in ground if abs(float(g.get("plane_height_m", 0.0) or 0.0)) < 1e-9), ground[0]
                          if ground else None)
             cameras.append({"view": k, "centre": np.round(self.result.views[name].centre, 4).tolist(),
                             "footprint": (floor or {}).get("footprint_m")})

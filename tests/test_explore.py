@@ -7,14 +7,18 @@ the same network with a textured centre (``python -m rigsfm.synth S --num-rigs 3
 session's 3-rig run."""
 
 import http.client
+import json
 import os
 from pathlib import Path
+from urllib.parse import urlencode
 
 import cv2
 
 import numpy as np
 import pycolmap
 import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 from typer.testing import CliRunner
 
 import playwright.sync_api as playwright_api
@@ -137,7 +141,14 @@ def test_band_truth_triangulation_save_resume(page, run, truth, tmp_path):
         ticks = page.locator(f"#svg-{j} circle.tick").count()
         assert ticks >= 1
         assert page.locator("#trace").count() == 1  # the ray's trace on the floor map
+        if n == 1:  # zoomed in, a click still lands where it should
+            page.mouse.move(*page.evaluate(f"window.explore.toScreen({j}, {xy_j[0]}, {xy_j[1]})"))
+            fitted = page.evaluate(f"window.explore.views[{j}].s")
+            page.mouse.wheel(0, -600)
+            page.wait_for_function(f"window.explore.views[{j}].s > {2 * fitted}")
         clicked_j = click(page, j, xy_j)
+        scale = page.evaluate(f"window.explore.views[{j}].s")
+        assert np.allclose(clicked_j, xy_j, atol=0.5 / scale + 1e-6)
         page.wait_for_selector(f"#ellipse-p{n + 1}")
         page.evaluate("window.explore.saved()")
         person = next(p for p in page.evaluate("window.explore.state.persons") if p["person"] == f"p{n + 1}")
@@ -298,3 +309,35 @@ def test_heights_labels_and_backups(tmp_path):
     # A second, different backup never replaces the first.
     assert save_labels(csv, [], foreign, backup=True) == tmp_path / "labels.csv.bak2"
     assert (tmp_path / "labels.csv.bak").read_bytes() == original
+
+
+@slow
+@settings(max_examples=150, deadline=None, suppress_health_check=list(HealthCheck))
+@given(body=st.one_of(
+    st.fixed_dictionaries({"frame": st.sampled_from(["frame0000.png", "x"]), "labels": st.lists(
+        st.one_of(st.fixed_dictionaries({"image": st.sampled_from(["rig01/narrow/frame0000.png", "a"]),
+                                         "x": st.one_of(st.floats(), st.integers(), st.text(max_size=2)),
+                                         "y": st.one_of(st.floats(-10, 700), st.just(10 ** 400)),
+                                         "person": st.one_of(st.text(max_size=3), st.integers(), st.none())}),
+                  st.dictionaries(st.text(max_size=3), st.integers(), max_size=3), st.integers()), max_size=4)}),
+    st.dictionaries(st.text(max_size=5), st.integers() | st.text(max_size=3), max_size=3)))
+def test_the_api_answers_every_body(explorer, body):
+    """Random JSON on PUT /api/labels and random band queries: a 200 or a 400 with a message, the server stays up."""
+    host, port = explorer.httpd.server_address
+    connection = http.client.HTTPConnection(host, port, timeout=30)
+    connection.request("PUT", "/api/labels", json.dumps(body).encode(), {"Content-Type": "application/json"})
+    answer = connection.getresponse()
+    data = json.loads(answer.read())
+    assert answer.status in (200, 400) and (answer.status == 200 or data["error"])
+    query = urlencode({"view": str(body.get("frame", "0"))[:2], "x": "1e999", "y": "nan"})
+    connection.request("GET", f"/api/band?{query}")
+    answer = connection.getresponse()
+    assert answer.status == 400 and json.loads(answer.read())["error"]
+
+
+@pytest.fixture(scope="module")
+def explorer(run, tmp_path_factory):
+    _, out = run
+    server = start_explorer(out, ExploreOptions(labels=tmp_path_factory.mktemp("fuzz") / "labels.csv"))
+    yield server
+    server.close()

@@ -240,8 +240,11 @@ class ExploreSession:
                 raise InputError(f"label {k + 1}: {row['image']!r} is not a narrow image of frame {frame!r}")
             if not all(isinstance(row[c], (int, float)) and not isinstance(row[c], bool) for c in ("x", "y")):
                 raise InputError(f"label {k + 1}: x and y must be numbers")
-            label, why = parse_row([row["image"], repr(float(row["x"])), repr(float(row["y"])), str(row["person"])],
-                                   self.result.sizes)
+            try:
+                x, y = float(row["x"]), float(row["y"])
+            except OverflowError:
+                raise InputError(f"label {k + 1}: x and y must be finite numbers") from None
+            label, why = parse_row([row["image"], repr(x), repr(y), str(row["person"])], self.result.sizes)
             if label is None or not isinstance(row["person"], str):
                 raise InputError(f"label {k + 1}: {why or 'the person must be a text label'}")
             if (label.image, label.person) in seen:

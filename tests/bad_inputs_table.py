@@ -182,7 +182,7 @@ def out_in_use(root: Path) -> list:
     return RUN
 
 
-def explore_workspace(edit: Callable[[Path], None] | None, args: list) -> Callable[[Path], list]:
+def explore_workspace(edit: Callable[[Path], None] | None, args: list, images: bool = True) -> Callable[[Path], list]:
     """The small workspace with its poses declared in the floor frame (as a run with a floor writes them)."""
     import json
 
@@ -193,7 +193,7 @@ def explore_workspace(edit: Callable[[Path], None] | None, args: list) -> Callab
         (out / "narrow_poses.json").write_text(json.dumps(poses))
         if edit is not None:
             edit(out)
-        return ["explore", "out", "--images", "images", *args]
+        return ["explore", "out", *(["--images", "images"] if images else []), *args]
     return prepare
 
 
@@ -332,6 +332,9 @@ CASES = [
          explore_workspace(lambda out: (out.parent / "labels.csv").write_text(
              "image,x,y,person\nrig01/narrow/f0.png,10,10,p1\nrig02/narrow/f0.png,12,10,p1\nrig09/narrow/f0.png,1,1,p1\n"),
              ["--check", "labels.csv"]), warning="FOREIGN ROWS"),
+    Case("`rigsfm explore` where the run's IMAGES folder is gone", "nothing is written",
+         explore_workspace(lambda out: (out / "summary.json").write_text(
+             '{"inputs": {"images": "/media/usb/IMAGES", "num_rigs": 2}}'), [], images=False)),
     Case("`rigsfm explore --heights 2-1`", "nothing is written", explore_workspace(None, ["--heights", "2-1"])),
     Case("`track --executor ray --address` where no Ray cluster listens", "nothing is written",
          on_workspace(lambda out: None, ["track", "out", "images", "--executor", "ray", "--address",

@@ -234,6 +234,10 @@ def test_refusals(run, tmp_path):
             connection.request("GET", path)
             assert connection.getresponse().status == status, path
         connection = http.client.HTTPConnection(host, port, timeout=5)
+        connection.request("GET", "/api/state?frame=nope")
+        answer = connection.getresponse()
+        assert answer.status == 400 and "frame 'nope' has no narrow images" in json.loads(answer.read())["error"]
+        connection = http.client.HTTPConnection(host, port, timeout=5)
         connection.request("GET", "/api/state", headers={"Host": "evil.example:80"})
         assert connection.getresponse().status == 403
     finally:

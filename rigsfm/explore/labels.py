@@ -100,10 +100,9 @@ def read_labels(path: Path, sizes: dict[str, tuple[int, int]]) -> tuple[list[Lab
             labels.append(label)
     if foreign:
         first = foreign[0]
-        logger.warning("FOREIGN ROWS: %s holds %d row%s that %s not labels of this result's narrow images, "
-                       "kept as %s and not used (line %d: %s)", path, len(foreign), "" if len(foreign) == 1 else "s",
-                       "is" if len(foreign) == 1 else "are", "it is" if len(foreign) == 1 else "they are", first.line,
-                       first.why)
+        logger.warning("FOREIGN ROWS: %s: %d foreign row%s (not a label of this result's narrow images) kept as %s "
+                       "and not used (line %d: %s)", path, len(foreign), "" if len(foreign) == 1 else "s",
+                       "it is" if len(foreign) == 1 else "they are", first.line, first.why)
     return labels, foreign
 
 

@@ -82,7 +82,7 @@ class ExploreResult:
             if band is not None and np.isfinite(band):
                 # the run gives the band of i's points in j; the search from j to i uses the same width
                 self.bands[(pair["i"], pair["j"])] = self.bands[(pair["j"], pair["i"])] = float(band)
-        sigmas = summary.uncertainty.narrow if summary is not None else {}
+        sigmas = summary.uncertainty.narrow if summary is not None and summary.uncertainty is not None else {}
         self.views: dict[str, View] = {}
         for image in self.reconstruction.images.values():
             if image.name in self.sizes:
@@ -97,9 +97,12 @@ class ExploreResult:
         self.images_dir = Path(folder) if folder is not None else None
         if not need_images:
             return
-        if folder is None or not Path(folder).is_dir():
-            raise InputError(f"the narrow images are read from the run's IMAGES folder ({folder}), which is not a "
-                             "folder here; pass --images IMAGES")
+        if folder is None:
+            raise InputError(f"{self.workspace.summary} names no IMAGES folder to read the narrow images from; pass "
+                             "--images IMAGES (the run's)")
+        if not Path(folder).is_dir():
+            raise InputError(f"the narrow images are read from the run's IMAGES folder {folder}, which is not a "
+                             "folder here (moved?); pass --images IMAGES")
         self.images_dir = Path(folder)
         for frame_images in self.frames.values():
             missing = [im.name for im in frame_images if not (self.images_dir / im.name).is_file()]
@@ -127,7 +130,7 @@ class ExploreSession:
         self.result = ExploreResult(out, options.images)
         self.frame = options.frame if options.frame is not None else next(iter(self.result.frames))
         self.result.frame_names(self.frame)
-        self.csv_path = Path(options.labels) if options.labels is not None else self.result.workspace.root / "labels.csv"
+        self.csv_path = Path(options.labels) if options.labels is not None else self.result.workspace.labels
         self.lock = threading.Lock()
         self.labels: list[Label] = []
         self.foreign: list[ForeignRow] = []

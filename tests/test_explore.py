@@ -168,7 +168,8 @@ def test_band_truth_triangulation_save_resume(page, run, truth, tmp_path):
     assert (tmp_path / "explore.png").stat().st_size > 10_000
     if os.environ.get("RIGSFM_SCREENSHOT_DIR"):
         shot = cv2.imread(str(tmp_path / "explore.png"))
-        cv2.imwrite(str(Path(os.environ["RIGSFM_SCREENSHOT_DIR"]) / "explore.jpg"), shot, [cv2.IMWRITE_JPEG_QUALITY, 80])
+        cv2.imwrite(str(Path(os.environ["RIGSFM_SCREENSHOT_DIR"]) / "explore.jpg"), shot,
+                    [cv2.IMWRITE_JPEG_QUALITY, 80])
 
     # Saved at once, exactly the clicked pixels; read back by a new page and by a new server.
     labels, foreign = read_labels(csv, server.session.result.sizes)

@@ -129,11 +129,14 @@ function draw(k) {
   const band = state.bands && state.bands.bands.find((b) => b.view === k);
   if (band && band.polyline.length > 1) {
     const points = band.polyline.map((p) => p.join(",")).join(" ");
-    if (band.band_px) svgElement("polyline", { class: "band", id: "band-" + k, points, "stroke-width": 2 * band.band_px }, svg);
+    if (band.band_px) {  // a stroke of the band's full width: every point within band_px of the curve
+      svgElement("polyline", { class: "band", id: "band-" + k, points, "stroke-width": 2 * band.band_px }, svg);
+    }
     svgElement("polyline", { class: "centre", id: "centre-" + k, points }, svg);
     for (const tick of band.ticks) {
       svgElement("circle", { class: "tick", cx: tick.xy[0], cy: tick.xy[1], r: 3 / scale }, svg);
-      const text = svgElement("text", { x: tick.xy[0] + 5 / scale, y: tick.xy[1] - 4 / scale, "font-size": 11 / scale }, svg);
+      const text = svgElement("text", { x: tick.xy[0] + 5 / scale, y: tick.xy[1] - 4 / scale,
+        "font-size": 11 / scale }, svg);
       text.textContent = `${tick.height} m`;
     }
   }
@@ -142,7 +145,8 @@ function draw(k) {
     p.clicks.forEach((click, n) => {
       if (click.view !== k) return;
       const outside = click.band_units !== undefined && click.band_units !== null && click.band_units > 1;
-      const cls = "marker" + (p.person === state.current ? " current" : "") + (n === 0 ? " anchor" : "") + (outside ? " outside" : "");
+      const cls = "marker" + (p.person === state.current ? " current" : "") + (n === 0 ? " anchor" : "")
+        + (outside ? " outside" : "");
       svgElement("circle", { class: cls, cx: click.xy[0], cy: click.xy[1], r, "data-person": p.person }, svg);
       const text = svgElement("text", { x: click.xy[0] + r, y: click.xy[1] - r, "font-size": 12 / scale }, svg);
       text.textContent = p.person;
@@ -168,9 +172,12 @@ function drawFloor() {
   for (let x = x0; x <= x1; x++) svgElement("line", { class: "grid", x1: x, y1: y0, x2: x, y2: y1 }, g);
   for (let y = y0; y <= y1; y++) svgElement("line", { class: "grid", x1: x0, y1: y, x2: x1, y2: y }, g);
   for (const c of cams) {
-    if (c.footprint) svgElement("polygon", { class: "footprint", points: c.footprint.map((p) => p.join(",")).join(" ") }, g);
+    if (c.footprint) {
+      svgElement("polygon", { class: "footprint", points: c.footprint.map((p) => p.join(",")).join(" ") }, g);
+    }
     svgElement("circle", { class: "camera", cx: c.centre[0], cy: c.centre[1], r: 0.25 }, g);
-    const t = svgElement("text", { x: c.centre[0] + 0.3, y: -c.centre[1], "font-size": 0.7, transform: "scale(1,-1)" }, g);
+    const t = svgElement("text", { x: c.centre[0] + 0.3, y: -c.centre[1], "font-size": 0.7,
+      transform: "scale(1,-1)" }, g);
     t.textContent = String(c.view + 1);
   }
   const trace = state.bands && state.bands.floor;
@@ -201,7 +208,8 @@ function drawTable() {
     row.dataset.person = p.person;
     const pt = p.point;
     const distances = p.clicks.slice(1).map((c) => c.distance_px === null || c.distance_px === undefined
-      ? `${c.view + 1}: no band` : `${c.view + 1}: ${c.distance_px.toFixed(1)} px (${c.band_units === null ? "-" : c.band_units.toFixed(2)})`);
+      ? `${c.view + 1}: no band`
+      : `${c.view + 1}: ${c.distance_px.toFixed(1)} px (${c.band_units === null ? "-" : c.band_units.toFixed(2)})`);
     const cells = [p.person, p.clicks.map((c) => c.view + 1).join(","),
       pt ? pt.xyz[0].toFixed(3) : "-", pt ? pt.xyz[1].toFixed(3) : "-",
       pt ? `${pt.xyz[2].toFixed(3)} ± ${pt.height_sigma_m.toFixed(3)}` : "-",
@@ -234,8 +242,9 @@ function describe() {
   setStatus(`${n} labels of ${state.persons.length} persons saved to ${info.csv}${elsewhere}${foreign}${next}`);
   $("note").textContent = `Band: the anchor's (first click's) epipolar curve between heights ${info.heights[0]} and ` +
     `${info.heights[1]} m (ticks at ${info.ticks.join(", ")} m), widened by the pair's calibrated 95 % band. ` +
-    `Triangulation: linear, then least squares on the pixels; its uncertainty from click noise ±${info.click_sigma_px} px` +
-    (info.pose_uncertainty ? " plus each camera's pose 1-sigma (summary.json: centre, rotation), cameras taken as independent."
+    "Triangulation: linear, then least squares on the pixels; its uncertainty from click noise " +
+    `±${info.click_sigma_px} px` + (info.pose_uncertainty
+      ? " plus each camera's pose 1-sigma (summary.json: centre, rotation), cameras taken as independent."
       : " only (this result reports no pose uncertainty).");
 }
 
@@ -255,7 +264,8 @@ async function updateBands() {
   const anchor = p.clicks[0];
   const data = await api("GET", `/api/band?${q()}&view=${anchor.view}&x=${anchor.xy[0]}&y=${anchor.xy[1]}`);
   const now = state.current && person(state.current);
-  if (!now || now.clicks[0].view !== anchor.view || String(now.clicks[0].xy) !== String(anchor.xy)) return;  // moved on meanwhile
+  // the anchor moved on while the bands were computed
+  if (!now || now.clicks[0].view !== anchor.view || String(now.clicks[0].xy) !== String(anchor.xy)) return;
   state.bands = data;
   redraw();
 }
@@ -344,7 +354,11 @@ async function load(frame, reload) {
     state.bands = null;
     applyState(data);
     const select = $("frame");
-    select.replaceChildren(...data.frames.map((f) => { const o = document.createElement("option"); o.value = o.textContent = f; return o; }));
+    select.replaceChildren(...data.frames.map((f) => {
+      const option = document.createElement("option");
+      option.value = option.textContent = f;
+      return option;
+    }));
     select.value = data.frame;
     if (changed || !views.length) buildViews();
     state.views.forEach((_, k) => fit(k));

@@ -135,6 +135,7 @@ class ExploreSession:
         self.labels: list[Label] = []
         self.foreign: list[ForeignRow] = []
         self.backed_up = False  # the CSV as it was (with foreign rows) is copied once before the first rewrite
+        self._analysed: dict[tuple, dict] = {}
         self.reload()
 
     def reload(self) -> None:
@@ -163,7 +164,14 @@ class ExploreSession:
                 "floor": floor_trace(self.result.views[names[view]], (x, y), heights, ticks)}
 
     def person(self, names: list[str], clicks: list[Label]) -> dict:
-        """One person's clicks, their distances from the anchor's bands, and the triangulated point."""
+        """One person's clicks, their distances from the anchor's bands, and the triangulated point (kept per set of
+        clicks: a save recomputes only the person that changed)."""
+        key = (tuple(names), tuple(clicks))
+        if key not in self._analysed:
+            self._analysed[key] = self._person(names, clicks)
+        return self._analysed[key]
+
+    def _person(self, names: list[str], clicks: list[Label]) -> dict:
         index = {n: k for k, n in enumerate(names)}
         anchor = clicks[0]
         rows = []

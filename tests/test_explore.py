@@ -346,3 +346,49 @@ def explorer(run, tmp_path_factory):
     server = start_explorer(out, ExploreOptions(labels=tmp_path_factory.mktemp("fuzz") / "labels.csv"))
     yield server
     server.close()
+
+
+@pytest.fixture(scope="module")
+def two_frames(rendered, tmp_path_factory):
+    """Two rigs, two synchronised frames, textured centre (a floor frame), run with the defaults."""
+    from rigsfm.synth.scene import SceneOptions
+
+    dataset = rendered(SceneOptions(num_rigs=2, arc_deg=60.0, image_scale=0.5, seed=4, frames_per_rig=2,
+                                    textured_centre=True))
+    out = tmp_path_factory.mktemp("two_frames") / "out"
+    result = CliRunner().invoke(app, ["run", str(dataset.images), "--rigs", str(dataset.rigs), "--scale",
+                                      str(dataset.scale), "--out", str(out)])
+    assert result.exit_code == 0, result.output
+    return out
+
+
+@slow
+def test_frame_selector(two_frames, tmp_path):
+    csv = tmp_path / "labels.csv"
+    server = start_explorer(two_frames, ExploreOptions(frame="frame0001.png", labels=csv))
+    try:
+        with playwright_api.sync_playwright() as p:
+            browser = launch_chromium(p)
+            page = browser.new_page(viewport={"width": 1600, "height": 1000})
+            page.goto(server.url)
+            page.evaluate("window.explore.ready")
+            assert page.eval_on_selector_all("#frame option", "o => o.map(x => x.value)") == ["frame0000.png",
+                                                                                                "frame0001.png"]
+            assert page.input_value("#frame") == "frame0001.png"
+            assert "frame=frame0001.png" in page.get_attribute("#img-1", "src")
+            assert page.evaluate("document.getElementById('img-1').naturalWidth") > 0
+            click(page, 0, (400.0, 300.0))
+            settle(page, 1)
+            page.select_option("#frame", "frame0000.png")
+            page.wait_for_function("window.explore.state.frame === 'frame0000.png'")
+            assert "frame=frame0000.png" in page.get_attribute("#img-0", "src")
+            assert page.locator("#persons tbody tr").count() == 0
+            assert "1 label in other frames" in page.locator("#status").inner_text()
+            click(page, 1, (300.0, 200.0))
+            settle(page, 1)
+            browser.close()
+        labels, _ = read_labels(csv, server.session.result.sizes)
+        assert [(label.image, label.person) for label in labels] == [("rig01/narrow/frame0001.png", "p1"),
+                                                                     ("rig02/narrow/frame0000.png", "p1")]
+    finally:
+        server.close()

@@ -234,12 +234,14 @@ function drawTable() {
 }
 
 function describe() {
+  const plural = (count, word) => `${count} ${word}${count === 1 ? "" : "s"}`;
   const info = state.info;
   const n = state.persons.reduce((sum, p) => sum + p.clicks.length, 0);
-  const foreign = info.foreign_rows ? `; ${info.foreign_rows} foreign rows kept as they are` : "";
-  const elsewhere = info.labels_elsewhere ? `; ${info.labels_elsewhere} labels in other frames` : "";
+  const foreign = info.foreign_rows ? `; ${plural(info.foreign_rows, "foreign row")} kept as they are` : "";
+  const elsewhere = info.labels_elsewhere ? `; ${plural(info.labels_elsewhere, "label")} in other frames` : "";
   const next = state.current ? `; ${state.current}: click them in another view, or Next person` : "; click a person";
-  setStatus(`${n} labels of ${state.persons.length} persons saved to ${info.csv}${elsewhere}${foreign}${next}`);
+  setStatus(`${plural(n, "label")} of ${plural(state.persons.length, "person")} saved to ${info.csv}${elsewhere}`
+    + `${foreign}${next}`);
   $("note").textContent = `Band: the anchor's (first click's) epipolar curve between heights ${info.heights[0]} and ` +
     `${info.heights[1]} m (ticks at ${info.ticks.join(", ")} m), widened by the pair's calibrated 95 % band. ` +
     "Triangulation: linear, then least squares on the pixels; its uncertainty from click noise " +

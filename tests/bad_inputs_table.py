@@ -246,6 +246,38 @@ def out_in_use(root: Path) -> list:
     return RUN
 
 
+def explore_workspace(edit: Callable[[Path], None] | None, args: list, images: bool = True) -> Callable[[Path], list]:
+    """The small workspace with its poses declared in the floor frame (as a run with a floor writes them)."""
+    import json
+
+    def prepare(root: Path) -> list:
+        out = workspace(root)
+        poses = json.loads((out / "narrow_poses.json").read_text())
+        poses["world"] = {"frame": "floor"}
+        (out / "narrow_poses.json").write_text(json.dumps(poses))
+        if edit is not None:
+            edit(out)
+        return ["explore", "out", *(["--images", "images"] if images else []), *args]
+    return prepare
+
+
+def one_narrow_image(out: Path) -> None:
+    """rig02's frame left unregistered: no frame has narrow images of two rigs."""
+    import pycolmap
+
+    model = pycolmap.Reconstruction(out / "sparse")
+    model.deregister_frame(model.find_image_with_name("rig02/narrow/f0.png").frame_id)
+    model.write(out / "sparse")
+
+
+def explore_port_in_use(root: Path) -> list:
+    held = socket.socket()
+    held.bind(("127.0.0.1", 0))
+    held.listen()
+    _HELD.append(held)
+    return explore_workspace(None, ["--port", str(held.getsockname()[1])])(root)
+
+
 def with_pairs(count: int) -> str:
     rows = [f"rig01/wide/f0.png,{10 + 4 * k},{5 + 3 * k},rig02/wide/f0.png,{12 + 4 * k},{6 + 2 * k}"
             for k in range(count)]
@@ -458,6 +490,20 @@ CASES = [
     Case("`rigsfm view` on a machine without a display", "nothing is written",
          on_workspace(lambda out: None, ["view", "out"])),
     Case("`rigsfm pick --port` a port already in use", "the CSV is untouched", port_in_use),
+    Case("`rigsfm explore --frame` a frame the result does not hold", "nothing is written",
+         explore_workspace(None, ["--frame", "f9.png"])),
+    Case("`rigsfm explore` on a result without narrow images of one frame from two rigs", "nothing is written",
+         explore_workspace(one_narrow_image, [])),
+    Case("`rigsfm explore --port` a port already in use", "the labels CSV is untouched", explore_port_in_use),
+    Case("`rigsfm explore --check` a CSV with rows of another format or result (a warning)",
+         "the CSV is untouched; its other rows are checked",
+         explore_workspace(lambda out: (out.parent / "labels.csv").write_text(
+             "image,x,y,person\nrig01/narrow/f0.png,10,10,p1\nrig02/narrow/f0.png,12,10,p1\nrig09/narrow/f0.png,1,1,p1\n"),
+             ["--check", "labels.csv"]), warning="FOREIGN ROWS"),
+    Case("`rigsfm explore` where the run's IMAGES folder is gone", "nothing is written",
+         explore_workspace(lambda out: (out / "summary.json").write_text(
+             '{"inputs": {"images": "/media/usb/IMAGES", "num_rigs": 2}}'), [], images=False)),
+    Case("`rigsfm explore --heights 2-1`", "nothing is written", explore_workspace(None, ["--heights", "2-1"])),
     Case("`track --executor ray --address` where no Ray cluster listens", "nothing is written",
          on_workspace(lambda out: None, ["track", "out", "images", "--executor", "ray", "--address",
                                          f"127.0.0.1:{free_port()}"])),

@@ -14,11 +14,11 @@ if _signals.is_the_command():
 import typer  # noqa: E402
 
 from rigsfm.cli.calibrate import calibrate_command  # noqa: E402
+from rigsfm.cli.explore import explore_command  # noqa: E402
 from rigsfm.cli.inspect import export_command, report_command, view_command  # noqa: E402
 from rigsfm.cli.pick import pick_command  # noqa: E402
 from rigsfm.cli.run import demo_command, run_command  # noqa: E402
 from rigsfm.cli.track import track_command  # noqa: E402
-
 
 
 class Command(typer.core.TyperCommand):
@@ -40,6 +40,7 @@ app.command("report", cls=Command)(report_command)
 app.command("view", cls=Command)(view_command)
 app.command("export", cls=Command)(export_command)
 app.command("pick", cls=Command)(pick_command)
+app.command("explore", cls=Command)(explore_command)
 app.command("track", cls=Command)(track_command)
 app.command("demo", cls=Command)(demo_command)
 
@@ -49,6 +50,7 @@ def main() -> None:
     """rigsfm: metric calibration of hybrid (wide + narrow) stereo-rig networks.
 
     calibrate (board images -> rigs.yaml), run (image folders -> metric narrow poses, E_ji, F_ji), report /
-    view / export (look at a result, hand it to other tools), pick (hand-picked correspondences), track
+    view / export (look at a result, hand it to other tools), pick (hand-picked correspondences), explore (check a result on people you
+    recognise, label them), track
     (rig poses over time), demo (a rendered example with exact ground truth).
     """

@@ -12,6 +12,7 @@ OUT/
   sparse/             the final metric model            narrow_poses.json  points3D.ply  summary.json
   report.html         colmap.log
   export/<format>/    `rigsfm export`                  track/  `rigsfm track` (poses.json, poses.csv, plots/)
+  labels.csv          `rigsfm explore`: the analyst's labelled clicks (never removed by rigsfm)
 ```
 """
 
@@ -120,6 +121,11 @@ class Workspace:
     @property
     def colmap_log(self) -> Path:
         return self.root / "colmap.log"
+
+    @property
+    def labels(self) -> Path:
+        """``rigsfm explore``'s labels CSV (the default one)."""
+        return self.root / "labels.csv"
 
     @property
     def track(self) -> TrackPaths:

@@ -8,24 +8,33 @@ from typing import Annotated, Optional
 
 import typer
 
+from rigsfm.cli import _signals
 from rigsfm.cli.common import configure_logging, console, fail_cleanly
 
 
 @fail_cleanly
 def explore_command(
-    out: Annotated[Path, typer.Argument(help="a finished result (rigsfm run --out)", show_default=False)],
+    out: Annotated[Path, typer.Argument(metavar="OUT", help="a finished result (rigsfm run --out)",
+                                        show_default=False)],
     frame: Annotated[Optional[str], typer.Option(
-        "--frame", help="frame file name shown first [default: the first with narrow images of two or more rigs]",
+        "--frame", metavar="NAME",
+        help="frame file name shown first [default: the first with narrow images of two or more rigs]",
         show_default=False)] = None,
     labels: Annotated[Optional[Path], typer.Option(
-        "--labels", help="labels CSV to write and resume from [default: OUT/labels.csv]", show_default=False)] = None,
-    check: Annotated[Optional[Path], typer.Option(
-        "--check", help="print the share of this CSV's labelled pairs inside their band, and stop",
+        "--labels", metavar="CSV", help="labels CSV to write and resume from [default: OUT/labels.csv]",
         show_default=False)] = None,
-    heights: Annotated[str, typer.Option("--heights", help="the band's segment, metres above the floor")] = "0-2.2",
+    check: Annotated[Optional[Path], typer.Option(
+        "--check", metavar="CSV",
+        help="print the share of this CSV's labelled pairs inside their band, and stop "
+             "[default: serve the page]",
+        show_default=False)] = None,
+    heights: Annotated[str, typer.Option("--heights", metavar="LOW-HIGH",
+                                         help="the band's segment, metres above the floor")] = "0-2.2",
     images: Annotated[Optional[Path], typer.Option(
-        "--images", help="IMAGES [default: the run's, from summary.json]", show_default=False)] = None,
-    port: Annotated[int, typer.Option("--port", min=0, max=65535, help="port on 127.0.0.1; 0 picks a free one")] = 0,
+        "--images", metavar="IMAGES", help="IMAGES [default: the run's, from summary.json]",
+        show_default=False)] = None,
+    port: Annotated[int, typer.Option("--port", min=0, max=65535, metavar="PORT",
+                                      help="port on 127.0.0.1; 0 picks a free one")] = 0,
 ) -> None:
     """Check a result on people you can recognise: click one in a narrow view, see where they can be in the
     others; label correspondences (CSV)."""
@@ -37,21 +46,23 @@ def explore_command(
     if check is not None:
         result = check_labels(out, check, options)
         if not result.pairs:
-            console.print(f"{check}: no labelled pair of two rigs' narrow images with a band"
-                          + (f" ({result.without_band} whose band leaves the image)" if result.without_band else ""))
+            why = f" ({result.without_band} whose band leaves the image)" if result.without_band else ""
+            console.print(f"{check}: no labelled pair of two rigs' narrow images with a band{why}")
             raise typer.Exit(1)
         for (i, j), (inside, total) in result.per_pair.items():
             console.print(f"  {i} - {j}: {inside} of {total} inside ({100 * inside / total:.1f} %)")
+        rest = f"; {result.without_band} without a band in the other image" if result.without_band else ""
         console.print(f"{result.inside} of {result.pairs} labelled pairs inside their 95 % band "
-                      f"({100 * result.share:.1f} %)" + (f"; {result.without_band} without a band in the other image"
-                                                          if result.without_band else ""))
+                      f"({100 * result.share:.1f} %){rest}")
         return
     server = start_explorer(out, options, port=port)
     session = server.session
     console.print(f"explorer for {out}, frame {session.frame} ({len(session.result.frames)} frames): open "
-                  f"[bold]{server.url}[/] (saves to {session.csv_path} on every change); Ctrl-C to stop")
+                  f"{server.url} (saves to {session.csv_path} on every change); Ctrl-C to stop")
     try:
         threading.Event().wait()
+    except KeyboardInterrupt:  # Ctrl-C is how the explorer is meant to stop: done, not interrupted
+        _signals.handled()
     finally:
         server.close()
-        console.print(f"{len(session.labels)} labels in {session.csv_path}")
+    console.print(f"stopped: {len(session.labels)} labels in {session.csv_path}")

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import typer
 
+from rigsfm.cli.associate import associate_command
 from rigsfm.cli.calibrate import calibrate_command
 from rigsfm.cli.inspect import export_command, report_command, view_command
 from rigsfm.cli.pick import pick_command
@@ -25,6 +26,7 @@ app.command("export")(export_command)
 app.command("pick")(pick_command)
 app.command("track")(track_command)
 app.command("demo")(demo_command)
+app.command("associate")(associate_command)
 
 
 @app.callback()

@@ -13,7 +13,9 @@ Per frame:
    outside their band are dropped, twice over. Hypotheses outside the height range are dropped.
 4. Each hypothesis scores its log-likelihood ratio against "these detections are clutter": per member
    ``log(p_d / clutter density) - log(2 pi s^2) - d^2 / 2``, per view that sees the point inside its image and has
-   no member ``log(1 - p_d)``. A global set packing (each detection in at most one person; scipy's MILP) keeps the
+   no member ``log(1 - p_d)``, and once the prior density of persons in the crowd's volume times the volume the
+   point's covariance leaves (``log rho + 3/2 log 2 pi + 1/2 log det Sigma``: two views fix a point much less
+   than four). A global set packing (each detection in at most one person; scipy's MILP) keeps the
    set of hypotheses with the largest summed score.
 """
 
@@ -118,6 +120,22 @@ def view_pose_sigmas(names: list[str], bands: dict[tuple[str, str], float]) -> d
     return {name: float(math.sqrt(variance[i] if seen[i] else fallback)) for name, i in index.items()}
 
 
+def _inverse3(a: np.ndarray) -> np.ndarray:
+    """Inverses of stacked 3x3 matrices by their adjugates (stacks of many small matrices: faster than LAPACK)."""
+    c = np.empty_like(a)
+    c[:, 0, 0] = a[:, 1, 1] * a[:, 2, 2] - a[:, 1, 2] * a[:, 2, 1]
+    c[:, 0, 1] = a[:, 0, 2] * a[:, 2, 1] - a[:, 0, 1] * a[:, 2, 2]
+    c[:, 0, 2] = a[:, 0, 1] * a[:, 1, 2] - a[:, 0, 2] * a[:, 1, 1]
+    c[:, 1, 0] = a[:, 1, 2] * a[:, 2, 0] - a[:, 1, 0] * a[:, 2, 2]
+    c[:, 1, 1] = a[:, 0, 0] * a[:, 2, 2] - a[:, 0, 2] * a[:, 2, 0]
+    c[:, 1, 2] = a[:, 0, 2] * a[:, 1, 0] - a[:, 0, 0] * a[:, 1, 2]
+    c[:, 2, 0] = a[:, 1, 0] * a[:, 2, 1] - a[:, 1, 1] * a[:, 2, 0]
+    c[:, 2, 1] = a[:, 0, 1] * a[:, 2, 0] - a[:, 0, 0] * a[:, 2, 1]
+    c[:, 2, 2] = a[:, 0, 0] * a[:, 1, 1] - a[:, 0, 1] * a[:, 1, 0]
+    det = a[:, 0, 0] * c[:, 0, 0] + a[:, 0, 1] * c[:, 1, 0] + a[:, 0, 2] * c[:, 2, 0]
+    return c / det[:, None, None]
+
+
 @dataclass
 class FrameResult:
     """The persons of one frame: per person its point, covariance, score, confidence and member detections."""
@@ -164,8 +182,17 @@ class _Frame:
         self.trees = [cKDTree(u[np.all(np.isfinite(u), axis=1)]) if len(u) else None for u in undist]
         self.tree_index = [np.flatnonzero(np.all(np.isfinite(u), axis=1)) + self.offsets[i]
                            for i, u in enumerate(undist)]
+        # Clutter density (detections per px^2) around each detection: crowds fill a band of the image (the heads'
+        # heights), where a chance match is far likelier than the image's mean density says.
         area = np.array([v.width * v.height for v in views], dtype=np.float64)
-        self.clutter = np.maximum(np.array(counts, dtype=np.float64), 1.0) / area  # detections per px^2
+        self.clutter = np.zeros(len(self.uv))
+        for i, tree in enumerate(self.trees):
+            rows = self.tree_index[i]
+            if tree is None or not len(rows):
+                continue
+            near = tree.query_ball_point(self.uv[rows], options.clutter_radius_px, return_length=True)
+            self.clutter[rows] = np.maximum(near, 1) / (math.pi * options.clutter_radius_px ** 2)
+            self.clutter[rows] = np.maximum(self.clutter[rows], 1.0 / area[i])
 
     # --- geometry --------------------------------------------------------------------------------------------
 
@@ -183,23 +210,21 @@ class _Frame:
         """Weighted ray intersection of each row's members (G x V, -1: none); returns points and covariances."""
         g, nv = members.shape
         present = members >= 0
-        idx = np.where(present, members, 0)
-        d = self.rays[idx]  # G x V x 3
-        c = np.broadcast_to(self.centres[None], (g, nv, 3))
-        proj = np.eye(3)[None, None] - d[..., :, None] * d[..., None, :]  # G x V x 3 x 3
+        d = self.rays[np.where(present, members, 0)]  # G x V x 3
+        dc = np.einsum("gvi,vi->gv", d, self.centres)
         for _ in range(2 if points is None else 1):
             if points is None:
                 depth = np.ones((g, nv))
             else:
-                depth = np.maximum(np.linalg.norm(points[:, None, :] - c, axis=2), 0.1)
+                depth = np.maximum(np.linalg.norm(points[:, None, :] - self.centres[None], axis=2), 0.1)
             # A ray's lateral sigma (m) at the point: its angular noise times the distance.
-            sigma_m = depth * self.noise[None] / self.focals[None]
-            w = np.where(present, 1.0 / sigma_m ** 2, 0.0)
-            a = np.einsum("gv,gvij->gij", w, proj)
-            b = np.einsum("gv,gvij,gvj->gi", w, proj, c)
+            w = np.where(present, (self.focals[None] / (depth * self.noise[None])) ** 2, 0.0)
+            a = np.einsum("gv,gvi,gvj->gij", w, d, d)
+            a = w.sum(axis=1)[:, None, None] * np.eye(3)[None] - a
+            b = w @ self.centres - np.einsum("gv,gvi->gi", w * dc, d)
             a += np.eye(3)[None] * 1e-9 * np.trace(a, axis1=1, axis2=2)[:, None, None]
-            points = np.linalg.solve(a, b[..., None])[..., 0]
-        covariance = np.linalg.inv(a)
+            covariance = _inverse3(a)
+            points = np.einsum("gij,gj->gi", covariance, b)
         return points, covariance
 
     def residuals(self, members: np.ndarray, points: np.ndarray) -> np.ndarray:
@@ -311,13 +336,20 @@ class _Frame:
             points, covariance = self.triangulate(members, points)
         return members, points, covariance
 
-    def score(self, members: np.ndarray, points: np.ndarray) -> np.ndarray:
+    def score(self, members: np.ndarray, points: np.ndarray, covariance: np.ndarray) -> np.ndarray:
         p_d = self.options.detection_probability
+        lo, hi = self.options.heights
+        # A person's point is a priori anywhere in the crowd's volume: the likelihood integrated over it (Laplace)
+        # pays for the three coordinates the detections themselves fix.
+        prior = math.log(self.options.persons_per_m2 / (hi - lo)) + 1.5 * math.log(2 * math.pi)
+        sign, logdet = np.linalg.slogdet(covariance)
+        prior = prior + 0.5 * np.where(sign > 0, logdet, -np.inf)
         d2 = self.residuals(members, points)
         present = members >= 0
-        per_member = math.log(p_d) - np.log(self.clutter)[None] - np.log(2 * math.pi * self.noise ** 2)[None] \
+        clutter = np.where(present, self.clutter[np.where(present, members, 0)], 1.0)
+        per_member = math.log(p_d) - np.log(clutter) - np.log(2 * math.pi * self.noise ** 2)[None] \
             - 0.5 * np.nan_to_num(d2, nan=0.0, posinf=1e6)
-        total = np.sum(np.where(present, per_member, 0.0), axis=1)
+        total = prior + np.sum(np.where(present, per_member, 0.0), axis=1)
         miss = math.log(max(1.0 - p_d, 1e-6))
         for v, view in enumerate(self.views):
             uv, z = view.project(points)
@@ -332,8 +364,8 @@ class _Frame:
             return empty, np.zeros((0, 3)), np.zeros((0, 3, 3)), np.zeros(0)
         points, covariance = self.triangulate(seeds)
         lo, hi = self.options.heights
-        ok = (points[:, 2] >= lo) & (points[:, 2] <= hi) & np.all(self.residuals(seeds, points) <= np.where(
-            seeds >= 0, self.options.member_gate ** 2, np.inf), axis=1)
+        ok = (points[:, 2] >= lo) & (points[:, 2] <= hi) & np.all(
+            np.nan_to_num(self.residuals(seeds, points), nan=0.0) <= self.options.member_gate ** 2, axis=1)
         members = seeds[ok]
         points, covariance = points[ok], covariance[ok]
         groups = [members]
@@ -353,7 +385,7 @@ class _Frame:
         d2 = self.residuals(members, points)
         ok = (points[:, 2] >= lo) & (points[:, 2] <= hi) & np.all(np.nan_to_num(d2, nan=0.0) <= self.options.member_gate ** 2, axis=1)
         members, points, covariance = members[ok], points[ok], covariance[ok]
-        return members, points, covariance, self.score(members, points)
+        return members, points, covariance, self.score(members, points, covariance)
 
 
 def _pack(members: np.ndarray, scores: np.ndarray, total: int, time_limit: float) -> np.ndarray:
@@ -396,7 +428,7 @@ def associate_views(views: list[View], options: AssociateOptions) -> FrameResult
     members, points, covariance, scores = frame.hypotheses()
     positive = scores > options.min_score
     members, points, covariance, scores = members[positive], points[positive], covariance[positive], scores[positive]
-    chosen = _pack(members, scores, total, options.time_limit_s)
+    chosen = _pack(members, scores - options.min_score, total, options.time_limit_s)
     members, points, covariance, scores = members[chosen], points[chosen], covariance[chosen], scores[chosen]
     local = np.where(members >= 0, members - frame.offsets[:-1][None], -1)
     order = np.lexsort((points[:, 1], points[:, 0]))

@@ -1,0 +1,125 @@
+"""rigsfm associate on a rendered crowd of 3D persons against the exact visible heads, and its bad inputs."""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+import pycolmap
+import pytest
+from typer.testing import CliRunner
+
+from conftest import _once, _shared_root
+from rigsfm.associate import AssociateOptions, associate_frames, from_arrays, load_run
+from rigsfm.associate.evaluate import make_detections, score_groups, true_heads, truth_from_run, visible_heads
+from rigsfm.cli import app
+
+sys.path.insert(0, str(Path(__file__).parent))
+from bad_inputs_table import CASES, run_case  # noqa: E402
+
+CHI2_3D_95 = 7.814727903251178
+# Four rigs on a 120 degree arc, every narrow camera aimed near the centre of a 4 persons/m^2 crowd (~270 visible
+# heads per narrow image, a quarter of the persons seen by two or more narrow cameras).
+SCENE = dict(num_rigs=4, arc_deg=120.0, image_scale=0.5, seed=1, persons_per_m2=4.0, wide_pitch_deg=5.0,
+             narrow_extra_pitch_deg=3.0)
+
+
+@pytest.fixture(scope="module")
+def crowd(tmp_path_factory):
+    """(dataset, out): the crowd rendered and run once per session."""
+    from rigsfm.synth.dataset import render_dataset
+    from rigsfm.synth.scene import SceneOptions
+
+    def make(root: Path):
+        dataset = render_dataset(root / "scene", SceneOptions(**SCENE), overwrite=True)
+        out = root / "out"
+        result = CliRunner().invoke(app, ["run", str(dataset.images), "--rigs", str(dataset.rigs), "--scale",
+                                          str(dataset.scale), "--out", str(out)])
+        assert result.exit_code == 0, result.output
+        return dataset.root, out
+
+    return _once(_shared_root(tmp_path_factory), "associate_crowd", make)
+
+
+def _detections(dataset: Path, out: Path, seed: int = 0):
+    model = load_run(out)
+    sizes = {n: (im.camera.width, im.camera.height) for n, im in model.images.items()}
+    heads = {n: v for n, v in visible_heads(dataset, "frame0000").items() if n in sizes}
+    return model, make_detections(heads, sizes, sigma_px=1.5, missed=0.1, false=0.05, seed=seed)
+
+
+def test_association_and_its_uncertainty_against_the_truth(crowd):
+    dataset, out = crowd
+    model, truth = _detections(dataset, out)
+    frame = associate_frames(model, from_arrays(truth.points), AssociateOptions(pixel_sigma=1.5))[0]
+    result = frame.result
+    groups = [[(frame.views[v].name, int(i)) for v, i in enumerate(m) if i >= 0] for m in result.members]
+    scores = score_groups(groups, truth)
+    assert scores.true_persons > 100
+    assert scores.pair_precision > 0.9 and scores.pair_recall > 0.8, scores
+    assert scores.person_f1 > 0.85, scores
+    # at most one detection per view per person
+    assert all(len({name for name, _ in g}) == len(g) for g in groups)
+    r, t = truth_from_run(pycolmap.Reconstruction(str(out / "sparse")),
+                          pycolmap.Reconstruction(str(dataset / "ground_truth")))
+    heads = true_heads(dataset, 0)
+    errors, inside = [], []
+    for group, point, covariance in zip(groups, result.points, result.covariances):
+        ids = {int(truth.person[a][b]) for a, b in group}
+        if len(ids) == 1 and -1 not in ids:
+            e = r @ point + t - heads[ids.pop()]
+            errors.append(np.linalg.norm(e))
+            inside.append(e @ np.linalg.solve(r @ covariance @ r.T, e) <= CHI2_3D_95)
+    assert np.median(errors) < 0.1
+    assert 0.85 <= np.mean(inside) <= 1.0, np.mean(inside)
+    # heights inside the default range
+    assert np.all((result.points[:, 2] >= 1.0) & (result.points[:, 2] <= 2.1))
+
+
+def test_cli_writes_every_output_and_joins_back(crowd, tmp_path):
+    dataset, out = crowd
+    _, truth = _detections(dataset, out, seed=1)
+    csv_path = tmp_path / "heads.csv"
+    csv_path.write_text(truth.csv_text())
+    dest = tmp_path / "persons"
+    result = CliRunner().invoke(app, ["associate", str(out), str(csv_path), "--out", str(dest), "--pixel-sigma", "1.5"])
+    assert result.exit_code == 0, result.output
+    folder = dest / "frame0000"
+    for name in ("persons.csv", "persons.json", "floor.png", "density.csv", "density.png"):
+        assert (folder / name).stat().st_size > 0, name
+    data = json.loads((folder / "persons.json").read_text())
+    lines = csv_path.read_text().splitlines()
+    assert len(data["persons"]) > 100
+    for person in data["persons"][:50]:
+        for d in person["detections"]:  # the row and the text as given join back to the input
+            image, x, y = lines[d["row"] - 1].split(",")
+            assert (image, x, y) == (d["image"], d["x_text"], d["y_text"])
+    density = np.loadtxt(folder / "density.csv", delimiter=",", skiprows=1)
+    assert density[:, 4].sum() == len(data["persons"])
+    again = CliRunner().invoke(app, ["associate", str(out), str(csv_path), "--out", str(dest)])
+    assert again.exit_code == 1 and "--overwrite" in again.output
+
+
+def test_empty_frame_gives_no_person(crowd, tmp_path):
+    dataset, out = crowd
+    model = load_run(out)
+    names = sorted(n for n in model.images if n.endswith("frame0000.png"))
+    frame = associate_frames(model, from_arrays({n: np.zeros((0, 2)) for n in names}), AssociateOptions())[0]
+    assert len(frame.result) == 0 and frame.result.points.shape == (0, 3)
+    csv_path = tmp_path / "empty.csv"
+    csv_path.write_text("image,x,y\n" + "".join(f"{n},,\n" for n in names))
+    result = CliRunner().invoke(app, ["associate", str(out), str(csv_path), "--out", str(tmp_path / "persons")])
+    assert result.exit_code == 0, result.output
+    data = json.loads((tmp_path / "persons" / "frame0000" / "persons.json").read_text())
+    assert data["persons"] == [] and len(data["views"]) == len(names)
+
+
+@pytest.mark.parametrize("case", [c for c in CASES if "etection" in c.did or "associate" in c.did],
+                         ids=lambda c: c.did)
+def test_bad_detections_are_refused_naming_the_row(case, tmp_path):
+    code, line = run_case(case, tmp_path / "case")
+    assert code == 1 and line.startswith("error: ")
+    assert "line" in line or "floor" in line
+    assert not (tmp_path / "case" / "persons").exists()

@@ -15,7 +15,7 @@ class AssociateOptions:
     clutter_radius_px: float = 40.0  # the local density of detections (chance matches) is counted within this
     gate_sigmas: float = 3.5  # candidate pairs: distance to i's ray segment in j within this many sigmas
     member_gate: float = 3.5  # a member's reprojection within this many sigmas of the person's point
-    min_score: float = 0.0  # keep hypotheses whose log-likelihood ratio against clutter exceeds this
+    min_score: float = -2.0  # keep hypotheses whose score exceeds this (measured best on rendered crowds)
     time_limit_s: float = 20.0  # per frame, for the global set packing (then the best solution found)
     cell_m: float = 1.0  # density grid cell (m)
     out: Path | None = None  # DIR; None: OUT/associate

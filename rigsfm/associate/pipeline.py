@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import logging
 import math
-from dataclasses import dataclass
+import json
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -28,6 +29,7 @@ class RunModel:
     bands: dict[tuple[str, str], float]
     known: set[str]  # every image name of the run's inputs (registered or not)
     world: dict | None
+    centre_sigma_m: dict[str, float] = field(default_factory=dict)  # per narrow image, 1 sigma of its centre
 
 
 def load_run(out: Path) -> RunModel:
@@ -50,7 +52,14 @@ def load_run(out: Path) -> RunModel:
             bands[(pair["i"], pair["j"])] = float(band)
             bands[(pair["j"], pair["i"])] = float(band)
     known = {image.name for image in reconstruction.images.values()} | set(images)
-    return RunModel(images, bands, known, poses.get("world"))
+    centres = {}
+    try:
+        narrow = json.loads(workspace.summary.read_text(encoding="utf-8"))["uncertainty"]["narrow"]
+        centres = {name: float(entry["centre_sigma_mm"]) / 1000.0 for name, entry in narrow.items()
+                   if entry.get("centre_sigma_mm") is not None}
+    except (OSError, ValueError, KeyError, TypeError):
+        logger.warning("%s holds no camera centre uncertainty; the persons' covariances leave it out", workspace.summary)
+    return RunModel(images, bands, known, poses.get("world"), centres)
 
 
 def require_floor(model: RunModel, out: Path) -> None:
@@ -76,6 +85,7 @@ def frame_views(model: RunModel, detections: Detections, frame: str, names: list
     sigmas = view_pose_sigmas([v.name for v in views], pairs)
     for view in views:
         view.sigma_pose_px = sigmas[view.name]
+        view.centre_sigma_m = model.centre_sigma_m.get(view.name, 0.0)
     return views
 
 

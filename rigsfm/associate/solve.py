@@ -53,6 +53,7 @@ class View:
     camera: pycolmap.Camera
     xy: np.ndarray  # N x 2 raw COLMAP pixels
     sigma_pose_px: float = 0.0
+    centre_sigma_m: float = 0.0  # the camera centre's 1 sigma relative to the network (the run's uncertainty)
 
     @classmethod
     def of(cls, image: pycolmap.Image, xy: np.ndarray) -> View:
@@ -430,6 +431,12 @@ def associate_views(views: list[View], options: AssociateOptions) -> FrameResult
     members, points, covariance, scores = members[positive], points[positive], covariance[positive], scores[positive]
     chosen = _pack(members, scores - options.min_score, total, options.time_limit_s)
     members, points, covariance, scores = members[chosen], points[chosen], covariance[chosen], scores[chosen]
+    # The cameras' own position errors are shared by every person they see, so they do not shrink with more views:
+    # each person's covariance carries its views' mean centre variance on top of the triangulation's.
+    centre_var = np.array([v.centre_sigma_m ** 2 for v in views])
+    present = members >= 0
+    shared = (present * centre_var[None]).sum(axis=1) / np.maximum(present.sum(axis=1), 1)
+    covariance = covariance + shared[:, None, None] * np.eye(3)[None]
     local = np.where(members >= 0, members - frame.offsets[:-1][None], -1)
     order = np.lexsort((points[:, 1], points[:, 0]))
     logger.info("%d persons from %d detections in %d views (%d hypotheses)", len(order), total, len(views),

@@ -97,13 +97,12 @@ def evaluate(dataset: Path, out: Path, seed: int, options: AssociateOptions) -> 
         e = r @ point + t - heads3d[ids.pop()]
         errors.append(float(np.linalg.norm(e)))
         inside.append(float(e @ np.linalg.solve(r @ covariance @ r.T, e)) <= CHI2_3D_95)
-    distance = [float(np.linalg.norm(r @ p + t - (r @ v.centre + t))) for p in result.points[:1] for v in frame.views]
     return {"seconds": seconds, "detections": int(sum(len(v) for v in truth.points.values())),
             "views": len(frame.views), "scores": vars(scores),
             "error_median_m": float(np.median(errors)) if errors else None,
             "error_p95_m": float(np.percentile(errors, 95)) if errors else None,
             "coverage_95": float(np.mean(inside)) if inside else None, "correct_persons": len(errors),
-            "distance_m": float(np.median(distance)) if distance else None, "truth": truth, "model": model}
+            "truth": truth, "model": model}
 
 
 def main(argv: list[str] | None = None) -> int:

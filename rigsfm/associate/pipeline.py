@@ -104,7 +104,7 @@ def associate(out: Path, detections_csv: Path, options: AssociateOptions | None 
     from rigsfm.associate.output import check_destination, write_results
 
     options = options or AssociateOptions()
-    dest = Path(options.out) if options.out is not None else Path(out) / "associate"
+    dest = Path(options.out) if options.out is not None else Workspace(Path(out)).associate
     check_destination(dest, options.overwrite)
     model = load_run(Path(out))
     sizes = {name: (image.camera.width, image.camera.height) for name, image in model.images.items()}

@@ -168,7 +168,7 @@ def test_bad_detections_are_refused_naming_the_row(case, tmp_path):
     assert not (tmp_path / "case" / "persons").exists()
 
 
-def test_wildtrack_export_reads_and_projects_like_mvdet(three_rig_run, tmp_path):
+def test_wildtrack_export_reads_and_projects_like_mvdet(crowd, tmp_path):
     """Read the export the way MVDet's Wildtrack loader does (cv2.FileStorage for intrinsic_zero, ElementTree for
     the extrinsic rvec / tvec text, centimetres) and project floor points like its get_imagecoord_from_worldcoord."""
     import xml.etree.ElementTree as ET
@@ -177,7 +177,7 @@ def test_wildtrack_export_reads_and_projects_like_mvdet(three_rig_run, tmp_path)
 
     from rigsfm.core.ground import image_from_plane
 
-    _, out, _ = three_rig_run
+    _, out = crowd
     dest = tmp_path / "wildtrack"
     result = CliRunner().invoke(app, ["export", str(out), "--format", "wildtrack", "--dest", str(dest), "--images"])
     assert result.exit_code == 0, result.output

@@ -134,8 +134,8 @@ def floor_map(frame, prints: list[np.ndarray], bounds, size: int = 900) -> np.nd
                     (max(1, int(round(axes[1]))), max(1, int(round(axes[0])))), angle, 0, 360, charts.bgr("wide"), 1,
                     cv2.LINE_AA)
         cv2.circle(image, (int(round(centre[0])), int(round(centre[1]))), 1, charts.bgr("ink"), -1)
-    charts.text(image, f"{frame.frame}: {len(result)} persons; narrow footprints (orange), 95 % ellipses (blue), 1 m grid",
-                (10, 18))
+    charts.text(image, f"{frame.frame}: {len(result)} persons; narrow footprints (orange), 95 % ellipses (blue), "
+                       "1 m grid", (10, 18))
     return image
 
 

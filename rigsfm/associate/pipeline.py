@@ -58,7 +58,8 @@ def load_run(out: Path) -> RunModel:
         centres = {name: float(entry["centre_sigma_mm"]) / 1000.0 for name, entry in narrow.items()
                    if entry.get("centre_sigma_mm") is not None}
     except (OSError, ValueError, KeyError, TypeError):
-        logger.warning("%s holds no camera centre uncertainty; the persons' covariances leave it out", workspace.summary)
+        logger.warning("%s holds no camera centre uncertainty; the persons' covariances leave it out",
+                       workspace.summary)
     return RunModel(images, bands, known, poses.get("world"), centres)
 
 

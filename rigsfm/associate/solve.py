@@ -384,7 +384,8 @@ class _Frame:
         points, covariance = self.triangulate(members)
         points, covariance = self.triangulate(members, points)
         d2 = self.residuals(members, points)
-        ok = (points[:, 2] >= lo) & (points[:, 2] <= hi) & np.all(np.nan_to_num(d2, nan=0.0) <= self.options.member_gate ** 2, axis=1)
+        inside = np.all(np.nan_to_num(d2, nan=0.0) <= self.options.member_gate ** 2, axis=1)
+        ok = (points[:, 2] >= lo) & (points[:, 2] <= hi) & inside
         members, points, covariance = members[ok], points[ok], covariance[ok]
         return members, points, covariance, self.score(members, points, covariance)
 

@@ -22,7 +22,6 @@ true floor points of narrow i, their true correspondences in narrow j against th
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import sys
 import time

@@ -284,6 +284,18 @@ def with_pairs(count: int) -> str:
     return "image_a,x_a,y_a,image_b,x_b,y_b\n" + "\n".join(rows) + "\n"
 
 
+DETECTIONS = "image,x,y\nrig01/narrow/f0.png,10.5,20.25\nrig02/narrow/f0.png,30,22\n"
+
+
+def with_detections(text: str | bytes) -> Callable[[Path], list]:
+    """``rigsfm associate`` on the small workspace with this detections CSV."""
+    def prepare(root: Path) -> list:
+        workspace(root)
+        (root / "heads.csv").write_bytes(text if isinstance(text, bytes) else text.encode())
+        return ["associate", "out", "heads.csv", "--out", "persons"]
+    return prepare
+
+
 def rotate(data: dict, key: str, value) -> None:
     data["rigs"][1]["narrow_from_wide"][key] = value
 
@@ -429,6 +441,21 @@ CASES = [
     Case("matches.csv naming an image that does not exist", "nothing is written",
          with_matches(with_pairs(8).replace("rig02/wide/f0.png", "rig02/wide/f0.jpg"))),
     Case("matches.csv with 5 correspondences for a pair", "nothing is written", with_matches(with_pairs(5))),
+    # --- rigsfm associate: the detections CSV
+    Case("a detections CSV naming an image the run does not have", "nothing is written",
+         with_detections(DETECTIONS.replace("rig02/narrow", "rig03/narrow"))),
+    Case("a detection outside its image", "nothing is written", with_detections(DETECTIONS.replace(",30,", ",70,"))),
+    Case("a detection with NaN coordinates", "nothing is written", with_detections(DETECTIONS.replace("30,22", "nan,22"))),
+    Case("a detections CSV without its y column", "nothing is written",
+         with_detections("image,x\nrig01/narrow/f0.png,10\n")),
+    Case("a detections CSV saved with `;` separators", "nothing is written",
+         with_detections(DETECTIONS.replace(",", ";"))),
+    Case("a detection repeated on two rows", "nothing is written",
+         with_detections(DETECTIONS + "rig01/narrow/f0.png,10.5,20.25\n")),
+    Case("detections in a frame the run did not register", "nothing is written",
+         with_detections(DETECTIONS + "rig01/narrow/f1.png,10,20\n")),
+    Case("`rigsfm associate` on a run without a floor frame", "nothing is written",
+         with_detections(b"\xef\xbb\xbf" + DETECTIONS.encode())),
     # --- options
     Case("`--max-ratio 0`", "nothing is written", lambda root: (inputs(root), [*RUN, "--max-ratio", "0"])[1]),
     Case("`--max-ratio nan`", "nothing is written", lambda root: (inputs(root), [*RUN, "--max-ratio", "nan"])[1]),

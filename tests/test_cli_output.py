@@ -15,7 +15,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import bad_inputs_table as table  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
-VERBS = ("calibrate", "run", "report", "view", "export", "pick", "explore", "track", "demo")
+VERBS = ("calibrate", "run", "report", "view", "export", "pick", "explore", "associate", "track", "demo")
 
 
 def _rigsfm(args, cwd, **env) -> subprocess.CompletedProcess:

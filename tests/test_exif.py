@@ -4,7 +4,6 @@ where it enters (run with SIFT or ASIFT, calibrate, track, pick) with the files 
 picker's page show the stored pixels. The tagged files are real: an APP1 Exif segment (JPEG) or an eXIf chunk (PNG)
 added to OpenCV's encoding, which OpenCV itself then turns on a default read."""
 
-import io
 import re
 import shutil
 import struct

@@ -393,7 +393,7 @@ def test_ctrl_c_ends_pick_with_where_the_pairs_are(tmp_path):
     assert code == 143 and len(lines) == 1 and lines[0].startswith("terminated (SIGTERM): "), lines
 
 
-@pytest.mark.parametrize("verb", ["calibrate", "report", "view", "export", "explore", "track", "demo"])
+@pytest.mark.parametrize("verb", ["calibrate", "report", "view", "export", "explore", "associate", "track", "demo"])
 def test_every_verb_stops_with_one_line(tmp_path, verb):
     """The other verbs, stopped while they start (imports, pycolmap's among them)."""
     sys.path.insert(0, str(ROOT / "tests"))
@@ -402,7 +402,7 @@ def test_every_verb_stops_with_one_line(tmp_path, verb):
     bad_inputs_table.workspace(tmp_path)
     (tmp_path / "board.yaml").write_text("type: chessboard\ninner_corners: [9, 6]\nsquare: 0.025\n")
     args = {"calibrate": ["images", "--board", "board.yaml", "--out", "r.yaml"], "report": ["out"],
-            "view": ["out", "--screenshot", "v.png"], "export": ["out", "--format", "json", "--overwrite"], "explore": ["out"],
+            "view": ["out", "--screenshot", "v.png"], "export": ["out", "--format", "json", "--overwrite"], "explore": ["out"], "associate": ["out", "detections.csv"],
             "track": ["out", "images"], "demo": ["demo", "--num-rigs", "2", "--image-scale", "0.1"]}[verb]
     for signum, delay in ((signal.SIGINT, 0.0), (signal.SIGTERM, 0.0), (signal.SIGINT, 0.3), (signal.SIGTERM, 0.3)):
         code, lines, _ = _stop([verb, *args], tmp_path, signum, delay)

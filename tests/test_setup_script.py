@@ -6,7 +6,6 @@ and apt-get, dpkg-query and sudo by stand-ins on PATH: the machine's apt is neve
 
 from __future__ import annotations
 
-import os
 import shutil
 import subprocess
 import sys

@@ -13,6 +13,7 @@ if _signals.is_the_command():
 
 import typer  # noqa: E402
 
+from rigsfm.cli.associate import associate_command  # noqa: E402
 from rigsfm.cli.calibrate import calibrate_command  # noqa: E402
 from rigsfm.cli.explore import explore_command  # noqa: E402
 from rigsfm.cli.inspect import export_command, report_command, view_command  # noqa: E402
@@ -41,6 +42,7 @@ app.command("view", cls=Command)(view_command)
 app.command("export", cls=Command)(export_command)
 app.command("pick", cls=Command)(pick_command)
 app.command("explore", cls=Command)(explore_command)
+app.command("associate", cls=Command)(associate_command)
 app.command("track", cls=Command)(track_command)
 app.command("demo", cls=Command)(demo_command)
 

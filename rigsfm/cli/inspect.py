@@ -48,10 +48,13 @@ def export_command(
         show_default=False)] = None,
     overwrite: Annotated[bool, flag("--overwrite", help="replace an earlier export in DEST (only the files rigsfm "
                                                         "wrote there are removed)")] = False,
+    images: Annotated[bool, flag("--images", help="wildtrack: also write the narrow images, undistorted "
+                                                  "(Image_subsets/<rig>/<frame>.png)")] = False,
 ) -> None:
-    """Export the calibrated network for COLMAP, Open3D, nerfstudio, EasyMocap (opencv), aniposelib (toml) or
-    as plain JSON poses."""
+    """Export the calibrated network for COLMAP, Open3D, nerfstudio, EasyMocap (opencv), aniposelib (toml),
+    WILDTRACK / MVDet (wildtrack) or as plain JSON poses."""
     from rigsfm.inspect.export import export
 
     configure_logging(False)  # the files an --overwrite keeps, named as warnings
-    console.print(f"exported {fmt}: {export(out, ExportOptions(format=fmt, dest=dest, overwrite=overwrite))}")
+    options = ExportOptions(format=fmt, dest=dest, overwrite=overwrite, images=images)
+    console.print(f"exported {fmt}: {export(out, options)}")

@@ -26,6 +26,7 @@ floor, z up, metres: :mod:`rigsfm.run.world`). A "plane at height h" is ``z = h`
 from __future__ import annotations
 
 import itertools
+import math
 import logging
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -34,6 +35,7 @@ import cv2
 import numpy as np
 import pycolmap
 
+from rigsfm.core.errors import InputError
 from rigsfm.core.names import ImageName
 from rigsfm.core.polygons import clip_half_plane, intersect_polygons, intersection_area, is_convex, polygon_area
 
@@ -261,3 +263,17 @@ def coverage(prints: Mapping[str, Footprint | np.ndarray], cell: float = 0.05) -
         cv2.fillPoly(mask, [vertices.reshape(-1, 1, 2)], 1, lineType=cv2.LINE_8, shift=shift)
         counts += mask
     return Coverage(counts, origin, cell)
+
+
+def parse_heights(text: str) -> tuple[float, float]:
+    """A ``--heights`` option: ``"0-2.2"`` or ``"0,2.2"`` (metres above the floor) -> (0.0, 2.2)."""
+    text = text.strip()
+    parts = text.split(",") if "," in text else text.split("-", 1) if not text.startswith("-") else None
+    try:
+        low, high = (float(p) for p in parts)  # type: ignore[union-attr]
+    except (TypeError, ValueError):
+        raise InputError(f"--heights {text!r}: give two heights in metres above the floor, e.g. 0-2.2 or "
+                         "-0.5,2.2") from None
+    if not (math.isfinite(low) and math.isfinite(high) and low < high):
+        raise InputError(f"--heights {text!r}: the first height must be below the second (e.g. 0-2.2)")
+    return low, high

@@ -131,6 +131,11 @@ class Workspace:
     def track(self) -> TrackPaths:
         return TrackPaths(self.root / "track")
 
+    @property
+    def associate(self) -> Path:
+        """The default folder of ``rigsfm associate`` (persons per frame)."""
+        return self.root / "associate"
+
     def export(self, fmt: str) -> Path:
         """The default folder of ``rigsfm export --format fmt``."""
         return self.root / "export" / str(fmt)

@@ -18,6 +18,7 @@ import pycolmap
 
 from rigsfm.core.errors import InputError, WorkspaceError
 from rigsfm.core.names import ImageName, name_of
+from rigsfm.core.ground import parse_heights  # noqa: F401  (re-exported)
 from rigsfm.core.workspace import Workspace
 from rigsfm.explore.geometry import View, band_in_view, floor_trace, triangulate
 from rigsfm.explore.labels import ForeignRow, Label, parse_row, read_labels, save_labels
@@ -34,20 +35,6 @@ class ExploreOptions:
     heights: tuple[float, float] = (0.0, 2.2)  # the band's segment (m above the floor): a person's feet to head
     ticks: tuple[float, ...] = (0.0, 1.0, 1.8)
     click_sigma_px: float = 1.0  # a click's 1-sigma error per coordinate
-
-
-def parse_heights(text: str) -> tuple[float, float]:
-    """``"0-2.2"`` or ``"0,2.2"`` (metres above the floor) -> (0.0, 2.2)."""
-    text = text.strip()
-    parts = text.split(",") if "," in text else text.split("-", 1) if not text.startswith("-") else None
-    try:
-        low, high = (float(p) for p in parts)  # type: ignore[union-attr]
-    except (TypeError, ValueError):
-        raise InputError(f"--heights {text!r}: give two heights in metres above the floor, e.g. 0-2.2 or "
-                         "-0.5,2.2") from None
-    if not (math.isfinite(low) and math.isfinite(high) and low < high):
-        raise InputError(f"--heights {text!r}: the first height must be below the second (e.g. 0-2.2)")
-    return low, high
 
 
 class ExploreResult:

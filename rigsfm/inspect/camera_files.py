@@ -45,7 +45,7 @@ import numpy as np
 import pycolmap
 
 from rigsfm.core.errors import InputError
-from rigsfm.core.io import write_text_atomic
+from rigsfm.core.io import write_bytes_atomic, write_text_atomic
 from rigsfm.core.names import ImageName
 
 logger = logging.getLogger(__name__)
@@ -251,3 +251,71 @@ def write_toml(reconstruction: pycolmap.Reconstruction, dest: Path, sensors: Seq
     path = dest / "calibration.toml"
     write_text_atomic(path, "\n".join(lines) + "\n")
     return [path]
+
+
+# --- WILDTRACK / MVDet ------------------------------------------------------------------------------------
+
+
+def _xml_matrix(key: str, value: np.ndarray) -> str:
+    value = np.atleast_2d(np.asarray(value, dtype=np.float64))
+    data = " ".join(_num(v) for v in value.ravel())
+    return (f'<{key} type_id="opencv-matrix">\n  <rows>{value.shape[0]}</rows>\n  <cols>{value.shape[1]}</cols>\n'
+            f"  <dt>d</dt>\n  <data>\n    {data}</data></{key}>\n")
+
+
+def write_wildtrack(reconstruction: pycolmap.Reconstruction, dest: Path, images_dir: Path | None = None,
+                    ) -> list[Path]:
+    """WILDTRACK's calibration layout, as MVDet-family loaders read it, for the narrow cameras:
+    ``calibrations/intrinsic_zero/intr_<rig>.xml`` (OpenCV FileStorage XML: ``camera_matrix`` with OpenCV pixel
+    centres and zero ``distortion_coefficients``: for undistorted images) and ``calibrations/extrinsic/
+    extr_<rig>.xml`` (``<rvec>`` Rodrigues and ``<tvec>`` in centimetres, world-to-camera, as space-separated text
+    the loaders split). World: the run's, in centimetres; in the floor frame the floor is z = 0, the plane MVDet
+    projects onto. With ``images_dir``: ``Image_subsets/<rig>/<frame>.png``, each narrow image undistorted to that
+    camera matrix."""
+    cameras = opencv_cameras(reconstruction, ("narrow",), allow_fisheye=False)
+    dest = Path(dest)
+    intrinsic, extrinsic = dest / "calibrations" / "intrinsic_zero", dest / "calibrations" / "extrinsic"
+    intrinsic.mkdir(parents=True, exist_ok=True)
+    extrinsic.mkdir(parents=True, exist_ok=True)
+    paths = []
+    for c in cameras:
+        rig = c.name.removesuffix("_narrow")
+        text = ('<?xml version="1.0"?>\n<opencv_storage>\n' + _xml_matrix("camera_matrix", c.matrix)
+                + _xml_matrix("distortion_coefficients", np.zeros((1, 5))) + "</opencv_storage>\n")
+        paths.append(write_text_atomic(intrinsic / f"intr_{rig}.xml", text))
+        text = ('<?xml version="1.0"?>\n<opencv_storage>\n'
+                f"<rvec>{' '.join(_num(v) for v in c.rvec)}</rvec>\n"
+                f"<tvec>{' '.join(_num(100.0 * v) for v in c.tvec)}</tvec>\n</opencv_storage>\n")
+        paths.append(write_text_atomic(extrinsic / f"extr_{rig}.xml", text))
+    if images_dir is not None:
+        paths += _undistorted_images(reconstruction, cameras, dest / "Image_subsets", Path(images_dir))
+    return paths
+
+
+def _undistorted_images(reconstruction: pycolmap.Reconstruction, cameras: Sequence[OpenCVCamera], dest: Path,
+                        images_dir: Path) -> list[Path]:
+    by_name = {c.name: c for c in cameras}
+    paths = []
+    maps: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+    for image in sorted(reconstruction.images.values(), key=lambda im: im.name):
+        parsed = _parsed(image.name)
+        if not image.has_pose or parsed is None or not parsed.is_narrow:
+            continue
+        c = by_name.get(camera_name(image.name, image.camera_id))
+        if c is None:
+            continue
+        source = images_dir / image.name
+        pixels = cv2.imread(str(source), cv2.IMREAD_UNCHANGED)
+        if pixels is None:
+            raise InputError(f"cannot read {source} to undistort it; export without images or restore the file")
+        if c.name not in maps:
+            maps[c.name] = cv2.initUndistortRectifyMap(c.matrix, c.distortion, None, c.matrix, (c.width, c.height),
+                                                       cv2.CV_32FC1)
+        undistorted = cv2.remap(pixels, *maps[c.name], cv2.INTER_LINEAR)
+        target = dest / parsed.rig / (Path(parsed.frame).stem + ".png")
+        target.parent.mkdir(parents=True, exist_ok=True)
+        ok, data = cv2.imencode(".png", undistorted)
+        if not ok:
+            raise OSError(f"could not encode {target}")
+        paths.append(write_bytes_atomic(target, data.tobytes()))
+    return paths

@@ -15,6 +15,9 @@
   ``calibration.toml`` (aniposelib's ``CameraGroup`` layout): one entry per camera (``<rig>_<sensor>``), K and
   distortion with OpenCV pixel centres (cx = COLMAP cx - 0.5), R (Rodrigues) and t world-to-camera in metres,
   image size (``rigsfm.inspect.camera_files``). The world is the run's (the floor frame by default).
+- ``wildtrack``: ``calibrations/intrinsic_zero/intr_<rig>.xml`` and ``calibrations/extrinsic/extr_<rig>.xml`` of
+  the narrow cameras, WILDTRACK's layout as MVDet-family loaders read it (centimetres, undistorted images), and
+  with ``images`` the undistorted narrow images (``Image_subsets/<rig>/<frame>.png``).
 """
 
 from __future__ import annotations
@@ -37,7 +40,7 @@ from rigsfm.core.errors import InputError, WorkspaceError
 from rigsfm.core.io import sha256_file, write_json_atomic
 from rigsfm.core.names import name_of
 from rigsfm.core.workspace import Workspace
-from rigsfm.inspect.camera_files import write_opencv, write_toml
+from rigsfm.inspect.camera_files import write_opencv, write_toml, write_wildtrack
 from rigsfm.inspect.options import ExportFormat, ExportOptions
 from rigsfm.run.deliver import CONVENTIONS
 from rigsfm.run.summary import Summary
@@ -275,6 +278,10 @@ def export(out: Path, options: ExportOptions) -> Path:
             write_opencv(reconstruction, tmp)
         elif fmt == ExportFormat.TOML:
             write_toml(reconstruction, tmp, metadata=world_metadata(workspace))
+        elif fmt == ExportFormat.WILDTRACK:
+            if options.images and images_dir is None:
+                raise InputError(f"{workspace.summary} names no image folder; export without --images")
+            write_wildtrack(reconstruction, tmp, images_dir if options.images else None)
         else:
             write_json_poses(reconstruction, tmp)
         written = sorted(p.name for p in tmp.iterdir())

@@ -15,6 +15,7 @@ class ExportFormat(enum.StrEnum):
     JSON = "json"  # poses.json: every image's camera and cam_from_world
     OPENCV = "opencv"  # intri.yml / extri.yml: OpenCV FileStorage YAML in EasyMocap's layout
     TOML = "toml"  # calibration.toml in aniposelib's layout (also read by Caliscope)
+    WILDTRACK = "wildtrack"  # calibrations/intrinsic_zero, extrinsic: WILDTRACK / MVDet's layout, centimetres
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -22,3 +23,4 @@ class ExportOptions:
     format: ExportFormat
     dest: Path | None = None  # default OUT/export/<format>
     overwrite: bool = False  # replace an earlier export of rigsfm in dest (nothing else is ever removed)
+    images: bool = False  # wildtrack: also the narrow images, undistorted (Image_subsets/)

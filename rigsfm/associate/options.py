@@ -1,0 +1,34 @@
+"""Options of ``rigsfm associate`` (kw-only, typed; the CLI maps its flags onto these)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+
+@dataclass(frozen=True, kw_only=True)
+class AssociateOptions:
+    heights: tuple[float, float] = (1.0, 2.1)  # metres above the floor where the points (heads) may lie
+    pixel_sigma: float = 2.0  # the detector's noise per coordinate (px), added to each view's band
+    detection_probability: float = 0.7  # a person's point is detected in a view that sees it (occlusion included)
+    persons_per_m2: float = 2.0  # the prior density of persons on the floor (the score's price of a new person)
+    clutter_radius_px: float = 40.0  # the local density of detections (chance matches) is counted within this
+    gate_sigmas: float = 3.5  # candidate pairs: distance to i's ray segment in j within this many sigmas
+    member_gate: float = 3.5  # a member's reprojection within this many sigmas of the person's point
+    min_score: float = -2.0  # keep hypotheses whose score exceeds this (measured best on rendered crowds)
+    time_limit_s: float = 20.0  # per frame, for the global set packing (then the best solution found)
+    cell_m: float = 1.0  # density grid cell (m)
+    out: Path | None = None  # DIR; None: OUT/associate
+    overwrite: bool = False
+
+    def __post_init__(self) -> None:
+        lo, hi = self.heights
+        if not (lo < hi):
+            raise ValueError(f"heights must be two increasing numbers (m), got {lo}, {hi}")
+        if not self.pixel_sigma > 0:
+            raise ValueError(f"pixel sigma must be > 0 px, got {self.pixel_sigma}")
+        if not 0 < self.detection_probability < 1:
+            raise ValueError(f"detection probability must be in (0, 1), got {self.detection_probability}")
+        if not (self.gate_sigmas > 0 and self.member_gate > 0 and self.cell_m > 0 and self.time_limit_s > 0
+                and self.persons_per_m2 > 0):
+            raise ValueError("gates, cell size and time limit must be > 0")

@@ -1,0 +1,184 @@
+"""What ``rigsfm associate`` writes into DIR, one folder per frame (the frame file's stem)::
+
+  DIR/<frame>/persons.csv   one row per (person, detection): person, x_m, y_m, z_m, sigma_x_m, sigma_y_m, sigma_z_m,
+                            confidence, views, image, x, y (exactly as given), row (its line in DETECTIONS)
+  DIR/<frame>/persons.json  per person: position (world metres), covariance (m^2), score (log-likelihood ratio
+                            against clutter), confidence, detections [{image, x, y, row}]; unassigned detections
+  DIR/<frame>/floor.png     top view: every narrow footprint on the floor, every person's 95 % ellipse
+  DIR/<frame>/density.csv   persons per m^2 on a grid of ``cell_m`` cells (x_min_m, y_min_m, x_max_m, y_max_m,
+                            persons, per_m2)
+  DIR/<frame>/density.png   the same grid as an image
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import math
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from rigsfm.core import charts
+from rigsfm.core.errors import WorkspaceError
+from rigsfm.core.ground import footprint
+from rigsfm.core.io import atomic_directory
+
+CHI2_2D_95 = 5.991464547107979  # 95 % of a 2-D normal lies within this squared Mahalanobis distance
+MANIFEST = ".rigsfm-associate"
+
+
+def check_destination(dest: Path, overwrite: bool) -> None:
+    dest = Path(dest)
+    if dest.exists() and any(dest.iterdir()):
+        if not overwrite:
+            raise WorkspaceError(f"{dest} is not empty: pass --overwrite to replace an earlier association, or "
+                                 "choose another --out")
+        if not (dest / MANIFEST).is_file():
+            raise WorkspaceError(f"{dest} holds files rigsfm associate did not write; choose another --out")
+
+
+def _stem(frame: str) -> str:
+    return Path(frame).stem or frame
+
+
+def persons_rows(frame) -> list[list]:
+    result, views, det = frame.result, frame.views, frame.detections
+    rows = []
+    conf = result.confidence
+    for p in range(len(result)):
+        x, y, z = result.points[p]
+        sx, sy, sz = np.sqrt(np.diag(result.covariances[p]))
+        members = [(v, int(i)) for v, i in enumerate(result.members[p]) if i >= 0]
+        for v, i in members:
+            d = det.images[views[v].name]
+            rows.append([p, f"{x:.4f}", f"{y:.4f}", f"{z:.4f}", f"{sx:.4f}", f"{sy:.4f}", f"{sz:.4f}",
+                         f"{conf[p]:.4f}", len(members), d.image, d.text[i][0], d.text[i][1], int(d.rows[i])])
+    return rows
+
+
+def persons_json(frame) -> dict:
+    result, views, det = frame.result, frame.views, frame.detections
+    persons = []
+    used = set()
+    for p in range(len(result)):
+        dets = []
+        for v, i in enumerate(result.members[p]):
+            if i >= 0:
+                d = det.images[views[v].name]
+                dets.append({"image": d.image, "x": float(d.xy[i, 0]), "y": float(d.xy[i, 1]),
+                             "x_text": d.text[i][0], "y_text": d.text[i][1], "row": int(d.rows[i])})
+                used.add((v, int(i)))
+        persons.append({"person": p, "position_m": [round(float(c), 5) for c in result.points[p]],
+                        "covariance_m2": np.round(result.covariances[p], 9).tolist(),
+                        "score": round(float(result.scores[p]), 4), "confidence": round(float(result.confidence[p]), 5),
+                        "detections": dets})
+    unassigned = [{"image": views[v].name, "row": int(det.images[views[v].name].rows[i])}
+                  for v in range(len(views)) for i in range(len(det.images[views[v].name])) if (v, i) not in used]
+    return {"frame": frame.frame, "frame_units": "world metres (the run's world frame)",
+            "views": [v.name for v in views],
+            "sigma_pose_px": {v.name: round(v.sigma_pose_px, 4) for v in views},
+            "persons": persons, "unassigned": unassigned}
+
+
+def density_grid(points: np.ndarray, bounds: tuple[float, float, float, float], cell: float) -> tuple[np.ndarray, list]:
+    x0, y0, x1, y1 = bounds
+    nx, ny = max(1, math.ceil((x1 - x0) / cell)), max(1, math.ceil((y1 - y0) / cell))
+    counts = np.zeros((ny, nx), dtype=np.int64)
+    if len(points):
+        ix = np.floor((points[:, 0] - x0) / cell).astype(int)
+        iy = np.floor((points[:, 1] - y0) / cell).astype(int)
+        ok = (ix >= 0) & (ix < nx) & (iy >= 0) & (iy < ny)
+        np.add.at(counts, (iy[ok], ix[ok]), 1)
+    rows = [[f"{x0 + i * cell:.3f}", f"{y0 + j * cell:.3f}", f"{x0 + (i + 1) * cell:.3f}", f"{y0 + (j + 1) * cell:.3f}",
+             int(counts[j, i]), f"{counts[j, i] / cell ** 2:.3f}"] for j in range(ny) for i in range(nx)]
+    return counts, rows
+
+
+def _csv(header: list[str], rows: list[list]) -> str:
+    buffer = io.StringIO()
+    writer = csv.writer(buffer, lineterminator="\n")
+    writer.writerow(header)
+    writer.writerows(rows)
+    return buffer.getvalue()
+
+
+def floor_map(frame, prints: list[np.ndarray], bounds, size: int = 900) -> np.ndarray:
+    x0, y0, x1, y1 = bounds
+    scale = (size - 60) / max(x1 - x0, y1 - y0)
+    width, height = int((x1 - x0) * scale) + 60, int((y1 - y0) * scale) + 60
+    image = charts.canvas(width, height)
+
+    def px(xy):
+        xy = np.atleast_2d(xy)
+        return np.c_[30 + (xy[:, 0] - x0) * scale, height - 30 - (xy[:, 1] - y0) * scale]
+
+    for gx in range(math.ceil(x0), math.floor(x1) + 1):
+        a, b = px([gx, y0])[0], px([gx, y1])[0]
+        cv2.line(image, (int(a[0]), int(a[1])), (int(b[0]), int(b[1])), charts.bgr("grid"), 1)
+    for gy in range(math.ceil(y0), math.floor(y1) + 1):
+        a, b = px([x0, gy])[0], px([x1, gy])[0]
+        cv2.line(image, (int(a[0]), int(a[1])), (int(b[0]), int(b[1])), charts.bgr("grid"), 1)
+    for polygon in prints:
+        cv2.polylines(image, [np.round(px(polygon)).astype(np.int32)], True, charts.bgr("narrow"), 1, cv2.LINE_AA)
+    result = frame.result
+    for p in range(len(result)):
+        cov = result.covariances[p][:2, :2]
+        values, vectors = np.linalg.eigh(cov)
+        axes = np.sqrt(np.maximum(values, 0) * CHI2_2D_95) * scale
+        angle = -math.degrees(math.atan2(vectors[1, 1], vectors[0, 1]))
+        centre = px(result.points[p][:2])[0]
+        cv2.ellipse(image, (int(round(centre[0])), int(round(centre[1]))),
+                    (max(1, int(round(axes[1]))), max(1, int(round(axes[0])))), angle, 0, 360, charts.bgr("wide"), 1,
+                    cv2.LINE_AA)
+        cv2.circle(image, (int(round(centre[0])), int(round(centre[1]))), 1, charts.bgr("ink"), -1)
+    charts.text(image, f"{frame.frame}: {len(result)} persons; narrow footprints (orange), 95 % ellipses (blue), "
+                       "1 m grid", (10, 18))
+    return image
+
+
+def density_image(counts: np.ndarray, cell: float, pixels: int = 24) -> np.ndarray:
+    density = counts / cell ** 2
+    top = max(float(density.max()), 1e-9)
+    grey = np.uint8(np.clip(density / top * 255, 0, 255))
+    image = cv2.applyColorMap(grey[::-1], cv2.COLORMAP_VIRIDIS)
+    image = cv2.resize(image, (image.shape[1] * pixels, image.shape[0] * pixels), interpolation=cv2.INTER_NEAREST)
+    band = charts.canvas(image.shape[1], 24)
+    charts.text(band, f"persons per m2, max {top:.1f}", (4, 16), size=0.4)
+    return np.vstack([band, image])
+
+
+def _png(path: Path, image: np.ndarray) -> None:
+    ok, data = cv2.imencode(".png", image)
+    if not ok:
+        raise OSError(f"could not encode {path}")
+    path.write_bytes(data.tobytes())
+
+
+def write_results(dest: Path, model, frames: list, options) -> Path:
+    with atomic_directory(Path(dest), overwrite=True) as tmp:
+        (tmp / MANIFEST).write_text("written by rigsfm associate\n")
+        for frame in frames:
+            folder = tmp / _stem(frame.frame)
+            folder.mkdir()
+            prints = []
+            for view in frame.views:
+                fp = footprint(model.images[view.name], 0.0)
+                if fp is not None and len(fp.polygon):
+                    prints.append(np.asarray(fp.polygon))
+            corners = np.concatenate(prints + [frame.result.points[:, :2]]) if prints or len(frame.result) else \
+                np.zeros((1, 2))
+            lo, hi = np.floor(corners.min(axis=0)) - 1, np.ceil(corners.max(axis=0)) + 1
+            bounds = (float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1]))
+            (folder / "persons.csv").write_text(_csv(
+                ["person", "x_m", "y_m", "z_m", "sigma_x_m", "sigma_y_m", "sigma_z_m", "confidence", "views",
+                 "image", "x", "y", "row"], persons_rows(frame)))
+            (folder / "persons.json").write_text(json.dumps(persons_json(frame), indent=1) + "\n")
+            counts, rows = density_grid(frame.result.points, bounds, options.cell_m)
+            (folder / "density.csv").write_text(_csv(["x_min_m", "y_min_m", "x_max_m", "y_max_m", "persons", "per_m2"],
+                                                     rows))
+            _png(folder / "density.png", density_image(counts, options.cell_m))
+            _png(folder / "floor.png", floor_map(frame, prints, bounds))
+    return Path(dest)

@@ -1,0 +1,113 @@
+"""``rigsfm associate``: detections of several synchronised narrow cameras -> 3D persons, per frame."""
+
+from __future__ import annotations
+
+import logging
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import pycolmap
+
+from rigsfm.associate.detections import Detections, read_detections
+from rigsfm.associate.options import AssociateOptions
+from rigsfm.associate.solve import FrameResult, View, associate_views, view_pose_sigmas
+from rigsfm.core.errors import InputError
+from rigsfm.core.names import ImageName
+from rigsfm.core.workspace import Workspace
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass
+class RunModel:
+    """What association needs from a finished run: its narrow images and the pairs' 95 % bands."""
+
+    images: dict[str, pycolmap.Image]  # registered narrow images
+    bands: dict[tuple[str, str], float]
+    known: set[str]  # every image name of the run's inputs (registered or not)
+    world: dict | None
+    centre_sigma_m: dict[str, float] = field(default_factory=dict)  # per narrow image, 1 sigma of its centre
+
+
+def load_run(out: Path) -> RunModel:
+    workspace = Workspace(out)
+    workspace.require_result()
+    reconstruction = workspace.read_sparse()
+    poses = workspace.read_narrow_poses()
+    images = {}
+    for image in reconstruction.images.values():
+        try:
+            name = ImageName.parse(image.name)
+        except ValueError:
+            continue
+        if name.is_narrow and image.has_pose:
+            images[image.name] = image
+    bands = {}
+    for pair in poses.get("pairs", []):
+        band = pair.get("epipolar_band_95_px")
+        if band is not None:
+            bands[(pair["i"], pair["j"])] = float(band)
+            bands[(pair["j"], pair["i"])] = float(band)
+    known = {image.name for image in reconstruction.images.values()} | set(images)
+    centres = {}
+    try:
+        narrow = json.loads(workspace.summary.read_text(encoding="utf-8"))["uncertainty"]["narrow"]
+        centres = {name: float(entry["centre_sigma_mm"]) / 1000.0 for name, entry in narrow.items()
+                   if entry.get("centre_sigma_mm") is not None}
+    except (OSError, ValueError, KeyError, TypeError):
+        logger.warning("%s holds no camera centre uncertainty; the persons' covariances leave it out",
+                       workspace.summary)
+    return RunModel(images, bands, known, poses.get("world"), centres)
+
+
+def require_floor(model: RunModel, out: Path) -> None:
+    """Heights mean metres above the floor only in the floor frame."""
+    frame = (model.world or {}).get("frame")
+    if frame != "floor":
+        raise InputError(f"{out} is not in the floor frame (world: {frame or 'unknown'}), so heights above the floor "
+                         "are unknown: re-run `rigsfm run` with known lengths on the floor (scale.yaml) so it finds "
+                         "the floor")
+
+
+@dataclass
+class FramePersons:
+    frame: str
+    result: FrameResult
+    detections: Detections
+    views: list[View]
+
+
+def frame_views(model: RunModel, detections: Detections, frame: str, names: list[str]) -> list[View]:
+    views = [View.of(model.images[name], detections.images[name].xy) for name in sorted(names)]
+    pairs = {key: band for key, band in model.bands.items() if key[0] in names and key[1] in names}
+    sigmas = view_pose_sigmas([v.name for v in views], pairs)
+    for view in views:
+        view.sigma_pose_px = sigmas[view.name]
+        view.centre_sigma_m = model.centre_sigma_m.get(view.name, 0.0)
+    return views
+
+
+def associate_frames(model: RunModel, detections: Detections, options: AssociateOptions) -> list[FramePersons]:
+    """The persons of every frame of ``detections`` (library entry; nothing written)."""
+    out = []
+    for frame, names in detections.frames().items():
+        views = frame_views(model, detections, frame, names)
+        result = associate_views(views, options)
+        out.append(FramePersons(frame, result, detections, views))
+    return out
+
+
+def associate(out: Path, detections_csv: Path, options: AssociateOptions | None = None) -> Path:
+    """Read OUT (a finished run) and DETECTIONS, associate every frame, write DIR (default OUT/associate)."""
+    from rigsfm.associate.output import check_destination, write_results
+
+    options = options or AssociateOptions()
+    dest = Path(options.out) if options.out is not None else Workspace(Path(out)).associate
+    check_destination(dest, options.overwrite)
+    model = load_run(Path(out))
+    sizes = {name: (image.camera.width, image.camera.height) for name, image in model.images.items()}
+    detections = read_detections(Path(detections_csv), sizes, model.known)
+    require_floor(model, Path(out))
+    frames = associate_frames(model, detections, options)
+    return write_results(dest, model, frames, options)

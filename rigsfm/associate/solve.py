@@ -1,0 +1,445 @@
+"""Multi-view association of point detections (heads) in synchronised narrow images into 3D persons.
+
+Per frame:
+
+1. Each detection becomes a ray (undistorted through its camera, in the run's world frame). Each view gets a pose
+   sigma in pixels from the run's calibrated 95 % bands (``band_ij / 1.96`` squared = ``s_i^2 + s_j^2``, solved for
+   the ``s`` by non-negative least squares); a detection's reprojection noise is ``s_view^2 + pixel_sigma^2``.
+2. Candidates for each pair (i, j): detections of j within ``gate_sigmas`` of the segment that i's ray between the
+   two heights projects to in j (the band of the epipolar line, cut to the height range), triangulated.
+3. Every candidate grows into a multi-view hypothesis: in every other view the detection nearest (Mahalanobis:
+   the point's projected covariance plus that view's noise) to the point's projection joins when inside the gate;
+   the point is re-triangulated (weighted: each ray by its distance and noise), members whose reprojection falls
+   outside their band are dropped, twice over. Hypotheses outside the height range are dropped.
+4. Each hypothesis scores its log-likelihood ratio against "these detections are clutter": per member
+   ``log(p_d / clutter density) - log(2 pi s^2) - d^2 / 2``, per view that sees the point inside its image and has
+   no member ``log(1 - p_d)``, and once the prior density of persons in the crowd's volume times the volume the
+   point's covariance leaves (``log rho + 3/2 log 2 pi + 1/2 log det Sigma``: two views fix a point much less
+   than four). A global set packing (each detection in at most one person; scipy's MILP) keeps the
+   set of hypotheses with the largest summed score.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import pycolmap
+import scipy.optimize
+import scipy.sparse as sp
+from scipy.spatial import cKDTree
+
+from rigsfm.associate.options import AssociateOptions
+from rigsfm.core.ground import undistort_pixels
+
+logger = logging.getLogger(__name__)
+
+BAND_Z = 1.959964  # the bands are 95 % two-sided half-widths of a normal distance
+
+
+@dataclass
+class View:
+    """One narrow image of a frame: its pinhole (undistorted) projection and its detections."""
+
+    name: str
+    k: np.ndarray  # 3x3
+    r: np.ndarray  # 3x3 cam_from_world rotation
+    t: np.ndarray  # 3
+    centre: np.ndarray  # 3, world
+    width: int
+    height: int
+    camera: pycolmap.Camera
+    xy: np.ndarray  # N x 2 raw COLMAP pixels
+    sigma_pose_px: float = 0.0
+    centre_sigma_m: float = 0.0  # the camera centre's 1 sigma relative to the network (the run's uncertainty)
+
+    @classmethod
+    def of(cls, image: pycolmap.Image, xy: np.ndarray) -> View:
+        pose = image.cam_from_world()
+        camera = image.camera
+        return cls(image.name, np.asarray(camera.calibration_matrix(), dtype=np.float64),
+                   pose.rotation.matrix(), np.asarray(pose.translation, dtype=np.float64),
+                   np.asarray(image.projection_center(), dtype=np.float64), camera.width, camera.height, camera,
+                   np.asarray(xy, dtype=np.float64).reshape(-1, 2))
+
+    @property
+    def focal(self) -> float:
+        return float(math.sqrt(abs(self.k[0, 0] * self.k[1, 1])))
+
+    def project(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Undistorted pinhole pixels (N x 2) and depths of world points (N x 3)."""
+        cam = points @ self.r.T + self.t
+        z = cam[:, 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            h = cam @ self.k.T
+            uv = h[:, :2] / z[:, None]
+        return uv, z
+
+    def jacobian(self, points: np.ndarray) -> np.ndarray:
+        """d pinhole pixel / d world point (N x 2 x 3)."""
+        cam = points @ self.r.T + self.t
+        z = np.where(np.abs(cam[:, 2]) > 1e-9, cam[:, 2], 1e-9)
+        fx, fy = self.k[0, 0], self.k[1, 1]
+        j = np.zeros((len(points), 2, 3))
+        j[:, 0, 0] = fx / z
+        j[:, 0, 2] = -fx * cam[:, 0] / z ** 2
+        j[:, 1, 1] = fy / z
+        j[:, 1, 2] = -fy * cam[:, 1] / z ** 2
+        return j @ self.r
+
+    def inside(self, uv: np.ndarray, z: np.ndarray) -> np.ndarray:
+        """Where undistorted pixels fall inside the image (through the lens model) in front of the camera."""
+        ok = z > 0
+        if not ok.any():
+            return ok
+        normalised = (uv[ok] - self.k[:2, 2]) / np.array([self.k[0, 0], self.k[1, 1]])
+        raw = np.asarray(self.camera.img_from_cam(np.c_[normalised, np.ones(len(normalised))]), dtype=np.float64)
+        inside = np.all(np.isfinite(raw), axis=1) & (raw[:, 0] >= 0) & (raw[:, 0] <= self.width) \
+            & (raw[:, 1] >= 0) & (raw[:, 1] <= self.height)
+        ok[np.flatnonzero(ok)] = inside
+        return ok
+
+
+def view_pose_sigmas(names: list[str], bands: dict[tuple[str, str], float]) -> dict[str, float]:
+    """Per view, the pose sigma (px, per coordinate) whose pairwise sums explain the pairs' 95 % bands."""
+    index = {name: i for i, name in enumerate(names)}
+    rows, target = [], []
+    for (a, b), band in bands.items():
+        if a in index and b in index and band is not None and math.isfinite(band):
+            row = np.zeros(len(names))
+            row[index[a]] = row[index[b]] = 1.0
+            rows.append(row)
+            target.append((band / BAND_Z) ** 2)
+    if not rows:
+        return dict.fromkeys(names, 0.0)
+    matrix, target = np.asarray(rows), np.asarray(target)
+    variance, _ = scipy.optimize.nnls(matrix, target)
+    seen = matrix.sum(axis=0) > 0
+    fallback = float(np.median(target) / 2.0)
+    return {name: float(math.sqrt(variance[i] if seen[i] else fallback)) for name, i in index.items()}
+
+
+def _inverse3(a: np.ndarray) -> np.ndarray:
+    """Inverses of stacked 3x3 matrices by their adjugates (stacks of many small matrices: faster than LAPACK)."""
+    c = np.empty_like(a)
+    c[:, 0, 0] = a[:, 1, 1] * a[:, 2, 2] - a[:, 1, 2] * a[:, 2, 1]
+    c[:, 0, 1] = a[:, 0, 2] * a[:, 2, 1] - a[:, 0, 1] * a[:, 2, 2]
+    c[:, 0, 2] = a[:, 0, 1] * a[:, 1, 2] - a[:, 0, 2] * a[:, 1, 1]
+    c[:, 1, 0] = a[:, 1, 2] * a[:, 2, 0] - a[:, 1, 0] * a[:, 2, 2]
+    c[:, 1, 1] = a[:, 0, 0] * a[:, 2, 2] - a[:, 0, 2] * a[:, 2, 0]
+    c[:, 1, 2] = a[:, 0, 2] * a[:, 1, 0] - a[:, 0, 0] * a[:, 1, 2]
+    c[:, 2, 0] = a[:, 1, 0] * a[:, 2, 1] - a[:, 1, 1] * a[:, 2, 0]
+    c[:, 2, 1] = a[:, 0, 1] * a[:, 2, 0] - a[:, 0, 0] * a[:, 2, 1]
+    c[:, 2, 2] = a[:, 0, 0] * a[:, 1, 1] - a[:, 0, 1] * a[:, 1, 0]
+    det = a[:, 0, 0] * c[:, 0, 0] + a[:, 0, 1] * c[:, 1, 0] + a[:, 0, 2] * c[:, 2, 0]
+    return c / det[:, None, None]
+
+
+@dataclass
+class FrameResult:
+    """The persons of one frame: per person its point, covariance, score, confidence and member detections."""
+
+    views: list[str]
+    points: np.ndarray  # P x 3 world metres
+    covariances: np.ndarray  # P x 3 x 3
+    scores: np.ndarray  # P: log-likelihood ratio against clutter
+    members: np.ndarray  # P x V: index of the detection in each view's list, or -1
+
+    @property
+    def confidence(self) -> np.ndarray:
+        return 1.0 / (1.0 + np.exp(-np.clip(self.scores, -50, 50)))
+
+    def __len__(self) -> int:
+        return len(self.points)
+
+
+class _Frame:
+    """The stacked detections of one frame's views."""
+
+    def __init__(self, views: list[View], options: AssociateOptions):
+        self.views = views
+        self.options = options
+        self.noise = np.array([math.sqrt(v.sigma_pose_px ** 2 + options.pixel_sigma ** 2) for v in views])
+        counts = [len(v.xy) for v in views]
+        self.offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+        self.view_of = np.repeat(np.arange(len(views)), counts)
+        undist, rays = [], []
+        for v in views:
+            if len(v.xy):
+                uv = undistort_pixels(v.camera, v.xy)
+                d = np.c_[(uv - v.k[:2, 2]) / np.array([v.k[0, 0], v.k[1, 1]]), np.ones(len(uv))] @ v.r
+                d /= np.linalg.norm(d, axis=1, keepdims=True)
+            else:
+                uv, d = np.zeros((0, 2)), np.zeros((0, 3))
+            undist.append(uv)
+            rays.append(d)
+        self.uv = np.concatenate(undist) if undist else np.zeros((0, 2))
+        self.rays = np.concatenate(rays) if rays else np.zeros((0, 3))
+        self.valid = np.all(np.isfinite(self.uv), axis=1)
+        self.centres = np.array([v.centre for v in views])
+        self.focals = np.array([v.focal for v in views])
+        self.trees = [cKDTree(u[np.all(np.isfinite(u), axis=1)]) if len(u) else None for u in undist]
+        self.tree_index = [np.flatnonzero(np.all(np.isfinite(u), axis=1)) + self.offsets[i]
+                           for i, u in enumerate(undist)]
+        # Clutter density (detections per px^2) around each detection: crowds fill a band of the image (the heads'
+        # heights), where a chance match is far likelier than the image's mean density says.
+        area = np.array([v.width * v.height for v in views], dtype=np.float64)
+        self.clutter = np.zeros(len(self.uv))
+        for i, tree in enumerate(self.trees):
+            rows = self.tree_index[i]
+            if tree is None or not len(rows):
+                continue
+            near = tree.query_ball_point(self.uv[rows], options.clutter_radius_px, return_length=True)
+            self.clutter[rows] = np.maximum(near, 1) / (math.pi * options.clutter_radius_px ** 2)
+            self.clutter[rows] = np.maximum(self.clutter[rows], 1.0 / area[i])
+
+    # --- geometry --------------------------------------------------------------------------------------------
+
+    def ray_points(self, det: np.ndarray, height: float) -> np.ndarray:
+        """Where each detection's ray meets z = height (in front: t >= a small positive distance)."""
+        c = self.centres[self.view_of[det]]
+        d = self.rays[det]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t = (height - c[:, 2]) / d[:, 2]
+        t = np.where(np.isfinite(t) & (t > 0.1), t, 0.1)
+        return c + t[:, None] * d
+
+    def triangulate(self, members: np.ndarray, points: np.ndarray | None = None,
+                    ) -> tuple[np.ndarray, np.ndarray]:
+        """Weighted ray intersection of each row's members (G x V, -1: none); returns points and covariances."""
+        g, nv = members.shape
+        present = members >= 0
+        d = self.rays[np.where(present, members, 0)]  # G x V x 3
+        dc = np.einsum("gvi,vi->gv", d, self.centres)
+        for _ in range(2 if points is None else 1):
+            if points is None:
+                depth = np.ones((g, nv))
+            else:
+                depth = np.maximum(np.linalg.norm(points[:, None, :] - self.centres[None], axis=2), 0.1)
+            # A ray's lateral sigma (m) at the point: its angular noise times the distance.
+            w = np.where(present, (self.focals[None] / (depth * self.noise[None])) ** 2, 0.0)
+            a = np.einsum("gv,gvi,gvj->gij", w, d, d)
+            a = w.sum(axis=1)[:, None, None] * np.eye(3)[None] - a
+            b = w @ self.centres - np.einsum("gv,gvi->gi", w * dc, d)
+            a += np.eye(3)[None] * 1e-9 * np.trace(a, axis1=1, axis2=2)[:, None, None]
+            covariance = _inverse3(a)
+            points = np.einsum("gij,gj->gi", covariance, b)
+        return points, covariance
+
+    def residuals(self, members: np.ndarray, points: np.ndarray) -> np.ndarray:
+        """Squared reprojection distance of each member over its noise (G x V; NaN where no member)."""
+        out = np.full(members.shape, np.nan)
+        for v, view in enumerate(self.views):
+            rows = np.flatnonzero(members[:, v] >= 0)
+            if not len(rows):
+                continue
+            uv, z = view.project(points[rows])
+            d2 = np.sum((uv - self.uv[members[rows, v]]) ** 2, axis=1) / self.noise[v] ** 2
+            out[rows, v] = np.where(z > 0, d2, np.inf)
+        return out
+
+    # --- hypotheses ------------------------------------------------------------------------------------------
+
+    def pair_candidates(self) -> np.ndarray:
+        """Seeds (S x V members): every pair (i, j) whose detection in j lies in the band of i's ray segment."""
+        lo, hi = self.options.heights
+        gate = self.options.gate_sigmas
+        seeds = []
+        for i, vi in enumerate(self.views):
+            di = np.arange(self.offsets[i], self.offsets[i + 1])
+            di = di[self.valid[di]]
+            if not len(di):
+                continue
+            p_lo, p_hi = self.ray_points(di, lo), self.ray_points(di, hi)
+            for j in range(i + 1, len(self.views)):
+                vj = self.views[j]
+                if self.trees[j] is None:
+                    continue
+                a, za = vj.project(p_lo)
+                b, zb = vj.project(p_hi)
+                ok = (za > 0) & (zb > 0)
+                if not ok.any():
+                    continue
+                sigma = math.hypot(self.noise[i], self.noise[j])
+                radius = gate * sigma
+                seg = b - a
+                length = np.linalg.norm(seg, axis=1)
+                mid = (a + b) / 2
+                near = self.trees[j].query_ball_point(mid[ok], length[ok] / 2 + radius)
+                rows = np.flatnonzero(ok)
+                counts = np.array([len(n) for n in near])
+                if not counts.sum():
+                    continue
+                ra = np.repeat(rows, counts)
+                cb = self.tree_index[j][np.concatenate([np.asarray(n, dtype=np.int64) for n in near])]
+                p = self.uv[cb]
+                s = seg[ra]
+                l2 = np.maximum(np.sum(s ** 2, axis=1), 1e-12)
+                tt = np.clip(np.sum((p - a[ra]) * s, axis=1) / l2, 0.0, 1.0)
+                dist = np.linalg.norm(p - (a[ra] + tt[:, None] * s), axis=1)
+                keep = dist <= radius
+                m = np.full((int(keep.sum()), len(self.views)), -1, dtype=np.int64)
+                m[:, i] = di[ra[keep]]
+                m[:, j] = cb[keep]
+                seeds.append(m)
+        if not seeds:
+            return np.zeros((0, len(self.views)), dtype=np.int64)
+        return np.concatenate(seeds)
+
+    def grow(self, members: np.ndarray, points: np.ndarray, covariance: np.ndarray) -> np.ndarray:
+        """Add, in every view without a member, the detection nearest the point's projection within the gate."""
+        members = members.copy()
+        gate2 = self.options.member_gate ** 2
+        for v, view in enumerate(self.views):
+            rows = np.flatnonzero(members[:, v] < 0)
+            if not len(rows) or self.trees[v] is None:
+                continue
+            uv, z = view.project(points[rows])
+            front = (z > 0) & np.all(np.isfinite(uv), axis=1)
+            rows, uv = rows[front], uv[front]
+            if not len(rows):
+                continue
+            jac = view.jacobian(points[rows])
+            s = jac @ covariance[rows] @ np.transpose(jac, (0, 2, 1)) + np.eye(2)[None] * self.noise[v] ** 2
+            reach = 3.0 * np.sqrt(np.max(np.linalg.eigvalsh(s), axis=1)) * self.options.member_gate / 3.0
+            k = min(4, len(self.tree_index[v]))
+            dist, near = self.trees[v].query(uv, k=k, distance_upper_bound=float(np.max(reach)) + 1.0)
+            dist, near = dist.reshape(len(rows), k), near.reshape(len(rows), k)
+            s_inv = np.linalg.inv(s)
+            best = np.full(len(rows), -1, dtype=np.int64)
+            best_d2 = np.full(len(rows), np.inf)
+            for q in range(k):
+                ok = np.isfinite(dist[:, q])
+                if not ok.any():
+                    continue
+                cand = np.full(len(rows), 0, dtype=np.int64)
+                cand[ok] = self.tree_index[v][near[ok, q]]
+                diff = self.uv[cand] - uv
+                d2 = np.einsum("ni,nij,nj->n", diff, s_inv, diff)
+                better = ok & (d2 < best_d2) & (d2 <= gate2)
+                best[better], best_d2[better] = cand[better], d2[better]
+            members[rows, v] = best
+        return members
+
+    def verify(self, members: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Re-triangulate, drop members outside their band, re-triangulate: members, points, covariances."""
+        gate2 = self.options.member_gate ** 2
+        points, covariance = self.triangulate(members)
+        for _ in range(2):
+            d2 = self.residuals(members, points)
+            worst = np.nanargmax(np.where(np.isnan(d2), -1.0, d2), axis=1)
+            rows = np.arange(len(members))
+            bad = d2[rows, worst] > gate2
+            members = members.copy()
+            members[rows[bad], worst[bad]] = -1
+            points, covariance = self.triangulate(members, points)
+        return members, points, covariance
+
+    def score(self, members: np.ndarray, points: np.ndarray, covariance: np.ndarray) -> np.ndarray:
+        p_d = self.options.detection_probability
+        lo, hi = self.options.heights
+        # A person's point is a priori anywhere in the crowd's volume: the likelihood integrated over it (Laplace)
+        # pays for the three coordinates the detections themselves fix.
+        prior = math.log(self.options.persons_per_m2 / (hi - lo)) + 1.5 * math.log(2 * math.pi)
+        sign, logdet = np.linalg.slogdet(covariance)
+        prior = prior + 0.5 * np.where(sign > 0, logdet, -np.inf)
+        d2 = self.residuals(members, points)
+        present = members >= 0
+        clutter = np.where(present, self.clutter[np.where(present, members, 0)], 1.0)
+        per_member = math.log(p_d) - np.log(clutter) - np.log(2 * math.pi * self.noise ** 2)[None] \
+            - 0.5 * np.nan_to_num(d2, nan=0.0, posinf=1e6)
+        total = prior + np.sum(np.where(present, per_member, 0.0), axis=1)
+        miss = math.log(max(1.0 - p_d, 1e-6))
+        for v, view in enumerate(self.views):
+            uv, z = view.project(points)
+            seen = view.inside(uv, z) & ~present[:, v]
+            total += np.where(seen, miss, 0.0)
+        return total
+
+    def hypotheses(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        seeds = self.pair_candidates()
+        if not len(seeds):
+            empty = np.zeros((0, len(self.views)), dtype=np.int64)
+            return empty, np.zeros((0, 3)), np.zeros((0, 3, 3)), np.zeros(0)
+        points, covariance = self.triangulate(seeds)
+        lo, hi = self.options.heights
+        ok = (points[:, 2] >= lo) & (points[:, 2] <= hi) & np.all(
+            np.nan_to_num(self.residuals(seeds, points), nan=0.0) <= self.options.member_gate ** 2, axis=1)
+        members = seeds[ok]
+        points, covariance = points[ok], covariance[ok]
+        groups = [members]
+        for _ in range(2):
+            members = self.grow(members, points, covariance)
+            members, points, covariance = self.verify(members)
+            groups.append(members)
+        members = np.unique(np.concatenate(groups), axis=0)
+        members = members[np.sum(members >= 0, axis=1) >= 2]
+        if not len(members):
+            return members, np.zeros((0, 3)), np.zeros((0, 3, 3)), np.zeros(0)
+        members, points, covariance = self.verify(members)
+        members = members[np.sum(members >= 0, axis=1) >= 2]
+        members = np.unique(members, axis=0)
+        points, covariance = self.triangulate(members)
+        points, covariance = self.triangulate(members, points)
+        d2 = self.residuals(members, points)
+        inside = np.all(np.nan_to_num(d2, nan=0.0) <= self.options.member_gate ** 2, axis=1)
+        ok = (points[:, 2] >= lo) & (points[:, 2] <= hi) & inside
+        members, points, covariance = members[ok], points[ok], covariance[ok]
+        return members, points, covariance, self.score(members, points, covariance)
+
+
+def _pack(members: np.ndarray, scores: np.ndarray, total: int, time_limit: float) -> np.ndarray:
+    """The subset of hypotheses with the largest summed score, each detection in at most one (MILP; greedy start)."""
+    n = len(scores)
+    if not n:
+        return np.zeros(0, dtype=bool)
+    rows = members[members >= 0]
+    cols = np.repeat(np.arange(n), np.sum(members >= 0, axis=1))
+    order = np.argsort(-scores)
+    greedy = np.zeros(n, dtype=bool)
+    used = np.zeros(total, dtype=bool)
+    for g in order:
+        m = members[g][members[g] >= 0]
+        if not used[m].any():
+            greedy[g] = True
+            used[m] = True
+    # Only detections claimed by two or more hypotheses constrain anything.
+    a = sp.csr_matrix((np.ones(len(rows)), (rows, cols)), shape=(total, n))
+    shared = np.asarray(a.sum(axis=1)).ravel() > 1
+    if not shared.any():
+        return np.ones(n, dtype=bool)
+    constraint = scipy.optimize.LinearConstraint(a[shared], -np.inf, 1.0)
+    result = scipy.optimize.milp(-scores, constraints=[constraint], integrality=np.ones(n),
+                                 bounds=scipy.optimize.Bounds(0, 1), options={"time_limit": time_limit})
+    if result.x is None:
+        logger.warning("set packing found no solution in %.1f s; kept the greedy one", time_limit)
+        return greedy
+    chosen = result.x > 0.5
+    if scores[chosen].sum() < scores[greedy].sum():
+        return greedy
+    return chosen
+
+
+def associate_views(views: list[View], options: AssociateOptions) -> FrameResult:
+    """Persons seen by the detections of one frame's views (each view: pose, camera and raw detections)."""
+    frame = _Frame(views, options)
+    names = [v.name for v in views]
+    total = int(frame.offsets[-1])
+    members, points, covariance, scores = frame.hypotheses()
+    positive = scores > options.min_score
+    members, points, covariance, scores = members[positive], points[positive], covariance[positive], scores[positive]
+    chosen = _pack(members, scores - options.min_score, total, options.time_limit_s)
+    members, points, covariance, scores = members[chosen], points[chosen], covariance[chosen], scores[chosen]
+    # The cameras' own position errors are shared by every person they see, so they do not shrink with more views:
+    # each person's covariance carries its views' mean centre variance on top of the triangulation's.
+    centre_var = np.array([v.centre_sigma_m ** 2 for v in views])
+    present = members >= 0
+    shared = (present * centre_var[None]).sum(axis=1) / np.maximum(present.sum(axis=1), 1)
+    covariance = covariance + shared[:, None, None] * np.eye(3)[None]
+    local = np.where(members >= 0, members - frame.offsets[:-1][None], -1)
+    order = np.lexsort((points[:, 1], points[:, 0]))
+    logger.info("%d persons from %d detections in %d views (%d hypotheses)", len(order), total, len(views),
+                int(positive.sum()))
+    return FrameResult(names, points[order], covariance[order], scores[order], local[order])

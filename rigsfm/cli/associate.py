@@ -1,0 +1,43 @@
+"""``rigsfm associate``."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated, Optional
+
+import typer
+
+from rigsfm.cli.common import configure_logging, console, fail_cleanly, flag
+from rigsfm.core.errors import InputError
+
+
+@fail_cleanly
+def associate_command(
+    out: Annotated[Path, typer.Argument(metavar="OUT", help="workspace of a finished `rigsfm run`", show_default=False)],
+    detections: Annotated[Path, typer.Argument(
+        metavar="DETECTIONS", help="CSV image,x,y[,score][,label]: points in narrow images (COLMAP pixels), one or many synchronised frames",
+        show_default=False)],
+    dest: Annotated[Optional[Path], typer.Option("--out", metavar="DIR", help="folder to write [default: OUT/associate]",
+                                                 show_default=False)] = None,
+    heights: Annotated[str, typer.Option("--heights", metavar="LOW-HIGH",
+                                         help="the points' heights above the floor (m)")] = "1.0-2.1",
+    pixel_sigma: Annotated[float, typer.Option("--pixel-sigma", min=0.01, metavar="PX", help="detection noise per coordinate (px)")]
+    = 2.0,
+    detection_probability: Annotated[float, typer.Option(
+        "--detection-probability", min=0.01, max=0.99, metavar="P", help="a person is detected in a view that sees it (occlusion "
+                                                            "included)")] = 0.7,
+    overwrite: Annotated[bool, flag("--overwrite", help="replace an earlier association in --out")] = False,
+    verbose: Annotated[bool, flag("--verbose", "-v", help="show rigsfm's log (info level) on the terminal")] = False,
+) -> None:
+    """Find the same person across narrow views: group detections into 3D persons per frame (persons.csv/json, a
+    floor map with 95 % ellipses, a density grid)."""
+    configure_logging(verbose)
+    from rigsfm.associate import AssociateOptions, associate
+    from rigsfm.core.ground import parse_heights
+
+    try:
+        options = AssociateOptions(heights=parse_heights(heights), pixel_sigma=pixel_sigma,
+                                   detection_probability=detection_probability, out=dest, overwrite=overwrite)
+    except ValueError as e:
+        raise InputError(f"{e}; see rigsfm associate --help") from None
+    console.print(f"persons: {associate(out, detections, options)}")

@@ -6,6 +6,7 @@ ground-truth ``pycolmap.Reconstruction``; ``python -m rigsfm.synth OUT`` does th
 
 from rigsfm.synth.cameras import RigTruth, make_rigs
 from rigsfm.synth.dataset import SyntheticDataset, render_dataset
+from rigsfm.synth.persons import read_person_truth
 from rigsfm.synth.render import pixel_rays, render_clean, render_image
 from rigsfm.synth.scene import Arena, Bar, SceneOptions, build_arena
 
@@ -18,6 +19,7 @@ __all__ = [
     "build_arena",
     "make_rigs",
     "pixel_rays",
+    "read_person_truth",
     "render_clean",
     "render_dataset",
     "render_image",

@@ -8,12 +8,18 @@ OUT/
   scale.yaml         camera_distance (rig01 to the farthest rig) + known_length (a 2 m bar)
   scene.yaml         the SceneOptions and the bar's world end points, for reference
   ground_truth/      pycolmap.Reconstruction (binary): cameras, rigs, frames, images; no points
+  persons/           with persons_per_m2 > 0: every head's truth (rigsfm.synth.persons: heads.csv, frameNNNN.json)
 ```
+
+Rig ``r``'s frame ``k`` is taken at time ``(k + offset_r) * frame_period_s`` (``frame_offsets``); only the persons
+move. With ``jpeg_quality`` the images are ``frameNNNN.jpg``; with ``exposure_jitter`` each image's brightness is
+scaled by its own gain (scene.yaml lists them).
 """
 
 from __future__ import annotations
 
 import dataclasses
+import json
 import logging
 import shutil
 import time
@@ -32,7 +38,9 @@ from rigsfm.core.io import parse_yaml, write_text_atomic
 from rigsfm.core.rig import RigCalibration, add_posed_rig, rigs_to_yaml, write_rigs
 from rigsfm.synth.cameras import RigTruth, calibration_error_sigmas, make_rigs, user_calibration
 from rigsfm.synth.render import render_clean, to_uint8, visible
-from rigsfm.synth.scene import Arena, Bar, SceneOptions, build_arena
+from rigsfm.synth.persons import Crowd, HeadsInImage, build_crowd, head_samples, heads_csv, HEAD, HEAD_RADIUS, \
+    VISIBILITY_SAMPLES
+from rigsfm.synth.scene import PERSON, Arena, Bar, SceneOptions, build_arena, trace
 
 logger = logging.getLogger(__name__)
 
@@ -55,9 +63,13 @@ class SyntheticDataset:
         return pycolmap.Reconstruction(str(self.ground_truth))
 
 
-def image_name(rig: str, sensor: str, frame: int) -> str:
+def image_name(rig: str, sensor: str, frame: int, suffix: str = ".png") -> str:
     """Image name relative to ``images/``, as in the ground truth: ``rig01/wide/frame0000.png``."""
-    return str(ImageName(rig, Sensor(sensor), f"frame{frame:04d}.png"))
+    return str(ImageName(rig, Sensor(sensor), f"frame{frame:04d}{suffix}"))
+
+
+def image_suffix(options: SceneOptions) -> str:
+    return ".jpg" if options.jpeg_quality > 0 else ".png"
 
 
 def choose_bar(arena: Arena, first: RigTruth, second: RigTruth) -> Bar | None:
@@ -100,23 +112,25 @@ def choose_bar(arena: Arena, first: RigTruth, second: RigTruth) -> Bar | None:
     return Bar(a[best], b[best])
 
 
-def ground_truth_reconstruction(rigs: list[RigTruth], frames_per_rig: int) -> pycolmap.Reconstruction:
+def ground_truth_reconstruction(rigs: list[RigTruth], frames_per_rig: int, suffix: str = ".png",
+                                ) -> pycolmap.Reconstruction:
     """Exact cameras, one pycolmap.Rig per rig (wide = reference sensor), frames and images."""
     rec = pycolmap.Reconstruction()
     for index, truth in enumerate(rigs):
-        frames = [{sensor: image_name(truth.name, sensor, frame) for sensor in SENSORS}
+        frames = [{sensor: image_name(truth.name, sensor, frame, suffix) for sensor in SENSORS}
                   for frame in range(frames_per_rig)]
         add_posed_rig(rec, index + 1, truth.calibration(), truth.wide_from_world, frames)
     return rec
 
 
-def _scale_yaml(rigs: list[RigTruth], bar: Bar | None, first: RigTruth, second: RigTruth) -> str:
+def _scale_yaml(rigs: list[RigTruth], bar: Bar | None, first: RigTruth, second: RigTruth, suffix: str = ".png",
+                ) -> str:
     far = max(rigs[1:], key=lambda rig: float(np.linalg.norm(rig.centre() - rigs[0].centre())))
     observations = []
     for rig in (first, second) if bar is not None else ():
         a, b = project_world(rig.wide, rig.wide_from_world, np.stack([bar.a, bar.b]), margin_px=None)[0]
         observations.append(
-            {"image": image_name(rig.name, "wide", 0), "a": [float(v) for v in a], "b": [float(v) for v in b]}
+            {"image": image_name(rig.name, "wide", 0, suffix), "a": [float(v) for v in a], "b": [float(v) for v in b]}
         )
     data = {
         "camera_distance": [
@@ -149,9 +163,59 @@ def _prepare(out_dir: Path, overwrite: bool) -> None:
     if out_dir.exists() and any(out_dir.iterdir()):
         if not overwrite:
             raise WorkspaceError(f"{out_dir} is not empty: pass overwrite=True (--overwrite) to replace it")
-        for name in ("images", "ground_truth"):
+        for name in ("images", "ground_truth", "persons"):
             shutil.rmtree(out_dir / name, ignore_errors=True)
     out_dir.mkdir(parents=True, exist_ok=True)
+
+
+def _write_image(path: Path, image: np.ndarray, options: SceneOptions) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    params = [cv2.IMWRITE_JPEG_QUALITY, options.jpeg_quality] if options.jpeg_quality > 0 else []
+    if not cv2.imwrite(str(path), image, params):
+        raise OSError(f"could not write {path}")
+
+
+def heads_in_image(arena: Arena, camera: pycolmap.Camera, cam_from_world: pycolmap.Rigid3d) -> HeadsInImage:
+    """The heads of ``arena.persons`` whose centre projects inside the image, with their visibility (the share of
+    rays to points over each head's silhouette that first meet that head; the first point is the centre)."""
+    persons = arena.persons
+    centres = persons.head_centres()
+    xy, inside = project_world(camera, cam_from_world, centres, margin_px=0.0)
+    ids = np.flatnonzero(inside)
+    if not len(ids):
+        return HeadsInImage(ids, np.zeros((0, 2)), np.zeros(0, bool), np.zeros(0))
+    eye = np.asarray(cam_from_world.inverse().translation, dtype=np.float64)
+    points = head_samples(centres[ids], eye).reshape(-1, 3)
+    rays = points - eye
+    rays /= np.linalg.norm(rays, axis=1, keepdims=True)
+    hits = trace(arena, eye, rays)
+    own = (hits.kind == PERSON) & (hits.object_index == np.repeat(ids, VISIBILITY_SAMPLES))
+    own &= hits.u == HEAD
+    own = own.reshape(len(ids), -1)
+    return HeadsInImage(ids, xy[ids], own[:, 0], own.mean(axis=1))
+
+
+def _write_person_truth(folder: Path, options: SceneOptions, rigs: list[RigTruth], crowd: Crowd,
+                        rows: list[tuple[str, HeadsInImage]]) -> None:
+    folder.mkdir(parents=True, exist_ok=True)
+    for frame in range(options.frames_per_rig):
+        instants: dict[float, int] = {}
+        entries = {}
+        for rig in rigs:
+            time_frames = frame + options.frame_offset(rig.name)
+            instant = instants.setdefault(time_frames, len(instants))
+            entries[rig.name] = {"offset_frames": options.frame_offset(rig.name),
+                                 "time_s": time_frames * options.frame_period_s, "instant": instant}
+        data = {
+            "frame": frame,
+            "period_s": options.frame_period_s,
+            "head_radius_m": HEAD_RADIUS,
+            "rigs": entries,
+            "instants": [{"time_s": t * options.frame_period_s,
+                          "heads": np.round(crowd.at(t).head_centres(), 6).tolist()} for t in instants],
+        }
+        write_text_atomic(folder / f"frame{frame:04d}.json", json.dumps(data, separators=(",", ":")))
+    write_text_atomic(folder / "heads.csv", heads_csv(rows))
 
 
 def render_dataset(
@@ -168,34 +232,53 @@ def render_dataset(
     bar = choose_bar(arena, first, second)
     arena = arena.with_bar(bar)
 
-    names = []
+    times = sorted({frame + options.frame_offset(rig.name) for rig in rigs
+                    for frame in range(options.frames_per_rig)})
+    crowd = build_crowd(options, times)
+    suffix = image_suffix(options)
+    names, gains, person_rows = [], {}, []
     for index, truth in enumerate(rigs):
         for s, sensor in enumerate(SENSORS):
             camera = truth.wide if sensor == "wide" else truth.narrow
             pose = truth.wide_from_world if sensor == "wide" else truth.narrow_from_world
-            clean = render_clean(arena, camera, pose)
+            clean, instant = None, None
             for frame in range(options.frames_per_rig):
+                time_frames = frame + options.frame_offset(truth.name)
+                if clean is None or (crowd is not None and time_frames != instant):
+                    scene = arena if crowd is None else arena.with_persons(crowd.at(time_frames))
+                    clean, instant = render_clean(scene, camera, pose), time_frames
+                    if crowd is not None:
+                        heads = heads_in_image(scene, camera, pose)
                 rng = np.random.default_rng([options.seed, 41, index, s, frame])
-                name = image_name(truth.name, sensor, frame)
-                path = out_dir / "images" / name
-                path.parent.mkdir(parents=True, exist_ok=True)
-                if not cv2.imwrite(str(path), to_uint8(clean, rng, options.noise_sigma)):
-                    raise OSError(f"could not write {path}")
+                name = image_name(truth.name, sensor, frame, suffix)
+                image = clean
+                if options.exposure_jitter > 0:
+                    gain = np.random.default_rng([options.seed, 43, index, s, frame]).uniform(
+                        1 - options.exposure_jitter, 1 + options.exposure_jitter)
+                    gains[name] = float(gain)
+                    image = clean * gain
+                _write_image(out_dir / "images" / name, to_uint8(image, rng, options.noise_sigma), options)
                 names.append(name)
+                if crowd is not None:
+                    person_rows.append((name, heads))
         logger.info("rendered %s (%d/%d)", truth.name, index + 1, len(rigs))
+    if crowd is not None:
+        _write_person_truth(out_dir / "persons", options, rigs, crowd, person_rows)
 
     write_text_atomic(out_dir / "rigs.yaml", rigs_yaml_with_sigmas(user_calibration(rigs, options))
                       if options.calibration_noise else rigs_to_yaml(user_calibration(rigs, options)))
     write_rigs(out_dir / "rigs_exact.yaml", [rig.calibration() for rig in rigs], overwrite=True)
-    write_text_atomic(out_dir / "scale.yaml", _scale_yaml(rigs, bar, first, second))
+    write_text_atomic(out_dir / "scale.yaml", _scale_yaml(rigs, bar, first, second, suffix))
     scene = {
         "options": dataclasses.asdict(options),
         "bar": {"a": [float(v) for v in bar.a], "b": [float(v) for v in bar.b]} if bar is not None else None,
     }
+    if gains:
+        scene["exposure_gain"] = gains
     write_text_atomic(out_dir / "scene.yaml", yaml.safe_dump(scene, sort_keys=False, default_flow_style=None))
     gt_dir = out_dir / "ground_truth"
     gt_dir.mkdir(parents=True, exist_ok=True)
-    ground_truth_reconstruction(rigs, options.frames_per_rig).write(str(gt_dir))
+    ground_truth_reconstruction(rigs, options.frames_per_rig, suffix).write(str(gt_dir))
     logger.info("wrote %d images to %s in %.1f s", len(names), out_dir, time.perf_counter() - start)
     return SyntheticDataset(
         out_dir,

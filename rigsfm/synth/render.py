@@ -15,7 +15,7 @@ import numpy as np
 import pycolmap
 
 from rigsfm.core.geometry import project_world
-from rigsfm.synth.scene import GROUND, OBJECT, SKY, WALL, Arena, Bar, Hits, trace
+from rigsfm.synth.scene import GROUND, OBJECT, PERSON, SKY, WALL, Arena, Bar, Hits, trace
 
 logger = logging.getLogger(__name__)
 
@@ -137,6 +137,9 @@ def shade(arena: Arena, origin: np.ndarray, dirs: np.ndarray, hits: Hits, pixel_
             arena.bar, np.column_stack([gx[sel], gy[sel]]), fp[sel], ground_values[sel]
         )
     values[ground] = ground_values
+    person = np.flatnonzero(hits.kind == PERSON)
+    if len(person):
+        values[person] = arena.persons.greys[hits.object_index[person], hits.u[person].astype(np.int64)]
     values[~sky] *= light[~sky]
     return values
 

@@ -3,7 +3,8 @@
 World frame: metres, z up, origin on the ground at the arena centre. The ground is the plane z = 0
 up to a cylindrical wall (the stands) of radius ``wall_radius``; inside ``centre_radius`` the ground
 is a homogeneous grey disc (what the narrow cameras see), outside it a richly textured ring.
-Pillars (vertical cylinders) and boxes stand on the ring behind the rigs.
+Pillars (vertical cylinders) and boxes stand on the ring behind the rigs; with ``persons_per_m2`` a crowd of 3D
+persons (rigsfm.synth.persons) stands on the disc, placed into an arena for one instant with ``Arena.with_persons``.
 
 Textures take ~6-9 s per seed to generate; each process keeps its last few (``lru_cache``), and with
 ``RIGSFM_TEXTURE_CACHE=DIR`` in the environment they are also kept in DIR for other processes (the test suite's
@@ -23,11 +24,12 @@ from pathlib import Path
 import numpy as np
 
 from rigsfm.core.io import read_npz, write_npz_atomic
+from rigsfm.synth.persons import Persons, intersect
 from rigsfm.synth.textures import Texture, build_pyramid, crowd_texture, procedural_texture
 
 logger = logging.getLogger(__name__)
 
-SKY, GROUND, WALL, OBJECT = 0, 1, 2, 3
+SKY, GROUND, WALL, OBJECT, PERSON = 0, 1, 2, 3, 4
 
 
 @dataclass(frozen=True)
@@ -58,6 +60,12 @@ class SceneOptions:
     bar_length: float = 2.0
     noise_sigma: float = 1.5  # grey levels
     vignetting: float = 0.12  # relative darkening at the image corners
+    persons_per_m2: float = 0.0  # 3D persons on the centre disc (rigsfm.synth.persons); 0: none
+    person_separation: float = 0.4  # least distance between two persons' centres (m)
+    frame_period_s: float = 0.5  # time between two frames of a rig (persons walk meanwhile)
+    frame_offsets: tuple[tuple[str, float], ...] = ()  # (rig, frames): its frame k is taken at time k + offset
+    exposure_jitter: float = 0.0  # each image's exposure gain is uniform in 1 +- this
+    jpeg_quality: int = 0  # 1..100: JPEG images of that quality; 0: PNG
 
     def __post_init__(self) -> None:
         if self.num_rigs < 2:
@@ -70,6 +78,21 @@ class SceneOptions:
             raise ValueError(f"frames_per_rig must be >= 1, got {self.frames_per_rig}")
         if not self.centre_radius + 1.0 < self.radius < self.wall_radius - 4.0:
             raise ValueError("need centre_radius + 1 < radius < wall_radius - 4")
+        if self.persons_per_m2 < 0 or self.person_separation <= 0 or self.frame_period_s <= 0:
+            raise ValueError("persons_per_m2 must be >= 0, person_separation and frame_period_s > 0")
+        if not 0.0 <= self.exposure_jitter < 1.0:
+            raise ValueError(f"exposure_jitter must be in [0, 1), got {self.exposure_jitter}")
+        if not 0 <= self.jpeg_quality <= 100:
+            raise ValueError(f"jpeg_quality must be 1..100 (0: PNG), got {self.jpeg_quality}")
+        rigs = {f"rig{i + 1:02d}" for i in range(self.num_rigs)}
+        unknown = sorted(name for name, _ in self.frame_offsets if name not in rigs)
+        if unknown:
+            raise ValueError(f"frame offsets name unknown rigs {', '.join(unknown)} "
+                             f"(rigs are rig01..rig{self.num_rigs:02d})")
+
+    def frame_offset(self, rig: str) -> float:
+        """Rig ``rig``'s frame k is taken at time ``(k + offset) * frame_period_s``."""
+        return dict(self.frame_offsets).get(rig, 0.0)
 
 
 @dataclass(frozen=True)
@@ -121,14 +144,19 @@ class Arena:
     boxes: tuple[Box, ...]
     textures: Textures
     bar: Bar | None = None
+    persons: Persons | None = None  # the crowd at the instant rendered
 
     def with_bar(self, bar: Bar | None) -> Arena:
         return replace(self, bar=bar)
 
+    def with_persons(self, persons: Persons | None) -> Arena:
+        return replace(self, persons=persons)
+
 
 @dataclass
 class Hits:
-    """Per ray: distance ``t`` (inf for sky), surface kind, texture coords (m), unit normal."""
+    """Per ray: distance ``t`` (inf for sky), surface kind, texture coords (m), unit normal. For a PERSON hit,
+    ``object_index`` is the person, ``u`` the part (rigsfm.synth.persons.LEGS ... HEAD) and ``v`` the height (m)."""
 
     t: np.ndarray
     kind: np.ndarray
@@ -332,6 +360,16 @@ def trace(arena: Arena, origin: np.ndarray, dirs: np.ndarray) -> Hits:
             t = np.where((t_near <= t_far) & (t_near > 0), t_near, np.inf)
             _closer(hits, t, OBJECT, len(arena.pillars) + j, rows)
     _surface_coordinates(arena, o, d, hits)
+    if arena.persons is not None and len(arena.persons):
+        found = intersect(arena.persons, o, d, hits.t)
+        better = found.t < hits.t[found.rows]
+        rows = found.rows[better]
+        hits.t[rows] = found.t[better]
+        hits.kind[rows] = PERSON
+        hits.object_index[rows] = found.person[better]
+        hits.u[rows] = found.part[better]
+        hits.v[rows] = o[2] + found.t[better] * d[rows, 2]
+        hits.normal[rows] = found.normal[better]
     return hits
 
 

@@ -10,7 +10,8 @@ from rich.table import Table
 
 from rigsfm.cli.common import StageProgress, configure_logging, console, fail_cleanly, finish, flag, progress_bars
 from rigsfm.run.options import (GLOBAL_FROM_FRAMES, AdjustOptions, Calibration, Device, Executor, Features, Mapper,
-                                 MappingOptions, MatchingOptions, Pairs, RunOptions, WorldFrame, WorldOptions)
+                                 MappingOptions, MatchingOptions, Pairs, RunOptions, SelfCheckOptions, WorldFrame,
+                                 WorldOptions)
 
 VERBOSE = flag("--verbose", "-v", help="show rigsfm's log (info level) on the terminal")
 STRICT = flag("--strict", help="exit with code 4 when the result carries warnings (for scripts)")
@@ -130,6 +131,12 @@ def run_command(
     device: Annotated[Device, typer.Option("--device", help="SIFT on: auto (a CUDA GPU when pycolmap is the CUDA "
                                                             "build, rigsfm\\[gpu], and one is found), cpu or cuda")
                       ] = Device.AUTO,
+    frame_offsets: Annotated[Optional[str], typer.Option(
+        "--frame-offsets", metavar="auto|FILE",
+        help="unsynchronised rigs: auto estimates each rig's frame offset from the moving crowd and pairs the narrow "
+             "frames by time; FILE (yaml 'rig03: 1': rig03's frame k was taken at the others' frame k+1) applies "
+             "given ones [default: frame names are simultaneous; checked when the self-check fails]",
+        show_default=False)] = None,
     overwrite: Annotated[bool, flag("--overwrite", help="replace an existing result in OUT (features and matches "
                                                         "made with the same settings are reused)")] = False,
     strict: Annotated[bool, STRICT] = False,
@@ -146,6 +153,7 @@ def run_command(
         mapping=MappingOptions(mapper=mapper, seed=seed, incremental_time_limit_s=incremental_time_limit),
         world=WorldOptions(frame=world, plane_heights=() if plane_height is None else (plane_height,)),
         adjust=AdjustOptions(calibration=Calibration.FIXED if fixed_calibration else Calibration.REFINE),
+        self_check=SelfCheckOptions(frame_offsets=frame_offsets),
         overwrite=overwrite,
         manual_matches=manual_matches,
         executor=executor,

@@ -189,6 +189,15 @@ class SelfCheckOptions:
     # side nearest this: 1624x1234 -> 2 (a 6-rig crowd: 3.8x faster, a median 660 instead of 1 003 matches per
     # pair, the measured distances as close to the truth; rigsfm.run.self_check), 812x617 -> 1.
     sift_size: int = 800
+    # Per-rig frame offsets of the narrow images (rigsfm.run.sync): None checks synchronisation when the check
+    # fails; "auto" estimates the offsets and pairs the frames by time; a path: a yaml file 'rig03: 1' applied.
+    frame_offsets: str | Path | None = None
+    max_offset_frames: int = 2  # offsets searched: -this .. this (and within the recording)
+
+    def __post_init__(self) -> None:
+        _check_range("--max-offset-frames", self.max_offset_frames, 0, 1000, integer=True)
+        if self.frame_offsets is not None and str(self.frame_offsets) != "auto":
+            self.frame_offsets = Path(self.frame_offsets)
 
 
 @dataclass(kw_only=True)

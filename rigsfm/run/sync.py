@@ -15,11 +15,15 @@ when ``d = o_a - o_b``.
 Per-rig offsets: the integer offsets (``-max_offset .. max_offset``) that maximise the summed scores of the pairs
 (each at ``d = o_a - o_b``), every assignment tried for up to ``BRUTE_FORCE_RIGS`` rigs (coordinate ascent beyond),
 then shifted so that most rigs are at 0 (ties: the first rig at 0). A rig is named unsynchronised only where the
-evidence is clear: its pairs are consistent (score >= ``CONSISTENT``) at its offset and not at 0.
+evidence is clear: one of its pairs is consistent (score >= ``CONSISTENT``) at the rig's offset and not with the
+rig at 0 (a pair whose epipolar lines run along the crowd's motion cannot tell, so one pair that can is enough).
 
-Sub-frame offsets: a walker moves about 4 cm in a tenth of a 0.5 s frame, a few pixels at 15-20 m through a long
-focal lens, so the score's peak is narrower than a frame and interpolating the score between integer offsets does
-not measure a fraction of one; only integer offsets are estimated.
+Sub-frame offsets are not estimated: a walker crosses several pixels of a long-focal view in a tenth of a frame,
+so the score's peak is narrower than a frame and interpolating it between integer offsets does not measure the
+fraction; a fraction shows as no consistent integer offset (the rig is not named).
+
+Needs matches on the crowd: flat-shaded persons seen from rigs tens of degrees apart share few features between
+narrow views, and then no offset is told (``offsets[r]`` None or no rig ``clear``).
 """
 
 from __future__ import annotations
@@ -36,9 +40,7 @@ import pycolmap
 
 from rigsfm.core.errors import InputError
 from rigsfm.core.io import load_yaml_or_json
-from rigsfm.core.ground import footprints, ground_from_image
 from rigsfm.core.names import name_of
-from rigsfm.core.polygons import _point_in_polygon
 from rigsfm.run.self_check import (KEYPOINT_NOISE_PX, MIN_MATCHES, WIDE_FACTOR, _candidates, _distances,
                                    _guided_matches, _load, _overlapping_pairs, _segments, pair_features)
 
@@ -46,7 +48,6 @@ logger = logging.getLogger(__name__)
 
 CONSISTENT = 0.6  # share of matches within the band that makes a frame pairing simultaneous
 BRUTE_FORCE_RIGS = 8
-AREA_HEIGHT_M = 1.0  # wide keypoints count where their ray at this height is inside a narrow footprint
 MIN_SYNC_MATCHES = MIN_MATCHES // 2  # pooled matches below which a pairing gets no score
 
 
@@ -76,7 +77,8 @@ class PairSync:
 
 @dataclass
 class SyncEstimate:
-    """Per-rig integer frame offsets (module docstring); ``offsets[r]`` is None where no pair tells."""
+    """Per-rig integer frame offsets (module docstring); ``offsets[r]`` is None where the evidence is not clear
+    (no pair consistent at any searched offset: featureless views, or a fraction of a frame off)."""
 
     offsets: dict[str, int | None]
     pairs: list[PairSync]
@@ -135,24 +137,11 @@ def frames_by_time(reconstruction: pycolmap.Reconstruction,
     return grouped
 
 
-def _distances_for(first, second, f_ji: np.ndarray, band: float, floor_frame: bool,
-                   area: list[np.ndarray] | None = None) -> np.ndarray:
-    """Distances (px) of the guided matches of two images from their epipolar lines; with ``area``, only keypoints
-    of i whose ray meets the plane z = ``AREA_HEIGHT_M`` inside one of its polygons (where the crowd is)."""
+def _distances_for(first, second, f_ji: np.ndarray, band: float, floor_frame: bool) -> np.ndarray:
+    """Distances (px) of the guided matches of two narrow images from their epipolar lines."""
     fi, fj = pair_features(first, second)
     if fi is None or fj is None or len(fi.xy) < 2 or len(fj.xy) < 2:
         return np.zeros(0)
-    if area is not None:
-        hits = np.c_[fi.undistorted, np.ones(len(fi.undistorted))] @ ground_from_image(first.image, AREA_HEIGHT_M).T
-        with np.errstate(divide="ignore", invalid="ignore"):
-            xy = hits[:, :2] / hits[:, 2:]
-        inside = np.zeros(len(xy), bool)
-        front = (hits[:, 2] > 0) & np.isfinite(xy).all(axis=1)
-        for polygon in area:
-            inside[front] |= _point_in_polygon(xy[front], polygon)
-        fi = fi.subset(inside)
-        if len(fi.xy) < 2:
-            return np.zeros(0)
     lines = np.c_[fi.undistorted, np.ones(len(fi.undistorted))] @ f_ji.T
     segments = _segments(first.image, second.image, fi.undistorted, floor_frame)
     candidates = _candidates(f_ji, lines, fj.undistorted, segments, WIDE_FACTOR * band + KEYPOINT_NOISE_PX)
@@ -252,13 +241,11 @@ def estimate_frame_offsets(reconstruction: pycolmap.Reconstruction, image_dir: P
     offsets = _solve(rigs, pairs, max_offset)
     clear = {}
     for rig in rigs:
-        mine = [p for p in pairs if rig in (p.a, p.b)]
-        at_offset = [p.score(offsets[p.a] - offsets[p.b]) for p in mine]
-        at_zero = [p.score(0) for p in mine]
-        clear[rig] = any(s is not None and s >= CONSISTENT for s in at_offset) and (
-            offsets[rig] == 0 or all(s is None or s < CONSISTENT for s in at_zero))
-    told = {r for p in pairs for r in (p.a, p.b) if any(s.consistent is not None for s in p.scores)}
-    estimate = SyncEstimate({r: (offsets[r] if r in told else None) for r in rigs}, pairs, counts, max_offset,
+        moved = dict(offsets, **{rig: 0})
+        clear[rig] = any((p.score(offsets[p.a] - offsets[p.b]) or 0.0) >= CONSISTENT
+                         and (offsets[rig] == 0 or (p.score(moved[p.a] - moved[p.b]) or 0.0) < CONSISTENT)
+                         for p in pairs if rig in (p.a, p.b))
+    estimate = SyncEstimate({r: (offsets[r] if clear[r] else None) for r in rigs}, pairs, counts, max_offset,
                             time.perf_counter() - start, None if pairs else "no two rigs' narrow footprints overlap",
                             clear)
     logger.info("frame offsets: %s (%.1f s)", estimate.offsets, estimate.seconds)

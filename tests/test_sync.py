@@ -160,3 +160,27 @@ def test_run_names_the_rig_or_applies_the_estimate(world, tmp_path, asked):
     else:
         assert record["applied"] == {"rig03": 1} and check.warnings == []
         assert sum(p.verdict == "ok" for p in check.pairs) >= 4
+
+
+def test_narrow_features_match_only_simultaneous_narrow_images_of_two_rigs():
+    from pathlib import Path
+
+    from rigsfm.core.names import Sensor
+    from rigsfm.run.features import image_pairs
+    from rigsfm.run.inputs import ImageEntry
+    from rigsfm.run.options import MatchingOptions
+
+    images = [ImageEntry(rig, Sensor(sensor), f"f{k}.png", Path(f"{rig}/{sensor}/f{k}.png"))
+              for rig in ("rig01", "rig02") for sensor in ("wide", "narrow") for k in range(3)]
+    narrow = {"rig01/narrow/f0.png", "rig01/narrow/f1.png", "rig01/narrow/f2.png", "rig02/narrow/f0.png",
+              "rig02/narrow/f1.png", "rig02/narrow/f2.png"}
+
+    def narrow_pairs(offsets):
+        pairs = image_pairs(images, MatchingOptions(narrow_features=True, frame_offsets=offsets))
+        return {p for p in pairs if set(p) <= narrow and p[0].split("/")[0] != p[1].split("/")[0]}
+
+    assert len(narrow_pairs(None)) == 9  # every frame of one rig's narrow camera with every frame of the other's
+    assert narrow_pairs({"rig02": 1}) == {("rig01/narrow/f1.png", "rig02/narrow/f0.png"),
+                                          ("rig01/narrow/f2.png", "rig02/narrow/f1.png")}
+    assert len(image_pairs(images, MatchingOptions(narrow_features=True, frame_offsets={"rig02": 1}))) == \
+        len(image_pairs(images, MatchingOptions(narrow_features=True))) - 7

@@ -90,6 +90,9 @@ class MatchingOptions:
     pairs: Pairs = Pairs.AUTO
     neighbours: int = 8  # with pairs auto: the best partners kept per image (of other rigs)
     device: Device = Device.AUTO
+    # With narrow features: per-rig frame offsets (rigsfm.run.sync) of an unsynchronised recording; narrow images
+    # of two rigs are matched only when taken at the same time. None: not applied (frame names as they are).
+    frame_offsets: dict[str, int] | None = None
 
     def __post_init__(self) -> None:
         _check_range("--max-ratio (Lowe's ratio test)", self.max_ratio, 0.0, 1.0, low_open=True)

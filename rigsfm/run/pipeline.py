@@ -29,8 +29,8 @@ from rigsfm.run.adjust import AdjustResult, ScaleSource, adjust
 from rigsfm.run.database import check_database_kept, create_database
 from rigsfm.run.deliver import write_model, write_narrow_poses, write_points_ply
 from rigsfm.run.diagnostics import check_reconstruction
-from rigsfm.run.features import (drop_changed_images, drop_stale_work, extract_features, match_features, pairs_report,
-                                 resolved_first_octave, select_pairs)
+from rigsfm.run.features import (drop_changed_images, drop_stale_work, drop_unsynchronised_pairs, extract_features,
+                                 match_features, pairs_report, resolved_first_octave, select_pairs)
 from rigsfm.run.inputs import ImageEntry, rigs_without_narrow, scan_images
 from rigsfm.run.manual_matches import read_manual_matches, validate_manual_matches
 from rigsfm.run.manual_merge import add_manual_matches, manual_matches_summary
@@ -212,6 +212,8 @@ def run(
         manual_pairs = {} if options.manual_matches is None else validate_manual_matches(
             options.manual_matches, read_manual_matches(options.manual_matches), inputs.images, inputs.rigs)
         given_offsets = _given_frame_offsets(options, inputs)
+        if given_offsets and options.matching.narrow_features:
+            options = replace(options, matching=replace(options.matching, frame_offsets=given_offsets))
     if options.mapping.few_matches is None:
         options = replace(options, mapping=replace(options.mapping, few_matches=bool(manual_pairs)))
         if manual_pairs:
@@ -287,6 +289,7 @@ def _run_locked(workspace: Workspace, inputs: Inputs, manual_pairs: dict, option
             in_child(match_features, workspace.database, inputs.images, options.matching, workspace.pairs,
                      report("matching"), num_threads=threads, selection=selection)
             check_database_kept(workspace.database, inputs.images)
+            drop_unsynchronised_pairs(workspace.database, inputs.images, options.matching.frame_offsets)
         manual_reports = []
         if manual_pairs:
             with timings.stage("manual_matches"):

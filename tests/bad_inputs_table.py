@@ -93,6 +93,14 @@ def with_matches(text: str | bytes) -> Callable[[Path], list]:
     return prepare
 
 
+def with_offsets(text: str) -> Callable[[Path], list]:
+    def prepare(root: Path) -> list:
+        inputs(root)
+        (root / "offsets.yaml").write_text(text)
+        return [*RUN, "--frame-offsets", "offsets.yaml"]
+    return prepare
+
+
 def with_images(edit: Callable[[Path], None], extra: tuple = ()) -> Callable[[Path], list]:
     def prepare(root: Path) -> list:
         inputs(root)
@@ -456,6 +464,12 @@ CASES = [
          with_detections(DETECTIONS + "rig01/narrow/f1.png,10,20\n")),
     Case("`rigsfm associate` on a run without a floor frame", "nothing is written",
          with_detections(b"\xef\xbb\xbf" + DETECTIONS.encode())),
+    # --- frame offsets
+    Case("`--frame-offsets` naming a rig that is not in rigs.yaml", "nothing is written",
+         with_offsets("rig09: 1\n")),
+    Case("`--frame-offsets` with half a frame (`rig02: 0.5`)", "nothing is written", with_offsets("rig02: 0.5\n")),
+    Case("`--frame-offsets` beyond the recording (3 frames off, one frame recorded)", "nothing is written",
+         with_offsets("rig02: 3\n")),
     # --- options
     Case("`--max-ratio 0`", "nothing is written", lambda root: (inputs(root), [*RUN, "--max-ratio", "0"])[1]),
     Case("`--max-ratio nan`", "nothing is written", lambda root: (inputs(root), [*RUN, "--max-ratio", "nan"])[1]),

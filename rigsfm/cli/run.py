@@ -12,7 +12,8 @@ from rich.table import Table
 from rigsfm.cli.common import StageProgress, configure_logging, console, fail_cleanly, finish, flag, progress_bars
 from rigsfm.inspect.options import ExportFormat
 from rigsfm.run.options import (GLOBAL_FROM_FRAMES, AdjustOptions, Calibration, Device, Executor, Features, Mapper,
-                                 MappingOptions, MatchingOptions, Pairs, RunOptions, WorldFrame, WorldOptions)
+                                 MappingOptions, MatchingOptions, Pairs, RunOptions, SelfCheckOptions, WorldFrame,
+                                 WorldOptions)
 
 VERBOSE = flag("--verbose", "-v", help="show rigsfm's log (info level) on the terminal")
 STRICT = flag("--strict", help="exit with code 4 when the result carries warnings (for scripts)")
@@ -69,6 +70,12 @@ def print_world(summary) -> None:
         from rigsfm.run.self_check import describe
 
         console.print(f"epipolar self-check: {describe(check)}")
+    offsets = summary.frame_offsets or {}
+    if offsets.get("asked"):
+        applied = ", ".join(f"{rig} {off:+d}" for rig, off in sorted((offsets.get("applied") or {}).items()))
+        untold = [r for r, o in ((offsets.get("estimate") or {}).get("offsets") or {}).items() if o is None]
+        why = f"no offset told for {', '.join(untold)}" if untold else "all rigs at 0"
+        console.print(f"frame offsets ({offsets['asked']}): {applied or f'none applied ({why})'}")
 
 
 def print_manual_matches(report: dict) -> None:
@@ -142,6 +149,12 @@ def run_command(
     device: Annotated[Device, typer.Option("--device", help="SIFT on: auto (a CUDA GPU when pycolmap is the CUDA "
                                                             "build, rigsfm[gpu], and one is found), cpu or cuda")
                       ] = Device.AUTO,
+    frame_offsets: Annotated[Optional[str], typer.Option(
+        "--frame-offsets", metavar="auto|FILE",
+        help="unsynchronised rigs: auto estimates each rig's frame offset from the moving crowd and pairs the narrow "
+             "frames by time; FILE (yaml 'rig03: 1': rig03's frame k was taken at the others' frame k+1) applies "
+             "given ones [default: frame names are simultaneous; checked when the self-check fails]",
+        show_default=False)] = None,
     overwrite: Annotated[bool, flag("--overwrite", help="replace an existing result in OUT (features and matches "
                                                         "made with the same settings are reused)")] = False,
     strict: Annotated[bool, STRICT] = False,
@@ -158,6 +171,7 @@ def run_command(
         mapping=MappingOptions(mapper=mapper, seed=seed, incremental_time_limit_s=incremental_time_limit),
         world=WorldOptions(frame=world, plane_heights=() if plane_height is None else (plane_height,)),
         adjust=AdjustOptions(calibration=Calibration.FIXED if fixed_calibration else Calibration.REFINE),
+        self_check=SelfCheckOptions(frame_offsets=frame_offsets),
         overwrite=overwrite,
         manual_matches=manual_matches,
         executor=executor,

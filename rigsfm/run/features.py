@@ -376,13 +376,56 @@ def _extract(database_path: Path, image_dir: Path, paths: dict[str, Path], ids: 
 
 
 def image_pairs(images: Sequence[ImageEntry], options: MatchingOptions) -> list[tuple[str, str]]:
-    """Every pair of featured images, except two images of the same frame without narrow features."""
+    """Every pair of featured images, except two images of the same frame without narrow features, and, with
+    ``options.frame_offsets``, two narrow images of different rigs taken at different times."""
     featured = featured_images(images, options)
+    times = narrow_times(images, options.frame_offsets)
     return [
         (a.name, b.name)
         for a, b in itertools.combinations(featured, 2)
         if not (a.rig == b.rig and a.frame == b.frame and not options.narrow_features)
+        and not unsynchronised_pair(a, b, times)
     ]
+
+
+def narrow_times(images: Sequence[ImageEntry], offsets: dict[str, int] | None) -> dict[str, int] | None:
+    """Narrow image name -> its time in frames (its rig's k-th narrow frame at k + offset, rigsfm.run.sync);
+    None without offsets."""
+    if offsets is None:
+        return None
+    frames: dict[str, list[ImageEntry]] = {}
+    for entry in sorted(images, key=lambda e: e.frame):
+        if entry.sensor == "narrow":
+            frames.setdefault(entry.rig, []).append(entry)
+    return {e.name: k + int(offsets.get(rig, 0)) for rig, entries in frames.items() for k, e in enumerate(entries)}
+
+
+def unsynchronised_pair(a: ImageEntry, b: ImageEntry, times: dict[str, int] | None) -> bool:
+    """Two narrow images of different rigs taken at different times: a moving crowd in them is not one scene."""
+    return (times is not None and a.sensor == b.sensor == "narrow" and a.rig != b.rig
+            and times.get(a.name) != times.get(b.name))
+
+
+def drop_unsynchronised_pairs(database_path: Path, images: Sequence[ImageEntry],
+                              offsets: dict[str, int] | None) -> int:
+    """Delete the matches of narrow pairs of two rigs taken at different times (an earlier run's, made before the
+    frame offsets were given); returns how many pairs were dropped."""
+    times = narrow_times(images, offsets)
+    if times is None:
+        return 0
+    narrow = [e for e in images if e.sensor == "narrow"]
+    dropped = 0
+    with open_database(database_path) as database:
+        ids = {image.name: image.image_id for image in database.read_all_images()}
+        for a, b in itertools.combinations(narrow, 2):
+            if a.name in ids and b.name in ids and unsynchronised_pair(a, b, times) \
+                    and database.exists_two_view_geometry(ids[a.name], ids[b.name]):
+                database.delete_two_view_geometry(ids[a.name], ids[b.name])
+                database.delete_matches(ids[a.name], ids[b.name])
+                dropped += 1
+    if dropped:
+        logger.info("Dropped the matches of %d narrow pairs taken at different times (frame offsets)", dropped)
+    return dropped
 
 
 FIRST_PASS_FEATURES = 256  # largest-scale features per image matched in the first pass
@@ -517,7 +560,7 @@ def select_pairs(database_path: Path, images: Sequence[ImageEntry], options: Mat
         for other in wide_partners[:NARROW_NEIGHBOURS]:
             a = narrow_of.get((entry[name].rig, entry[name].frame))
             b = narrow_of.get((entry[other].rig, entry[other].frame))
-            if a and b:
+            if a and b and ((a, b) in order_of or (b, a) in order_of):  # not when taken at different times
                 keep.add((a, b) if (a, b) in order_of else (b, a))
     rig_links: dict[tuple[str, str], tuple[int, tuple[str, str]]] = {}
     for pair, score in scores.items():

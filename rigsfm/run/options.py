@@ -93,6 +93,9 @@ class MatchingOptions:
     pairs: Pairs = Pairs.AUTO
     neighbours: int = 8  # with pairs auto: the best partners kept per image (of other rigs)
     device: Device = Device.AUTO
+    # With narrow features: per-rig frame offsets (rigsfm.run.sync) of an unsynchronised recording; narrow images
+    # of two rigs are matched only when taken at the same time. None: not applied (frame names as they are).
+    frame_offsets: dict[str, int] | None = None
 
     def __post_init__(self) -> None:
         _check_range("--max-ratio (Lowe's ratio test)", self.max_ratio, 0.0, 1.0, low_open=True)
@@ -195,6 +198,15 @@ class SelfCheckOptions:
     # side nearest this: 1624x1234 -> 2 (a 6-rig crowd: 3.8x faster, a median 660 instead of 1 003 matches per
     # pair, the measured distances as close to the truth; rigsfm.run.self_check), 812x617 -> 1.
     sift_size: int = 800
+    # Per-rig frame offsets of the narrow images (rigsfm.run.sync): None checks synchronisation when the check
+    # fails; "auto" estimates the offsets and pairs the frames by time; a path: a yaml file 'rig03: 1' applied.
+    frame_offsets: str | Path | None = None
+    max_offset_frames: int = 2  # offsets searched: -this .. this (and within the recording)
+
+    def __post_init__(self) -> None:
+        _check_range("--max-offset-frames", self.max_offset_frames, 0, 1000, integer=True)
+        if self.frame_offsets is not None and str(self.frame_offsets) != "auto":
+            self.frame_offsets = Path(self.frame_offsets)
 
     def __post_init__(self) -> None:
         _check_range("self-check max_frames", self.max_frames, 1, 1_000_000, integer=True)

@@ -29,8 +29,8 @@ from rigsfm.run.adjust import AdjustResult, ScaleSource, adjust
 from rigsfm.run.database import check_database_kept, create_database
 from rigsfm.run.deliver import write_model, write_narrow_poses, write_points_ply
 from rigsfm.run.diagnostics import check_reconstruction
-from rigsfm.run.features import (drop_changed_images, drop_stale_work, extract_features, match_features, pairs_report,
-                                 resolved_first_octave, select_pairs)
+from rigsfm.run.features import (drop_changed_images, drop_stale_work, drop_unsynchronised_pairs, extract_features,
+                                 match_features, pairs_report, resolved_first_octave, select_pairs)
 from rigsfm.run.inputs import ImageEntry, check_image_folder, rigs_without_narrow, scan_images, with_folder_names
 from rigsfm.run.manual_matches import read_manual_matches, validate_manual_matches
 from rigsfm.run.manual_merge import add_manual_matches, manual_matches_summary
@@ -226,6 +226,9 @@ def run(
             check_reachable(options.address)  # before any work: ray.init would retry an unreachable one for ever
         manual_pairs = {} if options.manual_matches is None else validate_manual_matches(
             options.manual_matches, read_manual_matches(options.manual_matches), inputs.images, inputs.rigs)
+        given_offsets = _given_frame_offsets(options, inputs)
+        if given_offsets and options.matching.narrow_features:
+            options = replace(options, matching=replace(options.matching, frame_offsets=given_offsets))
     if options.mapping.few_matches is None:
         options = replace(options, mapping=replace(options.mapping, few_matches=bool(manual_pairs)))
         if manual_pairs:
@@ -233,11 +236,54 @@ def run(
     workspace = Workspace(Path(out))
     with workspace.lock(), disk_errors_named(workspace.root):
         workspace.prepare(overwrite=options.overwrite)
-        return _run_locked(workspace, inputs, manual_pairs, options, timings, progress)
+        return _run_locked(workspace, inputs, manual_pairs, options, timings, progress, given_offsets)
+
+
+def _given_frame_offsets(options: RunOptions, inputs: Inputs) -> dict[str, int] | None:
+    """The --frame-offsets FILE, checked against the rigs and the recording (before any heavy work)."""
+    given = options.self_check.frame_offsets
+    if given is None or str(given) == "auto":
+        return None
+    from rigsfm.run.sync import read_frame_offsets
+
+    frames: dict[str, int] = {}
+    for entry in inputs.images:
+        if entry.sensor == "narrow":
+            frames[entry.rig] = frames.get(entry.rig, 0) + 1
+    return read_frame_offsets(Path(given), [rig.name for rig in inputs.rigs], frames)
+
+
+def _self_check(workspace: Workspace, inputs: Inputs, reconstruction: pycolmap.Reconstruction, options: RunOptions,
+                given_offsets: dict[str, int] | None) -> tuple[SelfCheck, dict]:
+    """The epipolar self-check, its frames paired by time where offsets are given or estimated (``auto``); when
+    it fails without offsets and the recording has several frames, the offsets are estimated, and the pairs a
+    rig off in time explains are put down to it (rigsfm.run.sync) instead of the calibration."""
+    from rigsfm.run.self_check import epipolar_self_check
+    from rigsfm.run.sync import estimate_frame_offsets
+
+    opt = options.self_check
+    poses = json.loads(workspace.narrow_poses.read_text(encoding="utf-8"))
+
+    def estimate():
+        return estimate_frame_offsets(reconstruction, inputs.image_dir, poses, max_offset=opt.max_offset_frames,
+                                      sift_size=opt.sift_size, warp_height_m=opt.warp_height_m)
+
+    asked = None if opt.frame_offsets is None else str(opt.frame_offsets)
+    sync = estimate() if asked == "auto" else None
+    applied = dict(given_offsets or {}) if sync is None else sync.unsynchronised
+    check = epipolar_self_check(reconstruction, inputs.image_dir, poses, opt, applied)
+    if asked is None and any(p.verdict == "failed" for p in check.pairs):
+        sync = estimate()
+        if sync.warning:
+            check.blame_time(sync.unsynchronised, sync.warning)
+    elif asked == "auto" and sync.unsynchronised:
+        logger.warning("Frame offsets estimated and applied: %s", sync.unsynchronised)
+    record = {"asked": asked, "applied": applied, "estimate": None if sync is None else sync.to_dict()}
+    return check, record
 
 
 def _run_locked(workspace: Workspace, inputs: Inputs, manual_pairs: dict, options: RunOptions, timings: _Timings,
-                progress: Progress | None) -> RunResult:
+                progress: Progress | None, given_offsets: dict[str, int] | None = None) -> RunResult:
     def report(stage: str) -> Callable[[int, int], None] | None:
         """The stage's progress callback; called as the stage starts, so that its clock starts there too (its
         first count may come only at its end)."""
@@ -265,6 +311,7 @@ def _run_locked(workspace: Workspace, inputs: Inputs, manual_pairs: dict, option
             in_child(match_features, workspace.database, inputs.images, options.matching, workspace.pairs,
                      matching_progress, num_threads=threads, selection=selection)
             check_database_kept(workspace.database, inputs.images)
+            drop_unsynchronised_pairs(workspace.database, inputs.images, options.matching.frame_offsets)
         manual_reports = []
         if manual_pairs:
             with timings.stage("manual_matches"):
@@ -307,20 +354,17 @@ def _run_locked(workspace: Workspace, inputs: Inputs, manual_pairs: dict, option
             write_points_ply(result.reconstruction, workspace.points_ply, overwrite=True)
         with timings.stage("check_pairs"):
             pairs, pairs_warning = pairs_report(result.reconstruction, selection)
-    self_check = None
+    self_check = frame_offsets = None
     if options.self_check.enabled:
         with timings.stage("self_check"):
-            from rigsfm.run.self_check import epipolar_self_check
-
-            self_check = epipolar_self_check(result.reconstruction, inputs.image_dir,
-                                             json.loads(workspace.narrow_poses.read_text(encoding="utf-8")),
-                                             options.self_check)
+            self_check, frame_offsets = _self_check(workspace, inputs, result.reconstruction, options, given_offsets)
     summary = build_summary(inputs, options, mapping, result, timings, workspace.database)
     summary.world = world.to_dict()
     summary.warnings.extend(world.warnings)
     if self_check is not None:
         summary.epipolar_self_check = self_check.to_dict()
         summary.warnings.extend(self_check.warnings)
+        summary.frame_offsets = frame_offsets
     summary.pairs = pairs
     summary.cpu_s = dict(timings.cpu)
     if pairs_warning:

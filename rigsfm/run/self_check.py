@@ -62,7 +62,7 @@ from rigsfm.core.ground import (
 )
 from rigsfm.core.image_files import read_image
 from rigsfm.core.matching import candidate_matches
-from rigsfm.core.names import name_of
+from rigsfm.core.names import ImageName, name_of
 from rigsfm.core.sift import detect, opencv_sift, reduction_factor
 from rigsfm.run.floor_matching import grid_rays, plane_hits, plane_warp
 from rigsfm.run.options import SelfCheckOptions
@@ -110,20 +110,30 @@ class SelfCheck:
     guided_by: str  # "epipolar band and heights 0-2.2 m" or "epipolar band"
     seconds: float
     skipped: str | None = None  # why nothing was checked
+    frame_offsets: dict[str, int] = field(default_factory=dict)  # frames paired by time with these (rigsfm.run.sync)
+    sync_warning: str | None = None  # FRAMES NOT SYNCHRONISED (rigsfm.run.sync.SyncEstimate.warning)
+
+    def blame_time(self, unsynchronised: dict[str, int], warning: str) -> None:
+        """Failed pairs with a rig found off in time get the verdict 'not synchronised' (not the calibration)."""
+        for pair in self.pairs:
+            if pair.verdict == "failed" and {name_of_str(pair.i), name_of_str(pair.j)} & set(unsynchronised):
+                pair.verdict = "not synchronised"
+        self.sync_warning = warning
 
     @property
     def warnings(self) -> list[str]:
         failed = [p for p in self.pairs if p.verdict == "failed"]
         if not failed:
-            return []
+            return [self.sync_warning] if self.sync_warning else []
         worst = max(failed, key=lambda p: p.p95_px / max(p.band_px, 1e-9))
-        return [f"EPIPOLAR CHECK FAILED: {len(failed)} of {sum(p.verdict != 'too few matches' for p in self.pairs)} "
+        return ([self.sync_warning] if self.sync_warning else []) + [f"EPIPOLAR CHECK FAILED: {len(failed)} of {sum(p.verdict != 'too few matches' for p in self.pairs)} "
                 f"narrow pairs match synchronised images farther from the epipolar lines than the 95 % band "
                 f"(worst {worst.i} -> {worst.j}: 95th percentile {worst.p95_px:.2f} px, band {worst.band_px:.2f} px): "
                 "the poses moved since the calibration, or rigs.yaml is off"]
 
     def to_dict(self) -> dict:
         return {"frames": self.frames, "guided_by": self.guided_by, "skipped": self.skipped,
+                "frame_offsets": dict(self.frame_offsets),
                 "seconds": round(self.seconds, 3),
                 "settings": {"wide_factor": WIDE_FACTOR, "keypoint_noise_px": KEYPOINT_NOISE_PX,
                              "min_matches": MIN_MATCHES, "top_height_m": TOP_HEIGHT_M},
@@ -150,6 +160,11 @@ class _Narrow:
     sift_factor: int = 1  # SIFT ran on it (and runs on warps into it) reduced by this (SelfCheckOptions.sift_size)
     hits: tuple[np.ndarray, np.ndarray] | None = None
     grid_shape: tuple[int, int] | None = None
+
+
+def name_of_str(name: str) -> str:
+    """The rig of an image name."""
+    return ImageName.parse(name).rig
 
 
 def synchronised_frames(reconstruction: pycolmap.Reconstruction) -> dict[str, list[pycolmap.Image]]:
@@ -306,6 +321,20 @@ def _distances(lines: np.ndarray, fj: _Features, matches: np.ndarray) -> np.ndar
     return np.abs(np.einsum("ij,ij->i", line, hj)) / np.linalg.norm(line[:, :2], axis=1)
 
 
+def pair_features(first: _Narrow, second: _Narrow) -> tuple[_Features | None, _Features | None]:
+    """Features of i and j to compare (module docstring, step 1): in the floor frame j's are found on j warped
+    into i's view, and i's are those the warp covers."""
+    fi, fj = first.features, second.features
+    if first.hits is not None and fi is not None:  # j warped into i's view through the plane: comparable features
+        warp = plane_warp(first.hits, first.grid_shape, first.gray.shape, second.image, second.gray, 1000)
+        if warp is None:
+            return None, None
+        fi = fi.subset(warp.covers(opencv_from_colmap_pixels(fi.xy)))
+        xy, descriptors = detect(_sift(), warp.warped, warp.mask, first.sift_factor)
+        fj = _to_features(second.image.camera, warp.source_pixels(xy), descriptors)
+    return fi, fj
+
+
 def check_pair(first: _Narrow, second: _Narrow, f_ji: np.ndarray, band: float | None, floor_frame: bool) -> PairCheck:
     """One pair (module docstring, steps 2-4)."""
     image_i, image_j = first.image, second.image
@@ -313,14 +342,7 @@ def check_pair(first: _Narrow, second: _Narrow, f_ji: np.ndarray, band: float | 
     if band is None or not np.isfinite(band):
         check.verdict = "no band"
         return check
-    fi, fj = first.features, second.features
-    if first.hits is not None and fi is not None:  # j warped into i's view through the plane: comparable features
-        warp = plane_warp(first.hits, first.grid_shape, first.gray.shape, image_j, second.gray, 1000)
-        if warp is None:
-            return check
-        fi = fi.subset(warp.covers(opencv_from_colmap_pixels(fi.xy)))
-        xy, descriptors = detect(_sift(), warp.warped, warp.mask, first.sift_factor)
-        fj = _to_features(image_j.camera, warp.source_pixels(xy), descriptors)
+    fi, fj = pair_features(first, second)
     if fi is None or fj is None or len(fi.xy) < 2:
         return check
     f_ji = np.asarray(f_ji, dtype=np.float64)
@@ -369,6 +391,7 @@ def describe(check: dict) -> str:
     rest = [v for v in verdicts if v not in ("ok", "failed")]
     if rest:
         why = {"too few matches": f"fewer than {needed} matches (featureless views)",
+               "not synchronised": "not synchronised (a rig's frames are off in time)",
                "inconclusive": "inconclusive (matches fill even the widest search)", "no band": "no band"}
         line += f", {len(rest)} without verdict: " + ", ".join(
             f"{rest.count(v)} {why.get(v, v)}" for v in sorted(set(rest), key=rest.index))
@@ -376,18 +399,25 @@ def describe(check: dict) -> str:
 
 
 def epipolar_self_check(reconstruction: pycolmap.Reconstruction, image_dir: Path, narrow_poses: dict,
-                        options: SelfCheckOptions | None = None) -> SelfCheck:
+                        options: SelfCheckOptions | None = None, offsets: dict[str, int] | None = None) -> SelfCheck:
     """The self-check (module docstring) of the first ``options.max_frames`` synchronised frames, with the
-    ``F_ji`` and ``epipolar_band_95_px`` of ``narrow_poses`` (the narrow_poses.json of this model)."""
+    ``F_ji`` and ``epipolar_band_95_px`` of ``narrow_poses`` (the narrow_poses.json of this model); with
+    ``offsets`` (rig -> frames, rigsfm.run.sync) rig r's k-th frame is paired with the others' (k + offset)-th."""
     opt = options or SelfCheckOptions()
     start = time.perf_counter()
     world = narrow_poses.get("world") or {}
     floor_frame = world.get("frame") == "floor" and bool(narrow_poses.get("metric"))
     guided_by = "epipolar band and heights 0-2.2 m above the floor" if floor_frame else "epipolar band"
-    frames = synchronised_frames(reconstruction)
+    offsets = {r: int(o) for r, o in (offsets or {}).items() if o}
+    if offsets:
+        from rigsfm.run.sync import frames_by_time
+
+        frames = frames_by_time(reconstruction, offsets)
+    else:
+        frames = synchronised_frames(reconstruction)
     if not frames:
         return SelfCheck([], [], guided_by, time.perf_counter() - start,
-                         "no frame name shared by narrow images of two or more rigs")
+                         "no frame name shared by narrow images of two or more rigs", offsets)
     chosen = list(frames)[:max(1, opt.max_frames)]
     by_pair = {(p["i"], p["j"]): p for p in narrow_poses.get("pairs", [])}
     checks = []
@@ -409,4 +439,4 @@ def epipolar_self_check(reconstruction: pycolmap.Reconstruction, image_dir: Path
                         "-" if c.p95_px is None else f"{c.p95_px:.2f}",
                         "-" if c.band_px is None else f"{c.band_px:.2f}", c.verdict)
     skipped = None if checks else "no pair of synchronised narrow images overlaps"
-    return SelfCheck(checks, chosen, guided_by, time.perf_counter() - start, skipped)
+    return SelfCheck(checks, chosen, guided_by, time.perf_counter() - start, skipped, offsets)

@@ -101,6 +101,7 @@ class Summary:
     manual_matches: dict | None = None  # rigsfm.run.manual_merge.manual_matches_summary
     world: dict | None = None  # the result's frame and its floor fit (rigsfm.run.world.WorldResult.to_dict)
     epipolar_self_check: dict | None = None  # rigsfm.run.self_check.SelfCheck.to_dict
+    frame_offsets: dict | None = None  # asked (auto, a file, None), applied, estimate (rigsfm.run.sync)
     uncertainty: UncertaintySummary | None = None  # rigsfm.run.uncertainty
     # per rig, its calibration refined or held at rigs.yaml's values and why (rigsfm.run.adjust.hold_or_refine;
     # empty with --fixed-calibration)

@@ -207,8 +207,6 @@ class SelfCheckOptions:
         _check_range("--max-offset-frames", self.max_offset_frames, 0, 1000, integer=True)
         if self.frame_offsets is not None and str(self.frame_offsets) != "auto":
             self.frame_offsets = Path(self.frame_offsets)
-
-    def __post_init__(self) -> None:
         _check_range("self-check max_frames", self.max_frames, 1, 1_000_000, integer=True)
         _check_range("self-check warp_height_m", self.warp_height_m, -1000.0, 1000.0)
         _check_range("self-check sift_size", self.sift_size, 16, 100_000, integer=True)

@@ -90,6 +90,26 @@ def test_a_huge_count_is_refused_before_anything_is_allocated(out):
         done.stderr, done.stderr
 
 
+def test_a_rig_with_only_its_reference_sensor_passes(tmp_path):
+    """A rig whose narrow camera has no image (a rig without narrow images) keeps only its reference sensor; as
+    the last rig of rigs.bin it leaves just that sensor's 8 bytes, no pose flag, and the file is intact."""
+    from rigsfm.core.model_files import check_model_files
+
+    camera = pycolmap.Camera(model="PINHOLE", width=64, height=48, params=[50.0, 50.0, 32.0, 24.0])
+    model = pycolmap.Reconstruction()
+    for rig_id in (1, 2):
+        camera.camera_id = rig_id
+        model.add_camera(camera)
+        rig = pycolmap.Rig(rig_id=rig_id)
+        rig.add_ref_sensor(pycolmap.sensor_t(pycolmap.SensorType.CAMERA, rig_id))
+        model.add_rig(rig)
+    model.write(tmp_path)
+    check_model_files(tmp_path)
+    cut(tmp_path / "rigs.bin", (tmp_path / "rigs.bin").stat().st_size - 1)
+    with pytest.raises(Exception, match="rig 2 says 1 sensors but the file is shorter"):
+        check_model_files(tmp_path)
+
+
 def test_damaged_references_between_files_are_named(out):
     from rigsfm.core.model_files import ModelFileError, check_model_files
 

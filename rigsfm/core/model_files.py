@@ -114,7 +114,8 @@ def _rigs(path: Path, ids: ModelIds) -> None:
     cursor = _Cursor(path)
     for i in range(cursor.count(U64, U32.size * 2, "rigs")):
         rig_id, sensors = cursor.read(struct.Struct("<II"), f"rig {i + 1}")
-        if sensors * RIG_SENSOR.size > len(cursor.data) - cursor.offset:
+        # the reference sensor (type, id) then each other one with its pose flag: the least those can take
+        if sensors and SENSOR.size + (sensors - 1) * RIG_SENSOR.size > len(cursor.data) - cursor.offset:
             raise cursor.fail(f"rig {rig_id} says {sensors} sensors but the file is shorter")
         for k in range(sensors):
             if k == 0:

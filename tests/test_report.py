@@ -4,6 +4,7 @@ Real clients read the outputs: headless Chromium (the report), Open3D (every Ope
 3.8 (the COLMAP export); nerfstudio's camera convention is checked by projecting points with it.
 """
 
+import html
 import json
 import subprocess
 
@@ -49,7 +50,15 @@ def test_run_writes_report_with_bands(result):
     assert f"{narrow['pairs'][0]['epipolar_band_95_px']:.3g}" in page
     # the uncertainty record: every narrow camera's sigmas and every pair's band, in summary.json and the report
     uncertainty = json.loads((out / "summary.json").read_text())["uncertainty"]
-    assert uncertainty["calibration"] == "refine" and uncertainty["covariance"] == "posterior"
+    # the default refines each rig's calibration the images inform and holds the others at rigs.yaml's values;
+    # a network held entirely is the fixed-calibration adjustment
+    decisions = json.loads((out / "summary.json").read_text())["calibration_decisions"]
+    assert sorted(d["rig"] for d in decisions) == ["rig01", "rig02", "rig03"]
+    held_all = all(d["held"] for d in decisions)
+    assert (uncertainty["calibration"], uncertainty["covariance"]) == (("fixed", "consider") if held_all
+                                                                       else ("refine", "posterior"))
+    for d in decisions:
+        assert html.escape(d["reason"]) in page
     assert uncertainty["bands"] == "sampled"  # three rigs: re-adjusted over calibration draws
     assert len(uncertainty["narrow"]) == 3 and len(uncertainty["pairs"]) == 3
     for name, sigmas in uncertainty["narrow"].items():
@@ -220,9 +229,9 @@ def test_report_structure_top_view_bands_and_self_check(result):
     assert top.count('<circle class="wide"') == 3 and top.count('<circle class="narrow"') == 3
     uncertainty = page[page.index("<h2>Uncertainty</h2>"):page.index("<h2>Epipolar check</h2>")]
     headings = re.findall(r"<h3>(.*?)</h3>", uncertainty)
-    assert headings[:2] == ["Epipolar band per pair", "Calibration refined from rigs.yaml"], headings
+    assert headings[:2] == ["Epipolar band per pair", "Calibration held or refined"], headings
     bands = uncertainty[uncertainty.index("<h3>Epipolar band per pair</h3>"):
-                        uncertainty.index("<h3>Calibration refined from rigs.yaml</h3>")]
+                        uncertainty.index("<h3>Calibration held or refined</h3>")]
     assert bands.count("<tr>") == 1 + 3 and "P(pair &lt; 85 % inside)" in bands
 
     summary = Summary.read(out / "summary.json")

@@ -181,6 +181,12 @@ def uncertainty_section(narrow: dict, summary: Summary | None = None) -> str:
         parts.append("<h3>Epipolar band per pair</h3>" + table(
             ["narrow i", "narrow j", "band 95 % (px)", "analysis points", "their depths in i (m)",
              "P(pair < 85 % inside)"], rows, left=2))
+    decisions = summary.calibration_decisions if summary else []
+    if decisions:  # which rigs' calibration the images informed enough to refine, and why the others were held
+        calibration.insert(0, "<h3>Calibration held or refined</h3>" + table(
+            ["rig", "calibration", "why"],
+            [[esc(d["rig"]), "held at rigs.yaml" if d["held"] else "refined", esc(d["reason"])]
+             for d in decisions], left=3))
     return "".join(parts + calibration)
 
 

@@ -14,6 +14,7 @@ import threading
 from http import HTTPStatus
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
+from urllib.parse import urlparse
 
 import cv2
 
@@ -80,6 +81,17 @@ class LocalHandler(BaseHTTPRequestHandler):
             self._json({"error": "request too large"}, HTTPStatus.REQUEST_ENTITY_TOO_LARGE)
             return None
         return length
+
+
+    def _put_body(self, path: str) -> bytes | None:
+        """The body of a PUT to ``path``, or None after answering a foreign host, another path or a bad size."""
+        if not self._host_ok():
+            return None
+        if urlparse(self.path).path != path:
+            self._json({"error": "not found"}, HTTPStatus.NOT_FOUND)
+            return None
+        length = self._body_length()
+        return None if length is None else self.rfile.read(length)
 
 
 class LocalServer:

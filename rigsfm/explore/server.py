@@ -59,16 +59,11 @@ class _Handler(LocalHandler):
             self._json({"error": str(error)}, HTTPStatus.BAD_REQUEST)
 
     def do_PUT(self) -> None:
-        if not self._host_ok():
-            return
-        if urlparse(self.path).path != "/api/labels":
-            self._json({"error": "not found"}, HTTPStatus.NOT_FOUND)
-            return
-        length = self._body_length()
-        if length is None:
+        raw = self._put_body("/api/labels")
+        if raw is None:
             return
         try:
-            body = json.loads(self.rfile.read(length) or b"{}")
+            body = json.loads(raw or b"{}")
             if not isinstance(body, dict) or "labels" not in body or not isinstance(body.get("frame"), str):
                 raise ValueError('expected {"frame": NAME, "labels": [{"image", "x", "y", "person"}, ...]}')
             self._json(self.session.set_frame_labels(body["frame"], body["labels"]))

@@ -62,16 +62,11 @@ class _Handler(LocalHandler):
             self._json({"error": str(error)}, HTTPStatus.BAD_REQUEST)
 
     def do_PUT(self) -> None:
-        if not self._host_ok():
-            return
-        if urlparse(self.path).path != "/api/pairs":
-            self._json({"error": "not found"}, HTTPStatus.NOT_FOUND)
-            return
-        length = self._body_length()
-        if length is None:
+        raw = self._put_body("/api/pairs")
+        if raw is None:
             return
         try:
-            body = json.loads(self.rfile.read(length) or b"{}")
+            body = json.loads(raw or b"{}")
             if not isinstance(body, dict) or "pairs" not in body:
                 raise ValueError('expected {"pairs": [[x_a, y_a, x_b, y_b], ...]}')
             self._json(self.session.set_pairs(body["pairs"], body.get("revision")))

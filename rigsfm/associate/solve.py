@@ -247,7 +247,7 @@ class _Frame:
         lo, hi = self.options.heights
         gate = self.options.gate_sigmas
         seeds = []
-        for i, vi in enumerate(self.views):
+        for i, _vi in enumerate(self.views):
             di = np.arange(self.offsets[i], self.offsets[i + 1])
             di = di[self.valid[di]]
             if not len(di):

@@ -13,8 +13,8 @@ import cv2
 import numpy as np
 import pycolmap
 
-from rigsfm.calibrate.options import Distortion
 from rigsfm.calibrate.board import MIN_CORNERS, Detection
+from rigsfm.calibrate.options import Distortion
 from rigsfm.core.conventions import colmap_from_opencv_pixels
 from rigsfm.core.errors import InputError, RigsfmError
 

@@ -13,9 +13,9 @@ from typing import TYPE_CHECKING
 import cv2
 import numpy as np
 
-from rigsfm.core import charts
 from rigsfm.calibrate.intrinsics import COVERAGE_GRID, OUTLIER_FACTOR, CameraCalibration
 from rigsfm.calibrate.stereo import StereoFit
+from rigsfm.core import charts
 from rigsfm.core.conventions import euler_zyx_degrees
 from rigsfm.core.errors import WorkspaceError
 from rigsfm.core.io import atomic_directory, write_text_atomic

@@ -26,8 +26,8 @@ floor, z up, metres: :mod:`rigsfm.run.world`). A "plane at height h" is ``z = h`
 from __future__ import annotations
 
 import itertools
-import math
 import logging
+import math
 from collections.abc import Mapping
 from dataclasses import dataclass
 
@@ -37,7 +37,13 @@ import pycolmap
 
 from rigsfm.core.errors import InputError
 from rigsfm.core.names import ImageName
-from rigsfm.core.polygons import clip_half_plane, intersect_polygons, intersection_area, is_convex, polygon_area
+from rigsfm.core.polygons import (
+    clip_half_plane,
+    intersect_polygons,
+    intersection_area,
+    is_convex,
+    polygon_area,
+)
 
 logger = logging.getLogger(__name__)
 

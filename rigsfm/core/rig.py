@@ -38,9 +38,9 @@ import pycolmap
 import yaml
 
 from rigsfm.core.errors import InputError
+from rigsfm.core.io import load_yaml_or_json, write_text_atomic
 from rigsfm.core.names import SENSORS
 from rigsfm.core.serialise import camera_to_dict, pose_to_dict
-from rigsfm.core.io import load_yaml_or_json, write_text_atomic
 
 # Every COLMAP model with a focal length and a principal point (EQUIRECTANGULAR has neither: no rig camera).
 CAMERA_MODELS = tuple(m for m in pycolmap.CameraModelId.__members__ if m not in ("INVALID", "EQUIRECTANGULAR"))

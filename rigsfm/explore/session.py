@@ -17,8 +17,8 @@ import numpy as np
 import pycolmap
 
 from rigsfm.core.errors import InputError, WorkspaceError
-from rigsfm.core.names import ImageName, name_of
 from rigsfm.core.ground import parse_heights  # noqa: F401  (re-exported)
+from rigsfm.core.names import ImageName, name_of
 from rigsfm.core.workspace import Workspace
 from rigsfm.explore.geometry import View, band_in_view, floor_trace, triangulate
 from rigsfm.explore.labels import ForeignRow, Label, parse_row, read_labels, save_labels

@@ -21,9 +21,9 @@ import numpy as np
 import open3d as o3d
 import pycolmap
 
-from rigsfm.core.names import name_of
 from rigsfm.core.conventions import opencv_from_colmap_pixels
 from rigsfm.core.errors import WorkspaceError
+from rigsfm.core.names import name_of
 from rigsfm.core.workspace import Workspace
 
 logger = logging.getLogger(__name__)

@@ -48,20 +48,25 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 import pyceres
-import scipy.linalg
 import pycolmap
-import pycolmap.cost_functions  # noqa: F401 - not imported by ``import pycolmap``
+import pycolmap.cost_functions  # not imported by ``import pycolmap``
+import scipy.linalg
 
-from rigsfm.core.names import name_of
 from rigsfm.core.errors import ReconstructionError
+from rigsfm.core.names import name_of
 from rigsfm.core.residuals import reprojection_errors
 from rigsfm.core.rig import RigCalibration
-from rigsfm.run.diagnostics import loosely_tied_rigs
 from rigsfm.run.costs import CameraDistanceCost, CentreTerm, LengthCost, skew
-from rigsfm.run.priors import CalibrationPriors, calibration_priors, pose_prior_residual_covariance
-from rigsfm.run.scale import (Measurement, ScaleEstimate, UnusableMeasurement, estimate_scale,
-                              triangulate_in_images)
+from rigsfm.run.diagnostics import loosely_tied_rigs
 from rigsfm.run.options import AdjustOptions, Calibration
+from rigsfm.run.priors import CalibrationPriors, calibration_priors, pose_prior_residual_covariance
+from rigsfm.run.scale import (
+    Measurement,
+    ScaleEstimate,
+    UnusableMeasurement,
+    estimate_scale,
+    triangulate_in_images,
+)
 from rigsfm.run.scale_file import ScaleSpec
 
 if TYPE_CHECKING:

@@ -27,10 +27,10 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 
-from rigsfm.core.names import name_of
-from rigsfm.core.errors import WorkspaceError
 from rigsfm.core.conventions import euler_zyx_degrees
+from rigsfm.core.errors import WorkspaceError
 from rigsfm.core.io import atomic_directory, write_json_atomic
+from rigsfm.core.names import name_of
 from rigsfm.core.serialise import camera_to_dict, pose_to_dict
 
 logger = logging.getLogger(__name__)

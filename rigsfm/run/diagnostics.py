@@ -23,11 +23,11 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 
-from rigsfm.core.names import name_of
-from rigsfm.core.graph import DisjointSets
-from rigsfm.run.scale import ScaleEstimate
 from rigsfm.core.geometry import PLANAR, Config, sampson_error_px
+from rigsfm.core.graph import DisjointSets
+from rigsfm.core.names import name_of
 from rigsfm.run.database import open_database
+from rigsfm.run.scale import ScaleEstimate
 
 MIN_SHARED_POINTS = 20  # three-view points that tie a rig to the others
 MAX_NORMALISED_RESIDUAL = 5.0

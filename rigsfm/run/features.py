@@ -545,7 +545,7 @@ def select_pairs(database_path: Path, images: Sequence[ImageEntry], options: Mat
             continue
         for one, other in (pair, pair[::-1]):
             ranked.setdefault(one, []).append((-score, other, pair))
-    for name, partners in ranked.items():
+    for partners in ranked.values():
         keep.update(pair for _, _, pair in sorted(partners)[: options.neighbours])
     # The narrow images of neighbouring rigs see the same crowd from close directions: match them for the
     # NARROW_NEIGHBOURS best wide partners of each wide image (12 textured rigs: the 12 narrow pairs of adjacent

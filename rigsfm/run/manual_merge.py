@@ -18,6 +18,8 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 
+from rigsfm.core.geometry import PLANAR, POSED, Config, planar_fraction, sampson_error_px
+from rigsfm.run.database import open_database
 from rigsfm.run.manual_matches import (
     MIN_CORRESPONDENCES,
     Correspondence,
@@ -25,8 +27,6 @@ from rigsfm.run.manual_matches import (
     TooFewCorrespondencesError,
     check_spread,
 )
-from rigsfm.core.geometry import PLANAR, POSED, Config, planar_fraction, sampson_error_px
-from rigsfm.run.database import open_database
 
 logger = logging.getLogger(__name__)
 

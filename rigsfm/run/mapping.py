@@ -18,9 +18,9 @@ from pathlib import Path
 
 import pycolmap
 
-from rigsfm.core.names import ImageName, Sensor
 from rigsfm.core.errors import ReconstructionError
 from rigsfm.core.io import atomic_directory
+from rigsfm.core.names import ImageName, Sensor
 from rigsfm.core.workspace import Workspace, read_model
 from rigsfm.run.database import open_database
 from rigsfm.run.options import Mapper, MappingOptions

@@ -34,7 +34,6 @@ from rigsfm.core.io import load_yaml_or_json
 from rigsfm.core.rig import RigCalibration, check_keys, nfc
 from rigsfm.run.inputs import ImageEntry
 
-
 DEFAULT_DISTANCE_SIGMA = 0.01
 DEFAULT_LENGTH_SIGMA = 0.002
 DEFAULT_PIXEL_SIGMA = 0.5

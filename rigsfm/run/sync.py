@@ -41,8 +41,18 @@ import pycolmap
 from rigsfm.core.errors import InputError
 from rigsfm.core.io import load_yaml_or_json
 from rigsfm.core.names import name_of
-from rigsfm.run.self_check import (KEYPOINT_NOISE_PX, MIN_MATCHES, WIDE_FACTOR, _candidates, _distances,
-                                   _guided_matches, _load, _overlapping_pairs, _segments, pair_features)
+from rigsfm.run.self_check import (
+    KEYPOINT_NOISE_PX,
+    MIN_MATCHES,
+    WIDE_FACTOR,
+    _candidates,
+    _distances,
+    _guided_matches,
+    _load,
+    _overlapping_pairs,
+    _segments,
+    pair_features,
+)
 
 logger = logging.getLogger(__name__)
 

@@ -56,8 +56,14 @@ from scipy.special import ndtr
 from rigsfm.core.errors import ReconstructionError
 from rigsfm.core.geometry import project, project_world
 from rigsfm.core.names import name_of
-from rigsfm.run.adjust import (AdjustResult, Gauge, JointProblem, ScaleSource, estimate_pixel_sigma,
-                               sensor_from_rig_view)
+from rigsfm.run.adjust import (
+    AdjustResult,
+    Gauge,
+    JointProblem,
+    ScaleSource,
+    estimate_pixel_sigma,
+    sensor_from_rig_view,
+)
 from rigsfm.run.options import Calibration
 from rigsfm.run.priors import calibration_priors, draw_calibration
 

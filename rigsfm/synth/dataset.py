@@ -37,15 +37,23 @@ import numpy as np
 import pycolmap
 import yaml
 
-from rigsfm.core.geometry import project_world
 from rigsfm.core.errors import WorkspaceError
-from rigsfm.core.names import SENSORS, ImageName, Sensor
+from rigsfm.core.geometry import project_world
 from rigsfm.core.io import parse_yaml, sha256_file, write_bytes_atomic, write_json_atomic
+from rigsfm.core.names import SENSORS, ImageName, Sensor
 from rigsfm.core.rig import RigCalibration, add_posed_rig, rigs_to_yaml
 from rigsfm.synth.cameras import RigTruth, calibration_error_sigmas, make_rigs, user_calibration
+from rigsfm.synth.persons import (
+    HEAD,
+    HEAD_RADIUS,
+    VISIBILITY_SAMPLES,
+    Crowd,
+    HeadsInImage,
+    build_crowd,
+    head_samples,
+    heads_csv,
+)
 from rigsfm.synth.render import render_clean, to_uint8, visible
-from rigsfm.synth.persons import (HEAD, HEAD_RADIUS, VISIBILITY_SAMPLES, Crowd, HeadsInImage, build_crowd,
-                                  head_samples, heads_csv)
 from rigsfm.synth.scene import PERSON, Arena, Bar, SceneOptions, build_arena, trace
 
 logger = logging.getLogger(__name__)

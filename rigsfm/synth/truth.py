@@ -15,11 +15,11 @@ from dataclasses import replace
 import numpy as np
 import pycolmap
 
-from rigsfm.core.names import name_of
 from rigsfm.core.conventions import rotation_angle_deg
+from rigsfm.core.names import name_of
+from rigsfm.core.rig import RigCalibration
 from rigsfm.run.adjust import AdjustOptions, adjust, restore_calibration
 from rigsfm.run.options import Calibration
-from rigsfm.core.rig import RigCalibration
 from rigsfm.run.scale import triangulate_in_images
 from rigsfm.run.scale_file import ScaleSpec
 

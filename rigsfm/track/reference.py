@@ -20,12 +20,12 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 
-from rigsfm.core.names import ImageName, name_of
 from rigsfm.core.errors import ReconstructionError, WorkspaceError
-from rigsfm.track.options import RegistrationOptions
-from rigsfm.track.pose import estimate_rig_pose, pose_covariance
+from rigsfm.core.names import ImageName, name_of
 from rigsfm.core.workspace import Workspace
 from rigsfm.run.database import damage
+from rigsfm.track.options import RegistrationOptions
+from rigsfm.track.pose import estimate_rig_pose, pose_covariance
 
 logger = logging.getLogger(__name__)
 

@@ -16,10 +16,10 @@ import numpy as np
 import pycolmap
 
 from rigsfm.core import charts
+from rigsfm.core.conventions import opencv_from_colmap_pixels
 from rigsfm.core.geometry import project
 from rigsfm.core.image_files import read_image as read_pixels
 from rigsfm.core.names import name_of
-from rigsfm.core.conventions import opencv_from_colmap_pixels
 
 COLOURS_BGR = [charts.bgr(colour) for colour in charts.SERIES]
 WIDE_SVG, NARROW_SVG = charts.hex_colour("wide"), charts.hex_colour("narrow")

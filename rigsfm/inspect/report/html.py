@@ -9,11 +9,17 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 
-from rigsfm.core.names import ImageName, name_of
 from rigsfm.core import charts
-from rigsfm.inspect.report.figures import JPEG_QUALITY, epipolar_figure, floor_map_svg, read_image, topdown_svg
+from rigsfm.core.names import ImageName, name_of
 from rigsfm.core.residuals import reprojection_errors
 from rigsfm.core.workspace import Workspace
+from rigsfm.inspect.report.figures import (
+    JPEG_QUALITY,
+    epipolar_figure,
+    floor_map_svg,
+    read_image,
+    topdown_svg,
+)
 from rigsfm.run.summary import Summary
 
 logger = logging.getLogger(__name__)

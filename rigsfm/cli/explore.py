@@ -53,7 +53,7 @@ def explore_command(
             console.print(f"  {i} - {j}: {inside} of {total} inside ({100 * inside / total:.1f} %)")
         rest = f"; {result.without_band} without a band in the other image" if result.without_band else ""
         console.print(f"{result.inside} of {result.pairs} labelled pairs inside their 95 % band "
-                      f"({100 * result.share:.1f} %){rest}")
+                      f"({100 * result.share:.1f} %){rest}")  # type: ignore[operator]  # pairs: a share
         return
     server = start_explorer(out, options, port=port)
     session = server.session

@@ -145,7 +145,7 @@ def run_command(
     incremental_time_limit: Annotated[int, typer.Option(
         "--incremental-time-limit", min=0, metavar="SECONDS",
         help="after this long the incremental mapper stops and the global mapper's model is used (with a warning)"
-    )] = MappingOptions().incremental_time_limit_s,
+    )] = MappingOptions().incremental_time_limit_s,  # type: ignore[assignment]  # set by default
     world: Annotated[WorldFrame, typer.Option(
         "--world", help="floor: z = 0 on the floor, z up, origin under the rigs' centroid, x towards the first rig; "
                         "mapping: the mapper's frame")] = WorldFrame.FLOOR,

@@ -132,7 +132,8 @@ def narrow_poses(reconstruction: pycolmap.Reconstruction, *, metric: bool, bands
         )
         if ground is not None:
             pairs[-1]["ground_overlap_m2"] = ground.overlap(image_i.name, image_j.name)
-    data = {"metric": metric, "units": "meters" if metric else "arbitrary", "conventions": CONVENTIONS,
+    data: dict[str, object] = {"metric": metric, "units": "meters" if metric else "arbitrary",
+                               "conventions": CONVENTIONS,
             "narrow": entries, "pairs": pairs}
     if world is not None:
         data["world"] = world

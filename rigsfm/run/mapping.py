@@ -151,7 +151,8 @@ def initial_pair(cache: pycolmap.DatabaseCache, pipeline: pycolmap.IncrementalPi
     mapper = pycolmap.IncrementalMapper(cache)
     mapper.begin_reconstruction(pycolmap.Reconstruction())
     base = pipeline.get_mapper()
-    tested, rejected = 0, []
+    tested = 0
+    rejected: list = []
     try:
         for inlier_div, angle_div in RELAXATIONS:
             options = pipeline.get_mapper()

@@ -55,7 +55,8 @@ def centre_errors_mm(estimate: pycolmap.Reconstruction, truth: pycolmap.Reconstr
     )
     est, gt = _posed(estimate, "narrow"), _posed(truth, "narrow")
     errors = [
-        1000.0 * np.linalg.norm(gt_from_est * est[n].projection_center() - gt[n].projection_center())
+        1000.0 * np.linalg.norm(gt_from_est * est[n].projection_center()  # type: ignore[operator]  # posed centres
+                                - gt[n].projection_center())
         for n in sorted(set(est) & set(gt))
     ]
     return _stats(errors)

@@ -195,7 +195,8 @@ def floor_map_svg(narrow: dict, reconstruction: pycolmap.Reconstruction, size: i
     maps (the result is not in the floor frame)."""
     from rigsfm.core.ground import coverage
 
-    prints, centres = {}, {}
+    prints: dict = {}
+    centres: dict = {}
     for entry in narrow.get("narrow", []):
         ground = entry.get("ground") or []
         floor = next((g for g in ground if g.get("plane_height_m") == 0.0 and g.get("footprint_m")), None)

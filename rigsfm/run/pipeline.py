@@ -137,8 +137,8 @@ def reprojection_table(reconstruction: pycolmap.Reconstruction) -> dict[str, Cam
     for name, errors in reprojection_errors(reconstruction).items():
         per_camera.setdefault(ImageName.parse(name).camera, []).append(errors)
     table = {}
-    for key, errors in sorted(per_camera.items()):
-        e = np.concatenate(errors)
+    for key, camera_errors in sorted(per_camera.items()):
+        e = np.concatenate(camera_errors)
         table[key] = CameraError(observations=int(e.size), mean_px=float(e.mean()) if e.size else None,
                                  rms_px=float(np.sqrt(np.mean(e**2))) if e.size else None)
     return table
@@ -176,13 +176,13 @@ def build_summary(inputs: Inputs, options: RunOptions, mapping: MappingResult, r
         warnings.append("NOT METRIC: no scale.yaml and no observations in narrow images; units are arbitrary")
     elif not metric:
         warnings.append(
-            f"NOT METRIC: the narrow images' observations fix the scale only to +-{100 * result.scale_relative_sigma:.3g} %;"
+            f"NOT METRIC: the narrow images' observations fix the scale only to +-{100 * result.scale_relative_sigma:.3g} %;"  # type: ignore[operator]
             " give a scale.yaml (rangefinder distance or known length)"
         )
     warnings.extend(result.warnings)
     warnings.extend(check_reconstruction(reconstruction, result.scale, database))
     if inputs.priors is not None and inputs.priors.warning():
-        warnings.append(inputs.priors.warning())
+        warnings.append(inputs.priors.warning())  # type: ignore[arg-type]  # checked just above
     if unregistered:
         warnings.append(f"{len(unregistered)} image(s) not registered: {', '.join(unregistered[:5])}")
     warnings.extend(f"NO NARROW IMAGES: {line}" for line in inputs.without_narrow)
@@ -289,8 +289,8 @@ def _self_check(workspace: Workspace, inputs: Inputs, reconstruction: pycolmap.R
         sync = estimate()
         if sync.warning:
             check.blame_time(sync.unsynchronised, sync.warning)
-    elif asked == "auto" and sync.unsynchronised:
-        logger.warning("Frame offsets estimated and applied: %s", sync.unsynchronised)
+    elif asked == "auto" and sync.unsynchronised:  # type: ignore[union-attr]  # auto: estimated above
+        logger.warning("Frame offsets estimated and applied: %s", sync.unsynchronised)  # type: ignore[union-attr]
     record = {"asked": asked, "applied": applied, "estimate": None if sync is None else sync.to_dict()}
     return check, record
 

@@ -106,7 +106,8 @@ def associate(out: Path, detections_csv: Path, options: AssociateOptions | None 
     dest = Path(options.out) if options.out is not None else Workspace(Path(out)).associate
     check_destination(dest, options.overwrite)
     model = load_run(Path(out))
-    sizes = {name: (image.camera.width, image.camera.height)  # type: ignore[union-attr]  # a model's images have cameras
+    # a model's images have cameras
+    sizes = {name: (image.camera.width, image.camera.height)  # type: ignore[union-attr]
              for name, image in model.images.items()}
     detections = read_detections(Path(detections_csv), sizes, model.known)
     require_floor(model, Path(out))

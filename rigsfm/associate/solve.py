@@ -59,9 +59,11 @@ class View:
     def of(cls, image: pycolmap.Image, xy: np.ndarray) -> View:
         pose = image.cam_from_world()
         camera = image.camera
-        return cls(image.name, np.asarray(camera.calibration_matrix(), dtype=np.float64),  # type: ignore[union-attr]  # a model's images have their cameras
+        # a model's images have their cameras
+        return cls(image.name, np.asarray(camera.calibration_matrix(), dtype=np.float64),  # type: ignore[union-attr]
                    pose.rotation.matrix(), np.asarray(pose.translation, dtype=np.float64),
-                   np.asarray(image.projection_center(), dtype=np.float64), camera.width, camera.height, camera,  # type: ignore[arg-type,union-attr]  # a model's images have their cameras
+                   # a model's images have their cameras
+                   np.asarray(image.projection_center(), dtype=np.float64), camera.width, camera.height, camera,  # type: ignore[arg-type,union-attr]
                    np.asarray(xy, dtype=np.float64).reshape(-1, 2))
 
     @property
@@ -267,7 +269,8 @@ class _Frame:
                 seg = b - a
                 length = np.linalg.norm(seg, axis=1)
                 mid = (a + b) / 2
-                near = self.trees[j].query_ball_point(mid[ok], length[ok] / 2 + radius)  # type: ignore[union-attr]  # views with detections have trees
+                # views with detections have trees
+                near = self.trees[j].query_ball_point(mid[ok], length[ok] / 2 + radius)  # type: ignore[union-attr]
                 rows = np.flatnonzero(ok)
                 counts = np.array([len(n) for n in near])
                 if not counts.sum():
@@ -305,7 +308,8 @@ class _Frame:
             s = jac @ covariance[rows] @ np.transpose(jac, (0, 2, 1)) + np.eye(2)[None] * self.noise[v] ** 2
             reach = 3.0 * np.sqrt(np.max(np.linalg.eigvalsh(s), axis=1)) * self.options.member_gate / 3.0
             k = min(4, len(self.tree_index[v]))
-            dist, near = self.trees[v].query(uv, k=k, distance_upper_bound=float(np.max(reach)) + 1.0)  # type: ignore[union-attr]  # views with detections have trees
+            # views with detections have trees
+            dist, near = self.trees[v].query(uv, k=k, distance_upper_bound=float(np.max(reach)) + 1.0)  # type: ignore[union-attr]
             dist, near = dist.reshape(len(rows), k), near.reshape(len(rows), k)
             s_inv = np.linalg.inv(s)
             best = np.full(len(rows), -1, dtype=np.int64)

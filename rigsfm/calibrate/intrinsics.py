@@ -133,7 +133,8 @@ def calibrate_camera(sensor: str, detections: dict[str, Detection | None], objec
     if len(active) < MIN_VIEWS:
         raise InputError(f"{where}: the board was detected in only {len(active)} images (need at least "
                          f"{MIN_VIEWS}, better 10+); capture more views with the whole board or more of it visible")
-    pairs = {n: correspondences(detections[n], object_points) for n in active}  # type: ignore[arg-type]  # active: detected
+    # active: detected
+    pairs = {n: correspondences(detections[n], object_points) for n in active}  # type: ignore[arg-type]
     k3 = distortion == Distortion.FULL_OPENCV
     while True:
         fit = _fit([pairs[n][0] for n in active], [pairs[n][1] for n in active], image_size, k3)

@@ -88,7 +88,8 @@ def _reversed(d: Detection, n_corners: int) -> Detection:
 def _stereo(data: dict, names: list[str], K1, d1, K2, d2, size, flags) -> StereoFit:
     obj = [data[n][0] for n in names]
     try:
-        out = cv2.stereoCalibrateExtended(obj, [data[n][1] for n in names], [data[n][2] for n in names],  # type: ignore[call-overload]  # OpenCV's stubs: None lets it estimate
+        # OpenCV's stubs: None lets it estimate
+        out = cv2.stereoCalibrateExtended(obj, [data[n][1] for n in names], [data[n][2] for n in names],  # type: ignore[call-overload]
                                           K1.copy(), d1.copy(), K2.copy(), d2.copy(), size, None, None,
                                           flags=flags, criteria=CRITERIA)
     except cv2.error as e:
@@ -133,7 +134,8 @@ def calibrate_stereo(wide: CameraCalibration, narrow: CameraCalibration, wide_de
                 ok, rvec, tvec = cv2.solvePnP(obj, img, narrow.K, narrow.dist)
                 if ok and rotation_angle_deg(_relative(*wide.poses[n], rvec.reshape(3), tvec.reshape(3))[0],
                                              reference) <= CONSISTENCY_DEG:
-                    data[n] = _common(wide_det[n], flipped, obj_points)  # type: ignore[arg-type]  # views detected in both
+                    # views detected in both
+                    data[n] = _common(wide_det[n], flipped, obj_points)  # type: ignore[arg-type]
                     corrected[n] = flipped
                     notes.append(f"view {n}: narrow chessboard corners were ordered from the opposite end; reversed")
                     continue
@@ -159,7 +161,8 @@ def calibrate_stereo(wide: CameraCalibration, narrow: CameraCalibration, wide_de
         names.remove(worst)
     narrow_pairs = {n: narrow.pairs[n] for n in narrow.used_views if n not in dropped and n not in data}
     for n in names:  # orientation-consistent narrow correspondences of the E^sl views
-        narrow_pairs[n] = correspondences(corrected.get(n, narrow_det[n]), obj_points)  # type: ignore[arg-type]  # views detected in both
+        # views detected in both
+        narrow_pairs[n] = correspondences(corrected.get(n, narrow_det[n]), obj_points)  # type: ignore[arg-type]
     result = StereoCalibration(fixed=fixed, joint=None, use_joint=False, views=names, dropped=dropped, notes=notes)
     try:
         detail = joint_refine(wide, narrow, narrow_pairs, fixed.R, fixed.T, names)

@@ -56,7 +56,8 @@ def image_from_plane(image: pycolmap.Image, height: float = 0.0) -> np.ndarray:
     (third coordinate = depth in the camera)."""
     pose = image.cam_from_world()
     rotation, translation = pose.rotation.matrix(), np.asarray(pose.translation)
-    k = np.asarray(image.camera.calibration_matrix(), dtype=np.float64)  # type: ignore[union-attr]  # a model's images have their cameras
+    # a model's images have their cameras
+    k = np.asarray(image.camera.calibration_matrix(), dtype=np.float64)  # type: ignore[union-attr]
     return k @ np.column_stack([rotation[:, 0], rotation[:, 1], height * rotation[:, 2] + translation])
 
 
@@ -82,8 +83,10 @@ def undistort_pixels(camera: pycolmap.Camera, pixels: np.ndarray) -> np.ndarray:
 def image_to_plane(image: pycolmap.Image, pixels: np.ndarray, height: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
     """Raw (distorted) COLMAP pixels (Nx2) -> plane points (Nx2, metres) on z = ``height`` and a mask of the
     pixels whose ray meets the plane in front of the camera."""
-    normalised = image.camera.cam_from_img(np.asarray(pixels, dtype=np.float64).reshape(-1, 2))  # type: ignore[union-attr]  # a model's images have their cameras
-    rays = np.c_[normalised, np.ones(len(normalised))] @ image.cam_from_world().rotation.matrix()  # type: ignore[arg-type]  # rays out
+    # a model's images have their cameras
+    normalised = image.camera.cam_from_img(np.asarray(pixels, dtype=np.float64).reshape(-1, 2))  # type: ignore[union-attr]
+    # rays out
+    rays = np.c_[normalised, np.ones(len(normalised))] @ image.cam_from_world().rotation.matrix()  # type: ignore[arg-type]
     centre = np.asarray(image.projection_center())
     with np.errstate(divide="ignore", invalid="ignore"):
         t = (height - centre[2]) / rays[:, 2]
@@ -145,8 +148,9 @@ def footprint(image: pycolmap.Image, height: float = 0.0, *, samples_per_side: i
         logger.debug("%s is not above the plane z = %g", image.name, height)
         return None
     max_depth = 20.0 * above if max_depth is None else float(max_depth)
-    border = image_border(camera.width, camera.height, samples_per_side)  # type: ignore[union-attr]  # a model's images have their cameras
-    normalised = camera.cam_from_img(border)  # type: ignore[union-attr]  # a model's images have their cameras
+    # a model's images have their cameras
+    border = image_border(camera.width, camera.height, samples_per_side)  # type: ignore[union-attr]
+    normalised = camera.cam_from_img(border)  # type: ignore[union-attr]
     finite = np.isfinite(normalised).all(axis=1)
     if not finite.all():
         logger.warning("%s: %d border points cannot be undistorted and are skipped", image.name, int((~finite).sum()))
@@ -165,7 +169,8 @@ def footprint(image: pycolmap.Image, height: float = 0.0, *, samples_per_side: i
     if polygon_area(polygon) < 0:
         polygon = polygon[::-1]
     centre_xy, gsd, gsd_xy = None, None, None
-    middle = np.array([[camera.width / 2.0, camera.height / 2.0]])  # type: ignore[union-attr]  # a model's images have their cameras
+    # a model's images have their cameras
+    middle = np.array([[camera.width / 2.0, camera.height / 2.0]])  # type: ignore[union-attr]
     xy, valid = image_to_plane(image, middle, height)
     if valid[0]:
         depth = float((image.cam_from_world() * np.r_[xy[0], height])[2])

@@ -84,7 +84,8 @@ def write_open3d(reconstruction: pycolmap.Reconstruction, dest: Path) -> list[Pa
         parameters.append(p)
         names.append(image.name)
     trajectory.parameters = parameters
-    if not o3d.io.write_pinhole_camera_trajectory(str(dest / "trajectory.json"), trajectory):  # type: ignore[arg-type]  # takes str too
+    # takes str too
+    if not o3d.io.write_pinhole_camera_trajectory(str(dest / "trajectory.json"), trajectory):  # type: ignore[arg-type]
         raise WorkspaceError(f"Open3D could not write {dest / 'trajectory.json'}")
     write_json_atomic(dest / "cameras.json", {
         "trajectory_entries": names,

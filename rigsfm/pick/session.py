@@ -220,7 +220,8 @@ class PickerSession:
                 os.close(fd)
                 self.rescue = Path(name)
             write_bytes_atomic(self.rescue, format_manual_matches(rows).encode("utf-8"))
-            kept = f"the {len(self.unsaved)} pairs of this page are kept in {self.rescue}"  # type: ignore[arg-type]  # rows: unsaved
+            # rows: unsaved
+            kept = f"the {len(self.unsaved)} pairs of this page are kept in {self.rescue}"  # type: ignore[arg-type]
         except OSError:
             kept = "the page still holds its pairs"
         return SaveFailed(f"{self.save_error}; nothing saved was changed and {kept}; fix the folder (or copy that "

@@ -143,7 +143,8 @@ def restore_calibration(reconstruction: pycolmap.Reconstruction, rigs: Sequence[
         name = name_of(image)
         calibration = by_name[name.rig]
         camera = reconstruction.cameras[image.camera_id]
-        camera.params = calibration.camera(name.sensor).params  # type: ignore[assignment]  # pycolmap's stubs: params take an array
+        # pycolmap's stubs: params take an array
+        camera.params = calibration.camera(name.sensor).params  # type: ignore[assignment]
         if name.is_narrow:
             rig = reconstruction.rig(reconstruction.frame(image.frame_id).rig_id)
             rig.set_sensor_from_rig(camera.sensor_id, calibration.narrow_from_wide)
@@ -314,7 +315,8 @@ def sensor_from_rig_view(reconstruction: pycolmap.Reconstruction, rig_id: int,
                          sensor_id: pycolmap.sensor_t) -> pycolmap.Rigid3d:
     """The rig's own ``sensor_from_rig`` (its ``.params`` is the bundle adjuster's parameter block);
     ``Rig.sensor_from_rig(sensor_id)`` returns a *copy*."""
-    return reconstruction.rig(rig_id).non_ref_sensors[sensor_id]  # type: ignore[return-value]  # a non-reference sensor has its pose
+    # a non-reference sensor has its pose
+    return reconstruction.rig(rig_id).non_ref_sensors[sensor_id]  # type: ignore[return-value]
 
 
 def images_of_camera(reconstruction: pycolmap.Reconstruction, camera: str) -> list[pycolmap.Image]:
@@ -402,7 +404,8 @@ class JointProblem:
         return self.problem.has_parameter_block(block) and not self.problem.is_parameter_block_constant(block)
 
     def frame_block(self, frame_id: int) -> np.ndarray:
-        return self.reconstruction.frame(frame_id).rig_from_world.params  # type: ignore[union-attr]  # registered frames have their poses
+        # registered frames have their poses
+        return self.reconstruction.frame(frame_id).rig_from_world.params  # type: ignore[union-attr]
 
     def narrow_sensors(self):
         """``(rig_id, sensor_id, camera_id, rig name)`` of every non-reference sensor with registered images."""
@@ -431,8 +434,9 @@ class JointProblem:
                 continue
             if image.frame_id == first.frame_id or not self.problem.has_parameter_block(self.frame_block(image.frame_id)):
                 continue
-            baseline = np.asarray((rec.frame(first.frame_id).rig_from_world  # type: ignore[operator]  # registered frames have their poses
-                                   * rec.frame(image.frame_id).rig_from_world.inverse()).translation)  # type: ignore[union-attr]  # registered frames have their poses
+            # registered frames have their poses
+            baseline = np.asarray((rec.frame(first.frame_id).rig_from_world  # type: ignore[operator]
+                                   * rec.frame(image.frame_id).rig_from_world.inverse()).translation)  # type: ignore[union-attr]
             if np.abs(baseline).max() > 1e-9:
                 frame_id, dim = image.frame_id, int(np.argmax(np.abs(baseline)))
                 if self.problem.parameter_block_tangent_size(self.frame_block(frame_id)) != 5:
@@ -460,7 +464,8 @@ class JointProblem:
 
         for image in images:
             frame = self.reconstruction.frame(image.frame_id)
-            rig_index = index(frame.rig_from_world.params)  # type: ignore[union-attr]  # registered frames have their poses
+            # registered frames have their poses
+            rig_index = index(frame.rig_from_world.params)  # type: ignore[union-attr]
             if image.is_ref_in_frame():
                 terms.append(CentreTerm(rig_index))
                 continue
@@ -469,7 +474,8 @@ class JointProblem:
             if self.has_variable(sensor.params):
                 terms.append(CentreTerm(rig_index, sensor=index(sensor.params)))
                 continue
-            terms.append(CentreTerm(rig_index, sensor_from_rig=pycolmap.Rigid3d(sensor)))  # type: ignore[call-overload]  # a non-reference sensor has its pose
+            # a non-reference sensor has its pose
+            terms.append(CentreTerm(rig_index, sensor_from_rig=pycolmap.Rigid3d(sensor)))  # type: ignore[call-overload]
             cov = self.priors[name_of(image).rig].narrow_from_wide
             r = frame.rig_from_world.rotation.matrix()  # type: ignore[union-attr]  # registered frames have their poses
             r_e, t_e = sensor.rotation.matrix(), np.asarray(sensor.translation)
@@ -520,9 +526,10 @@ class JointProblem:
             for image, o in observations:
                 camera = rec.cameras[image.camera_id]
                 frame = rec.frame(image.frame_id)
-                if not self.problem.has_parameter_block(frame.rig_from_world.params):  # type: ignore[union-attr]  # registered frames have their poses
-                    self.problem.add_parameter_block(frame.rig_from_world.params, 7)  # type: ignore[union-attr]  # registered frames have their poses
-                    self.problem.set_parameter_block_constant(frame.rig_from_world.params)  # type: ignore[union-attr]  # registered frames have their poses
+                # registered frames have their poses
+                if not self.problem.has_parameter_block(frame.rig_from_world.params):  # type: ignore[union-attr]
+                    self.problem.add_parameter_block(frame.rig_from_world.params, 7)  # type: ignore[union-attr]
+                    self.problem.set_parameter_block_constant(frame.rig_from_world.params)  # type: ignore[union-attr]
                 if not self.problem.has_parameter_block(camera.params):
                     self.problem.add_parameter_block(camera.params, len(camera.params))
                     self.problem.set_parameter_block_constant(camera.params)
@@ -530,16 +537,20 @@ class JointProblem:
                     xy = np.asarray(getattr(o, end), dtype=np.float64)
                     if image.is_ref_in_frame():
                         cost = pycolmap.cost_functions.ReprojErrorCost(camera.model, point_cov, xy)
-                        blocks = [xyz, frame.rig_from_world.params, camera.params]  # type: ignore[union-attr]  # registered frames have their poses
+                        # registered frames have their poses
+                        blocks = [xyz, frame.rig_from_world.params, camera.params]  # type: ignore[union-attr]
                     else:
                         sensor = sensor_from_rig_view(rec, frame.rig_id, camera.sensor_id)
                         if self.has_variable(sensor.params):
                             cost = pycolmap.cost_functions.RigReprojErrorCost(camera.model, point_cov, xy)
-                            blocks = [xyz, sensor.params, frame.rig_from_world.params, camera.params]  # type: ignore[union-attr]  # registered frames have their poses
+                            # registered frames have their poses
+                            blocks = [xyz, sensor.params, frame.rig_from_world.params, camera.params]  # type: ignore[union-attr]
                         else:
                             cost = pycolmap.cost_functions.RigReprojErrorCost(camera.model, point_cov, xy,
-                                                                              pycolmap.Rigid3d(sensor))  # type: ignore[call-overload]  # a non-reference sensor has its pose
-                            blocks = [xyz, frame.rig_from_world.params, camera.params]  # type: ignore[union-attr]  # registered frames have their poses
+                                                                              # a non-reference sensor has its pose
+                                                                              pycolmap.Rigid3d(sensor))  # type: ignore[call-overload]
+                            # registered frames have their poses
+                            blocks = [xyz, frame.rig_from_world.params, camera.params]  # type: ignore[union-attr]
                     self.problem.add_residual_block(cost, None, blocks)
                     self._keep.append(cost)
             cost = LengthCost(item.meters, item.sigma, self.weight_sigma)
@@ -687,7 +698,8 @@ def _calibration_change(result: AdjustResult, covariance: JointCovariance) -> _C
             keys.append(key)
             changes.append(np.asarray(rec.cameras[image.camera_id].params)
                            - np.asarray(calibration[name.rig].camera(name.sensor).params))
-            prior_blocks.append(np.diag(priors[name.rig].sensor(name.sensor) ** 2))  # type: ignore[index]  # priors are set with covariance
+            # priors are set with covariance
+            prior_blocks.append(np.diag(priors[name.rig].sensor(name.sensor) ** 2))  # type: ignore[index]
             owners += [name.rig] * len(changes[-1])
         key = ("sensor_from_rig", image.camera_id)
         if name.is_narrow and key in covariance.offsets and key not in covariance.prior_only and key not in keys:
@@ -698,7 +710,8 @@ def _calibration_change(result: AdjustResult, covariance: JointCovariance) -> _C
             quat = np.asarray(turn.quat)  # x, y, z, w
             axis = quat[:3] / max(float(np.linalg.norm(quat[:3])), 1e-300) * (1.0 if quat[3] >= 0 else -1.0)
             changes.append(np.r_[axis * turn.angle(), np.asarray(sensor.translation) - np.asarray(given.translation)])
-            prior_blocks.append(priors[name.rig].narrow_from_wide)  # type: ignore[index]  # priors are set with covariance
+            # priors are set with covariance
+            prior_blocks.append(priors[name.rig].narrow_from_wide)  # type: ignore[index]
             owners += [name.rig] * 6
     size = sum(len(c) for c in changes)
     prior = np.zeros((size, size))
@@ -795,7 +808,8 @@ def _choose_gauge(reconstruction: pycolmap.Reconstruction, scale_spec: ScaleSpec
 def _metres_per_mapping_unit(mapped: pycolmap.Reconstruction, adjusted: pycolmap.Reconstruction) -> float | None:
     """Ratio of the registered frames' spread after and before (RMS distance of the wide centres to their mean)."""
     def spread(rec: pycolmap.Reconstruction) -> np.ndarray:
-        return np.array([rec.frame(f).rig_from_world.inverse().translation for f in sorted(adjusted.reg_frame_ids())])  # type: ignore[union-attr]  # registered frames have their poses
+        # registered frames have their poses
+        return np.array([rec.frame(f).rig_from_world.inverse().translation for f in sorted(adjusted.reg_frame_ids())])  # type: ignore[union-attr]
 
     before, after = spread(mapped), spread(adjusted)
     size = float(np.sqrt(np.mean(np.sum((before - before.mean(axis=0)) ** 2, axis=1))))
@@ -921,7 +935,7 @@ def _refine(mapped: pycolmap.Reconstruction, rigs: Sequence[RigCalibration], sca
         problem.stop_as(final=True)
         problem.solve_to_convergence()
     scale = problem.scale_estimate()  # type: ignore[union-attr]  # the loop sets problem
-    for row in problem.unused:  # type: ignore[union-attr]  # the loop sets problem
+    for row in problem.unused:  # type: ignore[union-attr]
         logger.warning("Scale measurement left out: %s", row)
     result = AdjustResult(rec, source, scale, _metres_per_mapping_unit(mapped, rec),
                           float(rec.compute_mean_reprojection_error()), calibration=Calibration.REFINE, gauge=gauge,

@@ -78,8 +78,9 @@ def resolved_first_octave(database_path: Path, images: Sequence[ImageEntry], opt
         return -1
     with open_database(database_path) as database:
         cameras = {c.camera_id: c for c in database.read_all_cameras()}
-        sides = [max(cameras[database.read_image_with_name(n).camera_id].width,  # type: ignore[union-attr]  # the images were just written
-                     cameras[database.read_image_with_name(n).camera_id].height) for n in wide]  # type: ignore[union-attr]  # the images were just written
+        # the images were just written
+        sides = [max(cameras[database.read_image_with_name(n).camera_id].width,  # type: ignore[union-attr]
+                     cameras[database.read_image_with_name(n).camera_id].height) for n in wide]  # type: ignore[union-attr]
     return 0 if min(sides) >= COARSE_SIFT_MIN_SIDE_PX else -1
 
 
@@ -459,7 +460,8 @@ def first_pass_descriptors(database_path: Path, names: Sequence[str],
     result = {}
     with open_database(database_path) as database:
         for name in names:
-            image_id = database.read_image_with_name(name).image_id  # type: ignore[union-attr]  # the images were just written
+            # the images were just written
+            image_id = database.read_image_with_name(name).image_id  # type: ignore[union-attr]
             keypoints = database.read_keypoints(image_id)
             descriptors = database.read_descriptors(image_id).data
             if len(keypoints) == 0:

@@ -108,7 +108,8 @@ def warp_maps(hits: np.ndarray, ok: np.ndarray, target: pycolmap.Image, shape: t
     map_x = np.full(len(hits), -1e6, np.float32)
     map_y = np.full(len(hits), -1e6, np.float32)
     if len(rows):
-        uv = opencv_from_colmap_pixels(target.camera.img_from_cam(in_target))  # type: ignore[arg-type,union-attr]  # a model's images have their cameras; points in: pixels out
+        # a model's images have their cameras; points in: pixels out
+        uv = opencv_from_colmap_pixels(target.camera.img_from_cam(in_target))  # type: ignore[arg-type,union-attr]
         finite = np.isfinite(uv).all(axis=1)
         map_x[rows[finite]], map_y[rows[finite]] = uv[finite, 0], uv[finite, 1]
     return map_x.reshape(shape), map_y.reshape(shape)
@@ -175,7 +176,8 @@ def triangulate_pairs(image_i: pycolmap.Image, image_j: pycolmap.Image, xy_i: np
     poses = (image_i.cam_from_world().matrix(), image_j.cam_from_world().matrix())
     rows = []
     for image, pose, xy in ((image_i, poses[0], xy_i), (image_j, poses[1], xy_j)):
-        rays = np.asarray(image.camera.cam_from_img(np.asarray(xy, np.float64).reshape(-1, 2)), np.float64)  # type: ignore[union-attr]  # a model's images have their cameras
+        # a model's images have their cameras
+        rays = np.asarray(image.camera.cam_from_img(np.asarray(xy, np.float64).reshape(-1, 2)), np.float64)  # type: ignore[union-attr]
         rows += [rays[:, :1] * pose[2] - pose[0], rays[:, 1:] * pose[2] - pose[1]]
     systems = np.stack(rows, axis=1)  # N x 4 x 4
     points = np.full((len(systems), 3), np.nan)
@@ -198,7 +200,8 @@ def _triangulate(image_i: pycolmap.Image, image_j: pycolmap.Image, xy_i: np.ndar
         cos = np.einsum("ij,ij->i", *rays) / (np.linalg.norm(rays[0], axis=1) * np.linalg.norm(rays[1], axis=1))
         good &= np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))) >= min_angle_deg
     for image, observed in ((image_i, xy_i), (image_j, xy_j)):
-        xy, seen = project_world(image.camera, image.cam_from_world(), np.nan_to_num(points), margin_px=None)  # type: ignore[arg-type]  # a model's images have their cameras
+        # a model's images have their cameras
+        xy, seen = project_world(image.camera, image.cam_from_world(), np.nan_to_num(points), margin_px=None)  # type: ignore[arg-type]
         with np.errstate(invalid="ignore"):
             good &= seen & (np.linalg.norm(xy - observed, axis=1) <= max_px)
     return points[good]
@@ -240,10 +243,11 @@ def load_floor_images(reconstruction: pycolmap.Reconstruction, image_dir: Path,
         gray = read_image(path, cv2.IMREAD_GRAYSCALE)
         if gray is None:
             raise InputError(f"{path} cannot be read: floor matching needs the run's images (pass the IMAGES folder)")
-        if gray.shape != (image.camera.height, image.camera.width):  # type: ignore[union-attr]  # a model's images have their cameras
-            raise InputError(f"{path} is {gray.shape[1]}x{gray.shape[0]}, its camera {image.camera.width}x"  # type: ignore[union-attr]  # a model's images have their cameras
-                             f"{image.camera.height}: pass the images the run used")  # type: ignore[union-attr]  # a model's images have their cameras
-        normalised, shape = grid_rays(image.camera)  # type: ignore[arg-type]  # a model's images have their cameras
+        # a model's images have their cameras
+        if gray.shape != (image.camera.height, image.camera.width):  # type: ignore[union-attr]
+            raise InputError(f"{path} is {gray.shape[1]}x{gray.shape[0]}, its camera {image.camera.width}x"  # type: ignore[union-attr]
+                             f"{image.camera.height}: pass the images the run used")  # type: ignore[union-attr]
+        normalised, shape = grid_rays(image.camera)  # type: ignore[arg-type]
         mask = None
         if up is not None:  # below the horizon
             down = np.c_[normalised, np.ones(len(normalised))] @ (image.cam_from_world().rotation.matrix() @ up) < 0
@@ -284,7 +288,8 @@ def match_floor_points(reconstruction: pycolmap.Reconstruction, image_dir: Path 
     matches. ``images``: the :func:`load_floor_images` of an earlier round (read from ``image_dir`` if None)."""
     opt = options or FloorMatchOptions()
     if images is None:
-        images = load_floor_images(reconstruction, image_dir, opt)  # type: ignore[arg-type]  # images to match: a folder
+        # images to match: a folder
+        images = load_floor_images(reconstruction, image_dir, opt)  # type: ignore[arg-type]
     sift = _sift(opt)
     matcher = cv2.BFMatcher(cv2.NORM_L2)
     hits = {}
@@ -313,8 +318,8 @@ def match_floor_points(reconstruction: pycolmap.Reconstruction, image_dir: Path 
         if opt.search_radius_px > 0:  # and near the same pixel: where the plane is right, the floor is there
             near = cKDTree(xy_w).query_ball_point(xy_i, opt.search_radius_px)
             a = np.repeat(np.arange(len(xy_i)), [len(n) for n in near])  # type: ignore[assignment]  # here an array
-            b = np.fromiter((k for n in near for k in n), dtype=np.int64, count=len(a))  # type: ignore[arg-type,assignment]  # here an array
-            local = candidate_matches(desc_i, desc_w, a, b, opt.max_ratio)  # type: ignore[arg-type]  # here an array
+            b = np.fromiter((k for n in near for k in n), dtype=np.int64, count=len(a))  # type: ignore[arg-type,assignment]
+            local = candidate_matches(desc_i, desc_w, a, b, opt.max_ratio)  # type: ignore[arg-type]
             good = np.vstack([local, good[~np.isin(good[:, 0], local[:, 0])]])
         if not len(good):
             continue

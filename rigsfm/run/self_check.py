@@ -125,7 +125,8 @@ class SelfCheck:
         failed = [p for p in self.pairs if p.verdict == "failed"]
         if not failed:
             return [self.sync_warning] if self.sync_warning else []
-        worst = max(failed, key=lambda p: p.p95_px / max(p.band_px, 1e-9))  # type: ignore[operator,type-var]  # failed pairs have their numbers
+        # failed pairs have their numbers
+        worst = max(failed, key=lambda p: p.p95_px / max(p.band_px, 1e-9))  # type: ignore[operator,type-var]
         return ([self.sync_warning] if self.sync_warning else []) + [f"EPIPOLAR CHECK FAILED: {len(failed)} of {sum(p.verdict != 'too few matches' for p in self.pairs)} "
                 f"narrow pairs match synchronised images farther from the epipolar lines than the 95 % band "
                 f"(worst {worst.i} -> {worst.j}: 95th percentile {worst.p95_px:.2f} px, band {worst.band_px:.2f} px): "
@@ -190,15 +191,18 @@ def _to_features(camera: pycolmap.Camera, xy_colmap: np.ndarray, descriptors: np
 
 def _load(image: pycolmap.Image, image_dir: Path, warp_height: float | None, sift_size: int) -> _Narrow | None:
     gray = read_image(image_dir / image.name, cv2.IMREAD_GRAYSCALE)
-    if gray is None or gray.shape != (image.camera.height, image.camera.width):  # type: ignore[union-attr]  # a model's images have their cameras
-        logger.warning("self-check: cannot read %s as a %dx%d image", image_dir / image.name, image.camera.width,  # type: ignore[union-attr]  # a model's images have their cameras
-                       image.camera.height)  # type: ignore[union-attr]  # a model's images have their cameras
+    # a model's images have their cameras
+    if gray is None or gray.shape != (image.camera.height, image.camera.width):  # type: ignore[union-attr]
+        logger.warning("self-check: cannot read %s as a %dx%d image", image_dir / image.name, image.camera.width,  # type: ignore[union-attr]
+                       image.camera.height)  # type: ignore[union-attr]
         return None
     factor = reduction_factor(gray.shape, sift_size)
     xy, descriptors = detect(_sift(), gray, None, factor)
-    narrow = _Narrow(image, gray, _to_features(image.camera, colmap_from_opencv_pixels(xy), descriptors), factor)  # type: ignore[arg-type]  # a model's images have their cameras
+    # a model's images have their cameras
+    narrow = _Narrow(image, gray, _to_features(image.camera, colmap_from_opencv_pixels(xy), descriptors), factor)  # type: ignore[arg-type]
     if warp_height is not None:
-        normalised, narrow.grid_shape = grid_rays(image.camera)  # type: ignore[arg-type]  # a model's images have their cameras
+        # a model's images have their cameras
+        normalised, narrow.grid_shape = grid_rays(image.camera)  # type: ignore[arg-type]
         narrow.hits = plane_hits(image, np.array([0.0, 0.0, 1.0]), -warp_height, np.inf, normalised)
     return narrow
 
@@ -332,7 +336,8 @@ def pair_features(first: _Narrow, second: _Narrow) -> tuple[_Features | None, _F
             return None, None
         fi = fi.subset(warp.covers(opencv_from_colmap_pixels(fi.xy)))
         xy, descriptors = detect(_sift(), warp.warped, warp.mask, first.sift_factor)
-        fj = _to_features(second.image.camera, warp.source_pixels(xy), descriptors)  # type: ignore[arg-type]  # a model's images have their cameras
+        # a model's images have their cameras
+        fj = _to_features(second.image.camera, warp.source_pixels(xy), descriptors)  # type: ignore[arg-type]
     return fi, fj
 
 
@@ -433,7 +438,8 @@ def epipolar_self_check(reconstruction: pycolmap.Reconstruction, image_dir: Path
             if loaded[name_i] is None or loaded[name_j] is None:
                 checks.append(PairCheck(frame, name_i, name_j, entry.get("epipolar_band_95_px")))
                 continue
-            checks.append(check_pair(loaded[name_i], loaded[name_j], np.asarray(entry["F_ji"]),  # type: ignore[arg-type]  # pairs of loaded images only
+            # pairs of loaded images only
+            checks.append(check_pair(loaded[name_i], loaded[name_j], np.asarray(entry["F_ji"]),  # type: ignore[arg-type]
                                      entry.get("epipolar_band_95_px"), floor_frame))
             c = checks[-1]
             logger.info("self-check %s -> %s: %d matches, p95 %s px, band %s px: %s", name_i, name_j, c.matches,

@@ -201,7 +201,8 @@ def _inverse(matrix: np.ndarray) -> np.ndarray | None:
 def _tangent_factors(variable) -> np.ndarray:
     """Per variable tangent dimension: ours / Ceres' (``w = 2 delta`` for quaternion tangents, else 1)."""
     return np.concatenate([[2.0 if key[0] in ("frame", "sensor_from_rig") and d < 3 else 1.0 for d in dims]
-                           for key, _, _, dims in variable] or [np.zeros(0)])  # type: ignore[list-item]  # the empty case
+                           # the empty case
+                           for key, _, _, dims in variable] or [np.zeros(0)])  # type: ignore[list-item]
 
 
 def _assemble(entries, variable, cov_a: np.ndarray, prior_only: dict) -> tuple:
@@ -212,7 +213,8 @@ def _assemble(entries, variable, cov_a: np.ndarray, prior_only: dict) -> tuple:
         offsets[key] = (start, size)
         start += size
     full = np.zeros((start, start))
-    target = np.concatenate([[offsets[key][0] + d for d in dims] for key, _, _, dims in variable] or [np.zeros(0)])  # type: ignore[list-item]  # the empty case
+    # the empty case
+    target = np.concatenate([[offsets[key][0] + d for d in dims] for key, _, _, dims in variable] or [np.zeros(0)])  # type: ignore[list-item]
     target = target.astype(int)
     full[np.ix_(target, target)] = cov_a[: len(target), : len(target)]
     for key, cov in prior_only.items():
@@ -321,7 +323,8 @@ def network_size_sigma(covariance: JointCovariance | None, reconstruction: pycol
     if covariance is None:
         return None
     frames = sorted(reconstruction.reg_frame_ids())
-    centres = {f: _frame_centre_jacobian(reconstruction.frame(f).rig_from_world) for f in frames}  # type: ignore[arg-type]  # registered frames have their poses
+    # registered frames have their poses
+    centres = {f: _frame_centre_jacobian(reconstruction.frame(f).rig_from_world) for f in frames}  # type: ignore[arg-type]
     best, pair = 0.0, None
     for k, a in enumerate(frames):
         for b in frames[k + 1:]:
@@ -378,17 +381,20 @@ def narrow_uncertainty(reconstruction: pycolmap.Reconstruction,
     if not frames:
         return {}
     size = covariance.covariance.shape[0]
-    centres = {f: _frame_centre_jacobian(reconstruction.frame(f).rig_from_world)[0] for f in frames}  # type: ignore[arg-type]  # registered frames have their poses
+    # registered frames have their poses
+    centres = {f: _frame_centre_jacobian(reconstruction.frame(f).rig_from_world)[0] for f in frames}  # type: ignore[arg-type]
     mean_centre = np.mean(list(centres.values()), axis=0)
     datum = np.zeros((6, size))  # mean [delta theta, delta centre] of the frames: the gauge motion to remove
     for f in frames:
-        datum[:, covariance.slice(("frame", f))] += _world_jacobian(reconstruction.frame(f).rig_from_world) / len(frames)  # type: ignore[arg-type]  # registered frames have their poses
+        # registered frames have their poses
+        datum[:, covariance.slice(("frame", f))] += _world_jacobian(reconstruction.frame(f).rig_from_world) / len(frames)  # type: ignore[arg-type]
     out = {}
     for image in _narrow_images(reconstruction):
         frame = reconstruction.frame(image.frame_id)
         sensor = sensor_from_rig_view(reconstruction, frame.rig_id, reconstruction.cameras[image.camera_id].sensor_id)
         pose = image.cam_from_world()
-        d_frame, d_sensor = narrow_tangent_jacobians(frame.rig_from_world, sensor)  # type: ignore[arg-type]  # registered frames have their poses
+        # registered frames have their poses
+        d_frame, d_sensor = narrow_tangent_jacobians(frame.rig_from_world, sensor)  # type: ignore[arg-type]
         world = _world_jacobian(pose)
         row = np.zeros((6, size))
         row[:, covariance.slice(("frame", image.frame_id))] = world @ d_frame

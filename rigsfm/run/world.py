@@ -98,8 +98,8 @@ class WorldResult:
             return
         fit = self.estimate.fit  # type: ignore[union-attr]  # FLOOR: estimated
         apply_floor_frame(reconstruction, fit)  # type: ignore[arg-type]  # NoFloor is falsy: a FloorFit here
-        logger.info("World: floor frame (%d floor points: %s; RMS %.3g)", fit.num_points, fit.points_by_source,  # type: ignore[union-attr]  # NoFloor is falsy: a FloorFit here
-                    fit.rms)  # type: ignore[union-attr]  # NoFloor is falsy: a FloorFit here
+        logger.info("World: floor frame (%d floor points: %s; RMS %.3g)", fit.num_points, fit.points_by_source,  # type: ignore[union-attr]
+                    fit.rms)  # type: ignore[union-attr]
 
     def to_dict(self) -> dict:
         data: dict[str, object] = {"asked": str(self.asked), "frame": str(self.frame)}
@@ -112,7 +112,8 @@ class WorldResult:
                                    "origin)")
         if self.estimate is not None:
             fit = self.estimate.fit
-            floor = fit.to_dict() if fit else {"found": False, "reason": fit.reason}  # type: ignore[union-attr]  # FloorFit is truthy: a NoFloor here; NoFloor is falsy: a FloorFit here
+            # FloorFit is truthy: a NoFloor here; NoFloor is falsy: a FloorFit here
+            floor = fit.to_dict() if fit else {"found": False, "reason": fit.reason}  # type: ignore[union-attr]
             if fit:
                 floor = {"found": True, **{k: floor[k] for k in (
                     "num_points", "points_by_source", "rms", "robust_sigma", "threshold", "num_candidates",
@@ -143,18 +144,21 @@ def locate_world(reconstruction: pycolmap.Reconstruction, image_dir: Path | None
     estimate = estimate_floor(reconstruction, image_dir, markers, x_towards=x_rig)
     fit = estimate.fit
     if not fit:
-        warning = f"NO FLOOR FOUND: {fit.reason}; the mapper's frame is kept: {NO_FLOOR_HELP}"  # type: ignore[union-attr]  # FloorFit is truthy: a NoFloor here
+        # FloorFit is truthy: a NoFloor here
+        warning = f"NO FLOOR FOUND: {fit.reason}; the mapper's frame is kept: {NO_FLOOR_HELP}"  # type: ignore[union-attr]
         logger.warning(warning)
         return WorldResult(options.frame, WorldFrame.MAPPING, estimate, metric=metric, warnings=[warning])
     heights = tuple(options.plane_heights)
     if heights and metric:
-        check_plane_heights(heights, fit.camera_heights)  # type: ignore[union-attr]  # NoFloor is falsy: a FloorFit here
-    warnings = [f"FLOOR: {w}" for w in fit.warnings]  # type: ignore[union-attr]  # NoFloor is falsy: a FloorFit here
+        # NoFloor is falsy: a FloorFit here
+        check_plane_heights(heights, fit.camera_heights)  # type: ignore[union-attr]
+    warnings = [f"FLOOR: {w}" for w in fit.warnings]  # type: ignore[union-attr]
     if heights and not metric:
         warnings.append(f"PLANE HEIGHT IGNORED: the result is not metric, so {heights[0]:g} m has no meaning "
                         "here; give a scale.yaml")
         heights = ()
-    return WorldResult(options.frame, WorldFrame.FLOOR, estimate, fit.origin_rig,  # type: ignore[union-attr]  # NoFloor is falsy: a FloorFit here
+    # NoFloor is falsy: a FloorFit here
+    return WorldResult(options.frame, WorldFrame.FLOOR, estimate, fit.origin_rig,  # type: ignore[union-attr]
                        tuple(dict.fromkeys((0.0, *heights))), metric, warnings)
 
 

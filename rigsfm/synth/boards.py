@@ -184,14 +184,15 @@ def render(camera: SynthCamera, cam_from_world: tuple[np.ndarray, np.ndarray], p
         h, w = plane.texture.shape
         inside = cv2.inRange(maps, (-0.5, -0.5), (w - 0.5, h - 0.5)) > 0
         visible = (near > np.maximum(nearness[window], MIN_NEARNESS)) & inside
-        sampled = cv2.remap(plane.texture, maps, None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)  # type: ignore[call-overload]  # stubs: map2 None
+        # stubs: map2 None
+        sampled = cv2.remap(plane.texture, maps, None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)  # type: ignore[call-overload]
         np.copyto(image[window], sampled, where=visible)
         np.copyto(nearness[window], near, where=visible)
     w, h = camera.size
     image = cv2.resize(image, (w, h), interpolation=cv2.INTER_AREA)  # type: ignore[assignment]  # an image array
     if blur > 0:
         image = cv2.GaussianBlur(image, (0, 0), blur)  # type: ignore[assignment]  # an image array
-    image = image + rng.normal(0.0, noise, image.shape)  # type: ignore[assignment]  # an image array
+    image = image + rng.normal(0.0, noise, image.shape)  # type: ignore[assignment]
     return np.clip(np.round(image), 0, 255).astype(np.uint8)
 
 

@@ -139,7 +139,8 @@ def ground_truth_reconstruction(rigs: list[RigTruth], frames_per_rig: int, suffi
     for index, truth in enumerate(rigs):
         frames = [{sensor: image_name(truth.name, sensor, frame, suffix) for sensor in SENSORS}
                   for frame in range(frames_per_rig)]
-        add_posed_rig(rec, index + 1, truth.calibration(), truth.wide_from_world, frames)  # type: ignore[arg-type]  # Sensor is a str
+        # Sensor is a str
+        add_posed_rig(rec, index + 1, truth.calibration(), truth.wide_from_world, frames)  # type: ignore[arg-type]
     return rec
 
 
@@ -148,7 +149,8 @@ def _scale_yaml(rigs: list[RigTruth], bar: Bar | None, first: RigTruth, second: 
     far = max(rigs[1:], key=lambda rig: float(np.linalg.norm(rig.centre() - rigs[0].centre())))
     observations = []
     for rig in (first, second) if bar is not None else ():
-        a, b = project_world(rig.wide, rig.wide_from_world, np.stack([bar.a, bar.b]), margin_px=None)[0]  # type: ignore[union-attr]  # a bar is placed with the scale
+        # a bar is placed with the scale
+        a, b = project_world(rig.wide, rig.wide_from_world, np.stack([bar.a, bar.b]), margin_px=None)[0]  # type: ignore[union-attr]
         observations.append(
             {"image": image_name(rig.name, "wide", 0, suffix), "a": [float(v) for v in a],
              "b": [float(v) for v in b]}

@@ -34,9 +34,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 from rigsfm.calibrate import calibrate_rigs, write_calibration
 from rigsfm.calibrate.board import board_spec_from_dict
 from rigsfm.calibrate.intrinsics import colmap_camera
-from rigsfm.synth.boards import HybridRig, board_views, default_hybrid_rig, write_board_dataset
 from rigsfm.calibrate.uncertainty import load_sigmas
 from rigsfm.core.rig import load_rigs
+from rigsfm.synth.boards import HybridRig, board_views, default_hybrid_rig, write_board_dataset
 
 BOARD = {"type": "charuco", "squares": [11, 8], "square": 0.06, "marker": 0.045, "dictionary": "DICT_5X5_100"}
 SETUPS = [(24, 4.0), (16, 4.0), (12, 4.0), (24, 3.0), (16, 3.0), (12, 3.0)]  # (stereo views, focal ratio)

@@ -17,12 +17,14 @@ import pycolmap
 from synthetic_world import ring
 from test_floor_matching import render
 from test_self_check import fine_texture
-from test_sync import recording, STEP_TEXELS
+from test_sync import STEP_TEXELS, recording
+
 from rigsfm.core.names import name_of
 from rigsfm.run.deliver import narrow_poses
 from rigsfm.run.options import WorldOptions
 from rigsfm.run.sync import estimate_frame_offsets
 from rigsfm.run.world import place_in_world
+
 base = ring(seed=42, num_rigs=5, model_from_truth=pycolmap.Rigid3d(), narrow_model="PINHOLE").reconstruction
 place_in_world(base, None, None, ["rig01"], WorldOptions())
 texture = fine_texture(seed=3)

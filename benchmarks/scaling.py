@@ -29,8 +29,8 @@ import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 import pycolmap  # noqa: E402
 
-from benchmarks.metrics import evaluate, ratios_to_oracle  # noqa: E402
 import benchmarks.run  # noqa: E402
+from benchmarks.metrics import evaluate, ratios_to_oracle  # noqa: E402
 from benchmarks.run import machine, run_child  # noqa: E402
 from rigsfm.core.io import write_json_atomic, write_text_atomic  # noqa: E402
 from rigsfm.synth.dataset import render_dataset  # noqa: E402

@@ -26,14 +26,14 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from rigsfm.core.errors import RigsfmError
-from rigsfm.synth.truth import compare_to_ground_truth
-from rigsfm.run.options import Features, MatchingOptions
 from rigsfm.core.io import write_json_atomic, write_text_atomic
 from rigsfm.run.manual_matches import write_manual_matches
+from rigsfm.run.options import Features, MatchingOptions
 from rigsfm.run.pipeline import RunOptions, run
 from rigsfm.synth.clicks import simulate_clicks
 from rigsfm.synth.dataset import render_dataset
 from rigsfm.synth.scene import SceneOptions, build_arena
+from rigsfm.synth.truth import compare_to_ground_truth
 
 A, B = "rig01/wide/frame0000.png", "rig02/wide/frame0000.png"
 WIDE_FOCAL = 500.0

@@ -30,9 +30,9 @@ def main() -> None:
 
     from rigsfm.run.pipeline import RunOptions, run
     from rigsfm.synth.dataset import render_dataset
+    from rigsfm.synth.motion import render_recording, shaken_motions
     from rigsfm.synth.scene import SceneOptions
     from rigsfm.track import Executor, TrackOptions, track
-    from rigsfm.synth.motion import render_recording, shaken_motions
 
     with tempfile.TemporaryDirectory(prefix="rigsfm-track-bench-") as tmp:
         root = Path(tmp)

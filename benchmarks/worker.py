@@ -30,8 +30,6 @@ def import_common() -> None:
     import pycolmap  # noqa: F401
     import scipy.optimize  # noqa: F401
 
-    import rigsfm.synth.truth
-    import rigsfm.run.pipeline  # noqa: F401
 
 
 def peak_rss_mb() -> float:
@@ -105,8 +103,8 @@ def run_method(method: str, scene: Path, out: Path, estimate: Path | None) -> di
         shutil.rmtree(out / "work", ignore_errors=True)
         return {**report, "metric": rec is not None}
     if method == "oracle":
-        from rigsfm.synth.truth import oracle
         from rigsfm.run.pipeline import load_inputs
+        from rigsfm.synth.truth import oracle
 
         if estimate is None:
             raise ValueError("oracle needs --estimate")

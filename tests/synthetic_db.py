@@ -16,9 +16,9 @@ import numpy as np
 import pycolmap
 
 from rigsfm.core.geometry import project_world
+from rigsfm.core.rig import RigCalibration
 from rigsfm.run.database import rig_configs
 from rigsfm.run.inputs import ImageEntry
-from rigsfm.core.rig import RigCalibration
 
 
 @dataclass

@@ -9,15 +9,15 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 import pytest
+from conftest import _once, _shared_root
 from typer.testing import CliRunner
 
-from conftest import _once, _shared_root
 from rigsfm.associate import AssociateOptions, associate_frames, from_arrays, load_run
 from rigsfm.associate.evaluate import make_detections, score_groups, true_heads, truth_from_run, visible_heads
 from rigsfm.cli import app
 
 sys.path.insert(0, str(Path(__file__).parent))
-from bad_inputs_table import CASES, run_case  # noqa: E402
+from bad_inputs_table import CASES, run_case
 
 CHI2_3D_95 = 7.814727903251178
 # Four rigs on a 120 degree arc, every narrow camera aimed near the centre of a 4 persons/m^2 crowd (~270 visible

@@ -8,8 +8,6 @@ import numpy as np
 import pycolmap
 import pytest
 
-pytestmark = pytest.mark.slow  # end-to-end runs on rendered images (`-m 'not slow'` skips them)
-
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from benchmarks.baselines.paper import PairResult, relative_scale, run_paper
@@ -19,6 +17,8 @@ from benchmarks.run import run_child
 from rigsfm.core.rig import load_rigs
 from rigsfm.synth.dataset import render_dataset
 from rigsfm.synth.scene import SceneOptions
+
+pytestmark = pytest.mark.slow  # end-to-end runs on rendered images (`-m 'not slow'` skips them)
 
 
 @pytest.fixture(scope="module")
@@ -62,7 +62,10 @@ def test_relative_scale_recovers_a_known_ratio():
     b_from_a = pycolmap.Rigid3d(pycolmap.Rotation3d(np.array([0.0, 0.3, 0.0])), np.array([4.0, 0.0, 1.0]))
     c_from_b = pycolmap.Rigid3d(pycolmap.Rotation3d(np.array([0.0, 0.25, 0.0])), np.array([3.0, 0.0, 0.5]))
     s_ab, s_bc = np.linalg.norm(b_from_a.translation), np.linalg.norm(c_from_b.translation)
-    unit = lambda t, s: pycolmap.Rigid3d(t.rotation, t.translation / s)
+
+    def unit(t, s):
+        return pycolmap.Rigid3d(t.rotation, t.translation / s)
+
     previous = PairResult("a", "b", second_from_first=unit(b_from_a, s_ab))
     current = PairResult("b", "c", second_from_first=unit(c_from_b, s_bc))
     for k, x_b in enumerate(points_in_b):

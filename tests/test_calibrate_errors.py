@@ -9,12 +9,12 @@ import cv2
 import numpy as np
 import pytest
 import yaml
-
 from support import REAL_STEREO
-from rigsfm.calibrate.board import board_spec_from_dict
+
 from rigsfm.calibrate import CalibrateOptions, calibrate
-from rigsfm.synth.boards import SynthCamera, board_plane, render, rotation_xyz_deg
+from rigsfm.calibrate.board import board_spec_from_dict
 from rigsfm.core.errors import InputError, RigsfmError
+from rigsfm.synth.boards import SynthCamera, board_plane, render, rotation_xyz_deg
 
 DATA = REAL_STEREO
 FRAMES = ["01", "02", "03", "04", "05", "06", "07", "08", "09", "11", "12", "13", "14"]

@@ -10,11 +10,10 @@ import numpy as np
 import pytest
 import yaml
 from scipy.spatial.transform import Rotation
-
 from support import REAL_STEREO
-from rigsfm.calibrate import calibrate_rigs
+
+from rigsfm.calibrate import CalibrateOptions, calibrate, calibrate_rigs
 from rigsfm.calibrate.board import board_spec_from_dict
-from rigsfm.calibrate import CalibrateOptions, calibrate
 from rigsfm.core.rig import load_rigs
 
 DATA = REAL_STEREO

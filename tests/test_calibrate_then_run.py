@@ -1,18 +1,18 @@
-import pytest
 """Calibrate the arena's rigs from rendered ChArUco views, then run the pipeline with the written rigs.yaml."""
 
 import numpy as np
 import pycolmap
+import pytest
 import yaml
 from typer.testing import CliRunner
 
-from rigsfm.synth.boards import HybridRig, SynthCamera, board_views, write_board_dataset
 from rigsfm.calibrate.board import board_spec_from_dict
 from rigsfm.cli import app
 from rigsfm.core.conventions import opencv_from_colmap_pixels, rotation_angle_deg
-from rigsfm.synth.demo import score
-from rigsfm.run.pipeline import RunResult
 from rigsfm.core.rig import load_rigs
+from rigsfm.run.pipeline import RunResult
+from rigsfm.synth.boards import HybridRig, SynthCamera, board_views, write_board_dataset
+from rigsfm.synth.demo import score
 from rigsfm.synth.scene import SceneOptions
 
 pytestmark = pytest.mark.slow  # end-to-end runs on rendered images (`-m 'not slow'` skips them)

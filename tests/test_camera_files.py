@@ -9,12 +9,11 @@ via ``int(node.real())``, ``R_`` through ``cv2.Rodrigues``, ``T_``.
 
 from __future__ import annotations
 
-import tomllib
-
 import cv2
 import numpy as np
 import pycolmap
 import pytest
+import tomllib
 from aniposelib.cameras import CameraGroup
 
 from rigsfm.core.errors import InputError

@@ -7,12 +7,12 @@ import pycolmap
 import pytest
 from synthetic_db import make_network
 
-from rigsfm.run.diagnostics import check_reconstruction, contradicted_pairs, loosely_tied_rigs
 from rigsfm.core.errors import ReconstructionError
 from rigsfm.core.workspace import Workspace
+from rigsfm.run.adjust import adjust
+from rigsfm.run.diagnostics import check_reconstruction, contradicted_pairs, loosely_tied_rigs
 from rigsfm.run.mapping import run_mapping
 from rigsfm.run.options import MappingOptions
-from rigsfm.run.adjust import adjust
 from rigsfm.run.scale import Measurement, ScaleEstimate, estimate_scale
 from rigsfm.run.scale_file import CameraDistance, ScaleSpec
 

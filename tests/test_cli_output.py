@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-import bad_inputs_table as table  # noqa: E402
+import bad_inputs_table as table
 
 ROOT = Path(__file__).resolve().parent.parent
 VERBS = ("calibrate", "run", "report", "view", "export", "pick", "explore", "associate", "track", "demo")

@@ -7,15 +7,15 @@ import subprocess
 import numpy as np
 import pycolmap
 import pytest
+from conftest import copy_run
 from typer.testing import CliRunner
 
+from rigsfm.calibrate.uncertainty import load_sigmas
 from rigsfm.cli import app
 from rigsfm.core.conventions import rotation_from_euler_zyx_degrees
-from rigsfm.synth.demo import score
-from rigsfm.run.pipeline import RunResult
-from rigsfm.calibrate.uncertainty import load_sigmas
 from rigsfm.core.rig import load_rigs
-from conftest import copy_run
+from rigsfm.run.pipeline import RunResult
+from rigsfm.synth.demo import score
 
 pytestmark = pytest.mark.slow  # end-to-end runs on rendered images (`-m 'not slow'` skips them)
 

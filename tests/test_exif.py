@@ -14,9 +14,9 @@ import numpy as np
 import pycolmap
 import pytest
 import yaml
-
 from bad_inputs_table import RUN, Case, inputs, run_case
 from support import REAL_STEREO, exif_block, tag_orientation, write_tagged
+
 from rigsfm.calibrate.options import CalibrateOptions
 from rigsfm.calibrate.pipeline import calibrate
 from rigsfm.core.errors import InputError

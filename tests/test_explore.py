@@ -13,16 +13,15 @@ from pathlib import Path
 from urllib.parse import urlencode
 
 import cv2
-
 import numpy as np
+import playwright.sync_api as playwright_api
 import pycolmap
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
+from support import launch_chromium
 from typer.testing import CliRunner
 
-import playwright.sync_api as playwright_api
-from support import launch_chromium
 from rigsfm.cli import app
 from rigsfm.core.errors import InputError
 from rigsfm.core.geometry import project_world

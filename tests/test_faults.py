@@ -17,8 +17,8 @@ import cv2
 import numpy as np
 import pycolmap
 import pytest
-from conftest import copy_run
 import yaml
+from conftest import copy_run
 from typer.testing import CliRunner
 
 from rigsfm.cli import app

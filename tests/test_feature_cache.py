@@ -31,7 +31,7 @@ def extract(tmp_path, caplog):
     cache)``: a new workspace's database, as ``rigsfm run`` extracts into it."""
     caplog.set_level(logging.INFO, logger="rigsfm.run.features")
 
-    def run(images, rigs, name, options=MatchingOptions()):
+    def run(images, rigs, name, options=MatchingOptions()):  # noqa: B008 - read, never changed
         inputs = load_inputs(images, rigs)
         db_path = create_database(tmp_path / f"{name}.db", inputs.rigs, inputs.images)
         caplog.clear()

@@ -8,8 +8,15 @@ import pycolmap
 import pytest
 from synthetic_world import ring
 
-from rigsfm.run.floor import (FloorOptions, NoFloor, apply_floor_frame, fit_floor, guess_floor, rig_positions,
-                                up_prior)
+from rigsfm.run.floor import (
+    FloorOptions,
+    NoFloor,
+    apply_floor_frame,
+    fit_floor,
+    guess_floor,
+    rig_positions,
+    up_prior,
+)
 
 
 def truth_up_in_model(world) -> np.ndarray:

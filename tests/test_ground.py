@@ -7,10 +7,25 @@ import pycolmap
 import pytest
 from synthetic_world import HEIGHT, WIDTH, look_at, straight_down_camera
 
-from rigsfm.core.ground import (coverage, footprint, footprints, ground_from_image, image_from_plane, image_to_plane,
-                                pairwise_overlaps, undistort_pixels)
-from rigsfm.core.polygons import (clip_polygon, convex_pieces, intersect_polygons, intersection_area, is_convex,
-                                  polygon_area, triangulate_polygon)
+from rigsfm.core.ground import (
+    coverage,
+    footprint,
+    footprints,
+    ground_from_image,
+    image_from_plane,
+    image_to_plane,
+    pairwise_overlaps,
+    undistort_pixels,
+)
+from rigsfm.core.polygons import (
+    clip_polygon,
+    convex_pieces,
+    intersect_polygons,
+    intersection_area,
+    is_convex,
+    polygon_area,
+    triangulate_polygon,
+)
 
 
 def tilted_camera(model: str = "OPENCV", centre=(15.0, 0.0, 3.5), target=(0.0, 1.0, 0.0)) -> pycolmap.Image:

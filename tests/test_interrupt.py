@@ -10,8 +10,8 @@ from __future__ import annotations
 
 import json
 import math
-import re
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -23,14 +23,20 @@ import pycolmap
 import pytest
 
 from rigsfm.core import stages
-from rigsfm.core.rig import load_rigs
 from rigsfm.core.errors import InputError, WorkspaceError
+from rigsfm.core.rig import load_rigs
 from rigsfm.core.workspace import Workspace
 from rigsfm.run.database import create_database
 from rigsfm.run.features import extract_features, match_features
 from rigsfm.run.inputs import scan_images
-from rigsfm.run.mapping import (RELAXATIONS, _incremental_options, choose_mapper, initial_pair, run_mapping,
-                                wide_pairs)
+from rigsfm.run.mapping import (
+    RELAXATIONS,
+    _incremental_options,
+    choose_mapper,
+    initial_pair,
+    run_mapping,
+    wide_pairs,
+)
 from rigsfm.run.options import Mapper, MappingOptions, MatchingOptions
 from rigsfm.synth.dataset import render_dataset
 from rigsfm.synth.scene import SceneOptions

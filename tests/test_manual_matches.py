@@ -16,9 +16,7 @@ from typer.testing import CliRunner
 
 from rigsfm.cli import app
 from rigsfm.core.errors import ReconstructionError
-from rigsfm.synth.truth import compare_to_ground_truth
-from rigsfm.run.options import (Features, MatchingOptions, SelfCheckOptions, WorldFrame,
-                                WorldOptions)
+from rigsfm.core.geometry import sampson_error_px
 from rigsfm.run.manual_matches import (
     Correspondence,
     DegenerateCorrespondencesError,
@@ -27,11 +25,12 @@ from rigsfm.run.manual_matches import (
     read_manual_matches,
     write_manual_matches,
 )
+from rigsfm.run.options import Features, MatchingOptions, SelfCheckOptions, WorldFrame, WorldOptions
 from rigsfm.run.pipeline import RunOptions, run
 from rigsfm.synth.clicks import simulate_clicks
 from rigsfm.synth.dataset import render_dataset
 from rigsfm.synth.scene import SceneOptions, build_arena
-from rigsfm.core.geometry import sampson_error_px
+from rigsfm.synth.truth import compare_to_ground_truth
 
 pytestmark = pytest.mark.slow  # end-to-end runs on rendered images (`-m 'not slow'` skips them)
 

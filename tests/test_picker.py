@@ -3,13 +3,13 @@
 import http.client
 
 import numpy as np
+import playwright.sync_api as playwright_api
 import pytest
+from support import launch_chromium
 from test_manual_matches import A, B, synthetic_correspondences
 
-import playwright.sync_api as playwright_api
-from support import launch_chromium
-from rigsfm.run.manual_matches import read_manual_matches
 from rigsfm.pick import start_picker
+from rigsfm.run.manual_matches import read_manual_matches
 from rigsfm.synth.clicks import farthest_points
 from rigsfm.synth.scene import SceneOptions
 

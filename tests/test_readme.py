@@ -24,7 +24,8 @@ def test_rigs_yaml_example_is_valid():
 
 
 def test_ci_runs_the_readme_test_command():
-    command = "bash scripts/setup.sh && .venv/bin/python -m pytest -q"
+    command = ("bash scripts/setup.sh && .venv/bin/python -m ruff check rigsfm tests benchmarks workflows && "
+               ".venv/bin/python -m mypy && .venv/bin/python -m pytest -q")
     assert f"```bash\n{command}\n```" in README
     assert command in (ROOT / ".ci" / "run").read_text().splitlines()
 

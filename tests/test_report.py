@@ -13,11 +13,11 @@ import numpy as np
 import pycolmap
 import pytest
 from conftest import copy_run
+from support import launch_chromium
 from typer.testing import CliRunner
 
-from support import launch_chromium
-from rigsfm.core.errors import WorkspaceError
 from rigsfm.cli import app
+from rigsfm.core.errors import WorkspaceError
 from rigsfm.inspect.export import export
 from rigsfm.inspect.options import ExportFormat, ExportOptions
 from rigsfm.inspect.viewer import NARROW_RGB, WIDE_RGB

@@ -24,8 +24,15 @@ from rigsfm.core.errors import InputError
 from rigsfm.core.executors import Executor, check_executor, map_unordered
 from rigsfm.run.database import create_database
 from rigsfm.run.feature_cache import FEATURE_CACHE_ENV
-from rigsfm.run.features import (PairSelection, extract_features, extract_one, first_pass_scores, missed_pairs,
-                                 _extraction_options, _spanning_tree)
+from rigsfm.run.features import (
+    PairSelection,
+    _extraction_options,
+    _spanning_tree,
+    extract_features,
+    extract_one,
+    first_pass_scores,
+    missed_pairs,
+)
 from rigsfm.run.gpu import cuda_device_count, decide, use_gpu
 from rigsfm.run.options import Device, MatchingOptions, Pairs, RunOptions
 from rigsfm.run.pipeline import load_inputs, run

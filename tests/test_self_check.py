@@ -16,8 +16,14 @@ from test_floor_matching import HALF, render
 from rigsfm.core.ground import image_to_plane
 from rigsfm.run.deliver import narrow_poses
 from rigsfm.run.options import SelfCheckOptions, WorldOptions
-from rigsfm.run.self_check import (_candidates, _Features, _guided_matches, _segments, epipolar_self_check,
-                                   synchronised_frames)
+from rigsfm.run.self_check import (
+    _candidates,
+    _Features,
+    _guided_matches,
+    _segments,
+    epipolar_self_check,
+    synchronised_frames,
+)
 from rigsfm.run.uncertainty import correspondence_check
 from rigsfm.run.world import place_in_world
 

@@ -117,7 +117,7 @@ def test_reconstruction_travels_exactly():
     camera = pycolmap.Camera.create_from_model_id(1, pycolmap.CameraModelId.SIMPLE_RADIAL, 812.5, 812, 617)
     reconstruction.add_camera(camera)
     rng = np.random.default_rng(0)
-    for i in range(50):
+    for _ in range(50):
         reconstruction.add_point3D(rng.normal(size=3) * 7.0, pycolmap.Track(), np.array([1, 2, 3], np.uint8))
     copy = in_child(_echo, reconstruction)
     assert copy.cameras[1].params.tolist() == camera.params.tolist()

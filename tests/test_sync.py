@@ -17,7 +17,14 @@ from rigsfm.core.names import name_of
 from rigsfm.run.deliver import narrow_poses
 from rigsfm.run.options import SelfCheckOptions, WorldOptions
 from rigsfm.run.self_check import epipolar_self_check
-from rigsfm.run.sync import PairSync, OffsetScore, _solve, estimate_frame_offsets, frames_by_time, read_frame_offsets
+from rigsfm.run.sync import (
+    OffsetScore,
+    PairSync,
+    _solve,
+    estimate_frame_offsets,
+    frames_by_time,
+    read_frame_offsets,
+)
 from rigsfm.run.world import place_in_world
 
 FRAMES = 3

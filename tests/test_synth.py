@@ -10,6 +10,7 @@ import yaml
 
 from rigsfm.core.conventions import rotation_angle_deg
 from rigsfm.core.errors import WorkspaceError
+from rigsfm.core.geometry import project_world
 from rigsfm.core.rig import load_rigs
 from rigsfm.synth import (
     SceneOptions,
@@ -19,7 +20,6 @@ from rigsfm.synth import (
     render_dataset,
     render_image,
 )
-from rigsfm.core.geometry import project_world
 from rigsfm.synth.render import pixel_rays, visible
 from rigsfm.synth.scene import WALL, Bar, trace
 

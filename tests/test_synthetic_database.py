@@ -3,14 +3,14 @@
 import numpy as np
 import pycolmap
 import pytest
+from synthetic_db import make_network
 
-from rigsfm.synth.truth import compare_to_ground_truth, oracle
 from rigsfm.core.workspace import Workspace
+from rigsfm.run.adjust import ScaleSource, adjust
 from rigsfm.run.mapping import run_mapping
 from rigsfm.run.options import AdjustOptions, Calibration, Mapper, MappingOptions
-from rigsfm.run.adjust import ScaleSource, adjust
 from rigsfm.run.scale_file import CameraDistance, ScaleSpec
-from synthetic_db import make_network
+from rigsfm.synth.truth import compare_to_ground_truth, oracle
 
 
 def _gt_distance(gt, a, b):

@@ -9,16 +9,23 @@ import cv2
 import numpy as np
 import pycolmap
 import pytest
-from typer.testing import CliRunner
-
-from rigsfm.core.conventions import rotation_angle_deg
-from rigsfm.synth.scene import SceneOptions
-from rigsfm.cli import app
-from rigsfm.track import (Executor, FrameTask, TrackOptions, load_reference, register_frame, track,
-                          track_report_section)
-from rigsfm.synth.motion import render_recording, shaken_motions
 from conftest import copy_run
 from support import start_local_ray
+from typer.testing import CliRunner
+
+from rigsfm.cli import app
+from rigsfm.core.conventions import rotation_angle_deg
+from rigsfm.synth.motion import render_recording, shaken_motions
+from rigsfm.synth.scene import SceneOptions
+from rigsfm.track import (
+    Executor,
+    FrameTask,
+    TrackOptions,
+    load_reference,
+    register_frame,
+    track,
+    track_report_section,
+)
 
 pytestmark = pytest.mark.slow  # end-to-end runs on rendered images (`-m 'not slow'` skips them)
 

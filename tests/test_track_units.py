@@ -4,11 +4,10 @@ import numpy as np
 import pycolmap
 import pytest
 
-from rigsfm.track.options import Thresholds
-from rigsfm.track.verdict import classify
 from rigsfm.core.conventions import rotation_vector
-from rigsfm.track.options import RegistrationOptions
+from rigsfm.track.options import RegistrationOptions, Thresholds
 from rigsfm.track.pose import estimate_rig_pose, pose_covariance
+from rigsfm.track.verdict import classify
 
 DEG, MM = np.radians(1.0), 1e-3
 SIGMA = np.diag([0.003 * DEG] * 3 + [1.0 * MM] * 3) ** 2  # a well-registered frame: 0.003 deg, 1 mm
@@ -98,7 +97,10 @@ def test_generalized_pose_with_fixed_esl_recovers_the_rig_pose():
     narrow_dirs = np.column_stack([rng.uniform(-0.2, 0.2, 200), rng.uniform(-0.15, 0.15, 200), np.ones(200)])
     narrow_in_wide = narrow_from_wide.inverse().matrix()
     narrow_pts = (narrow_dirs * 15.0) @ narrow_in_wide[:, :3].T + narrow_in_wide[:, 3]
-    to_world = lambda p: p @ world_from_wide[:, :3].T + world_from_wide[:, 3]
+
+    def to_world(p):
+        return p @ world_from_wide[:, :3].T + world_from_wide[:, 3]
+
     xyz = {"wide": to_world(wide_pts), "narrow": to_world(narrow_pts)}
     cameras = {"wide": wide, "narrow": narrow}
     sensor_from_rig = {"wide": pycolmap.Rigid3d(), "narrow": narrow_from_wide}

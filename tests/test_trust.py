@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pyceres
 import pycolmap
-import pycolmap.cost_functions  # noqa: F401
+import pycolmap.cost_functions
 import pytest
 import yaml
 from synthetic_db import make_network, perturbed_model
@@ -20,15 +20,36 @@ from rigsfm.core.errors import InputError
 from rigsfm.core.geometry import project_world
 from rigsfm.core.rig import RigCalibration, load_rigs, rigs_to_yaml
 from rigsfm.core.workspace import Workspace
-from rigsfm.run.adjust import (FINAL_SETTLE_CHI2, Gauge, JointProblem, ScaleSource, adjust, frames_without_points,
-                               sensor_from_rig_view)
+from rigsfm.run.adjust import (
+    FINAL_SETTLE_CHI2,
+    Gauge,
+    JointProblem,
+    ScaleSource,
+    adjust,
+    frames_without_points,
+    sensor_from_rig_view,
+)
 from rigsfm.run.costs import CameraDistanceCost, CentreTerm, LengthCost, quaternion_plus_jacobian
 from rigsfm.run.mapping import run_mapping
 from rigsfm.run.options import AdjustOptions, Calibration, MappingOptions
-from rigsfm.run.priors import calibration_priors, draw_calibration, pose_prior_residual_covariance, tangent_covariance_from_residual
+from rigsfm.run.priors import (
+    calibration_priors,
+    draw_calibration,
+    pose_prior_residual_covariance,
+    tangent_covariance_from_residual,
+)
 from rigsfm.run.scale_file import CameraDistance, ScaleSpec
-from rigsfm.run.uncertainty import (_PairModel, band_points, correspondence_check, distances_under, epipolar_lines,
-                                    estimate_uncertainty, line_distances, pooled_quantile, pooled_shifted_quantile)
+from rigsfm.run.uncertainty import (
+    _PairModel,
+    band_points,
+    correspondence_check,
+    distances_under,
+    epipolar_lines,
+    estimate_uncertainty,
+    line_distances,
+    pooled_quantile,
+    pooled_shifted_quantile,
+)
 from rigsfm.synth.cameras import calibration_error_sigmas, perturb_rig_from
 
 DATA = Path(__file__).resolve().parent / "data"

@@ -10,15 +10,16 @@ import os
 import numpy as np
 import pytest
 import yaml
+from test_bad_input import H, W, expect, write_rigs
+from test_bad_input import make_inputs as make_aliased_inputs
 
 from rigsfm.core.errors import InputError, WorkspaceError
-from rigsfm.core.rig import RigSigmas, load_rigs, write_rigs as write_rig_file
+from rigsfm.core.rig import RigSigmas, load_rigs
+from rigsfm.core.rig import write_rigs as write_rig_file
 from rigsfm.core.workspace import Workspace, read_json, read_model
 from rigsfm.run.manual_matches import ManualMatchError, read_manual_matches
 from rigsfm.run.options import AdjustOptions, MappingOptions, MatchingOptions, RunOptions
 from rigsfm.run.pipeline import load_inputs
-from test_bad_input import H, W, expect, write_rigs
-from test_bad_input import make_inputs as make_aliased_inputs
 
 SIGMAS = {"wide": [0.4, 0.4, 0.5, 0.5], "narrow": [1.5, 1.5, 0.8, 0.9]}
 POSE_SIGMAS = {"sigma_rotation_deg": [0.02, 0.03, 0.01], "sigma_translation_m": [1e-4, 1e-4, 3e-4]}

@@ -14,8 +14,8 @@ import cv2
 import numpy as np
 import pycolmap
 import pytest
-
 from bad_inputs_table import RUN, inputs
+
 from rigsfm.core.errors import WorkspaceError
 from rigsfm.core.workspace import MARKER, Workspace
 from rigsfm.run.database import check_database_kept, create_database

@@ -9,9 +9,9 @@ sees its neighbours and the loop closes in a single adjustment. Intrinsics and E
 import argparse
 from pathlib import Path
 
-from rigsfm.synth.demo import run_demo
 from rigsfm.run.options import Mapper, MappingOptions
 from rigsfm.run.pipeline import RunOptions
+from rigsfm.synth.demo import run_demo
 from rigsfm.synth.scene import SceneOptions
 
 

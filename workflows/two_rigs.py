@@ -10,9 +10,9 @@ rangefinder distance between the two rigs makes the result metric.
 import argparse
 from pathlib import Path
 
-from rigsfm.synth.demo import run_demo
 from rigsfm.run.options import Mapper, MappingOptions
 from rigsfm.run.pipeline import RunOptions
+from rigsfm.synth.demo import run_demo
 from rigsfm.synth.scene import SceneOptions
 
 

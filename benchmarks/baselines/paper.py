@@ -40,8 +40,8 @@ from benchmarks.baselines.two_view import (
 )
 from rigsfm.core.conventions import opencv_from_colmap_pixels, rotation_angle_deg
 from rigsfm.core.image_files import read_image
-from rigsfm.run.pipeline import load_inputs
 from rigsfm.core.rig import RigCalibration, add_posed_rig
+from rigsfm.run.pipeline import load_inputs
 
 logger = logging.getLogger(__name__)
 

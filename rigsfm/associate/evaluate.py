@@ -97,7 +97,7 @@ def score_groups(groups: list[list[tuple[str, int]]], truth: SyntheticDetections
         for index, p in enumerate(ids):
             if p >= 0:
                 true_sets.setdefault(int(p), []).append((image, index))
-    true_pairs = set()
+    true_pairs: set[tuple] = set()
     for members in true_sets.values():
         true_pairs.update(itertools.combinations(sorted(members), 2))
     hit = sum(1 for a, b in found_pairs if pid(*a) >= 0 and pid(*a) == pid(*b))
@@ -106,8 +106,8 @@ def score_groups(groups: list[list[tuple[str, int]]], truth: SyntheticDetections
     true_multi = {p for p, m in true_sets.items() if len(m) >= 2}
     correct = 0
     for group in groups:
-        ids = {pid(*m) for m in group}
-        if len(ids) == 1 and next(iter(ids)) >= 0:
+        persons = {pid(*m) for m in group}
+        if len(persons) == 1 and next(iter(persons)) >= 0:
             correct += 1
     pp = correct / len(groups) if groups else 1.0
     pr = correct / len(true_multi) if true_multi else 1.0

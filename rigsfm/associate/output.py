@@ -143,7 +143,7 @@ def density_image(counts: np.ndarray, cell: float, pixels: int = 24) -> np.ndarr
     density = counts / cell ** 2
     top = max(float(density.max()), 1e-9)
     grey = np.uint8(np.clip(density / top * 255, 0, 255))
-    image = cv2.applyColorMap(grey[::-1], cv2.COLORMAP_VIRIDIS)
+    image = cv2.applyColorMap(grey[::-1], cv2.COLORMAP_VIRIDIS)  # type: ignore[index]  # np.uint8(array) is an array
     image = cv2.resize(image, (image.shape[1] * pixels, image.shape[0] * pixels), interpolation=cv2.INTER_NEAREST)
     band = charts.canvas(image.shape[1], 24)
     charts.text(band, f"persons per m2, max {top:.1f}", (4, 16), size=0.4)

@@ -2,8 +2,8 @@
 
 from __future__ import annotations
 
-import logging
 import json
+import logging
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -106,7 +106,9 @@ def associate(out: Path, detections_csv: Path, options: AssociateOptions | None 
     dest = Path(options.out) if options.out is not None else Workspace(Path(out)).associate
     check_destination(dest, options.overwrite)
     model = load_run(Path(out))
-    sizes = {name: (image.camera.width, image.camera.height) for name, image in model.images.items()}
+    # a model's images have cameras
+    sizes = {name: (image.camera.width, image.camera.height)  # type: ignore[union-attr]
+             for name, image in model.images.items()}
     detections = read_detections(Path(detections_csv), sizes, model.known)
     require_floor(model, Path(out))
     frames = associate_frames(model, detections, options)

@@ -59,9 +59,11 @@ class View:
     def of(cls, image: pycolmap.Image, xy: np.ndarray) -> View:
         pose = image.cam_from_world()
         camera = image.camera
-        return cls(image.name, np.asarray(camera.calibration_matrix(), dtype=np.float64),
+        # a model's images have their cameras
+        return cls(image.name, np.asarray(camera.calibration_matrix(), dtype=np.float64),  # type: ignore[union-attr]
                    pose.rotation.matrix(), np.asarray(pose.translation, dtype=np.float64),
-                   np.asarray(image.projection_center(), dtype=np.float64), camera.width, camera.height, camera,
+                   # a model's images have their cameras
+                   np.asarray(image.projection_center(), dtype=np.float64), camera.width, camera.height, camera,  # type: ignore[arg-type,union-attr]
                    np.asarray(xy, dtype=np.float64).reshape(-1, 2))
 
     @property
@@ -114,7 +116,7 @@ def view_pose_sigmas(names: list[str], bands: dict[tuple[str, str], float]) -> d
             target.append((band / BAND_Z) ** 2)
     if not rows:
         return dict.fromkeys(names, 0.0)
-    matrix, target = np.asarray(rows), np.asarray(target)
+    matrix, target = np.asarray(rows), np.asarray(target)  # type: ignore[assignment]  # the list, as an array
     variance, _ = scipy.optimize.nnls(matrix, target)
     seen = matrix.sum(axis=0) > 0
     fallback = float(np.median(target) / 2.0)
@@ -226,7 +228,7 @@ class _Frame:
             a += np.eye(3)[None] * 1e-9 * np.trace(a, axis1=1, axis2=2)[:, None, None]
             covariance = _inverse3(a)
             points = np.einsum("gij,gj->gi", covariance, b)
-        return points, covariance
+        return points, covariance  # type: ignore[return-value]  # the loop sets points
 
     def residuals(self, members: np.ndarray, points: np.ndarray) -> np.ndarray:
         """Squared reprojection distance of each member over its noise (G x V; NaN where no member)."""
@@ -247,7 +249,7 @@ class _Frame:
         lo, hi = self.options.heights
         gate = self.options.gate_sigmas
         seeds = []
-        for i, vi in enumerate(self.views):
+        for i, _vi in enumerate(self.views):
             di = np.arange(self.offsets[i], self.offsets[i + 1])
             di = di[self.valid[di]]
             if not len(di):
@@ -267,7 +269,8 @@ class _Frame:
                 seg = b - a
                 length = np.linalg.norm(seg, axis=1)
                 mid = (a + b) / 2
-                near = self.trees[j].query_ball_point(mid[ok], length[ok] / 2 + radius)
+                # views with detections have trees
+                near = self.trees[j].query_ball_point(mid[ok], length[ok] / 2 + radius)  # type: ignore[union-attr]
                 rows = np.flatnonzero(ok)
                 counts = np.array([len(n) for n in near])
                 if not counts.sum():
@@ -305,7 +308,8 @@ class _Frame:
             s = jac @ covariance[rows] @ np.transpose(jac, (0, 2, 1)) + np.eye(2)[None] * self.noise[v] ** 2
             reach = 3.0 * np.sqrt(np.max(np.linalg.eigvalsh(s), axis=1)) * self.options.member_gate / 3.0
             k = min(4, len(self.tree_index[v]))
-            dist, near = self.trees[v].query(uv, k=k, distance_upper_bound=float(np.max(reach)) + 1.0)
+            # views with detections have trees
+            dist, near = self.trees[v].query(uv, k=k, distance_upper_bound=float(np.max(reach)) + 1.0)  # type: ignore[union-attr]
             dist, near = dist.reshape(len(rows), k), near.reshape(len(rows), k)
             s_inv = np.linalg.inv(s)
             best = np.full(len(rows), -1, dtype=np.int64)
@@ -344,7 +348,7 @@ class _Frame:
         # pays for the three coordinates the detections themselves fix.
         prior = math.log(self.options.persons_per_m2 / (hi - lo)) + 1.5 * math.log(2 * math.pi)
         sign, logdet = np.linalg.slogdet(covariance)
-        prior = prior + 0.5 * np.where(sign > 0, logdet, -np.inf)
+        prior = prior + 0.5 * np.where(sign > 0, logdet, -np.inf)  # type: ignore[assignment]  # one per group
         d2 = self.residuals(members, points)
         present = members >= 0
         clutter = np.where(present, self.clutter[np.where(present, members, 0)], 1.0)

@@ -57,15 +57,17 @@ class BoardSpec:
         return np.hstack([grid, np.zeros((len(grid), 1))])
 
     def charuco_board(self) -> cv2.aruco.CharucoBoard:
-        dictionary = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, self.dictionary))
-        board = cv2.aruco.CharucoBoard(tuple(self.squares), self.square, self.marker, dictionary)
+        # the board type's fields are set (parse_board)
+        dictionary = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, self.dictionary))  # type: ignore[arg-type]
+        board = cv2.aruco.CharucoBoard(tuple(self.squares), self.square, self.marker, dictionary)  # type: ignore[arg-type]
         board.setLegacyPattern(self.legacy_pattern)
         return board
 
     def describe(self) -> str:
         if self.type == "chessboard":
-            return f"chessboard, {self.inner_corners[0]}x{self.inner_corners[1]} inner corners, {self.square} m squares"
-        return (f"ChArUco {self.squares[0]}x{self.squares[1]} squares, {self.square} m squares, "
+            # the board type's fields are set (parse_board)
+            return f"chessboard, {self.inner_corners[0]}x{self.inner_corners[1]} inner corners, {self.square} m squares"  # type: ignore[index]
+        return (f"ChArUco {self.squares[0]}x{self.squares[1]} squares, {self.square} m squares, "  # type: ignore[index]
                 f"{self.marker} m markers, {self.dictionary}" + (", legacy pattern" if self.legacy_pattern else ""))
 
 
@@ -209,7 +211,7 @@ def diagnose_no_detection(spec: BoardSpec, paths: list[Path], where: str) -> Inp
     images = _probe_images(paths)
     base = f"{where}: the board ({spec.describe()}) was found in none of the {len(paths)} images"
     if spec.type == "chessboard":
-        cols, rows = spec.inner_corners
+        cols, rows = spec.inner_corners  # type: ignore[misc]  # the board type's fields are set (parse_board)
         candidates = [(cols - 1, rows - 1), (cols + 1, rows + 1), (cols - 1, rows), (cols, rows - 1),
                       (cols + 1, rows), (cols, rows + 1), (cols - 2, rows - 2)]
         for grid in candidates:
@@ -234,10 +236,12 @@ def diagnose_no_detection(spec: BoardSpec, paths: list[Path], where: str) -> Inp
                 continue
         return InputError(f"{base}: no {spec.dictionary} markers were detected at all; check 'dictionary' "
                           "and that the images show the board sharply")
-    n_markers = spec.squares[0] * spec.squares[1] // 2
+    # the board type's fields are set (parse_board)
+    n_markers = spec.squares[0] * spec.squares[1] // 2  # type: ignore[index]
     if markers.max() >= n_markers:
         return InputError(f"{base}: markers with ids up to {int(markers.max())} were seen but a "
-                          f"{spec.squares[0]}x{spec.squares[1]} board has ids 0..{n_markers - 1}; fix 'squares'")
+                          # the board type's fields are set (parse_board)
+                          f"{spec.squares[0]}x{spec.squares[1]} board has ids 0..{n_markers - 1}; fix 'squares'")  # type: ignore[index]
     legacy = BoardSpec(**{**spec.__dict__, "legacy_pattern": not spec.legacy_pattern})
     if any(BoardDetector(legacy).detect(im) is not None for im in images):
         return InputError(f"{base}: {spec.dictionary} markers were detected and the corners match with "

@@ -13,8 +13,8 @@ import cv2
 import numpy as np
 import pycolmap
 
-from rigsfm.calibrate.options import Distortion
 from rigsfm.calibrate.board import MIN_CORNERS, Detection
+from rigsfm.calibrate.options import Distortion
 from rigsfm.core.conventions import colmap_from_opencv_pixels
 from rigsfm.core.errors import InputError, RigsfmError
 
@@ -96,7 +96,7 @@ def _fit(obj, img, size, k3: bool):
     flags = 0 if k3 else cv2.CALIB_FIX_K3
     try:
         rms, K, dist, rvecs, tvecs, std_in, _, per_view = cv2.calibrateCameraExtended(
-            obj, img, size, None, None, flags=flags, criteria=CRITERIA)
+            obj, img, size, None, None, flags=flags, criteria=CRITERIA)  # type: ignore[call-overload]  # None: no guess
     except cv2.error as e:
         raise RigsfmError(f"OpenCV calibrateCamera failed: {str(e).strip().splitlines()[-1]}") from e
     return float(rms), K, dist.reshape(-1)[:5], rvecs, tvecs, std_in.reshape(-1)[:9], per_view.reshape(-1)
@@ -133,7 +133,8 @@ def calibrate_camera(sensor: str, detections: dict[str, Detection | None], objec
     if len(active) < MIN_VIEWS:
         raise InputError(f"{where}: the board was detected in only {len(active)} images (need at least "
                          f"{MIN_VIEWS}, better 10+); capture more views with the whole board or more of it visible")
-    pairs = {n: correspondences(detections[n], object_points) for n in active}
+    # active: detected
+    pairs = {n: correspondences(detections[n], object_points) for n in active}  # type: ignore[arg-type]
     k3 = distortion == Distortion.FULL_OPENCV
     while True:
         fit = _fit([pairs[n][0] for n in active], [pairs[n][1] for n in active], image_size, k3)

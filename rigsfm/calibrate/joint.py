@@ -339,7 +339,8 @@ def joint_refine(wide: CameraCalibration, narrow: CameraCalibration, narrow_pair
                                 for n in common},
                       std=std, condition=condition, covariance=covariance, n_wide=ni_w, n_narrow=ni_n,
                       noise=(float(camera_noise[0]), float(camera_noise[-1]) if len(camera_noise) > 1 else float("nan")),
-                      covariance_iid=covariance_iid, inflation=tuple(float(v) for v in inflation))
+                      covariance_iid=covariance_iid,
+                      inflation=tuple(float(v) for v in inflation))  # type: ignore[arg-type]  # three parts
     logger.info("joint refinement: %d frames, RMS wide %.3f / narrow %.3f px, noise %.3f / %.3f px, sigma inflation "
                 "%.2f / %.2f / %.2f, cond %.2g, %s", len(frames), result.rms_wide, result.rms_narrow, *result.noise,
                 *inflation, condition, summary.message)

@@ -19,7 +19,7 @@ from rigsfm.core.io import load_yaml_or_json, parse_yaml, write_text_atomic
 from rigsfm.core.rig import RigCalibration, load_rigs, rigs_to_yaml
 
 if TYPE_CHECKING:
-    from rigsfm.calibrate import CalibrationResult
+    from rigsfm.calibrate.pipeline import CalibrationResult
 
 logger = logging.getLogger(__name__)
 

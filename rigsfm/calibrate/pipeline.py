@@ -34,15 +34,14 @@ from rigsfm.calibrate.board import (
     read_gray,
 )
 from rigsfm.calibrate.dataset import RigFrames, discover_rigs
-from rigsfm.calibrate.options import CalibrateOptions, Distortion
 from rigsfm.calibrate.intrinsics import CameraCalibration, calibrate_camera, colmap_camera
+from rigsfm.calibrate.options import CalibrateOptions, Distortion
 from rigsfm.calibrate.scene import SceneEstimate, estimate_from_scene
 from rigsfm.calibrate.stereo import StereoCalibration, calibrate_stereo
 from rigsfm.calibrate.uncertainty import RigSigmas, rig_sigmas
 from rigsfm.core.conventions import rotation_angle_deg
 from rigsfm.core.errors import InputError
 from rigsfm.core.rig import RigCalibration
-
 
 logger = logging.getLogger(__name__)
 

@@ -13,19 +13,19 @@ from typing import TYPE_CHECKING
 import cv2
 import numpy as np
 
-from rigsfm.core import charts
 from rigsfm.calibrate.intrinsics import COVERAGE_GRID, OUTLIER_FACTOR, CameraCalibration
 from rigsfm.calibrate.stereo import StereoFit
+from rigsfm.core import charts
 from rigsfm.core.conventions import euler_zyx_degrees
 from rigsfm.core.errors import WorkspaceError
 from rigsfm.core.io import atomic_directory, write_text_atomic
 
 if TYPE_CHECKING:
-    from rigsfm.calibrate import CalibrationResult, RigResult
+    from rigsfm.calibrate.pipeline import CalibrationResult, RigResult
 
 def view_error_chart(cam: CameraCalibration, where: str) -> np.ndarray:
     views = [v for v in cam.views if v.rms is not None]
-    used = [v.rms for v in cam.views if v.used]
+    used: list = [v.rms for v in cam.views if v.used]
     median = float(np.median(used)) if used else 0.0
     return charts.bar_chart(f"{where}: per-view RMS reprojection error (red = rejected)", [v.name for v in views],
                             [[v.rms for v in views]], [["good" if v.used else "bad" for v in views]],

@@ -88,7 +88,8 @@ def _reversed(d: Detection, n_corners: int) -> Detection:
 def _stereo(data: dict, names: list[str], K1, d1, K2, d2, size, flags) -> StereoFit:
     obj = [data[n][0] for n in names]
     try:
-        out = cv2.stereoCalibrateExtended(obj, [data[n][1] for n in names], [data[n][2] for n in names],
+        # OpenCV's stubs: None lets it estimate
+        out = cv2.stereoCalibrateExtended(obj, [data[n][1] for n in names], [data[n][2] for n in names],  # type: ignore[call-overload]
                                           K1.copy(), d1.copy(), K2.copy(), d2.copy(), size, None, None,
                                           flags=flags, criteria=CRITERIA)
     except cv2.error as e:
@@ -115,7 +116,7 @@ def calibrate_stereo(wide: CameraCalibration, narrow: CameraCalibration, wide_de
     candidates = [n for n in wide.used_views if n in narrow.poses]
     data, relatives, corrected = {}, {}, {}
     for n in candidates:
-        common = _common(wide_det[n], narrow_det[n], obj_points)
+        common = _common(wide_det[n], narrow_det[n], obj_points)  # type: ignore[arg-type]  # views detected in both
         if common is None:
             dropped[n] = f"fewer than {MIN_CORNERS} (non-collinear) corners seen by both cameras"
             continue
@@ -128,12 +129,13 @@ def calibrate_stereo(wide: CameraCalibration, narrow: CameraCalibration, wide_de
             if angle <= CONSISTENCY_DEG:
                 continue
             if chessboard:  # one camera may have ordered the corners from the opposite end
-                flipped = _reversed(narrow_det[n], len(obj_points))
+                flipped = _reversed(narrow_det[n], len(obj_points))  # type: ignore[arg-type]  # views detected in both
                 obj, img = obj_points[flipped.ids].astype(np.float32), flipped.image_points.astype(np.float32)
                 ok, rvec, tvec = cv2.solvePnP(obj, img, narrow.K, narrow.dist)
                 if ok and rotation_angle_deg(_relative(*wide.poses[n], rvec.reshape(3), tvec.reshape(3))[0],
                                              reference) <= CONSISTENCY_DEG:
-                    data[n] = _common(wide_det[n], flipped, obj_points)
+                    # views detected in both
+                    data[n] = _common(wide_det[n], flipped, obj_points)  # type: ignore[arg-type]
                     corrected[n] = flipped
                     notes.append(f"view {n}: narrow chessboard corners were ordered from the opposite end; reversed")
                     continue
@@ -141,17 +143,17 @@ def calibrate_stereo(wide: CameraCalibration, narrow: CameraCalibration, wide_de
             del data[n]
     names = sorted(data)
     if len(names) < MIN_STEREO_VIEWS:
-        detail = "; ".join(f"{n}: {r}" for n, r in sorted(dropped.items())[:5])
+        why = "; ".join(f"{n}: {r}" for n, r in sorted(dropped.items())[:5])
         raise InputError(
             f"{where}: only {len(names)} views usable for E^sl (need {MIN_STEREO_VIEWS}, better 8+): a view counts "
             f"when both cameras detected the board in it (same file name) with {MIN_CORNERS}+ common corners"
-            + (f" ({detail})" if detail else "") + "; capture more views where the narrow camera sees the board too")
+            + (f" ({why})" if why else "") + "; capture more views where the narrow camera sees the board too")
     size = wide.image_size
     while True:
         fixed = _stereo(data, names, wide.K, wide.dist, narrow.K, narrow.dist, size, cv2.CALIB_FIX_INTRINSIC)
         errors = {n: max(v) for n, v in fixed.per_view.items()}
         median = float(np.median(list(errors.values())))
-        worst = max(errors, key=errors.get)
+        worst = max(errors, key=errors.get)  # type: ignore[arg-type]  # typeshed: get's overloads
         if (errors[worst] <= OUTLIER_FACTOR * median or errors[worst] <= OUTLIER_FLOOR_PX
                 or len(names) <= MIN_STEREO_VIEWS):
             break
@@ -159,7 +161,8 @@ def calibrate_stereo(wide: CameraCalibration, narrow: CameraCalibration, wide_de
         names.remove(worst)
     narrow_pairs = {n: narrow.pairs[n] for n in narrow.used_views if n not in dropped and n not in data}
     for n in names:  # orientation-consistent narrow correspondences of the E^sl views
-        narrow_pairs[n] = correspondences(corrected.get(n, narrow_det[n]), obj_points)
+        # views detected in both
+        narrow_pairs[n] = correspondences(corrected.get(n, narrow_det[n]), obj_points)  # type: ignore[arg-type]
     result = StereoCalibration(fixed=fixed, joint=None, use_joint=False, views=names, dropped=dropped, notes=notes)
     try:
         detail = joint_refine(wide, narrow, narrow_pairs, fixed.R, fixed.T, names)

@@ -35,7 +35,7 @@ import numpy as np
 from rigsfm.core.rig import RigSigmas, add_sigmas, load_rigs, sigmas_from_entry
 
 if TYPE_CHECKING:
-    from rigsfm.calibrate import RigResult
+    from rigsfm.calibrate.pipeline import RigResult
 
 __all__ = ["RigSigmas", "add_sigmas", "colmap_param_sigmas", "load_sigmas", "rig_sigmas", "sigmas_from_entry"]
 
@@ -61,18 +61,21 @@ def rig_sigmas(rig: RigResult) -> RigSigmas:
         return RigSigmas(notes=[("no uncertainties: the joint refinement was not used, and OpenCV's fixed-intrinsics "
                                  "E^sl has no covariance that accounts for the intrinsics' errors")])
     wide, narrow = rig.cameras()
-    out = RigSigmas(wide=colmap_param_sigmas(detail.block("wide"), wide.model.name),
-                    narrow=colmap_param_sigmas(detail.block("narrow"), narrow.model.name))
+    # a solved rig has its blocks
+    out = RigSigmas(wide=colmap_param_sigmas(detail.block("wide"), wide.model.name),  # type: ignore[arg-type]
+                    narrow=colmap_param_sigmas(detail.block("narrow"), narrow.model.name))  # type: ignore[arg-type]
     cov = detail.block("rig")
     if rig.scene is not None:
         out.notes.append("no E^sl uncertainty: its rotation and translation direction come from the scene")
         return out
-    out.rotation_deg = np.degrees(np.sqrt(np.clip(np.diag(cov)[:3], 0.0, None)))
+    # a solved rig has its blocks
+    out.rotation_deg = np.degrees(np.sqrt(np.clip(np.diag(cov)[:3], 0.0, None)))  # type: ignore[arg-type]
     if rig.measured_baseline is not None:
         out.notes.append("no E^sl translation uncertainty: its length comes from --baseline, whose error is unknown")
         return out
-    out.translation_m = np.sqrt(np.clip(np.diag(cov)[3:], 0.0, None))
-    out.covariance = 0.5 * (cov + cov.T)
+    # a solved rig has its blocks
+    out.translation_m = np.sqrt(np.clip(np.diag(cov)[3:], 0.0, None))  # type: ignore[arg-type]
+    out.covariance = 0.5 * (cov + cov.T)  # type: ignore[union-attr]
     return out
 
 

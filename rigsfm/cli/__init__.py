@@ -11,15 +11,15 @@ from rigsfm.cli import _signals
 if _signals.is_the_command():
     _signals.install()  # before anything else: a signal at any moment gives rigsfm's one line
 
-import typer  # noqa: E402
+import typer
 
-from rigsfm.cli.associate import associate_command  # noqa: E402
-from rigsfm.cli.calibrate import calibrate_command  # noqa: E402
-from rigsfm.cli.explore import explore_command  # noqa: E402
-from rigsfm.cli.inspect import export_command, report_command, view_command  # noqa: E402
-from rigsfm.cli.pick import pick_command  # noqa: E402
-from rigsfm.cli.run import demo_command, run_command  # noqa: E402
-from rigsfm.cli.track import track_command  # noqa: E402
+from rigsfm.cli.associate import associate_command
+from rigsfm.cli.calibrate import calibrate_command
+from rigsfm.cli.explore import explore_command
+from rigsfm.cli.inspect import export_command, report_command, view_command
+from rigsfm.cli.pick import pick_command
+from rigsfm.cli.run import demo_command, run_command
+from rigsfm.cli.track import track_command
 
 
 class Command(typer.core.TyperCommand):

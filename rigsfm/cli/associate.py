@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated, Optional
+from typing import Annotated
 
 import typer
 
@@ -17,7 +17,7 @@ def associate_command(
     detections: Annotated[Path, typer.Argument(
         metavar="DETECTIONS", help="CSV image,x,y[,score][,label]: points in narrow images (COLMAP pixels), one or many synchronised frames",
         show_default=False)],
-    dest: Annotated[Optional[Path], typer.Option("--out", metavar="DIR", help="folder to write [default: OUT/associate]",
+    dest: Annotated[Path | None, typer.Option("--out", metavar="DIR", help="folder to write [default: OUT/associate]",
                                                  show_default=False)] = None,
     heights: Annotated[str, typer.Option("--heights", metavar="LOW-HIGH",
                                          help="the points' heights above the floor (m)")] = "1.0-2.1",

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated, Optional
+from typing import Annotated
 
 import typer
 
@@ -19,16 +19,16 @@ def calibrate_command(
                                                         "square: 0.025} or {type: charuco, squares, square, marker, "
                                                         "dictionary} (metres)", show_default=False)],
     out: Annotated[Path, typer.Option("--out", "-o", help="rigs.yaml to write", show_default=False)],
-    from_scene: Annotated[Optional[Path], typer.Option(
+    from_scene: Annotated[Path | None, typer.Option(
         "--from-scene", help="SCENE/<rig>/{wide,narrow}: take the E^sl rotation and translation direction from a "
                              "textured scene  [default: from the board]", show_default=False)] = None,
-    baseline: Annotated[Optional[float], typer.Option(
+    baseline: Annotated[float | None, typer.Option(
         "--baseline", min=0.0, metavar="M", help="measured baseline length in metres  [default: the board's]",
         show_default=False)] = None,
     merge: Annotated[bool, flag("--merge", help="add/replace these rigs in an existing rigs.yaml")] = False,
     overwrite: Annotated[bool, flag("--overwrite", help="replace an existing rigs.yaml (or, with --merge, same-named "
                                                         "rigs in it)")] = False,
-    report_dir: Annotated[Optional[Path], typer.Option(
+    report_dir: Annotated[Path | None, typer.Option(
         "--report-dir", help="report folder  [default: <out stem>.calibration/ beside OUT]", show_default=False)] = None,
     distortion: Annotated[Distortion, typer.Option(
         "--distortion", help="auto (k3 only if it helps), opencv (k1 k2 p1 p2) or full_opencv (+k3)")] = Distortion.AUTO,

@@ -16,7 +16,7 @@ import traceback
 
 import typer
 from rich.console import Console
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TaskID, TextColumn, TimeElapsedColumn
 from rich.text import Text
 
 from rigsfm.cli import _signals
@@ -133,6 +133,7 @@ def configure_logging(verbose: bool) -> None:
 
     level = logging.INFO if verbose else logging.WARNING
     console = _log_console()
+    handler: logging.Handler
     if console.is_terminal:
         handler = RichHandler(console=console, level=level, show_path=False, show_time=False)
     else:  # one whole line per record where it is read by a program or a file
@@ -169,7 +170,7 @@ class StageProgress:
 
     def __init__(self, progress: Progress):
         self.progress = progress
-        self.tasks: dict[str, int] = {}
+        self.tasks: dict[str, TaskID] = {}
 
     def __call__(self, stage: str, done: int, total: int) -> None:
         total_or_unknown = total or None  # (stage, 0, 0): the stage started, its total comes later

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import threading
 from pathlib import Path
-from typing import Annotated, Optional
+from typing import Annotated
 
 import typer
 
@@ -16,21 +16,21 @@ from rigsfm.cli.common import configure_logging, console, fail_cleanly
 def explore_command(
     out: Annotated[Path, typer.Argument(metavar="OUT", help="a finished result (rigsfm run --out)",
                                         show_default=False)],
-    frame: Annotated[Optional[str], typer.Option(
+    frame: Annotated[str | None, typer.Option(
         "--frame", metavar="NAME",
         help="frame file name shown first [default: the first with narrow images of two or more rigs]",
         show_default=False)] = None,
-    labels: Annotated[Optional[Path], typer.Option(
+    labels: Annotated[Path | None, typer.Option(
         "--labels", metavar="CSV", help="labels CSV to write and resume from [default: OUT/labels.csv]",
         show_default=False)] = None,
-    check: Annotated[Optional[Path], typer.Option(
+    check: Annotated[Path | None, typer.Option(
         "--check", metavar="CSV",
         help="print the share of this CSV's labelled pairs inside their band, and stop "
              "[default: serve the page]",
         show_default=False)] = None,
     heights: Annotated[str, typer.Option("--heights", metavar="LOW-HIGH",
                                          help="the band's segment, metres above the floor")] = "0-2.2",
-    images: Annotated[Optional[Path], typer.Option(
+    images: Annotated[Path | None, typer.Option(
         "--images", metavar="IMAGES", help="IMAGES [default: the run's, from summary.json]",
         show_default=False)] = None,
     port: Annotated[int, typer.Option("--port", min=0, max=65535, metavar="PORT",
@@ -53,7 +53,7 @@ def explore_command(
             console.print(f"  {i} - {j}: {inside} of {total} inside ({100 * inside / total:.1f} %)")
         rest = f"; {result.without_band} without a band in the other image" if result.without_band else ""
         console.print(f"{result.inside} of {result.pairs} labelled pairs inside their 95 % band "
-                      f"({100 * result.share:.1f} %){rest}")
+                      f"({100 * result.share:.1f} %){rest}")  # type: ignore[operator]  # pairs: a share
         return
     server = start_explorer(out, options, port=port)
     session = server.session

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated, Optional
+from typing import Annotated
 
 import typer
 
@@ -24,7 +24,7 @@ def report_command(out: Annotated[Path, WORKSPACE]) -> None:
 @fail_cleanly
 def view_command(
     out: Annotated[Path, WORKSPACE],
-    screenshot_path: Annotated[Optional[Path], typer.Option(
+    screenshot_path: Annotated[Path | None, typer.Option(
         "--screenshot", help="render the view headless into this PNG instead of opening a window (no display "
                              "needed)  [default: open a window; needs a display]", show_default=False)] = None,
 ) -> None:
@@ -43,7 +43,7 @@ def view_command(
 def export_command(
     out: Annotated[Path, WORKSPACE],
     fmt: Annotated[ExportFormat, typer.Option("--format", help="what to write", show_default=False)],
-    dest: Annotated[Optional[Path], typer.Option(
+    dest: Annotated[Path | None, typer.Option(
         "--dest", help="folder to write: a new or empty one, or an earlier export  [default: OUT/export/FORMAT]",
         show_default=False)] = None,
     overwrite: Annotated[bool, flag("--overwrite", help="replace an earlier export in DEST (only the files rigsfm "

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import threading
 from pathlib import Path
-from typing import Annotated, Optional
+from typing import Annotated
 
 import typer
 
@@ -18,7 +18,7 @@ def pick_command(
     image_b: Annotated[Path, typer.Argument(metavar="IMAGE_B", help="second wide image", show_default=False)],
     out: Annotated[Path, typer.Option("--out", help="CSV to write (and to resume from if it exists)",
                                       show_default=False)],
-    rigs: Annotated[Optional[Path], typer.Option(
+    rigs: Annotated[Path | None, typer.Option(
         "--rigs", help="rigs.yaml: epipolar curves through the calibrated lenses  [default: straight lines from the "
                        "pixels]", show_default=False)] = None,
     port: Annotated[int, typer.Option("--port", min=0, max=65535, metavar="PORT", help="port on 127.0.0.1; 0 picks a free one")] = 0,

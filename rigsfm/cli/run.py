@@ -4,16 +4,37 @@ from __future__ import annotations
 
 import shlex
 from pathlib import Path
-from typing import Annotated, Optional
+from typing import Annotated
 
 import typer
 from rich.table import Table
 
-from rigsfm.cli.common import StageProgress, configure_logging, console, fail_cleanly, finish, flag, progress_bars
+from rigsfm.cli.common import (
+    StageProgress,
+    configure_logging,
+    console,
+    fail_cleanly,
+    finish,
+    flag,
+    progress_bars,
+)
 from rigsfm.inspect.options import ExportFormat
-from rigsfm.run.options import (GLOBAL_FROM_FRAMES, AdjustOptions, Calibration, Device, Executor, Features, Mapper,
-                                 MappingOptions, MatchingOptions, Pairs, RunOptions, SelfCheckOptions, WorldFrame,
-                                 WorldOptions)
+from rigsfm.run.options import (
+    GLOBAL_FROM_FRAMES,
+    AdjustOptions,
+    Calibration,
+    Device,
+    Executor,
+    Features,
+    Mapper,
+    MappingOptions,
+    MatchingOptions,
+    Pairs,
+    RunOptions,
+    SelfCheckOptions,
+    WorldFrame,
+    WorldOptions,
+)
 
 VERBOSE = flag("--verbose", "-v", help="show rigsfm's log (info level) on the terminal")
 STRICT = flag("--strict", help="exit with code 4 when the result carries warnings (for scripts)")
@@ -101,7 +122,7 @@ def run_command(
     rigs: Annotated[Path, typer.Option("--rigs", help="rigs.yaml: intrinsics and narrow_from_wide per rig",
                                        show_default=False)],
     out: Annotated[Path, typer.Option("--out", help="output workspace folder", show_default=False)],
-    scale: Annotated[Optional[Path], typer.Option(
+    scale: Annotated[Path | None, typer.Option(
         "--scale", help="scale.yaml: rangefinder distances and known lengths  [default: none, the result is not "
                         "metric]", show_default=False)] = None,
     mapper: Annotated[Mapper, typer.Option("--mapper", help=MAPPER_HELP)] = Mapper.AUTO,
@@ -109,14 +130,14 @@ def run_command(
                                                                     "images (textured or crowded narrow views)")] = False,
     features: Annotated[Features, typer.Option("--features", help="sift, or asift: affine-robust, for large perspective "
                                                                   "changes between rigs (slower)")] = Features.SIFT,
-    manual_matches: Annotated[Optional[Path], typer.Option(
+    manual_matches: Annotated[Path | None, typer.Option(
         "--manual-matches", help="CSV image_a,x_a,y_a,image_b,x_b,y_b of hand-picked correspondences between wide "
                                  "images (COLMAP pixels; see `rigsfm pick`)  [default: none]", show_default=False)] = None,
     max_ratio: Annotated[float, typer.Option("--max-ratio", metavar="RATIO", help="Lowe's ratio test threshold of the SIFT matching, "
                                                                  "in (0, 1]")] = 0.8,
     cross_check: Annotated[bool, typer.Option("--cross-check/--no-cross-check",
                                               help="keep only mutual nearest-neighbour matches")] = True,
-    rig_verification: Annotated[Optional[bool], typer.Option(
+    rig_verification: Annotated[bool | None, typer.Option(
         "--rig-verification/--no-rig-verification",
         help="verify matches of two frames with both rigs' cameras at once  [default: on, off with --narrow-features]",
         show_default=False)] = None,
@@ -124,11 +145,11 @@ def run_command(
     incremental_time_limit: Annotated[int, typer.Option(
         "--incremental-time-limit", min=0, metavar="SECONDS",
         help="after this long the incremental mapper stops and the global mapper's model is used (with a warning)"
-    )] = MappingOptions().incremental_time_limit_s,
+    )] = MappingOptions().incremental_time_limit_s,  # type: ignore[assignment]  # set by default
     world: Annotated[WorldFrame, typer.Option(
         "--world", help="floor: z = 0 on the floor, z up, origin under the rigs' centroid, x towards the first rig; "
                         "mapping: the mapper's frame")] = WorldFrame.FLOOR,
-    plane_height: Annotated[Optional[float], typer.Option(
+    plane_height: Annotated[float | None, typer.Option(
         "--plane-height", metavar="M", help="also map every narrow image onto the plane this many metres above the floor "
                                "(e.g. 1.7 for heads)  [default: the floor only]", show_default=False)] = None,
     fixed_calibration: Annotated[bool, flag("--fixed-calibration", help="hold rigs.yaml's intrinsics and E^sl "
@@ -143,13 +164,13 @@ def run_command(
     executor: Annotated[Executor, typer.Option("--executor", help="feature extraction: local (this machine's cores) "
                                                                   "or ray (one task per image on a Ray cluster)")
                         ] = Executor.LOCAL,
-    address: Annotated[Optional[str], typer.Option(
+    address: Annotated[str | None, typer.Option(
         "--address", metavar="ADDRESS", help="Ray cluster address, e.g. auto or HEAD:6379 (with --executor ray)  [default: start a local "
                           "Ray instance]", show_default=False)] = None,
     device: Annotated[Device, typer.Option("--device", help="SIFT on: auto (a CUDA GPU when pycolmap is the CUDA "
                                                             "build, rigsfm[gpu], and one is found), cpu or cuda")
                       ] = Device.AUTO,
-    frame_offsets: Annotated[Optional[str], typer.Option(
+    frame_offsets: Annotated[str | None, typer.Option(
         "--frame-offsets", metavar="auto|FILE",
         help="unsynchronised rigs: auto estimates each rig's frame offset from the moving crowd and pairs the narrow "
              "frames by time; FILE (yaml 'rig03: 1': rig03's frame k was taken at the others' frame k+1) applies "

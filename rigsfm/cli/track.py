@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
-from typing import Annotated, Optional
+from typing import Annotated
 
 import typer
 from rich.table import Table
@@ -19,7 +19,7 @@ def track_command(
     new_images: Annotated[Path, typer.Argument(metavar="NEW_IMAGES", help="NEW_IMAGES/<rig>/<wide|narrow>/<frame file>, many frames",
                                                show_default=False)],
     executor: Annotated[Executor, typer.Option("--executor", help="local (process pool) or ray")] = Executor.LOCAL,
-    address: Annotated[Optional[str], typer.Option(
+    address: Annotated[str | None, typer.Option(
         "--address", metavar="ADDRESS", help="Ray cluster address, e.g. auto or ray://HEAD:10001 (with --executor ray)  [default: start "
                           "a local Ray instance]", show_default=False)] = None,
     workers: Annotated[int, typer.Option("--workers", min=1, metavar="N", help="processes (local) / CPUs of a local Ray "

@@ -150,7 +150,8 @@ def run_ray(function: Callable, tasks: Sequence, on_result: OnResult, *, workers
         logger.info("Ray: %d CPUs on %d node(s), %d tasks", cpus, len(ray.nodes()), len(tasks))
         remote = ray.remote(num_cpus=1, max_retries=1)(_call_on_ray)
         shared_refs = [ray.put(value) for value in shared]
-        queue, pending = list(tasks), []
+        queue = list(tasks)
+        pending: list = []
         try:
             while queue or pending:
                 while queue and len(pending) < 2 * cpus:

@@ -26,8 +26,8 @@ floor, z up, metres: :mod:`rigsfm.run.world`). A "plane at height h" is ``z = h`
 from __future__ import annotations
 
 import itertools
-import math
 import logging
+import math
 from collections.abc import Mapping
 from dataclasses import dataclass
 
@@ -37,7 +37,13 @@ import pycolmap
 
 from rigsfm.core.errors import InputError
 from rigsfm.core.names import ImageName
-from rigsfm.core.polygons import clip_half_plane, intersect_polygons, intersection_area, is_convex, polygon_area
+from rigsfm.core.polygons import (
+    clip_half_plane,
+    intersect_polygons,
+    intersection_area,
+    is_convex,
+    polygon_area,
+)
 
 logger = logging.getLogger(__name__)
 
@@ -50,7 +56,8 @@ def image_from_plane(image: pycolmap.Image, height: float = 0.0) -> np.ndarray:
     (third coordinate = depth in the camera)."""
     pose = image.cam_from_world()
     rotation, translation = pose.rotation.matrix(), np.asarray(pose.translation)
-    k = np.asarray(image.camera.calibration_matrix(), dtype=np.float64)
+    # a model's images have their cameras
+    k = np.asarray(image.camera.calibration_matrix(), dtype=np.float64)  # type: ignore[union-attr]
     return k @ np.column_stack([rotation[:, 0], rotation[:, 1], height * rotation[:, 2] + translation])
 
 
@@ -70,14 +77,16 @@ def undistort_pixels(camera: pycolmap.Camera, pixels: np.ndarray) -> np.ndarray:
     cannot be inverted)."""
     normalised = camera.cam_from_img(np.asarray(pixels, dtype=np.float64).reshape(-1, 2))
     k = np.asarray(camera.calibration_matrix(), dtype=np.float64)
-    return normalised @ k[:2, :2].T + k[:2, 2]
+    return normalised @ k[:2, :2].T + k[:2, 2]  # type: ignore[operator]  # pixels in: rays out
 
 
 def image_to_plane(image: pycolmap.Image, pixels: np.ndarray, height: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
     """Raw (distorted) COLMAP pixels (Nx2) -> plane points (Nx2, metres) on z = ``height`` and a mask of the
     pixels whose ray meets the plane in front of the camera."""
-    normalised = image.camera.cam_from_img(np.asarray(pixels, dtype=np.float64).reshape(-1, 2))
-    rays = np.c_[normalised, np.ones(len(normalised))] @ image.cam_from_world().rotation.matrix()
+    # a model's images have their cameras
+    normalised = image.camera.cam_from_img(np.asarray(pixels, dtype=np.float64).reshape(-1, 2))  # type: ignore[union-attr]
+    # rays out
+    rays = np.c_[normalised, np.ones(len(normalised))] @ image.cam_from_world().rotation.matrix()  # type: ignore[arg-type]
     centre = np.asarray(image.projection_center())
     with np.errstate(divide="ignore", invalid="ignore"):
         t = (height - centre[2]) / rays[:, 2]
@@ -139,8 +148,9 @@ def footprint(image: pycolmap.Image, height: float = 0.0, *, samples_per_side: i
         logger.debug("%s is not above the plane z = %g", image.name, height)
         return None
     max_depth = 20.0 * above if max_depth is None else float(max_depth)
-    border = image_border(camera.width, camera.height, samples_per_side)
-    normalised = camera.cam_from_img(border)
+    # a model's images have their cameras
+    border = image_border(camera.width, camera.height, samples_per_side)  # type: ignore[union-attr]
+    normalised = camera.cam_from_img(border)  # type: ignore[union-attr]
     finite = np.isfinite(normalised).all(axis=1)
     if not finite.all():
         logger.warning("%s: %d border points cannot be undistorted and are skipped", image.name, int((~finite).sum()))
@@ -159,7 +169,8 @@ def footprint(image: pycolmap.Image, height: float = 0.0, *, samples_per_side: i
     if polygon_area(polygon) < 0:
         polygon = polygon[::-1]
     centre_xy, gsd, gsd_xy = None, None, None
-    middle = np.array([[camera.width / 2.0, camera.height / 2.0]])
+    # a model's images have their cameras
+    middle = np.array([[camera.width / 2.0, camera.height / 2.0]])  # type: ignore[union-attr]
     xy, valid = image_to_plane(image, middle, height)
     if valid[0]:
         depth = float((image.cam_from_world() * np.r_[xy[0], height])[2])

@@ -170,7 +170,8 @@ def refuse_turned_images(paths: Sequence[Path], *, folder: Path | None = None,
     pixels when it was made on the images as shown. ``calibration(path)`` gives (which camera, width, height)
     to tell the two apart by size; ``folder`` is what the commands should work on (exiftool recursively,
     the others by a glob); ``then`` is added to the advice (e.g. to treat other images the same way)."""
-    turned = [(Path(p), o) for p in paths if is_turned(o := exif_orientation(p))]
+    turned: list[tuple[Path, int]] = [(Path(p), o) for p in paths  # type: ignore[misc]  # is_turned: not None
+                                      if is_turned(o := exif_orientation(p))]
     if not turned:
         return
     first, orientation = turned[0]

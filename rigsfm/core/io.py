@@ -216,7 +216,7 @@ class DuplicateKeyError(yaml.constructor.ConstructorError):
     """A mapping gives one key twice (YAML and JSON parsers otherwise keep the last silently)."""
 
 
-class _UniqueKeyLoader(_SAFE_LOADER):
+class _UniqueKeyLoader(_SAFE_LOADER):  # type: ignore[valid-type,misc]  # a base chosen at import
     def construct_mapping(self, node, deep=False):
         if isinstance(node, yaml.MappingNode):
             seen: dict = {}

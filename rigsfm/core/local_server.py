@@ -37,7 +37,7 @@ def image_bytes(path: Path) -> tuple[bytes, str]:
     ok, data = (False, None) if image is None else cv2.imencode(".png", image)
     if not ok:
         raise RigsfmError(f"{path}: cannot be converted for the browser")
-    return data.tobytes(), "image/png"
+    return data.tobytes(), "image/png"  # type: ignore[union-attr]  # ok: data is set
 
 
 class LocalHandler(BaseHTTPRequestHandler):

@@ -38,9 +38,9 @@ import pycolmap
 import yaml
 
 from rigsfm.core.errors import InputError
+from rigsfm.core.io import load_yaml_or_json, write_text_atomic
 from rigsfm.core.names import SENSORS
 from rigsfm.core.serialise import camera_to_dict, pose_to_dict
-from rigsfm.core.io import load_yaml_or_json, write_text_atomic
 
 # Every COLMAP model with a focal length and a principal point (EQUIRECTANGULAR has neither: no rig camera).
 CAMERA_MODELS = tuple(m for m in pycolmap.CameraModelId.__members__ if m not in ("INVALID", "EQUIRECTANGULAR"))
@@ -151,7 +151,7 @@ def parse_camera(spec, where: str) -> pycolmap.Camera:
     for key in ("width", "height"):
         value = spec[key]
         if isinstance(value, bool) or not isinstance(value, numbers.Real) or not float(value).is_integer() \
-                or not 0 < value <= MAX_IMAGE_SIDE:
+                or not 0 < value <= MAX_IMAGE_SIDE:  # type: ignore[operator]  # typeshed: numbers.Real has no <
             raise InputError(f"{where}: {key} must be a whole number of pixels, 1 to {MAX_IMAGE_SIDE}, got "
                              f"{_short(value)}")
     width, height = int(spec["width"]), int(spec["height"])

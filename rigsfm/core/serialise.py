@@ -29,7 +29,7 @@ def camera_from_dict(data: dict) -> pycolmap.Camera:
 
 
 def pose_to_dict(transform: pycolmap.Rigid3d, *, quaternion: bool = True) -> dict:
-    data = {"rotation": [[float(v) for v in row] for row in transform.rotation.matrix()]}
+    data: dict[str, list] = {"rotation": [[float(v) for v in row] for row in transform.rotation.matrix()]}
     if quaternion:
         data["quaternion_wxyz"] = wxyz_from_rotation(transform.rotation)
     data["translation"] = [float(v) for v in transform.translation]

@@ -17,7 +17,8 @@ def opencv_sift(max_features: int = 0, contrast_threshold: float = 0.04) -> cv2.
     half a pixel off and every keypoint lands ~0.24 px right of and below its feature (Gaussian blobs: +0.236,
     +0.239 px; with it within 0.003 px, tests/test_sift.py), in both images of a match alike, which biases
     epipolar distances and triangulated points."""
-    return cv2.SIFT_create(nfeatures=max_features, contrastThreshold=contrast_threshold, enable_precise_upscale=True)
+    return cv2.SIFT_create(  # type: ignore[attr-defined]  # OpenCV's stubs lack it
+        nfeatures=max_features, contrastThreshold=contrast_threshold, enable_precise_upscale=True)
 
 
 def reduction_factor(shape: tuple[int, ...], size: int) -> int:

@@ -266,7 +266,8 @@ def read_model(folder: Path, fix: str) -> pycolmap.Reconstruction:
     missing = [name for name in MODEL_FILES if not (folder / name).is_file()]
     empty = [name for name in MODEL_FILES if name not in missing and (folder / name).stat().st_size == 0]
     if missing or empty:
-        what = "; ".join(filter(None, [missing and f"{', '.join(missing)} missing", empty and f"{', '.join(empty)} empty"]))
+        what = "; ".join(filter(None, [missing and f"{', '.join(missing)} missing",  # type: ignore[list-item]
+                                       empty and f"{', '.join(empty)} empty"]))  # type: ignore[list-item]
         raise WorkspaceError(f"{folder} holds no complete COLMAP model ({what}): {fix}")
     from rigsfm.core.model_files import ModelFileError, check_model_files
 
@@ -362,7 +363,7 @@ def os_error_text(error: OSError) -> str:
               errno.EROFS: "the file system is read-only", errno.EACCES: "permission denied",
               errno.EPERM: "permission denied", errno.ENOENT: "no such file or folder",
               errno.ENOTDIR: "a part of the path is a file, not a folder", errno.EISDIR: "it is a folder"}
-    return causes.get(error.errno, error.strerror or type(error).__name__)
+    return causes.get(error.errno, error.strerror or type(error).__name__)  # type: ignore[arg-type]  # None: not found
 
 
 class _LogFileHandler(logging.FileHandler):

@@ -43,7 +43,8 @@ class _Handler(LocalHandler):
                 view = int(query["view"])
                 if not 0 <= view < len(names):
                     raise ValueError(f"view {view} is not one of the {len(names)} views")
-                self._send(*image_bytes(self.session.result.images_dir / names[view]))
+                # views: images
+                self._send(*image_bytes(self.session.result.images_dir / names[view]))  # type: ignore[operator]
             elif url.path == "/api/state":
                 if query.get("reload") == "1":
                     self.session.reload()

@@ -17,8 +17,8 @@ import numpy as np
 import pycolmap
 
 from rigsfm.core.errors import InputError, WorkspaceError
-from rigsfm.core.names import ImageName, name_of
 from rigsfm.core.ground import parse_heights  # noqa: F401  (re-exported)
+from rigsfm.core.names import ImageName, name_of
 from rigsfm.core.workspace import Workspace
 from rigsfm.explore.geometry import View, band_in_view, floor_trace, triangulate
 from rigsfm.explore.labels import ForeignRow, Label, parse_row, read_labels, save_labels
@@ -173,7 +173,7 @@ class ExploreSession:
                 row["band_units"] = (None if distance is None or not band.band_px
                                      else round(distance / band.band_px, 3))
             rows.append(row)
-        found = {"person": anchor.person, "clicks": rows, "point": None}
+        found: dict[str, object] = {"person": anchor.person, "clicks": rows, "point": None}
         if len(clicks) >= 2:
             views = [self.result.views[c.image] for c in clicks]
             point = triangulate(views, [(c.x, c.y) for c in clicks], self.options.click_sigma_px)
@@ -254,7 +254,7 @@ class ExploreSession:
             new = {(c.image, c.person, round(c.x, 3), round(c.y, 3)) for c in clean}
             lost = [c for c in self.labels if c.image in names
                     and (c.image, c.person, round(c.x, 3), round(c.y, 3)) not in new]
-            backup = self.csv_path.is_file() and (len(lost) > 1 or (self.foreign and not self.backed_up))
+            backup = self.csv_path.is_file() and (len(lost) > 1 or (bool(self.foreign) and not self.backed_up))
             written = save_labels(self.csv_path, kept + clean, self.foreign, backup=backup)
             self.backed_up = self.backed_up or bool(written)
             self.labels = kept + clean

@@ -235,8 +235,8 @@ def write_toml(reconstruction: pycolmap.Reconstruction, dest: Path, sensors: Seq
     lines = []
     for index, c in enumerate(cameras):
         lines.append(f"[cam_{index:0{width}d}]")
-        entries = {"name": c.name, "size": [c.width, c.height], "matrix": c.matrix, "distortions": c.distortion,
-                   "rotation": c.rvec, "translation": c.tvec}
+        entries: dict[str, object] = {"name": c.name, "size": [c.width, c.height], "matrix": c.matrix,
+                                      "distortions": c.distortion, "rotation": c.rvec, "translation": c.tvec}
         if c.fisheye:
             entries["fisheye"] = True
         lines += [f"{key} = {_toml_value(value)}" for key, value in entries.items()]

@@ -34,11 +34,11 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 
-from rigsfm.core.serialise import camera_to_dict, pose_to_dict
 from rigsfm.core.conventions import opengl_c2w_from_cam_from_world
 from rigsfm.core.errors import InputError, WorkspaceError
 from rigsfm.core.io import sha256_file, write_json_atomic
 from rigsfm.core.names import name_of
+from rigsfm.core.serialise import camera_to_dict, pose_to_dict
 from rigsfm.core.workspace import Workspace
 from rigsfm.inspect.camera_files import write_opencv, write_toml, write_wildtrack
 from rigsfm.inspect.options import ExportFormat, ExportOptions
@@ -68,12 +68,12 @@ def write_open3d(reconstruction: pycolmap.Reconstruction, dest: Path) -> list[Pa
     from rigsfm.inspect.viewer import build_scene, pinhole_intrinsic
 
     scene = build_scene(reconstruction)
-    if not o3d.io.write_point_cloud(str(dest / "points.ply"), scene.points):
+    if not o3d.io.write_point_cloud(str(dest / "points.ply"), scene.points):  # type: ignore[arg-type]  # takes str too
         raise WorkspaceError(f"Open3D could not write {dest / 'points.ply'}")
     frustums = o3d.geometry.LineSet()
     for line_set in scene.lines.values():
         frustums += line_set
-    if not o3d.io.write_line_set(str(dest / "frustums.ply"), frustums):
+    if not o3d.io.write_line_set(str(dest / "frustums.ply"), frustums):  # type: ignore[arg-type]  # takes str too
         raise WorkspaceError(f"Open3D could not write {dest / 'frustums.ply'}")
     trajectory = o3d.camera.PinholeCameraTrajectory()
     parameters, names = [], []
@@ -84,7 +84,8 @@ def write_open3d(reconstruction: pycolmap.Reconstruction, dest: Path) -> list[Pa
         parameters.append(p)
         names.append(image.name)
     trajectory.parameters = parameters
-    if not o3d.io.write_pinhole_camera_trajectory(str(dest / "trajectory.json"), trajectory):
+    # takes str too
+    if not o3d.io.write_pinhole_camera_trajectory(str(dest / "trajectory.json"), trajectory):  # type: ignore[arg-type]
         raise WorkspaceError(f"Open3D could not write {dest / 'trajectory.json'}")
     write_json_atomic(dest / "cameras.json", {
         "trajectory_entries": names,

@@ -21,9 +21,9 @@ import numpy as np
 import open3d as o3d
 import pycolmap
 
-from rigsfm.core.names import name_of
 from rigsfm.core.conventions import opencv_from_colmap_pixels
 from rigsfm.core.errors import WorkspaceError
+from rigsfm.core.names import name_of
 from rigsfm.core.workspace import Workspace
 
 logger = logging.getLogger(__name__)
@@ -74,12 +74,13 @@ def build_scene(reconstruction: pycolmap.Reconstruction) -> Scene:
         raise WorkspaceError("the model has no registered images to show")
     centres = np.array([im.projection_center() for im in images])
     size = float(np.ptp(centres, axis=0).max()) or 1.0
-    wide, narrow = [], []
+    wide: list = []
+    narrow: list = []
     for image in images:
         is_narrow = name_of(image).is_narrow
         camera = reconstruction.cameras[image.camera_id]
         (narrow if is_narrow else wide).append(frustum(camera, image.cam_from_world(), (0.25 if is_narrow else 0.12) * size))
-    by_rig: dict[str, dict[str, np.ndarray]] = {}
+    by_rig: dict[tuple[str, str], dict[str, np.ndarray]] = {}
     for image, centre in zip(images, centres):
         name = name_of(image)
         by_rig.setdefault((name.rig, name.frame), {})[name.sensor] = centre
@@ -164,8 +165,8 @@ def render_raster(scene: Scene, path: Path, width: int, height: int) -> None:
 
     canvas = np.full((height, width, 3), 255, np.uint8)
     xy, ok = project(np.asarray(scene.points.points)) if len(scene.points.points) else (np.zeros((0, 2)), [])
-    colours = (np.asarray(scene.points.colors)[:, ::-1] * 255).astype(int) if len(xy) else []
-    for p, good, c in zip(xy, ok, colours):
+    colours: np.ndarray | list = (np.asarray(scene.points.colors)[:, ::-1] * 255).astype(int) if len(xy) else []
+    for p, good, c in zip(xy, ok, colours):  # type: ignore[call-overload]  # project gives a mask
         if good and 0 <= p[0] < width and 0 <= p[1] < height:
             canvas[int(p[1]), int(p[0])] = c
     for line_set in scene.lines.values():

@@ -83,14 +83,16 @@ class EpipolarModel:
     def calibrated(self) -> bool:
         return self.camera_a is not None
 
-    def _normalised(self, xy: np.ndarray, side: str) -> np.ndarray:
+    def _normalised(self, xy: np.ndarray | tuple[float, float], side: str) -> np.ndarray:
         camera = self.camera_a if side == "a" else self.camera_b
-        return np.asarray(camera.cam_from_img(np.asarray(xy, np.float64).reshape(-1, 2)))
+        # a model's images have cameras
+        return np.asarray(camera.cam_from_img(np.asarray(xy, np.float64).reshape(-1, 2)))  # type: ignore[union-attr]
 
     def distances_px(self, xa: np.ndarray, xb: np.ndarray) -> np.ndarray:
         if not self.calibrated:
             return np.abs(sampson(self.matrix, xa, xb))
-        focal = 0.5 * (self.camera_a.mean_focal_length() + self.camera_b.mean_focal_length())
+        # a model's images have cameras
+        focal = 0.5 * (self.camera_a.mean_focal_length() + self.camera_b.mean_focal_length())  # type: ignore[union-attr]
         return focal * np.abs(sampson(self.matrix, self._normalised(xa, "a"), self._normalised(xb, "b")))
 
     def line(self, xy: tuple[float, float], side: str, width: int, height: int, samples: int = 64) -> list:
@@ -101,7 +103,8 @@ class EpipolarModel:
             other = self.camera_b if side == "a" else self.camera_a
             # Sample the normalised line across the other camera's field of view, then distort.
             corners = np.asarray(
-                other.cam_from_img(np.array([[0, 0], [width, 0], [0, height], [width, height]], np.float64))
+                # a model's images have cameras
+                other.cam_from_img(np.array([[0, 0], [width, 0], [0, height], [width, height]], np.float64))  # type: ignore[union-attr]
             )
             lo, hi = corners.min(axis=0) * 1.5, corners.max(axis=0) * 1.5
             if abs(l_[1]) > abs(l_[0]):
@@ -110,7 +113,8 @@ class EpipolarModel:
             else:
                 v = np.linspace(lo[1], hi[1], samples)
                 pts = np.c_[-(l_[1] * v + l_[2]) / l_[0], v]
-            xy_img, ok = project(other, np.c_[pts, np.ones(len(pts))], margin_px=None)
+            # a model's images have cameras
+            xy_img, ok = project(other, np.c_[pts, np.ones(len(pts))], margin_px=None)  # type: ignore[arg-type]
             ok &= (xy_img[:, 0] >= -width) & (xy_img[:, 0] <= 2 * width)
             ok &= (xy_img[:, 1] >= -height) & (xy_img[:, 1] <= 2 * height)
             return xy_img[ok].tolist()
@@ -140,7 +144,8 @@ def fit_model(
         options = pycolmap.RANSACOptions()
         options.max_error = threshold_px
         options.random_seed = 0
-        found = pycolmap.estimate_essential_matrix(xa, xb, camera_a, camera_b, options)
+        # a model's images have cameras
+        found = pycolmap.estimate_essential_matrix(xa, xb, camera_a, camera_b, options)  # type: ignore[arg-type]
         if found is None:
             return None
         model = EpipolarModel(np.asarray(found["E"]), camera_a, camera_b)

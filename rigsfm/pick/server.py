@@ -10,8 +10,8 @@ reload of the page (or a new ``rigsfm pick`` after a crash) starts from the CSV.
 from __future__ import annotations
 
 import json
-import math
 import logging
+import math
 from http import HTTPStatus
 from pathlib import Path
 from urllib.parse import parse_qs, urlparse
@@ -19,9 +19,9 @@ from urllib.parse import parse_qs, urlparse
 from rigsfm.core.errors import RigsfmError
 from rigsfm.core.local_server import LocalHandler, LocalServer
 from rigsfm.core.local_server import image_bytes as _image_bytes
+from rigsfm.core.rig import load_rigs
 from rigsfm.core.workspace import os_error_text
 from rigsfm.pick.session import PickerSession, SaveFailed, StalePage, picker_image
-from rigsfm.core.rig import load_rigs
 
 logger = logging.getLogger(__name__)
 

@@ -28,14 +28,19 @@ import cv2
 import numpy as np
 import pycolmap
 
-from rigsfm.core.image_files import read_image, refuse_turned_images
 from rigsfm.core.errors import WorkspaceError
+from rigsfm.core.image_files import read_image, refuse_turned_images
 from rigsfm.core.io import write_bytes_atomic
-from rigsfm.core.workspace import os_error_text
-from rigsfm.run.manual_matches import (Correspondence, ManualMatchError, format_manual_matches, read_manual_matches,
-                                       write_manual_matches)
-from rigsfm.pick.epipolar import MIN_PAIRS, EpipolarModel, fit_model
 from rigsfm.core.rig import RigCalibration
+from rigsfm.core.workspace import os_error_text
+from rigsfm.pick.epipolar import MIN_PAIRS, EpipolarModel, fit_model
+from rigsfm.run.manual_matches import (
+    Correspondence,
+    ManualMatchError,
+    format_manual_matches,
+    read_manual_matches,
+    write_manual_matches,
+)
 
 logger = logging.getLogger(__name__)
 
@@ -215,7 +220,8 @@ class PickerSession:
                 os.close(fd)
                 self.rescue = Path(name)
             write_bytes_atomic(self.rescue, format_manual_matches(rows).encode("utf-8"))
-            kept = f"the {len(self.unsaved)} pairs of this page are kept in {self.rescue}"
+            # rows: unsaved
+            kept = f"the {len(self.unsaved)} pairs of this page are kept in {self.rescue}"  # type: ignore[arg-type]
         except OSError:
             kept = "the page still holds its pairs"
         return SaveFailed(f"{self.save_error}; nothing saved was changed and {kept}; fix the folder (or copy that "

@@ -42,26 +42,31 @@ import enum
 import logging
 import time
 from collections import Counter
-from collections.abc import Collection, Sequence
+from collections.abc import Callable, Collection, Sequence
 from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING
 
 import numpy as np
 import pyceres
-import scipy.linalg
 import pycolmap
-import pycolmap.cost_functions  # noqa: F401 - not imported by ``import pycolmap``
+import pycolmap.cost_functions  # not imported by ``import pycolmap``
+import scipy.linalg
 
-from rigsfm.core.names import name_of
 from rigsfm.core.errors import ReconstructionError
+from rigsfm.core.names import name_of
 from rigsfm.core.residuals import reprojection_errors
 from rigsfm.core.rig import RigCalibration
-from rigsfm.run.diagnostics import loosely_tied_rigs
 from rigsfm.run.costs import CameraDistanceCost, CentreTerm, LengthCost, skew
-from rigsfm.run.priors import CalibrationPriors, calibration_priors, pose_prior_residual_covariance
-from rigsfm.run.scale import (Measurement, ScaleEstimate, UnusableMeasurement, estimate_scale,
-                              triangulate_in_images)
+from rigsfm.run.diagnostics import loosely_tied_rigs
 from rigsfm.run.options import AdjustOptions, Calibration
+from rigsfm.run.priors import CalibrationPriors, calibration_priors, pose_prior_residual_covariance
+from rigsfm.run.scale import (
+    Measurement,
+    ScaleEstimate,
+    UnusableMeasurement,
+    estimate_scale,
+    triangulate_in_images,
+)
 from rigsfm.run.scale_file import ScaleSpec
 
 if TYPE_CHECKING:
@@ -138,7 +143,8 @@ def restore_calibration(reconstruction: pycolmap.Reconstruction, rigs: Sequence[
         name = name_of(image)
         calibration = by_name[name.rig]
         camera = reconstruction.cameras[image.camera_id]
-        camera.params = calibration.camera(name.sensor).params
+        # pycolmap's stubs: params take an array
+        camera.params = calibration.camera(name.sensor).params  # type: ignore[assignment]
         if name.is_narrow:
             rig = reconstruction.rig(reconstruction.frame(image.frame_id).rig_id)
             rig.set_sensor_from_rig(camera.sensor_id, calibration.narrow_from_wide)
@@ -309,7 +315,8 @@ def sensor_from_rig_view(reconstruction: pycolmap.Reconstruction, rig_id: int,
                          sensor_id: pycolmap.sensor_t) -> pycolmap.Rigid3d:
     """The rig's own ``sensor_from_rig`` (its ``.params`` is the bundle adjuster's parameter block);
     ``Rig.sensor_from_rig(sensor_id)`` returns a *copy*."""
-    return reconstruction.rig(rig_id).non_ref_sensors[sensor_id]
+    # a non-reference sensor has its pose
+    return reconstruction.rig(rig_id).non_ref_sensors[sensor_id]  # type: ignore[return-value]
 
 
 def images_of_camera(reconstruction: pycolmap.Reconstruction, camera: str) -> list[pycolmap.Image]:
@@ -327,7 +334,7 @@ class _Measurement:
     label: str
     meters: float
     sigma: float  # of the measurement, plus what constant (unobserved) E^sl adds to it (metres)
-    length: object  # () -> metres in the current model
+    length: Callable[..., float]  # () -> metres in the current model
 
 
 class JointProblem:
@@ -397,7 +404,8 @@ class JointProblem:
         return self.problem.has_parameter_block(block) and not self.problem.is_parameter_block_constant(block)
 
     def frame_block(self, frame_id: int) -> np.ndarray:
-        return self.reconstruction.frame(frame_id).rig_from_world.params
+        # registered frames have their poses
+        return self.reconstruction.frame(frame_id).rig_from_world.params  # type: ignore[union-attr]
 
     def narrow_sensors(self):
         """``(rig_id, sensor_id, camera_id, rig name)`` of every non-reference sensor with registered images."""
@@ -426,8 +434,9 @@ class JointProblem:
                 continue
             if image.frame_id == first.frame_id or not self.problem.has_parameter_block(self.frame_block(image.frame_id)):
                 continue
-            baseline = np.asarray((rec.frame(first.frame_id).rig_from_world
-                                   * rec.frame(image.frame_id).rig_from_world.inverse()).translation)
+            # registered frames have their poses
+            baseline = np.asarray((rec.frame(first.frame_id).rig_from_world  # type: ignore[operator]
+                                   * rec.frame(image.frame_id).rig_from_world.inverse()).translation)  # type: ignore[union-attr]
             if np.abs(baseline).max() > 1e-9:
                 frame_id, dim = image.frame_id, int(np.argmax(np.abs(baseline)))
                 if self.problem.parameter_block_tangent_size(self.frame_block(frame_id)) != 5:
@@ -455,7 +464,8 @@ class JointProblem:
 
         for image in images:
             frame = self.reconstruction.frame(image.frame_id)
-            rig_index = index(frame.rig_from_world.params)
+            # registered frames have their poses
+            rig_index = index(frame.rig_from_world.params)  # type: ignore[union-attr]
             if image.is_ref_in_frame():
                 terms.append(CentreTerm(rig_index))
                 continue
@@ -464,9 +474,10 @@ class JointProblem:
             if self.has_variable(sensor.params):
                 terms.append(CentreTerm(rig_index, sensor=index(sensor.params)))
                 continue
-            terms.append(CentreTerm(rig_index, sensor_from_rig=pycolmap.Rigid3d(sensor)))
+            # a non-reference sensor has its pose
+            terms.append(CentreTerm(rig_index, sensor_from_rig=pycolmap.Rigid3d(sensor)))  # type: ignore[call-overload]
             cov = self.priors[name_of(image).rig].narrow_from_wide
-            r = frame.rig_from_world.rotation.matrix()
+            r = frame.rig_from_world.rotation.matrix()  # type: ignore[union-attr]  # registered frames have their poses
             r_e, t_e = sensor.rotation.matrix(), np.asarray(sensor.translation)
             jac = np.hstack([-r.T @ r_e.T @ skew(t_e), -r.T @ r_e.T]) / len(images)  # d centre / d [w, dt] of E^sl
             extra += jac @ cov @ jac.T
@@ -510,14 +521,15 @@ class JointProblem:
             if any(e is None for e in ends):
                 self.unused.append(f"{label} ({item.meters} m): fewer than two of its images were registered")
                 continue
-            self.end_points.extend(ends)
+            self.end_points.extend(ends)  # type: ignore[arg-type]  # both ends seen: checked above
             point_cov = (spec.pixel_sigma / self.weight_sigma) ** 2 * np.eye(2)
             for image, o in observations:
                 camera = rec.cameras[image.camera_id]
                 frame = rec.frame(image.frame_id)
-                if not self.problem.has_parameter_block(frame.rig_from_world.params):
-                    self.problem.add_parameter_block(frame.rig_from_world.params, 7)
-                    self.problem.set_parameter_block_constant(frame.rig_from_world.params)
+                # registered frames have their poses
+                if not self.problem.has_parameter_block(frame.rig_from_world.params):  # type: ignore[union-attr]
+                    self.problem.add_parameter_block(frame.rig_from_world.params, 7)  # type: ignore[union-attr]
+                    self.problem.set_parameter_block_constant(frame.rig_from_world.params)  # type: ignore[union-attr]
                 if not self.problem.has_parameter_block(camera.params):
                     self.problem.add_parameter_block(camera.params, len(camera.params))
                     self.problem.set_parameter_block_constant(camera.params)
@@ -525,16 +537,20 @@ class JointProblem:
                     xy = np.asarray(getattr(o, end), dtype=np.float64)
                     if image.is_ref_in_frame():
                         cost = pycolmap.cost_functions.ReprojErrorCost(camera.model, point_cov, xy)
-                        blocks = [xyz, frame.rig_from_world.params, camera.params]
+                        # registered frames have their poses
+                        blocks = [xyz, frame.rig_from_world.params, camera.params]  # type: ignore[union-attr]
                     else:
                         sensor = sensor_from_rig_view(rec, frame.rig_id, camera.sensor_id)
                         if self.has_variable(sensor.params):
                             cost = pycolmap.cost_functions.RigReprojErrorCost(camera.model, point_cov, xy)
-                            blocks = [xyz, sensor.params, frame.rig_from_world.params, camera.params]
+                            # registered frames have their poses
+                            blocks = [xyz, sensor.params, frame.rig_from_world.params, camera.params]  # type: ignore[union-attr]
                         else:
                             cost = pycolmap.cost_functions.RigReprojErrorCost(camera.model, point_cov, xy,
-                                                                              pycolmap.Rigid3d(sensor))
-                            blocks = [xyz, frame.rig_from_world.params, camera.params]
+                                                                              # a non-reference sensor has its pose
+                                                                              pycolmap.Rigid3d(sensor))  # type: ignore[call-overload]
+                            # registered frames have their poses
+                            blocks = [xyz, frame.rig_from_world.params, camera.params]  # type: ignore[union-attr]
                     self.problem.add_residual_block(cost, None, blocks)
                     self._keep.append(cost)
             cost = LengthCost(item.meters, item.sigma, self.weight_sigma)
@@ -682,18 +698,20 @@ def _calibration_change(result: AdjustResult, covariance: JointCovariance) -> _C
             keys.append(key)
             changes.append(np.asarray(rec.cameras[image.camera_id].params)
                            - np.asarray(calibration[name.rig].camera(name.sensor).params))
-            prior_blocks.append(np.diag(priors[name.rig].sensor(name.sensor) ** 2))
+            # priors are set with covariance
+            prior_blocks.append(np.diag(priors[name.rig].sensor(name.sensor) ** 2))  # type: ignore[index]
             owners += [name.rig] * len(changes[-1])
         key = ("sensor_from_rig", image.camera_id)
         if name.is_narrow and key in covariance.offsets and key not in covariance.prior_only and key not in keys:
             keys.append(key)
             sensor = sensor_from_rig_view(rec, rec.frame(image.frame_id).rig_id, rec.cameras[image.camera_id].sensor_id)
-            prior = calibration[name.rig].narrow_from_wide
-            delta = sensor.rotation * prior.rotation.inverse()  # R = Exp(w) R_yaml: w is its rotation vector
-            quat = np.asarray(delta.quat)  # x, y, z, w
+            given = calibration[name.rig].narrow_from_wide
+            turn = sensor.rotation * given.rotation.inverse()  # R = Exp(w) R_yaml: w is its rotation vector
+            quat = np.asarray(turn.quat)  # x, y, z, w
             axis = quat[:3] / max(float(np.linalg.norm(quat[:3])), 1e-300) * (1.0 if quat[3] >= 0 else -1.0)
-            changes.append(np.r_[axis * delta.angle(), np.asarray(sensor.translation) - np.asarray(prior.translation)])
-            prior_blocks.append(priors[name.rig].narrow_from_wide)
+            changes.append(np.r_[axis * turn.angle(), np.asarray(sensor.translation) - np.asarray(given.translation)])
+            # priors are set with covariance
+            prior_blocks.append(priors[name.rig].narrow_from_wide)  # type: ignore[index]
             owners += [name.rig] * 6
     size = sum(len(c) for c in changes)
     prior = np.zeros((size, size))
@@ -790,7 +808,8 @@ def _choose_gauge(reconstruction: pycolmap.Reconstruction, scale_spec: ScaleSpec
 def _metres_per_mapping_unit(mapped: pycolmap.Reconstruction, adjusted: pycolmap.Reconstruction) -> float | None:
     """Ratio of the registered frames' spread after and before (RMS distance of the wide centres to their mean)."""
     def spread(rec: pycolmap.Reconstruction) -> np.ndarray:
-        return np.array([rec.frame(f).rig_from_world.inverse().translation for f in sorted(adjusted.reg_frame_ids())])
+        # registered frames have their poses
+        return np.array([rec.frame(f).rig_from_world.inverse().translation for f in sorted(adjusted.reg_frame_ids())])  # type: ignore[union-attr]
 
     before, after = spread(mapped), spread(adjusted)
     size = float(np.sqrt(np.mean(np.sum((before - before.mean(axis=0)) ** 2, axis=1))))
@@ -863,7 +882,7 @@ def _refine(mapped: pycolmap.Reconstruction, rigs: Sequence[RigCalibration], sca
         raise ReconstructionError("fewer than two rigs were registered; nothing to calibrate")
     source, gauge = _choose_gauge(rec, scale_spec)
     if source == ScaleSource.MEASUREMENTS:  # a metric first guess: scale the world, then restore E^sl
-        first = estimate_scale(rec, scale_spec)
+        first = estimate_scale(rec, scale_spec)  # type: ignore[arg-type]  # MEASUREMENTS come from a scale spec
         rec.transform(pycolmap.Sim3d(first.metres_per_unit, pycolmap.Rotation3d(), np.zeros(3)))
     restore_calibration(rec, rigs)
     try:
@@ -915,8 +934,8 @@ def _refine(mapped: pycolmap.Reconstruction, rigs: Sequence[RigCalibration], sca
                                held_rigs=held)
         problem.stop_as(final=True)
         problem.solve_to_convergence()
-    scale = problem.scale_estimate()
-    for row in problem.unused:
+    scale = problem.scale_estimate()  # type: ignore[union-attr]  # the loop sets problem
+    for row in problem.unused:  # type: ignore[union-attr]
         logger.warning("Scale measurement left out: %s", row)
     result = AdjustResult(rec, source, scale, _metres_per_mapping_unit(mapped, rec),
                           float(rec.compute_mean_reprojection_error()), calibration=Calibration.REFINE, gauge=gauge,

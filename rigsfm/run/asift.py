@@ -50,7 +50,7 @@ def colmap_keypoints(keypoints: Sequence[cv2.KeyPoint]) -> np.ndarray:
 
 def asift_features(gray: np.ndarray, max_num_features: int) -> tuple[np.ndarray, np.ndarray]:
     """ASIFT keypoints and descriptors of one grey image, the strongest ``max_num_features`` kept."""
-    detector = cv2.AffineFeature_create(opencv_sift())
+    detector = cv2.AffineFeature_create(opencv_sift())  # type: ignore[attr-defined]  # OpenCV's stubs lack it
     keypoints, descriptors = detector.detectAndCompute(gray, None)
     if descriptors is None or not keypoints:
         return np.zeros((0, 6), np.float32), np.zeros((0, 128), np.uint8)

@@ -104,7 +104,8 @@ class CameraDistanceCost(pyceres.CostFunction):
                     if index is None:
                         continue
                     ambient = pose_ambient_jacobian(d[0], d[1], blocks[index]) / len(terms)  # 3x7
-                    grads[index] = ambient if grads[index] is None else grads[index] + ambient
+                    # grads starts as Nones, one per block, each replaced by an array
+                    grads[index] = ambient if grads[index] is None else grads[index] + ambient  # type: ignore[assignment,operator]
             out.append((centre, grads))
         return out
 

@@ -18,9 +18,9 @@ import numpy as np
 import pycolmap
 
 from rigsfm.core.errors import WorkspaceError
-from rigsfm.run.inputs import ImageEntry
 from rigsfm.core.names import SENSORS
 from rigsfm.core.rig import RigCalibration
+from rigsfm.run.inputs import ImageEntry
 
 logger = logging.getLogger(__name__)
 

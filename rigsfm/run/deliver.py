@@ -27,10 +27,10 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 
-from rigsfm.core.names import name_of
-from rigsfm.core.errors import WorkspaceError
 from rigsfm.core.conventions import euler_zyx_degrees
+from rigsfm.core.errors import WorkspaceError
 from rigsfm.core.io import atomic_directory, write_json_atomic
+from rigsfm.core.names import name_of
 from rigsfm.core.serialise import camera_to_dict, pose_to_dict
 
 logger = logging.getLogger(__name__)
@@ -132,7 +132,8 @@ def narrow_poses(reconstruction: pycolmap.Reconstruction, *, metric: bool, bands
         )
         if ground is not None:
             pairs[-1]["ground_overlap_m2"] = ground.overlap(image_i.name, image_j.name)
-    data = {"metric": metric, "units": "meters" if metric else "arbitrary", "conventions": CONVENTIONS,
+    data: dict[str, object] = {"metric": metric, "units": "meters" if metric else "arbitrary",
+                               "conventions": CONVENTIONS,
             "narrow": entries, "pairs": pairs}
     if world is not None:
         data["world"] = world

@@ -23,11 +23,11 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 
-from rigsfm.core.names import name_of
-from rigsfm.core.graph import DisjointSets
-from rigsfm.run.scale import ScaleEstimate
 from rigsfm.core.geometry import PLANAR, Config, sampson_error_px
+from rigsfm.core.graph import DisjointSets
+from rigsfm.core.names import name_of
 from rigsfm.run.database import open_database
+from rigsfm.run.scale import ScaleEstimate
 
 MIN_SHARED_POINTS = 20  # three-view points that tie a rig to the others
 MAX_NORMALISED_RESIDUAL = 5.0
@@ -90,7 +90,8 @@ def weakly_tied_rigs(database_path: Path, reconstruction: pycolmap.Reconstructio
     rigs = sorted({_rig_of(image) for image in reconstruction.images.values() if image.has_pose})
     if len(rigs) < 2:
         return {}
-    sound, weak = [], {}
+    sound: list = []
+    weak: dict = {}
     with open_database(database_path) as db:
         for _, image1, _, image2, geometry in _pairs_between_rigs(db, reconstruction):
             a, b = _rig_of(image1), _rig_of(image2)
@@ -162,8 +163,8 @@ def check_reconstruction(reconstruction: pycolmap.Reconstruction, scale: ScaleEs
             "to the rest are not fixed by the images and may be wrong; add rigs in between or wider views, "
             "and check against scale.yaml measurements"
         )
-    for row in scale.unused if scale is not None else ():
-        warnings.append(f"SCALE MEASUREMENT UNUSED: {row}; the scale rests on the other measurements")
+    for unused in scale.unused if scale is not None else ():
+        warnings.append(f"SCALE MEASUREMENT UNUSED: {unused}; the scale rests on the other measurements")
     if scale is not None and len(scale.measurements) > 1:
         for row in scale.residuals():
             if abs(row["residual_meters"]) > MAX_NORMALISED_RESIDUAL * row["sigma_meters"]:

@@ -78,8 +78,9 @@ def resolved_first_octave(database_path: Path, images: Sequence[ImageEntry], opt
         return -1
     with open_database(database_path) as database:
         cameras = {c.camera_id: c for c in database.read_all_cameras()}
-        sides = [max(cameras[database.read_image_with_name(n).camera_id].width,
-                     cameras[database.read_image_with_name(n).camera_id].height) for n in wide]
+        # the images were just written
+        sides = [max(cameras[database.read_image_with_name(n).camera_id].width,  # type: ignore[union-attr]
+                     cameras[database.read_image_with_name(n).camera_id].height) for n in wide]  # type: ignore[union-attr]
     return 0 if min(sides) >= COARSE_SIFT_MIN_SIDE_PX else -1
 
 
@@ -459,7 +460,8 @@ def first_pass_descriptors(database_path: Path, names: Sequence[str],
     result = {}
     with open_database(database_path) as database:
         for name in names:
-            image_id = database.read_image_with_name(name).image_id
+            # the images were just written
+            image_id = database.read_image_with_name(name).image_id  # type: ignore[union-attr]
             keypoints = database.read_keypoints(image_id)
             descriptors = database.read_descriptors(image_id).data
             if len(keypoints) == 0:
@@ -545,7 +547,7 @@ def select_pairs(database_path: Path, images: Sequence[ImageEntry], options: Mat
             continue
         for one, other in (pair, pair[::-1]):
             ranked.setdefault(one, []).append((-score, other, pair))
-    for name, partners in ranked.items():
+    for partners in ranked.values():
         keep.update(pair for _, _, pair in sorted(partners)[: options.neighbours])
     # The narrow images of neighbouring rigs see the same crowd from close directions: match them for the
     # NARROW_NEIGHBOURS best wide partners of each wide image (12 textured rigs: the 12 narrow pairs of adjacent
@@ -566,8 +568,8 @@ def select_pairs(database_path: Path, images: Sequence[ImageEntry], options: Mat
     for pair, score in scores.items():
         if entry[pair[0]].sensor == entry[pair[1]].sensor == "wide":
             link = tuple(sorted((entry[pair[0]].rig, entry[pair[1]].rig)))
-            if score > rig_links.get(link, (-1, None))[0]:
-                rig_links[link] = (score, pair)
+            if score > rig_links.get(link, (-1, None))[0]:  # type: ignore[arg-type]  # two rigs; (-1, None): none yet
+                rig_links[link] = (score, pair)  # type: ignore[index]  # sorted: two rigs
     tree = _spanning_tree(sorted(frames), {link: score for link, (score, _) in rig_links.items()})
     keep.update(rig_links[link][1] for link in tree)
     pairs = sorted(keep, key=order_of.__getitem__)

@@ -185,7 +185,7 @@ def up_prior(reconstruction: pycolmap.Reconstruction) -> tuple[np.ndarray, str]:
 
 def rig_positions(reconstruction: pycolmap.Reconstruction) -> dict[int, tuple[str, np.ndarray]]:
     """rig id -> (rig name, mean reference-camera centre over its registered frames)."""
-    names = {}
+    names: dict = {}
     for image in reconstruction.images.values():
         if image.has_pose:
             names.setdefault(reconstruction.frame(image.frame_id).rig_id, name_of(image).rig)
@@ -372,8 +372,8 @@ def fit_floor(reconstruction: pycolmap.Reconstruction, markers: np.ndarray | Non
         if point.track.length() >= opt.min_track_length and point.error <= opt.max_reprojection_error:
             ids.append(point_id)
             xyz.append(point.xyz)
-    ids = np.asarray(ids, dtype=np.int64)
-    xyz = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
+    ids = np.asarray(ids, dtype=np.int64)  # type: ignore[assignment]  # here an array
+    xyz = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)  # type: ignore[assignment]
     below = xyz @ up < lowest
     ids, xyz = ids[below], xyz[below]
     markers = np.zeros((0, 3)) if markers is None else np.asarray(markers, dtype=np.float64).reshape(-1, 3)
@@ -480,7 +480,7 @@ def guess_floor(reconstruction: pycolmap.Reconstruction, markers: np.ndarray | N
     the up prior through the point where the cameras' optical axes converge, if it lies below every camera."""
     fit = fit_floor(reconstruction, markers, options, quiet=True)
     if fit:
-        return fit.normal, fit.offset, "sparse points"
+        return fit.normal, fit.offset, "sparse points"  # type: ignore[union-attr]  # NoFloor is falsy: a FloorFit here
     up, _ = up_prior(reconstruction)
     if markers is not None and len(markers):
         return up, -float(np.mean(np.asarray(markers).reshape(-1, 3) @ up)), "markers and the cameras' up"
@@ -492,7 +492,8 @@ def guess_floor(reconstruction: pycolmap.Reconstruction, markers: np.ndarray | N
     point = axes_convergence(reconstruction)
     if point is not None and point @ up < lowest:
         return up, -float(point @ up), "convergence of the optical axes and the cameras' up"
-    return NoFloor(f"{fit.reason}; no marker, {len(heights)} sparse points below the cameras and no convergence "
+    # FloorFit is truthy: a NoFloor here
+    return NoFloor(f"{fit.reason}; no marker, {len(heights)} sparse points below the cameras and no convergence "  # type: ignore[union-attr]
                    "of the optical axes below them to guess the floor height from")
 
 
@@ -515,14 +516,16 @@ def sparse_floor_shortfall(fit: FloorFit | NoFloor, reconstruction: pycolmap.Rec
     and of the camera heights below ``enough_height_sigma`` x the median camera height."""
     opt = options or FloorOptions()
     if not fit:
-        return f"no floor in the sparse points ({fit.reason})"
-    median_height = float(np.median(list(fit.camera_heights.values())))
-    if fit.num_points < opt.enough_points:
-        return f"{fit.num_points} sparse floor points (want {opt.enough_points})"
-    if fit.normal_sigma_deg > opt.enough_normal_sigma_deg:
-        return f"their normal is uncertain by {fit.normal_sigma_deg:.3f} deg (want {opt.enough_normal_sigma_deg})"
-    if fit.height_sigma > opt.enough_height_sigma * median_height:
-        return (f"camera heights uncertain by {fit.height_sigma:.3g} (want "
+        # FloorFit is truthy: a NoFloor here
+        return f"no floor in the sparse points ({fit.reason})"  # type: ignore[union-attr]
+    # NoFloor is falsy: a FloorFit here
+    median_height = float(np.median(list(fit.camera_heights.values())))  # type: ignore[union-attr]
+    if fit.num_points < opt.enough_points:  # type: ignore[union-attr]
+        return f"{fit.num_points} sparse floor points (want {opt.enough_points})"  # type: ignore[union-attr]
+    if fit.normal_sigma_deg > opt.enough_normal_sigma_deg:  # type: ignore[union-attr]
+        return f"their normal is uncertain by {fit.normal_sigma_deg:.3f} deg (want {opt.enough_normal_sigma_deg})"  # type: ignore[union-attr]
+    if fit.height_sigma > opt.enough_height_sigma * median_height:  # type: ignore[union-attr]
+        return (f"camera heights uncertain by {fit.height_sigma:.3g} (want "  # type: ignore[union-attr]
                 f"{opt.enough_height_sigma * median_height:.3g})")
     return None
 
@@ -545,15 +548,17 @@ def estimate_floor(reconstruction: pycolmap.Reconstruction, image_dir=None, mark
     sparse = fit_floor(reconstruction, markers, opt, x_towards=x_towards, quiet=True)
     shortfall = sparse_floor_shortfall(sparse, reconstruction, opt)
     if shortfall is None or image_dir is None:
-        for warning in sparse.warnings if sparse else ():
+        # NoFloor is falsy: a FloorFit here
+        for warning in sparse.warnings if sparse else ():  # type: ignore[union-attr]
             logger.warning("floor: %s", warning)
         return FloorEstimate(sparse, why_matched=None)
     logger.info("floor: matching the floor between images (%s)", shortfall)
     start = time.perf_counter()
-    guess = (sparse.normal, sparse.offset, "sparse points") if sparse else guess_floor(reconstruction, markers, opt)
+    # NoFloor is falsy: a FloorFit here
+    guess = (sparse.normal, sparse.offset, "sparse points") if sparse else guess_floor(reconstruction, markers, opt)  # type: ignore[union-attr]
     if not guess:
         return FloorEstimate(guess, shortfall, seconds=time.perf_counter() - start)
-    normal, offset, how = guess
+    normal, offset, how = guess  # type: ignore[misc]  # NoFloor is falsy: a tuple here
     logger.info("floor guess from the %s", how)
     centres = np.array([im.projection_center() for im in _posed_images(reconstruction)])
     images = load_floor_images(reconstruction, image_dir, match_options, up=normal)
@@ -565,15 +570,16 @@ def estimate_floor(reconstruction: pycolmap.Reconstruction, image_dir=None, mark
         fit = fit_floor(reconstruction, markers, opt, extra_points=matches.points, x_towards=x_towards, quiet=True)
         if not fit or sparse_floor_shortfall(fit, reconstruction, opt) is None:
             break  # no floor, or precise enough
-        moved_deg = float(np.degrees(np.arccos(np.clip(fit.normal @ normal, -1.0, 1.0))))
-        moved = float(np.max(np.abs(fit.height(centres) - (centres @ normal + offset))))
-        if moved_deg <= 0.05 and moved <= 0.005 * float(np.median(fit.height(centres))):
+        # NoFloor is falsy: a FloorFit here
+        moved_deg = float(np.degrees(np.arccos(np.clip(fit.normal @ normal, -1.0, 1.0))))  # type: ignore[union-attr]
+        moved = float(np.max(np.abs(fit.height(centres) - (centres @ normal + offset))))  # type: ignore[union-attr]
+        if moved_deg <= 0.05 and moved <= 0.005 * float(np.median(fit.height(centres))):  # type: ignore[union-attr]
             break
         logger.info("floor moved by %.3f deg / %.3g at the cameras from the matching plane", moved_deg, moved)
-        normal, offset = fit.normal, fit.offset
+        normal, offset = fit.normal, fit.offset  # type: ignore[union-attr]  # NoFloor is falsy: a FloorFit here
     if not fit and sparse:
         fit = sparse  # the matches did not help: keep the sparse floor
-    for warning in fit.warnings if fit else ():
+    for warning in fit.warnings if fit else ():  # type: ignore[union-attr]  # NoFloor is falsy: a FloorFit here
         logger.warning("floor: %s", warning)
     seconds = time.perf_counter() - start
     logger.info("floor matching: %d round(s), %d image pairs, %.1f s", rounds, pairs, seconds)

@@ -108,7 +108,8 @@ def warp_maps(hits: np.ndarray, ok: np.ndarray, target: pycolmap.Image, shape: t
     map_x = np.full(len(hits), -1e6, np.float32)
     map_y = np.full(len(hits), -1e6, np.float32)
     if len(rows):
-        uv = opencv_from_colmap_pixels(target.camera.img_from_cam(in_target))
+        # a model's images have their cameras; points in: pixels out
+        uv = opencv_from_colmap_pixels(target.camera.img_from_cam(in_target))  # type: ignore[arg-type,union-attr]
         finite = np.isfinite(uv).all(axis=1)
         map_x[rows[finite]], map_y[rows[finite]] = uv[finite, 0], uv[finite, 1]
     return map_x.reshape(shape), map_y.reshape(shape)
@@ -149,7 +150,7 @@ def plane_warp(hits: tuple[np.ndarray, np.ndarray], grid_shape: tuple[int, int],
     """Warp ``gray_j`` into image i's view through the plane whose :func:`plane_hits` (on i's :func:`grid_rays`)
     are ``hits``; None when fewer than ``min_overlap_px`` pixels of i see j through it."""
     coarse = warp_maps(*hits, image_j, grid_shape)
-    rows, cols = np.nonzero(_inside(*coarse, image_j.camera))
+    rows, cols = np.nonzero(_inside(*coarse, image_j.camera))  # type: ignore[call-arg]  # coarse: two maps
     if len(rows) * GRID**2 < max(min_overlap_px, 1):
         return None
     height, width = shape_i
@@ -157,7 +158,7 @@ def plane_warp(hits: tuple[np.ndarray, np.ndarray], grid_shape: tuple[int, int],
     y0, y1 = max(0, (rows.min() - 1) * GRID), min(height, (rows.max() + 1) * GRID + 1)
     grid_x, grid_y = np.meshgrid(np.arange(x0, x1, dtype=np.float32) / GRID, np.arange(y0, y1, dtype=np.float32) / GRID)
     map_x, map_y = (cv2.remap(m, grid_x, grid_y, cv2.INTER_LINEAR) for m in coarse)
-    inside = _inside(map_x, map_y, image_j.camera)
+    inside = _inside(map_x, map_y, image_j.camera)  # type: ignore[arg-type]  # a model's images have their cameras
     warped = cv2.remap(gray_j, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
     return PlaneWarp(warped, inside.astype(np.uint8) * 255, map_x, map_y, (int(x0), int(y0)))
 
@@ -175,7 +176,8 @@ def triangulate_pairs(image_i: pycolmap.Image, image_j: pycolmap.Image, xy_i: np
     poses = (image_i.cam_from_world().matrix(), image_j.cam_from_world().matrix())
     rows = []
     for image, pose, xy in ((image_i, poses[0], xy_i), (image_j, poses[1], xy_j)):
-        rays = np.asarray(image.camera.cam_from_img(np.asarray(xy, np.float64).reshape(-1, 2)), np.float64)
+        # a model's images have their cameras
+        rays = np.asarray(image.camera.cam_from_img(np.asarray(xy, np.float64).reshape(-1, 2)), np.float64)  # type: ignore[union-attr]
         rows += [rays[:, :1] * pose[2] - pose[0], rays[:, 1:] * pose[2] - pose[1]]
     systems = np.stack(rows, axis=1)  # N x 4 x 4
     points = np.full((len(systems), 3), np.nan)
@@ -198,7 +200,8 @@ def _triangulate(image_i: pycolmap.Image, image_j: pycolmap.Image, xy_i: np.ndar
         cos = np.einsum("ij,ij->i", *rays) / (np.linalg.norm(rays[0], axis=1) * np.linalg.norm(rays[1], axis=1))
         good &= np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))) >= min_angle_deg
     for image, observed in ((image_i, xy_i), (image_j, xy_j)):
-        xy, seen = project_world(image.camera, image.cam_from_world(), np.nan_to_num(points), margin_px=None)
+        # a model's images have their cameras
+        xy, seen = project_world(image.camera, image.cam_from_world(), np.nan_to_num(points), margin_px=None)  # type: ignore[arg-type]
         with np.errstate(invalid="ignore"):
             good &= seen & (np.linalg.norm(xy - observed, axis=1) <= max_px)
     return points[good]
@@ -240,10 +243,11 @@ def load_floor_images(reconstruction: pycolmap.Reconstruction, image_dir: Path,
         gray = read_image(path, cv2.IMREAD_GRAYSCALE)
         if gray is None:
             raise InputError(f"{path} cannot be read: floor matching needs the run's images (pass the IMAGES folder)")
-        if gray.shape != (image.camera.height, image.camera.width):
-            raise InputError(f"{path} is {gray.shape[1]}x{gray.shape[0]}, its camera {image.camera.width}x"
-                             f"{image.camera.height}: pass the images the run used")
-        normalised, shape = grid_rays(image.camera)
+        # a model's images have their cameras
+        if gray.shape != (image.camera.height, image.camera.width):  # type: ignore[union-attr]
+            raise InputError(f"{path} is {gray.shape[1]}x{gray.shape[0]}, its camera {image.camera.width}x"  # type: ignore[union-attr]
+                             f"{image.camera.height}: pass the images the run used")  # type: ignore[union-attr]
+        normalised, shape = grid_rays(image.camera)  # type: ignore[arg-type]
         mask = None
         if up is not None:  # below the horizon
             down = np.c_[normalised, np.ones(len(normalised))] @ (image.cam_from_world().rotation.matrix() @ up) < 0
@@ -265,7 +269,7 @@ def neighbour_pairs(images: list[FloorImage], options: FloorMatchOptions | None 
     if opt.neighbours <= 0:
         return candidates
     centres = np.array([f.image.projection_center() for f in images])
-    chosen = set()
+    chosen: set = set()
     for i in range(len(images)):
         nearest: dict[str, float] = {}
         for j in np.argsort(np.linalg.norm(centres - centres[i], axis=1), kind="stable"):
@@ -284,7 +288,8 @@ def match_floor_points(reconstruction: pycolmap.Reconstruction, image_dir: Path 
     matches. ``images``: the :func:`load_floor_images` of an earlier round (read from ``image_dir`` if None)."""
     opt = options or FloorMatchOptions()
     if images is None:
-        images = load_floor_images(reconstruction, image_dir, opt)
+        # images to match: a folder
+        images = load_floor_images(reconstruction, image_dir, opt)  # type: ignore[arg-type]
     sift = _sift(opt)
     matcher = cv2.BFMatcher(cv2.NORM_L2)
     hits = {}
@@ -312,9 +317,9 @@ def match_floor_points(reconstruction: pycolmap.Reconstruction, image_dir: Path 
                          if len(m) == 2 and m[0].distance < opt.max_ratio * m[1].distance], int).reshape(-1, 2)
         if opt.search_radius_px > 0:  # and near the same pixel: where the plane is right, the floor is there
             near = cKDTree(xy_w).query_ball_point(xy_i, opt.search_radius_px)
-            a = np.repeat(np.arange(len(xy_i)), [len(n) for n in near])
-            b = np.fromiter((k for n in near for k in n), dtype=np.int64, count=len(a))
-            local = candidate_matches(desc_i, desc_w, a, b, opt.max_ratio)
+            a = np.repeat(np.arange(len(xy_i)), [len(n) for n in near])  # type: ignore[assignment]  # here an array
+            b = np.fromiter((k for n in near for k in n), dtype=np.int64, count=len(a))  # type: ignore[arg-type,assignment]
+            local = candidate_matches(desc_i, desc_w, a, b, opt.max_ratio)  # type: ignore[arg-type]
             good = np.vstack([local, good[~np.isin(good[:, 0], local[:, 0])]])
         if not len(good):
             continue

@@ -32,9 +32,9 @@ import numpy as np
 import pycolmap
 
 from rigsfm.core.errors import InputError
-from rigsfm.run.inputs import ImageEntry
 from rigsfm.core.io import read_user_text, write_text_atomic
 from rigsfm.core.rig import RigCalibration, nfc
+from rigsfm.run.inputs import ImageEntry
 
 logger = logging.getLogger(__name__)
 

@@ -18,6 +18,8 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 
+from rigsfm.core.geometry import PLANAR, POSED, Config, planar_fraction, sampson_error_px
+from rigsfm.run.database import open_database
 from rigsfm.run.manual_matches import (
     MIN_CORRESPONDENCES,
     Correspondence,
@@ -25,8 +27,6 @@ from rigsfm.run.manual_matches import (
     TooFewCorrespondencesError,
     check_spread,
 )
-from rigsfm.core.geometry import PLANAR, POSED, Config, planar_fraction, sampson_error_px
-from rigsfm.run.database import open_database
 
 logger = logging.getLogger(__name__)
 
@@ -80,7 +80,8 @@ def append_manual_keypoints(
         if keypoints.shape[0] == 0:
             keypoints = np.zeros((0, 6), np.float32)
         existing = {(float(keypoints[i, 0]), float(keypoints[i, 1])): int(i) for i in _zero_rows(descriptors)}
-        index, added = {}, []
+        index: dict = {}
+        added: list = []
         for xy in xys:
             key = (float(np.float32(xy[0])), float(np.float32(xy[1])))
             if key not in existing:
@@ -152,7 +153,8 @@ def _estimate(
     if geometry.config != Config.CALIBRATED or len(geometry.inlier_matches) == 0:
         return geometry
     inliers = np.asarray(geometry.inlier_matches)
-    errors = sampson_error_px(geometry.E, cam1, cam2, kp1[inliers[:, 0]], kp2[inliers[:, 1]])
+    errors = sampson_error_px(geometry.E, cam1, cam2,  # type: ignore[arg-type]  # CALIBRATED: E is set
+                              kp1[inliers[:, 0]], kp2[inliers[:, 1]])
     if np.all(errors <= max_error_px):
         return geometry
     refined = pycolmap.estimate_calibrated_two_view_geometry(
@@ -218,7 +220,7 @@ def merge_pair(
     report.inliers_after = len(merged.inlier_matches) if merged.config in POSED else 0
     reference = merged if merged.config in POSED else alone
     errors = (
-        sampson_error_px(reference.E, cam1, cam2, xy1, xy2)
+        sampson_error_px(reference.E, cam1, cam2, xy1, xy2)  # type: ignore[arg-type]  # POSED: E is set
         if reference.config in POSED
         else np.full(len(rows), np.nan)
     )

@@ -18,9 +18,9 @@ from pathlib import Path
 
 import pycolmap
 
-from rigsfm.core.names import ImageName, Sensor
 from rigsfm.core.errors import ReconstructionError
 from rigsfm.core.io import atomic_directory
+from rigsfm.core.names import ImageName, Sensor
 from rigsfm.core.workspace import Workspace, read_model
 from rigsfm.run.database import open_database
 from rigsfm.run.options import Mapper, MappingOptions
@@ -151,7 +151,8 @@ def initial_pair(cache: pycolmap.DatabaseCache, pipeline: pycolmap.IncrementalPi
     mapper = pycolmap.IncrementalMapper(cache)
     mapper.begin_reconstruction(pycolmap.Reconstruction())
     base = pipeline.get_mapper()
-    tested, rejected = 0, []
+    tested = 0
+    rejected: list = []
     try:
         for inlier_div, angle_div in RELAXATIONS:
             options = pipeline.get_mapper()

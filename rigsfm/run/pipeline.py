@@ -17,11 +17,11 @@ import pycolmap
 import rigsfm
 from rigsfm.core import stages
 from rigsfm.core.errors import InputError, ReconstructionError
+from rigsfm.core.executors import Executor, check_reachable
 from rigsfm.core.io import write_json_atomic
 from rigsfm.core.names import SENSORS, ImageName
 from rigsfm.core.residuals import reprojection_errors
 from rigsfm.core.rig import RigCalibration, load_rigs
-from rigsfm.core.executors import Executor, check_reachable
 from rigsfm.core.stages import in_child
 from rigsfm.core.workspace import Workspace, colmap_log_to, disk_errors_named
 from rigsfm.inspect.report import write_report
@@ -29,19 +29,32 @@ from rigsfm.run.adjust import AdjustResult, ScaleSource, adjust
 from rigsfm.run.database import check_database_kept, create_database
 from rigsfm.run.deliver import write_model, write_narrow_poses, write_points_ply
 from rigsfm.run.diagnostics import check_reconstruction
-from rigsfm.run.features import (drop_changed_images, drop_stale_work, drop_unsynchronised_pairs, extract_features,
-                                 match_features, pairs_report, resolved_first_octave, select_pairs)
-from rigsfm.run.inputs import ImageEntry, check_image_folder, rigs_without_narrow, scan_images, with_folder_names
+from rigsfm.run.features import (
+    drop_changed_images,
+    drop_stale_work,
+    drop_unsynchronised_pairs,
+    extract_features,
+    match_features,
+    pairs_report,
+    resolved_first_octave,
+    select_pairs,
+)
+from rigsfm.run.inputs import (
+    ImageEntry,
+    check_image_folder,
+    rigs_without_narrow,
+    scan_images,
+    with_folder_names,
+)
 from rigsfm.run.manual_matches import read_manual_matches, validate_manual_matches
 from rigsfm.run.manual_merge import add_manual_matches, manual_matches_summary
 from rigsfm.run.mapping import MappingResult, run_mapping
 from rigsfm.run.options import RunOptions
 from rigsfm.run.priors import CalibrationPriors, calibration_priors
 from rigsfm.run.scale_file import ScaleSpec, load_scale
-from rigsfm.run.summary import (CameraError, InputsSummary, MappingSummary, Registration, ScaleSummary,
-                                Summary)
-from rigsfm.run.world import ground_maps, locate_world, validate_world_options
+from rigsfm.run.summary import CameraError, InputsSummary, MappingSummary, Registration, ScaleSummary, Summary
 from rigsfm.run.uncertainty import estimate_uncertainty, uncertainty_summary
+from rigsfm.run.world import ground_maps, locate_world, validate_world_options
 
 if TYPE_CHECKING:
     from rigsfm.run.self_check import SelfCheck
@@ -124,8 +137,8 @@ def reprojection_table(reconstruction: pycolmap.Reconstruction) -> dict[str, Cam
     for name, errors in reprojection_errors(reconstruction).items():
         per_camera.setdefault(ImageName.parse(name).camera, []).append(errors)
     table = {}
-    for key, errors in sorted(per_camera.items()):
-        e = np.concatenate(errors)
+    for key, camera_errors in sorted(per_camera.items()):
+        e = np.concatenate(camera_errors)
         table[key] = CameraError(observations=int(e.size), mean_px=float(e.mean()) if e.size else None,
                                  rms_px=float(np.sqrt(np.mean(e**2))) if e.size else None)
     return table
@@ -163,13 +176,13 @@ def build_summary(inputs: Inputs, options: RunOptions, mapping: MappingResult, r
         warnings.append("NOT METRIC: no scale.yaml and no observations in narrow images; units are arbitrary")
     elif not metric:
         warnings.append(
-            f"NOT METRIC: the narrow images' observations fix the scale only to +-{100 * result.scale_relative_sigma:.3g} %;"
+            f"NOT METRIC: the narrow images' observations fix the scale only to +-{100 * result.scale_relative_sigma:.3g} %;"  # type: ignore[operator]
             " give a scale.yaml (rangefinder distance or known length)"
         )
     warnings.extend(result.warnings)
     warnings.extend(check_reconstruction(reconstruction, result.scale, database))
     if inputs.priors is not None and inputs.priors.warning():
-        warnings.append(inputs.priors.warning())
+        warnings.append(inputs.priors.warning())  # type: ignore[arg-type]  # checked just above
     if unregistered:
         warnings.append(f"{len(unregistered)} image(s) not registered: {', '.join(unregistered[:5])}")
     warnings.extend(f"NO NARROW IMAGES: {line}" for line in inputs.without_narrow)
@@ -276,8 +289,8 @@ def _self_check(workspace: Workspace, inputs: Inputs, reconstruction: pycolmap.R
         sync = estimate()
         if sync.warning:
             check.blame_time(sync.unsynchronised, sync.warning)
-    elif asked == "auto" and sync.unsynchronised:
-        logger.warning("Frame offsets estimated and applied: %s", sync.unsynchronised)
+    elif asked == "auto" and sync.unsynchronised:  # type: ignore[union-attr]  # auto: estimated above
+        logger.warning("Frame offsets estimated and applied: %s", sync.unsynchronised)  # type: ignore[union-attr]
     record = {"asked": asked, "applied": applied, "estimate": None if sync is None else sync.to_dict()}
     return check, record
 

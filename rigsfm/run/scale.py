@@ -171,7 +171,8 @@ def estimate_scale(reconstruction: pycolmap.Reconstruction, spec: ScaleSpec) -> 
     scale = float(np.sum(weights * lengths * meters) / np.sum(weights * lengths**2))
     sigma = float(1.0 / np.sqrt(np.sum(weights * lengths**2)))
     estimate = ScaleEstimate(scale, sigma, tuple(measurements), tuple(unused))
-    for row in estimate.residuals():
-        logger.info("Scale %s: %.4f m vs %.4f m (%+.3f %%, sigma %.4f m)", row["label"], row["reconstructed_meters"],
-                    row["meters"], row["residual_percent"], row["sigma_meters"])
+    for residual in estimate.residuals():
+        logger.info("Scale %s: %.4f m vs %.4f m (%+.3f %%, sigma %.4f m)", residual["label"],
+                    residual["reconstructed_meters"], residual["meters"], residual["residual_percent"],
+                    residual["sigma_meters"])
     return estimate

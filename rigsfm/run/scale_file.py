@@ -34,7 +34,6 @@ from rigsfm.core.io import load_yaml_or_json
 from rigsfm.core.rig import RigCalibration, check_keys, nfc
 from rigsfm.run.inputs import ImageEntry
 
-
 DEFAULT_DISTANCE_SIGMA = 0.01
 DEFAULT_LENGTH_SIGMA = 0.002
 DEFAULT_PIXEL_SIGMA = 0.5
@@ -215,13 +214,13 @@ def load_scale(path: Path, images: Sequence[ImageEntry], rigs: Sequence[RigCalib
             if not isinstance(obs["image"], str) or nfc(obs["image"]) not in image_names:
                 raise InputError(f"{obs_where}: image {obs['image']!r} is not in the image folder")
             image = image_names[nfc(obs["image"])]
-            a, b = _pixel(obs["a"], f"{obs_where}.a"), _pixel(obs["b"], f"{obs_where}.b")
-            _check_inside(a, entries[image], by_rig, f"{obs_where}.a")
-            _check_inside(b, entries[image], by_rig, f"{obs_where}.b")
-            if np.hypot(a[0] - b[0], a[1] - b[1]) < MIN_END_SEPARATION_PX:
+            end_a, end_b = _pixel(obs["a"], f"{obs_where}.a"), _pixel(obs["b"], f"{obs_where}.b")
+            _check_inside(end_a, entries[image], by_rig, f"{obs_where}.a")
+            _check_inside(end_b, entries[image], by_rig, f"{obs_where}.b")
+            if np.hypot(end_a[0] - end_b[0], end_a[1] - end_b[1]) < MIN_END_SEPARATION_PX:
                 raise InputError(f"{obs_where}: a and b are the same point in {obs['image']} (a zero-length bar); give "
                                  "the pixels of the object's two different ends")
-            observations.append(LengthObservation(image, a, b))
+            observations.append(LengthObservation(image, end_a, end_b))
         if len({o.image for o in observations}) < 2:
             raise InputError(f"{where}: needs the object's two ends seen in at least two different images")
         meters = _meters(item["meters"], where, MIN_LENGTH_M)

@@ -125,7 +125,8 @@ class SelfCheck:
         failed = [p for p in self.pairs if p.verdict == "failed"]
         if not failed:
             return [self.sync_warning] if self.sync_warning else []
-        worst = max(failed, key=lambda p: p.p95_px / max(p.band_px, 1e-9))
+        # failed pairs have their numbers
+        worst = max(failed, key=lambda p: p.p95_px / max(p.band_px, 1e-9))  # type: ignore[operator,type-var]
         return ([self.sync_warning] if self.sync_warning else []) + [f"EPIPOLAR CHECK FAILED: {len(failed)} of {sum(p.verdict != 'too few matches' for p in self.pairs)} "
                 f"narrow pairs match synchronised images farther from the epipolar lines than the 95 % band "
                 f"(worst {worst.i} -> {worst.j}: 95th percentile {worst.p95_px:.2f} px, band {worst.band_px:.2f} px): "
@@ -190,15 +191,18 @@ def _to_features(camera: pycolmap.Camera, xy_colmap: np.ndarray, descriptors: np
 
 def _load(image: pycolmap.Image, image_dir: Path, warp_height: float | None, sift_size: int) -> _Narrow | None:
     gray = read_image(image_dir / image.name, cv2.IMREAD_GRAYSCALE)
-    if gray is None or gray.shape != (image.camera.height, image.camera.width):
-        logger.warning("self-check: cannot read %s as a %dx%d image", image_dir / image.name, image.camera.width,
-                       image.camera.height)
+    # a model's images have their cameras
+    if gray is None or gray.shape != (image.camera.height, image.camera.width):  # type: ignore[union-attr]
+        logger.warning("self-check: cannot read %s as a %dx%d image", image_dir / image.name, image.camera.width,  # type: ignore[union-attr]
+                       image.camera.height)  # type: ignore[union-attr]
         return None
     factor = reduction_factor(gray.shape, sift_size)
     xy, descriptors = detect(_sift(), gray, None, factor)
-    narrow = _Narrow(image, gray, _to_features(image.camera, colmap_from_opencv_pixels(xy), descriptors), factor)
+    # a model's images have their cameras
+    narrow = _Narrow(image, gray, _to_features(image.camera, colmap_from_opencv_pixels(xy), descriptors), factor)  # type: ignore[arg-type]
     if warp_height is not None:
-        normalised, narrow.grid_shape = grid_rays(image.camera)
+        # a model's images have their cameras
+        normalised, narrow.grid_shape = grid_rays(image.camera)  # type: ignore[arg-type]
         narrow.hits = plane_hits(image, np.array([0.0, 0.0, 1.0]), -warp_height, np.inf, normalised)
     return narrow
 
@@ -239,7 +243,7 @@ class _Candidates:
     def within(self, tolerance: float) -> np.ndarray:
         keep = self.lateral <= tolerance
         if self.along is not None:
-            margin = tolerance / np.maximum(self.length, 1e-9)
+            margin = tolerance / np.maximum(self.length, 1e-9)  # type: ignore[arg-type]  # set with along
             keep &= (self.along >= -margin) & (self.along <= 1 + margin)
         return keep
 
@@ -326,12 +330,14 @@ def pair_features(first: _Narrow, second: _Narrow) -> tuple[_Features | None, _F
     into i's view, and i's are those the warp covers."""
     fi, fj = first.features, second.features
     if first.hits is not None and fi is not None:  # j warped into i's view through the plane: comparable features
-        warp = plane_warp(first.hits, first.grid_shape, first.gray.shape, second.image, second.gray, 1000)
+        warp = plane_warp(first.hits, first.grid_shape,  # type: ignore[arg-type]  # set with hits
+                          first.gray.shape, second.image, second.gray, 1000)
         if warp is None:
             return None, None
         fi = fi.subset(warp.covers(opencv_from_colmap_pixels(fi.xy)))
         xy, descriptors = detect(_sift(), warp.warped, warp.mask, first.sift_factor)
-        fj = _to_features(second.image.camera, warp.source_pixels(xy), descriptors)
+        # a model's images have their cameras
+        fj = _to_features(second.image.camera, warp.source_pixels(xy), descriptors)  # type: ignore[arg-type]
     return fi, fj
 
 
@@ -432,7 +438,8 @@ def epipolar_self_check(reconstruction: pycolmap.Reconstruction, image_dir: Path
             if loaded[name_i] is None or loaded[name_j] is None:
                 checks.append(PairCheck(frame, name_i, name_j, entry.get("epipolar_band_95_px")))
                 continue
-            checks.append(check_pair(loaded[name_i], loaded[name_j], np.asarray(entry["F_ji"]),
+            # pairs of loaded images only
+            checks.append(check_pair(loaded[name_i], loaded[name_j], np.asarray(entry["F_ji"]),  # type: ignore[arg-type]
                                      entry.get("epipolar_band_95_px"), floor_frame))
             c = checks[-1]
             logger.info("self-check %s -> %s: %d matches, p95 %s px, band %s px: %s", name_i, name_j, c.matches,

@@ -41,8 +41,18 @@ import pycolmap
 from rigsfm.core.errors import InputError
 from rigsfm.core.io import load_yaml_or_json
 from rigsfm.core.names import name_of
-from rigsfm.run.self_check import (KEYPOINT_NOISE_PX, MIN_MATCHES, WIDE_FACTOR, _candidates, _distances,
-                                   _guided_matches, _load, _overlapping_pairs, _segments, pair_features)
+from rigsfm.run.self_check import (
+    KEYPOINT_NOISE_PX,
+    MIN_MATCHES,
+    WIDE_FACTOR,
+    _candidates,
+    _distances,
+    _guided_matches,
+    _load,
+    _overlapping_pairs,
+    _segments,
+    pair_features,
+)
 
 logger = logging.getLogger(__name__)
 
@@ -229,8 +239,8 @@ def estimate_frame_offsets(reconstruction: pycolmap.Reconstruction, image_dir: P
                 first, second = loaded(image_i), loaded(image_j)
                 if first is None or second is None:
                     continue
-                distances = _distances_for(first, second, np.asarray(entry["F_ji"], dtype=np.float64), band,
-                                           floor_frame)
+                fundamental = np.asarray(entry["F_ji"], dtype=np.float64)  # type: ignore[index]  # a band: entry is set
+                distances = _distances_for(first, second, fundamental, band, floor_frame)
                 pooled.append(distances / (band + KEYPOINT_NOISE_PX))
             distances = np.concatenate(pooled) if pooled else np.zeros(0)
             share = float(np.mean(distances <= 1.0)) if len(distances) >= MIN_SYNC_MATCHES else None

@@ -45,6 +45,7 @@ import logging
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 import pyceres
@@ -56,8 +57,14 @@ from scipy.special import ndtr
 from rigsfm.core.errors import ReconstructionError
 from rigsfm.core.geometry import project, project_world
 from rigsfm.core.names import name_of
-from rigsfm.run.adjust import (AdjustResult, Gauge, JointProblem, ScaleSource, estimate_pixel_sigma,
-                               sensor_from_rig_view)
+from rigsfm.run.adjust import (
+    AdjustResult,
+    Gauge,
+    JointProblem,
+    ScaleSource,
+    estimate_pixel_sigma,
+    sensor_from_rig_view,
+)
 from rigsfm.run.options import Calibration
 from rigsfm.run.priors import calibration_priors, draw_calibration
 
@@ -111,7 +118,7 @@ def _reduced_system(jp: JointProblem):
     reduced normal matrix over the other blocks, every entry ``(key, block or None, size, tangent dims)``, the
     variable ones, and the prior-only covariances; None (with a warning) when a point carries no information."""
     rec, problem = jp.reconstruction, jp.problem
-    entries = []
+    entries: list[tuple[tuple, Any, int, Any]] = []  # (key, block or None, size, dims or None)
     for frame_id in jp.frame_ids:
         block = jp.frame_block(frame_id)
         if not jp.has_variable(block):
@@ -194,7 +201,8 @@ def _inverse(matrix: np.ndarray) -> np.ndarray | None:
 def _tangent_factors(variable) -> np.ndarray:
     """Per variable tangent dimension: ours / Ceres' (``w = 2 delta`` for quaternion tangents, else 1)."""
     return np.concatenate([[2.0 if key[0] in ("frame", "sensor_from_rig") and d < 3 else 1.0 for d in dims]
-                           for key, _, _, dims in variable] or [np.zeros(0)])
+                           # the empty case
+                           for key, _, _, dims in variable] or [np.zeros(0)])  # type: ignore[list-item]
 
 
 def _assemble(entries, variable, cov_a: np.ndarray, prior_only: dict) -> tuple:
@@ -205,7 +213,8 @@ def _assemble(entries, variable, cov_a: np.ndarray, prior_only: dict) -> tuple:
         offsets[key] = (start, size)
         start += size
     full = np.zeros((start, start))
-    target = np.concatenate([[offsets[key][0] + d for d in dims] for key, _, _, dims in variable] or [np.zeros(0)])
+    # the empty case
+    target = np.concatenate([[offsets[key][0] + d for d in dims] for key, _, _, dims in variable] or [np.zeros(0)])  # type: ignore[list-item]
     target = target.astype(int)
     full[np.ix_(target, target)] = cov_a[: len(target), : len(target)]
     for key, cov in prior_only.items():
@@ -264,7 +273,9 @@ def _consider(jp: JointProblem, schur: np.ndarray, variable, factors: np.ndarray
     """The consider covariance (our tangents) over the variable dimensions, end points last. ``consider_rigs``:
     only these rigs' calibration is considered, the others' is estimated with the poses (their priors in
     ``schur``); None: every rig's is considered."""
-    pose_index, calibration_index, prior_blocks = [], [], []
+    pose_index: list[int] = []
+    calibration_index: list[int] = []
+    prior_blocks: list = []
     k = 0
     for key, _, _, dims in variable:
         if key[0] == "frame" or (consider_rigs is not None and jp.camera_names[key[1]].rig not in consider_rigs):
@@ -312,7 +323,8 @@ def network_size_sigma(covariance: JointCovariance | None, reconstruction: pycol
     if covariance is None:
         return None
     frames = sorted(reconstruction.reg_frame_ids())
-    centres = {f: _frame_centre_jacobian(reconstruction.frame(f).rig_from_world) for f in frames}
+    # registered frames have their poses
+    centres = {f: _frame_centre_jacobian(reconstruction.frame(f).rig_from_world) for f in frames}  # type: ignore[arg-type]
     best, pair = 0.0, None
     for k, a in enumerate(frames):
         for b in frames[k + 1:]:
@@ -369,17 +381,20 @@ def narrow_uncertainty(reconstruction: pycolmap.Reconstruction,
     if not frames:
         return {}
     size = covariance.covariance.shape[0]
-    centres = {f: _frame_centre_jacobian(reconstruction.frame(f).rig_from_world)[0] for f in frames}
+    # registered frames have their poses
+    centres = {f: _frame_centre_jacobian(reconstruction.frame(f).rig_from_world)[0] for f in frames}  # type: ignore[arg-type]
     mean_centre = np.mean(list(centres.values()), axis=0)
     datum = np.zeros((6, size))  # mean [delta theta, delta centre] of the frames: the gauge motion to remove
     for f in frames:
-        datum[:, covariance.slice(("frame", f))] += _world_jacobian(reconstruction.frame(f).rig_from_world) / len(frames)
+        # registered frames have their poses
+        datum[:, covariance.slice(("frame", f))] += _world_jacobian(reconstruction.frame(f).rig_from_world) / len(frames)  # type: ignore[arg-type]
     out = {}
     for image in _narrow_images(reconstruction):
         frame = reconstruction.frame(image.frame_id)
         sensor = sensor_from_rig_view(reconstruction, frame.rig_id, reconstruction.cameras[image.camera_id].sensor_id)
         pose = image.cam_from_world()
-        d_frame, d_sensor = narrow_tangent_jacobians(frame.rig_from_world, sensor)
+        # registered frames have their poses
+        d_frame, d_sensor = narrow_tangent_jacobians(frame.rig_from_world, sensor)  # type: ignore[arg-type]
         world = _world_jacobian(pose)
         row = np.zeros((6, size))
         row[:, covariance.slice(("frame", image.frame_id))] = world @ d_frame
@@ -891,6 +906,7 @@ def estimate_uncertainty(result: AdjustResult, num_samples: int = 400, seed: int
         return Uncertainty(None, {}, {}, "none", seconds)
     start = time.perf_counter()
     narrow = narrow_uncertainty(result.reconstruction, covariance)
+    plane: Plane | None
     if floor is not None:
         plane, floor_source = floor, "floor_fit"
     else:

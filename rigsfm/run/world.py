@@ -61,7 +61,7 @@ def check_plane_heights(heights: Sequence[float], camera_heights: dict[str, floa
     narrow = {n: h for n, h in camera_heights.items() if ImageName.parse(n).is_narrow}
     if not narrow:
         return
-    lowest_name = min(narrow, key=narrow.get)
+    lowest_name = min(narrow, key=narrow.get)  # type: ignore[arg-type]  # typeshed: get's overloads
     for height in heights:
         if height >= narrow[lowest_name]:
             raise InputError(
@@ -96,13 +96,13 @@ class WorldResult:
         """Move ``reconstruction`` (in place, scale 1) into this frame; nothing for the mapper's frame."""
         if self.frame != WorldFrame.FLOOR:
             return
-        fit = self.estimate.fit
-        apply_floor_frame(reconstruction, fit)
-        logger.info("World: floor frame (%d floor points: %s; RMS %.3g)", fit.num_points, fit.points_by_source,
-                    fit.rms)
+        fit = self.estimate.fit  # type: ignore[union-attr]  # FLOOR: estimated
+        apply_floor_frame(reconstruction, fit)  # type: ignore[arg-type]  # NoFloor is falsy: a FloorFit here
+        logger.info("World: floor frame (%d floor points: %s; RMS %.3g)", fit.num_points, fit.points_by_source,  # type: ignore[union-attr]
+                    fit.rms)  # type: ignore[union-attr]
 
     def to_dict(self) -> dict:
-        data = {"asked": str(self.asked), "frame": str(self.frame)}
+        data: dict[str, object] = {"asked": str(self.asked), "frame": str(self.frame)}
         if self.frame == WorldFrame.FLOOR:
             data.update({"units": "metres" if self.metric else "arbitrary (not metric)", "origin": ORIGIN,
                          "x_axis": X_AXIS.format(rig=self.x_rig), "z_axis": Z_AXIS,
@@ -112,7 +112,8 @@ class WorldResult:
                                    "origin)")
         if self.estimate is not None:
             fit = self.estimate.fit
-            floor = fit.to_dict() if fit else {"found": False, "reason": fit.reason}
+            # FloorFit is truthy: a NoFloor here; NoFloor is falsy: a FloorFit here
+            floor = fit.to_dict() if fit else {"found": False, "reason": fit.reason}  # type: ignore[union-attr]
             if fit:
                 floor = {"found": True, **{k: floor[k] for k in (
                     "num_points", "points_by_source", "rms", "robust_sigma", "threshold", "num_candidates",
@@ -143,18 +144,21 @@ def locate_world(reconstruction: pycolmap.Reconstruction, image_dir: Path | None
     estimate = estimate_floor(reconstruction, image_dir, markers, x_towards=x_rig)
     fit = estimate.fit
     if not fit:
-        warning = f"NO FLOOR FOUND: {fit.reason}; the mapper's frame is kept: {NO_FLOOR_HELP}"
+        # FloorFit is truthy: a NoFloor here
+        warning = f"NO FLOOR FOUND: {fit.reason}; the mapper's frame is kept: {NO_FLOOR_HELP}"  # type: ignore[union-attr]
         logger.warning(warning)
         return WorldResult(options.frame, WorldFrame.MAPPING, estimate, metric=metric, warnings=[warning])
     heights = tuple(options.plane_heights)
     if heights and metric:
-        check_plane_heights(heights, fit.camera_heights)
-    warnings = [f"FLOOR: {w}" for w in fit.warnings]
+        # NoFloor is falsy: a FloorFit here
+        check_plane_heights(heights, fit.camera_heights)  # type: ignore[union-attr]
+    warnings = [f"FLOOR: {w}" for w in fit.warnings]  # type: ignore[union-attr]
     if heights and not metric:
         warnings.append(f"PLANE HEIGHT IGNORED: the result is not metric, so {heights[0]:g} m has no meaning "
                         "here; give a scale.yaml")
         heights = ()
-    return WorldResult(options.frame, WorldFrame.FLOOR, estimate, fit.origin_rig,
+    # NoFloor is falsy: a FloorFit here
+    return WorldResult(options.frame, WorldFrame.FLOOR, estimate, fit.origin_rig,  # type: ignore[union-attr]
                        tuple(dict.fromkeys((0.0, *heights))), metric, warnings)
 
 
@@ -213,8 +217,8 @@ def ground_maps(reconstruction: pycolmap.Reconstruction, heights: Sequence[float
     Overlaps and coverage count cameras: each narrow camera by its first registered frame (rigs are static)."""
     images = sorted((im for im in reconstruction.images.values() if im.has_pose and name_of(im).is_narrow),
                     key=lambda im: im.name)
-    per_image = {im.name: [] for im in images}
-    first = {}
+    per_image: dict[str, list] = {im.name: [] for im in images}
+    first: dict = {}
     for image in images:
         first.setdefault(name_of(image).camera, image.name)
     overlaps: dict[tuple[str, str], list[float]] = {}

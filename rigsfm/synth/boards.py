@@ -184,14 +184,15 @@ def render(camera: SynthCamera, cam_from_world: tuple[np.ndarray, np.ndarray], p
         h, w = plane.texture.shape
         inside = cv2.inRange(maps, (-0.5, -0.5), (w - 0.5, h - 0.5)) > 0
         visible = (near > np.maximum(nearness[window], MIN_NEARNESS)) & inside
-        sampled = cv2.remap(plane.texture, maps, None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        # stubs: map2 None
+        sampled = cv2.remap(plane.texture, maps, None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)  # type: ignore[call-overload]
         np.copyto(image[window], sampled, where=visible)
         np.copyto(nearness[window], near, where=visible)
     w, h = camera.size
-    image = cv2.resize(image, (w, h), interpolation=cv2.INTER_AREA)
+    image = cv2.resize(image, (w, h), interpolation=cv2.INTER_AREA)  # type: ignore[assignment]  # an image array
     if blur > 0:
-        image = cv2.GaussianBlur(image, (0, 0), blur)
-    image = image + rng.normal(0.0, noise, image.shape)
+        image = cv2.GaussianBlur(image, (0, 0), blur)  # type: ignore[assignment]  # an image array
+    image = image + rng.normal(0.0, noise, image.shape)  # type: ignore[assignment]
     return np.clip(np.round(image), 0, 255).astype(np.uint8)
 
 
@@ -199,12 +200,12 @@ def board_plane(spec: BoardSpec, px_per_square: int = 120) -> TexturedPlane:
     """The board as a textured plane in its own frame (world = board), with a white quiet zone."""
     margin = px_per_square
     if spec.type == "charuco":
-        cols, rows = spec.squares
+        cols, rows = spec.squares  # type: ignore[misc]  # ChArUco: squares set
         size = (cols * px_per_square + 2 * margin, rows * px_per_square + 2 * margin)
         texture = spec.charuco_board().generateImage(size, marginSize=margin, borderBits=1)
         origin = (float(margin), float(margin))
     else:
-        cols, rows = spec.inner_corners[0] + 1, spec.inner_corners[1] + 1
+        cols, rows = spec.inner_corners[0] + 1, spec.inner_corners[1] + 1  # type: ignore[index]  # chessboard: set
         cells = np.indices((rows, cols)).sum(0) % 2 == 0
         board = np.where(cells, 0, 255).astype(np.uint8).repeat(px_per_square, 0).repeat(px_per_square, 1)
         texture = cv2.copyMakeBorder(board, margin, margin, margin, margin, cv2.BORDER_CONSTANT, value=255)
@@ -219,7 +220,7 @@ def noise_texture(rng: np.random.Generator, size: tuple[int, int]) -> np.ndarray
     for cell in (64, 24, 8, 3):
         small = rng.random((h // cell + 2, w // cell + 2)).astype(np.float32)
         acc += cv2.resize(small, (w + 2 * cell, h + 2 * cell), interpolation=cv2.INTER_CUBIC)[cell:cell + h, cell:cell + w]
-    acc = cv2.normalize(acc, None, 0, 255, cv2.NORM_MINMAX)
+    acc = cv2.normalize(acc, None, 0, 255, cv2.NORM_MINMAX)  # type: ignore[call-overload]  # stubs: dst None
     for _ in range(w * h // 4000):
         centre = (int(rng.integers(0, w)), int(rng.integers(0, h)))
         cv2.circle(acc, centre, int(rng.integers(3, 25)), float(rng.integers(0, 256)), -1, cv2.LINE_AA)

@@ -117,6 +117,7 @@ def simulate_clicks(
     cam_b = views[1][0]
     xy[1][outliers] = rng.uniform([MARGIN_PX] * 2, [cam_b.width - MARGIN_PX, cam_b.height - MARGIN_PX],
                                   (int(outliers.sum()), 2))
-    rows = [Correspondence(image_a, tuple(map(float, p)), image_b, tuple(map(float, q)), i + 2)
+    # 2D points
+    rows = [Correspondence(image_a, tuple(map(float, p)), image_b, tuple(map(float, q)), i + 2)  # type: ignore[arg-type]
             for i, (p, q) in enumerate(zip(*xy))]
     return Clicks(rows, outliers, points)

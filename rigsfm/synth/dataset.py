@@ -31,21 +31,30 @@ import tempfile
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
 import pycolmap
 import yaml
 
-from rigsfm.core.geometry import project_world
 from rigsfm.core.errors import WorkspaceError
-from rigsfm.core.names import SENSORS, ImageName, Sensor
+from rigsfm.core.geometry import project_world
 from rigsfm.core.io import parse_yaml, sha256_file, write_bytes_atomic, write_json_atomic
+from rigsfm.core.names import SENSORS, ImageName, Sensor
 from rigsfm.core.rig import RigCalibration, add_posed_rig, rigs_to_yaml
 from rigsfm.synth.cameras import RigTruth, calibration_error_sigmas, make_rigs, user_calibration
+from rigsfm.synth.persons import (
+    HEAD,
+    HEAD_RADIUS,
+    VISIBILITY_SAMPLES,
+    Crowd,
+    HeadsInImage,
+    build_crowd,
+    head_samples,
+    heads_csv,
+)
 from rigsfm.synth.render import render_clean, to_uint8, visible
-from rigsfm.synth.persons import (HEAD, HEAD_RADIUS, VISIBILITY_SAMPLES, Crowd, HeadsInImage, build_crowd,
-                                  head_samples, heads_csv)
 from rigsfm.synth.scene import PERSON, Arena, Bar, SceneOptions, build_arena, trace
 
 logger = logging.getLogger(__name__)
@@ -97,6 +106,7 @@ def choose_bar(arena: Arena, first: RigTruth, second: RigTruth, crowd: Crowd | N
     for end in (a, b):
         ok &= np.hypot(end[:, 0], end[:, 1]) > opt.centre_radius + 1.2 + ring
         ok &= np.hypot(end[:, 0], end[:, 1]) < opt.wall_radius - 1.0
+    obj: Any  # a pillar or a box
     for obj in (*arena.pillars, *arena.boxes):
         reach = getattr(obj, "radius", None) or float(np.hypot(*obj.half_size[:2]))
         for p in (a, mid, b):
@@ -129,7 +139,8 @@ def ground_truth_reconstruction(rigs: list[RigTruth], frames_per_rig: int, suffi
     for index, truth in enumerate(rigs):
         frames = [{sensor: image_name(truth.name, sensor, frame, suffix) for sensor in SENSORS}
                   for frame in range(frames_per_rig)]
-        add_posed_rig(rec, index + 1, truth.calibration(), truth.wide_from_world, frames)
+        # Sensor is a str
+        add_posed_rig(rec, index + 1, truth.calibration(), truth.wide_from_world, frames)  # type: ignore[arg-type]
     return rec
 
 
@@ -138,7 +149,8 @@ def _scale_yaml(rigs: list[RigTruth], bar: Bar | None, first: RigTruth, second: 
     far = max(rigs[1:], key=lambda rig: float(np.linalg.norm(rig.centre() - rigs[0].centre())))
     observations = []
     for rig in (first, second) if bar is not None else ():
-        a, b = project_world(rig.wide, rig.wide_from_world, np.stack([bar.a, bar.b]), margin_px=None)[0]
+        # a bar is placed with the scale
+        a, b = project_world(rig.wide, rig.wide_from_world, np.stack([bar.a, bar.b]), margin_px=None)[0]  # type: ignore[union-attr]
         observations.append(
             {"image": image_name(rig.name, "wide", 0, suffix), "a": [float(v) for v in a],
              "b": [float(v) for v in b]}
@@ -179,7 +191,8 @@ class _Written:
     that a later ``overwrite`` removes exactly those (and only while they are unchanged)."""
 
     def __init__(self, root: Path):
-        self.root, self.files = root, {}
+        self.root = root
+        self.files: dict = {}
 
     def write(self, path: Path, data: bytes) -> None:
         self.files[path.relative_to(self.root).as_posix()] = hashlib.sha256(data).hexdigest()  # listed first: a
@@ -266,7 +279,7 @@ def heads_in_image(arena: Arena, camera: pycolmap.Camera, cam_from_world: pycolm
     """The heads of ``arena.persons`` whose centre projects inside the image, with their visibility (the share of
     rays to points over each head's silhouette that first meet that head; the first point is the centre)."""
     persons = arena.persons
-    centres = persons.head_centres()
+    centres = persons.head_centres()  # type: ignore[union-attr]  # persons asked for
     xy, inside = project_world(camera, cam_from_world, centres, margin_px=0.0)
     ids = np.flatnonzero(inside)
     if not len(ids):
@@ -361,14 +374,14 @@ def render_dataset(
         written.write(out_dir / "rigs.yaml", rigs_text.encode("utf-8"))
         written.write(out_dir / "rigs_exact.yaml", rigs_to_yaml([rig.calibration() for rig in rigs]).encode("utf-8"))
         written.write(out_dir / "scale.yaml", _scale_yaml(rigs, bar, first, second, suffix).encode("utf-8"))
-        scene = {
+        scene_yaml: dict[str, object] = {
             "options": dataclasses.asdict(options),
             "bar": {"a": [float(v) for v in bar.a], "b": [float(v) for v in bar.b]} if bar is not None else None,
         }
         if gains:
-            scene["exposure_gain"] = gains
+            scene_yaml["exposure_gain"] = gains
         written.write(out_dir / "scene.yaml",
-                      yaml.safe_dump(scene, sort_keys=False, default_flow_style=None).encode("utf-8"))
+                      yaml.safe_dump(scene_yaml, sort_keys=False, default_flow_style=None).encode("utf-8"))
         gt_dir = out_dir / "ground_truth"
         gt_dir.mkdir(parents=True, exist_ok=True)
         with tempfile.TemporaryDirectory(prefix="rigsfm-ground-truth-") as tmp:  # outside OUT: no leftover there

@@ -11,13 +11,12 @@ import logging
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
-from rigsfm.synth.truth import centre_errors_mm, compare_to_ground_truth, oracle
-from rigsfm.core.errors import InputError
-from rigsfm.core.errors import WorkspaceError
+from rigsfm.core.errors import InputError, WorkspaceError
 from rigsfm.core.io import write_json_atomic
 from rigsfm.run.pipeline import Progress, RunOptions, RunResult, load_inputs, run
 from rigsfm.synth.dataset import SyntheticDataset, render_dataset
 from rigsfm.synth.scene import SceneOptions
+from rigsfm.synth.truth import centre_errors_mm, compare_to_ground_truth, oracle
 
 logger = logging.getLogger(__name__)
 

@@ -416,12 +416,12 @@ def head_samples(centres: np.ndarray, eye: np.ndarray, count: int = VISIBILITY_S
     u /= np.linalg.norm(u, axis=1, keepdims=True)
     v = np.cross(view, u)
     rings = [(0.0, 1)] + [(0.5, 6), (0.9, count - 7)] if count > 7 else [(0.0, 1), (0.7, count - 1)]
-    offsets = []
+    offsets: list = []
     for radius, k in rings:
         angle = np.arange(k) * 2 * np.pi / k
         offsets += [(radius * np.cos(a), radius * np.sin(a)) for a in angle]
-    offsets = np.array(offsets[:count]) * HEAD_RADIUS
-    return centres[:, None, :] + offsets[None, :, 0:1] * u[:, None, :] + offsets[None, :, 1:2] * v[:, None, :]
+    ring_offsets = np.array(offsets[:count]) * HEAD_RADIUS
+    return centres[:, None, :] + ring_offsets[None, :, 0:1] * u[:, None, :] + ring_offsets[None, :, 1:2] * v[:, None, :]
 
 
 @dataclass(frozen=True)

@@ -139,7 +139,8 @@ def shade(arena: Arena, origin: np.ndarray, dirs: np.ndarray, hits: Hits, pixel_
     values[ground] = ground_values
     person = np.flatnonzero(hits.kind == PERSON)
     if len(person):
-        values[person] = arena.persons.greys[hits.object_index[person], hits.u[person].astype(np.int64)]
+        values[person] = arena.persons.greys[  # type: ignore[union-attr]  # person hits: persons are there
+            hits.object_index[person], hits.u[person].astype(np.int64)]
     values[~sky] *= light[~sky]
     return values
 

@@ -249,13 +249,13 @@ def build_arena(options: SceneOptions) -> Arena:
                 return float(x), float(y)
         raise RuntimeError("could not place scene objects; reduce num_pillars/num_boxes")
 
-    pillars = []
+    pillars: list[Pillar] = []
     for _ in range(options.num_pillars):
         radius = float(rng.uniform(0.4, 0.8))
         x, y = free_spot(radius)
         height = float(rng.uniform(5.0, 10.0))
         pillars.append(Pillar(x, y, radius, height, _band_offset(len(pillars), rng.uniform(0, 12, 2))))
-    boxes = []
+    boxes: list = []
     for _ in range(options.num_boxes):
         half = (float(rng.uniform(0.5, 1.2)), float(rng.uniform(0.5, 1.2)), float(rng.uniform(0.4, 1.2)))
         x, y = free_spot(float(np.hypot(half[0], half[1])))

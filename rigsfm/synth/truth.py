@@ -15,11 +15,11 @@ from dataclasses import replace
 import numpy as np
 import pycolmap
 
-from rigsfm.core.names import name_of
 from rigsfm.core.conventions import rotation_angle_deg
+from rigsfm.core.names import name_of
+from rigsfm.core.rig import RigCalibration
 from rigsfm.run.adjust import AdjustOptions, adjust, restore_calibration
 from rigsfm.run.options import Calibration
-from rigsfm.core.rig import RigCalibration
 from rigsfm.run.scale import triangulate_in_images
 from rigsfm.run.scale_file import ScaleSpec
 
@@ -55,7 +55,8 @@ def centre_errors_mm(estimate: pycolmap.Reconstruction, truth: pycolmap.Reconstr
     )
     est, gt = _posed(estimate, "narrow"), _posed(truth, "narrow")
     errors = [
-        1000.0 * np.linalg.norm(gt_from_est * est[n].projection_center() - gt[n].projection_center())
+        1000.0 * np.linalg.norm(gt_from_est * est[n].projection_center()  # type: ignore[operator]  # posed centres
+                                - gt[n].projection_center())
         for n in sorted(set(est) & set(gt))
     ]
     return _stats(errors)

@@ -24,12 +24,12 @@ OnResult = Callable[[dict], None]
 
 
 def _with_bytes(task: FrameTask) -> FrameTask:
-    images = {}
+    images: dict[str, Path | bytes] = {}
     for sensor, source in task.images.items():
         try:
             images[sensor] = Path(source).read_bytes() if isinstance(source, (str, Path)) else source
         except OSError as e:
-            raise InputError(f"cannot read {source}: {e}") from e
+            raise InputError(f"cannot read {source}: {e}") from e  # type: ignore[str-bytes-safe]  # only paths are read
     return replace(task, images=images)
 
 

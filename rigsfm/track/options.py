@@ -5,7 +5,7 @@ from __future__ import annotations
 import os
 from dataclasses import dataclass, field
 
-from rigsfm.core.executors import Executor  # noqa: F401  (re-exported: rigsfm.track.options.Executor)
+from rigsfm.core.executors import Executor  # re-exported: rigsfm.track.options.Executor
 from rigsfm.run.options import INT_MAX, _check_range
 
 

@@ -22,11 +22,11 @@ import pycolmap
 
 from rigsfm.core import charts
 from rigsfm.core.errors import InputError
+from rigsfm.core.executors import check_reachable
 from rigsfm.core.io import file_sha256, write_bytes_atomic, write_json_atomic, write_text_atomic
 from rigsfm.core.rig import RigCalibration, nfc
 from rigsfm.core.workspace import TrackPaths, Workspace
 from rigsfm.run.inputs import check_image_folder, rig_folders, scan_images
-from rigsfm.core.executors import check_reachable
 from rigsfm.track.executors import run_frames
 from rigsfm.track.options import TrackOptions
 from rigsfm.track.plot import plot_rig
@@ -64,7 +64,7 @@ def frame_tasks(new_images: Path, reference: ReferenceMap) -> list[FrameTask]:
         narrow = rig.wide if rig.narrow is None else rig.narrow
         narrow_from_wide = pycolmap.Rigid3d() if rig.narrow_from_wide is None else rig.narrow_from_wide
         rigs.append(RigCalibration(name, rig.wide, narrow, narrow_from_wide))
-    images: dict[tuple[str, str], dict[str, Path]] = {}
+    images: dict[tuple[str, str], dict[str, Path | bytes]] = {}
     for entry in scan_images(new_images, rigs, check_pixels=False):
         images.setdefault((entry.rig, entry.frame), {})[entry.sensor] = entry.path
     return [FrameTask(rig, frame, sensors) for (rig, frame), sensors in sorted(images.items())]
@@ -129,7 +129,7 @@ def track(out: Path, new_images: Path, options: TrackOptions | None = None, *,
         logger.info("%d new frames to register, %d already tracked", len(todo), len(tasks) - len(todo))
         files = {(t.rig, t.frame): task_fingerprints(t) for t in todo}
         bad: list[str] = []
-        done = [0, time.monotonic()]
+        done: list = [0, time.monotonic()]
 
         def on_result(record: dict) -> None:
             done[0] += 1

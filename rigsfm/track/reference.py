@@ -20,12 +20,12 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 
-from rigsfm.core.names import ImageName, name_of
 from rigsfm.core.errors import ReconstructionError, WorkspaceError
-from rigsfm.track.options import RegistrationOptions
-from rigsfm.track.pose import estimate_rig_pose, pose_covariance
+from rigsfm.core.names import ImageName, name_of
 from rigsfm.core.workspace import Workspace
 from rigsfm.run.database import damage
+from rigsfm.track.options import RegistrationOptions
+from rigsfm.track.pose import estimate_rig_pose, pose_covariance
 
 logger = logging.getLogger(__name__)
 
@@ -53,7 +53,7 @@ class ReferenceRig:
         sensor_from_rig = {"wide": pycolmap.Rigid3d()}
         if self.narrow is not None:
             cameras["narrow"] = self.narrow
-            sensor_from_rig["narrow"] = self.narrow_from_wide
+            sensor_from_rig["narrow"] = self.narrow_from_wide  # type: ignore[assignment]  # set with the narrow camera
         return cameras, sensor_from_rig
 
 
@@ -125,7 +125,7 @@ def _covisible(rec: pycolmap.Reconstruction, names: list[str]) -> np.ndarray:
 
 def _observations(rec: pycolmap.Reconstruction, frame_id: int) -> dict[str, tuple[np.ndarray, np.ndarray]]:
     """Per sensor of one reference frame: the 2D observations of 3D points and the points."""
-    found = {}
+    found: dict[str, tuple[np.ndarray, np.ndarray]] = {}
     for image in rec.images.values():
         if image.frame_id == frame_id and image.num_points3D > 0:
             points = [image.points2D[i] for i in image.get_observation_point2D_idxs()]

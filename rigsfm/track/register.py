@@ -13,6 +13,7 @@ import logging
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -125,7 +126,7 @@ def register_frame(task: FrameTask, reference: ReferenceMap, options: Registrati
     matches/inliers: a result, not an error) or ``bad_input`` (the image cannot be used; ``reason`` says why)."""
     options = options or RegistrationOptions()
     start = time.perf_counter()
-    record = {"rig": task.rig, "frame": task.frame, "status": "failed", "reason": None, "sensors": {}}
+    record: dict[str, Any] = {"rig": task.rig, "frame": task.frame, "status": "failed", "reason": None, "sensors": {}}
     rig = reference.rigs[task.rig]
     cameras, sensor_from_rig = rig.cameras()
     correspondences = {}
@@ -146,16 +147,17 @@ def register_frame(task: FrameTask, reference: ReferenceMap, options: Registrati
         record["reason"] = f"fewer than {options.min_matches} 2D-3D matches, or RANSAC found no pose"
     else:
         wide_from_world, inliers, used = estimate
-        errors, observations, offset = [], [], 0
+        per_sensor_errors: list[np.ndarray] = []
+        observations, offset = [], 0
         for sensor in used:
             xy, xyz = correspondences[sensor]
             mask = inliers[offset:offset + len(xy)]
             offset += len(xy)
             record["sensors"][sensor]["inliers"] = int(mask.sum())
-            errors.append(reprojection_errors(sensor_from_rig[sensor] * wide_from_world, cameras[sensor],
-                                              xy[mask], xyz[mask]))
+            per_sensor_errors.append(reprojection_errors(sensor_from_rig[sensor] * wide_from_world, cameras[sensor],
+                                                         xy[mask], xyz[mask]))
             observations.append((cameras[sensor], sensor_from_rig[sensor], xy[mask], xyz[mask]))
-        errors = np.concatenate(errors)
+        errors = np.concatenate(per_sensor_errors)
         record.update(num_inliers=int(inliers.sum()), used_sensors=used,
                       reprojection_error_px=float(errors.mean()) if errors.size else None)
         if inliers.sum() < options.min_inliers:

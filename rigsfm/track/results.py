@@ -17,12 +17,12 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 
-from rigsfm.core.serialise import pose_to_dict
-from rigsfm.core.errors import WorkspaceError
-from rigsfm.track.options import Thresholds
-from rigsfm.track.verdict import classify
 from rigsfm.core.conventions import rotation_vector
+from rigsfm.core.errors import WorkspaceError
+from rigsfm.core.serialise import pose_to_dict
+from rigsfm.track.options import Thresholds
 from rigsfm.track.reference import ReferenceMap, ReferenceRig
+from rigsfm.track.verdict import classify
 
 logger = logging.getLogger(__name__)
 

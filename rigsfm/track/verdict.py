@@ -108,7 +108,7 @@ def _step_score(changes, lo, k, hi, pre, pre_cov, post, post_cov, thresholds) ->
             persists &= np.mean(_distance(before, pre, p) < _distance(before, post, p)) >= thresholds.persist_fraction
         if persists:
             best = max(best or 0.0, size / _limits(thresholds)[p])
-    return best
+    return best  # type: ignore[return-value]  # numpy's float64 is a float
 
 
 def _segment(changes, covariances, lo, hi, level, level_cov, thresholds, frames) -> list[Step]:
@@ -142,8 +142,8 @@ def _segment(changes, covariances, lo, hi, level, level_cov, thresholds, frames)
     return [*left, found, *right]
 
 
-def classify(frames: list[str], changes: np.ndarray, covariances: np.ndarray, baseline_covariance: np.ndarray,
-             thresholds: Thresholds | None = None) -> Verdict:
+def classify(frames: list[str], changes: np.ndarray | list, covariances: np.ndarray | list,
+             baseline_covariance: np.ndarray, thresholds: Thresholds | None = None) -> Verdict:
     """Verdict of one rig from its registered frames (in time order), see the module docstring."""
     thresholds = thresholds or Thresholds()
     changes = np.asarray(changes, dtype=np.float64).reshape(-1, 6)

@@ -8,13 +8,18 @@ fixed_calibration_golden.json was made with rigsfm as it was before the calibrat
 
 (with a second argument it runs today's adjust with ``--fixed-calibration``; both agree bit for bit).
 """
-import sys, json
+import json
+import sys
 from pathlib import Path
+
 import numpy as np
 from synthetic_db import make_network, perturbed_model
+
 from rigsfm.run.adjust import adjust
 from rigsfm.run.scale_file import CameraDistance, ScaleSpec
-root = Path(sys.argv[1]); root.mkdir(parents=True, exist_ok=True)
+
+root = Path(sys.argv[1])
+root.mkdir(parents=True, exist_ok=True)
 kw = {}
 if len(sys.argv) > 2:
     from rigsfm.run.options import AdjustOptions, Calibration

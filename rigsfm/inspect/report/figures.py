@@ -16,10 +16,10 @@ import numpy as np
 import pycolmap
 
 from rigsfm.core import charts
+from rigsfm.core.conventions import opencv_from_colmap_pixels
 from rigsfm.core.geometry import project
 from rigsfm.core.image_files import read_image as read_pixels
 from rigsfm.core.names import name_of
-from rigsfm.core.conventions import opencv_from_colmap_pixels
 
 COLOURS_BGR = [charts.bgr(colour) for colour in charts.SERIES]
 WIDE_SVG, NARROW_SVG = charts.hex_colour("wide"), charts.hex_colour("narrow")
@@ -195,7 +195,8 @@ def floor_map_svg(narrow: dict, reconstruction: pycolmap.Reconstruction, size: i
     maps (the result is not in the floor frame)."""
     from rigsfm.core.ground import coverage
 
-    prints, centres = {}, {}
+    prints: dict = {}
+    centres: dict = {}
     for entry in narrow.get("narrow", []):
         ground = entry.get("ground") or []
         floor = next((g for g in ground if g.get("plane_height_m") == 0.0 and g.get("footprint_m")), None)

@@ -9,11 +9,17 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 
-from rigsfm.core.names import ImageName, name_of
 from rigsfm.core import charts
-from rigsfm.inspect.report.figures import JPEG_QUALITY, epipolar_figure, floor_map_svg, read_image, topdown_svg
+from rigsfm.core.names import ImageName, name_of
 from rigsfm.core.residuals import reprojection_errors
 from rigsfm.core.workspace import Workspace
+from rigsfm.inspect.report.figures import (
+    JPEG_QUALITY,
+    epipolar_figure,
+    floor_map_svg,
+    read_image,
+    topdown_svg,
+)
 from rigsfm.run.summary import Summary
 
 logger = logging.getLogger(__name__)
@@ -55,7 +61,7 @@ def summary_section(summary: Summary | None, reconstruction: pycolmap.Reconstruc
     counts = {s: sum(im.has_pose and name_of(im).sensor == s for im in reconstruction.images.values())
               for s in ("wide", "narrow")}
     registered = summary.registered if summary else {}
-    rows = [["rigs", len(rigs)], ["3D points", reconstruction.num_points3D()],
+    rows: list[list] = [["rigs", len(rigs)], ["3D points", reconstruction.num_points3D()],
             ["metric", esc(narrow.get("metric")) + f" ({esc(narrow.get('units'))})"]]
     for sensor in ("wide", "narrow"):
         total = registered[sensor].total if sensor in registered else "?"
@@ -237,7 +243,8 @@ def epipolar_section(out: Path, summary: Summary | None, reconstruction: pycolma
             parts.append(f'<p class="warn">cannot read {esc(p["i"])} or {esc(p["j"])} in {esc(images_dir)}</p>')
             continue
         j_from_i = image_j.cam_from_world() * image_i.cam_from_world().inverse()
-        figure = epipolar_figure(pixels[0], pixels[1], reconstruction.cameras[image_i.camera_id],
+        figure = epipolar_figure(pixels[0], pixels[1],  # type: ignore[arg-type]  # both read: checked above
+                                 reconstruction.cameras[image_i.camera_id],
                                  reconstruction.cameras[image_j.camera_id], j_from_i, p.get("epipolar_band_95_px"))
         band = p.get("epipolar_band_95_px")
         caption = (f"{esc(p['i'])} → {esc(p['j'])}" + ("" if band is None else f"; band ±{band:.2f} px")

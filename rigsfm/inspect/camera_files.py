@@ -45,6 +45,7 @@ import numpy as np
 import pycolmap
 
 from rigsfm.core.errors import InputError
+from rigsfm.core.image_files import read_image
 from rigsfm.core.io import write_bytes_atomic, write_text_atomic
 from rigsfm.core.names import ImageName
 
@@ -305,7 +306,7 @@ def _undistorted_images(reconstruction: pycolmap.Reconstruction, cameras: Sequen
         if c is None:
             continue
         source = images_dir / image.name
-        pixels = cv2.imread(str(source), cv2.IMREAD_UNCHANGED)
+        pixels = read_image(source, cv2.IMREAD_UNCHANGED)
         if pixels is None:
             raise InputError(f"cannot read {source} to undistort it; export without images or restore the file")
         if c.name not in maps:

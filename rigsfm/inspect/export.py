@@ -22,6 +22,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import os
@@ -170,9 +171,18 @@ class Previous:
 
 
 def _is_plain_name(name: object) -> bool:
-    """A file directly in DEST: relative, one component, not the manifest itself."""
-    return (isinstance(name, str) and name not in ("", ".", "..", MANIFEST) and "/" not in name and "\\" not in name
-            and "\0" not in name and not Path(name).is_absolute())
+    """A file inside DEST: a relative POSIX path without ``.`` or ``..`` parts, not the manifest itself."""
+    return (isinstance(name, str) and name != MANIFEST and "\\" not in name and "\0" not in name
+            and not name.startswith("/") and all(part not in ("", ".", "..") for part in name.split("/")))
+
+
+def _files_under(folder: Path) -> list[str]:
+    """Every file (and link) below ``folder`` as a relative POSIX path; folders are not entries."""
+    names = []
+    for here, dirs, files in os.walk(folder):
+        for name in [*files, *(d for d in dirs if os.path.islink(os.path.join(here, d)))]:
+            names.append(Path(here, name).relative_to(folder).as_posix())
+    return sorted(names)
 
 
 def read_manifest(dest: Path) -> tuple[list[str], dict[str, str], list[str]]:
@@ -221,7 +231,7 @@ def check_destination(dest: Path, workspace: Workspace, *, overwrite: bool) -> P
         return Previous()
     if not dest.is_dir():
         raise WorkspaceError(f"--dest {dest} exists and is not a folder; choose a new or empty folder")
-    present = sorted(p.name for p in dest.iterdir())
+    present = _files_under(dest)
     if not present:
         return Previous()
     listed, sums, invalid = read_manifest(dest)
@@ -252,6 +262,11 @@ def _replace_previous(dest: Path, previous: Previous, written: list[str]) -> Non
     for name in previous.ours:
         if name not in written:
             (dest / name).unlink(missing_ok=True)
+            folder = (dest / name).parent
+            while folder != dest:  # the export's own sub-folders, once they are empty
+                with contextlib.suppress(OSError):
+                    folder.rmdir()
+                folder = folder.parent
 
 
 def export(out: Path, options: ExportOptions) -> Path:
@@ -285,13 +300,14 @@ def export(out: Path, options: ExportOptions) -> Path:
             write_wildtrack(reconstruction, tmp, images_dir if options.images else None)
         else:
             write_json_poses(reconstruction, tmp)
-        written = sorted(p.name for p in tmp.iterdir())
+        written = _files_under(tmp)
         write_json_atomic(tmp / MANIFEST, {"format": str(fmt), "workspace": str(workspace.root.resolve()),
                                             "files": written,
                                             "sha256": {name: sha256_file(tmp / name) for name in written}})
         dest.mkdir(exist_ok=True)
         _replace_previous(dest, previous, written)
         for name in [*written, MANIFEST]:
+            (dest / name).parent.mkdir(parents=True, exist_ok=True)
             os.replace(tmp / name, dest / name)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)  # the temporary folder made above: only rigsfm's files

@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import logging
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import pycolmap
@@ -54,6 +54,10 @@ class View:
     xy: np.ndarray  # N x 2 raw COLMAP pixels
     sigma_pose_px: float = 0.0
     centre_sigma_m: float = 0.0  # the camera centre's 1 sigma relative to the network (the run's uncertainty)
+    # The crowd's own correction of the run's pose error (a shift of the undistorted pixels, i.e. a small rotation
+    # for a narrow camera) and the band sigma before it.
+    shift_px: np.ndarray = field(default_factory=lambda: np.zeros(2))
+    band_sigma_px: float | None = None
 
     @classmethod
     def of(cls, image: pycolmap.Image, xy: np.ndarray) -> View:
@@ -168,7 +172,7 @@ class _Frame:
         undist, rays = [], []
         for v in views:
             if len(v.xy):
-                uv = undistort_pixels(v.camera, v.xy)
+                uv = undistort_pixels(v.camera, v.xy) - v.shift_px[None]
                 d = np.c_[(uv - v.k[:2, 2]) / np.array([v.k[0, 0], v.k[1, 1]]), np.ones(len(uv))] @ v.r
                 d /= np.linalg.norm(d, axis=1, keepdims=True)
             else:
@@ -177,6 +181,8 @@ class _Frame:
             rays.append(d)
         self.uv = np.concatenate(undist) if undist else np.zeros((0, 2))
         self.rays = np.concatenate(rays) if rays else np.zeros((0, 3))
+        self.k_of = np.array([v.k for v in views]) if views else np.zeros((0, 3, 3))
+        self.r_of = np.array([v.r for v in views]) if views else np.zeros((0, 3, 3))
         self.valid = np.all(np.isfinite(self.uv), axis=1)
         self.centres = np.array([v.centre for v in views])
         self.focals = np.array([v.focal for v in views])
@@ -194,6 +200,13 @@ class _Frame:
             near = tree.query_ball_point(self.uv[rows], options.clutter_radius_px, return_length=True)
             self.clutter[rows] = np.maximum(near, 1) / (math.pi * options.clutter_radius_px ** 2)
             self.clutter[rows] = np.maximum(self.clutter[rows], 1.0 / area[i])
+
+    def rays_of(self, uv: np.ndarray) -> np.ndarray:
+        """Unit world directions of undistorted pixels (one per detection, in the stacked order)."""
+        k, r = self.k_of[self.view_of], self.r_of[self.view_of]
+        normalised = (uv - k[:, :2, 2]) / np.stack([k[:, 0, 0], k[:, 1, 1]], axis=1)
+        d = np.einsum("ni,nij->nj", np.c_[normalised, np.ones(len(uv))], r)
+        return d / np.linalg.norm(d, axis=1, keepdims=True)
 
     # --- geometry --------------------------------------------------------------------------------------------
 
@@ -422,16 +435,116 @@ def _pack(members: np.ndarray, scores: np.ndarray, total: int, time_limit: float
     return chosen
 
 
-def associate_views(views: list[View], options: AssociateOptions) -> FrameResult:
-    """Persons seen by the detections of one frame's views (each view: pose, camera and raw detections)."""
+def _solve(views: list[View], options: AssociateOptions) -> tuple[_Frame, np.ndarray, np.ndarray, np.ndarray,
+                                                                   np.ndarray, int]:
+    """One association of a frame: hypotheses, their scores and the global packing."""
     frame = _Frame(views, options)
-    names = [v.name for v in views]
     total = int(frame.offsets[-1])
     members, points, covariance, scores = frame.hypotheses()
     positive = scores > options.min_score
     members, points, covariance, scores = members[positive], points[positive], covariance[positive], scores[positive]
     chosen = _pack(members, scores - options.min_score, total, options.time_limit_s)
-    members, points, covariance, scores = members[chosen], points[chosen], covariance[chosen], scores[chosen]
+    return frame, members[chosen], points[chosen], covariance[chosen], scores[chosen], int(positive.sum())
+
+
+@dataclass
+class ViewCorrection:
+    """Per view: the shift (undistorted px) the crowd asks for, its posterior sigma, the residual scatter left."""
+
+    shift_px: np.ndarray  # V x 2, total (relative to the run's pose)
+    shift_sigma_px: np.ndarray  # V
+    scatter_px: np.ndarray  # V, per coordinate, members' residual after the shift (robust)
+    members: np.ndarray  # V, how many group members each view's estimate rests on
+
+
+def estimate_view_shifts(frame: _Frame, groups: np.ndarray, options: AssociateOptions) -> ViewCorrection:
+    """The per-view shift of the detections (a small rotation of a narrow camera) that best explains the groups'
+    reprojection residuals: a bundle adjustment of points and shifts, each shift with the run's pose sigma as its
+    prior (no view is fixed: the prior holds the gauge), residuals Huber-weighted so wrong groups weigh little."""
+    views = frame.views
+    nv = len(views)
+    pixel = options.pixel_sigma
+    base = np.array([v.shift_px for v in views], dtype=np.float64)
+    prior = np.array([max(v.band_sigma_px if v.band_sigma_px is not None else v.sigma_pose_px, 1e-3)
+                      for v in views])
+    raw = frame.uv + base[frame.view_of]  # the undistorted pixels as the run's pose sees them
+    total = base.copy()
+    count = np.zeros(nv)
+    weight_sum = np.zeros(nv)
+    scatter = np.full(nv, np.nan)
+    saved = frame.uv, frame.rays, frame.noise
+    frame.noise = np.full(nv, pixel)
+    try:
+        for _ in range(8):
+            frame.uv = raw - total[frame.view_of]
+            frame.rays = frame.rays_of(frame.uv)
+            points, _ = frame.triangulate(groups)
+            points, _ = frame.triangulate(groups, points)
+            previous = total.copy()
+            for v, view in enumerate(views):
+                rows = np.flatnonzero(groups[:, v] >= 0)
+                if not len(rows):
+                    continue
+                uv, z = view.project(points[rows])
+                r = frame.uv[groups[rows, v]] - uv
+                ok = (z > 0) & np.all(np.isfinite(r), axis=1)
+                r = r[ok]
+                norm = np.linalg.norm(r, axis=1)
+                w = np.minimum(1.0, 2.0 * pixel / np.maximum(norm, 1e-9))
+                # MAP of the total shift under its prior N(0, prior^2): the residuals are against the shifted pixels
+                total[v] = (w @ (r + total[v])) / (w.sum() + (pixel / prior[v]) ** 2)
+                count[v], weight_sum[v] = len(r), w.sum()
+                if len(r) >= 5:
+                    size = np.sum(groups[rows[ok]] >= 0, axis=1)
+                    dof = np.mean(2 * size / np.maximum(2 * size - 3, 1))  # the point took 3 of 2m coordinates
+                    scatter[v] = math.sqrt(float(np.median(norm ** 2)) / (2 * math.log(2)) * dof)
+            if np.max(np.abs(total - previous)) < 0.01:
+                break
+    finally:
+        frame.uv, frame.rays, frame.noise = saved
+    sigma = 1.0 / np.sqrt(weight_sum / pixel ** 2 + 1.0 / prior ** 2)
+    return ViewCorrection(total, sigma, scatter, count.astype(int))
+
+
+def _apply_correction(views: list[View], correction: ViewCorrection, options: AssociateOptions) -> None:
+    """Shift each view's detections and tighten its band to what the shift leaves: the shift's own uncertainty plus
+    whatever scatter the groups show beyond the detector's noise, never wider than the run's band."""
+    for v, view in enumerate(views):
+        if view.band_sigma_px is None:
+            view.band_sigma_px = view.sigma_pose_px
+        band = view.band_sigma_px
+        scatter = correction.scatter_px[v]
+        if correction.members[v] < options.self_calibration_min_members or not math.isfinite(scatter):
+            continue  # too few groups see this view to say anything: it keeps the run's pose and band
+        excess = max(scatter ** 2 - options.pixel_sigma ** 2, 0.0)
+        view.shift_px = correction.shift_px[v].copy()
+        view.sigma_pose_px = float(min(band, math.sqrt(correction.shift_sigma_px[v] ** 2 + excess)))
+        moved = float(np.linalg.norm(view.shift_px))
+        if band > 0 and moved > 3.03 * band:  # outside the 99 % circle of a 2D normal with the band's sigma
+            logger.warning("%s: the crowd moves its pixels by %.1f px, beyond its pose sigma of %.1f px; the run's "
+                           "pose of this image is worse than its band says", view.name, moved, band)
+        logger.info("%s: shift (%.2f, %.2f) px +- %.2f from %d members, scatter %.2f px, sigma %.2f -> %.2f px",
+                    view.name, *view.shift_px, correction.shift_sigma_px[v], correction.members[v], scatter, band,
+                    view.sigma_pose_px)
+
+
+def associate_views(views: list[View], options: AssociateOptions) -> FrameResult:
+    """Persons seen by the detections of one frame's views (each view: pose, camera and raw detections).
+
+    Every view's pose error is shared by all the persons it sees; with ``options.self_calibration_rounds`` > 0 the
+    confident groups (three or more views) of one association estimate each view's shift, and the frame is
+    associated again with the shifted views and their tightened bands (the views are updated in place)."""
+    names = [v.name for v in views]
+    for round_ in range(options.self_calibration_rounds + 1):
+        frame, members, points, covariance, scores, positive = _solve(views, options)
+        if round_ == options.self_calibration_rounds:
+            break
+        confident = members[(np.sum(members >= 0, axis=1) >= 3) & (scores > options.self_calibration_min_score)]
+        if len(confident) < options.self_calibration_min_members:
+            logger.info("%d confident groups: too few to correct the views", len(confident))
+            break
+        _apply_correction(views, estimate_view_shifts(frame, confident, options), options)
+    total = int(frame.offsets[-1])
     # The cameras' own position errors are shared by every person they see, so they do not shrink with more views:
     # each person's covariance carries its views' mean centre variance on top of the triangulation's.
     centre_var = np.array([v.centre_sigma_m ** 2 for v in views])
@@ -440,6 +553,5 @@ def associate_views(views: list[View], options: AssociateOptions) -> FrameResult
     covariance = covariance + shared[:, None, None] * np.eye(3)[None]
     local = np.where(members >= 0, members - frame.offsets[:-1][None], -1)
     order = np.lexsort((points[:, 1], points[:, 0]))
-    logger.info("%d persons from %d detections in %d views (%d hypotheses)", len(order), total, len(views),
-                int(positive.sum()))
+    logger.info("%d persons from %d detections in %d views (%d hypotheses)", len(order), total, len(views), positive)
     return FrameResult(names, points[order], covariance[order], scores[order], local[order])

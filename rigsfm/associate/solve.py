@@ -21,6 +21,7 @@ Per frame:
 
 from __future__ import annotations
 
+import copy
 import logging
 import math
 from dataclasses import dataclass, field
@@ -206,6 +207,12 @@ class _Frame:
         k, r = self.k_of[self.view_of], self.r_of[self.view_of]
         normalised = (uv - k[:, :2, 2]) / np.stack([k[:, 0, 0], k[:, 1, 1]], axis=1)
         d = np.einsum("ni,nij->nj", np.c_[normalised, np.ones(len(uv))], r)
+        return d / np.linalg.norm(d, axis=1, keepdims=True)
+
+    def rays_of_view(self, uv: np.ndarray, v: int) -> np.ndarray:
+        """Unit world directions of undistorted pixels of view v."""
+        k, r = self.k_of[v], self.r_of[v]
+        d = np.c_[(uv - k[:2, 2]) / np.array([k[0, 0], k[1, 1]]), np.ones(len(uv))] @ r
         return d / np.linalg.norm(d, axis=1, keepdims=True)
 
     # --- geometry --------------------------------------------------------------------------------------------
@@ -506,6 +513,131 @@ def estimate_view_shifts(frame: _Frame, groups: np.ndarray, options: AssociateOp
     return ViewCorrection(total, sigma, scatter, count.astype(int))
 
 
+def _epipolar_offsets(frame: _Frame) -> list[tuple[int, int, np.ndarray, np.ndarray, np.ndarray, float]]:
+    """Per pair (i, j): every candidate's signed distance (px) from i's ray segment in j, and how it moves with
+    a shift of i's pixels (finite differences) and of j's (the segment's normal): (i, j, d, dd/ds_i, dd/ds_j, gate)."""
+    lo, hi = frame.options.heights
+    out = []
+    for i in range(len(frame.views)):
+        di = np.arange(frame.offsets[i], frame.offsets[i + 1])
+        di = di[frame.valid[di]]
+        if not len(di):
+            continue
+        centres = frame.centres[i][None]
+
+        def segment(uv, j):
+            d = frame.rays_of_view(uv, i)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                ends = []
+                for height in (lo, hi):
+                    t = (height - centres[:, 2]) / d[:, 2]
+                    t = np.where(np.isfinite(t) & (t > 0.1), t, 0.1)
+                    ends.append(frame.views[j].project(centres + t[:, None] * d))
+            return ends
+
+        for j in range(i + 1, len(frame.views)):
+            if frame.trees[j] is None:
+                continue
+            (a, za), (b, zb) = segment(frame.uv[di], j)
+            ok = (za > 0) & (zb > 0)
+            seg = b - a
+            length = np.linalg.norm(seg, axis=1)
+            ok &= length > 1e-6
+            gate = frame.options.gate_sigmas * math.hypot(frame.noise[i], frame.noise[j])
+            near = frame.trees[j].query_ball_point(((a + b) / 2)[ok], length[ok] / 2 + gate)
+            rows = np.flatnonzero(ok)
+            counts = np.array([len(n) for n in near], dtype=np.int64)
+            if not counts.sum():
+                continue
+            ra = np.repeat(rows, counts)
+            cb = frame.tree_index[j][np.concatenate([np.asarray(n, dtype=np.int64) for n in near])]
+
+            def signed(a_, b_):
+                s_ = b_ - a_
+                l_ = np.linalg.norm(s_, axis=1)
+                n_ = np.c_[-s_[:, 1], s_[:, 0]] / l_[:, None]
+                t_ = np.sum((frame.uv[cb] - a_) * s_, axis=1) / l_ ** 2
+                return np.sum((frame.uv[cb] - a_) * n_, axis=1), t_, n_
+
+            d, t, normal = signed(a[ra], b[ra])
+            keep = (t > 0) & (t < 1) & (np.abs(d) <= gate)
+            grad_i = np.zeros((len(d), 2))
+            for axis in range(2):
+                step = np.zeros(2)
+                step[axis] = 1.0
+                (a1, _), (b1, _) = segment(frame.uv[di] - step, j)  # the pixels moved as a shift of +1 moves them
+                grad_i[:, axis] = signed(a1[ra], b1[ra])[0] - d
+            # A shift s_j moves j's pixels by -s_j: the distance by -normal . s_j.
+            out.append((i, j, d[keep], grad_i[keep], -normal[keep], gate))
+    return out
+
+
+def pairwise_view_shifts(frame: _Frame, options: AssociateOptions, starts: int = 20,
+                         seed: int = 0) -> tuple[ViewCorrection, float]:
+    """Per-view shifts from the pairs alone, before any association: every pair's candidates are a mixture of
+    true correspondences (their distance from the epipolar segment is the two views' pixel noise once the views
+    are shifted right) and chance ones (uniform across the band). EM over that mixture, each view's shift with the
+    run's pose sigma as its prior, from the run's poses and from draws of that prior; the best penalised
+    likelihood wins. Returns the correction and its log-likelihood gain over no shift."""
+    views = frame.views
+    nv = len(views)
+    prior = np.array([max(v.band_sigma_px if v.band_sigma_px is not None else v.sigma_pose_px, 1e-3)
+                      for v in views])
+    pairs = _epipolar_offsets(frame)
+    if not pairs:
+        return ViewCorrection(np.zeros((nv, 2)), prior, np.full(nv, np.nan), np.zeros(nv, dtype=int)), 0.0
+    d = np.concatenate([p[2] for p in pairs])
+    jac = np.zeros((len(d), 2 * nv))
+    pair_of = np.concatenate([np.full(len(p[2]), k) for k, p in enumerate(pairs)])
+    uniform = np.concatenate([np.full(len(p[2]), 1.0 / (2 * p[5])) for p in pairs])
+    at = 0
+    for i, j, dd, gi, gj, _ in pairs:
+        jac[at:at + len(dd), 2 * i:2 * i + 2] = gi
+        jac[at:at + len(dd), 2 * j:2 * j + 2] = gj
+        at += len(dd)
+    var = 2.0 * options.pixel_sigma ** 2
+    precision = np.repeat(1.0 / prior ** 2, 2)
+
+    def loglik(x, share):
+        r = d + jac @ x
+        inlier = share[pair_of] * np.exp(-0.5 * r ** 2 / var) / math.sqrt(2 * math.pi * var)
+        mix = inlier + (1 - share[pair_of]) * uniform
+        return float(np.sum(np.log(mix)) - 0.5 * np.sum(precision * x ** 2)), inlier / mix
+
+    rng = np.random.default_rng(seed)
+    best = None
+    for start in range(starts):
+        x = np.zeros(2 * nv) if start == 0 else rng.normal(0.0, np.repeat(prior, 2))
+        share = np.full(len(pairs), 0.1)
+        for _ in range(50):
+            _, w = loglik(x, share)
+            share = np.clip(np.bincount(pair_of, w, len(pairs)) / np.bincount(pair_of, minlength=len(pairs)),
+                            1e-3, 0.999)
+            # r = d + J x: the weighted least squares with the prior
+            lhs = (jac.T * (w / var)) @ jac + np.diag(precision)
+            new = np.linalg.solve(lhs, -(jac.T @ (w * d)) / var)
+            done = np.max(np.abs(new - x)) < 0.01
+            x = new
+            if done:
+                break
+        value, w = loglik(x, share)
+        if best is None or value > best[0]:
+            best = (value, x, w, share)
+    value, x, w, share = best
+    zero = loglik(np.zeros(2 * nv), share)[0]
+    lhs = (jac.T * (w / var)) @ jac + np.diag(precision)
+    cov = np.linalg.inv(lhs)
+    sigma = np.sqrt(np.maximum(cov[0::2, 0::2].diagonal(), cov[1::2, 1::2].diagonal()))
+    r = d + jac @ x
+    count = np.zeros(nv)
+    for k, (i, j, *_rest) in enumerate(pairs):
+        count[i] += w[pair_of == k].sum()
+        count[j] += w[pair_of == k].sum()
+    # A pair's distance carries both views' noise: per view and coordinate, half its variance.
+    scatter = np.full(nv, math.sqrt(float(np.sum(w * r ** 2) / max(w.sum(), 1e-9)) / 2.0))
+    return ViewCorrection(x.reshape(nv, 2), sigma, scatter, count.astype(int)), value - zero
+
+
 def _apply_correction(views: list[View], correction: ViewCorrection, options: AssociateOptions) -> None:
     """Shift each view's detections and tighten its band to what the shift leaves: the shift's own uncertainty plus
     whatever scatter the groups show beyond the detector's noise, never wider than the run's band."""
@@ -528,22 +660,55 @@ def _apply_correction(views: list[View], correction: ViewCorrection, options: As
                     view.sigma_pose_px)
 
 
+def _confident(members: np.ndarray, scores: np.ndarray, options: AssociateOptions) -> np.ndarray:
+    """The groups a correction may rest on: three or more views, scoring above the self-calibration's threshold."""
+    return members[(np.sum(members >= 0, axis=1) >= 3) & (scores > options.self_calibration_min_score)]
+
+
+def _corrected(views: list[View], correction: ViewCorrection, options: AssociateOptions) -> list[View]:
+    trial = [copy.copy(v) for v in views]
+    for view in trial:
+        if view.band_sigma_px is None:
+            view.band_sigma_px = view.sigma_pose_px
+    _apply_correction(trial, correction, options)
+    return trial
+
+
 def associate_views(views: list[View], options: AssociateOptions) -> FrameResult:
     """Persons seen by the detections of one frame's views (each view: pose, camera and raw detections).
 
-    Every view's pose error is shared by all the persons it sees; with ``options.self_calibration_rounds`` > 0 the
-    confident groups (three or more views) of one association estimate each view's shift, and the frame is
-    associated again with the shifted views and their tightened bands (the views are updated in place)."""
+    Every view's pose error is shared by all the persons it sees. With ``options.self_calibration_rounds`` > 0 the
+    views are first shifted by the pairs' own evidence (pairwise_view_shifts), then, each round, by the confident
+    groups of the last association (estimate_view_shifts), and the frame associated again with the shifted views
+    and their tightened bands. A correction is kept only where it leaves more confident groups than before (the
+    crowd's own test of it: wrong shifts under tight bands break the groups up); the views are updated in place."""
     names = [v.name for v in views]
-    for round_ in range(options.self_calibration_rounds + 1):
-        frame, members, points, covariance, scores, positive = _solve(views, options)
-        if round_ == options.self_calibration_rounds:
-            break
-        confident = members[(np.sum(members >= 0, axis=1) >= 3) & (scores > options.self_calibration_min_score)]
+    state = _solve(views, options)
+    count = len(_confident(state[1], state[4], options))
+    if options.self_calibration_rounds > 0 and len(views) >= 3:
+        correction, gain = pairwise_view_shifts(state[0], options)
+        trial = _corrected(views, correction, options)
+        tried = _solve(trial, options)
+        tried_count = len(_confident(tried[1], tried[4], options))
+        logger.info("pairwise shifts (log-likelihood gain %.1f): %d confident groups against %d on the run's poses",
+                    gain, tried_count, count)
+        if tried_count > count:
+            views[:] = trial
+            state, count = tried, tried_count
+    for _ in range(options.self_calibration_rounds):
+        confident = _confident(state[1], state[4], options)
         if len(confident) < options.self_calibration_min_members:
             logger.info("%d confident groups: too few to correct the views", len(confident))
             break
-        _apply_correction(views, estimate_view_shifts(frame, confident, options), options)
+        trial = _corrected(views, estimate_view_shifts(state[0], confident, options), options)
+        tried = _solve(trial, options)
+        tried_count = len(_confident(tried[1], tried[4], options))
+        logger.info("shifts from %d groups: %d confident groups after", len(confident), tried_count)
+        if tried_count < count:
+            break
+        views[:] = trial
+        state, count = tried, tried_count
+    frame, members, points, covariance, scores, positive = state
     total = int(frame.offsets[-1])
     # The cameras' own position errors are shared by every person they see, so they do not shrink with more views:
     # each person's covariance carries its views' mean centre variance on top of the triangulation's.

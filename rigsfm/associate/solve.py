@@ -17,6 +17,11 @@ Per frame:
    point's covariance leaves (``log rho + 3/2 log 2 pi + 1/2 log det Sigma``: two views fix a point much less
    than four). A global set packing (each detection in at most one person; scipy's MILP) keeps the
    set of hypotheses with the largest summed score.
+5. Self-calibration: a view's pose error moves all its detections alike, by more than the heads' spacing allows a
+   band to absorb. Per view a shift of its undistorted pixels (a small rotation) is estimated, first from the pairs
+   (pairwise_view_shifts), then from the confident groups (estimate_view_shifts), each under the run's pose sigma as
+   its prior; the frame is associated again with the shifted views and the bands the shift leaves. A correction is
+   kept only where it leaves more confident groups than before.
 """
 
 from __future__ import annotations
@@ -513,60 +518,61 @@ def estimate_view_shifts(frame: _Frame, groups: np.ndarray, options: AssociateOp
     return ViewCorrection(total, sigma, scatter, count.astype(int))
 
 
+def _segment_in(frame: _Frame, i: int, j: int, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Where the rays of view i's undistorted pixels ``uv`` between the two heights project in view j: the ends
+    (N x 2 each) and whether both lie in front of j."""
+    lo, hi = frame.options.heights
+    centre = frame.centres[i][None]
+    d = frame.rays_of_view(uv, i)
+    ends, front = [], np.ones(len(uv), dtype=bool)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        for height in (lo, hi):
+            t = (height - centre[:, 2]) / d[:, 2]
+            t = np.where(np.isfinite(t) & (t > 0.1), t, 0.1)
+            end, z = frame.views[j].project(centre + t[:, None] * d)
+            ends.append(end)
+            front &= z > 0
+    return ends[0], ends[1], front
+
+
+def _signed_distance(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Signed distance of points p from the lines a-b, where along a-b they fall (0..1 inside) and the normals."""
+    s = b - a
+    length = np.linalg.norm(s, axis=1)
+    normal = np.c_[-s[:, 1], s[:, 0]] / length[:, None]
+    return np.sum((p - a) * normal, axis=1), np.sum((p - a) * s, axis=1) / length ** 2, normal
+
+
 def _epipolar_offsets(frame: _Frame) -> list[tuple[int, int, np.ndarray, np.ndarray, np.ndarray, float]]:
     """Per pair (i, j): every candidate's signed distance (px) from i's ray segment in j, and how it moves with
     a shift of i's pixels (finite differences) and of j's (the segment's normal): (i, j, d, dd/ds_i, dd/ds_j, gate)."""
-    lo, hi = frame.options.heights
     out = []
     for i in range(len(frame.views)):
         di = np.arange(frame.offsets[i], frame.offsets[i + 1])
         di = di[frame.valid[di]]
         if not len(di):
             continue
-        centres = frame.centres[i][None]
-
-        def segment(uv, j):
-            d = frame.rays_of_view(uv, i)
-            with np.errstate(divide="ignore", invalid="ignore"):
-                ends = []
-                for height in (lo, hi):
-                    t = (height - centres[:, 2]) / d[:, 2]
-                    t = np.where(np.isfinite(t) & (t > 0.1), t, 0.1)
-                    ends.append(frame.views[j].project(centres + t[:, None] * d))
-            return ends
-
         for j in range(i + 1, len(frame.views)):
             if frame.trees[j] is None:
                 continue
-            (a, za), (b, zb) = segment(frame.uv[di], j)
-            ok = (za > 0) & (zb > 0)
-            seg = b - a
-            length = np.linalg.norm(seg, axis=1)
+            a, b, ok = _segment_in(frame, i, j, frame.uv[di])
+            length = np.linalg.norm(b - a, axis=1)
             ok &= length > 1e-6
             gate = frame.options.gate_sigmas * math.hypot(frame.noise[i], frame.noise[j])
             near = frame.trees[j].query_ball_point(((a + b) / 2)[ok], length[ok] / 2 + gate)
-            rows = np.flatnonzero(ok)
             counts = np.array([len(n) for n in near], dtype=np.int64)
             if not counts.sum():
                 continue
-            ra = np.repeat(rows, counts)
-            cb = frame.tree_index[j][np.concatenate([np.asarray(n, dtype=np.int64) for n in near])]
-
-            def signed(a_, b_):
-                s_ = b_ - a_
-                l_ = np.linalg.norm(s_, axis=1)
-                n_ = np.c_[-s_[:, 1], s_[:, 0]] / l_[:, None]
-                t_ = np.sum((frame.uv[cb] - a_) * s_, axis=1) / l_ ** 2
-                return np.sum((frame.uv[cb] - a_) * n_, axis=1), t_, n_
-
-            d, t, normal = signed(a[ra], b[ra])
+            ra = np.repeat(np.flatnonzero(ok), counts)
+            p = frame.uv[frame.tree_index[j][np.concatenate([np.asarray(n, dtype=np.int64) for n in near])]]
+            d, t, normal = _signed_distance(p, a[ra], b[ra])
             keep = (t > 0) & (t < 1) & (np.abs(d) <= gate)
             grad_i = np.zeros((len(d), 2))
             for axis in range(2):
                 step = np.zeros(2)
                 step[axis] = 1.0
-                (a1, _), (b1, _) = segment(frame.uv[di] - step, j)  # the pixels moved as a shift of +1 moves them
-                grad_i[:, axis] = signed(a1[ra], b1[ra])[0] - d
+                a1, b1, _ = _segment_in(frame, i, j, frame.uv[di] - step)  # as a shift of +1 moves the pixels
+                grad_i[:, axis] = _signed_distance(p, a1[ra], b1[ra])[0] - d
             # A shift s_j moves j's pixels by -s_j: the distance by -normal . s_j.
             out.append((i, j, d[keep], grad_i[keep], -normal[keep], gate))
     return out

@@ -274,7 +274,7 @@ def test_self_calibration_finds_shifts_put_into_the_views(crowd):
     exact = pycolmap.Reconstruction(str(dataset / "ground_truth"))
     posed = RunModel({im.name: im for im in exact.images.values() if im.name in model.images}, model.bands,
                      model.known, model.world, model.centre_sigma_m)
-    put = np.array([[0.0, 0.0], [0.0, 4.0], [0.0, -4.0], [0.0, 3.0]])  # vertical: these rigs' epipolar lines are
+    put = np.array([[0.0, 0.0], [0.0, 5.0], [0.0, -5.0], [0.0, 4.0]])  # vertical: these rigs' epipolar lines are
     names = sorted(truth.points)  # near horizontal, so the pairs see vertical shifts best
     detections = from_arrays({n: truth.points[n] + put[k] for k, n in enumerate(names)})
     (name, images), = detections.frames().items()

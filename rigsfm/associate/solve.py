@@ -686,8 +686,9 @@ def associate_views(views: list[View], options: AssociateOptions) -> FrameResult
     Every view's pose error is shared by all the persons it sees. With ``options.self_calibration_rounds`` > 0 the
     views are first shifted by the pairs' own evidence (pairwise_view_shifts), then, each round, by the confident
     groups of the last association (estimate_view_shifts), and the frame associated again with the shifted views
-    and their tightened bands. A correction is kept only where it leaves more confident groups than before (the
-    crowd's own test of it: wrong shifts under tight bands break the groups up); the views are updated in place."""
+    and their tightened bands. A correction is kept only where it leaves more confident groups than before, and the
+    pairs' one only where those are enough to re-estimate the shifts from (the crowd's own test of it: wrong shifts
+    under tight bands break the groups up); the views are updated in place."""
     names = [v.name for v in views]
     state = _solve(views, options)
     count = len(_confident(state[1], state[4], options))
@@ -698,7 +699,9 @@ def associate_views(views: list[View], options: AssociateOptions) -> FrameResult
         tried_count = len(_confident(tried[1], tried[4], options))
         logger.info("pairwise shifts (log-likelihood gain %.1f): %d confident groups against %d on the run's poses",
                     gain, tried_count, count)
-        if tried_count > count:
+        # Kept only when the shifted views hold enough confident groups to re-estimate the shifts from: a handful
+        # more than none is chance, not evidence.
+        if tried_count > count and tried_count >= options.self_calibration_min_members:
             views[:] = trial
             state, count = tried, tried_count
     for _ in range(options.self_calibration_rounds):

@@ -17,8 +17,9 @@ class AssociateOptions:
     member_gate: float = 3.5  # a member's reprojection within this many sigmas of the person's point
     min_score: float = -2.0  # keep hypotheses whose score exceeds this (measured best on rendered crowds)
     # The crowd corrects each view's pose error: associate, estimate every view's shift from the groups of three or
-    # more views scoring above this, associate again with the shifted views (this many rounds; 0: the run's poses).
-    self_calibration_rounds: int = 2
+    # more views scoring above this, associate again with the shifted views (at most this many rounds, fewer once the
+    # confident groups stop growing; 0: the run's poses).
+    self_calibration_rounds: int = 4
     self_calibration_min_score: float = 0.0
     self_calibration_min_members: int = 10  # a view's shift needs this many group members (else it stays as run)
     time_limit_s: float = 20.0  # per frame, for the global set packing (then the best solution found)

@@ -716,7 +716,9 @@ def associate_views(views: list[View], options: AssociateOptions) -> FrameResult
         if tried_count < count:
             break
         views[:] = trial
-        state, count = tried, tried_count
+        state, count, grew = tried, tried_count, tried_count > count
+        if not grew:
+            break  # converged: the crowd holds no more confident groups to learn from
     frame, members, points, covariance, scores, positive = state
     total = int(frame.offsets[-1])
     # The cameras' own position errors are shared by every person they see, so they do not shrink with more views:

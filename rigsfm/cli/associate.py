@@ -28,7 +28,7 @@ def associate_command(
                                                             "included)")] = 0.7,
     self_calibration_rounds: Annotated[int, typer.Option(
         "--self-calibration-rounds", min=0, metavar="N",
-        help="correct each view's pose error from the crowd, re-associating this many times (0: the run's poses)")] = 2,
+        help="correct each view's pose error from the crowd, re-associating up to this many times (0: the run's poses)")] = 4,
     overwrite: Annotated[bool, flag("--overwrite", help="replace an earlier association in --out")] = False,
     verbose: Annotated[bool, flag("--verbose", "-v", help="show rigsfm's log (info level) on the terminal")] = False,
 ) -> None:

@@ -16,6 +16,12 @@ class AssociateOptions:
     gate_sigmas: float = 3.5  # candidate pairs: distance to i's ray segment in j within this many sigmas
     member_gate: float = 3.5  # a member's reprojection within this many sigmas of the person's point
     min_score: float = -2.0  # keep hypotheses whose score exceeds this (measured best on rendered crowds)
+    # The crowd corrects each view's pose error: associate, estimate every view's shift from the groups of three or
+    # more views scoring above this, associate again with the shifted views (at most this many rounds, fewer once the
+    # confident groups stop growing; 0: the run's poses).
+    self_calibration_rounds: int = 4
+    self_calibration_min_score: float = 0.0
+    self_calibration_min_members: int = 10  # a view's shift needs this many group members (else it stays as run)
     time_limit_s: float = 20.0  # per frame, for the global set packing (then the best solution found)
     cell_m: float = 1.0  # density grid cell (m)
     out: Path | None = None  # DIR; None: OUT/associate
@@ -32,3 +38,5 @@ class AssociateOptions:
         if not (self.gate_sigmas > 0 and self.member_gate > 0 and self.cell_m > 0 and self.time_limit_s > 0
                 and self.persons_per_m2 > 0):
             raise ValueError("gates, cell size and time limit must be > 0")
+        if self.self_calibration_rounds < 0 or self.self_calibration_min_members < 1:
+            raise ValueError("self-calibration rounds must be >= 0 and its minimum members >= 1")

@@ -80,6 +80,11 @@ def persons_json(frame) -> dict:
     return {"frame": frame.frame, "frame_units": "world metres (the run's world frame)",
             "views": [v.name for v in views],
             "sigma_pose_px": {v.name: round(v.sigma_pose_px, 4) for v in views},
+            # The crowd's correction of each view (undistorted px, subtracted from its detections) and the band's
+            # sigma before it; a zero shift and no band sigma: the view kept the run's pose.
+            "shift_px": {v.name: [round(float(c), 4) for c in v.shift_px] for v in views},
+            "band_sigma_px": {v.name: round(v.band_sigma_px if v.band_sigma_px is not None else v.sigma_pose_px, 4)
+                              for v in views},
             "persons": persons, "unassigned": unassigned}
 
 

@@ -17,13 +17,19 @@ Per frame:
    point's covariance leaves (``log rho + 3/2 log 2 pi + 1/2 log det Sigma``: two views fix a point much less
    than four). A global set packing (each detection in at most one person; scipy's MILP) keeps the
    set of hypotheses with the largest summed score.
+5. Self-calibration: a view's pose error moves all its detections alike, by more than the heads' spacing allows a
+   band to absorb. Per view a shift of its undistorted pixels (a small rotation) is estimated, first from the pairs
+   (pairwise_view_shifts), then from the confident groups (estimate_view_shifts), each under the run's pose sigma as
+   its prior; the frame is associated again with the shifted views and the bands the shift leaves. A correction is
+   kept only where it leaves more confident groups than before.
 """
 
 from __future__ import annotations
 
+import copy
 import logging
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import pycolmap
@@ -54,6 +60,10 @@ class View:
     xy: np.ndarray  # N x 2 raw COLMAP pixels
     sigma_pose_px: float = 0.0
     centre_sigma_m: float = 0.0  # the camera centre's 1 sigma relative to the network (the run's uncertainty)
+    # The crowd's own correction of the run's pose error (a shift of the undistorted pixels, i.e. a small rotation
+    # for a narrow camera) and the band sigma before it.
+    shift_px: np.ndarray = field(default_factory=lambda: np.zeros(2))
+    band_sigma_px: float | None = None
 
     @classmethod
     def of(cls, image: pycolmap.Image, xy: np.ndarray) -> View:
@@ -170,7 +180,7 @@ class _Frame:
         undist, rays = [], []
         for v in views:
             if len(v.xy):
-                uv = undistort_pixels(v.camera, v.xy)
+                uv = undistort_pixels(v.camera, v.xy) - v.shift_px[None]
                 d = np.c_[(uv - v.k[:2, 2]) / np.array([v.k[0, 0], v.k[1, 1]]), np.ones(len(uv))] @ v.r
                 d /= np.linalg.norm(d, axis=1, keepdims=True)
             else:
@@ -179,6 +189,8 @@ class _Frame:
             rays.append(d)
         self.uv = np.concatenate(undist) if undist else np.zeros((0, 2))
         self.rays = np.concatenate(rays) if rays else np.zeros((0, 3))
+        self.k_of = np.array([v.k for v in views]) if views else np.zeros((0, 3, 3))
+        self.r_of = np.array([v.r for v in views]) if views else np.zeros((0, 3, 3))
         self.valid = np.all(np.isfinite(self.uv), axis=1)
         self.centres = np.array([v.centre for v in views])
         self.focals = np.array([v.focal for v in views])
@@ -196,6 +208,19 @@ class _Frame:
             near = tree.query_ball_point(self.uv[rows], options.clutter_radius_px, return_length=True)
             self.clutter[rows] = np.maximum(near, 1) / (math.pi * options.clutter_radius_px ** 2)
             self.clutter[rows] = np.maximum(self.clutter[rows], 1.0 / area[i])
+
+    def rays_of(self, uv: np.ndarray) -> np.ndarray:
+        """Unit world directions of undistorted pixels (one per detection, in the stacked order)."""
+        k, r = self.k_of[self.view_of], self.r_of[self.view_of]
+        normalised = (uv - k[:, :2, 2]) / np.stack([k[:, 0, 0], k[:, 1, 1]], axis=1)
+        d = np.einsum("ni,nij->nj", np.c_[normalised, np.ones(len(uv))], r)
+        return d / np.linalg.norm(d, axis=1, keepdims=True)
+
+    def rays_of_view(self, uv: np.ndarray, v: int) -> np.ndarray:
+        """Unit world directions of undistorted pixels of view v."""
+        k, r = self.k_of[v], self.r_of[v]
+        d = np.c_[(uv - k[:2, 2]) / np.array([k[0, 0], k[1, 1]]), np.ones(len(uv))] @ r
+        return d / np.linalg.norm(d, axis=1, keepdims=True)
 
     # --- geometry --------------------------------------------------------------------------------------------
 
@@ -426,16 +451,282 @@ def _pack(members: np.ndarray, scores: np.ndarray, total: int, time_limit: float
     return chosen
 
 
-def associate_views(views: list[View], options: AssociateOptions) -> FrameResult:
-    """Persons seen by the detections of one frame's views (each view: pose, camera and raw detections)."""
+def _solve(views: list[View], options: AssociateOptions) -> tuple[_Frame, np.ndarray, np.ndarray, np.ndarray,
+                                                                   np.ndarray, int]:
+    """One association of a frame: hypotheses, their scores and the global packing."""
     frame = _Frame(views, options)
-    names = [v.name for v in views]
     total = int(frame.offsets[-1])
     members, points, covariance, scores = frame.hypotheses()
     positive = scores > options.min_score
     members, points, covariance, scores = members[positive], points[positive], covariance[positive], scores[positive]
     chosen = _pack(members, scores - options.min_score, total, options.time_limit_s)
-    members, points, covariance, scores = members[chosen], points[chosen], covariance[chosen], scores[chosen]
+    return frame, members[chosen], points[chosen], covariance[chosen], scores[chosen], int(positive.sum())
+
+
+@dataclass
+class ViewCorrection:
+    """Per view: the shift (undistorted px) the crowd asks for, its posterior sigma, the residual scatter left."""
+
+    shift_px: np.ndarray  # V x 2, total (relative to the run's pose)
+    shift_sigma_px: np.ndarray  # V
+    scatter_px: np.ndarray  # V, per coordinate, members' residual after the shift (robust)
+    members: np.ndarray  # V, how many group members each view's estimate rests on
+
+
+def estimate_view_shifts(frame: _Frame, groups: np.ndarray, options: AssociateOptions) -> ViewCorrection:
+    """The per-view shift of the detections (a small rotation of a narrow camera) that best explains the groups'
+    reprojection residuals: a bundle adjustment of points and shifts, each shift with the run's pose sigma as its
+    prior (no view is fixed: the prior holds the gauge), residuals Huber-weighted so wrong groups weigh little."""
+    views = frame.views
+    nv = len(views)
+    pixel = options.pixel_sigma
+    base = np.array([v.shift_px for v in views], dtype=np.float64)
+    prior = np.array([max(v.band_sigma_px if v.band_sigma_px is not None else v.sigma_pose_px, 1e-3)
+                      for v in views])
+    raw = frame.uv + base[frame.view_of]  # the undistorted pixels as the run's pose sees them
+    total = base.copy()
+    count = np.zeros(nv)
+    weight_sum = np.zeros(nv)
+    scatter = np.full(nv, np.nan)
+    saved = frame.uv, frame.rays, frame.noise
+    frame.noise = np.full(nv, pixel)
+    try:
+        for _ in range(8):
+            frame.uv = raw - total[frame.view_of]
+            frame.rays = frame.rays_of(frame.uv)
+            points, _ = frame.triangulate(groups)
+            points, _ = frame.triangulate(groups, points)
+            previous = total.copy()
+            for v, view in enumerate(views):
+                rows = np.flatnonzero(groups[:, v] >= 0)
+                if not len(rows):
+                    continue
+                uv, z = view.project(points[rows])
+                r = frame.uv[groups[rows, v]] - uv
+                ok = (z > 0) & np.all(np.isfinite(r), axis=1)
+                r = r[ok]
+                norm = np.linalg.norm(r, axis=1)
+                w = np.minimum(1.0, 2.0 * pixel / np.maximum(norm, 1e-9))
+                # MAP of the total shift under its prior N(0, prior^2): the residuals are against the shifted pixels
+                total[v] = (w @ (r + total[v])) / (w.sum() + (pixel / prior[v]) ** 2)
+                count[v], weight_sum[v] = len(r), w.sum()
+                if len(r) >= 5:
+                    size = np.sum(groups[rows[ok]] >= 0, axis=1)
+                    dof = np.mean(2 * size / np.maximum(2 * size - 3, 1))  # the point took 3 of 2m coordinates
+                    scatter[v] = math.sqrt(float(np.median(norm ** 2)) / (2 * math.log(2)) * dof)
+            if np.max(np.abs(total - previous)) < 0.01:
+                break
+    finally:
+        frame.uv, frame.rays, frame.noise = saved
+    sigma = 1.0 / np.sqrt(weight_sum / pixel ** 2 + 1.0 / prior ** 2)
+    return ViewCorrection(total, sigma, scatter, count.astype(int))
+
+
+def _segment_in(frame: _Frame, i: int, j: int, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Where the rays of view i's undistorted pixels ``uv`` between the two heights project in view j: the ends
+    (N x 2 each) and whether both lie in front of j."""
+    lo, hi = frame.options.heights
+    centre = frame.centres[i][None]
+    d = frame.rays_of_view(uv, i)
+    ends, front = [], np.ones(len(uv), dtype=bool)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        for height in (lo, hi):
+            t = (height - centre[:, 2]) / d[:, 2]
+            t = np.where(np.isfinite(t) & (t > 0.1), t, 0.1)
+            end, z = frame.views[j].project(centre + t[:, None] * d)
+            ends.append(end)
+            front &= z > 0
+    return ends[0], ends[1], front
+
+
+def _signed_distance(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Signed distance of points p from the lines a-b, where along a-b they fall (0..1 inside) and the normals."""
+    s = b - a
+    length = np.linalg.norm(s, axis=1)
+    normal = np.c_[-s[:, 1], s[:, 0]] / length[:, None]
+    return np.sum((p - a) * normal, axis=1), np.sum((p - a) * s, axis=1) / length ** 2, normal
+
+
+def _epipolar_offsets(frame: _Frame) -> list[tuple[int, int, np.ndarray, np.ndarray, np.ndarray, float]]:
+    """Per pair (i, j): every candidate's signed distance (px) from i's ray segment in j, and how it moves with
+    a shift of i's pixels (finite differences) and of j's (the segment's normal): (i, j, d, dd/ds_i, dd/ds_j, gate)."""
+    out = []
+    for i in range(len(frame.views)):
+        di = np.arange(frame.offsets[i], frame.offsets[i + 1])
+        di = di[frame.valid[di]]
+        if not len(di):
+            continue
+        for j in range(i + 1, len(frame.views)):
+            tree = frame.trees[j]
+            if tree is None:
+                continue
+            a, b, ok = _segment_in(frame, i, j, frame.uv[di])
+            length = np.linalg.norm(b - a, axis=1)
+            ok &= length > 1e-6
+            gate = frame.options.gate_sigmas * math.hypot(frame.noise[i], frame.noise[j])
+            near = tree.query_ball_point(((a + b) / 2)[ok], length[ok] / 2 + gate)
+            counts = np.array([len(n) for n in near], dtype=np.int64)
+            if not counts.sum():
+                continue
+            ra = np.repeat(np.flatnonzero(ok), counts)
+            p = frame.uv[frame.tree_index[j][np.concatenate([np.asarray(n, dtype=np.int64) for n in near])]]
+            d, t, normal = _signed_distance(p, a[ra], b[ra])
+            keep = (t > 0) & (t < 1) & (np.abs(d) <= gate)
+            grad_i = np.zeros((len(d), 2))
+            for axis in range(2):
+                step = np.zeros(2)
+                step[axis] = 1.0
+                a1, b1, _ = _segment_in(frame, i, j, frame.uv[di] - step)  # as a shift of +1 moves the pixels
+                grad_i[:, axis] = _signed_distance(p, a1[ra], b1[ra])[0] - d
+            # A shift s_j moves j's pixels by -s_j: the distance by -normal . s_j.
+            out.append((i, j, d[keep], grad_i[keep], -normal[keep], gate))
+    return out
+
+
+def pairwise_view_shifts(frame: _Frame, options: AssociateOptions, starts: int = 20,
+                         seed: int = 0) -> tuple[ViewCorrection, float]:
+    """Per-view shifts from the pairs alone, before any association: every pair's candidates are a mixture of
+    true correspondences (their distance from the epipolar segment is the two views' pixel noise once the views
+    are shifted right) and chance ones (uniform across the band). EM over that mixture, each view's shift with the
+    run's pose sigma as its prior, from the run's poses and from draws of that prior; the best penalised
+    likelihood wins. Returns the correction and its log-likelihood gain over no shift."""
+    views = frame.views
+    nv = len(views)
+    prior = np.array([max(v.band_sigma_px if v.band_sigma_px is not None else v.sigma_pose_px, 1e-3)
+                      for v in views])
+    pairs = _epipolar_offsets(frame)
+    if not pairs:
+        return ViewCorrection(np.zeros((nv, 2)), prior, np.full(nv, np.nan), np.zeros(nv, dtype=int)), 0.0
+    d = np.concatenate([p[2] for p in pairs])
+    jac = np.zeros((len(d), 2 * nv))
+    pair_of = np.concatenate([np.full(len(p[2]), k) for k, p in enumerate(pairs)])
+    uniform = np.concatenate([np.full(len(p[2]), 1.0 / (2 * p[5])) for p in pairs])
+    at = 0
+    for i, j, dd, gi, gj, _ in pairs:
+        jac[at:at + len(dd), 2 * i:2 * i + 2] = gi
+        jac[at:at + len(dd), 2 * j:2 * j + 2] = gj
+        at += len(dd)
+    var = 2.0 * options.pixel_sigma ** 2
+    precision = np.repeat(1.0 / prior ** 2, 2)
+
+    def loglik(x, share):
+        r = d + jac @ x
+        inlier = share[pair_of] * np.exp(-0.5 * r ** 2 / var) / math.sqrt(2 * math.pi * var)
+        mix = inlier + (1 - share[pair_of]) * uniform
+        return float(np.sum(np.log(mix)) - 0.5 * np.sum(precision * x ** 2)), inlier / mix
+
+    rng = np.random.default_rng(seed)
+    best = None
+    for start in range(starts):
+        x = np.zeros(2 * nv) if start == 0 else rng.normal(0.0, np.repeat(prior, 2))
+        share = np.full(len(pairs), 0.1)
+        for _ in range(50):
+            _, w = loglik(x, share)
+            share = np.clip(np.bincount(pair_of, w, len(pairs)) / np.bincount(pair_of, minlength=len(pairs)),
+                            1e-3, 0.999)
+            # r = d + J x: the weighted least squares with the prior
+            lhs = (jac.T * (w / var)) @ jac + np.diag(precision)
+            new = np.linalg.solve(lhs, -(jac.T @ (w * d)) / var)
+            done = np.max(np.abs(new - x)) < 0.01
+            x = new
+            if done:
+                break
+        value, w = loglik(x, share)
+        if best is None or value > best[0]:
+            best = (value, x, w, share)
+    assert best is not None  # the loop above runs at least once
+    value, x, w, share = best
+    zero = loglik(np.zeros(2 * nv), share)[0]
+    lhs = (jac.T * (w / var)) @ jac + np.diag(precision)
+    cov = np.linalg.inv(lhs)
+    sigma = np.sqrt(np.maximum(cov[0::2, 0::2].diagonal(), cov[1::2, 1::2].diagonal()))
+    r = d + jac @ x
+    count = np.zeros(nv)
+    for k, (i, j, *_rest) in enumerate(pairs):
+        count[i] += w[pair_of == k].sum()
+        count[j] += w[pair_of == k].sum()
+    # A pair's distance carries both views' noise: per view and coordinate, half its variance.
+    scatter = np.full(nv, math.sqrt(float(np.sum(w * r ** 2) / max(w.sum(), 1e-9)) / 2.0))
+    return ViewCorrection(x.reshape(nv, 2), sigma, scatter, count.astype(int)), value - zero
+
+
+def _apply_correction(views: list[View], correction: ViewCorrection, options: AssociateOptions) -> None:
+    """Shift each view's detections and tighten its band to what the shift leaves: the shift's own uncertainty plus
+    whatever scatter the groups show beyond the detector's noise, never wider than the run's band."""
+    for v, view in enumerate(views):
+        if view.band_sigma_px is None:
+            view.band_sigma_px = view.sigma_pose_px
+        band = view.band_sigma_px
+        scatter = correction.scatter_px[v]
+        if correction.members[v] < options.self_calibration_min_members or not math.isfinite(scatter):
+            continue  # too few groups see this view to say anything: it keeps the run's pose and band
+        excess = max(scatter ** 2 - options.pixel_sigma ** 2, 0.0)
+        view.shift_px = correction.shift_px[v].copy()
+        view.sigma_pose_px = float(min(band, math.sqrt(correction.shift_sigma_px[v] ** 2 + excess)))
+        moved = float(np.linalg.norm(view.shift_px))
+        if band > 0 and moved > 3.03 * band:  # outside the 99 % circle of a 2D normal with the band's sigma
+            logger.warning("%s: the crowd moves its pixels by %.1f px, beyond its pose sigma of %.1f px; the run's "
+                           "pose of this image is worse than its band says", view.name, moved, band)
+        logger.info("%s: shift (%.2f, %.2f) px +- %.2f from %d members, scatter %.2f px, sigma %.2f -> %.2f px",
+                    view.name, *view.shift_px, correction.shift_sigma_px[v], correction.members[v], scatter, band,
+                    view.sigma_pose_px)
+
+
+def _confident(members: np.ndarray, scores: np.ndarray, options: AssociateOptions) -> np.ndarray:
+    """The groups a correction may rest on: three or more views, scoring above the self-calibration's threshold."""
+    return members[(np.sum(members >= 0, axis=1) >= 3) & (scores > options.self_calibration_min_score)]
+
+
+def _corrected(views: list[View], correction: ViewCorrection, options: AssociateOptions) -> list[View]:
+    trial = [copy.copy(v) for v in views]
+    for view in trial:
+        if view.band_sigma_px is None:
+            view.band_sigma_px = view.sigma_pose_px
+    _apply_correction(trial, correction, options)
+    return trial
+
+
+def associate_views(views: list[View], options: AssociateOptions) -> FrameResult:
+    """Persons seen by the detections of one frame's views (each view: pose, camera and raw detections).
+
+    Every view's pose error is shared by all the persons it sees. With ``options.self_calibration_rounds`` > 0 the
+    views are first shifted by the pairs' own evidence (pairwise_view_shifts), then, each round, by the confident
+    groups of the last association (estimate_view_shifts), and the frame associated again with the shifted views
+    and their tightened bands. A correction is kept only where it leaves more confident groups than before, and the
+    pairs' one only where those are enough to re-estimate the shifts from (the crowd's own test of it: wrong shifts
+    under tight bands break the groups up); the views are updated in place."""
+    names = [v.name for v in views]
+    state = _solve(views, options)
+    count = len(_confident(state[1], state[4], options))
+    if options.self_calibration_rounds > 0 and len(views) >= 3:
+        correction, gain = pairwise_view_shifts(state[0], options)
+        trial = _corrected(views, correction, options)
+        tried = _solve(trial, options)
+        tried_count = len(_confident(tried[1], tried[4], options))
+        logger.info("pairwise shifts (log-likelihood gain %.1f): %d confident groups against %d on the run's poses",
+                    gain, tried_count, count)
+        # Kept only when the shifted views hold enough confident groups to re-estimate the shifts from: a handful
+        # more than none is chance, not evidence.
+        if tried_count > count and tried_count >= options.self_calibration_min_members:
+            views[:] = trial
+            state, count = tried, tried_count
+    for _ in range(options.self_calibration_rounds):
+        confident = _confident(state[1], state[4], options)
+        if len(confident) < options.self_calibration_min_members:
+            logger.info("%d confident groups: too few to correct the views", len(confident))
+            break
+        trial = _corrected(views, estimate_view_shifts(state[0], confident, options), options)
+        tried = _solve(trial, options)
+        tried_count = len(_confident(tried[1], tried[4], options))
+        logger.info("shifts from %d groups: %d confident groups after", len(confident), tried_count)
+        if tried_count < count:
+            break
+        views[:] = trial
+        state, count, grew = tried, tried_count, tried_count > count
+        if not grew:
+            break  # converged: the crowd holds no more confident groups to learn from
+    frame, members, points, covariance, scores, positive = state
+    total = int(frame.offsets[-1])
     # The cameras' own position errors are shared by every person they see, so they do not shrink with more views:
     # each person's covariance carries its views' mean centre variance on top of the triangulation's.
     centre_var = np.array([v.centre_sigma_m ** 2 for v in views])
@@ -444,6 +735,5 @@ def associate_views(views: list[View], options: AssociateOptions) -> FrameResult
     covariance = covariance + shared[:, None, None] * np.eye(3)[None]
     local = np.where(members >= 0, members - frame.offsets[:-1][None], -1)
     order = np.lexsort((points[:, 1], points[:, 0]))
-    logger.info("%d persons from %d detections in %d views (%d hypotheses)", len(order), total, len(views),
-                int(positive.sum()))
+    logger.info("%d persons from %d detections in %d views (%d hypotheses)", len(order), total, len(views), positive)
     return FrameResult(names, points[order], covariance[order], scores[order], local[order])

@@ -26,6 +26,9 @@ def associate_command(
     detection_probability: Annotated[float, typer.Option(
         "--detection-probability", min=0.01, max=0.99, metavar="P", help="a person is detected in a view that sees it (occlusion "
                                                             "included)")] = 0.7,
+    self_calibration_rounds: Annotated[int, typer.Option(
+        "--self-calibration-rounds", min=0, metavar="N",
+        help="correct each view's pose error from the crowd, re-associating up to this many times (0: the run's poses)")] = 4,
     overwrite: Annotated[bool, flag("--overwrite", help="replace an earlier association in --out")] = False,
     verbose: Annotated[bool, flag("--verbose", "-v", help="show rigsfm's log (info level) on the terminal")] = False,
 ) -> None:
@@ -37,7 +40,8 @@ def associate_command(
 
     try:
         options = AssociateOptions(heights=parse_heights(heights), pixel_sigma=pixel_sigma,
-                                   detection_probability=detection_probability, out=dest, overwrite=overwrite)
+                                   detection_probability=detection_probability,
+                                   self_calibration_rounds=self_calibration_rounds, out=dest, overwrite=overwrite)
     except ValueError as e:
         raise InputError(f"{e}; see rigsfm associate --help") from None
     console.print(f"persons: {associate(out, detections, options)}")

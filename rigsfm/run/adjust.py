@@ -860,8 +860,8 @@ def _adjust_refined(mapped: pycolmap.Reconstruction, rigs: Sequence[RigCalibrati
             result.options = replace(options, calibration=Calibration.FIXED)  # the sampled band's draws: held too
             result.decisions = decisions
             return result
-        if held:
-            result = _refine(mapped, rigs, scale_spec, options, priors, held)
+        if held:  # from the first pass's network: a shape the measurements had to pull far is not pulled again
+            result = _refine(result.reconstruction, rigs, scale_spec, options, priors, held)
             result.decisions = decisions
             result.warnings = list(dict.fromkeys(warnings + result.warnings))
     if result.scale_source != ScaleSource.NONE and with_covariance:

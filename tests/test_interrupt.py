@@ -341,13 +341,20 @@ def _catches_sigterm(pid: int) -> bool:
     return bool(caught >> (signal.SIGTERM - 1) & 1)
 
 
-def _stop(args: list[str], cwd: Path, signum: int, delay: float, ready: str = "") -> tuple[int, list[str], str]:
+def _with_signals_blocked() -> None:
+    """A terminal's foreground job started by a parent that had SIGINT and SIGTERM blocked (the mask is inherited)."""
+    _as_from_a_terminal()
+    signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT, signal.SIGTERM})
+
+
+def _stop(args: list[str], cwd: Path, signum: int, delay: float, ready: str = "",
+          start=_as_from_a_terminal) -> tuple[int, list[str], str]:
     """Start ``rigsfm ARGS``, send ``signum`` to its process group ``delay`` s after its handler is in place (or
     once its output shows ``ready``); returns the exit code, its error lines (log warnings left out) and its
     output."""
     process = subprocess.Popen([sys.executable, "-m", "rigsfm", *args], cwd=cwd, env=_env(), text=True,
                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, start_new_session=True,
-                               preexec_fn=_as_from_a_terminal)
+                               preexec_fn=start)
     while process.poll() is None and not _catches_sigterm(process.pid):
         time.sleep(0.002)
     time.sleep(delay)
@@ -397,6 +404,9 @@ def test_ctrl_c_ends_pick_with_where_the_pairs_are(tmp_path):
     assert stdout.splitlines()[-1] == "stopped: 0 pairs in m.csv (for `rigsfm run ... --manual-matches m.csv`)"
     code, lines, _ = _stop(args, tmp_path, signal.SIGTERM, 0.0, ready="Ctrl-C to stop")
     assert code == 143 and len(lines) == 1 and lines[0].startswith("terminated (SIGTERM): "), lines
+    # started with both signals blocked (a parent's mask: a test runner's worker had it so), Ctrl-C still ends it
+    code, lines, stdout = _stop(args, tmp_path, signal.SIGINT, 0.0, ready="Ctrl-C to stop", start=_with_signals_blocked)
+    assert (code, lines) == (0, []) and stdout.splitlines()[-1].startswith("stopped: 0 pairs in m.csv"), lines
 
 
 @pytest.mark.parametrize("verb", ["calibrate", "report", "view", "export", "explore", "associate", "track", "demo"])

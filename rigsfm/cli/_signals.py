@@ -77,6 +77,8 @@ def install() -> None:
             _ignored.add(signum)
         signal.signal(signum, signal.SIG_IGN if signum in _ignored else _handler)
         _installed.add(signum)
+    # a mask inherited from the parent (a process that had them blocked while it started us) would hold them forever
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, SIGNALS)
 
 
 @contextlib.contextmanager

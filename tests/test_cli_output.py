@@ -146,3 +146,25 @@ def test_demo_says_where_its_result_is_and_its_commands_work(tmp_path):
     # The demo's folder itself, given to view/export/report, names its run/.
     refused = _rigsfm(["report", out], tmp_path)
     assert refused.returncode == 1 and f"use {out / 'run'}" in refused.stderr, refused.stderr
+
+
+def test_log_lines_follow_a_replaced_stderr(monkeypatch):
+    """An in-process command configures logging on the stderr of its call; a later record, after that stream was
+    closed and replaced (pytest does so between tests), goes to the new stream instead of raising inside logging."""
+    import io
+    import logging
+
+    from rigsfm.cli.common import configure_logging
+
+    first, second = io.StringIO(), io.StringIO()
+    monkeypatch.setattr(sys, "stderr", first)
+    configure_logging(False)
+    try:
+        logging.getLogger("rigsfm.test").warning("to the first stream")
+        first.close()
+        monkeypatch.setattr(sys, "stderr", second)
+        logging.getLogger("rigsfm.test").warning("to the second stream")
+    finally:
+        logging.basicConfig(level=logging.WARNING, handlers=[logging.NullHandler()], force=True)
+    assert "to the second stream" in second.getvalue()
+    assert "Logging error" not in second.getvalue()

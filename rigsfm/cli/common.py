@@ -137,10 +137,27 @@ def configure_logging(verbose: bool) -> None:
     if console.is_terminal:
         handler = RichHandler(console=console, level=level, show_path=False, show_time=False)
     else:  # one whole line per record where it is read by a program or a file
-        handler = logging.StreamHandler(console.file)
+        handler = _ConsoleStreamHandler(console)
         handler.setLevel(level)
         handler.setFormatter(logging.Formatter("%(levelname)-8s %(message)s"))  # as RichHandler shows it
     logging.basicConfig(level=logging.INFO, handlers=[handler], force=True)
+
+
+class _ConsoleStreamHandler(logging.StreamHandler):
+    """Writes to the console's stream as it is at each record, not as it was when logging was configured: an
+    in-process caller (a test, a notebook) may close and replace ``sys.stderr`` after the command returns."""
+
+    def __init__(self, console: Console):
+        self._console = console
+        super().__init__()
+
+    @property
+    def stream(self):  # type: ignore[override]
+        return self._console.file
+
+    @stream.setter
+    def stream(self, value) -> None:
+        pass
 
 
 _LOG_CONSOLE: list[Console] = []

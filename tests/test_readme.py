@@ -122,3 +122,28 @@ def test_every_rigsfm_command_parses(page, monkeypatch):
                 raise AssertionError(f"{page}: rigsfm {verb}{rest}: {error.format_message()}") from error
     if page == "README.md":
         assert sum(runnable for *_, runnable in commands) >= 5
+
+
+def anchor(heading: str) -> str:
+    """GitHub's id of a Markdown heading: lower case, punctuation dropped, spaces as hyphens."""
+    return re.sub(r"[^\w\- ]", "", heading.strip().lower()).replace(" ", "-")
+
+
+def test_links_between_the_pages_resolve():
+    """Every relative link of the README, docs/ and benchmarks/README.md names a file that exists and, with #, one
+    of its headings."""
+    pages = [*DOCS, ROOT / "benchmarks" / "README.md"]
+    checked = 0
+    for page in pages:
+        text = re.sub(r"```.*?```", "", page.read_text(), flags=re.S)
+        for target in re.findall(r"\]\(([^)\s]+)\)", text):
+            if re.match(r"[a-z]+:", target):
+                continue
+            path, _, fragment = target.partition("#")
+            linked = (page.parent / path).resolve() if path else page
+            assert linked.exists(), f"{page.name}: link to {target}: no such file"
+            if fragment:
+                headings = re.findall(r"^#+ (.*)$", re.sub(r"```.*?```", "", linked.read_text(), flags=re.S), re.M)
+                assert fragment in {anchor(h) for h in headings}, f"{page.name}: link to {target}: no such heading"
+            checked += 1
+    assert checked >= 30

@@ -3,9 +3,11 @@ browser."""
 
 from __future__ import annotations
 
+import contextlib
 import shutil
 import struct
 import zlib
+from collections.abc import Iterator
 from pathlib import Path
 
 REAL_STEREO = Path(__file__).resolve().parent / "data" / "opencv-stereo"  # OpenCV's real stereo pairs
@@ -19,6 +21,23 @@ def launch_chromium(playwright):
     if executable and "/snap/" in str(Path(executable).resolve()):
         executable = None  # a snap wrapper cannot be driven headless from here: use Playwright's build
     return playwright.chromium.launch(executable_path=executable, headless=True, args=BROWSER_ARGS)
+
+
+@contextlib.contextmanager
+def browser_page(server, ready: str, width: int = 1800, height: int = 1100) -> Iterator:
+    """A headless Chromium page on a local page server (``rigsfm pick``, ``rigsfm explore``), loaded and ready:
+    ``ready`` is the page's promise to wait for. The browser closes on leaving; the server is the caller's."""
+    import playwright.sync_api as playwright_api
+
+    with playwright_api.sync_playwright() as p:
+        browser = launch_chromium(p)
+        try:
+            page = browser.new_page(viewport={"width": width, "height": height})
+            page.goto(server.url)
+            page.evaluate(ready)
+            yield page
+        finally:
+            browser.close()
 
 
 def start_local_ray(num_cpus: int = 2) -> None:

@@ -14,12 +14,11 @@ from urllib.parse import urlencode
 
 import cv2
 import numpy as np
-import playwright.sync_api as playwright_api
 import pycolmap
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
-from support import launch_chromium
+from support import browser_page
 from typer.testing import CliRunner
 
 from rigsfm.cli import app
@@ -97,13 +96,8 @@ def truth(run):
 def page(run, tmp_path):
     _, out = run
     server = start_explorer(out, ExploreOptions(labels=tmp_path / "labels.csv"))
-    with playwright_api.sync_playwright() as p:
-        browser = launch_chromium(p)
-        page = browser.new_page(viewport={"width": 1800, "height": 1100})
-        page.goto(server.url)
-        page.evaluate("window.explore.ready")
+    with browser_page(server, "window.explore.ready") as page:
         yield page, server, tmp_path / "labels.csv"
-        browser.close()
     server.close()
 
 
@@ -366,11 +360,7 @@ def test_frame_selector(two_frames, tmp_path):
     csv = tmp_path / "labels.csv"
     server = start_explorer(two_frames, ExploreOptions(frame="frame0001.png", labels=csv))
     try:
-        with playwright_api.sync_playwright() as p:
-            browser = launch_chromium(p)
-            page = browser.new_page(viewport={"width": 1600, "height": 1000})
-            page.goto(server.url)
-            page.evaluate("window.explore.ready")
+        with browser_page(server, "window.explore.ready", 1600, 1000) as page:
             assert page.eval_on_selector_all("#frame option", "o => o.map(x => x.value)") == ["frame0000.png",
                                                                                                 "frame0001.png"]
             assert page.input_value("#frame") == "frame0001.png"
@@ -385,7 +375,6 @@ def test_frame_selector(two_frames, tmp_path):
             assert "1 label in other frames" in page.locator("#status").inner_text()
             click(page, 1, (300.0, 200.0))
             settle(page, 1)
-            browser.close()
         labels, _ = read_labels(csv, server.session.result.sizes)
         assert [(label.image, label.person) for label in labels] == [("rig01/narrow/frame0001.png", "p1"),
                                                                      ("rig02/narrow/frame0000.png", "p1")]

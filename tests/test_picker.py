@@ -3,9 +3,8 @@
 import http.client
 
 import numpy as np
-import playwright.sync_api as playwright_api
 import pytest
-from support import launch_chromium
+from support import browser_page
 from test_manual_matches import A, B, synthetic_correspondences
 
 from rigsfm.pick import start_picker
@@ -25,13 +24,8 @@ def dataset(rendered):
 @pytest.fixture()
 def page(dataset, tmp_path):
     server = start_picker(dataset.images / A, dataset.images / B, tmp_path / "matches.csv", dataset.rigs)
-    with playwright_api.sync_playwright() as p:
-        browser = launch_chromium(p)
-        page = browser.new_page(viewport={"width": 1800, "height": 1100})
-        page.goto(server.url)
-        page.evaluate("window.picker.ready")
+    with browser_page(server, "window.picker.ready") as page:
         yield page, server, tmp_path / "matches.csv"
-        browser.close()
     server.close()
 
 

@@ -137,29 +137,31 @@ def _jpeg(f: BinaryIO) -> int | None:
 
 def _png(f: BinaryIO) -> int | None:
     """The eXIf chunk, wherever it is (viewers read one after the image data too)."""
-    f.seek(8)
-    while True:
-        header = f.read(8)
-        if len(header) < 8:
-            return None
-        length, kind = struct.unpack(">I4s", header)
-        if kind == b"eXIf":
-            return _exif_block(f.read(length))
-        if kind == b"IEND":
-            return None
-        f.seek(length + 4, io.SEEK_CUR)  # data and CRC
+    return _chunked(f, start=8, header=">I4s", exif=b"eXIf", end=b"IEND", after=lambda length: 4)  # the CRC
 
 
 def _webp(f: BinaryIO) -> int | None:
-    f.seek(12)
+    return _chunked(f, start=12, header="<4sI", exif=b"EXIF", end=None,
+                    after=lambda length: length & 1)  # RIFF pads each chunk to an even size
+
+
+def _chunked(f: BinaryIO, *, start: int, header: str, exif: bytes, end: bytes | None,
+             after: Callable[[int], int]) -> int | None:
+    """Orientation in the first ``exif`` chunk of a file of chunks from byte ``start`` on (PNG, RIFF), reading
+    the headers only: each chunk is an 8-byte ``header`` (its data's length and its kind, in either order), the
+    data, then ``after(length)`` bytes; no chunk after one of kind ``end`` counts."""
+    f.seek(start)
     while True:
-        header = f.read(8)
-        if len(header) < 8:
+        head = f.read(8)
+        if len(head) < 8:
             return None
-        kind, size = struct.unpack("<4sI", header)
-        if kind == b"EXIF":
-            return _exif_block(f.read(size))
-        f.seek(size + (size & 1), io.SEEK_CUR)  # chunks are padded to an even size
+        first, second = struct.unpack(header, head)
+        length, kind = (first, second) if isinstance(first, int) else (second, first)
+        if kind == exif:
+            return _exif_block(f.read(length))
+        if kind == end:
+            return None
+        f.seek(length + after(length), io.SEEK_CUR)
 
 
 def refuse_turned_images(paths: Sequence[Path], *, folder: Path | None = None,

@@ -1,7 +1,9 @@
 """The local page servers' common pieces (``rigsfm pick``, ``rigsfm explore``): an HTTP server on 127.0.0.1 only,
 in a daemon thread, whose handler answers only a Host of 127.0.0.1 or localhost (a page elsewhere cannot reach it
 through DNS rebinding), serves fixed names only (no request path becomes a file path) and images as the browser
-must show them.
+must show them; ``static/page.js`` and ``static/page.css`` are the pages' common script (requests, SVG, views
+that zoom, pan and take clicks) and layout, which each server serves as ``/page.js`` and ``/page.css``
+(``SHARED_FILES``).
 """
 
 from __future__ import annotations
@@ -26,6 +28,8 @@ logger = logging.getLogger(__name__)
 
 BROWSER_FORMATS = {".png", ".jpg", ".jpeg", ".bmp"}
 MAX_BODY = 5_000_000
+SHARED_FILES = {f"/{name}": Path(__file__).resolve().parent / "static" / name  # every page loads these
+                for name in ("page.js", "page.css")}
 
 
 def image_bytes(path: Path) -> tuple[bytes, str]:

@@ -16,7 +16,7 @@ from pathlib import Path
 from urllib.parse import parse_qs, urlparse
 
 from rigsfm.core.errors import RigsfmError
-from rigsfm.core.local_server import LocalHandler, LocalServer, image_bytes
+from rigsfm.core.local_server import SHARED_FILES, LocalHandler, LocalServer, image_bytes
 from rigsfm.explore.session import ExploreOptions, ExploreSession
 
 logger = logging.getLogger(__name__)
@@ -38,6 +38,8 @@ class _Handler(LocalHandler):
         try:
             if url.path in FILES:
                 self._static(STATIC / FILES[url.path])
+            elif url.path in SHARED_FILES:
+                self._static(SHARED_FILES[url.path])
             elif url.path == "/image":
                 names = self.session.result.frame_names(frame or self.session.frame)
                 view = int(query["view"])

@@ -17,7 +17,7 @@ from pathlib import Path
 from urllib.parse import parse_qs, urlparse
 
 from rigsfm.core.errors import RigsfmError
-from rigsfm.core.local_server import LocalHandler, LocalServer
+from rigsfm.core.local_server import SHARED_FILES, LocalHandler, LocalServer
 from rigsfm.core.local_server import image_bytes as _image_bytes
 from rigsfm.core.rig import load_rigs
 from rigsfm.core.workspace import os_error_text
@@ -42,6 +42,8 @@ class _Handler(LocalHandler):
                 self._static(STATIC / "index.html")
             elif url.path in ("/picker.js", "/picker.css"):
                 self._static(STATIC / url.path[1:])
+            elif url.path in SHARED_FILES:
+                self._static(SHARED_FILES[url.path])
             elif url.path in ("/image/a", "/image/b"):
                 self._send(*_image_bytes(self.session.images[0 if url.path.endswith("a") else 1].path))
             elif url.path == "/api/state":

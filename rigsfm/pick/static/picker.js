@@ -1,66 +1,18 @@
 "use strict";
 // rigsfm pick: two wide images, click pairs, epipolar line of the point being placed (from 8 pairs on).
-// Image coordinates are COLMAP pixels: the image spans [0, width] x [0, height], so a CSS pixel of the
-// unscaled image maps 1:1 onto them.
+// The views, requests and SVG helpers are page.js's; image coordinates are COLMAP pixels.
 
-const SVGNS = "http://www.w3.org/2000/svg";
 const SIDES = ["a", "b"];
 const state = { images: [], pairs: [], pending: null, selected: -1, model: false, epi: null, info: {} };
 const views = { a: { s: 1, tx: 0, ty: 0 }, b: { s: 1, tx: 0, ty: 0 } };
-const $ = (id) => document.getElementById(id);
-
-function setStatus(text, error = false) {
-  const status = $("status");
-  status.textContent = text;
-  status.classList.toggle("error", error);
-}
-
-async function api(method, url, body) {
-  const response = await fetch(url, {
-    method, headers: body ? { "Content-Type": "application/json" } : {}, body: body ? JSON.stringify(body) : undefined,
-  });
-  const data = await response.json();
-  if (!response.ok) throw new Error(data.error || response.statusText);
-  return data;
-}
+const { fit, toImage, toScreen, attach } = imageViews(views, {
+  imageOf: (side) => state.images[side === "a" ? 0 : 1], draw, place,
+});
 
 function pendingKey() { return "rigsfm-pick:" + state.images.map((i) => i.name).join("|"); }
 function storePending() {
   if (state.pending) localStorage.setItem(pendingKey(), JSON.stringify(state.pending));
   else localStorage.removeItem(pendingKey());
-}
-
-function applyView(side) {
-  const v = views[side];
-  $("stage-" + side).style.transform = `translate(${v.tx}px, ${v.ty}px) scale(${v.s})`;
-  draw(side);
-}
-
-function fit(side) {
-  const image = state.images[side === "a" ? 0 : 1];
-  const rect = $("view-" + side).getBoundingClientRect();
-  const s = Math.min(rect.width / image.width, rect.height / image.height);
-  views[side] = { s, tx: (rect.width - image.width * s) / 2, ty: (rect.height - image.height * s) / 2 };
-  applyView(side);
-}
-
-function toImage(side, clientX, clientY) {
-  const rect = $("view-" + side).getBoundingClientRect();
-  const v = views[side];
-  return [(clientX - rect.left - v.tx) / v.s, (clientY - rect.top - v.ty) / v.s];
-}
-
-function toScreen(side, x, y) {
-  const rect = $("view-" + side).getBoundingClientRect();
-  const v = views[side];
-  return [rect.left + v.tx + x * v.s, rect.top + v.ty + y * v.s];
-}
-
-function svgElement(name, attrs, parent) {
-  const node = document.createElementNS(SVGNS, name);
-  for (const [k, v] of Object.entries(attrs)) node.setAttribute(k, v);
-  parent.appendChild(node);
-  return node;
 }
 
 function draw(side) {
@@ -240,40 +192,6 @@ async function reload() {
   });
   SIDES.forEach(fit);
   await updateEpipolar();
-}
-
-function attach(side) {
-  const view = $("view-" + side);
-  let drag = null;
-  view.addEventListener("wheel", (e) => {
-    e.preventDefault();
-    const v = views[side];
-    const rect = view.getBoundingClientRect();
-    const s = Math.min(64, Math.max(0.05, v.s * Math.exp(-e.deltaY * 0.0015)));
-    const cx = e.clientX - rect.left, cy = e.clientY - rect.top;
-    views[side] = { s, tx: cx - (cx - v.tx) * (s / v.s), ty: cy - (cy - v.ty) * (s / v.s) };
-    applyView(side);
-  }, { passive: false });
-  view.addEventListener("mousedown", (e) => {
-    if (e.button !== 0) return;
-    drag = { x: e.clientX, y: e.clientY, tx: views[side].tx, ty: views[side].ty, moved: false };
-  });
-  window.addEventListener("mousemove", (e) => {
-    if (!drag) return;
-    const dx = e.clientX - drag.x, dy = e.clientY - drag.y;
-    if (Math.abs(dx) + Math.abs(dy) > 4) drag.moved = true;
-    if (drag.moved) {
-      views[side].tx = drag.tx + dx;
-      views[side].ty = drag.ty + dy;
-      applyView(side);
-    }
-  });
-  window.addEventListener("mouseup", (e) => {
-    if (!drag) return;
-    const wasClick = !drag.moved;
-    drag = null;
-    if (wasClick) place(side, toImage(side, e.clientX, e.clientY));
-  });
 }
 
 SIDES.forEach(attach);

@@ -372,6 +372,39 @@ def test_yaml_merge_keys_may_still_override(tmp_path):
     assert parse_yaml("x: &a {k: 1, j: 2}\ny:\n  <<: *a\n  k: 3\n") == {"x": {"k": 1, "j": 2}, "y": {"k": 3, "j": 2}}
 
 
+@pytest.mark.parametrize("text", [
+    "a: 010", "a: -010", "a: 0o17", "a: 0x1F", "a: 0b101", "a: 1_000", "a: 1:30", "a: -0", "a: +12", "a: 0",
+    "a: 1.5", "a: 1_0.5", "a: 1:30.5", "a: .inf", "a: -.Inf", "a: .5", "a: 1.", "a: 1e5", "a: 1.0e+5",
+    "a: yes", "a: Off", "a: ~", "a: null", "a: ''", "a: '1.5'", "a: !!float 3", "a: !!int '7'",
+    "a: 2001-12-14", "a: !!binary aGk=", "? [1, 2]\n: 3", "'1': 2\n1: 3", "[1, 2, {a: b}]", "", "1",
+    "a: &x [1, {k: v}]\nb: *x", "a: &x [1, *x]", "x: &a {k: 1}\ny: {<<: *a, j: 2}",
+])
+def test_the_fast_yaml_reader_reads_what_pyyaml_reads(text):
+    """parse_yaml builds plain documents itself (PyYAML's constructor is the slow half of a large rigs.yaml):
+    every scalar form, anchors, merge keys and cyclic documents read as yaml.safe_load reads them."""
+    from rigsfm.core.io import parse_yaml
+
+    def outcome(load):
+        try:
+            return repr(load(text))
+        except yaml.YAMLError as error:
+            return type(error).__name__
+
+    assert outcome(parse_yaml) == outcome(yaml.safe_load)
+    shared = parse_yaml("a: &x [1, {k: v}]\nb: *x")
+    assert shared["a"] is shared["b"]  # an anchored node is one object, as PyYAML makes it
+
+
+def test_a_key_given_twice_is_refused_at_any_depth_outermost_first():
+    from rigsfm.core.io import DuplicateKeyError, parse_yaml
+
+    with pytest.raises(DuplicateKeyError, match=r"the key 'a' is given twice \(first on line 1\)"):
+        parse_yaml("a: {x: 1, x: 2}\nb: 0\na: 3\n")
+    with pytest.raises(DuplicateKeyError, match=r"the key 'x' is given twice \(first on line 2\)") as error:
+        parse_yaml("rigs:\n  - {x: 1,\n     y: 2, x: 3}\n")
+    assert error.value.problem_mark.line == 2
+
+
 @pytest.mark.parametrize("edit,words", [
     (lambda p: _set_text(p, "name: rig01", "name: 1"),
      r"rigs\[0\]: rig name 1 is read as a number, not text; quote it \(name: \"1\"\)"),

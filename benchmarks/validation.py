@@ -3,7 +3,7 @@
     python benchmarks/validation.py [--rigs 100 1000 3000] [--repeat 5]
 
 Writes, under a temporary folder, one rigs.yaml per size as ``rigsfm calibrate`` writes it (OPENCV wide and narrow
-cameras, every sigma and the 6x6 covariance: ~1.3 KB a rig), then times :func:`rigsfm.core.rig.load_rigs` on it
+cameras, every sigma and the 6x6 covariance: ~0.94 KB a rig), then times :func:`rigsfm.core.rig.load_rigs` on it
 (CPU seconds of this process, the best of ``--repeat``), split into the parse (:func:`rigsfm.core.io.parse_yaml`)
 and the rest (the rig checks). Prints one JSON line per size; linear validation keeps the time per rig constant.
 """

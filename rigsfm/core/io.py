@@ -9,6 +9,7 @@ import hashlib
 import io
 import json
 import os
+import re
 import shutil
 import stat
 import tempfile
@@ -55,6 +56,18 @@ def write_bytes_atomic(path: Path, data: bytes, *, overwrite: bool = True) -> Pa
         Path(tmp).unlink(missing_ok=True)
         raise
     return path
+
+
+# the temporary names write_bytes_atomic and atomic_directory make beside a path: '.NAME.' + tempfile's 8 characters
+# + '.tmp'
+_TEMPORARY_NAME = re.compile(r"^\.(?P<name>.+)\.[a-z0-9_]{8}\.tmp$")
+
+
+def real_path(path: str | os.PathLike) -> str:
+    """``path`` with each temporary name rigsfm writes under (``.NAME.x1y2z3w4.tmp``) replaced by the NAME it
+    becomes: what a message names, as the user never made the temporary file or folder."""
+    parts = str(path).split(os.sep)
+    return os.sep.join(match.group("name") if (match := _TEMPORARY_NAME.match(part)) else part for part in parts)
 
 
 def sha256_file(path: Path) -> str:
@@ -180,10 +193,10 @@ def check_regular_file(path: Path, what: str) -> os.stat_result:
     try:
         info = os.stat(path)
     except OSError as error:
-        raise InputError(f"{what} file {path} {access_problem(path, error)}") from None
+        raise InputError(f"{what} file '{path}' {access_problem(path, error)}") from None
     kind = file_kind(info.st_mode)
     if kind is not None:
-        raise InputError(f"{what} file {path} is {kind}, not a regular file; give the path of the {what} file itself")
+        raise InputError(f"{what} file '{path}' is {kind}, not a regular file; give the path of the {what} file itself")
     return info
 
 
@@ -194,12 +207,12 @@ def read_user_text(path: Path, what: str, *, max_bytes: int | None = None) -> st
     path = Path(path)
     info = check_regular_file(path, what)
     if max_bytes is not None and info.st_size > max_bytes:
-        raise InputError(f"{what} file {path} is {info.st_size / 2**20:.1f} MiB, over the {max_bytes / 2**20:g} MiB any "
+        raise InputError(f"{what} file '{path}' is {info.st_size / 2**20:.1f} MiB, over the {max_bytes / 2**20:g} MiB any "
                          "real one takes; is it the right file?")
     try:
         data = path.read_bytes()
     except OSError as error:
-        raise InputError(f"{what} file {path} {access_problem(path, error)}") from None
+        raise InputError(f"{what} file '{path}' {access_problem(path, error)}") from None
     encoding = next((name for bom, name in BOMS if data.startswith(bom)), "utf-8")
     try:
         return data.decode(encoding)

@@ -417,10 +417,10 @@ def load_rigs(path: Path) -> list[RigCalibration]:
         if "/" in name or "\\" in name or name.startswith(".") or "\0" in name:
             raise InputError(f"{where}: rig name {name!r} must be a plain folder name")
         if nfc(name) in first_index:
-            raise InputError(f"{path}: rig names must be unique, repeated: {name} (rigs[{first_index[nfc(name)]}] and "
+            raise InputError(f"{path}: rig names must be unique, repeated: '{name}' (rigs[{first_index[nfc(name)]}] and "
                              f"rigs[{index}])")
         first_index[nfc(name)] = index
-        where = f"{path}: rig {name}"
+        where = f"{path}: rig '{name}'"
         check_keys(entry, RIG_KEYS, where)
         sensors = entry.get("sensors")
         if isinstance(sensors, dict):

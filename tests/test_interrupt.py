@@ -515,6 +515,10 @@ def _stop_track(args: list[str], signum: int, log: Path, registered: int) -> tup
         os.killpg(process.pid, signal.SIGKILL)
         raise
     took = time.monotonic() - sent
+    for _ in range(500):  # the worker, multiprocessing's resource tracker: gone with the command
+        if not any(_alive(pid) for pid in helpers):
+            break
+        time.sleep(0.02)
     assert not [pid for pid in helpers if _alive(pid)], "processes left running after the command ended"
     return process.returncode, [line for line in stderr.splitlines() if line.strip()], took
 

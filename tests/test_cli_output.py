@@ -47,7 +47,7 @@ def test_messages_are_printed_verbatim(tmp_path, did, shown):
 def test_a_demo_folder_points_to_its_run(tmp_path):
     code, message = table.run_case(_case("`rigsfm export` given a demo's folder instead of its run/"), tmp_path / "c")
     assert code == 1
-    assert message == "error: demo is a `rigsfm demo` folder, whose result is in its run/ folder: use demo/run (e.g. " \
+    assert message == "error: 'demo' is a `rigsfm demo` folder, whose result is in its run/ folder: use demo/run (e.g. " \
                       "`rigsfm view demo/run`)"
     assert not (tmp_path / "c" / "demo" / "export").exists()
 

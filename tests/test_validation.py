@@ -313,25 +313,25 @@ def test_a_damaged_model_names_the_folder_and_the_fix(tmp_path):
     assert read_model(sparse, "fix it").num_images() == 2
     images = (sparse / "images.bin").read_bytes()
     (sparse / "images.bin").write_bytes(images[:20])
-    with pytest.raises(WorkspaceError, match=r"sparse/images.bin is truncated or damaged \(20 B; says 2 images but "
+    with pytest.raises(WorkspaceError, match=r"sparse/images.bin' is truncated or damaged \(20 B; says 2 images but "
                                              r"only 12 B follow\): re-run `rigsfm run IMAGES"):
         Workspace(tmp_path / "out").read_sparse()
     (sparse / "images.bin").unlink()
-    with pytest.raises(WorkspaceError, match=r"sparse holds no complete COLMAP model \(images.bin missing\): fix"):
+    with pytest.raises(WorkspaceError, match=r"sparse' holds no complete COLMAP model \(images.bin missing\): fix"):
         read_model(sparse, "fix")
 
 
 @pytest.mark.parametrize("text,words", [
-    ('{"narrow": [], "pairs": [', r"narrow_poses.json is not valid JSON \(.*\): re-run `rigsfm run"),
-    ("[]", r"narrow_poses.json is not a file rigsfm wrote \(no narrow, pairs\)"),
-    ("\udcff", r"narrow_poses.json is not valid JSON"),
+    ('{"narrow": [], "pairs": [', r"narrow_poses.json' is not valid JSON \(.*\): re-run `rigsfm run"),
+    ("[]", r"narrow_poses.json' is not a file rigsfm wrote \(no narrow, pairs\)"),
+    ("\udcff", r"narrow_poses.json' is not valid JSON"),
 ])
 def test_a_damaged_json_file_names_itself(tmp_path, text, words):
     workspace = Workspace(tmp_path)
     workspace.narrow_poses.write_bytes(text.encode("utf-8", "surrogateescape"))
     with pytest.raises(WorkspaceError, match=words):
         workspace.read_narrow_poses()
-    with pytest.raises(WorkspaceError, match=r"nothing.json is missing: fix"):
+    with pytest.raises(WorkspaceError, match=r"nothing.json' is missing: fix"):
         read_json(tmp_path / "nothing.json", "fix")
 
 

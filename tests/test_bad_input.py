@@ -63,29 +63,29 @@ def test_rig_without_images(tmp_path):
     images, rigs_path, data = make_inputs(tmp_path)
     data["rigs"].append(dict(copy.deepcopy(RIG), name="rig03"))
     write_rigs(rigs_path, data)
-    expect(tmp_path, r"rig rig03 .* has no folder", images, rigs_path)
+    expect(tmp_path, r"rig 'rig03' .* has no folder", images, rigs_path)
 
 
 def test_folder_without_rig(tmp_path):
     images, rigs_path, data = make_inputs(tmp_path)
     data["rigs"] = data["rigs"][:1]
     write_rigs(rigs_path, data)
-    expect(tmp_path, r"folder\(s\) rig02 have no rig in the calibration file", images, rigs_path)
+    expect(tmp_path, r"folder\(s\) 'rig02' have no rig in the calibration file", images, rigs_path)
 
 
 def test_rig_folder_without_wide_images(tmp_path):
     images, rigs_path, _ = make_inputs(tmp_path)
     cv2.imwrite(str(images / "rig02" / "narrow" / "f1.png"), np.zeros((H, W), np.uint8))
-    expect(tmp_path, r"rig02/narrow/f1.png has no wide image of the same name", images, rigs_path)
+    expect(tmp_path, r"rig02/narrow/f1.png' has no wide image of the same name", images, rigs_path)
     (images / "rig02" / "narrow" / "f1.png").unlink()
     (images / "rig02" / "wide" / "f0.png").unlink()
-    expect(tmp_path, r"rig rig02 has no wide images", images, rigs_path)
+    expect(tmp_path, r"rig 'rig02' has no wide images", images, rigs_path)
 
 
 def test_image_size_contradicts_calibration(tmp_path):
     images, rigs_path, _ = make_inputs(tmp_path)
     cv2.imwrite(str(images / "rig02" / "wide" / "f0.png"), np.zeros((H, W + 2), np.uint8))
-    expect(tmp_path, rf"rig02/wide/f0.png is {W + 2}x{H} but .* calibrated for {W}x{H}", images, rigs_path)
+    expect(tmp_path, rf"rig02/wide/f0.png' is {W + 2}x{H} but .* calibrated for {W}x{H}", images, rigs_path)
 
 
 @pytest.mark.parametrize("rotation,match", [
@@ -97,14 +97,14 @@ def test_rotation_that_is_not_a_rotation(tmp_path, rotation, match):
     images, rigs_path, data = make_inputs(tmp_path)
     data["rigs"][1]["narrow_from_wide"]["rotation"] = rotation
     write_rigs(rigs_path, data)
-    expect(tmp_path, rf"rig rig02 narrow_from_wide: .*{match}", images, rigs_path)
+    expect(tmp_path, rf"rig 'rig02' narrow_from_wide: .*{match}", images, rigs_path)
 
 
 def test_unknown_camera_model(tmp_path):
     images, rigs_path, data = make_inputs(tmp_path)
     data["rigs"][0]["sensors"]["wide"] = dict(CAMERA, model="PINHOL")
     write_rigs(rigs_path, data)
-    expect(tmp_path, r"rig rig01 sensor wide: unknown camera model 'PINHOL'; use one of .*PINHOLE", images, rigs_path)
+    expect(tmp_path, r"rig 'rig01' sensor wide: unknown camera model 'PINHOL'; use one of .*PINHOLE", images, rigs_path)
 
 
 def test_wrong_parameter_count(tmp_path):
@@ -195,6 +195,6 @@ def test_a_rig_without_narrow_images_finishes_with_exit_0_and_the_warning(tmp_pa
     result = CliRunner().invoke(app, ["run", str(images), "--rigs", str(dataset.rigs), "--scale", str(dataset.scale),
                                       "--out", str(tmp_path / "out")], env={"COLUMNS": "400"})
     assert result.exit_code == 0, result.output
-    assert "NO NARROW IMAGES: rig rig03 has no narrow images" in result.output
+    assert "NO NARROW IMAGES: rig 'rig03' has no narrow images" in result.output
     poses = json.loads((tmp_path / "out" / "narrow_poses.json").read_text())
     assert "rig03/narrow" not in json.dumps(poses) and "rig01/narrow" in json.dumps(poses)

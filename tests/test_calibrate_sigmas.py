@@ -114,7 +114,7 @@ def test_sigma_keys_round_trip_and_are_checked():
     entry = yaml.safe_load(text)["rigs"][0]
     assert list(entry["narrow_from_wide"]) == ["rotation", "translation", "sigma_rotation_deg", "sigma_translation_m",
                                                "covariance"]
-    back = sigmas_from_entry(entry, "rigs.yaml: rig rig01")
+    back = sigmas_from_entry(entry, "rigs.yaml: rig 'rig01'")
     np.testing.assert_allclose(back.wide, sigmas.wide, rtol=1e-3)
     np.testing.assert_allclose(back.rotation_deg, sigmas.rotation_deg, rtol=1e-3)
     np.testing.assert_allclose(back.covariance, cov, rtol=1e-7)
@@ -122,11 +122,11 @@ def test_sigma_keys_round_trip_and_are_checked():
     bad = yaml.safe_load(text)["rigs"][0]
     bad["sensors"]["narrow"]["sigmas"] = [0.1] * 7
     with pytest.raises(InputError, match="sensor narrow sigmas .one per entry of params"):
-        sigmas_from_entry(bad, "rigs.yaml: rig rig01")
+        sigmas_from_entry(bad, "rigs.yaml: rig 'rig01'")
     bad = yaml.safe_load(text)["rigs"][0]
     bad["narrow_from_wide"]["covariance"][0][0] = -1e-8
     with pytest.raises(InputError, match="positive semi-definite"):
-        sigmas_from_entry(bad, "rigs.yaml: rig rig01")
+        sigmas_from_entry(bad, "rigs.yaml: rig 'rig01'")
 
 
 @pytest.mark.slow

@@ -7,7 +7,7 @@ import pycolmap
 import pytest
 from synthetic_db import make_network
 
-from rigsfm.core.errors import ReconstructionError
+from rigsfm.core.errors import InputError, ReconstructionError
 from rigsfm.core.workspace import Workspace
 from rigsfm.run.adjust import adjust
 from rigsfm.run.diagnostics import check_reconstruction, contradicted_pairs, loosely_tied_rigs
@@ -105,3 +105,38 @@ def test_scale_messages_name_the_measurement_and_why(tmp_path):
     assert scale.unused == ("known_length[0] (2.0 m): fewer than two of its images were registered "
                             "(rig09/wide/frame0000.png not)",)
     assert [m.label for m in scale.measurements] == ["rig01/wide - rig02/wide"]
+
+
+def _distances(rec, pairs, factors, sensors=("wide", "wide")) -> ScaleSpec:
+    """Camera distances between rigs ``pairs`` of ``rec`` (metres = model units), each times its factor."""
+    def centre(rig):
+        return rec.find_image_with_name(f"{rig}/wide/frame0000.png").projection_center()
+
+    return ScaleSpec(Path("scale.yaml"), tuple(
+        CameraDistance(f"{a}/{sensors[0]}", f"{b}/{sensors[1]}", factor * float(np.linalg.norm(centre(a) - centre(b))))
+        for (a, b), factor in zip(pairs, factors, strict=True)), ())
+
+
+def test_a_distance_in_other_units_is_named_before_the_adjustment(tmp_path):
+    """Measurements imply one scale of the mapped model: one 1000x off (millimetres written as metres) is named with
+    the distance the others give; it made the adjustment and the uncertainty stage take minutes."""
+    from rigsfm.run.scale_check import check_scale_agreement
+
+    net = make_network(tmp_path, num_rigs=4, seed=5)
+    rec = net.ground_truth
+    pairs = (("rig01", "rig02"), ("rig02", "rig03"), ("rig03", "rig04"))
+    check_scale_agreement(rec, _distances(rec, pairs, (2.0, 2.0, 2.0)), net.rigs)  # the model in other units: fine
+    check_scale_agreement(rec, _distances(rec, pairs, (2.0, 2.6, 1.7)), net.rigs)  # the mapper's shape: fine
+    # narrow ends: their centres lie a baseline from the wide ones the mapped model holds
+    check_scale_agreement(rec, _distances(rec, pairs, (1.0, 1.0, 1.0), ("narrow", "wide")), net.rigs)
+    spec = _distances(rec, pairs, (1.0, 1000.0, 1.0))
+    with pytest.raises(InputError, match=r"^scale.yaml: camera_distance\[1\] \('rig02/wide' - 'rig03/wide', [\d.]+ m\) "
+                                         r"is 1000x what the other 2 measurement\(s\) give in the mapped model "
+                                         r"\([\d.]+ m\): a unit mistake .* Give it in metres"):
+        check_scale_agreement(rec, spec, net.rigs)
+    with pytest.raises(InputError, match=r"camera_distance\[0\] .*is 1/3.3 what the other 2"):  # feet
+        check_scale_agreement(rec, _distances(rec, pairs, (1 / 3.28, 1.0, 1.0)), net.rigs)
+    with pytest.raises(InputError, match=r"^scale.yaml: camera_distance\[0\] \(.*\) and camera_distance\[1\] \(.*\) "
+                                         r"disagree on the scale by 1/1000 in the mapped model"):
+        check_scale_agreement(rec, _distances(rec, pairs[:2], (1.0, 1000.0)), net.rigs)
+    check_scale_agreement(rec, _distances(rec, pairs[:1], (1000.0,)), net.rigs)  # alone, it is the scale

@@ -29,9 +29,9 @@ def _case(did: str) -> table.Case:
 
 
 @pytest.mark.parametrize("did, shown", [
-    ("an image folder named with brackets (`img[/]x`) that does not exist", "image folder img[/]x does not exist"),
+    ("an image folder named with brackets (`img[/]x`) that does not exist", "image folder 'img[/]x' does not exist"),
     ("a narrow image named with brackets (`frame[cam].png`) without its wide image",
-     "images/rig02/narrow/frame[cam].png has no wide image"),
+     "'images/rig02/narrow/frame[cam].png' has no wide image"),
     ('a distance in scale.yaml that is not a number (`meters: "[/]"`)', "'meters' must be a number, got '[/]'"),
     ("`--device cuda` with pycolmap's CPU build", "pip install 'rigsfm[gpu]'"),
 ])
@@ -47,7 +47,7 @@ def test_messages_are_printed_verbatim(tmp_path, did, shown):
 def test_a_demo_folder_points_to_its_run(tmp_path):
     code, message = table.run_case(_case("`rigsfm export` given a demo's folder instead of its run/"), tmp_path / "c")
     assert code == 1
-    assert message == "error: demo is a `rigsfm demo` folder, whose result is in its run/ folder: use demo/run (e.g. " \
+    assert message == "error: 'demo' is a `rigsfm demo` folder, whose result is in its run/ folder: use demo/run (e.g. " \
                       "`rigsfm view demo/run`)"
     assert not (tmp_path / "c" / "demo" / "export").exists()
 
@@ -168,3 +168,27 @@ def test_log_lines_follow_a_replaced_stderr(monkeypatch):
         logging.basicConfig(level=logging.WARNING, handlers=[logging.NullHandler()], force=True)
     assert "to the second stream" in second.getvalue()
     assert "Logging error" not in second.getvalue()
+
+
+def test_an_os_error_names_the_real_file_not_the_temporary_one(tmp_path, capsys):
+    """An atomic write fails on its temporary file or inside a temporary folder (a full disk while export writes
+    DEST's files): the line names the file the user asked for."""
+    import errno
+
+    import typer
+
+    from rigsfm.cli.common import fail_cleanly
+    from rigsfm.core.io import real_path
+
+    assert real_path("out/.export.k2j_x9aq.tmp/poses.json") == "out/export/poses.json"
+    assert real_path("/d/.summary.json.abcd1234.tmp") == "/d/summary.json"
+    assert real_path("/d/.hidden/plain.tmp") == "/d/.hidden/plain.tmp"  # not a name rigsfm made
+
+    @fail_cleanly
+    def export() -> None:
+        raise OSError(errno.ENOSPC, "No space left on device", str(tmp_path / ".dest.q1w2e3r4.tmp" / "poses.json"))
+
+    with pytest.raises(typer.Exit):
+        export()
+    said = capsys.readouterr().err
+    assert f"{tmp_path / 'dest' / 'poses.json'}: the disk is full" in said and ".tmp" not in said, said

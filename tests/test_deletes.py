@@ -69,7 +69,7 @@ def test_a_cut_model_file_is_named_by_every_reader(out, tmp_path, name, size):
         result = invoke(*args)
         assert result.exit_code == 1, (args, result.output)
         line = one_error_line(result)
-        assert f"sparse/{name} is truncated or damaged ({size} B; " in line, line
+        assert f"sparse/{name}' is truncated or damaged ({size} B; " in line, line
         assert line.endswith(f"re-run `rigsfm run IMAGES --rigs rigs.yaml --out {out} --overwrite`"), line
 
 
@@ -86,7 +86,7 @@ def test_a_huge_count_is_refused_before_anything_is_allocated(out):
     done = subprocess.run([sys.executable, "-c", code, str(out)], capture_output=True, text=True, env=env,
                           timeout=300)
     assert done.returncode == 1, done.stderr
-    assert "points3D.bin is truncated or damaged (24908 B; says 1000000000 3D points but only 24900 B follow)" in \
+    assert "points3D.bin' is truncated or damaged (24908 B; says 1000000000 3D points but only 24900 B follow)" in \
         done.stderr, done.stderr
 
 

@@ -174,3 +174,29 @@ def test_changed_settings_recompute_instead_of_reusing_stale_work(scene, tmp_pat
     with pycolmap.Database.open(work / "database.db") as db:
         assert db.num_keypoints() > keypoints
     assert "type: sift -> asift" in (work / "colmap.log").read_text()
+
+
+def test_a_distance_in_millimetres_is_named_after_mapping_nothing_adjusted(scene, tmp_path):
+    """The scene's rig01-rig03 distance written 1000x too small: the run stops after mapping with one line naming
+    it and the distance the bar gives (it ran the adjustment for minutes and finished with every observation off)."""
+    import yaml
+
+    dataset, out, args, _ = scene
+    work = copy_run(out, tmp_path / "out")
+    spec = yaml.safe_load(dataset.scale.read_text())
+    true = spec["camera_distance"][0]["meters"]
+    spec["camera_distance"][0]["meters"] = true / 1000
+    scale = tmp_path / "scale.yaml"
+    scale.write_text(yaml.safe_dump(spec))
+    args = [str(scale) if a == str(dataset.scale) else str(work) if a == str(out) else a for a in args]
+    before = (work / "summary.json").read_text()
+    logged = len((work / "colmap.log").read_text())
+    result = CliRunner().invoke(app, args + ["--overwrite"])
+    assert result.exit_code == 1, result.output
+    message = result.output.strip().splitlines()[-1]
+    assert message.startswith(f"error: {scale}: camera_distance[0] ('rig01/wide' - 'rig03/wide', "), message
+    assert "and known_length[0] (2 m) disagree on the scale by 1/" in message
+    would = float(message.split("the first would be ")[1].split(" m")[0])
+    assert abs(would - true) < 0.05 * true, (would, true)
+    assert "Stage adjust" not in (work / "colmap.log").read_text()[logged:]
+    assert (work / "summary.json").read_text() == before  # the earlier result is untouched

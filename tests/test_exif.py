@@ -122,9 +122,9 @@ def test_run_refuses_tagged_images_whose_stored_pixels_match_the_calibration(tmp
     code, message = run_case(case, tmp_path / "case")
     assert code == 1, message
     assert message == (
-        "error: images/rig01/wide/f0.jpg and 3 more (images/rig01/narrow/f0.jpg, images/rig02/wide/f0.jpg, ...) "
+        "error: 'images/rig01/wide/f0.jpg' and 3 more ('images/rig01/narrow/f0.jpg', 'images/rig02/wide/f0.jpg', ...) "
         "carry the EXIF tag Orientation=6 (viewers show them turned 90° clockwise), but rigsfm, like COLMAP, works "
-        "on the pixels as stored; the stored 64x48 pixels are what rig rig01's wide camera is calibrated for: "
+        "on the pixels as stored; the stored 64x48 pixels are what the wide camera of rig 'rig01' is calibrated for: "
         "remove the tag and keep the pixels (`exiftool -Orientation=1 -n -overwrite_original -r images`)")
     assert not (tmp_path / "case" / "out").exists()
 
@@ -136,8 +136,8 @@ def test_run_refuses_images_whose_calibration_was_made_on_the_turned_pixels(tmp_
     code, message = run_case(case, tmp_path / "case")
     assert code == 1
     assert message == (
-        "error: images/rig02/wide/f0.jpg carries the EXIF tag Orientation=6 (viewers show it turned 90° clockwise), "
-        "but rigsfm, like COLMAP, works on the pixels as stored; rig rig02's wide camera is calibrated for the image "
+        "error: 'images/rig02/wide/f0.jpg' carries the EXIF tag Orientation=6 (viewers show it turned 90° clockwise), "
+        "but rigsfm, like COLMAP, works on the pixels as stored; the wide camera of rig 'rig02' is calibrated for the image "
         "as shown (48x64), not as stored (64x48): turn the pixels as the tag says (`mogrify -auto-orient images/rig02/wide/f0.jpg`, "
         "or `exiftran -ai images/rig02/wide/f0.jpg` for JPEG without loss)")
 
@@ -148,7 +148,7 @@ def test_run_names_both_fixes_when_the_size_cannot_tell(tmp_path):
     assert code == 1
     assert message.endswith(
         "(viewers show it turned 180°), but rigsfm, like COLMAP, works on the pixels as stored; remove the tag "
-        "(`exiftool -Orientation=1 -n -overwrite_original images/rig01/wide/f0.jpg`) if rig rig01's wide camera was "
+        "(`exiftool -Orientation=1 -n -overwrite_original images/rig01/wide/f0.jpg`) if the wide camera of rig 'rig01' was "
         "calibrated on "
         "the pixels as stored, or turn the pixels as the tag says (`mogrify -auto-orient images/rig01/wide/f0.jpg`, "
         "or `exiftran -ai images/rig01/wide/f0.jpg` for JPEG without loss) if it was calibrated on the images as "
@@ -176,7 +176,7 @@ def test_calibrate_refuses_tagged_board_images(tmp_path):
         calibrate(tmp_path / "BOARD", tmp_path / "out" / "rigs.yaml", CalibrateOptions(board=tmp_path / "board.yaml"))
     board = tmp_path / "BOARD"
     assert str(error.value) == (
-        f"{board}/rig01/wide/01.jpg and 25 more ({board}/rig01/wide/02.jpg, {board}/rig01/wide/03.jpg, ...) carry "
+        f"'{board}/rig01/wide/01.jpg' and 25 more ('{board}/rig01/wide/02.jpg', '{board}/rig01/wide/03.jpg', ...) carry "
         "the EXIF tag Orientation=6 (viewers show them turned 90° clockwise), but rigsfm, like COLMAP, works on the "
         f"pixels as stored; remove the tag (`exiftool -Orientation=1 -n -overwrite_original -r {board}`) or turn "
         f"the pixels as the tag says (`mogrify -auto-orient {board}/*/*/*.jpg`, or `exiftran -ai {board}/*/*/*.jpg` for "
@@ -193,10 +193,10 @@ def test_pick_refuses_a_tagged_image_and_serves_stored_pixels(tmp_path):
     tagged_inputs(tmp_path, which={"rig01/wide/f0.jpg"})
     rigs = load_rigs(tmp_path / "rigs.yaml")
     tagged, plain = tmp_path / "images/rig01/wide/f0.jpg", tmp_path / "images/rig02/wide/f0.jpg"
-    with pytest.raises(InputError, match=r"rig01/wide/f0.jpg carries the EXIF tag Orientation=6 .* the stored "
-                                         r"64x48 pixels are what rig01's wide camera is calibrated for: remove the tag"):
+    with pytest.raises(InputError, match=r"rig01/wide/f0.jpg' carries the EXIF tag Orientation=6 .* the stored "
+                                         r"64x48 pixels are what the wide camera of rig 'rig01' is calibrated for: remove the tag"):
         picker_image(tagged, rigs)
-    with pytest.raises(InputError, match=rf"f0.jpg carries the EXIF tag Orientation=6 .*; remove the tag \(`exiftool "
+    with pytest.raises(InputError, match=rf"f0.jpg' carries the EXIF tag Orientation=6 .*; remove the tag \(`exiftool "
                                          rf"-Orientation=1 -n -overwrite_original {re.escape(str(tagged))}`\) or turn "
                                          rf"the pixels as the tag says \(`mogrify -auto-orient {re.escape(str(tagged))}`"):
         picker_image(tagged, None)
@@ -237,7 +237,7 @@ def test_track_refuses_tagged_frames(tagged_copy, tmp_path):
         target = frame / path.relative_to(images)
         target.parent.mkdir(parents=True, exist_ok=True)
         shutil.copy(path, target)
-    with pytest.raises(InputError, match=rf"^{re.escape(str(frame))}/rig01/wide/\S+ and \d+ more .* carry the "
+    with pytest.raises(InputError, match=rf"^'{re.escape(str(frame))}/rig01/wide/\S+' and \d+ more .* carry the "
                                          r"EXIF tag Orientation=3 \(viewers show them turned 180°\).* remove the tag "
                                          rf"\(`exiftool -Orientation=1 -n -overwrite_original -r {re.escape(str(frame))}`"):
         track(work, frame)

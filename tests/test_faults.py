@@ -139,7 +139,7 @@ def test_a_second_run_on_one_out_is_refused_with_the_first_ones_pid(scene):
     with Workspace(out).lock():
         result = invoke("run", dataset.images, "--rigs", dataset.rigs, "--out", out, "--overwrite")
     assert result.exit_code == 1
-    assert f"{out} is in use by process {os.getpid()} (another rigsfm command)" in one_error_line(result)
+    assert f"'{out}' is in use by process {os.getpid()} (another rigsfm command)" in one_error_line(result)
     assert (out / "summary.json").is_file()
 
 
@@ -167,7 +167,7 @@ def test_a_full_disk_is_one_line_naming_out(scene, tmp_path, size):
     mount.mkdir()
     done = _run_isolated(["unshare", "-m"], dataset, mount / "out", f"mount -t tmpfs -o size={size} tmpfs {mount} &&")
     assert done.returncode == 1, done.stdout + done.stderr
-    assert f"error: cannot write in {mount / 'out'}: the disk is full" in done.stderr, done.stderr
+    assert f"error: cannot write in '{mount / 'out'}': the disk is full" in done.stderr, done.stderr
     assert "internal error" not in done.stderr and "Traceback" not in done.stderr
 
 
@@ -179,7 +179,7 @@ def test_a_read_only_out_is_one_line(scene, tmp_path):
     mount.mkdir()
     done = _run_isolated(["unshare", "-m"], dataset, mount / "out", f"mount -t tmpfs -o ro tmpfs {mount} &&")
     assert done.returncode == 1
-    assert f"error: cannot write in {mount / 'out'}: the file system is read-only; choose a folder you can write to" \
+    assert f"error: cannot write in '{mount / 'out'}': the file system is read-only; choose a folder you can write to" \
         in done.stderr, done.stderr
 
 
@@ -196,7 +196,7 @@ def test_a_forbidden_out_is_one_line(scene, tmp_path):
         forbidden.mkdir(mode=0o755)
         done = _run_isolated(nobody, copy, forbidden / "out")
         assert done.returncode == 1
-        assert f"error: cannot write in {forbidden / 'out'}: permission denied; choose a folder you can write to" \
+        assert f"error: cannot write in '{forbidden / 'out'}': permission denied; choose a folder you can write to" \
             in done.stderr, done.stderr
         (copy.rigs).chmod(0o600)
         done = _run_isolated(nobody, copy, public / "out")  # typer's own check of the path: a usage error
@@ -233,19 +233,19 @@ MODEL_READERS = ("report", "export", "view", "track")
 
 @pytest.mark.parametrize("damage,words,readers", [
     (lambda out: (out / "sparse" / "images.bin").write_bytes((out / "sparse" / "images.bin").read_bytes()[:100]),
-     r"sparse/images.bin is truncated or damaged \(100 B; ",
+     r"sparse/images.bin' is truncated or damaged \(100 B; ",
      MODEL_READERS),
     (lambda out: (out / "sparse" / "images.bin").write_bytes((out / "sparse" / "images.bin").read_bytes()[:300]),
-     r"sparse/images.bin is truncated or damaged \(300 B; ",
+     r"sparse/images.bin' is truncated or damaged \(300 B; ",
      ("report",)),
     (lambda out: (out / "sparse" / "points3D.bin").write_bytes(b""),
      r"holds no complete COLMAP model \(points3D.bin empty\)", MODEL_READERS),
     (lambda out: (out / "narrow_poses.json").write_text('{"metric": true, "narrow": ['),
-     r"narrow_poses.json is not valid JSON \(.*\): re-run `rigsfm run IMAGES --rigs rigs.yaml --out .* --overwrite`",
+     r"narrow_poses.json' is not valid JSON \(.*\): re-run `rigsfm run IMAGES --rigs rigs.yaml --out .* --overwrite`",
      ("report",)),
     (lambda out: (out / "summary.json").write_text("[1, 2]"), r"summary.json is not a valid summary", ("report", "export")),
     (lambda out: (out / "track").mkdir() or (out / "track" / "poses.json").write_text("{"),
-     r"track/poses.json is not valid JSON .*: re-run `rigsfm track OUT NEW_IMAGES --overwrite`", ("report",)),
+     r"track/poses.json' is not valid JSON .*: re-run `rigsfm track OUT NEW_IMAGES --overwrite`", ("report",)),
 ])
 def test_damaged_workspace_files_are_named_by_every_reader(scene, tmp_path, damage, words, readers):
     import re

@@ -401,7 +401,7 @@ def test_messages_with_markup_characters_print_verbatim(name):
 
     from rigsfm.cli import common
 
-    message = f"image folder {name} does not exist; check the path"
+    message = f"image folder '{name}' does not exist; check the path"
     console = Console(width=40, record=True, file=io.StringIO(), color_system=None)
     original, common.err_console = common.err_console, console
     try:

@@ -478,3 +478,93 @@ def test_a_stopped_process_pool_ends_its_workers_at_once(tmp_path, signum, group
             break
         time.sleep(0.02)
     assert not [pid for pid in helpers if _alive(pid)]
+
+
+# --- a real `rigsfm track --workers 1` stopped mid-run -------------------------------------------------------------
+
+
+def _still_recording(dataset, new: Path, frames: int) -> int:
+    """NEW_IMAGES/<rig>/wide/frameKKKK.png: each rig's first wide image of the run, as ``frames`` frames of a
+    recording in which nothing moved (links to it). Returns the number of (rig, frame) tasks."""
+    rigs = sorted(path for path in dataset.images.iterdir() if path.is_dir())
+    for rig in rigs:
+        source = sorted((rig / "wide").iterdir())[0]
+        (new / rig.name / "wide").mkdir(parents=True)
+        for k in range(frames):
+            (new / rig.name / "wide" / f"frame{k:04d}.png").symlink_to(source)
+    return len(rigs) * frames
+
+
+def _stop_track(args: list[str], signum: int, log: Path, registered: int) -> tuple[int, list[str], float]:
+    """Start ``rigsfm track ARGS``, send ``signum`` to its process group once its log (``log``: OUT/colmap.log)
+    shows ``registered`` more frames registered; returns the exit code, its stderr lines, and the seconds from the
+    signal to its end."""
+    offset = log.stat().st_size
+    process = subprocess.Popen([sys.executable, "-m", "rigsfm", "track", *args], env=_env(), text=True,
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, start_new_session=True,
+                               preexec_fn=_as_from_a_terminal)
+    while process.poll() is None and len(re.findall(r"Frame \S+: registered", log.read_text(errors="replace")[offset:])) < registered:
+        time.sleep(0.05)
+    assert process.poll() is None, f"track ended before registering {registered} frames: {process.communicate()}"
+    helpers = _descendants(process.pid)
+    sent = time.monotonic()
+    os.killpg(process.pid, signum)
+    try:
+        _, stderr = process.communicate(timeout=120)
+    except subprocess.TimeoutExpired:
+        os.killpg(process.pid, signal.SIGKILL)
+        raise
+    took = time.monotonic() - sent
+    for _ in range(500):  # the worker, multiprocessing's resource tracker: gone with the command
+        if not any(_alive(pid) for pid in helpers):
+            break
+        time.sleep(0.02)
+    assert not [pid for pid in helpers if _alive(pid)], "processes left running after the command ended"
+    return process.returncode, [line for line in stderr.splitlines() if line.strip()], took
+
+
+def _tracked(out: Path) -> dict[tuple[str, str], dict]:
+    """OUT/track/poses.json's frames by (rig, frame), after checking it and poses.csv are whole and agree."""
+    poses = json.loads((out / "track" / "poses.json").read_text())
+    frames = {(rig, f["frame"]): f for rig, entry in poses["rigs"].items() for f in entry["frames"]}
+    rows = (out / "track" / "poses.csv").read_text().splitlines()
+    assert len(rows) == 1 + len(frames) and all(row.count(",") == rows[0].count(",") for row in rows), rows[-1]
+    return frames
+
+
+def test_track_stopped_mid_run_says_one_line_and_keeps_the_frames_it_registered(three_rig_run, tmp_path):
+    """`rigsfm track --workers 1` registers frames in its own process (pycolmap's C++ calls hold the signal until
+    they return): Ctrl-C and SIGTERM mid-run stop it within seconds with rigsfm's one line and 130/143, poses.json
+    and poses.csv whole with the frames registered so far, no temporary file left; the same command then resumes
+    and registers only the others."""
+    from conftest import copy_run
+
+    dataset, shared, _ = three_rig_run
+    out = copy_run(shared, tmp_path / "out")
+    new = tmp_path / "new"
+    total = _still_recording(dataset, new, 6)
+    args = [str(out), str(new), "--workers", "1"]
+    before = set(out.rglob("*"))
+    done = 0
+    for signum, expected in ((signal.SIGINT, (130, "interrupted (Ctrl-C): ")),
+                             (signal.SIGTERM, (143, "terminated (SIGTERM): "))):
+        code, said, took = _stop_track(args, signum, out / "colmap.log", 2)
+        assert (code, len(said)) == (expected[0], 1) and said[0].startswith(expected[1]), (code, said)
+        assert took < 15.0, took  # one frame's registration at most (~4 s on a loaded machine)
+        leftovers = [p.name for p in set(out.rglob("*")) - before if p.name.endswith(".tmp") or p.name.startswith(".")]
+        assert leftovers == [], leftovers
+        frames = _tracked(out)
+        assert done + 2 <= len(frames) < total, (done, len(frames))  # mid-run; nothing registered before is lost
+        assert all(f["status"] == "registered" for f in frames.values()), frames
+        done = len(frames)
+    assert done > 0
+    finished = subprocess.run([sys.executable, "-m", "rigsfm", "track", *args], env=_env(), text=True,
+                              capture_output=True, timeout=900)
+    assert finished.returncode == 0, finished.stderr
+    final = _tracked(out)
+    assert len(final) == total
+
+    def kept(f):  # a frame's own result (its flag is recomputed over the series on every run)
+        return {k: v for k, v in f.items() if k != "flagged"}
+
+    assert all(kept(final[key]) == kept(f) for key, f in frames.items())  # resumed: not registered again

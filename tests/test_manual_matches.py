@@ -236,7 +236,7 @@ def test_each_bad_input_gives_its_clear_error(scenes, tmp_path):
     fails(
         _csv(tmp_path, good.replace(",".join(line), ",".join(line[:4] + ["1700.5"] + line[5:]))),
         ManualMatchError,
-        r"m.csv:4: point \(1700.5, .*\) lies outside rig02/wide/frame0000.png, which is 1624x1234 px",
+        r"m.csv:4: point \(1700.5, .*\) lies outside 'rig02/wide/frame0000.png', which is 1624x1234 px",
     )
     fails(_csv(tmp_path, good + "a,b,c\n"), ManualMatchError, r"m.csv:14: expected 6 columns")
     fails(

@@ -111,15 +111,15 @@ def test_missing_sigmas_get_the_good_board_defaults_and_a_warning_naming_the_rig
 
 
 @pytest.mark.parametrize("where, value, message", [  # rigsfm.core.rig.load_rigs refuses them at validation
-    ("wide", -0.5, r"rig rig02 sensor wide sigmas .*expected 8 finite numbers >= 0"),
-    ("wide", float("nan"), r"rig rig02 sensor wide sigmas .*expected 8 finite numbers >= 0"),
-    ("narrow", 0.0, r"rig rig02 sensor narrow sigmas .*the focal length's sigma 0 px must be at least 0.0001 px .*and at "
+    ("wide", -0.5, r"rig 'rig02' sensor wide sigmas .*expected 8 finite numbers >= 0"),
+    ("wide", float("nan"), r"rig 'rig02' sensor wide sigmas .*expected 8 finite numbers >= 0"),
+    ("narrow", 0.0, r"rig 'rig02' sensor narrow sigmas .*the focal length's sigma 0 px must be at least 0.0001 px .*and at "
                r"most 10 %"),
-    ("narrow", 400.0, r"rig rig02 sensor narrow sigmas .*sigma 400 px must be at least .*and at most 10 % of 3600 px"),
-    ("rotation", 6.0, r"rig rig02 narrow_from_wide sigma_rotation_deg: each must be 1e-06 - 5 degrees"),
-    ("rotation", 0.0, r"rig rig02 narrow_from_wide sigma_rotation_deg: each must be 1e-06 - 5 degrees"),
-    ("translation", 0.0, r"rig rig02 narrow_from_wide sigma_translation_m: each must be at least 1e-07 m"),
-    ("covariance", 0.0, r"rig rig02 narrow_from_wide covariance: must be positive definite"),
+    ("narrow", 400.0, r"rig 'rig02' sensor narrow sigmas .*sigma 400 px must be at least .*and at most 10 % of 3600 px"),
+    ("rotation", 6.0, r"rig 'rig02' narrow_from_wide sigma_rotation_deg: each must be 1e-06 - 5 degrees"),
+    ("rotation", 0.0, r"rig 'rig02' narrow_from_wide sigma_rotation_deg: each must be 1e-06 - 5 degrees"),
+    ("translation", 0.0, r"rig 'rig02' narrow_from_wide sigma_translation_m: each must be at least 1e-07 m"),
+    ("covariance", 0.0, r"rig 'rig02' narrow_from_wide covariance: must be positive definite"),
 ])
 def test_bad_sigmas_are_refused_with_one_line_naming_rig_and_key(tmp_path, where, value, message):
     sigmas = _honest()

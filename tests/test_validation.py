@@ -45,10 +45,10 @@ def with_sigmas(data):
 # --- rigs.yaml: units, principal point, focal length, unknown keys -------------------------------------------
 
 @pytest.mark.parametrize("translation,words", [
-    ([-60.0, 0.0, 0.0], r"rig rig02 narrow_from_wide translation: the baseline \|t\| = 60 m is outside 1 mm - 5 m "
+    ([-60.0, 0.0, 0.0], r"rig 'rig02' narrow_from_wide translation: the baseline \|t\| = 60 m is outside 1 mm - 5 m "
                         r"\(in millimetres\? 60 mm is 0.06 m\); give the translation in metres"),
-    ([0.0, 0.0, 0.0], r"rig rig02 narrow_from_wide translation: the baseline \|t\| = 0 m .*cannot be at one point"),
-    ([0.0004, 0.0, 0.0], r"rig rig02 narrow_from_wide translation: .*0.0004 m is outside"),
+    ([0.0, 0.0, 0.0], r"rig 'rig02' narrow_from_wide translation: the baseline \|t\| = 0 m .*cannot be at one point"),
+    ([0.0004, 0.0, 0.0], r"rig 'rig02' narrow_from_wide translation: .*0.0004 m is outside"),
 ])
 def test_baseline_in_other_units_than_metres_is_refused(tmp_path, translation, words):
     images, rigs_path, data = make_inputs(tmp_path)
@@ -66,9 +66,9 @@ def test_baselines_at_the_limits_are_accepted(tmp_path):
 
 
 @pytest.mark.parametrize("params,words", [
-    ([50.0, 50.0, 64.5, 24.0], r"rig rig01 sensor narrow: principal point \(64.5, 24\) lies outside the 64x48 image"),
+    ([50.0, 50.0, 64.5, 24.0], r"rig 'rig01' sensor narrow: principal point \(64.5, 24\) lies outside the 64x48 image"),
     ([50.0, 50.0, 32.0, -1.0], r"principal point \(32, -1\) lies outside"),
-    ([4.0, 4.0, 32.0, 24.0], r"rig rig01 sensor narrow: focal length fx = 4 px is 0.0625 x the image width 64; a lens "
+    ([4.0, 4.0, 32.0, 24.0], r"rig 'rig01' sensor narrow: focal length fx = 4 px is 0.0625 x the image width 64; a lens "
                              r"has 0.1-50 x .* not millimetres"),
     ([50.0, 5000.0, 32.0, 24.0], r"focal length fy = 5000 px is 78.1 x"),
     ([50.0, 180.0, 32.0, 24.0], r"fx / fy = 0.278; .*check the params' order"),
@@ -92,11 +92,11 @@ def test_fisheye_and_long_lenses_are_plausible(tmp_path, focal_widths):
 
 @pytest.mark.parametrize("where,key,words", [
     ("top", "unit", r"rigs.yaml: unknown key 'unit' \(did you mean 'units'\?\); the keys here are units, rigs"),
-    ("rig", "narow_from_wide", r"rig rig02: unknown key 'narow_from_wide' \(did you mean 'narrow_from_wide'\?\)"),
-    ("camera", "param", r"rig rig02 sensor wide: unknown key 'param' \(did you mean 'params'\?\)"),
-    ("pose", "tranlsation", r"rig rig02 narrow_from_wide: unknown key 'tranlsation' \(did you mean 'translation'\?\)"),
+    ("rig", "narow_from_wide", r"rig 'rig02': unknown key 'narow_from_wide' \(did you mean 'narrow_from_wide'\?\)"),
+    ("camera", "param", r"rig 'rig02' sensor wide: unknown key 'param' \(did you mean 'params'\?\)"),
+    ("pose", "tranlsation", r"rig 'rig02' narrow_from_wide: unknown key 'tranlsation' \(did you mean 'translation'\?\)"),
     ("pose", "sigma_rotation", r"unknown key 'sigma_rotation' \(did you mean 'sigma_rotation_deg'\?\)"),
-    ("sensors", "wide2", r"rig rig02 sensors: unknown key 'wide2' \(did you mean 'wide'\?\)"),
+    ("sensors", "wide2", r"rig 'rig02' sensors: unknown key 'wide2' \(did you mean 'wide'\?\)"),
     ("camera", "comment", r"unknown key 'comment'; the keys here are model, width, height, params, sigmas"),
 ])
 def test_unknown_keys_are_refused_with_a_suggestion(tmp_path, where, key, words):
@@ -125,7 +125,7 @@ def test_missing_narrow_folder_is_a_warning_not_an_error(tmp_path, caplog):
     with caplog.at_level(logging.WARNING):
         inputs = load_inputs(images, rigs_path)
     assert [e.name for e in inputs.images if e.rig == "rig02"] == ["rig02/wide/f0.png"]
-    assert any(f"rig rig02 has no narrow images ({images / 'rig02' / 'narrow'} does not exist)" in r.message
+    assert any(f"rig 'rig02' has no narrow images ('{images / 'rig02' / 'narrow'}' does not exist)" in r.message
                for r in caplog.records), caplog.text
 
 
@@ -156,22 +156,22 @@ def test_a_rigs_yaml_without_sigmas_stays_valid(tmp_path):
 
 @pytest.mark.parametrize("edit,words", [
     (lambda r: r["sensors"]["wide"].update(sigmas=[-0.4, 0.4, 0.5, 0.5]),
-     r"rig rig02 sensor wide sigmas \(one per entry of params\): expected 4 finite numbers >= 0"),
+     r"rig 'rig02' sensor wide sigmas \(one per entry of params\): expected 4 finite numbers >= 0"),
     (lambda r: r["sensors"]["wide"].update(sigmas=[0.4, float("nan"), 0.5, 0.5]), r"sensor wide sigmas .*finite"),
     (lambda r: r["sensors"]["narrow"].update(sigmas=[0.0, 0.4, 0.5, 0.5]),
-     r"rig rig02 sensor narrow sigmas .*\(fx\): the focal length's sigma 0 px must be at least 0.0001 px .*"
+     r"rig 'rig02' sensor narrow sigmas .*\(fx\): the focal length's sigma 0 px must be at least 0.0001 px .*"
      r"and at most 10 % of 50 px"),
     (lambda r: r["sensors"]["narrow"].update(sigmas=[6.0, 0.4, 0.5, 0.5]),
      r"the focal length's sigma 6 px must be at least 0.0001 px .*and at most 10 %"),
     (lambda r: r["sensors"]["wide"].update(sigmas=[0.4, 0.4, 9.0, 0.5]), r"the principal point's sigma 9 px"),
     (lambda r: r["narrow_from_wide"].update(sigma_rotation_deg=[0.02, 6.0, 0.01]),
-     r"rig rig02 narrow_from_wide sigma_rotation_deg: each must be 1e-06 - 5 degrees"),
+     r"rig 'rig02' narrow_from_wide sigma_rotation_deg: each must be 1e-06 - 5 degrees"),
     (lambda r: r["narrow_from_wide"].update(sigma_rotation_deg=[0.02, 0.0, 0.01]), r"sigma_rotation_deg: each must be 1e-06 - 5 degrees"),
     (lambda r: r["narrow_from_wide"].update(sigma_translation_m=[0.1, 0.0, 0.0]),
-     r"rig rig02 narrow_from_wide sigma_translation_m: each must be at least 1e-07 m and below the baseline "
+     r"rig 'rig02' narrow_from_wide sigma_translation_m: each must be at least 1e-07 m and below the baseline "
      r"\|t\| = 0.06 m"),
     (lambda r: r["narrow_from_wide"].update(covariance=(np.eye(6) * 0.01).tolist()),
-     r"rig rig02 narrow_from_wide covariance: a rotation variance above \(5 deg\)\^2"),
+     r"rig 'rig02' narrow_from_wide covariance: a rotation variance above \(5 deg\)\^2"),
     (lambda r: r["narrow_from_wide"].update(covariance=[[1.0]]), r"covariance: expected a finite 6x6 matrix"),
 ])
 def test_bad_sigmas_are_refused_naming_rig_and_key(tmp_path, edit, words):
@@ -211,12 +211,12 @@ def test_valid_bar_loads(tmp_path):
 
 
 @pytest.mark.parametrize("data,words", [
-    (bar(b1=(40, H + 3)), r"known_length\[0\].observations\[1\].b: \(40, 51\) lies outside rig02/wide/f0.png, "
+    (bar(b1=(40, H + 3)), r"known_length\[0\].observations\[1\].b: \(40, 51\) lies outside 'rig02/wide/f0.png', "
                           r"which is 64x48 px .*fix the coordinates"),
-    (bar(a0=(-2, 10)), r"known_length\[0\].observations\[0\].a: \(-2, 10\) lies outside rig01/wide/f0.png"),
-    (bar(image1="rig02/narrow/f0.png", a1=(70, 5)), r"observations\[1\].a: \(70, 5\) lies outside rig02/narrow/f0.png"),
+    (bar(a0=(-2, 10)), r"known_length\[0\].observations\[0\].a: \(-2, 10\) lies outside 'rig01/wide/f0.png'"),
+    (bar(image1="rig02/narrow/f0.png", a1=(70, 5)), r"observations\[1\].a: \(70, 5\) lies outside 'rig02/narrow/f0.png'"),
     (bar(a1=(30, 20), b1=(30.4, 20.2)), r"known_length\[0\].observations\[1\]: a and b are the same point in "
-                                        r"rig02/wide/f0.png \(a zero-length bar\)"),
+                                        r"'rig02/wide/f0.png' \(a zero-length bar\)"),
     ({"camera_distance": [{"a": "rig01/wide", "b": "rig01/wide/f0.png", "meters": 3}]},
      r"camera_distance\[0\]: a = 'rig01/wide' and b = 'rig01/wide/f0.png' are the same camera \(zero distance\)"),
     ({"camera_distance": [{"a": "rig01/wide", "b": "rig02/wide", "meters": 3, "sigm": 0.1}]},
@@ -313,25 +313,25 @@ def test_a_damaged_model_names_the_folder_and_the_fix(tmp_path):
     assert read_model(sparse, "fix it").num_images() == 2
     images = (sparse / "images.bin").read_bytes()
     (sparse / "images.bin").write_bytes(images[:20])
-    with pytest.raises(WorkspaceError, match=r"sparse/images.bin is truncated or damaged \(20 B; says 2 images but "
+    with pytest.raises(WorkspaceError, match=r"sparse/images.bin' is truncated or damaged \(20 B; says 2 images but "
                                              r"only 12 B follow\): re-run `rigsfm run IMAGES"):
         Workspace(tmp_path / "out").read_sparse()
     (sparse / "images.bin").unlink()
-    with pytest.raises(WorkspaceError, match=r"sparse holds no complete COLMAP model \(images.bin missing\): fix"):
+    with pytest.raises(WorkspaceError, match=r"sparse' holds no complete COLMAP model \(images.bin missing\): fix"):
         read_model(sparse, "fix")
 
 
 @pytest.mark.parametrize("text,words", [
-    ('{"narrow": [], "pairs": [', r"narrow_poses.json is not valid JSON \(.*\): re-run `rigsfm run"),
-    ("[]", r"narrow_poses.json is not a file rigsfm wrote \(no narrow, pairs\)"),
-    ("\udcff", r"narrow_poses.json is not valid JSON"),
+    ('{"narrow": [], "pairs": [', r"narrow_poses.json' is not valid JSON \(.*\): re-run `rigsfm run"),
+    ("[]", r"narrow_poses.json' is not a file rigsfm wrote \(no narrow, pairs\)"),
+    ("\udcff", r"narrow_poses.json' is not valid JSON"),
 ])
 def test_a_damaged_json_file_names_itself(tmp_path, text, words):
     workspace = Workspace(tmp_path)
     workspace.narrow_poses.write_bytes(text.encode("utf-8", "surrogateescape"))
     with pytest.raises(WorkspaceError, match=words):
         workspace.read_narrow_poses()
-    with pytest.raises(WorkspaceError, match=r"nothing.json is missing: fix"):
+    with pytest.raises(WorkspaceError, match=r"nothing.json' is missing: fix"):
         read_json(tmp_path / "nothing.json", "fix")
 
 
@@ -372,12 +372,45 @@ def test_yaml_merge_keys_may_still_override(tmp_path):
     assert parse_yaml("x: &a {k: 1, j: 2}\ny:\n  <<: *a\n  k: 3\n") == {"x": {"k": 1, "j": 2}, "y": {"k": 3, "j": 2}}
 
 
+@pytest.mark.parametrize("text", [
+    "a: 010", "a: -010", "a: 0o17", "a: 0x1F", "a: 0b101", "a: 1_000", "a: 1:30", "a: -0", "a: +12", "a: 0",
+    "a: 1.5", "a: 1_0.5", "a: 1:30.5", "a: .inf", "a: -.Inf", "a: .5", "a: 1.", "a: 1e5", "a: 1.0e+5",
+    "a: yes", "a: Off", "a: ~", "a: null", "a: ''", "a: '1.5'", "a: !!float 3", "a: !!int '7'",
+    "a: 2001-12-14", "a: !!binary aGk=", "? [1, 2]\n: 3", "'1': 2\n1: 3", "[1, 2, {a: b}]", "", "1",
+    "a: &x [1, {k: v}]\nb: *x", "a: &x [1, *x]", "x: &a {k: 1}\ny: {<<: *a, j: 2}",
+])
+def test_the_fast_yaml_reader_reads_what_pyyaml_reads(text):
+    """parse_yaml builds plain documents itself (PyYAML's constructor is the slow half of a large rigs.yaml):
+    every scalar form, anchors, merge keys and cyclic documents read as yaml.safe_load reads them."""
+    from rigsfm.core.io import parse_yaml
+
+    def outcome(load):
+        try:
+            return repr(load(text))
+        except yaml.YAMLError as error:
+            return type(error).__name__
+
+    assert outcome(parse_yaml) == outcome(yaml.safe_load)
+    shared = parse_yaml("a: &x [1, {k: v}]\nb: *x")
+    assert shared["a"] is shared["b"]  # an anchored node is one object, as PyYAML makes it
+
+
+def test_a_key_given_twice_is_refused_at_any_depth_outermost_first():
+    from rigsfm.core.io import DuplicateKeyError, parse_yaml
+
+    with pytest.raises(DuplicateKeyError, match=r"the key 'a' is given twice \(first on line 1\)"):
+        parse_yaml("a: {x: 1, x: 2}\nb: 0\na: 3\n")
+    with pytest.raises(DuplicateKeyError, match=r"the key 'x' is given twice \(first on line 2\)") as error:
+        parse_yaml("rigs:\n  - {x: 1,\n     y: 2, x: 3}\n")
+    assert error.value.problem_mark.line == 2
+
+
 @pytest.mark.parametrize("edit,words", [
     (lambda p: _set_text(p, "name: rig01", "name: 1"),
      r"rigs\[0\]: rig name 1 is read as a number, not text; quote it \(name: \"1\"\)"),
     (lambda p: p.write_text(p.read_text() + "scale: 1,5\n"), r"unknown key 'scale'"),
     (lambda p: p.write_text("units: meters\nrigs: [{name: rig01, sensors: 12,5}]\n"),
-     r"rigs.yaml: rig rig01: unknown key 5 with no value: a decimal comma\? Inside \{...\} or \[...\], a comma "
+     r"rigs.yaml: rig 'rig01': unknown key 5 with no value: a decimal comma\? Inside \{...\} or \[...\], a comma "
      r"separates values \('25,5' is 25 and 5\); write decimals with a point \(25.5\)"),
     (lambda p: p.write_text("rigs:\n  - name: rig01\n\tsensors: {}\n"),
      r"rigs.yaml line 3, column 1: not valid YAML/JSON \(found a tab character that violates indentation while "
@@ -448,11 +481,11 @@ def _socket(path):
 
 
 @pytest.mark.parametrize("make,words", [
-    (lambda p: os.mkfifo(p), r"f1.png is a FIFO \(named pipe\), not an image file; replace it"),
-    (lambda p: os.symlink("/dev/null", p), r"f1.png is a character device, not an image file"),
-    (_socket, r"f1.png is a socket, not an image file"),
-    (lambda p: os.symlink(p.name, p), r"f1.png is a symbolic link loop"),
-    (lambda p: os.symlink("missing.png", p), r"f1.png is a symbolic link to missing.png, which does not exist"),
+    (lambda p: os.mkfifo(p), r"f1.png' is a FIFO \(named pipe\), not an image file; replace it"),
+    (lambda p: os.symlink("/dev/null", p), r"f1.png' is a character device, not an image file"),
+    (_socket, r"f1.png' is a socket, not an image file"),
+    (lambda p: os.symlink(p.name, p), r"f1.png' is a symbolic link loop"),
+    (lambda p: os.symlink("missing.png", p), r"f1.png' is a symbolic link to missing.png, which does not exist"),
     (lambda p: p.mkdir(), r"f1.png: sub-folders are not allowed"),
 ])
 def test_what_is_not_a_regular_image_file_is_refused_before_any_read(tmp_path, make, words):
@@ -469,7 +502,7 @@ def test_what_is_not_a_regular_image_file_is_refused_before_any_read(tmp_path, m
 
 
 @pytest.mark.parametrize("make,words", [
-    (lambda p: p.mkdir(), r"rig calibration file \S+ is a folder, not a regular file; give the path of the rig "
+    (lambda p: p.mkdir(), r"rig calibration file '\S+' is a folder, not a regular file; give the path of the rig "
                           r"calibration file itself"),
     (lambda p: os.mkfifo(p), r"is a FIFO \(named pipe\), not a regular file"),
     (lambda p: os.symlink("/dev/zero", p), r"is a character device, not a regular file"),
@@ -485,7 +518,7 @@ def test_an_input_file_that_exists_but_is_no_file_gets_its_true_cause(tmp_path, 
 
 def test_an_image_folder_that_is_a_file_is_named_as_such(tmp_path):
     images, rigs_path, _ = make_inputs(tmp_path)
-    with pytest.raises(InputError, match=r"image folder \S+rigs.yaml is a file, not a folder"):
+    with pytest.raises(InputError, match=r"image folder '\S+rigs.yaml' is a file, not a folder"):
         load_inputs(rigs_path, rigs_path)
 
 
@@ -530,11 +563,11 @@ except RigsfmError as error:
 
 
 @pytest.mark.parametrize("deny,words", [
-    (lambda root: (root / "rigs.yaml").chmod(0), r"rig calibration file rigs.yaml cannot be read: permission denied"),
-    (lambda root: (root / "images" / "rig01" / "wide").chmod(0), r"folder images/rig01/wide cannot be read: "
+    (lambda root: (root / "rigs.yaml").chmod(0), r"rig calibration file 'rigs.yaml' cannot be read: permission denied"),
+    (lambda root: (root / "images" / "rig01" / "wide").chmod(0), r"folder 'images/rig01/wide' cannot be read: "
                                                                  r"permission denied .*give yourself read permission"),
     (lambda root: (root / "images" / "rig02" / "wide" / "f0.png").chmod(0),
-     r"images/rig02/wide/f0.png cannot be read: permission denied"),
+     r"images/rig02/wide/f0.png' cannot be read: permission denied"),
 ])
 def test_a_permission_denial_is_called_so(shared_tmp, deny, words):
     import re
@@ -568,7 +601,7 @@ def test_impossible_lenses_and_sizes_are_refused(tmp_path, edit, words):
     images, rigs_path, data = make_inputs(tmp_path)
     edit(data["rigs"][0]["sensors"]["wide"])
     write_rigs(rigs_path, data)
-    expect(tmp_path, r"rig rig01 sensor wide: .*" + words, images, rigs_path)
+    expect(tmp_path, r"rig 'rig01' sensor wide: .*" + words, images, rigs_path)
 
 
 @pytest.mark.parametrize("model,params", [
@@ -684,7 +717,7 @@ def test_a_thousand_rig_file_is_validated_whole(tmp_path):
     assert all(r.sigmas.translation_m[2] == 3e-4 for r in rigs)
     data["rigs"][999]["name"] = "rig0000"  # the last rig repeats the first: found in the same pass
     path.write_text(yaml.safe_dump(data, sort_keys=False))
-    with pytest.raises(InputError, match=r"repeated: rig0000 \(rigs\[0\] and rigs\[999\]\)"):
+    with pytest.raises(InputError, match=r"repeated: 'rig0000' \(rigs\[0\] and rigs\[999\]\)"):
         load_rigs(path)
 
 
@@ -694,7 +727,7 @@ def test_a_rigs_yaml_too_large_for_any_network_is_refused_before_parsing(tmp_pat
     images, rigs_path, data = make_inputs(tmp_path)
     with rigs_path.open("a") as f:
         f.write(("# " + "x" * 1022 + "\n") * (33 * 1024))  # 33 MiB of comments: parsing them alone took seconds
-    with pytest.raises(InputError, match=r"rig calibration file \S+ is 33.0 MiB, over the 32 MiB any real one "
+    with pytest.raises(InputError, match=r"rig calibration file '\S+' is 33.0 MiB, over the 32 MiB any real one "
                                          r"takes; is it the right file\?"):
         load_rigs(rigs_path)
     write_rigs(rigs_path, data)

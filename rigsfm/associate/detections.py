@@ -127,7 +127,7 @@ def read_detections(path: Path, sizes: dict[str, tuple[int, int]], known: set[st
             raise _fail(path, line, f"x, y = {xs}, {ys} are not finite; drop the row or give the point")
         width, height = sizes[name]
         if not (0.0 <= x <= width and 0.0 <= y <= height):
-            raise _fail(path, line, f"({xs}, {ys}) lies outside {name} ({width} x {height} px, COLMAP pixels: "
+            raise _fail(path, line, f"({xs}, {ys}) lies outside '{name}' ({width} x {height} px, COLMAP pixels: "
                                     "0..width, 0..height); check the image and the units")
         score = 1.0
         if "score" in col and fields[col["score"]].strip():
@@ -139,7 +139,7 @@ def read_detections(path: Path, sizes: dict[str, tuple[int, int]], known: set[st
                 raise _fail(path, line, f"score {fields[col['score']]} is not finite; give a number or leave it empty")
         key = (name, xs, ys)
         if key in seen:
-            raise _fail(path, line, f"repeats line {seen[key]} ({name}, {xs}, {ys}); remove the duplicate row")
+            raise _fail(path, line, f"repeats line {seen[key]} ('{name}', {xs}, {ys}); remove the duplicate row")
         seen[key] = line
         entry["xy"].append((x, y))
         entry["rows"].append(line)

@@ -57,7 +57,7 @@ def _rig(folder: Path, name: str, what: str) -> RigFrames:
             parts.append(f"only in wide: {', '.join(only_w[:5])}{' ...' if len(only_w) > 5 else ''}")
         if only_n:
             parts.append(f"only in narrow: {', '.join(only_n[:5])}{' ...' if len(only_n) > 5 else ''}")
-        raise InputError(f"{what}: rig {name}: wide and narrow frame names do not match ({'; '.join(parts)}); "
+        raise InputError(f"{what}: rig '{name}': wide and narrow frame names do not match ({'; '.join(parts)}); "
                          "synchronised images must have the same file name in both folders - rename or remove them")
     return RigFrames(name=name, wide=sides["wide"], narrow=sides["narrow"])
 

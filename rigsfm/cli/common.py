@@ -96,7 +96,9 @@ def fail_cleanly(command):
                 say_error(str(error))
                 raise typer.Exit(EXIT_ERROR) from None
             if isinstance(error, OSError):  # disk full, read-only, permission: the user's to fix, with the path
-                where = f"{error.filename}: " if error.filename else ""
+                from rigsfm.core.io import real_path
+
+                where = f"{real_path(error.filename)}: " if error.filename else ""
                 say_error(f"{where}{os_error_text(error)}; {os_error_advice(error)}")
                 raise typer.Exit(EXIT_ERROR) from None
             if not isinstance(error, Exception):  # SystemExit and the like: not ours to reword

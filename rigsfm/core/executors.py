@@ -6,7 +6,8 @@ frame registration per task) and ``rigsfm run`` (one image's features per task).
 ``function`` must be a module-level function (it is pickled by reference), ``shared`` picklable.
 
 - ``local``: ``concurrent.futures.ProcessPoolExecutor`` (spawned workers; ``shared`` is sent once per
-  worker through the initializer); ``workers=1`` runs in this process.
+  worker through the initializer); a single task runs in this process. ``workers=1`` is one worker process: a
+  C++ call in this process would hold Ctrl-C and SIGTERM until it returns (seconds a frame).
 - ``ray``: ``shared`` goes into Ray's object store once; ``prepare(task)`` runs here before a task is
   sent (e.g. read its images into bytes, so the workers need no shared file system, only rigsfm and
   pycolmap installed). ``address`` connects to an existing cluster (``auto``, ``HOST:PORT`` of a head
@@ -69,7 +70,7 @@ def _call_on_ray(function: Callable, task: Any, *shared: Any) -> Any:
 
 
 def run_local(function: Callable, tasks: Sequence, on_result: OnResult, *, workers: int, shared: tuple = ()) -> None:
-    if workers <= 1 or len(tasks) <= 1:
+    if len(tasks) <= 1:  # one worker process too for workers=1: this one then answers Ctrl-C at once
         for task in tasks:
             on_result(function(task, *shared))
         return

@@ -22,6 +22,7 @@ import cv2
 import numpy as np
 
 from rigsfm.core.errors import InputError
+from rigsfm.core.names import quoted
 
 ORIENTATION_TAG = 0x0112  # EXIF / TIFF IFD0
 TURNS = {  # how a viewer shows an image of each Orientation value (1 = as stored)
@@ -177,8 +178,8 @@ def refuse_turned_images(paths: Sequence[Path], *, folder: Path | None = None,
     if not turned:
         return
     first, orientation = turned[0]
-    names = str(first) if len(turned) == 1 else (
-        f"{first} and {len(turned) - 1} more ({', '.join(str(p) for p, _ in turned[1:3])}"
+    names = f"'{first}'" if len(turned) == 1 else (
+        f"'{first}' and {len(turned) - 1} more ({quoted(p for p, _ in turned[1:3])}"
         f"{', ...' if len(turned) > 3 else ''})")
     strip = f"`exiftool -Orientation=1 -n -overwrite_original {_targets(turned, folder, recursive=True)}`"
     each = _targets(turned, folder, recursive=False)

@@ -4,10 +4,12 @@ from __future__ import annotations
 
 import contextlib
 import errno
+import gc
 import hashlib
 import io
 import json
 import os
+import re
 import shutil
 import stat
 import tempfile
@@ -54,6 +56,18 @@ def write_bytes_atomic(path: Path, data: bytes, *, overwrite: bool = True) -> Pa
         Path(tmp).unlink(missing_ok=True)
         raise
     return path
+
+
+# the temporary names write_bytes_atomic and atomic_directory make beside a path: '.NAME.' + tempfile's 8 characters
+# + '.tmp'
+_TEMPORARY_NAME = re.compile(r"^\.(?P<name>.+)\.[a-z0-9_]{8}\.tmp$")
+
+
+def real_path(path: str | os.PathLike) -> str:
+    """``path`` with each temporary name rigsfm writes under (``.NAME.x1y2z3w4.tmp``) replaced by the NAME it
+    becomes: what a message names, as the user never made the temporary file or folder."""
+    parts = str(path).split(os.sep)
+    return os.sep.join(match.group("name") if (match := _TEMPORARY_NAME.match(part)) else part for part in parts)
 
 
 def sha256_file(path: Path) -> str:
@@ -179,10 +193,10 @@ def check_regular_file(path: Path, what: str) -> os.stat_result:
     try:
         info = os.stat(path)
     except OSError as error:
-        raise InputError(f"{what} file {path} {access_problem(path, error)}") from None
+        raise InputError(f"{what} file '{path}' {access_problem(path, error)}") from None
     kind = file_kind(info.st_mode)
     if kind is not None:
-        raise InputError(f"{what} file {path} is {kind}, not a regular file; give the path of the {what} file itself")
+        raise InputError(f"{what} file '{path}' is {kind}, not a regular file; give the path of the {what} file itself")
     return info
 
 
@@ -193,12 +207,12 @@ def read_user_text(path: Path, what: str, *, max_bytes: int | None = None) -> st
     path = Path(path)
     info = check_regular_file(path, what)
     if max_bytes is not None and info.st_size > max_bytes:
-        raise InputError(f"{what} file {path} is {info.st_size / 2**20:.1f} MiB, over the {max_bytes / 2**20:g} MiB any "
+        raise InputError(f"{what} file '{path}' is {info.st_size / 2**20:.1f} MiB, over the {max_bytes / 2**20:g} MiB any "
                          "real one takes; is it the right file?")
     try:
         data = path.read_bytes()
     except OSError as error:
-        raise InputError(f"{what} file {path} {access_problem(path, error)}") from None
+        raise InputError(f"{what} file '{path}' {access_problem(path, error)}") from None
     encoding = next((name for bom, name in BOMS if data.startswith(bom)), "utf-8")
     try:
         return data.decode(encoding)
@@ -217,6 +231,27 @@ class DuplicateKeyError(yaml.constructor.ConstructorError):
 
 
 class _UniqueKeyLoader(_SAFE_LOADER):  # type: ignore[valid-type,misc]  # a base chosen at import
+    def __init__(self, stream: str) -> None:
+        super().__init__(stream)
+        self._tags: dict[str, str] = {}
+
+    def resolve(self, kind, value, implicit):
+        # a plain scalar's tag depends on its text alone (SafeLoader has no path resolvers): rigs.yaml repeats its
+        # keys and many of its numbers in every rig, and each resolution runs the regular expressions in Python
+        if kind is yaml.ScalarNode and implicit[0]:
+            tag = self._tags.get(value)
+            if tag is None:
+                tag = self._tags[value] = super().resolve(kind, value, implicit)
+            return tag
+        return super().resolve(kind, value, implicit)
+
+    # SafeLoader has no path resolvers, for which the composer tells each node's place (a Python call per node)
+    def descend_resolver(self, current_node, current_index):
+        pass
+
+    def ascend_resolver(self):
+        pass
+
     def construct_mapping(self, node, deep=False):
         if isinstance(node, yaml.MappingNode):
             seen: dict = {}
@@ -231,16 +266,107 @@ class _UniqueKeyLoader(_SAFE_LOADER):  # type: ignore[valid-type,misc]  # a base
                 except TypeError:  # an unhashable key: SafeConstructor refuses it with its own message
                     continue
                 if first is not key_node:
-                    raise DuplicateKeyError(
-                        None, None, f"the key {key!r} is given twice (first on line {first.start_mark.line + 1}), "
-                        "and only one can count; keep one", key_node.start_mark)
+                    raise _duplicate(key, first, key_node)
         return super().construct_mapping(node, deep=deep)
+
+
+def _duplicate(key: Any, first: yaml.Node, again: yaml.Node) -> DuplicateKeyError:
+    return DuplicateKeyError(None, None, f"the key {key!r} is given twice (first on line {first.start_mark.line + 1}), "
+                             "and only one can count; keep one", again.start_mark)
+
+
+class _NotPlainData(Exception):
+    """A node the plain-data builder leaves to PyYAML's constructor (other tags, merge keys, cycles, odd keys)."""
+
+
+_TAG = "tag:yaml.org,2002:"
+
+
+def _plain_data(loader: Any, root: yaml.Node) -> Any:
+    """What SafeLoader constructs from ``root``, for documents of mappings, sequences, strings, numbers, booleans
+    and nulls (every rigsfm file), built in one walk: PyYAML's general constructor spends ~10 us a node on its
+    bookkeeping (a 1 000-rig rigs.yaml has 136 000). Keys given twice raise :class:`DuplicateKeyError`, a mapping's
+    keys checked before its values as the constructor does; anything else raises :class:`_NotPlainData`."""
+    built: dict[int, Any] = {}  # an anchored node is one object wherever it is referenced, as PyYAML makes it
+    active: set[int] = set()
+    bools = loader.bool_values
+
+    def build(node: yaml.Node) -> Any:
+        tag = node.tag
+        if type(node) is yaml.ScalarNode:
+            value = node.value
+            if tag == _TAG + "str":
+                return value
+            if tag == _TAG + "float":
+                try:
+                    return float(value)  # underscores read alike; '.inf', '1:30.5' and the like fail here
+                except ValueError:
+                    return loader.construct_yaml_float(node)
+            if tag == _TAG + "int":
+                digits = value.lstrip("+-")
+                if digits[:1] != "0" or digits == "0":  # a leading zero is octal, 0x hexadecimal, 0b binary
+                    with contextlib.suppress(ValueError):  # '1:30' (base 60)
+                        return int(value)
+                return loader.construct_yaml_int(node)
+            if tag == _TAG + "bool":
+                return bools[value.lower()]
+            if tag == _TAG + "null":
+                return None
+            raise _NotPlainData
+        ident = id(node)
+        if ident in built:
+            return built[ident]
+        if ident in active:
+            raise _NotPlainData
+        active.add(ident)
+        if type(node) is yaml.SequenceNode and tag == _TAG + "seq":
+            result: Any = [build(child) for child in node.value]
+        elif type(node) is yaml.MappingNode and tag == _TAG + "map":
+            pairs = node.value
+            if any(key_node.tag == _TAG + "merge" for key_node, _ in pairs):
+                raise _NotPlainData
+            keys = [build(key_node) for key_node, _ in pairs]
+            try:
+                result = dict.fromkeys(keys)
+            except TypeError:  # an unhashable key: PyYAML's constructor refuses it with its own message
+                raise _NotPlainData from None
+            if len(result) < len(keys):
+                firsts: dict = {}
+                for key, (key_node, _) in zip(keys, pairs, strict=True):
+                    first = firsts.setdefault(key, key_node)
+                    if first is not key_node:
+                        raise _duplicate(key, first, key_node)
+            for key, (_, value_node) in zip(keys, pairs, strict=True):
+                result[key] = build(value_node)
+        else:
+            raise _NotPlainData
+        active.discard(ident)
+        built[ident] = result
+        return result
+
+    return build(root)
 
 
 def parse_yaml(text: str) -> Any:
     """``yaml.safe_load`` with libyaml's parser where available (raises ``yaml.YAMLError`` alike), refusing a key
     given twice in one mapping (:class:`DuplicateKeyError`)."""
-    return yaml.load(text, Loader=_UniqueKeyLoader)  # noqa: S506  (a safe loader)
+    loader = _UniqueKeyLoader(text)
+    collecting = gc.isenabled()
+    # the cyclic collector would walk every node built so far again and again (two thirds of the time on a 1 000-rig
+    # file); a node tree holds no cycles of its own, so nothing is left for it to collect afterwards
+    gc.disable()
+    try:
+        root = loader.get_single_node()
+        if root is None:
+            return None
+        try:
+            return _plain_data(loader, root)
+        except _NotPlainData:
+            return loader.construct_document(root)
+    finally:
+        if collecting:
+            gc.enable()
+        loader.dispose()
 
 
 def yaml_error_parts(error: yaml.YAMLError) -> tuple[str, str]:

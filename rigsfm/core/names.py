@@ -47,3 +47,9 @@ class ImageName:
 def name_of(image) -> ImageName:
     """The parsed name of a ``pycolmap.Image`` (or anything with a ``name``)."""
     return ImageName.parse(image.name)
+
+
+def quoted(names) -> str:
+    """Names as messages show them: each in single quotes, so that one with spaces or brackets reads as one
+    (``'rig 01', 'rig[2]'``)."""
+    return ", ".join(f"'{name}'" for name in names)

@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import copy
 import difflib
+import math
 import numbers
 import unicodedata
 from collections.abc import Sequence
@@ -166,7 +167,7 @@ def parse_camera(spec, where: str) -> pycolmap.Camera:
             f"{where}: camera model {model} takes {len(expected)} params ({', '.join(expected)}), "
             f"got {len(params)}"
         )
-    if not np.all(np.isfinite(params)) or min(camera.focal_length_x, camera.focal_length_y) <= 0:
+    if not all(math.isfinite(p) for p in params) or min(camera.focal_length_x, camera.focal_length_y) <= 0:
         raise InputError(f"{where}: params must be finite with positive focal lengths")
     check_plausible_camera(camera, where)
     check_lens(camera, where)
@@ -182,6 +183,12 @@ def _short(value, limit: int = 40) -> str:
     text = repr(value) if not isinstance(value, int) or isinstance(value, bool) or abs(value) < 10**30 \
         else f"a {len(str(abs(value)))}-digit number"
     return text if len(text) <= limit else text[:limit - 3] + "..."
+
+
+# check_lens's probe: 4 rays out from the principal point (+x, -x, +y, -y), 8 steps each, as fractions of its reach
+_LENS_STEPS = 8
+_LENS_OFFSETS = (np.array([[1.0, 0.0], [-1.0, 0.0], [0.0, 1.0], [0.0, -1.0]])[:, None, :]
+                 * np.linspace(0.0, 1.0, _LENS_STEPS + 1)[1:][None, :, None]).reshape(-1, 2)
 
 
 def check_lens(camera: pycolmap.Camera, where: str) -> None:
@@ -203,16 +210,14 @@ def check_lens(camera: pycolmap.Camera, where: str) -> None:
                              f"within ~10, at most {MAX_DISTORTION_COEFFICIENT:g}); check the params' order and digits")
     cx, cy = camera.principal_point_x, camera.principal_point_y
     reach = CENTRE_FRACTION * min(camera.width, camera.height)
-    steps = np.linspace(0.0, 1.0, 9)[1:]
-    directions = np.array([[1.0, 0.0], [-1.0, 0.0], [0.0, 1.0], [0.0, -1.0]])
-    pixels = np.array([cx, cy]) + reach * (directions[:, None, :] * steps[None, :, None])  # 4 rays out, 8 steps
+    pixels = np.array([cx, cy]) + reach * _LENS_OFFSETS
     focal = np.array([camera.focal_length_x, camera.focal_length_x, camera.focal_length_y, camera.focal_length_y])
     with np.errstate(all="ignore"):
-        rays = np.asarray(camera.cam_ray_from_img(pixels.reshape(-1, 2)), dtype=np.float64).reshape(4, len(steps), 3)
+        rays = np.asarray(camera.cam_ray_from_img(pixels), dtype=np.float64).reshape(4, _LENS_STEPS, 3)
         angles = np.arctan2(np.hypot(rays[..., 0], rays[..., 1]), rays[..., 2])
         ratio = angles[:, -1] / np.arctan(reach / focal)
-    if not (np.all(np.isfinite(angles)) and np.all(np.diff(angles, axis=1) > 0)
-            and np.all((CENTRE_ANGLE_RATIO[0] <= ratio) & (ratio <= CENTRE_ANGLE_RATIO[1]))):
+    if not (np.isfinite(angles).all() and (angles[:, 1:] > angles[:, :-1]).all()
+            and ((CENTRE_ANGLE_RATIO[0] <= ratio) & (ratio <= CENTRE_ANGLE_RATIO[1])).all()):
         raise InputError(f"{where}: these {model} params ({', '.join(f'{n}={v:g}' for n, v in zip(names, params))}) "
                          "bend the image centre beyond any lens (the rays there do not spread as a lens's do); "
                          "check the distortion coefficients' order, signs and digits")
@@ -255,7 +260,7 @@ def parse_rigid3d(spec, where: str) -> pycolmap.Rigid3d:
             f"{where}: rotation must be 3x3 and translation 3 numbers, "
             f"got {rotation.shape} and {translation.shape}"
         )
-    if not (np.all(np.isfinite(rotation)) and np.all(np.isfinite(translation))):
+    if not (np.isfinite(rotation).all() and np.isfinite(translation).all()):
         raise InputError(f"{where}: rotation and translation must be finite")
     orthonormality = float(np.abs(rotation.T @ rotation - np.eye(3)).max())
     if orthonormality > ROTATION_TOLERANCE:
@@ -284,7 +289,7 @@ def _sigma_vector(value, n: int, where: str) -> np.ndarray:
         out = np.array(value, dtype=np.float64).reshape(-1)
     except (TypeError, ValueError, OverflowError) as e:
         raise InputError(f"{where}: expected {n} numbers, got {value!r}") from e
-    if out.shape != (n,) or not np.all(np.isfinite(out)) or np.any(out < 0):
+    if out.shape != (n,) or not np.isfinite(out).all() or (out < 0).any():
         raise InputError(f"{where}: expected {n} finite numbers >= 0, got {value!r}")
     return out
 
@@ -332,14 +337,14 @@ def sigmas_from_entry(entry: dict, where: str, cameras: dict[str, pycolmap.Camer
     if "sigma_rotation_deg" in pose:
         what = f"{where} narrow_from_wide sigma_rotation_deg"
         out.rotation_deg = _sigma_vector(pose["sigma_rotation_deg"], 3, what)
-        if not np.all((out.rotation_deg >= MIN_SIGMA_ROTATION_DEG) & (out.rotation_deg <= MAX_SIGMA_ROTATION_DEG)):
+        if not ((out.rotation_deg >= MIN_SIGMA_ROTATION_DEG) & (out.rotation_deg <= MAX_SIGMA_ROTATION_DEG)).all():
             raise InputError(f"{what}: each must be {MIN_SIGMA_ROTATION_DEG:g} - {MAX_SIGMA_ROTATION_DEG:g} degrees, got "
                              f"{pose['sigma_rotation_deg']}; recalibrate, or remove the key")
     if "sigma_translation_m" in pose:
         what = f"{where} narrow_from_wide sigma_translation_m"
         out.translation_m = _sigma_vector(pose["sigma_translation_m"], 3, what)
         baseline = float(np.linalg.norm(np.asarray(pose["translation"], dtype=np.float64)))
-        if not np.all((out.translation_m >= MIN_SIGMA_TRANSLATION_M) & (out.translation_m <= baseline)):
+        if not ((out.translation_m >= MIN_SIGMA_TRANSLATION_M) & (out.translation_m <= baseline)).all():
             raise InputError(f"{what}: each must be at least {MIN_SIGMA_TRANSLATION_M:g} m and below the baseline "
                              f"|t| = {baseline:g} m, got "
                              f"{pose['sigma_translation_m']}; recalibrate, or remove the key")
@@ -349,10 +354,10 @@ def sigmas_from_entry(entry: dict, where: str, cameras: dict[str, pycolmap.Camer
             cov = np.array(pose["covariance"], dtype=np.float64)
         except (TypeError, ValueError, OverflowError) as e:
             raise InputError(f"{what}: expected a 6x6 matrix of numbers") from e
-        if cov.shape != (6, 6) or not np.all(np.isfinite(cov)):
+        if cov.shape != (6, 6) or not np.isfinite(cov).all():
             raise InputError(f"{what}: expected a finite 6x6 matrix, got shape {cov.shape}")
         scale = np.sqrt(np.clip(np.diag(cov), 1e-300, None))
-        if not np.allclose(cov, cov.T, rtol=1e-6, atol=0) or np.linalg.eigvalsh(cov / np.outer(scale, scale)).min() < -1e-6:
+        if not (np.abs(cov - cov.T) <= 1e-6 * np.abs(cov.T)).all() or np.linalg.eigvalsh(cov / np.outer(scale, scale)).min() < -1e-6:
             raise InputError(f"{what}: must be symmetric positive semi-definite ([w (rad), t (m)])")
         if np.degrees(np.sqrt(np.diag(cov)[:3])).max() > MAX_SIGMA_ROTATION_DEG:
             raise InputError(f"{what}: a rotation variance above ({MAX_SIGMA_ROTATION_DEG:g} deg)^2; the rotation "
@@ -412,10 +417,10 @@ def load_rigs(path: Path) -> list[RigCalibration]:
         if "/" in name or "\\" in name or name.startswith(".") or "\0" in name:
             raise InputError(f"{where}: rig name {name!r} must be a plain folder name")
         if nfc(name) in first_index:
-            raise InputError(f"{path}: rig names must be unique, repeated: {name} (rigs[{first_index[nfc(name)]}] and "
+            raise InputError(f"{path}: rig names must be unique, repeated: '{name}' (rigs[{first_index[nfc(name)]}] and "
                              f"rigs[{index}])")
         first_index[nfc(name)] = index
-        where = f"{path}: rig {name}"
+        where = f"{path}: rig '{name}'"
         check_keys(entry, RIG_KEYS, where)
         sensors = entry.get("sensors")
         if isinstance(sensors, dict):

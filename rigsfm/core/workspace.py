@@ -151,17 +151,17 @@ class Workspace:
     def require_result(self) -> None:
         """Raise a ``WorkspaceError`` saying what to do when OUT holds no finished run."""
         if not self.root.is_dir():
-            raise WorkspaceError(f"{self.root} does not exist: run `rigsfm run IMAGES --rigs rigs.yaml --out {self.root}`"
+            raise WorkspaceError(f"'{self.root}' does not exist: run `rigsfm run IMAGES --rigs rigs.yaml --out {self.root}`"
                                  " first")
         demo_run = Workspace(self.root / "run")
         if not (self.sparse / "images.bin").is_file() and demo_run.has_result():
-            raise WorkspaceError(f"{self.root} is a `rigsfm demo` folder, whose result is in its run/ folder: use "
+            raise WorkspaceError(f"'{self.root}' is a `rigsfm demo` folder, whose result is in its run/ folder: use "
                                  f"{demo_run.root} (e.g. `rigsfm view {demo_run.root}`)")
         if not (self.sparse / "images.bin").is_file():
-            raise WorkspaceError(f"{self.root} holds no result ({self.sparse} is missing): run `rigsfm run ... --out "
+            raise WorkspaceError(f"'{self.root}' holds no result ('{self.sparse}' is missing): run `rigsfm run ... --out "
                                  f"{self.root}` first")
         if not self.narrow_poses.is_file():
-            raise WorkspaceError(f"{self.narrow_poses} is missing: re-run `rigsfm run ... --out {self.root} --overwrite`")
+            raise WorkspaceError(f"'{self.narrow_poses}' is missing: re-run `rigsfm run ... --out {self.root} --overwrite`")
 
     @property
     def rerun_hint(self) -> str:
@@ -180,9 +180,9 @@ class Workspace:
 
     def _check_ours(self) -> None:
         if self.root.exists() and not self.root.is_dir():
-            raise WorkspaceError(f"output {self.root} exists and is not a folder; choose another --out")
+            raise WorkspaceError(f"output '{self.root}' exists and is not a folder; choose another --out")
         if self.root.is_dir() and not self.is_ours() and any(p.name not in (MARKER, LOCK) for p in self.root.iterdir()):
-            raise WorkspaceError(f"{self.root} is not empty and was not made by rigsfm; choose a new or empty --out "
+            raise WorkspaceError(f"'{self.root}' is not empty and was not made by rigsfm; choose a new or empty --out "
                                  "folder (rigsfm never writes among files it did not make)")
 
     def prepare(self, *, overwrite: bool) -> None:
@@ -193,7 +193,7 @@ class Workspace:
         existing = [p.name for p in self.results if p.exists()] if self.summary.exists() else []
         if existing and not overwrite:
             raise WorkspaceError(
-                f"{self.root} already holds a result ({', '.join(existing)}); pass --overwrite to replace it "
+                f"'{self.root}' already holds a result ({', '.join(existing)}); pass --overwrite to replace it "
                 "(features and matches made with the same settings are reused) or choose another --out"
             )
         writable(self.root)
@@ -240,7 +240,7 @@ class Workspace:
             except OSError:
                 handle.seek(0)
                 pid = handle.read().strip() or "?"
-                raise WorkspaceError(f"{self.root} is in use by process {pid} (another rigsfm command); wait for it to "
+                raise WorkspaceError(f"'{self.root}' is in use by process {pid} (another rigsfm command); wait for it to "
                                      "finish or choose another --out") from None
             handle.seek(0)
             handle.truncate()
@@ -268,15 +268,15 @@ def read_model(folder: Path, fix: str) -> pycolmap.Reconstruction:
     if missing or empty:
         what = "; ".join(filter(None, [missing and f"{', '.join(missing)} missing",  # type: ignore[list-item]
                                        empty and f"{', '.join(empty)} empty"]))  # type: ignore[list-item]
-        raise WorkspaceError(f"{folder} holds no complete COLMAP model ({what}): {fix}")
+        raise WorkspaceError(f"'{folder}' holds no complete COLMAP model ({what}): {fix}")
     from rigsfm.core.model_files import ModelFileError, check_model_files
 
     try:
         check_model_files(folder)  # pycolmap allocates whatever a damaged count says, for minutes
     except ModelFileError as error:
-        raise WorkspaceError(f"{error.path} is truncated or damaged ({error.what}): {fix}") from None
+        raise WorkspaceError(f"'{error.path}' is truncated or damaged ({error.what}): {fix}") from None
     except OSError as error:
-        raise WorkspaceError(f"cannot read the COLMAP model in {folder}: {os_error_text(error)}: {fix}") from None
+        raise WorkspaceError(f"cannot read the COLMAP model in '{folder}': {os_error_text(error)}: {fix}") from None
     try:
         return pycolmap.Reconstruction(str(folder))
     except Exception as error:  # ValueError, IndexError ("unordered_map::at"), MemoryError, ... by where it is cut
@@ -294,12 +294,12 @@ def read_json(path: Path, fix: str, *, keys: tuple[str, ...] = ()) -> Any:
     try:
         data = json.loads(path.read_text(encoding="utf-8"))
     except FileNotFoundError:
-        raise WorkspaceError(f"{path} is missing: {fix}") from None
+        raise WorkspaceError(f"'{path}' is missing: {fix}") from None
     except (json.JSONDecodeError, UnicodeDecodeError) as error:
-        raise WorkspaceError(f"{path} is not valid JSON ({error}): {fix}") from None
+        raise WorkspaceError(f"'{path}' is not valid JSON ({error}): {fix}") from None
     if keys and (not isinstance(data, dict) or any(key not in data for key in keys)):
         lacking = [k for k in keys if not isinstance(data, dict) or k not in data]
-        raise WorkspaceError(f"{path} is not a file rigsfm wrote (no {', '.join(lacking)}): {fix}")
+        raise WorkspaceError(f"'{path}' is not a file rigsfm wrote (no {', '.join(lacking)}): {fix}")
     return data
 
 
@@ -320,7 +320,7 @@ def writable(folder: Path) -> Path:
     folder = Path(folder)
     problem = _write_probe(folder)
     if problem is not None:
-        raise WorkspaceError(f"cannot write in {folder}: {problem}; choose a folder you can write to")
+        raise WorkspaceError(f"cannot write in '{folder}': {problem}; choose a folder you can write to")
     return folder
 
 
@@ -353,7 +353,7 @@ def disk_errors_named(folder: Path) -> Iterator[None]:
         if problem is None:
             raise
         cause = (str(error).splitlines() or [""])[0].strip() or type(error).__name__
-        raise WorkspaceError(f"cannot write in {folder}: {problem} ({cause}); free space or choose another --out, "
+        raise WorkspaceError(f"cannot write in '{folder}': {problem} ({cause}); free space or choose another --out, "
                              "then re-run the same command (finished work is kept)") from None
 
 

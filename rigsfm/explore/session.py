@@ -18,7 +18,7 @@ import pycolmap
 
 from rigsfm.core.errors import InputError, WorkspaceError
 from rigsfm.core.ground import parse_heights  # noqa: F401  (re-exported)
-from rigsfm.core.names import ImageName, name_of
+from rigsfm.core.names import ImageName, name_of, quoted
 from rigsfm.core.workspace import Workspace
 from rigsfm.explore.geometry import View, band_in_view, floor_trace, triangulate
 from rigsfm.explore.labels import ForeignRow, Label, parse_row, read_labels, save_labels
@@ -99,7 +99,7 @@ class ExploreResult:
 
     def frame_names(self, frame: str) -> list[str]:
         if frame not in self.frames:
-            shown = ", ".join(list(self.frames)[:8]) + (" ..." if len(self.frames) > 8 else "")
+            shown = quoted(list(self.frames)[:8]) + (" ..." if len(self.frames) > 8 else "")
             raise InputError(f"frame {frame!r} has no narrow images of two or more rigs in {self.workspace.root}; "
                              f"frames: {shown}")
         return [im.name for im in self.frames[frame]]

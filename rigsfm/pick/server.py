@@ -17,6 +17,7 @@ from pathlib import Path
 from urllib.parse import parse_qs, urlparse
 
 from rigsfm.core.errors import RigsfmError
+from rigsfm.core.io import real_path
 from rigsfm.core.local_server import SHARED_FILES, LocalHandler, LocalServer
 from rigsfm.core.local_server import image_bytes as _image_bytes
 from rigsfm.core.rig import load_rigs
@@ -77,7 +78,7 @@ class _Handler(LocalHandler):
         except SaveFailed as error:
             self._json({"error": str(error)}, HTTPStatus.INTERNAL_SERVER_ERROR)
         except OSError as error:  # the CSV unreadable: the page is told, the terminal gets no traceback
-            where = f"{error.filename}: " if error.filename else ""
+            where = f"{real_path(error.filename)}: " if error.filename else ""
             self._json({"error": f"{where}{os_error_text(error)}"}, HTTPStatus.INTERNAL_SERVER_ERROR)
         except (RigsfmError, ValueError, RecursionError) as error:
             self._json({"error": str(error) or type(error).__name__}, HTTPStatus.BAD_REQUEST)

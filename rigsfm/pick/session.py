@@ -71,7 +71,7 @@ def picker_image(path: Path, rigs: list[RigCalibration] | None) -> PickerImage:
         camera = by_name[parts[-3]].wide
     # the clicks are saved as COLMAP pixels of the image as stored, which a browser would show turned
     refuse_turned_images([path], calibration=None if camera is None else (
-        lambda _: (f"{parts[-3]}'s wide camera", camera.width, camera.height)))
+        lambda _: (f"the wide camera of rig '{parts[-3]}'", camera.width, camera.height)))
     image = read_image(path, cv2.IMREAD_UNCHANGED)
     if image is None:
         raise ManualMatchError(f"{path}: cannot be read as an image; give a wide image file")

@@ -21,7 +21,7 @@ import cv2
 from rigsfm.core.errors import InputError
 from rigsfm.core.image_files import read_image, refuse_turned_images
 from rigsfm.core.io import access_problem, file_kind
-from rigsfm.core.names import SENSORS, ImageName, Sensor
+from rigsfm.core.names import SENSORS, ImageName, Sensor, quoted
 from rigsfm.core.rig import RigCalibration, nfc
 
 logger = logging.getLogger(__name__)
@@ -58,10 +58,10 @@ def check_image_folder(image_dir: Path) -> Path:
     try:
         info = os.stat(image_dir)
     except OSError as error:
-        raise InputError(f"image folder {image_dir} {access_problem(image_dir, error)}") from None
+        raise InputError(f"image folder '{image_dir}' {access_problem(image_dir, error)}") from None
     kind = file_kind(info.st_mode)
     if kind != "a folder":
-        raise InputError(f"image folder {image_dir} is {kind or 'a file'}, not a folder; give the folder that holds "
+        raise InputError(f"image folder '{image_dir}' is {kind or 'a file'}, not a folder; give the folder that holds "
                          "<rig>/<sensor>/<frame file>")
     _listing(image_dir)
     return image_dir
@@ -72,7 +72,7 @@ def _listing(folder: Path) -> list[Path]:
     try:
         return sorted(folder.iterdir())
     except OSError as error:
-        raise InputError(f"folder {folder} {access_problem(folder, error)}") from None
+        raise InputError(f"folder '{folder}' {access_problem(folder, error)}") from None
 
 
 def _problem(path: Path, what: str) -> str | None:
@@ -129,42 +129,42 @@ def scan_images(image_dir: Path, rigs: Sequence[RigCalibration], *, check_pixels
     stray = [p.name for p in folders if not p.is_dir() and p.suffix.lower() in IMAGE_SUFFIXES]
     if stray:
         raise InputError(
-            f"{image_dir}: images must sit in <rig>/<sensor>/ folders, found {stray[0]} at the top level"
+            f"{image_dir}: images must sit in <rig>/<sensor>/ folders, found '{stray[0]}' at the top level"
         )
     by_name = rig_folders(image_dir)
     unknown = [path.name for key, path in by_name.items() if key not in known]
     if unknown:
         raise InputError(
-            f"{image_dir}: folder(s) {', '.join(unknown)} have no rig in the calibration file; "
+            f"{image_dir}: folder(s) {quoted(unknown)} have no rig in the calibration file; "
             "add them to rigs.yaml or move them out of the image folder"
         )
     entries: list[ImageEntry] = []
     for rig in rigs:
         rig_dir = by_name.get(nfc(rig.name))
         if rig_dir is None:
-            raise InputError(f"rig {rig.name} from the calibration file has no folder {image_dir / rig.name}")
+            raise InputError(f"rig '{rig.name}' from the calibration file has no folder '{image_dir / rig.name}'")
         extra = [p.name for p in _listing(rig_dir) if not _is_hidden(p) and p.name not in SENSORS]
         if extra:
-            raise InputError(f"{rig_dir}: unexpected {', '.join(sorted(extra))}; only 'wide' and 'narrow' belong here")
+            raise InputError(f"{rig_dir}: unexpected {quoted(sorted(extra))}; only 'wide' and 'narrow' belong here")
         frames: dict[str, set[str]] = {}
         for sensor in SENSORS:
             sensor_dir = rig_dir / sensor
             if not sensor_dir.is_dir():
                 problem = _problem(sensor_dir, f"the folder of the rig's {sensor} images")
                 if problem is not None and os.path.lexists(sensor_dir):
-                    raise InputError(f"{sensor_dir} {problem}")
+                    raise InputError(f"'{sensor_dir}' {problem}")
                 continue
             for path in _listing(sensor_dir):
                 if _is_hidden(path):
                     continue
                 if path.is_dir():
-                    raise InputError(f"{path}: sub-folders are not allowed below {sensor_dir}")
+                    raise InputError(f"{path}: sub-folders are not allowed below '{sensor_dir}'")
                 if path.suffix.lower() not in IMAGE_SUFFIXES:
-                    logger.warning("Ignoring %s: not an image file", path)
+                    logger.warning("Ignoring '%s': not an image file", path)
                     continue
                 problem = _problem(path, "an image file")
                 if problem is not None:
-                    raise InputError(f"{path} {problem}")
+                    raise InputError(f"'{path}' {problem}")
                 frame = nfc(path.name)
                 if frame in frames.get(sensor, set()):
                     raise InputError(f"{sensor_dir}: two files are named {path.name!r} in two Unicode spellings "
@@ -173,11 +173,11 @@ def scan_images(image_dir: Path, rigs: Sequence[RigCalibration], *, check_pixels
                 entries.append(ImageEntry(rig.name, sensor, path.name, path))
         wide, narrow = frames.get("wide", set()), frames.get("narrow", set())
         if not wide:
-            raise InputError(f"rig {rig.name} has no wide images in {rig_dir / 'wide'}")
+            raise InputError(f"rig '{rig.name}' has no wide images in '{rig_dir / 'wide'}'")
         orphans = sorted(narrow - wide)
         if orphans:
             raise InputError(
-                f"{rig_dir / 'narrow' / orphans[0]} has no wide image of the same name in {rig_dir / 'wide'}: "
+                f"'{rig_dir / 'narrow' / orphans[0]}' has no wide image of the same name in '{rig_dir / 'wide'}': "
                 "every frame is registered through its wide image; add it or remove the narrow one"
             )
     by_path = {entry.path: entry for entry in entries}
@@ -185,7 +185,7 @@ def scan_images(image_dir: Path, rigs: Sequence[RigCalibration], *, check_pixels
     def calibration(path: Path) -> tuple[str, int, int]:
         entry = by_path[path]
         camera = rig_by_name[entry.rig].camera(entry.sensor)
-        return f"rig {entry.rig}'s {entry.sensor} camera", camera.width, camera.height
+        return f"the {entry.sensor} camera of rig '{entry.rig}'", camera.width, camera.height
 
     # before the sizes: a calibration of the turned images would otherwise read as a wrong resolution
     refuse_turned_images([entry.path for entry in entries], folder=image_dir, calibration=calibration)
@@ -199,7 +199,7 @@ def rigs_without_narrow(image_dir: Path, images: Sequence[ImageEntry], rigs: Seq
     """One line per rig with no narrow image (allowed: its wide images still register, its narrow camera gets no
     pose); for a warning, since a misnamed or forgotten narrow folder otherwise goes unnoticed."""
     with_narrow = {e.rig for e in images if e.sensor == "narrow"}
-    return [f"rig {rig.name} has no narrow images ({Path(image_dir) / rig.name / 'narrow'} "
+    return [f"rig '{rig.name}' has no narrow images ('{Path(image_dir) / rig.name / 'narrow'}' "
             f"{'is empty' if (Path(image_dir) / rig.name / 'narrow').is_dir() else 'does not exist'}): its narrow "
             "camera gets no pose" for rig in rigs if rig.name not in with_narrow]
 
@@ -210,13 +210,13 @@ def check_image(entry: ImageEntry, camera) -> None:
         with open(entry.path, "rb"):  # OpenCV reads a permission denial as a corrupt file
             pass
     except OSError as error:
-        raise InputError(f"{entry.path} {access_problem(entry.path, error)}") from None
+        raise InputError(f"'{entry.path}' {access_problem(entry.path, error)}") from None
     image = read_image(entry.path, cv2.IMREAD_UNCHANGED)
     if image is None:
         raise InputError(f"{entry.path}: cannot be read as an image (corrupt or unsupported); replace it")
     height, width = image.shape[:2]
     if (width, height) != (camera.width, camera.height):
         raise InputError(
-            f"{entry.path} is {width}x{height} but rig {entry.rig}'s {entry.sensor} camera is calibrated for "
+            f"'{entry.path}' is {width}x{height} but the {entry.sensor} camera of rig '{entry.rig}' is calibrated for "
             f"{camera.width}x{camera.height}; use the calibration of this camera at this resolution"
         )

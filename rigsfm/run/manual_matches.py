@@ -147,7 +147,7 @@ def _check_point(path: Path, row: Correspondence, name: str, xy, camera: pycolma
     x, y = xy
     if not (0.0 <= x <= camera.width and 0.0 <= y <= camera.height):
         raise ManualMatchError(
-            f"{path}:{row.line}: point ({x:g}, {y:g}) lies outside {name}, which is {camera.width}x"
+            f"{path}:{row.line}: point ({x:g}, {y:g}) lies outside '{name}', which is {camera.width}x"
             f"{camera.height} px (COLMAP pixels: 0 <= x <= width, 0 <= y <= height); fix the coordinates"
         )
 
@@ -184,7 +184,7 @@ def validate_manual_matches(
     for (a, b), group in pairs.items():
         if len(group) < MIN_CORRESPONDENCES:
             raise TooFewCorrespondencesError(
-                f"{path}: {a} <-> {b} has {len(group)} correspondence(s); the calibrated relative pose "
+                f"{path}: '{a}' <-> '{b}' has {len(group)} correspondence(s); the calibrated relative pose "
                 f"(5-point RANSAC) needs at least {MIN_CORRESPONDENCES}; add {MIN_CORRESPONDENCES - len(group)} "
                 "more (rigsfm pick helps) or remove this pair"
             )
@@ -192,7 +192,7 @@ def validate_manual_matches(
             check_spread(
                 np.asarray(xy),
                 cameras[entries[name].rig],
-                f"{path}: the {len(group)} points of {a} <-> {b}",
+                f"{path}: the {len(group)} points of '{a}' <-> '{b}'",
                 name,
             )
     return pairs

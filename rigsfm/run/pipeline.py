@@ -51,6 +51,7 @@ from rigsfm.run.manual_merge import add_manual_matches, manual_matches_summary
 from rigsfm.run.mapping import MappingResult, run_mapping
 from rigsfm.run.options import RunOptions
 from rigsfm.run.priors import CalibrationPriors, calibration_priors
+from rigsfm.run.scale_check import check_scale_agreement
 from rigsfm.run.scale_file import ScaleSpec, load_scale
 from rigsfm.run.summary import CameraError, InputsSummary, MappingSummary, Registration, ScaleSummary, Summary
 from rigsfm.run.uncertainty import estimate_uncertainty, uncertainty_summary
@@ -350,6 +351,8 @@ def _run_locked(workspace: Workspace, inputs: Inputs, manual_pairs: dict, option
                 raise ReconstructionError(f"{error}. Manual matches: {kept}") from None
             if progress:
                 progress("mapping", mapping.reconstruction.num_reg_frames(), num_wide)
+            if inputs.scale is not None:  # a measurement in other units would drag the adjustment for minutes
+                check_scale_agreement(mapping.reconstruction, inputs.scale, inputs.rigs)
         with timings.stage("adjust"):
             result = in_child(adjust, mapping.reconstruction, inputs.rigs, inputs.scale, options.adjust, inputs.priors)
         metric = is_metric(result)

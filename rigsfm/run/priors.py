@@ -185,7 +185,7 @@ def rig_prior(rig: RigCalibration, sigmas=None, where: str | None = None,
               defaults: BoardDefaults = GOOD_BOARD) -> tuple[RigPrior, dict[str, tuple[str, ...]]]:
     """One rig's prior from ``sigmas`` (a ``rigsfm.calibrate.uncertainty.RigSigmas``; None: every value assumed),
     checked; returns it and the parameters held for lack of a default (``{"<rig>/<sensor>": names}``)."""
-    where = where or f"rigs.yaml: rig {rig.name}"
+    where = where or f"rigs.yaml: rig '{rig.name}'"
     assumed, held, cameras = [], {}, {}
     for sensor in ("wide", "narrow"):
         camera = rig.camera(sensor)
@@ -237,7 +237,7 @@ def calibration_priors(rigs: Sequence[RigCalibration], rigs_path: Path | None = 
     written = {rig.name: rig.sigmas for rig in rigs if rig.sigmas is not None}
     priors, held = {}, {}
     for rig in rigs:
-        where = f"{rigs_path}: rig {rig.name}" if rigs_path is not None else f"rig {rig.name}"
+        where = f"{rigs_path}: rig '{rig.name}'" if rigs_path is not None else f"rig '{rig.name}'"
         priors[rig.name], rig_held = rig_prior(rig, written.get(rig.name), where, defaults)
         held.update(rig_held)
     result = CalibrationPriors(priors, held)

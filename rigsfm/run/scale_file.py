@@ -135,7 +135,7 @@ def _check_inside(xy: tuple[float, float], entry: ImageEntry, rigs: dict[str, Ri
     camera = rigs[entry.rig].camera(entry.sensor)
     x, y = xy
     if not (0.0 <= x <= camera.width and 0.0 <= y <= camera.height):
-        raise InputError(f"{where}: ({x:g}, {y:g}) lies outside {entry.name}, which is {camera.width}x{camera.height} "
+        raise InputError(f"{where}: ({x:g}, {y:g}) lies outside '{entry.name}', which is {camera.width}x{camera.height} "
                          "px (COLMAP pixels: 0 <= x <= width, 0 <= y <= height); fix the coordinates")
 
 
@@ -218,7 +218,7 @@ def load_scale(path: Path, images: Sequence[ImageEntry], rigs: Sequence[RigCalib
             _check_inside(end_a, entries[image], by_rig, f"{obs_where}.a")
             _check_inside(end_b, entries[image], by_rig, f"{obs_where}.b")
             if np.hypot(end_a[0] - end_b[0], end_a[1] - end_b[1]) < MIN_END_SEPARATION_PX:
-                raise InputError(f"{obs_where}: a and b are the same point in {obs['image']} (a zero-length bar); give "
+                raise InputError(f"{obs_where}: a and b are the same point in '{obs['image']}' (a zero-length bar); give "
                                  "the pixels of the object's two different ends")
             observations.append(LengthObservation(image, end_a, end_b))
         if len({o.image for o in observations}) < 2:

@@ -40,7 +40,7 @@ import pycolmap
 
 from rigsfm.core.errors import InputError
 from rigsfm.core.io import load_yaml_or_json
-from rigsfm.core.names import name_of
+from rigsfm.core.names import name_of, quoted
 from rigsfm.run.self_check import (
     KEYPOINT_NOISE_PX,
     MIN_MATCHES,
@@ -271,14 +271,14 @@ def read_frame_offsets(path: Path, rigs: list[str], frames_per_rig: dict[str, in
     for rig, value in data.items():
         rig = str(rig)
         if rig not in rigs:
-            raise InputError(f"{path}: rig {rig!r} is not in rigs.yaml ({', '.join(rigs)}); fix its name or remove "
+            raise InputError(f"{path}: rig {rig!r} is not in rigs.yaml ({quoted(rigs)}); fix its name or remove "
                              "the line")
         if isinstance(value, bool) or not isinstance(value, int):
-            raise InputError(f"{path}: {rig}'s offset must be a whole number of frames (e.g. '{rig}: 1'), got "
+            raise InputError(f"{path}: the offset of rig '{rig}' must be a whole number of frames (e.g. '{rig}: 1'), got "
                              f"{value!r}")
         frames = frames_per_rig.get(rig, 0)
         if abs(value) >= max(frames, 1):
-            raise InputError(f"{path}: {rig}'s offset {value:+d} is beyond the recording ({frames} narrow frame(s) "
-                             f"of {rig}: offsets {-(frames - 1)}..{frames - 1}); fix the offset")
+            raise InputError(f"{path}: the offset {value:+d} of rig '{rig}' is beyond the recording ({frames} narrow "
+                             f"frame(s) of '{rig}': offsets {-(frames - 1)}..{frames - 1}); fix the offset")
         offsets[rig] = value
     return offsets

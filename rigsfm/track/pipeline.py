@@ -1,7 +1,7 @@
 """``rigsfm track OUT NEW_IMAGES``: re-register every rig in every new frame against the reference in OUT.
 
 Outputs (OUT/track/): ``poses.json`` (per rig: baseline, verdict, frames), ``poses.csv`` (one row per
-frame), ``plots/<rig>.png``. Frames already in poses.json (same rig and frame file name, same content) are
+frame), ``plots/<rig>.png``; COLMAP's log and a line per frame are appended to OUT/colmap.log. Frames already in poses.json (same rig and frame file name, same content) are
 skipped, so the command can run again as recordings arrive; results are merged, checkpointed every
 ``checkpoint_every`` frames and written atomically. Each tracked frame records its files' fingerprints (size,
 modification time, SHA-256): a file that reuses a tracked name with other content (a new recording that numbers
@@ -25,7 +25,7 @@ from rigsfm.core.errors import InputError
 from rigsfm.core.executors import check_reachable
 from rigsfm.core.io import file_sha256, write_bytes_atomic, write_json_atomic, write_text_atomic
 from rigsfm.core.rig import RigCalibration, nfc
-from rigsfm.core.workspace import TrackPaths, Workspace
+from rigsfm.core.workspace import TrackPaths, Workspace, colmap_log_to
 from rigsfm.run.inputs import check_image_folder, rig_folders, scan_images
 from rigsfm.track.executors import run_frames
 from rigsfm.track.options import TrackOptions
@@ -133,6 +133,8 @@ def track(out: Path, new_images: Path, options: TrackOptions | None = None, *,
 
         def on_result(record: dict) -> None:
             done[0] += 1
+            logger.info("Frame %s/%s: %s (%d of %d)", record["rig"], record["frame"], record["status"], done[0],
+                        len(todo))
             if record["status"] == "bad_input":
                 bad.append(record["reason"])
             else:
@@ -144,8 +146,9 @@ def track(out: Path, new_images: Path, options: TrackOptions | None = None, *,
                 progress(done[0], len(todo))
 
         try:
-            run_frames(todo, reference, on_result, executor=str(options.executor), workers=options.workers,
-                       address=options.address, options=options.registration)
+            with colmap_log_to(workspace.colmap_log):  # glog's lines (every extractor's start) are not the user's
+                run_frames(todo, reference, on_result, executor=str(options.executor), workers=options.workers,
+                           address=options.address, options=options.registration)
         finally:
             poses = assemble(frames, reference, thresholds)
             if frames or options.overwrite:

@@ -78,9 +78,9 @@ def load_poses(path: Path, reference: ReferenceMap) -> dict:
     try:
         data = json.loads(path.read_text(encoding="utf-8"))
     except (json.JSONDecodeError, UnicodeDecodeError) as e:
-        raise WorkspaceError(f"{path} is not valid JSON ({e}); pass --overwrite to start the series anew") from e
+        raise WorkspaceError(f"'{path}' is not valid JSON ({e}); pass --overwrite to start the series anew") from e
     if data.get("reference", {}).get("fingerprint") != reference.fingerprint:
-        raise WorkspaceError(f"{path} was tracked against another reference model than {reference.sparse}; "
+        raise WorkspaceError(f"'{path}' was tracked against another reference model than '{reference.sparse}'; "
                              "pass --overwrite to start the series anew against this one")
     return {(f["rig"], f["frame"]): f for rig in data.get("rigs", {}).values() for f in rig.get("frames", [])}
 

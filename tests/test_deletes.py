@@ -162,7 +162,7 @@ def test_an_edited_export_file_is_kept_and_named(out, tmp_path):
     (dest / "cameras.bin").write_bytes(b"edited by hand")
     result = invoke("export", out, "--format", "colmap-bin", "--dest", dest, "--overwrite")
     assert result.exit_code == 1
-    assert (f"{dest / 'cameras.bin'} is not what an earlier export wrote there (edited or replaced since); move it "
+    assert (f"'{dest / 'cameras.bin'}' is not what an earlier export wrote there (edited or replaced since); move it "
             "away or choose another --dest (nothing was written or removed)") in one_error_line(result)
     assert (dest / "cameras.bin").read_bytes() == b"edited by hand"
     # A stale file of an earlier export, changed since and not written again: kept with a warning.
@@ -228,7 +228,7 @@ def test_demo_overwrite_keeps_the_users_files_in_the_scene_folder(tmp_path):
     result = invoke("demo", tmp_path / "demo", "--overwrite", "--num-rigs", 2, "--image-scale", 0.25)
     assert result.exit_code == 1
     line = one_error_line(result)
-    assert (f"{scene} holds files rigsfm did not write there, or changed since (ground_truth/notes.txt, "
+    assert (f"'{scene}' holds files rigsfm did not write there, or changed since (ground_truth/notes.txt, "
             "images/rig01/wide/mine.png); move them away or choose a new folder (nothing was removed)") in line, line
     assert tree(scene) == before
 
@@ -418,7 +418,7 @@ def test_calibrate_refuses_a_report_folder_with_the_users_files_before_calibrati
     result = invoke("calibrate", tmp_path / "images", "--board", tmp_path / "board.yaml", "--out",
                     tmp_path / "new_rigs.yaml", "--report-dir", tmp_path / "reports")
     assert result.exit_code == 1
-    assert (f"{mine.parent} holds files rigsfm did not write (my_notes.txt); move them away or choose another "
+    assert (f"'{mine.parent}' holds files rigsfm did not write (my_notes.txt); move them away or choose another "
             "--report-dir (nothing was written)") in one_error_line(result)
     assert mine.read_text() == "the user's notes" and not (tmp_path / "new_rigs.yaml").exists()
 
@@ -431,7 +431,7 @@ def test_a_model_folder_is_replaced_only_while_it_holds_rigsfm_files(out):
     write_model(model, out / "sparse", overwrite=True)  # an earlier model: replaced
     (out / "sparse" / "notes.txt").write_text("the user's notes")
     before = tree(out / "sparse")
-    with pytest.raises(WorkspaceError, match=r"sparse holds files rigsfm did not write there \(notes.txt\); move them "
+    with pytest.raises(WorkspaceError, match=r"sparse' holds files rigsfm did not write there \(notes.txt\); move them "
                                              r"away \(nothing was replaced\)"):
         write_model(model, out / "sparse", overwrite=True)
     assert tree(out / "sparse") == before

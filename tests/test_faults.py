@@ -375,7 +375,7 @@ def test_a_database_removed_during_matching_is_named_then_made_again(scene, tmp_
     monkeypatch.undo()
     again = invoke_wide(*args)
     assert again.exit_code == 0, again.output
-    assert (f"{copy / 'database.db'} holds no images (removed or replaced while a run wrote it?): it is made again"
+    assert (f"'{copy / 'database.db'}' holds no images (removed or replaced while a run wrote it?): it is made again"
             in again.output), again.output
     assert json.loads((copy / "summary.json").read_text())["registered"]["narrow"]["registered"] == 3
 

@@ -119,7 +119,7 @@ def test_a_damaged_or_emptied_database_is_made_again(tmp_path, caplog, damage, w
     damage(db)
     caplog.set_level(logging.WARNING, logger="rigsfm.run.database")
     create_database(db, scene.rigs, scene.images)
-    assert f"{db} {words}" in caplog.text and "it is made again, and so are its features and matches" in caplog.text
+    assert f"'{db}' {words}" in caplog.text and "it is made again, and so are its features and matches" in caplog.text
     assert not (tmp_path / "out" / "database.db-journal").exists()  # never applied to the new file
     with pycolmap.Database.open(db) as database:
         assert sorted(image.name for image in database.read_all_images()) == sorted(e.name for e in scene.images)
@@ -132,7 +132,7 @@ def test_a_database_rigsfm_did_not_write_is_refused_and_kept(tmp_path):
     with sqlite3.connect(db) as connection:
         connection.execute("CREATE TABLE notes (text TEXT)")
     before = db.read_bytes()
-    with pytest.raises(WorkspaceError, match=r"database.db is not a COLMAP database \(rigsfm did not write it\); "
+    with pytest.raises(WorkspaceError, match=r"database.db' is not a COLMAP database \(rigsfm did not write it\); "
                                              "choose another --out or move it away"):
         create_database(db, scene.rigs, scene.images)
     assert db.read_bytes() == before
@@ -162,7 +162,7 @@ def test_the_warning_reaches_the_terminal_while_colmap_logs_to_out(tmp_path):
     (out / "database.db").write_bytes(b"not a database\n" * 300)
     done = subprocess.run([sys.executable, "-m", "rigsfm", *RUN], cwd=tmp_path, capture_output=True, text=True,
                           env={**os.environ, "PYTHONPATH": str(REPO), "COLUMNS": "400"})
-    assert "out/database.db is not a database: it is made again" in done.stderr, done.stderr
+    assert "'out/database.db' is not a database: it is made again" in done.stderr, done.stderr
     assert "internal error" not in done.stderr and "Traceback" not in done.stderr, done.stderr
     with pycolmap.Database.open(out / "database.db") as database:
         assert database.num_images() == 4 and database.num_keypoints() > 0

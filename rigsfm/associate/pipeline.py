@@ -65,7 +65,7 @@ def require_floor(model: RunModel, out: Path) -> None:
     """Heights mean metres above the floor only in the floor frame."""
     frame = (model.world or {}).get("frame")
     if frame != "floor":
-        raise InputError(f"{out} is not in the floor frame (world: {frame or 'unknown'}), so heights above the floor "
+        raise InputError(f"'{out}' is not in the floor frame (world: {frame or 'unknown'}), so heights above the floor "
                          "are unknown: re-run `rigsfm run` with known lengths on the floor (scale.yaml) so it finds "
                          "the floor")
 

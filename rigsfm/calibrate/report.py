@@ -172,7 +172,7 @@ def check_report_dir(report_dir: Path, rig_names: list[str]) -> None:
         foreign = sorted(p.name for p in folder.iterdir() if p.name not in REPORT_FILES or not p.is_file()
                          or p.is_symlink()) if folder.is_dir() else []
         if foreign:
-            raise WorkspaceError(f"{folder} holds files rigsfm did not write ({', '.join(foreign[:3])}"
+            raise WorkspaceError(f"'{folder}' holds files rigsfm did not write ({', '.join(foreign[:3])}"
                                  f"{', ...' if len(foreign) > 3 else ''}); move them away or choose another "
                                  "--report-dir (nothing was written)")
 

@@ -128,10 +128,10 @@ def atomic_directory(path: Path, *, overwrite: bool = True) -> Iterator[Path]:
     try:
         yield tmp
         if path.is_symlink() or (path.exists() and not path.is_dir()):
-            raise WorkspaceError(f"{path} exists and is not a folder rigsfm wrote; move it away (nothing was replaced)")
+            raise WorkspaceError(f"'{path}' exists and is not a folder rigsfm wrote; move it away (nothing was replaced)")
         foreign = _foreign_entries(path, tmp) if path.exists() else []
         if foreign:
-            raise WorkspaceError(f"{path} holds files rigsfm did not write there ({', '.join(foreign[:3])}"
+            raise WorkspaceError(f"'{path}' holds files rigsfm did not write there ({', '.join(foreign[:3])}"
                                  f"{', ...' if len(foreign) > 3 else ''}); move them away (nothing was replaced)")
         if path.exists():
             old = path.with_name(f".{path.name}.old")

@@ -57,7 +57,7 @@ class ExploreResult:
             frame: sorted(found, key=lambda im: im.name)
             for frame, found in synchronised_frames(self.reconstruction).items()}
         if not self.frames:
-            raise InputError(f"{self.workspace.root} holds no narrow images of one frame from two or more rigs (the "
+            raise InputError(f"'{self.workspace.root}' holds no narrow images of one frame from two or more rigs (the "
                              "explorer shows one synchronised frame: narrow images of several rigs with the same "
                              "file name)")
         self.sizes = {im.name: (self.reconstruction.cameras[im.camera_id].width,
@@ -100,7 +100,7 @@ class ExploreResult:
     def frame_names(self, frame: str) -> list[str]:
         if frame not in self.frames:
             shown = quoted(list(self.frames)[:8]) + (" ..." if len(self.frames) > 8 else "")
-            raise InputError(f"frame {frame!r} has no narrow images of two or more rigs in {self.workspace.root}; "
+            raise InputError(f"frame {frame!r} has no narrow images of two or more rigs in '{self.workspace.root}'; "
                              f"frames: {shown}")
         return [im.name for im in self.frames[frame]]
 

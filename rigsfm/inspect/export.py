@@ -222,7 +222,7 @@ def check_destination(dest: Path, workspace: Workspace, *, overwrite: bool) -> P
     export without ``overwrite``."""
     resolved, root = dest.resolve(), workspace.root.resolve()
     if resolved == root or root.is_relative_to(resolved):
-        raise WorkspaceError(f"--dest {dest} is the workspace or a folder that holds it; choose a folder of its own "
+        raise WorkspaceError(f"--dest '{dest}' is the workspace or a folder that holds it; choose a folder of its own "
                              f"(the default is {workspace.export('FORMAT')})")
     if resolved.is_relative_to(root) and not resolved.is_relative_to(root / "export"):
         raise WorkspaceError(f"--dest {dest} is inside the workspace's own files; use {root / 'export'}/... or a folder "
@@ -237,7 +237,7 @@ def check_destination(dest: Path, workspace: Workspace, *, overwrite: bool) -> P
     listed, sums, invalid = read_manifest(dest)
     foreign = [name for name in present if name != MANIFEST and name not in listed]
     if foreign:
-        raise WorkspaceError(f"--dest {dest} holds files rigsfm did not write ({', '.join(foreign[:3])}"
+        raise WorkspaceError(f"--dest '{dest}' holds files rigsfm did not write ({', '.join(foreign[:3])}"
                              f"{', ...' if len(foreign) > 3 else ''}); choose a new or empty folder (nothing was "
                              "written or removed)")
     if not overwrite:
@@ -252,7 +252,7 @@ def _replace_previous(dest: Path, previous: Previous, written: list[str]) -> Non
     this one does not write again (those it does are replaced by the rename); keep the others with a warning."""
     collide = [name for name in previous.changed if name in written]
     if collide:
-        raise WorkspaceError(f"{dest / collide[0]} is not what an earlier export wrote there (edited or replaced "
+        raise WorkspaceError(f"'{dest / collide[0]}' is not what an earlier export wrote there (edited or replaced "
                              "since); move it away or choose another --dest (nothing was written or removed)")
     for name in previous.changed:
         logger.warning("Kept %s: its content is not what rigsfm wrote there (edited or replaced since), so it is no "

@@ -129,7 +129,7 @@ def damage(path: Path) -> str | None:
     if found != ["ok"]:
         return f"is damaged ({found[0] if found else 'no answer to its check'})"
     if tables and "images" not in tables:
-        raise WorkspaceError(f"{path} is not a COLMAP database (rigsfm did not write it); choose another --out or "
+        raise WorkspaceError(f"'{path}' is not a COLMAP database (rigsfm did not write it); choose another --out or "
                              "move it away")
     return None
 
@@ -164,7 +164,7 @@ def create_database(
             logger.info("Reusing database %s", database_path)
             return database_path
         # Only rigsfm writes this file in its workspace, and what it held is lost anyway: made again in its place.
-        logger.warning("%s %s: it is made again, and so are its features and matches", database_path, problem)
+        logger.warning("'%s' %s: it is made again, and so are its features and matches", database_path, problem)
         for journal in ("-journal", "-wal", "-shm"):  # SQLite's of the old file: never to be applied to the new one
             database_path.with_name(database_path.name + journal).unlink(missing_ok=True)
     tmp_path = database_path.with_name(database_path.name + ".tmp")

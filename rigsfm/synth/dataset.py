@@ -254,7 +254,7 @@ def _prepare(out_dir: Path, overwrite: bool) -> None:
             raise WorkspaceError(f"{out_dir} is not empty: pass overwrite=True (--overwrite) to replace it")
         ours, foreign = _ours(out_dir)
         if foreign:
-            raise WorkspaceError(f"{out_dir} holds files rigsfm did not write there, or changed since "
+            raise WorkspaceError(f"'{out_dir}' holds files rigsfm did not write there, or changed since "
                                  f"({', '.join(foreign[:3])}{', ...' if len(foreign) > 3 else ''}); move them away or "
                                  "choose a new folder (nothing was removed)")
         for path in ours:

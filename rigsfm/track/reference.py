@@ -157,15 +157,15 @@ def load_reference(out: Path, neighbours: int = DEFAULT_NEIGHBOURS,
     workspace = Workspace(Path(out))
     workspace.require_result()
     if not workspace.database.is_file():
-        raise WorkspaceError(f"{workspace.database} is missing: track needs the descriptors of the reference run")
+        raise WorkspaceError(f"'{workspace.database}' is missing: track needs the descriptors of the reference run")
     problem = damage(workspace.database)  # COLMAP's words for it are a full disk's
     if problem is not None:
-        raise WorkspaceError(f"{workspace.database} {problem}: {workspace.rerun_hint}")
+        raise WorkspaceError(f"'{workspace.database}' {problem}: {workspace.rerun_hint}")
     rec = workspace.read_sparse()
     with_points = sorted((im for im in rec.images.values() if im.has_pose and im.num_points3D > 0),
                          key=lambda im: im.name)
     if not with_points:
-        raise WorkspaceError(f"{workspace.sparse} has no 3D points to register new images against")
+        raise WorkspaceError(f"'{workspace.sparse}' has no 3D points to register new images against")
     blocks = []
     with pycolmap.Database.open(workspace.database) as database:
         for image in with_points:

@@ -598,23 +598,39 @@ def pairwise_view_shifts(frame: _Frame, options: AssociateOptions, starts: int =
     if not pairs:
         return ViewCorrection(np.zeros((nv, 2)), prior, np.full(nv, np.nan), np.zeros(nv, dtype=int)), 0.0
     d = np.concatenate([p[2] for p in pairs])
-    jac = np.zeros((len(d), 2 * nv))
-    pair_of = np.concatenate([np.full(len(p[2]), k) for k, p in enumerate(pairs)])
-    uniform = np.concatenate([np.full(len(p[2]), 1.0 / (2 * p[5])) for p in pairs])
-    at = 0
-    for i, j, dd, gi, gj, _ in pairs:
-        jac[at:at + len(dd), 2 * i:2 * i + 2] = gi
-        jac[at:at + len(dd), 2 * j:2 * j + 2] = gj
-        at += len(dd)
+    # Each candidate's distance moves with four of the 2V shift coordinates (i's and j's): kept compact, the
+    # normal equations are per-pair 4x4 blocks summed from precomputed outer products.
+    grad = np.concatenate([np.c_[p[3], p[4]] for p in pairs])  # n x 4
+    cols = np.array([[2 * i, 2 * i + 1, 2 * j, 2 * j + 1] for i, j, *_rest in pairs])  # pairs x 4
+    sizes = np.array([len(p[2]) for p in pairs])
+    pair_of = np.repeat(np.arange(len(pairs)), sizes)
+    indptr, indices = np.concatenate([[0], np.cumsum(sizes)]), np.arange(len(d))
+    outer = (grad[:, :, None] * grad[:, None, :]).reshape(len(d), 16)
+    row_cols = cols[pair_of]
+    block_rows = np.repeat(cols, 4, axis=1).ravel()
+    block_cols = np.tile(cols, (1, 4)).ravel()
+    uniform = np.repeat([1.0 / (2 * p[5]) for p in pairs], sizes)
     var = 2.0 * options.pixel_sigma ** 2
     precision = np.repeat(1.0 / prior ** 2, 2)
 
+    def residual(x):
+        return d + np.sum(grad * x[row_cols], axis=1)
+
+    def normal_equations(w):
+        weighted = sp.csr_matrix((w, indices, indptr), shape=(len(pairs), len(d)))
+        lhs = np.zeros((2 * nv, 2 * nv))
+        np.add.at(lhs, (block_rows, block_cols), (weighted @ outer).ravel() / var)
+        rhs = np.zeros(2 * nv)
+        np.add.at(rhs, cols.ravel(), (weighted @ (grad * d[:, None])).ravel() / var)
+        return lhs + np.diag(precision), rhs
+
     def loglik(x, share):
-        r = d + jac @ x
+        r = residual(x)
         inlier = share[pair_of] * np.exp(-0.5 * r ** 2 / var) / math.sqrt(2 * math.pi * var)
         mix = inlier + (1 - share[pair_of]) * uniform
         return float(np.sum(np.log(mix)) - 0.5 * np.sum(precision * x ** 2)), inlier / mix
 
+    counts = np.maximum(np.bincount(pair_of, minlength=len(pairs)), 1)
     rng = np.random.default_rng(seed)
     best = None
     for start in range(starts):
@@ -622,11 +638,10 @@ def pairwise_view_shifts(frame: _Frame, options: AssociateOptions, starts: int =
         share = np.full(len(pairs), 0.1)
         for _ in range(50):
             _, w = loglik(x, share)
-            share = np.clip(np.bincount(pair_of, w, len(pairs)) / np.bincount(pair_of, minlength=len(pairs)),
-                            1e-3, 0.999)
+            share = np.clip(np.bincount(pair_of, w, len(pairs)) / counts, 1e-3, 0.999)
             # r = d + J x: the weighted least squares with the prior
-            lhs = (jac.T * (w / var)) @ jac + np.diag(precision)
-            new = np.linalg.solve(lhs, -(jac.T @ (w * d)) / var)
+            lhs, rhs = normal_equations(w)
+            new = np.linalg.solve(lhs, -rhs)
             done = np.max(np.abs(new - x)) < 0.01
             x = new
             if done:
@@ -637,14 +652,15 @@ def pairwise_view_shifts(frame: _Frame, options: AssociateOptions, starts: int =
     assert best is not None  # the loop above runs at least once
     value, x, w, share = best
     zero = loglik(np.zeros(2 * nv), share)[0]
-    lhs = (jac.T * (w / var)) @ jac + np.diag(precision)
+    lhs, _ = normal_equations(w)
     cov = np.linalg.inv(lhs)
     sigma = np.sqrt(np.maximum(cov[0::2, 0::2].diagonal(), cov[1::2, 1::2].diagonal()))
-    r = d + jac @ x
+    r = residual(x)
     count = np.zeros(nv)
+    per_pair = np.bincount(pair_of, w, len(pairs))
     for k, (i, j, *_rest) in enumerate(pairs):
-        count[i] += w[pair_of == k].sum()
-        count[j] += w[pair_of == k].sum()
+        count[i] += per_pair[k]
+        count[j] += per_pair[k]
     # A pair's distance carries both views' noise: per view and coordinate, half its variance.
     scatter = np.full(nv, math.sqrt(float(np.sum(w * r ** 2) / max(w.sum(), 1e-9)) / 2.0))
     return ViewCorrection(x.reshape(nv, 2), sigma, scatter, count.astype(int)), value - zero

@@ -186,13 +186,9 @@ def test_bad_detections_are_refused_naming_the_row(case, tmp_path):
 
 
 def test_wildtrack_export_reads_and_projects_like_mvdet(crowd, tmp_path):
-    """Read the export the way MVDet's Wildtrack loader does (cv2.FileStorage for intrinsic_zero, ElementTree for
-    the extrinsic rvec / tvec text, centimetres) and project floor points like its get_imagecoord_from_worldcoord."""
-    import xml.etree.ElementTree as ET
-
-    import cv2
-
-    from rigsfm.core.ground import image_from_plane
+    """Read the export the way MVDet's Wildtrack loader does and project floor points like its
+    get_imagecoord_from_worldcoord (support.mvdet_floor_pixels)."""
+    from support import mvdet_floor_pixels, rigsfm_floor_pixels
 
     _, out = crowd
     dest = tmp_path / "wildtrack"
@@ -204,20 +200,9 @@ def test_wildtrack_export_reads_and_projects_like_mvdet(crowd, tmp_path):
         [f"intr_{rig}.xml" for rig in sorted(narrow)]
     floor_m = np.array([[x, y] for x in np.linspace(-3, 3, 5) for y in np.linspace(-3, 3, 5)])
     for rig, image in narrow.items():
-        fs = cv2.FileStorage(str(dest / "calibrations" / "intrinsic_zero" / f"intr_{rig}.xml"), cv2.FILE_STORAGE_READ)
-        intrinsic = fs.getNode("camera_matrix").mat()
-        assert not np.any(fs.getNode("distortion_coefficients").mat())
-        fs.release()
-        root = ET.parse(dest / "calibrations" / "extrinsic" / f"extr_{rig}.xml").getroot()
-        rvec = np.array(list(map(float, root.findall("rvec")[0].text.lstrip().rstrip().split(" "))), dtype=np.float32)
-        tvec = np.array(list(map(float, root.findall("tvec")[0].text.lstrip().rstrip().split(" "))), dtype=np.float32)
-        extrinsic = np.hstack((cv2.Rodrigues(rvec)[0], tvec.reshape(3, 1)))
-        project = np.delete(intrinsic @ extrinsic, 2, 1)  # MVDet: the floor z = 0, world in cm
-        h = np.c_[floor_m * 100.0, np.ones(len(floor_m))] @ project.T
-        mvdet = h[:, :2] / h[:, 2:]
-        ours = np.c_[floor_m, np.ones(len(floor_m))] @ image_from_plane(image, 0.0).T
-        ours = ours[:, :2] / ours[:, 2:] - 0.5  # COLMAP -> OpenCV pixel centres
-        assert np.max(np.abs(mvdet - ours)) < 0.05  # float32 rvec / tvec, as the loader reads them
+        mvdet = mvdet_floor_pixels(dest / "calibrations", rig, floor_m)
+        # float32 rvec / tvec, as the loader reads them
+        assert np.max(np.abs(mvdet - rigsfm_floor_pixels(image, floor_m))) < 0.05
         assert (dest / "Image_subsets" / rig / "frame0000.png").is_file()
 
 

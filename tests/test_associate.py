@@ -291,3 +291,50 @@ def test_self_calibration_finds_shifts_put_into_the_views(crowd):
     found = shifts[:, 1] - shifts[:, 1].mean()
     assert np.max(np.abs(found - (put[:, 1] - put[:, 1].mean()))) < 1.5, shifts
     assert f1[1] > 0.25 and f1[1] > 3 * f1[0], f1
+
+
+def test_shifts_carry_to_the_next_frame(crowd, monkeypatch):
+    """A static rig's pose error is the same in every frame: the shifts the crowd gives the first frame carry to the
+    next frame's images of the same cameras, which are associated once (no self-calibration of their own), as well
+    as the first, and pool their own groups into the shifts."""
+    import copy
+
+    import rigsfm.associate.solve as solve
+    from rigsfm.associate.pipeline import RunModel
+
+    dataset, out = crowd
+    model, first = _detections(dataset, out)
+    _, second = _detections(dataset, out, seed=1)  # the same persons, other noise, misses and false detections
+    exact = pycolmap.Reconstruction(str(dataset / "ground_truth"))
+    images = {}
+    for image in exact.images.values():
+        if image.name in model.images:
+            later = copy.copy(image)
+            later.name = image.name.replace("frame0000", "frame0001")
+            images[image.name], images[later.name] = image, later
+
+    def both(name: str) -> list[str]:
+        return [name, name.replace("frame0000", "frame0001")]
+
+    bands = {(a, b): band for (i, j), band in model.bands.items() for a, b in zip(both(i), both(j))}
+    centres = {n: sigma for name, sigma in model.centre_sigma_m.items() for n in both(name)}
+    posed = RunModel(images, bands, set(images), model.world, centres)
+    put = np.array([[0.0, 0.0], [0.0, 5.0], [0.0, -5.0], [0.0, 4.0]])  # as in the test above
+    names = sorted(first.points)
+    points = {n: first.points[n] + put[k] for k, n in enumerate(names)}
+    points.update({n.replace("frame0000", "frame0001"): second.points[n] + put[k] for k, n in enumerate(names)})
+    solves = []
+    real = solve._solve
+    monkeypatch.setattr(solve, "_solve", lambda views, options: solves.append(views[0].name) or real(views, options))
+    frames = associate_frames(posed, from_arrays(points), AssociateOptions(pixel_sigma=1.5, self_calibration_rounds=2))
+    assert [f.frame for f in frames] == ["frame0000.png", "frame0001.png"]
+    assert sum("frame0000" in n for n in solves) >= 3 and sum("frame0001" in n for n in solves) == 1, solves
+    f1 = []
+    for frame, truth in zip(frames, (first, second)):
+        f1.append(score_groups([[(frame.views[v].name.replace("frame0001", "frame0000"), int(i))
+                                 for v, i in enumerate(m) if i >= 0] for m in frame.result.members], truth).pair_f1)
+    assert f1[0] > 0.25 and f1[1] > 0.8 * f1[0], f1
+    for view in frames[1].views:
+        assert view.shift_sigma_px is not None
+    shifts = [np.array([v.shift_px[1] for v in f.views]) for f in frames]
+    assert np.max(np.abs((shifts[1] - shifts[1].mean()) - (put[:, 1] - put[:, 1].mean()))) < 1.5, shifts

@@ -338,3 +338,22 @@ def test_shifts_carry_to_the_next_frame(crowd, monkeypatch):
         assert view.shift_sigma_px is not None
     shifts = [np.array([v.shift_px[1] for v in f.views]) for f in frames]
     assert np.max(np.abs((shifts[1] - shifts[1].mean()) - (put[:, 1] - put[:, 1].mean()))) < 1.5, shifts
+
+
+def test_a_run_without_bands_is_named(crowd, caplog):
+    """A run whose uncertainty failed has no bands: the association would see the pixel noise only and lose most
+    persons without a word, so it says so."""
+    import logging
+
+    from rigsfm.associate.pipeline import RunModel, frame_views
+
+    dataset, out = crowd
+    model, truth = _detections(dataset, out)
+    detections = from_arrays(truth.points)
+    (name, images), = detections.frames().items()
+    with caplog.at_level(logging.WARNING, logger="rigsfm.associate.pipeline"):
+        frame_views(model, detections, name, images)
+        assert "no epipolar band" not in caplog.text
+        bare = RunModel(model.images, {}, model.known, model.world, model.centre_sigma_m)
+        frame_views(bare, detections, name, images)
+    assert "no epipolar band" in caplog.text and "re-run `rigsfm run`" in caplog.text

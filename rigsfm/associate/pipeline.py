@@ -84,6 +84,10 @@ class FramePersons:
 def frame_views(model: RunModel, detections: Detections, frame: str, names: list[str]) -> list[View]:
     views = [View.of(model.images[name], detections.images[name].xy) for name in sorted(names)]
     pairs = {key: band for key, band in model.bands.items() if key[0] in names and key[1] in names}
+    if len(views) >= 2 and not pairs:
+        logger.warning("%s: the run holds no epipolar band for any pair of its narrow images (its uncertainty was not "
+                       "computed), so the association sees the pixel noise only and misses persons wherever the poses "
+                       "are off: re-run `rigsfm run` until narrow_poses.json has epipolar_band_95_px", frame)
     sigmas = view_pose_sigmas([v.name for v in views], pairs)
     for view in views:
         view.sigma_pose_px = sigmas[view.name]

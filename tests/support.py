@@ -1,5 +1,5 @@
-"""What several test modules share: the real test images in the repository, EXIF-tagged image files, and the
-browser."""
+"""What several test modules share: the real test images in the repository, EXIF-tagged image files, the
+browser, and MVDet's reading of a wildtrack calibration."""
 
 from __future__ import annotations
 
@@ -88,3 +88,35 @@ def write_tagged(path: Path, pixels, orientation: int) -> Path:
     assert ok
     Path(path).write_bytes(tag_orientation(data.tobytes(), orientation))
     return Path(path)
+
+
+def mvdet_floor_pixels(calibrations: Path, rig: str, floor_m):
+    """OpenCV pixels of floor points (N x 2, metres) read and projected the way MVDet's Wildtrack loader does:
+    cv2.FileStorage ``camera_matrix`` from intrinsic_zero (no distortion), ElementTree ``rvec`` / ``tvec`` text from
+    extrinsic as float32, world in centimetres, K [R|t] without the z column (get_imagecoord_from_worldcoord)."""
+    import xml.etree.ElementTree as ET
+
+    import cv2
+    import numpy as np
+
+    fs = cv2.FileStorage(str(calibrations / "intrinsic_zero" / f"intr_{rig}.xml"), cv2.FILE_STORAGE_READ)
+    intrinsic = fs.getNode("camera_matrix").mat()
+    assert not np.any(fs.getNode("distortion_coefficients").mat())
+    fs.release()
+    root = ET.parse(calibrations / "extrinsic" / f"extr_{rig}.xml").getroot()
+    rvec, tvec = (np.array(list(map(float, root.findall(key)[0].text.lstrip().rstrip().split(" "))), dtype=np.float32)
+                  for key in ("rvec", "tvec"))
+    extrinsic = np.hstack((cv2.Rodrigues(rvec)[0], tvec.reshape(3, 1)))
+    project = np.delete(intrinsic @ extrinsic, 2, 1)
+    h = np.c_[np.asarray(floor_m) * 100.0, np.ones(len(floor_m))] @ project.T
+    return h[:, :2] / h[:, 2:]
+
+
+def rigsfm_floor_pixels(image, floor_m):
+    """OpenCV pixels of floor points (N x 2, metres) through rigsfm's ground homography of a registered image."""
+    import numpy as np
+
+    from rigsfm.core.ground import image_from_plane
+
+    h = np.c_[np.asarray(floor_m), np.ones(len(floor_m))] @ image_from_plane(image, 0.0).T
+    return h[:, :2] / h[:, 2:] - 0.5  # COLMAP -> OpenCV pixel centres

@@ -186,13 +186,9 @@ def test_bad_detections_are_refused_naming_the_row(case, tmp_path):
 
 
 def test_wildtrack_export_reads_and_projects_like_mvdet(crowd, tmp_path):
-    """Read the export the way MVDet's Wildtrack loader does (cv2.FileStorage for intrinsic_zero, ElementTree for
-    the extrinsic rvec / tvec text, centimetres) and project floor points like its get_imagecoord_from_worldcoord."""
-    import xml.etree.ElementTree as ET
-
-    import cv2
-
-    from rigsfm.core.ground import image_from_plane
+    """Read the export the way MVDet's Wildtrack loader does and project floor points like its
+    get_imagecoord_from_worldcoord (support.mvdet_floor_pixels)."""
+    from support import mvdet_floor_pixels, rigsfm_floor_pixels
 
     _, out = crowd
     dest = tmp_path / "wildtrack"
@@ -204,20 +200,9 @@ def test_wildtrack_export_reads_and_projects_like_mvdet(crowd, tmp_path):
         [f"intr_{rig}.xml" for rig in sorted(narrow)]
     floor_m = np.array([[x, y] for x in np.linspace(-3, 3, 5) for y in np.linspace(-3, 3, 5)])
     for rig, image in narrow.items():
-        fs = cv2.FileStorage(str(dest / "calibrations" / "intrinsic_zero" / f"intr_{rig}.xml"), cv2.FILE_STORAGE_READ)
-        intrinsic = fs.getNode("camera_matrix").mat()
-        assert not np.any(fs.getNode("distortion_coefficients").mat())
-        fs.release()
-        root = ET.parse(dest / "calibrations" / "extrinsic" / f"extr_{rig}.xml").getroot()
-        rvec = np.array(list(map(float, root.findall("rvec")[0].text.lstrip().rstrip().split(" "))), dtype=np.float32)
-        tvec = np.array(list(map(float, root.findall("tvec")[0].text.lstrip().rstrip().split(" "))), dtype=np.float32)
-        extrinsic = np.hstack((cv2.Rodrigues(rvec)[0], tvec.reshape(3, 1)))
-        project = np.delete(intrinsic @ extrinsic, 2, 1)  # MVDet: the floor z = 0, world in cm
-        h = np.c_[floor_m * 100.0, np.ones(len(floor_m))] @ project.T
-        mvdet = h[:, :2] / h[:, 2:]
-        ours = np.c_[floor_m, np.ones(len(floor_m))] @ image_from_plane(image, 0.0).T
-        ours = ours[:, :2] / ours[:, 2:] - 0.5  # COLMAP -> OpenCV pixel centres
-        assert np.max(np.abs(mvdet - ours)) < 0.05  # float32 rvec / tvec, as the loader reads them
+        mvdet = mvdet_floor_pixels(dest / "calibrations", rig, floor_m)
+        # float32 rvec / tvec, as the loader reads them
+        assert np.max(np.abs(mvdet - rigsfm_floor_pixels(image, floor_m))) < 0.05
         assert (dest / "Image_subsets" / rig / "frame0000.png").is_file()
 
 
@@ -306,3 +291,69 @@ def test_self_calibration_finds_shifts_put_into_the_views(crowd):
     found = shifts[:, 1] - shifts[:, 1].mean()
     assert np.max(np.abs(found - (put[:, 1] - put[:, 1].mean()))) < 1.5, shifts
     assert f1[1] > 0.25 and f1[1] > 3 * f1[0], f1
+
+
+def test_shifts_carry_to_the_next_frame(crowd, monkeypatch):
+    """A static rig's pose error is the same in every frame: the shifts the crowd gives the first frame carry to the
+    next frame's images of the same cameras, which are associated once (no self-calibration of their own), as well
+    as the first, and pool their own groups into the shifts."""
+    import copy
+
+    import rigsfm.associate.solve as solve
+    from rigsfm.associate.pipeline import RunModel
+
+    dataset, out = crowd
+    model, first = _detections(dataset, out)
+    _, second = _detections(dataset, out, seed=1)  # the same persons, other noise, misses and false detections
+    exact = pycolmap.Reconstruction(str(dataset / "ground_truth"))
+    images = {}
+    for image in exact.images.values():
+        if image.name in model.images:
+            later = copy.copy(image)
+            later.name = image.name.replace("frame0000", "frame0001")
+            images[image.name], images[later.name] = image, later
+
+    def both(name: str) -> list[str]:
+        return [name, name.replace("frame0000", "frame0001")]
+
+    bands = {(a, b): band for (i, j), band in model.bands.items() for a, b in zip(both(i), both(j))}
+    centres = {n: sigma for name, sigma in model.centre_sigma_m.items() for n in both(name)}
+    posed = RunModel(images, bands, set(images), model.world, centres)
+    put = np.array([[0.0, 0.0], [0.0, 5.0], [0.0, -5.0], [0.0, 4.0]])  # as in the test above
+    names = sorted(first.points)
+    points = {n: first.points[n] + put[k] for k, n in enumerate(names)}
+    points.update({n.replace("frame0000", "frame0001"): second.points[n] + put[k] for k, n in enumerate(names)})
+    solves = []
+    real = solve._solve
+    monkeypatch.setattr(solve, "_solve", lambda views, options: solves.append(views[0].name) or real(views, options))
+    frames = associate_frames(posed, from_arrays(points), AssociateOptions(pixel_sigma=1.5, self_calibration_rounds=2))
+    assert [f.frame for f in frames] == ["frame0000.png", "frame0001.png"]
+    assert sum("frame0000" in n for n in solves) >= 3 and sum("frame0001" in n for n in solves) == 1, solves
+    f1 = []
+    for frame, truth in zip(frames, (first, second)):
+        f1.append(score_groups([[(frame.views[v].name.replace("frame0001", "frame0000"), int(i))
+                                 for v, i in enumerate(m) if i >= 0] for m in frame.result.members], truth).pair_f1)
+    assert f1[0] > 0.25 and f1[1] > 0.8 * f1[0], f1
+    for view in frames[1].views:
+        assert view.shift_sigma_px is not None
+    shifts = [np.array([v.shift_px[1] for v in f.views]) for f in frames]
+    assert np.max(np.abs((shifts[1] - shifts[1].mean()) - (put[:, 1] - put[:, 1].mean()))) < 1.5, shifts
+
+
+def test_a_run_without_bands_is_named(crowd, caplog):
+    """A run whose uncertainty failed has no bands: the association would see the pixel noise only and lose most
+    persons without a word, so it says so."""
+    import logging
+
+    from rigsfm.associate.pipeline import RunModel, frame_views
+
+    dataset, out = crowd
+    model, truth = _detections(dataset, out)
+    detections = from_arrays(truth.points)
+    (name, images), = detections.frames().items()
+    with caplog.at_level(logging.WARNING, logger="rigsfm.associate.pipeline"):
+        frame_views(model, detections, name, images)
+        assert "no epipolar band" not in caplog.text
+        bare = RunModel(model.images, {}, model.known, model.world, model.centre_sigma_m)
+        frame_views(bare, detections, name, images)
+    assert "no epipolar band" in caplog.text and "re-run `rigsfm run`" in caplog.text

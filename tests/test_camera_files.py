@@ -250,12 +250,10 @@ def test_rigsfm_export_writes_files_the_real_readers_project_like_the_model(tmp_
 
 
 def test_wildtrack_calibration_reads_and_projects_floor_points_like_mvdet(tmp_path):
-    """Read the export the way MVDet's Wildtrack loader does (cv2.FileStorage ``camera_matrix`` from
-    intrinsic_zero, ElementTree ``rvec`` / ``tvec`` text from extrinsic, centimetres) and project floor points like
-    its get_imagecoord_from_worldcoord (K [R|t] without the z column)."""
-    import xml.etree.ElementTree as ET
+    """Read the export the way MVDet's Wildtrack loader does and project floor points like its
+    get_imagecoord_from_worldcoord (support.mvdet_floor_pixels)."""
+    from support import mvdet_floor_pixels, rigsfm_floor_pixels
 
-    from rigsfm.core.ground import image_from_plane
     from rigsfm.inspect.export import export
     from rigsfm.inspect.options import ExportFormat, ExportOptions
 
@@ -266,17 +264,7 @@ def test_wildtrack_calibration_reads_and_projects_floor_points_like_mvdet(tmp_pa
         [f"intr_{rig}.xml" for rig in sorted(narrow)]
     floor_m = np.array([[x, y] for x in np.linspace(-2, 2, 5) for y in np.linspace(-2, 2, 5)])
     for rig, image in narrow.items():
-        fs = cv2.FileStorage(str(dest / "calibrations" / "intrinsic_zero" / f"intr_{rig}.xml"), cv2.FILE_STORAGE_READ)
-        intrinsic = fs.getNode("camera_matrix").mat()
-        assert not np.any(fs.getNode("distortion_coefficients").mat())
-        fs.release()
-        root = ET.parse(dest / "calibrations" / "extrinsic" / f"extr_{rig}.xml").getroot()
-        rvec = np.array(list(map(float, root.findall("rvec")[0].text.lstrip().rstrip().split(" "))), dtype=np.float32)
-        tvec = np.array(list(map(float, root.findall("tvec")[0].text.lstrip().rstrip().split(" "))), dtype=np.float32)
-        extrinsic = np.hstack((cv2.Rodrigues(rvec)[0], tvec.reshape(3, 1)))
-        project = np.delete(intrinsic @ extrinsic, 2, 1)
-        h = np.c_[floor_m * 100.0, np.ones(len(floor_m))] @ project.T
-        ours = np.c_[floor_m, np.ones(len(floor_m))] @ image_from_plane(image, 0.0).T
-        ours = ours[:, :2] / ours[:, 2:] - 0.5  # COLMAP -> OpenCV pixel centres
+        mvdet = mvdet_floor_pixels(dest / "calibrations", rig, floor_m)
+        ours = rigsfm_floor_pixels(image, floor_m)
         seen = ours[:, 1] > -1e4
-        assert np.max(np.abs(h[seen, :2] / h[seen, 2:] - ours[seen])) < 0.05  # float32, as the loader reads them
+        assert np.max(np.abs(mvdet[seen] - ours[seen])) < 0.05  # float32, as the loader reads them

@@ -16,6 +16,9 @@ class AssociateOptions:
     gate_sigmas: float = 3.5  # candidate pairs: distance to i's ray segment in j within this many sigmas
     member_gate: float = 3.5  # a member's reprojection within this many sigmas of the person's point
     min_score: float = -2.0  # keep hypotheses whose score exceeds this (measured best on rendered crowds)
+    # Associate again among the detections the packing left free, each hypothesis re-scored against the free
+    # detections' density (persons seen in two views only).
+    second_pass: bool = True
     # The crowd corrects each view's pose error: associate, estimate every view's shift from the groups of three or
     # more views scoring above this, associate again with the shifted views (at most this many rounds, fewer once the
     # confident groups stop growing; 0: the run's poses).

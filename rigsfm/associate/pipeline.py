@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import logging
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -76,11 +77,17 @@ class FramePersons:
     result: FrameResult
     detections: Detections
     views: list[View]
+    seconds: float = 0.0  # wall time of this frame's association
+    cpu_seconds: float = 0.0  # this process's CPU time for it
 
 
 def frame_views(model: RunModel, detections: Detections, frame: str, names: list[str]) -> list[View]:
     views = [View.of(model.images[name], detections.images[name].xy) for name in sorted(names)]
     pairs = {key: band for key, band in model.bands.items() if key[0] in names and key[1] in names}
+    if len(views) >= 2 and not pairs:
+        logger.warning("%s: the run holds no epipolar band for any pair of its narrow images (its uncertainty was not "
+                       "computed), so the association sees the pixel noise only and misses persons wherever the poses "
+                       "are off: re-run `rigsfm run` until narrow_poses.json has epipolar_band_95_px", frame)
     sigmas = view_pose_sigmas([v.name for v in views], pairs)
     for view in views:
         view.sigma_pose_px = sigmas[view.name]
@@ -89,12 +96,29 @@ def frame_views(model: RunModel, detections: Detections, frame: str, names: list
 
 
 def associate_frames(model: RunModel, detections: Detections, options: AssociateOptions) -> list[FramePersons]:
-    """The persons of every frame of ``detections`` (library entry; nothing written)."""
+    """The persons of every frame of ``detections`` (library entry; nothing written).
+
+    A narrow camera's pose error is the same in every frame, so the shifts the crowd finds in one frame carry to the
+    next frame's images of the same cameras (pooled with each frame's own groups); a frame whose cameras all carry
+    one is associated once instead of self-calibrating from scratch."""
     out = []
+    carried: dict[str, View] = {}  # per camera (<rig>/narrow), its view in the latest frame
     for frame, names in detections.frames().items():
         views = frame_views(model, detections, frame, names)
-        result = associate_views(views, options)
-        out.append(FramePersons(frame, result, detections, views))
+        cameras = [ImageName.parse(v.name).camera for v in views]
+        known = bool(views) and all(c in carried for c in cameras)
+        if known:
+            for view, camera in zip(views, cameras):
+                before = carried[camera]
+                view.shift_px = before.shift_px.copy()
+                view.shift_sigma_px, view.sigma_pose_px = before.shift_sigma_px, before.sigma_pose_px
+                view.band_sigma_px = before.band_sigma_px
+        wall, cpu = time.perf_counter(), time.process_time()
+        result = associate_views(views, options, carried=known)
+        wall, cpu = time.perf_counter() - wall, time.process_time() - cpu
+        logger.info("%s: %d persons in %.2f s (%.2f s CPU)", frame, len(result), wall, cpu)
+        carried.update((camera, view) for camera, view in zip(cameras, views) if view.band_sigma_px is not None)
+        out.append(FramePersons(frame, result, detections, views, wall, cpu))
     return out
 
 

@@ -64,6 +64,7 @@ class View:
     # for a narrow camera) and the band sigma before it.
     shift_px: np.ndarray = field(default_factory=lambda: np.zeros(2))
     band_sigma_px: float | None = None
+    shift_sigma_px: float | None = None  # the shift's own posterior sigma (None: not estimated)
 
     @classmethod
     def of(cls, image: pycolmap.Image, xy: np.ndarray) -> View:
@@ -199,15 +200,22 @@ class _Frame:
                            for i, u in enumerate(undist)]
         # Clutter density (detections per px^2) around each detection: crowds fill a band of the image (the heads'
         # heights), where a chance match is far likelier than the image's mean density says.
-        area = np.array([v.width * v.height for v in views], dtype=np.float64)
-        self.clutter = np.zeros(len(self.uv))
-        for i, tree in enumerate(self.trees):
+        self.clutter = self.clutter_among(np.ones(len(self.uv), dtype=bool))
+
+    def clutter_among(self, free: np.ndarray) -> np.ndarray:
+        """Per detection, the density (per px^2) of the ``free`` detections of its view within the clutter radius:
+        the chance matches it competes with."""
+        radius = self.options.clutter_radius_px
+        out = np.zeros(len(self.uv))
+        for i, view in enumerate(self.views):
             rows = self.tree_index[i]
-            if tree is None or not len(rows):
+            mine = rows[free[rows]]
+            if not len(rows):
                 continue
-            near = tree.query_ball_point(self.uv[rows], options.clutter_radius_px, return_length=True)
-            self.clutter[rows] = np.maximum(near, 1) / (math.pi * options.clutter_radius_px ** 2)
-            self.clutter[rows] = np.maximum(self.clutter[rows], 1.0 / area[i])
+            near = cKDTree(self.uv[mine]).query_ball_point(self.uv[rows], radius, return_length=True) \
+                if len(mine) else np.zeros(len(rows))
+            out[rows] = np.maximum(np.maximum(near, 1) / (math.pi * radius ** 2), 1.0 / (view.width * view.height))
+        return out
 
     def rays_of(self, uv: np.ndarray) -> np.ndarray:
         """Unit world directions of undistorted pixels (one per detection, in the stacked order)."""
@@ -238,18 +246,23 @@ class _Frame:
         """Weighted ray intersection of each row's members (G x V, -1: none); returns points and covariances."""
         g, nv = members.shape
         present = members >= 0
-        d = self.rays[np.where(present, members, 0)]  # G x V x 3
-        dc = np.einsum("gvi,vi->gv", d, self.centres)
+        # coordinate-major (3 x G x V): the sums over the views run on contiguous rows
+        d = np.ascontiguousarray(self.rays[np.where(present, members, 0)].transpose(2, 0, 1))
+        dc = np.einsum("igv,vi->gv", d, self.centres)
         for _ in range(2 if points is None else 1):
             if points is None:
                 depth = np.ones((g, nv))
             else:
-                depth = np.maximum(np.linalg.norm(points[:, None, :] - self.centres[None], axis=2), 0.1)
+                diff = points.T[:, :, None] - self.centres.T[:, None, :]  # 3 x G x V
+                depth = np.maximum(np.sqrt(np.einsum("igv,igv->gv", diff, diff)), 0.1)
             # A ray's lateral sigma (m) at the point: its angular noise times the distance.
             w = np.where(present, (self.focals[None] / (depth * self.noise[None])) ** 2, 0.0)
-            a = np.einsum("gv,gvi,gvj->gij", w, d, d)
-            a = w.sum(axis=1)[:, None, None] * np.eye(3)[None] - a
-            b = w @ self.centres - np.einsum("gv,gvi->gi", w * dc, d)
+            wd = w[None] * d
+            a = np.empty((g, 3, 3))
+            for r_, c_ in ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2)):  # symmetric: six sums over the views
+                a[:, r_, c_] = a[:, c_, r_] = -np.einsum("gv,gv->g", wd[r_], d[c_])
+            a += w.sum(axis=1)[:, None, None] * np.eye(3)[None]
+            b = w @ self.centres - np.einsum("igv,gv->gi", wd, dc)
             a += np.eye(3)[None] * 1e-9 * np.trace(a, axis1=1, axis2=2)[:, None, None]
             covariance = _inverse3(a)
             points = np.einsum("gij,gj->gi", covariance, b)
@@ -316,10 +329,16 @@ class _Frame:
             return np.zeros((0, len(self.views)), dtype=np.int64)
         return np.concatenate(seeds)
 
-    def grow(self, members: np.ndarray, points: np.ndarray, covariance: np.ndarray) -> np.ndarray:
-        """Add, in every view without a member, the detection nearest the point's projection within the gate."""
+    def grow(self, members: np.ndarray, points: np.ndarray, covariance: np.ndarray, single: bool = False,
+             ) -> np.ndarray:
+        """Add, in every view without a member, the detection nearest the point's projection within the gate.
+        ``single``: only the nearest of all views' (a pair's point is loose along its rays, so its projection in a
+        third view is long and a crowd puts wrong heads in it; the third member pins the point for the others)."""
         members = members.copy()
         gate2 = self.options.member_gate ** 2
+        one_view = np.full(len(members), -1, dtype=np.int64)
+        one_det = np.full(len(members), -1, dtype=np.int64)
+        one_d2 = np.full(len(members), np.inf)
         for v, view in enumerate(self.views):
             rows = np.flatnonzero(members[:, v] < 0)
             if not len(rows) or self.trees[v] is None:
@@ -331,12 +350,16 @@ class _Frame:
                 continue
             jac = view.jacobian(points[rows])
             s = jac @ covariance[rows] @ np.transpose(jac, (0, 2, 1)) + np.eye(2)[None] * self.noise[v] ** 2
-            reach = 3.0 * np.sqrt(np.max(np.linalg.eigvalsh(s), axis=1)) * self.options.member_gate / 3.0
+            # 2x2 symmetric: the largest eigenvalue and the inverse in closed form
+            sxx, sxy, syy = s[:, 0, 0], s[:, 0, 1], s[:, 1, 1]
+            largest = (sxx + syy) / 2 + np.sqrt(((sxx - syy) / 2) ** 2 + sxy ** 2)
+            reach = np.sqrt(largest) * self.options.member_gate
             k = min(4, len(self.tree_index[v]))
             # views with detections have trees
             dist, near = self.trees[v].query(uv, k=k, distance_upper_bound=float(np.max(reach)) + 1.0)  # type: ignore[union-attr]
             dist, near = dist.reshape(len(rows), k), near.reshape(len(rows), k)
-            s_inv = np.linalg.inv(s)
+            det = sxx * syy - sxy ** 2
+            s_inv = np.stack([np.stack([syy, -sxy], axis=1), np.stack([-sxy, sxx], axis=1)], axis=1) / det[:, None, None]
             best = np.full(len(rows), -1, dtype=np.int64)
             best_d2 = np.full(len(rows), np.inf)
             for q in range(k):
@@ -349,7 +372,14 @@ class _Frame:
                 d2 = np.einsum("ni,nij,nj->n", diff, s_inv, diff)
                 better = ok & (d2 < best_d2) & (d2 <= gate2)
                 best[better], best_d2[better] = cand[better], d2[better]
-            members[rows, v] = best
+            if not single:
+                members[rows, v] = best
+                continue
+            better = best_d2 < one_d2[rows]
+            one_view[rows[better]], one_det[rows[better]], one_d2[rows[better]] = v, best[better], best_d2[better]
+        if single:
+            rows = np.flatnonzero(one_view >= 0)
+            members[rows, one_view[rows]] = one_det[rows]
         return members
 
     def verify(self, members: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -387,8 +417,15 @@ class _Frame:
             total += np.where(seen, miss, 0.0)
         return total
 
-    def hypotheses(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    def hypotheses(self, free: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Candidate persons (members, points, covariances, scores); ``free``: only among these detections."""
+
+        def only_free(m: np.ndarray) -> np.ndarray:
+            return m if free is None else np.where((m >= 0) & ~free[np.maximum(m, 0)], -1, m)
+
         seeds = self.pair_candidates()
+        if free is not None:
+            seeds = seeds[np.all((seeds < 0) | free[np.maximum(seeds, 0)], axis=1)]
         if not len(seeds):
             empty = np.zeros((0, len(self.views)), dtype=np.int64)
             return empty, np.zeros((0, 3)), np.zeros((0, 3, 3)), np.zeros(0)
@@ -400,9 +437,14 @@ class _Frame:
         points, covariance = points[ok], covariance[ok]
         groups = [members]
         for _ in range(2):
-            members = self.grow(members, points, covariance)
+            members = only_free(self.grow(members, points, covariance, single=True))
+            points, covariance = self.triangulate(members, points)
+            members = only_free(self.grow(members, points, covariance))
             members, points, covariance = self.verify(members)
             groups.append(members)
+            # seeds of one person grow into the same group: grow each group once
+            members, first = np.unique(members, axis=0, return_index=True)
+            points, covariance = points[first], covariance[first]
         members = np.unique(np.concatenate(groups), axis=0)
         members = members[np.sum(members >= 0, axis=1) >= 2]
         if not len(members):
@@ -460,6 +502,25 @@ def _solve(views: list[View], options: AssociateOptions) -> tuple[_Frame, np.nda
     positive = scores > options.min_score
     members, points, covariance, scores = members[positive], points[positive], covariance[positive], scores[positive]
     chosen = _pack(members, scores - options.min_score, total, options.time_limit_s)
+    if options.second_pass:
+        # What the packing left: its hypotheses re-scored against the detections still free (a person seen in two
+        # views competes with far fewer chance matches once the crowd's well-seen persons hold theirs), packed again.
+        free = np.ones(total, dtype=bool)
+        kept = members[chosen]
+        free[kept[kept >= 0]] = False
+        frame.clutter = frame.clutter_among(free)
+        rest_m, rest_p, rest_c, rest_s = frame.hypotheses(free)
+        more = rest_s > options.min_score
+        if more.any():
+            rest_m, rest_p, rest_c, rest_s = rest_m[more], rest_p[more], rest_c[more], rest_s[more]
+            extra = _pack(rest_m, rest_s - options.min_score, total, options.time_limit_s)
+            members = np.concatenate([members[chosen], rest_m[extra]])
+            points = np.concatenate([points[chosen], rest_p[extra]])
+            covariance = np.concatenate([covariance[chosen], rest_c[extra]])
+            scores = np.concatenate([scores[chosen], rest_s[extra]])
+            frame.clutter = frame.clutter_among(np.ones(total, dtype=bool))
+            return frame, members, points, covariance, scores, int(positive.sum())
+        frame.clutter = frame.clutter_among(np.ones(total, dtype=bool))
     return frame, members[chosen], points[chosen], covariance[chosen], scores[chosen], int(positive.sum())
 
 
@@ -473,16 +534,24 @@ class ViewCorrection:
     members: np.ndarray  # V, how many group members each view's estimate rests on
 
 
-def estimate_view_shifts(frame: _Frame, groups: np.ndarray, options: AssociateOptions) -> ViewCorrection:
+def estimate_view_shifts(frame: _Frame, groups: np.ndarray, options: AssociateOptions,
+                         pooled: bool = False) -> ViewCorrection:
     """The per-view shift of the detections (a small rotation of a narrow camera) that best explains the groups'
     reprojection residuals: a bundle adjustment of points and shifts, each shift with the run's pose sigma as its
-    prior (no view is fixed: the prior holds the gauge), residuals Huber-weighted so wrong groups weigh little."""
+    prior (no view is fixed: the prior holds the gauge), residuals Huber-weighted so wrong groups weigh little.
+    ``pooled``: the views' shifts come from earlier frames (other groups: independent evidence), so each one's
+    prior is its current shift and posterior sigma instead of zero and the run's pose sigma."""
     views = frame.views
     nv = len(views)
     pixel = options.pixel_sigma
     base = np.array([v.shift_px for v in views], dtype=np.float64)
     prior = np.array([max(v.band_sigma_px if v.band_sigma_px is not None else v.sigma_pose_px, 1e-3)
                       for v in views])
+    mean = np.zeros((nv, 2))
+    if pooled:
+        for v, view in enumerate(views):
+            if view.shift_sigma_px is not None:
+                prior[v], mean[v] = max(view.shift_sigma_px, 1e-3), view.shift_px
     raw = frame.uv + base[frame.view_of]  # the undistorted pixels as the run's pose sees them
     total = base.copy()
     count = np.zeros(nv)
@@ -507,8 +576,8 @@ def estimate_view_shifts(frame: _Frame, groups: np.ndarray, options: AssociateOp
                 r = r[ok]
                 norm = np.linalg.norm(r, axis=1)
                 w = np.minimum(1.0, 2.0 * pixel / np.maximum(norm, 1e-9))
-                # MAP of the total shift under its prior N(0, prior^2): the residuals are against the shifted pixels
-                total[v] = (w @ (r + total[v])) / (w.sum() + (pixel / prior[v]) ** 2)
+                # MAP of the total shift under its prior N(mean, prior^2): the residuals are against the shifted pixels
+                total[v] = (w @ (r + total[v]) + (pixel / prior[v]) ** 2 * mean[v]) / (w.sum() + (pixel / prior[v]) ** 2)
                 count[v], weight_sum[v] = len(r), w.sum()
                 if len(r) >= 5:
                     size = np.sum(groups[rows[ok]] >= 0, axis=1)
@@ -598,23 +667,39 @@ def pairwise_view_shifts(frame: _Frame, options: AssociateOptions, starts: int =
     if not pairs:
         return ViewCorrection(np.zeros((nv, 2)), prior, np.full(nv, np.nan), np.zeros(nv, dtype=int)), 0.0
     d = np.concatenate([p[2] for p in pairs])
-    jac = np.zeros((len(d), 2 * nv))
-    pair_of = np.concatenate([np.full(len(p[2]), k) for k, p in enumerate(pairs)])
-    uniform = np.concatenate([np.full(len(p[2]), 1.0 / (2 * p[5])) for p in pairs])
-    at = 0
-    for i, j, dd, gi, gj, _ in pairs:
-        jac[at:at + len(dd), 2 * i:2 * i + 2] = gi
-        jac[at:at + len(dd), 2 * j:2 * j + 2] = gj
-        at += len(dd)
+    # Each candidate's distance moves with four of the 2V shift coordinates (i's and j's): kept compact, the
+    # normal equations are per-pair 4x4 blocks summed from precomputed outer products.
+    grad = np.concatenate([np.c_[p[3], p[4]] for p in pairs])  # n x 4
+    cols = np.array([[2 * i, 2 * i + 1, 2 * j, 2 * j + 1] for i, j, *_rest in pairs])  # pairs x 4
+    sizes = np.array([len(p[2]) for p in pairs])
+    pair_of = np.repeat(np.arange(len(pairs)), sizes)
+    indptr, indices = np.concatenate([[0], np.cumsum(sizes)]), np.arange(len(d))
+    outer = (grad[:, :, None] * grad[:, None, :]).reshape(len(d), 16)
+    row_cols = cols[pair_of]
+    block_rows = np.repeat(cols, 4, axis=1).ravel()
+    block_cols = np.tile(cols, (1, 4)).ravel()
+    uniform = np.repeat([1.0 / (2 * p[5]) for p in pairs], sizes)
     var = 2.0 * options.pixel_sigma ** 2
     precision = np.repeat(1.0 / prior ** 2, 2)
 
+    def residual(x):
+        return d + np.sum(grad * x[row_cols], axis=1)
+
+    def normal_equations(w):
+        weighted = sp.csr_matrix((w, indices, indptr), shape=(len(pairs), len(d)))
+        lhs = np.zeros((2 * nv, 2 * nv))
+        np.add.at(lhs, (block_rows, block_cols), (weighted @ outer).ravel() / var)
+        rhs = np.zeros(2 * nv)
+        np.add.at(rhs, cols.ravel(), (weighted @ (grad * d[:, None])).ravel() / var)
+        return lhs + np.diag(precision), rhs
+
     def loglik(x, share):
-        r = d + jac @ x
+        r = residual(x)
         inlier = share[pair_of] * np.exp(-0.5 * r ** 2 / var) / math.sqrt(2 * math.pi * var)
         mix = inlier + (1 - share[pair_of]) * uniform
         return float(np.sum(np.log(mix)) - 0.5 * np.sum(precision * x ** 2)), inlier / mix
 
+    counts = np.maximum(np.bincount(pair_of, minlength=len(pairs)), 1)
     rng = np.random.default_rng(seed)
     best = None
     for start in range(starts):
@@ -622,11 +707,10 @@ def pairwise_view_shifts(frame: _Frame, options: AssociateOptions, starts: int =
         share = np.full(len(pairs), 0.1)
         for _ in range(50):
             _, w = loglik(x, share)
-            share = np.clip(np.bincount(pair_of, w, len(pairs)) / np.bincount(pair_of, minlength=len(pairs)),
-                            1e-3, 0.999)
+            share = np.clip(np.bincount(pair_of, w, len(pairs)) / counts, 1e-3, 0.999)
             # r = d + J x: the weighted least squares with the prior
-            lhs = (jac.T * (w / var)) @ jac + np.diag(precision)
-            new = np.linalg.solve(lhs, -(jac.T @ (w * d)) / var)
+            lhs, rhs = normal_equations(w)
+            new = np.linalg.solve(lhs, -rhs)
             done = np.max(np.abs(new - x)) < 0.01
             x = new
             if done:
@@ -637,14 +721,15 @@ def pairwise_view_shifts(frame: _Frame, options: AssociateOptions, starts: int =
     assert best is not None  # the loop above runs at least once
     value, x, w, share = best
     zero = loglik(np.zeros(2 * nv), share)[0]
-    lhs = (jac.T * (w / var)) @ jac + np.diag(precision)
+    lhs, _ = normal_equations(w)
     cov = np.linalg.inv(lhs)
     sigma = np.sqrt(np.maximum(cov[0::2, 0::2].diagonal(), cov[1::2, 1::2].diagonal()))
-    r = d + jac @ x
+    r = residual(x)
     count = np.zeros(nv)
+    per_pair = np.bincount(pair_of, w, len(pairs))
     for k, (i, j, *_rest) in enumerate(pairs):
-        count[i] += w[pair_of == k].sum()
-        count[j] += w[pair_of == k].sum()
+        count[i] += per_pair[k]
+        count[j] += per_pair[k]
     # A pair's distance carries both views' noise: per view and coordinate, half its variance.
     scatter = np.full(nv, math.sqrt(float(np.sum(w * r ** 2) / max(w.sum(), 1e-9)) / 2.0))
     return ViewCorrection(x.reshape(nv, 2), sigma, scatter, count.astype(int)), value - zero
@@ -662,6 +747,7 @@ def _apply_correction(views: list[View], correction: ViewCorrection, options: As
             continue  # too few groups see this view to say anything: it keeps the run's pose and band
         excess = max(scatter ** 2 - options.pixel_sigma ** 2, 0.0)
         view.shift_px = correction.shift_px[v].copy()
+        view.shift_sigma_px = float(correction.shift_sigma_px[v])
         view.sigma_pose_px = float(min(band, math.sqrt(correction.shift_sigma_px[v] ** 2 + excess)))
         moved = float(np.linalg.norm(view.shift_px))
         if band > 0 and moved > 3.03 * band:  # outside the 99 % circle of a 2D normal with the band's sigma
@@ -686,7 +772,7 @@ def _corrected(views: list[View], correction: ViewCorrection, options: Associate
     return trial
 
 
-def associate_views(views: list[View], options: AssociateOptions) -> FrameResult:
+def associate_views(views: list[View], options: AssociateOptions, carried: bool = False) -> FrameResult:
     """Persons seen by the detections of one frame's views (each view: pose, camera and raw detections).
 
     Every view's pose error is shared by all the persons it sees. With ``options.self_calibration_rounds`` > 0 the
@@ -694,11 +780,20 @@ def associate_views(views: list[View], options: AssociateOptions) -> FrameResult
     groups of the last association (estimate_view_shifts), and the frame associated again with the shifted views
     and their tightened bands. A correction is kept only where it leaves more confident groups than before, and the
     pairs' one only where those are enough to re-estimate the shifts from (the crowd's own test of it: wrong shifts
-    under tight bands break the groups up); the views are updated in place."""
+    under tight bands break the groups up); the views are updated in place.
+
+    ``carried``: the views already hold the shifts of earlier frames of the same cameras (a static rig's pose
+    error is the same in every frame): one association, whose confident groups refine the shifts in place."""
     names = [v.name for v in views]
     state = _solve(views, options)
     count = len(_confident(state[1], state[4], options))
-    if options.self_calibration_rounds > 0 and len(views) >= 3:
+    if carried:
+        # The views hold earlier frames' shifts: associate once with them, and pool this frame's groups into the
+        # shifts for the next frame (the frame is not associated again: the next one gains, at no extra cost).
+        confident = _confident(state[1], state[4], options)
+        if options.self_calibration_rounds > 0 and len(confident) >= options.self_calibration_min_members:
+            _apply_correction(views, estimate_view_shifts(state[0], confident, options, pooled=True), options)
+    elif options.self_calibration_rounds > 0 and len(views) >= 3:
         correction, gain = pairwise_view_shifts(state[0], options)
         trial = _corrected(views, correction, options)
         tried = _solve(trial, options)
@@ -710,7 +805,7 @@ def associate_views(views: list[View], options: AssociateOptions) -> FrameResult
         if tried_count > count and tried_count >= options.self_calibration_min_members:
             views[:] = trial
             state, count = tried, tried_count
-    for _ in range(options.self_calibration_rounds):
+    for _ in range(0 if carried else options.self_calibration_rounds):
         confident = _confident(state[1], state[4], options)
         if len(confident) < options.self_calibration_min_members:
             logger.info("%d confident groups: too few to correct the views", len(confident))
@@ -728,8 +823,10 @@ def associate_views(views: list[View], options: AssociateOptions) -> FrameResult
     frame, members, points, covariance, scores, positive = state
     total = int(frame.offsets[-1])
     # The cameras' own position errors are shared by every person they see, so they do not shrink with more views:
-    # each person's covariance carries its views' mean centre variance on top of the triangulation's.
-    centre_var = np.array([v.centre_sigma_m ** 2 for v in views])
+    # each person's covariance carries its views' mean centre variance on top of the triangulation's. The run's
+    # centre sigma is the root of its covariance's trace, so each axis holds a third of its square; the views'
+    # errors move together (the network bends as a whole), so their mean is not divided by the number of views.
+    centre_var = np.array([v.centre_sigma_m ** 2 / 3.0 for v in views])
     present = members >= 0
     shared = (present * centre_var[None]).sum(axis=1) / np.maximum(present.sum(axis=1), 1)
     covariance = covariance + shared[:, None, None] * np.eye(3)[None]

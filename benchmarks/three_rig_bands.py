@@ -35,8 +35,8 @@ def scene(seed: int) -> Scene:
 
 
 def measure(seed: int, work: Path) -> dict:
-    from rigsfm.run.adjust import adjust
-    from rigsfm.run.uncertainty import estimate_uncertainty
+    from rigsfm.run.adjustment.adjust import adjust
+    from rigsfm.run.adjustment.uncertainty import estimate_uncertainty
 
     s = scene(seed)
     prepare(s, work)

@@ -59,12 +59,12 @@ def run_method(method: str, scene: Path, out: Path, estimate: Path | None) -> di
         return {"timings_s": {}, "metric": False}
     if method.startswith("rigsfm-"):
         if os.environ.get("RIGSFM_BENCH_FREE_INITIAL_PAIR"):
-            # Let COLMAP choose the initial pair (what the fix of rigsfm.run.mapping.initial_pair, under way in
+            # Let COLMAP choose the initial pair (what the fix of rigsfm.run.mapping.mapper.initial_pair, under way in
             # parallel, does when the strongest pair is too narrow to start from): the forced pair of a full
             # circle is rejected and retried 1000 times (~160 s at 16 rigs).
-            import rigsfm.run.mapping
+            import rigsfm.run.mapping.mapper
 
-            rigsfm.run.mapping.initial_pair = lambda database_path: None
+            rigsfm.run.mapping.mapper.initial_pair = lambda database_path: None
         from rigsfm.run.options import Mapper, MappingOptions, MatchingOptions, Pairs
         from rigsfm.run.pipeline import RunOptions, run
 

@@ -387,7 +387,7 @@ def test_picker_put_that_empties_the_csv_keeps_a_backup(tmp_path):
 
     from rigsfm.pick.server import PickerServer
     from rigsfm.pick.session import PickerSession, picker_image
-    from rigsfm.run.manual_matches import read_manual_matches
+    from rigsfm.run.matching.manual_matches import read_manual_matches
 
     rng = np.random.default_rng(0)
     paths = []

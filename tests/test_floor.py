@@ -8,7 +8,7 @@ import pycolmap
 import pytest
 from synthetic_world import ring
 
-from rigsfm.run.floor import (
+from rigsfm.run.world.floor import (
     FloorOptions,
     NoFloor,
     apply_floor_frame,

@@ -22,9 +22,9 @@ import pytest
 
 from rigsfm.core.errors import InputError
 from rigsfm.core.executors import Executor, check_executor, map_unordered
-from rigsfm.run.database import create_database
-from rigsfm.run.feature_cache import FEATURE_CACHE_ENV
-from rigsfm.run.features import (
+from rigsfm.run.inputs.database import create_database
+from rigsfm.run.matching.feature_cache import FEATURE_CACHE_ENV
+from rigsfm.run.matching.features import (
     PairSelection,
     _extraction_options,
     _spanning_tree,
@@ -33,7 +33,7 @@ from rigsfm.run.features import (
     first_pass_scores,
     missed_pairs,
 )
-from rigsfm.run.gpu import cuda_device_count, decide, use_gpu
+from rigsfm.run.matching.gpu import cuda_device_count, decide, use_gpu
 from rigsfm.run.options import Device, MatchingOptions, Pairs, RunOptions
 from rigsfm.run.pipeline import load_inputs, run
 from rigsfm.synth.demo import score

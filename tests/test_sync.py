@@ -1,4 +1,4 @@
-"""Unsynchronised recordings (rigsfm.run.sync): narrow images rendered from a floor texture that moves rigidly
+"""Unsynchronised recordings (rigsfm.run.checks.sync): narrow images rendered from a floor texture that moves rigidly
 between frames (a flat crowd walking), each rig's frame k taken at time k + its offset; the estimate names the
 shifted rig and its offset, a synchronised recording is not flagged, and the self-check puts its failures down to
 time instead of the calibration."""
@@ -14,10 +14,8 @@ from test_self_check import fine_texture
 
 from rigsfm.core.errors import InputError
 from rigsfm.core.names import name_of
-from rigsfm.run.deliver import narrow_poses
-from rigsfm.run.options import SelfCheckOptions, WorldOptions
-from rigsfm.run.self_check import epipolar_self_check
-from rigsfm.run.sync import (
+from rigsfm.run.checks.self_check import epipolar_self_check
+from rigsfm.run.checks.sync import (
     OffsetScore,
     PairSync,
     _solve,
@@ -25,7 +23,9 @@ from rigsfm.run.sync import (
     frames_by_time,
     read_frame_offsets,
 )
-from rigsfm.run.world import place_in_world
+from rigsfm.run.deliver import narrow_poses
+from rigsfm.run.options import SelfCheckOptions, WorldOptions
+from rigsfm.run.world.frame import place_in_world
 
 FRAMES = 3
 STEP_TEXELS = 25  # the texture moves 25 cm along x and y per frame (a walker's 0.35 m)
@@ -173,8 +173,8 @@ def test_narrow_features_match_only_simultaneous_narrow_images_of_two_rigs():
     from pathlib import Path
 
     from rigsfm.core.names import Sensor
-    from rigsfm.run.features import image_pairs
-    from rigsfm.run.inputs import ImageEntry
+    from rigsfm.run.inputs.images import ImageEntry
+    from rigsfm.run.matching.features import image_pairs
     from rigsfm.run.options import MatchingOptions
 
     images = [ImageEntry(rig, Sensor(sensor), f"f{k}.png", Path(f"{rig}/{sensor}/f{k}.png"))

@@ -20,7 +20,7 @@ from rigsfm.core.errors import InputError
 from rigsfm.core.geometry import project_world
 from rigsfm.core.rig import RigCalibration, load_rigs, rigs_to_yaml
 from rigsfm.core.workspace import Workspace
-from rigsfm.run.adjust import (
+from rigsfm.run.adjustment.adjust import (
     FINAL_SETTLE_CHI2,
     Gauge,
     JointProblem,
@@ -29,17 +29,14 @@ from rigsfm.run.adjust import (
     frames_without_points,
     sensor_from_rig_view,
 )
-from rigsfm.run.costs import CameraDistanceCost, CentreTerm, LengthCost, quaternion_plus_jacobian
-from rigsfm.run.mapping import run_mapping
-from rigsfm.run.options import AdjustOptions, Calibration, MappingOptions
-from rigsfm.run.priors import (
+from rigsfm.run.adjustment.costs import CameraDistanceCost, CentreTerm, LengthCost, quaternion_plus_jacobian
+from rigsfm.run.adjustment.priors import (
     calibration_priors,
     draw_calibration,
     pose_prior_residual_covariance,
     tangent_covariance_from_residual,
 )
-from rigsfm.run.scale_file import CameraDistance, ScaleSpec
-from rigsfm.run.uncertainty import (
+from rigsfm.run.adjustment.uncertainty import (
     _PairModel,
     band_points,
     correspondence_check,
@@ -50,6 +47,9 @@ from rigsfm.run.uncertainty import (
     pooled_quantile,
     pooled_shifted_quantile,
 )
+from rigsfm.run.inputs.scale_file import CameraDistance, ScaleSpec
+from rigsfm.run.mapping.mapper import run_mapping
+from rigsfm.run.options import AdjustOptions, Calibration, MappingOptions
 from rigsfm.synth.cameras import calibration_error_sigmas, perturb_rig_from
 
 DATA = Path(__file__).resolve().parent / "data"

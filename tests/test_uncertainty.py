@@ -12,13 +12,13 @@ import pytest
 from synthetic_db import make_network
 
 from rigsfm.core.workspace import Workspace
-from rigsfm.run.adjust import adjust
+from rigsfm.run.adjustment.adjust import adjust
+from rigsfm.run.adjustment.priors import BoardDefaults, calibration_priors
+from rigsfm.run.adjustment.uncertainty import correspondence_check, estimate_uncertainty
 from rigsfm.run.deliver import narrow_images
-from rigsfm.run.mapping import run_mapping
+from rigsfm.run.inputs.scale_file import CameraDistance, ScaleSpec
+from rigsfm.run.mapping.mapper import run_mapping
 from rigsfm.run.options import AdjustOptions, MappingOptions
-from rigsfm.run.priors import BoardDefaults, calibration_priors
-from rigsfm.run.scale_file import CameraDistance, ScaleSpec
-from rigsfm.run.uncertainty import correspondence_check, estimate_uncertainty
 
 NOISE_PX = 0.5
 TIGHT = BoardDefaults(focal_relative=1.2e-6, principal_point_px=6e-4, radial=(5e-7, 3e-7, 1e-7), tangential=1e-8,

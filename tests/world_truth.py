@@ -15,7 +15,7 @@ import numpy as np
 import pycolmap
 
 from rigsfm.core.ground import image_to_plane, undistort_pixels
-from rigsfm.run.uncertainty import correspondence_check
+from rigsfm.run.adjustment.uncertainty import correspondence_check
 
 UP = np.array([0.0, 0.0, 1.0])
 

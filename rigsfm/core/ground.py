@@ -1,7 +1,7 @@
 """Metres on the ground, per camera: plane homographies, footprints, ground sampling distance, overlaps.
 
 Everything here works in the reconstruction's world frame and assumes it is the **floor frame** (z = 0 on the
-floor, z up, metres: :mod:`rigsfm.run.world`). A "plane at height h" is ``z = h`` (e.g.
+floor, z up, metres: :mod:`rigsfm.run.world.frame`). A "plane at height h" is ``z = h`` (e.g.
 ``h = 1.7`` for heads).
 
 - ``ground_from_image(image, h)``: 3x3 homography from **undistorted COLMAP pixels** (the pinhole ``K`` of the

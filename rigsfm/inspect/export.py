@@ -40,11 +40,11 @@ from rigsfm.core.errors import InputError, WorkspaceError
 from rigsfm.core.io import sha256_file, write_json_atomic
 from rigsfm.core.names import name_of
 from rigsfm.core.serialise import camera_to_dict, pose_to_dict
+from rigsfm.core.summary import Summary
 from rigsfm.core.workspace import Workspace
 from rigsfm.inspect.camera_files import write_opencv, write_toml, write_wildtrack
 from rigsfm.inspect.options import ExportFormat, ExportOptions
 from rigsfm.run.deliver import CONVENTIONS
-from rigsfm.run.summary import Summary
 
 logger = logging.getLogger(__name__)
 

@@ -30,5 +30,5 @@ __getattr__, __all__ = lazy_exports(__name__, {
     "WorldFrame": "rigsfm.run.options",
     "WorldOptions": "rigsfm.run.options",
     "SelfCheckOptions": "rigsfm.run.options",
-    "Summary": "rigsfm.run.summary",
+    "Summary": "rigsfm.core.summary",
 })

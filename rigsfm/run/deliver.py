@@ -9,9 +9,9 @@
   *undistorted* images (pinhole part of each camera); ``E_ji`` the same for normalised coordinates.
 - ``epipolar_band_95_px``: half-width of the band around the epipolar line in j (pinhole pixels of j) that
   holds the true correspondence of a floor point of image i with 95 % probability, pooled over the floor points
-  the two cameras share and over the joint uncertainty of poses and calibration (``rigsfm.run.uncertainty``);
+  the two cameras share and over the joint uncertainty of poses and calibration (``rigsfm.run.adjustment.uncertainty``);
   null when it cannot be estimated or the images share no view.
-- ``world``: the frame of every pose (``rigsfm.run.world``): by default the floor frame (z = 0 on the floor, z
+- ``world``: the frame of every pose (``rigsfm.run.world.frame``): by default the floor frame (z = 0 on the floor, z
   up, metres, origin under the rigs' centroid, x towards the first rig), with how the floor was found.
 - per narrow image, ``ground``: one entry per plane z = h (the floor, then ``--plane-height``) with
   ``ground_from_image`` (undistorted COLMAP pixels -> plane metres, as ``F_ji``), the footprint polygon and
@@ -91,8 +91,8 @@ def narrow_images(reconstruction: pycolmap.Reconstruction) -> list[pycolmap.Imag
 
 def narrow_poses(reconstruction: pycolmap.Reconstruction, *, metric: bool, bands: dict | None = None,
                  world: dict | None = None, ground=None) -> dict:
-    """The narrow-camera deliverable as a JSON-ready dict; ``bands``: ``(i, j) -> rigsfm.run.uncertainty.PairBand``;
-    ``world`` (``WorldResult.to_dict()``) and ``ground`` (:class:`rigsfm.run.world.GroundMaps`) when known."""
+    """The narrow-camera deliverable as a JSON-ready dict; ``bands``: ``(i, j) -> rigsfm.run.adjustment.uncertainty.PairBand``;
+    ``world`` (``WorldResult.to_dict()``) and ``ground`` (:class:`rigsfm.run.world.frame.GroundMaps`) when known."""
     images = narrow_images(reconstruction)
     bands = bands or {}
     entries = []

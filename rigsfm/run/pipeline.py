@@ -23,13 +23,32 @@ from rigsfm.core.names import SENSORS, ImageName
 from rigsfm.core.residuals import reprojection_errors
 from rigsfm.core.rig import RigCalibration, load_rigs
 from rigsfm.core.stages import in_child
+from rigsfm.core.summary import (
+    CameraError,
+    InputsSummary,
+    MappingSummary,
+    Registration,
+    ScaleSummary,
+    Summary,
+)
 from rigsfm.core.workspace import Workspace, colmap_log_to, disk_errors_named
 from rigsfm.inspect.report import write_report
-from rigsfm.run.adjust import AdjustResult, ScaleSource, adjust
-from rigsfm.run.database import check_database_kept, create_database
+from rigsfm.run.adjustment.adjust import AdjustResult, ScaleSource, adjust
+from rigsfm.run.adjustment.priors import CalibrationPriors, calibration_priors
+from rigsfm.run.adjustment.uncertainty import estimate_uncertainty, uncertainty_summary
+from rigsfm.run.checks.diagnostics import check_reconstruction
 from rigsfm.run.deliver import write_model, write_narrow_poses, write_points_ply
-from rigsfm.run.diagnostics import check_reconstruction
-from rigsfm.run.features import (
+from rigsfm.run.inputs.database import check_database_kept, create_database
+from rigsfm.run.inputs.images import (
+    ImageEntry,
+    check_image_folder,
+    rigs_without_narrow,
+    scan_images,
+    with_folder_names,
+)
+from rigsfm.run.inputs.scale_file import ScaleSpec, load_scale
+from rigsfm.run.mapping.mapper import MappingResult, run_mapping
+from rigsfm.run.matching.features import (
     drop_changed_images,
     drop_stale_work,
     drop_unsynchronised_pairs,
@@ -39,25 +58,13 @@ from rigsfm.run.features import (
     resolved_first_octave,
     select_pairs,
 )
-from rigsfm.run.inputs import (
-    ImageEntry,
-    check_image_folder,
-    rigs_without_narrow,
-    scan_images,
-    with_folder_names,
-)
-from rigsfm.run.manual_matches import read_manual_matches, validate_manual_matches
-from rigsfm.run.manual_merge import add_manual_matches, manual_matches_summary
-from rigsfm.run.mapping import MappingResult, run_mapping
+from rigsfm.run.matching.manual_matches import read_manual_matches, validate_manual_matches
+from rigsfm.run.matching.manual_merge import add_manual_matches, manual_matches_summary
 from rigsfm.run.options import RunOptions
-from rigsfm.run.priors import CalibrationPriors, calibration_priors
-from rigsfm.run.scale_file import ScaleSpec, load_scale
-from rigsfm.run.summary import CameraError, InputsSummary, MappingSummary, Registration, ScaleSummary, Summary
-from rigsfm.run.uncertainty import estimate_uncertainty, uncertainty_summary
-from rigsfm.run.world import ground_maps, locate_world, validate_world_options
+from rigsfm.run.world.frame import ground_maps, locate_world, validate_world_options
 
 if TYPE_CHECKING:
-    from rigsfm.run.self_check import SelfCheck
+    from rigsfm.run.checks.self_check import SelfCheck
 
 logger = logging.getLogger(__name__)
 
@@ -65,7 +72,7 @@ logger = logging.getLogger(__name__)
 Progress = Callable[[str, int, int], None]
 
 # The heavy stages run in a child process (rigsfm.core.stages: Ctrl-C and SIGTERM stop them at once).
-STAGE_MODULES = ("rigsfm.run.features", "rigsfm.run.mapping", "rigsfm.run.adjust", "rigsfm.run.uncertainty")
+STAGE_MODULES = ("rigsfm.run.matching.features", "rigsfm.run.mapping.mapper", "rigsfm.run.adjustment.adjust", "rigsfm.run.adjustment.uncertainty")
 
 
 @dataclass(frozen=True)
@@ -75,7 +82,7 @@ class Inputs:
     images: list[ImageEntry]
     scale: ScaleSpec | None
     priors: CalibrationPriors | None = None  # the calibration's uncertainty (rigs.yaml's sigmas or defaults)
-    without_narrow: tuple[str, ...] = ()  # rigsfm.run.inputs.rigs_without_narrow: one line per rig
+    without_narrow: tuple[str, ...] = ()  # rigsfm.run.inputs.images.rigs_without_narrow: one line per rig
 
 
 @dataclass
@@ -257,7 +264,7 @@ def _given_frame_offsets(options: RunOptions, inputs: Inputs) -> dict[str, int] 
     given = options.self_check.frame_offsets
     if given is None or str(given) == "auto":
         return None
-    from rigsfm.run.sync import read_frame_offsets
+    from rigsfm.run.checks.sync import read_frame_offsets
 
     frames: dict[str, int] = {}
     for entry in inputs.images:
@@ -270,9 +277,9 @@ def _self_check(workspace: Workspace, inputs: Inputs, reconstruction: pycolmap.R
                 given_offsets: dict[str, int] | None) -> tuple[SelfCheck, dict]:
     """The epipolar self-check, its frames paired by time where offsets are given or estimated (``auto``); when
     it fails without offsets and the recording has several frames, the offsets are estimated, and the pairs a
-    rig off in time explains are put down to it (rigsfm.run.sync) instead of the calibration."""
-    from rigsfm.run.self_check import epipolar_self_check
-    from rigsfm.run.sync import estimate_frame_offsets
+    rig off in time explains are put down to it (rigsfm.run.checks.sync) instead of the calibration."""
+    from rigsfm.run.checks.self_check import epipolar_self_check
+    from rigsfm.run.checks.sync import estimate_frame_offsets
 
     opt = options.self_check
     poses = json.loads(workspace.narrow_poses.read_text(encoding="utf-8"))

@@ -10,7 +10,7 @@ Image names are the workspace names ``<rig>/wide/<frame file>`` (relative to the
 coordinates follow COLMAP: the image spans [0, width] x [0, height], the centre of the top-left pixel
 is (0.5, 0.5) (OpenCV's (0, 0)); ``rigsfm pick`` writes exactly this.
 
-Merge (:func:`rigsfm.run.manual_merge.add_manual_matches`): every manual point becomes a keypoint appended after the image's
+Merge (:func:`rigsfm.run.matching.manual_merge.add_manual_matches`): every manual point becomes a keypoint appended after the image's
 automatic keypoints (descriptor row of zeros, so it never wins a descriptor match); each pair's manual
 correspondences are verified alone (calibrated RANSAC, essential matrix with the calibrated intrinsics),
 their inliers are united with the pair's automatic matches, and the union is verified again and
@@ -34,7 +34,7 @@ import pycolmap
 from rigsfm.core.errors import InputError
 from rigsfm.core.io import read_user_text, write_text_atomic
 from rigsfm.core.rig import RigCalibration, nfc
-from rigsfm.run.inputs import ImageEntry
+from rigsfm.run.inputs.images import ImageEntry
 
 logger = logging.getLogger(__name__)
 

@@ -22,7 +22,7 @@ from rigsfm.core.errors import ReconstructionError
 from rigsfm.core.io import atomic_directory
 from rigsfm.core.names import ImageName, Sensor
 from rigsfm.core.workspace import Workspace, read_model
-from rigsfm.run.database import open_database
+from rigsfm.run.inputs.database import open_database
 from rigsfm.run.options import Mapper, MappingOptions
 
 logger = logging.getLogger(__name__)
@@ -88,7 +88,7 @@ def _global_options(options: MappingOptions, num_wide: int, num_threads: int) ->
 GLOBAL_TRACKS_PER_VIEW = 500
 
 
-FEW_MATCHES_MIN_INLIERS = 8  # the least a pair of manual correspondences keeps (rigsfm.run.manual_matches)
+FEW_MATCHES_MIN_INLIERS = 8  # the least a pair of manual correspondences keeps (rigsfm.run.matching.manual_matches)
 
 
 def relax_for_few_matches(pipeline: pycolmap.IncrementalPipelineOptions, best_inliers: int) -> None:

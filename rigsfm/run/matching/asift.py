@@ -25,7 +25,7 @@ from rigsfm.core.conventions import colmap_from_opencv_pixels
 from rigsfm.core.errors import InputError
 from rigsfm.core.image_files import read_image
 from rigsfm.core.sift import opencv_sift
-from rigsfm.run.database import open_database
+from rigsfm.run.inputs.database import open_database
 
 logger = logging.getLogger(__name__)
 

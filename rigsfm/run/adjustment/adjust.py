@@ -5,7 +5,7 @@ bundle adjuster (``pycolmap.create_default_ceres_bundle_adjuster``) over every r
 with the intrinsics and every observed narrow ``sensor_from_rig`` (E^sl) refined; on its Ceres problem:
 
 - a Gaussian prior on every camera's params at rigs.yaml's values (``pyceres.factors.NormalPrior``), sigmas
-  from ``rigsfm.run.priors``; a sigma of 0 holds that parameter (``pyceres.SubsetManifold``);
+  from ``rigsfm.run.adjustment.priors``; a sigma of 0 holds that parameter (``pyceres.SubsetManifold``);
 - COLMAP's pose prior (``pycolmap.cost_functions.AbsolutePosePriorCost``) on every E^sl block;
 - every scale.yaml camera distance as a residual between camera centres (``costs.CameraDistanceCost``; a narrow
   centre through its E^sl), every known length as its two end points observed in their images
@@ -56,21 +56,21 @@ from rigsfm.core.errors import ReconstructionError
 from rigsfm.core.names import name_of
 from rigsfm.core.residuals import reprojection_errors
 from rigsfm.core.rig import RigCalibration
-from rigsfm.run.costs import CameraDistanceCost, CentreTerm, LengthCost, skew
-from rigsfm.run.diagnostics import loosely_tied_rigs
-from rigsfm.run.options import AdjustOptions, Calibration
-from rigsfm.run.priors import CalibrationPriors, calibration_priors, pose_prior_residual_covariance
-from rigsfm.run.scale import (
+from rigsfm.run.adjustment.costs import CameraDistanceCost, CentreTerm, LengthCost, skew
+from rigsfm.run.adjustment.priors import CalibrationPriors, calibration_priors, pose_prior_residual_covariance
+from rigsfm.run.adjustment.scale import (
     Measurement,
     ScaleEstimate,
     UnusableMeasurement,
     estimate_scale,
     triangulate_in_images,
 )
-from rigsfm.run.scale_file import ScaleSpec
+from rigsfm.run.checks.diagnostics import loosely_tied_rigs
+from rigsfm.run.inputs.scale_file import ScaleSpec
+from rigsfm.run.options import AdjustOptions, Calibration
 
 if TYPE_CHECKING:
-    from rigsfm.run.uncertainty import JointCovariance
+    from rigsfm.run.adjustment.uncertainty import JointCovariance
 
 logger = logging.getLogger(__name__)
 
@@ -130,7 +130,7 @@ class AdjustResult:
     pixel_sigma: float | None = None  # REFINE: estimated reprojection noise (px per image coordinate)
     rounds: int = 0
     seconds: float = 0.0
-    covariance: JointCovariance | None = None  # rigsfm.run.uncertainty.joint_covariance, once computed
+    covariance: JointCovariance | None = None  # rigsfm.run.adjustment.uncertainty.joint_covariance, once computed
     held_rigs: frozenset[str] = frozenset()  # REFINE: rigs whose calibration was held at rigs.yaml's (hold_or_refine)
     decisions: list[CalibrationDecision] = field(default_factory=list)  # REFINE: per rig, held or refined and why
     warnings: list[str] = field(default_factory=list)  # for the run's summary
@@ -835,7 +835,7 @@ def _adjust_refined(mapped: pycolmap.Reconstruction, rigs: Sequence[RigCalibrati
     refinement fails are held at rigs.yaml's values and the network adjusted again (every rig held in a network whose
     shape the images fix: the result is ``--fixed-calibration``'s, its ``calibration`` FIXED). ``held_rigs`` given: those
     held, no test (the sampled band's draws repeat the estimate's choice)."""
-    from rigsfm.run.uncertainty import joint_covariance, network_size_sigma
+    from rigsfm.run.adjustment.uncertainty import joint_covariance, network_size_sigma
 
     result = _refine(mapped, rigs, scale_spec, options, priors, frozenset(held_rigs or ()))
     if held_rigs is None and result.scale_source != ScaleSource.NONE:

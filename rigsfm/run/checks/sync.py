@@ -4,7 +4,7 @@ Rigs are static, so their poses, ``F_ji`` and bands hold for every frame; only t
 frame ``k`` of two rigs is one instant. A rig whose frame ``k`` was taken at time ``k + o`` (frames) is ``o``
 frames off. For each pair of rigs (a, b) whose narrow footprints overlap and each candidate ``d`` in
 ``-max_offset .. max_offset``, narrow a frame ``k`` is matched with narrow b frame ``k + d`` exactly as the
-epipolar self-check matches a pair (:mod:`rigsfm.run.self_check`: j warped into i's view through the floor,
+epipolar self-check matches a pair (:mod:`rigsfm.run.checks.self_check`: j warped into i's view through the floor,
 candidates near i's epipolar line and between heights 0 and 2.2 m, ratio test, mutual best), with a fixed lateral
 tolerance of ``WIDE_FACTOR`` x band + keypoint noise; the pair's score at ``d`` is the share of the matches within
 band + keypoint noise of their epipolar lines (pooled over up to ``frames_per_offset`` frame pairs). Simultaneous
@@ -41,7 +41,7 @@ import pycolmap
 from rigsfm.core.errors import InputError
 from rigsfm.core.io import load_yaml_or_json
 from rigsfm.core.names import name_of
-from rigsfm.run.self_check import (
+from rigsfm.run.checks.self_check import (
     KEYPOINT_NOISE_PX,
     MIN_MATCHES,
     WIDE_FACTOR,

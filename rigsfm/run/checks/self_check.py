@@ -64,8 +64,8 @@ from rigsfm.core.image_files import read_image
 from rigsfm.core.matching import candidate_matches
 from rigsfm.core.names import ImageName, name_of
 from rigsfm.core.sift import detect, opencv_sift, reduction_factor
-from rigsfm.run.floor_matching import grid_rays, plane_hits, plane_warp
 from rigsfm.run.options import SelfCheckOptions
+from rigsfm.run.world.floor_matching import grid_rays, plane_hits, plane_warp
 
 logger = logging.getLogger(__name__)
 
@@ -110,8 +110,8 @@ class SelfCheck:
     guided_by: str  # "epipolar band and heights 0-2.2 m" or "epipolar band"
     seconds: float
     skipped: str | None = None  # why nothing was checked
-    frame_offsets: dict[str, int] = field(default_factory=dict)  # frames paired by time with these (rigsfm.run.sync)
-    sync_warning: str | None = None  # FRAMES NOT SYNCHRONISED (rigsfm.run.sync.SyncEstimate.warning)
+    frame_offsets: dict[str, int] = field(default_factory=dict)  # frames paired by time with these (rigsfm.run.checks.sync)
+    sync_warning: str | None = None  # FRAMES NOT SYNCHRONISED (rigsfm.run.checks.sync.SyncEstimate.warning)
 
     def blame_time(self, unsynchronised: dict[str, int], warning: str) -> None:
         """Failed pairs with a rig found off in time get the verdict 'not synchronised' (not the calibration)."""
@@ -408,7 +408,7 @@ def epipolar_self_check(reconstruction: pycolmap.Reconstruction, image_dir: Path
                         options: SelfCheckOptions | None = None, offsets: dict[str, int] | None = None) -> SelfCheck:
     """The self-check (module docstring) of the first ``options.max_frames`` synchronised frames, with the
     ``F_ji`` and ``epipolar_band_95_px`` of ``narrow_poses`` (the narrow_poses.json of this model); with
-    ``offsets`` (rig -> frames, rigsfm.run.sync) rig r's k-th frame is paired with the others' (k + offset)-th."""
+    ``offsets`` (rig -> frames, rigsfm.run.checks.sync) rig r's k-th frame is paired with the others' (k + offset)-th."""
     opt = options or SelfCheckOptions()
     start = time.perf_counter()
     world = narrow_poses.get("world") or {}
@@ -416,7 +416,7 @@ def epipolar_self_check(reconstruction: pycolmap.Reconstruction, image_dir: Path
     guided_by = "epipolar band and heights 0-2.2 m above the floor" if floor_frame else "epipolar band"
     offsets = {r: int(o) for r, o in (offsets or {}).items() if o}
     if offsets:
-        from rigsfm.run.sync import frames_by_time
+        from rigsfm.run.checks.sync import frames_by_time
 
         frames = frames_by_time(reconstruction, offsets)
     else:

@@ -32,7 +32,7 @@ import numpy as np
 from rigsfm.core.errors import InputError
 from rigsfm.core.io import load_yaml_or_json
 from rigsfm.core.rig import RigCalibration, check_keys, nfc
-from rigsfm.run.inputs import ImageEntry
+from rigsfm.run.inputs.images import ImageEntry
 
 DEFAULT_DISTANCE_SIGMA = 0.01
 DEFAULT_LENGTH_SIGMA = 0.002

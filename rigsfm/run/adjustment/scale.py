@@ -16,7 +16,7 @@ import numpy as np
 import pycolmap
 
 from rigsfm.core.errors import ReconstructionError
-from rigsfm.run.scale_file import KnownLength, ScaleSpec
+from rigsfm.run.inputs.scale_file import KnownLength, ScaleSpec
 
 logger = logging.getLogger(__name__)
 

@@ -1,6 +1,6 @@
 """Stage 5b (after ``adjust``): the result in the analyst's world -- z = 0 on the floor, z up, metres.
 
-``--world floor`` (default): the floor plane is found (:func:`rigsfm.run.floor.estimate_floor`: the sparse points
+``--world floor`` (default): the floor plane is found (:func:`rigsfm.run.world.floor.estimate_floor`: the sparse points
 and the known-length markers, which lie on the floor, and only when they do not fix it precisely enough,
 floor matches between the wide images through a plane-induced warp) and the model is moved into the floor
 frame with a scale-1 similarity, so E^sl and the metres are untouched:
@@ -30,9 +30,15 @@ import pycolmap
 from rigsfm.core.errors import InputError
 from rigsfm.core.ground import Footprint, coverage, footprints, ground_from_image, pairwise_overlaps
 from rigsfm.core.names import ImageName, name_of
-from rigsfm.run.floor import FloorEstimate, apply_floor_frame, estimate_floor, floor_markers, rig_positions
+from rigsfm.run.inputs.scale_file import ScaleSpec
 from rigsfm.run.options import WorldFrame, WorldOptions
-from rigsfm.run.scale_file import ScaleSpec
+from rigsfm.run.world.floor import (
+    FloorEstimate,
+    apply_floor_frame,
+    estimate_floor,
+    floor_markers,
+    rig_positions,
+)
 
 logger = logging.getLogger(__name__)
 
@@ -83,11 +89,11 @@ class WorldResult:
     warnings: list[str] = field(default_factory=list)
 
     def floor_plane(self):
-        """The floor as ``rigsfm.run.uncertainty.Plane`` in the frame it was fitted in (before :meth:`apply`);
+        """The floor as ``rigsfm.run.adjustment.uncertainty.Plane`` in the frame it was fitted in (before :meth:`apply`);
         None unless the floor frame was found."""
         if self.frame != WorldFrame.FLOOR:
             return None
-        from rigsfm.run.uncertainty import Plane
+        from rigsfm.run.adjustment.uncertainty import Plane
 
         fit = self.estimate.fit
         return Plane(np.asarray(fit.normal, dtype=np.float64), float(fit.offset), int(fit.num_points))

@@ -26,8 +26,8 @@ import pycolmap
 from rigsfm.core.geometry import PLANAR, Config, sampson_error_px
 from rigsfm.core.graph import DisjointSets
 from rigsfm.core.names import name_of
-from rigsfm.run.database import open_database
-from rigsfm.run.scale import ScaleEstimate
+from rigsfm.run.adjustment.scale import ScaleEstimate
+from rigsfm.run.inputs.database import open_database
 
 MIN_SHARED_POINTS = 20  # three-view points that tie a rig to the others
 MAX_NORMALISED_RESIDUAL = 5.0

@@ -13,7 +13,7 @@ warped ``j`` and mapped back to ``j``'s own pixels, so the triangulated points d
 plane (a guess a few decimetres or degrees off still matches). Matches whose triangulation reprojects worse
 than ``max_reprojection_px`` in either image, lies behind a camera or meets at less than ``min_angle_deg`` are
 dropped; images of the same rig are not paired (no baseline; the floor is static, so images of different frames
-of different rigs are paired). Which of the rest are floor is :func:`rigsfm.run.floor.fit_floor`'s job.
+of different rigs are paired). Which of the rest are floor is :func:`rigsfm.run.world.floor.fit_floor`'s job.
 
 Measured: 4 wide cameras (f = 450 px, 812x617) at 12 m round a textured floor, 3.5 m up, 90 deg apart:
 3092 triangulated floor matches through the warp against 127 for plain SIFT on the same images; rendered

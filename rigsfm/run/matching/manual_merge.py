@@ -19,8 +19,8 @@ import numpy as np
 import pycolmap
 
 from rigsfm.core.geometry import PLANAR, POSED, Config, planar_fraction, sampson_error_px
-from rigsfm.run.database import open_database
-from rigsfm.run.manual_matches import (
+from rigsfm.run.inputs.database import open_database
+from rigsfm.run.matching.manual_matches import (
     MIN_CORRESPONDENCES,
     Correspondence,
     DegenerateCorrespondencesError,
@@ -47,7 +47,7 @@ class PairReport:
         return dict(self.__dict__)
 
 
-MAX_H_INLIER_RATIO = 0.95  # as rigsfm.run.features: "planar" only if a homography explains nearly every inlier
+MAX_H_INLIER_RATIO = 0.95  # as rigsfm.run.matching.features: "planar" only if a homography explains nearly every inlier
 
 
 def verification_options(max_error_px: float) -> pycolmap.TwoViewGeometryOptions:

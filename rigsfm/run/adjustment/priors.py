@@ -9,7 +9,7 @@ Conventions. Intrinsic sigmas are absolute, in COLMAP's order and units. E^sl's 
 ``[w (rad), dt (m)]`` with ``R_true = Exp(w) R`` (w in the narrow camera's axes, applied on the left) and
 ``t_true = t + dt``: exactly the tangent in which COLMAP's bundle adjuster moves a ``sensor_from_rig`` block
 (Ceres' quaternion manifold ``q' = Quaternion(delta) * q``, a rotation by ``w = 2 delta``; ``t' = t + dt``),
-so it enters the joint covariance unchanged (:func:`rigsfm.run.uncertainty`). COLMAP's pose-prior cost
+so it enters the joint covariance unchanged (:func:`rigsfm.run.adjustment.uncertainty`). COLMAP's pose-prior cost
 (``pycolmap.cost_functions.AbsolutePosePriorCost``) measures a different residual, ``[w, t - Exp(w) t_prior]``
 = ``[w, dt + [t_prior]x w]`` to first order: :func:`pose_prior_residual_covariance` converts.
 

@@ -2,7 +2,7 @@
 and the 95 % epipolar band of every narrow pair.
 
 1. :func:`joint_covariance`: the covariance of every rig pose, E^sl and camera (3D points marginalised out). Ceres'
-   Jacobian of the adjustment's own problem (``rigsfm.run.adjust.JointProblem``, squared loss: the inliers'
+   Jacobian of the adjustment's own problem (``rigsfm.run.adjustment.adjust.JointProblem``, squared loss: the inliers'
    covariance; ``Problem.evaluate_jacobian``, tangent space), the points eliminated by a Schur complement of their
    3x3 blocks, the rest inverted densely, times the images' weighting noise squared (every residual is in pixels).
    COLMAP's ``estimate_ba_covariance`` is not used: it gives a non-pose block only on its own, without its
@@ -57,7 +57,7 @@ from scipy.special import ndtr
 from rigsfm.core.errors import ReconstructionError
 from rigsfm.core.geometry import project, project_world
 from rigsfm.core.names import name_of
-from rigsfm.run.adjust import (
+from rigsfm.run.adjustment.adjust import (
     AdjustResult,
     Gauge,
     JointProblem,
@@ -65,8 +65,8 @@ from rigsfm.run.adjust import (
     estimate_pixel_sigma,
     sensor_from_rig_view,
 )
+from rigsfm.run.adjustment.priors import calibration_priors, draw_calibration
 from rigsfm.run.options import Calibration
-from rigsfm.run.priors import calibration_priors, draw_calibration
 
 logger = logging.getLogger(__name__)
 
@@ -483,7 +483,7 @@ def ground_plane(reconstruction: pycolmap.Reconstruction, min_points: int = 30, 
 def floor_from_known_lengths(reconstruction: pycolmap.Reconstruction, scale_spec) -> Plane | None:
     """The floor through the triangulated ends of scale.yaml's known lengths (bars lying on the floor), normal
     :func:`world_up`; None without a usable known length."""
-    from rigsfm.run.scale import triangulate_observed_point
+    from rigsfm.run.adjustment.scale import triangulate_observed_point
 
     ends = []
     for item in (scale_spec.known_lengths if scale_spec is not None else ()):
@@ -829,7 +829,7 @@ def sampled_pair_bands(result: AdjustResult, plane: Plane | None, num_draws: int
     benchmarks/README "The sampled band against the linear one on rendered 3-rig networks"."""
     from dataclasses import replace
 
-    from rigsfm.run.adjust import adjust
+    from rigsfm.run.adjustment.adjust import adjust
 
     estimate = result.reconstruction
     image_covariance = joint_covariance(result, image_only=True)
@@ -989,8 +989,8 @@ def calibration_changes(result: AdjustResult, covariance: JointCovariance | None
 
 
 def uncertainty_summary(result: AdjustResult, uncertainty: Uncertainty):
-    """The summary.json record of the uncertainty stage (``rigsfm.run.summary.UncertaintySummary``)."""
-    from rigsfm.run.summary import NarrowUncertaintySummary, PairBandSummary, UncertaintySummary
+    """The summary.json record of the uncertainty stage (``rigsfm.core.summary.UncertaintySummary``)."""
+    from rigsfm.core.summary import NarrowUncertaintySummary, PairBandSummary, UncertaintySummary
 
     covariance = uncertainty.covariance
     return UncertaintySummary(

@@ -20,7 +20,7 @@ import pycolmap
 from rigsfm.core.errors import WorkspaceError
 from rigsfm.core.names import SENSORS
 from rigsfm.core.rig import RigCalibration
-from rigsfm.run.inputs import ImageEntry
+from rigsfm.run.inputs.images import ImageEntry
 
 logger = logging.getLogger(__name__)
 

@@ -30,10 +30,10 @@ class CameraError:
 
 @dataclass(kw_only=True)
 class ScaleSummary:
-    source: str = "none"  # measurements, narrow_baselines or none (rigsfm.run.adjust.ScaleSource)
+    source: str = "none"  # measurements, narrow_baselines or none (rigsfm.run.adjustment.adjust.ScaleSource)
     metres_per_mapping_unit: float | None = None
     relative_sigma_percent: float | None = None
-    measurements: list[dict] = field(default_factory=list)  # rigsfm.run.scale.ScaleEstimate.residuals()
+    measurements: list[dict] = field(default_factory=list)  # rigsfm.run.adjustment.scale.ScaleEstimate.residuals()
 
 
 @dataclass(kw_only=True)
@@ -53,7 +53,7 @@ class InputsSummary:
 
 @dataclass(kw_only=True)
 class NarrowUncertaintySummary:
-    """1 sigma of one narrow camera relative to the network (rigsfm.run.uncertainty.narrow_uncertainty)."""
+    """1 sigma of one narrow camera relative to the network (rigsfm.run.adjustment.uncertainty.narrow_uncertainty)."""
 
     centre_sigma_mm: float | None = None
     rotation_sigma_deg: float | None = None
@@ -61,7 +61,7 @@ class NarrowUncertaintySummary:
 
 @dataclass(kw_only=True)
 class PairBandSummary:
-    """One narrow pair's 95 % epipolar band (rigsfm.run.uncertainty.PairBand)."""
+    """One narrow pair's 95 % epipolar band (rigsfm.run.adjustment.uncertainty.PairBand)."""
 
     i: str = ""
     j: str = ""
@@ -98,15 +98,15 @@ class Summary:
     reprojection_error: dict[str, CameraError] = field(default_factory=dict)  # per camera <rig>/<sensor>
     timings_s: dict[str, float] = field(default_factory=dict)
     warnings: list[str] = field(default_factory=list)
-    manual_matches: dict | None = None  # rigsfm.run.manual_merge.manual_matches_summary
-    world: dict | None = None  # the result's frame and its floor fit (rigsfm.run.world.WorldResult.to_dict)
-    epipolar_self_check: dict | None = None  # rigsfm.run.self_check.SelfCheck.to_dict
-    frame_offsets: dict | None = None  # asked (auto, a file, None), applied, estimate (rigsfm.run.sync)
-    uncertainty: UncertaintySummary | None = None  # rigsfm.run.uncertainty
-    # per rig, its calibration refined or held at rigs.yaml's values and why (rigsfm.run.adjust.hold_or_refine;
+    manual_matches: dict | None = None  # rigsfm.run.matching.manual_merge.manual_matches_summary
+    world: dict | None = None  # the result's frame and its floor fit (rigsfm.run.world.frame.WorldResult.to_dict)
+    epipolar_self_check: dict | None = None  # rigsfm.run.checks.self_check.SelfCheck.to_dict
+    frame_offsets: dict | None = None  # asked (auto, a file, None), applied, estimate (rigsfm.run.checks.sync)
+    uncertainty: UncertaintySummary | None = None  # rigsfm.run.adjustment.uncertainty
+    # per rig, its calibration refined or held at rigs.yaml's values and why (rigsfm.run.adjustment.adjust.hold_or_refine;
     # empty with --fixed-calibration)
     calibration_decisions: list[dict] = field(default_factory=list)
-    pairs: dict | None = None  # rigsfm.run.features.pairs_report: pairs matched, skipped, missed
+    pairs: dict | None = None  # rigsfm.run.matching.features.pairs_report: pairs matched, skipped, missed
     cpu_s: dict[str, float] = field(default_factory=dict)  # CPU seconds per stage (all threads)
 
     def to_json(self) -> dict:

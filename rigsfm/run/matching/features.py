@@ -47,10 +47,10 @@ from rigsfm.core.graph import DisjointSets
 from rigsfm.core.io import file_sha256, write_json_atomic
 from rigsfm.core.names import ImageName
 from rigsfm.core.workspace import os_error_text
-from rigsfm.run.database import open_database
-from rigsfm.run.feature_cache import FeatureCache, features_from_cache, features_to_cache
-from rigsfm.run.gpu import use_gpu
-from rigsfm.run.inputs import ImageEntry
+from rigsfm.run.inputs.database import open_database
+from rigsfm.run.inputs.images import ImageEntry
+from rigsfm.run.matching.feature_cache import FeatureCache, features_from_cache, features_to_cache
+from rigsfm.run.matching.gpu import use_gpu
 from rigsfm.run.options import Features, MatchingOptions, Pairs
 
 logger = logging.getLogger(__name__)
@@ -297,7 +297,7 @@ def extract_features(
     ``executor="ray"``: one task per image on the Ray cluster at ``address`` (or a local Ray instance with
     ``workers`` CPUs); the images travel as bytes, the features come back and are written here. With
     ``RIGSFM_FEATURE_CACHE`` set, features of the same image file and settings come from that cache
-    (:mod:`rigsfm.run.feature_cache`) and new ones are added to it."""
+    (:mod:`rigsfm.run.matching.feature_cache`) and new ones are added to it."""
     with open_database(database_path) as database:
         ids = {image.name: image.image_id for image in database.read_all_images()}
         todo = [
@@ -327,7 +327,7 @@ def extract_features(
 
 
 def _cache_settings(options: MatchingOptions, first_octave: int) -> dict:
-    """What an image's features depend on besides its file (rigsfm.run.feature_cache's key)."""
+    """What an image's features depend on besides its file (rigsfm.run.matching.feature_cache's key)."""
     if options.features == Features.ASIFT:
         return {"features": str(options.features), "max_num_features": options.max_num_features}
     extraction = _extraction_options(options, num_threads=1, first_octave=first_octave).todict()
@@ -340,7 +340,7 @@ def _extract(database_path: Path, image_dir: Path, paths: dict[str, Path], ids: 
              options: MatchingOptions, first_octave: int, progress: Progress | None, batch_size: int,
              num_threads: int, executor: str, address: str | None, workers: int) -> None:
     if options.features == Features.ASIFT:
-        from rigsfm.run.asift import extract_asift
+        from rigsfm.run.matching.asift import extract_asift
 
         extract_asift(database_path, image_dir, todo, options.max_num_features, progress)
         return
@@ -390,7 +390,7 @@ def image_pairs(images: Sequence[ImageEntry], options: MatchingOptions) -> list[
 
 
 def narrow_times(images: Sequence[ImageEntry], offsets: dict[str, int] | None) -> dict[str, int] | None:
-    """Narrow image name -> its time in frames (its rig's k-th narrow frame at k + offset, rigsfm.run.sync);
+    """Narrow image name -> its time in frames (its rig's k-th narrow frame at k + offset, rigsfm.run.checks.sync);
     None without offsets."""
     if offsets is None:
         return None

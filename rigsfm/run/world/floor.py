@@ -9,7 +9,7 @@ Which sparse points are floor is decided from the geometry, not from labels:
    undetermined and the prior falls back to the mean -y axis (off by the cameras' mean pitch, so the tilt
    allowed around it is widened).
 2. **Candidates.** Points below the lowest camera along the prior (the floor is below every camera): sparse
-   points (track >= 2, error <= 4 px), ``extra_points`` (floor matches, :mod:`rigsfm.run.floor_matching`:
+   points (track >= 2, error <= 4 px), ``extra_points`` (floor matches, :mod:`rigsfm.run.world.floor_matching`:
    the sparse model of an arena often holds almost no floor, see there) and the end points of known-length
    markers (``markers``), which lie on the floor.
 3. **RANSAC** (MSAC score) over planes whose normal is within ``max_tilt_deg`` of the prior, that have every
@@ -25,7 +25,7 @@ Which sparse points are floor is decided from the geometry, not from labels:
    the plane give :class:`NoFloor` with the reason; the caller warns and keeps the mapper's frame.
 6. **Cost.** :func:`estimate_floor` reads images only when the sparse points and markers do not fix the floor
    (:func:`sparse_floor_shortfall`: fewer than 100 inliers, or standard errors of the normal above 0.02 deg or of
-   a camera height above 0.2 % of it). Then floor matching (:mod:`rigsfm.run.floor_matching`) triangulates
+   a camera height above 0.2 % of it). Then floor matching (:mod:`rigsfm.run.world.floor_matching`) triangulates
    floor points between each wide image and those of its 4 nearest rigs, and stops as soon as the fit is
    precise enough. Rendered 8-rig arena (812x617, 2 busy cores): 6-10 s for all 28 pairs, one round; matching
    only the 2 nearest rigs (8 pairs) took 6 s and tilted the floor 0.13 deg (each pair's points lie in one
@@ -55,8 +55,8 @@ import numpy as np
 import pycolmap
 
 from rigsfm.core.names import name_of
-from rigsfm.run.scale import triangulate_observed_point
-from rigsfm.run.scale_file import ScaleSpec
+from rigsfm.run.adjustment.scale import triangulate_observed_point
+from rigsfm.run.inputs.scale_file import ScaleSpec
 
 logger = logging.getLogger(__name__)
 
@@ -355,7 +355,7 @@ def fit_floor(reconstruction: pycolmap.Reconstruction, markers: np.ndarray | Non
               options: FloorOptions | None = None, *, extra_points: np.ndarray | None = None,
               x_towards: str | None = None, quiet: bool = False) -> FloorFit | NoFloor:
     """Fit the floor plane to the sparse points, ``extra_points`` (e.g. from
-    :func:`rigsfm.run.floor_matching.match_floor_points`) and ``markers`` (model-frame points known to be on
+    :func:`rigsfm.run.world.floor_matching.match_floor_points`) and ``markers`` (model-frame points known to be on
     the floor), and define the floor frame (module docstring). Returns :class:`NoFloor` with the reason when
     the scene has no detectable floor. ``quiet``: leave the warnings in the result, unlogged."""
     opt = options or FloorOptions()
@@ -536,13 +536,13 @@ def estimate_floor(reconstruction: pycolmap.Reconstruction, image_dir=None, mark
     """The floor from everything available, cheapest first: the sparse points and markers alone when they
     fix it precisely enough (:func:`sparse_floor_shortfall`); otherwise, when ``image_dir`` is given, guess a
     plane (:func:`guess_floor`), match the floor between neighbouring images through it
-    (:mod:`rigsfm.run.floor_matching`), fit the floor to the sparse, matched and marker points, and match
+    (:mod:`rigsfm.run.world.floor_matching`), fit the floor to the sparse, matched and marker points, and match
     again through the fitted plane while it moved by more than 0.05 deg or 0.5 % of the camera height from
     the plane the matching used (at most ``max_rounds`` matchings: a guess 14 cm off gave 530 matches, 262 on
     the floor; the second round through the fit 679 and 391)."""
     import time
 
-    from rigsfm.run.floor_matching import load_floor_images, match_floor_points
+    from rigsfm.run.world.floor_matching import load_floor_images, match_floor_points
 
     opt = options or FloorOptions()
     sparse = fit_floor(reconstruction, markers, opt, x_towards=x_towards, quiet=True)

@@ -1,0 +1,1 @@
+"""Stage 4: COLMAP's incremental or global mapper on the wide images."""

@@ -61,13 +61,14 @@ def mapped_model(root: Path, options: SceneOptions, click_seed: int | None, clic
     from rigsfm.core.workspace import Workspace, colmap_log_to
     from rigsfm.run.inputs.database import create_database
     from rigsfm.run.mapping.mapper import run_mapping
-    from rigsfm.run.matching.features import extract_features, match_features
+    from rigsfm.run.matching.extract import extract_features
     from rigsfm.run.matching.manual_matches import (
         read_manual_matches,
         validate_manual_matches,
         write_manual_matches,
     )
     from rigsfm.run.matching.manual_merge import add_manual_matches
+    from rigsfm.run.matching.match import match_features
     from rigsfm.run.options import MappingOptions, MatchingOptions
     from rigsfm.run.pipeline import load_inputs
     from rigsfm.synth.clicks import simulate_clicks
@@ -114,7 +115,7 @@ def mapped_model(root: Path, options: SceneOptions, click_seed: int | None, clic
 
 def epipolar_p95(estimate: pycolmap.Reconstruction, truth: pycolmap.Reconstruction) -> float | None:
     """The worst narrow pair's 95th percentile of the true epipolar distance (px)."""
-    from rigsfm.run.adjustment.uncertainty import correspondence_check
+    from rigsfm.core.geometry import correspondence_check
     from rigsfm.run.deliver import narrow_images
 
     names = sorted(im.name for im in narrow_images(estimate))

@@ -34,12 +34,12 @@ def import_common() -> None:
 
 def peak_rss_mb() -> float:
     """The run's peak resident memory (MB, VmHWM, C++ allocations included): this process's or that of any of
-    rigsfm's stage processes, whichever is larger (``rigsfm.core.stages.stage_peak_rss_mb``).
+    rigsfm's stage processes, whichever is larger (``rigsfm.core.processes.stage_peak_rss_mb``).
 
     Not ``ru_maxrss`` from the parent's ``wait4``: Linux carries the parent's peak RSS at fork over
     the exec into the child's ru_maxrss, so every child would report at least the parent's size.
     """
-    from rigsfm.core.stages import stage_peak_rss_mb
+    from rigsfm.core.processes import stage_peak_rss_mb
 
     return round(stage_peak_rss_mb(), 1)
 
@@ -47,7 +47,7 @@ def peak_rss_mb() -> float:
 def cpu_seconds() -> float:
     """User + system CPU time of this process and of rigsfm's stage processes (which the forkserver, not this
     process, waits for), every thread included (robust to a shared machine's load)."""
-    from rigsfm.core.stages import stage_cpu_seconds
+    from rigsfm.core.processes import stage_cpu_seconds
 
     return stage_cpu_seconds()
 

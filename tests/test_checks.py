@@ -11,9 +11,10 @@ from rigsfm.core.errors import ReconstructionError
 from rigsfm.core.workspace import Workspace
 from rigsfm.run.adjustment.adjust import adjust
 from rigsfm.run.adjustment.scale import Measurement, ScaleEstimate, estimate_scale
-from rigsfm.run.checks.diagnostics import check_reconstruction, contradicted_pairs, loosely_tied_rigs
+from rigsfm.run.checks.diagnostics import check_reconstruction, contradicted_pairs
 from rigsfm.run.inputs.scale_file import CameraDistance, ScaleSpec
 from rigsfm.run.mapping.mapper import run_mapping
+from rigsfm.run.mapping.ties import loosely_tied_rigs
 from rigsfm.run.options import MappingOptions
 
 

@@ -12,7 +12,7 @@ from rigsfm.core.workspace import Workspace, colmap_log_to
 from rigsfm.run.adjustment.adjust import adjust
 from rigsfm.run.inputs.database import create_database
 from rigsfm.run.mapping.mapper import run_mapping
-from rigsfm.run.matching.features import extract_features
+from rigsfm.run.matching.extract import extract_features
 from rigsfm.run.matching.manual_matches import (
     read_manual_matches,
     validate_manual_matches,

@@ -22,7 +22,7 @@ import numpy as np
 import pycolmap
 import pytest
 
-from rigsfm.core import stages
+from rigsfm.core import processes as stages
 from rigsfm.core.errors import InputError, WorkspaceError
 from rigsfm.core.rig import load_rigs
 from rigsfm.core.workspace import Workspace
@@ -36,7 +36,8 @@ from rigsfm.run.mapping.mapper import (
     run_mapping,
     wide_pairs,
 )
-from rigsfm.run.matching.features import extract_features, match_features
+from rigsfm.run.matching.extract import extract_features
+from rigsfm.run.matching.match import match_features
 from rigsfm.run.options import Mapper, MappingOptions, MatchingOptions
 from rigsfm.synth.dataset import render_dataset
 from rigsfm.synth.scene import SceneOptions

@@ -217,8 +217,8 @@ def test_report_structure_top_view_bands_and_self_check(result):
     import re
 
     from rigsfm.core.summary import Summary
+    from rigsfm.core.summary import describe_self_check as describe
     from rigsfm.inspect.report.html import self_check_section
-    from rigsfm.run.checks.self_check import describe
 
     _, out, rec = result
     runner = CliRunner().invoke(app, ["report", str(out)])

@@ -174,7 +174,7 @@ def test_narrow_features_match_only_simultaneous_narrow_images_of_two_rigs():
 
     from rigsfm.core.names import Sensor
     from rigsfm.run.inputs.images import ImageEntry
-    from rigsfm.run.matching.features import image_pairs
+    from rigsfm.run.matching.pairs import image_pairs
     from rigsfm.run.options import MatchingOptions
 
     images = [ImageEntry(rig, Sensor(sensor), f"f{k}.png", Path(f"{rig}/{sensor}/f{k}.png"))

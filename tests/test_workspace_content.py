@@ -19,7 +19,9 @@ from bad_inputs_table import RUN, inputs
 from rigsfm.core.errors import WorkspaceError
 from rigsfm.core.workspace import MARKER, Workspace
 from rigsfm.run.inputs.database import check_database_kept, create_database
-from rigsfm.run.matching.features import drop_changed_images, extract_features, match_features
+from rigsfm.run.matching.extract import extract_features
+from rigsfm.run.matching.match import match_features
+from rigsfm.run.matching.reuse import drop_changed_images
 from rigsfm.run.options import MatchingOptions
 from rigsfm.run.pipeline import load_inputs
 from rigsfm.synth.scene import SceneOptions
@@ -62,7 +64,7 @@ def test_a_changed_image_loses_its_features_and_matches_and_only_it(rendered, tm
     path = images / CHANGED
     image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     cv2.imwrite(str(path), np.roll(image, 12, axis=1))  # the rig turned: a new recording under the same name
-    caplog.set_level(logging.WARNING, logger="rigsfm.run.matching.features")
+    caplog.set_level(logging.WARNING, logger="rigsfm.run.matching.extract")
     assert drop_changed_images(workspace.database, workspace.image_contents, scene.images) == [CHANGED]
     assert (f"1 image changed since the last run in this workspace ({CHANGED}): its features and matches are made "
             "again") in caplog.text

@@ -88,7 +88,7 @@ def print_world(summary) -> None:
     elif world:
         console.print("world: the mapper's frame" + ("" if world.get("asked") == "mapping" else " (no floor found)"))
     if check.get("pairs"):
-        from rigsfm.run.checks.self_check import describe
+        from rigsfm.core.summary import describe_self_check as describe
 
         console.print(f"epipolar self-check: {describe(check)}")
     offsets = summary.frame_offsets or {}

@@ -216,7 +216,7 @@ class Overlap:
 
 def pairwise_overlaps(prints: dict[str, Footprint], min_area: float = 0.0, *, pieces: bool = True) -> list[Overlap]:
     """Exact intersections of every pair of footprints with more than ``min_area`` m^2 in common; with
-    ``pieces=False`` only their areas (:func:`intersection_area`, ~10x faster on distorted footprints)."""
+    ``pieces=False`` only their areas (:func:`intersection_area`, much faster on distorted footprints)."""
     result = []
     for (name_a, a), (name_b, b) in itertools.combinations(sorted(prints.items()), 2):
         lo = np.maximum(a.polygon.min(axis=0), b.polygon.min(axis=0))

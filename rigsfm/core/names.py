@@ -47,3 +47,9 @@ class ImageName:
 def name_of(image) -> ImageName:
     """The parsed name of a ``pycolmap.Image`` (or anything with a ``name``)."""
     return ImageName.parse(image.name)
+
+
+def registered_narrow_images(reconstruction) -> list:
+    """The registered narrow images of a ``pycolmap.Reconstruction``, sorted by name."""
+    return sorted((im for im in reconstruction.images.values() if im.has_pose and name_of(im).is_narrow),
+                  key=lambda im: im.name)

@@ -12,6 +12,9 @@ from pathlib import Path
 
 from rigsfm.core.errors import WorkspaceError
 
+# matches a self-check pair needs for a verdict (fewer: its 95th percentile is set by two or three matches)
+SELF_CHECK_MIN_MATCHES = 50
+
 
 @dataclass(kw_only=True)
 class Registration:
@@ -106,7 +109,7 @@ class Summary:
     # per rig, its calibration refined or held at rigs.yaml's values and why (rigsfm.run.adjustment.adjust.hold_or_refine;
     # empty with --fixed-calibration)
     calibration_decisions: list[dict] = field(default_factory=list)
-    pairs: dict | None = None  # rigsfm.run.matching.features.pairs_report: pairs matched, skipped, missed
+    pairs: dict | None = None  # rigsfm.run.matching.extract.pairs_report: pairs matched, skipped, missed
     cpu_s: dict[str, float] = field(default_factory=dict)  # CPU seconds per stage (all threads)
 
     def to_json(self) -> dict:
@@ -145,3 +148,26 @@ class Summary:
 def _typed(kind, values: dict):
     known = {f.name for f in fields(kind)}
     return kind(**{k: v for k, v in values.items() if k in known})
+
+
+def describe_self_check(check: dict) -> str:
+    """One line on a self-check record (``SelfCheck.to_dict``): the verdicts, and why pairs have none."""
+    pairs = check.get("pairs") or []
+    if not pairs:
+        return f"nothing checked: {check.get('skipped') or 'no pair of synchronised narrow images'}"
+    verdicts = [p["verdict"] for p in pairs]
+    needed = (check.get("settings") or {}).get("min_matches", SELF_CHECK_MIN_MATCHES)
+    if all(v == "too few matches" for v in verdicts):
+        most = max(p.get("matches", 0) for p in pairs)
+        found = "0 matches in each" if most == 0 else f"at most {most} matches"
+        return (f"none of the {len(pairs)} synchronised narrow pairs could be checked ({found}, {needed} needed): "
+                "featureless narrow views, as expected in a homogeneous scene; the bands are the model's alone")
+    line = f"{verdicts.count('ok')} ok, {verdicts.count('failed')} failed"
+    rest = [v for v in verdicts if v not in ("ok", "failed")]
+    if rest:
+        why = {"too few matches": f"fewer than {needed} matches (featureless views)",
+               "not synchronised": "not synchronised (a rig's frames are off in time)",
+               "inconclusive": "inconclusive (matches fill even the widest search)", "no band": "no band"}
+        line += f", {len(rest)} without verdict: " + ", ".join(
+            f"{rest.count(v)} {why.get(v, v)}" for v in sorted(set(rest), key=rest.index))
+    return line

@@ -43,7 +43,7 @@ class Features(enum.StrEnum):
 
 
 class Pairs(enum.StrEnum):
-    """Which pairs of featured images are matched fully (rigsfm.run.matching.features.select_pairs)."""
+    """Which pairs of featured images are matched fully (rigsfm.run.matching.extract.select_pairs)."""
 
     AUTO = "auto"  # a cheap first pass picks each image's best partners: about linear in the images
     EXHAUSTIVE = "exhaustive"  # every pair: quadratic in the images
@@ -81,8 +81,8 @@ class MatchingOptions:
     cross_check: bool = True  # mutual nearest neighbours
     max_num_features: int = 8192
     # SIFT's first octave: -1 doubles the image first (COLMAP's default), 0 does not (3.3x less CPU, 2.9x less
-    # memory). None: 0 for networks of rigsfm.run.matching.features.COARSE_SIFT_MIN_FRAMES wide frames or more whose
-    # images are COARSE_SIFT_MIN_SIDE_PX or larger, -1 otherwise (rigsfm.run.matching.features.resolved_first_octave).
+    # memory). None: 0 for networks of rigsfm.run.matching.extract.COARSE_SIFT_MIN_FRAMES wide frames or more whose
+    # images are COARSE_SIFT_MIN_SIDE_PX or larger, -1 otherwise (rigsfm.run.matching.extract.resolved_first_octave).
     first_octave: int | None = None
     # Verify pairs of frames with the rigs' generalized relative pose. None: on unless narrow features
     # are extracted (with textured narrow views it took over 15 minutes for 24 images).
@@ -112,11 +112,9 @@ class MatchingOptions:
         return (not self.narrow_features) if self.rig_verification is None else self.rig_verification
 
 
-# --mapper auto: the global mapper from this many wide frames, the incremental one below. Measured on rendered full
-# circles at 1624x1234 (benchmarks/README.md): from 16 rigs the global mapper is faster at the same accuracy
-# (16 rigs 33.7-41.7 s against 38.7-46.8 s end to end, 64 rigs 248 s); below, the incremental one, which hands
-# the frames it cannot reach to the global mapper: alone, the global mapper registered 0 of 4 rigs of a
-# featureless 4-rig circle and once converged to a wrong shape on an 8-rig crowd.
+# --mapper auto: the global mapper from this many wide frames (faster there at the same accuracy), the incremental
+# one below, where the global mapper alone can fail on small featureless circles; the incremental one hands the
+# frames it cannot reach to the global mapper (see benchmarks/README.md).
 GLOBAL_FROM_FRAMES = 16
 
 
@@ -146,7 +144,7 @@ class Calibration(enum.StrEnum):
     """What the metric bundle adjustment does with rigs.yaml's intrinsics and E^sl."""
 
     REFINE = "refine"  # refined with the images, each weighted by its calibration sigma (rigsfm.run.adjustment.priors)
-    FIXED = "fixed"  # held exactly at rigs.yaml (--fixed-calibration; rigsfm before issue 13)
+    FIXED = "fixed"  # held exactly at rigs.yaml (--fixed-calibration)
 
 
 @dataclass(kw_only=True)
@@ -160,8 +158,8 @@ class AdjustOptions:
     calibration: Calibration = Calibration.REFINE
     # REFINE: the images' weight against the calibration priors and measurements. Reprojection residuals count
     # as if their noise were this many times the one estimated from them: SIFT positions err systematically
-    # between views 45-60 deg apart, and at 1 the images pulled the wide intrinsics 2-4x further from the truth
-    # than the posterior allowed (rendered arena; the band then held 89 % instead of 95 %).
+    # between views far apart, and at 1 the images pull the intrinsics further than the posterior allows (see
+    # benchmarks/README.md).
     pixel_sigma_inflation: float = 3.0
     max_rounds: int = 4  # REFINE: adjust, drop outliers, re-estimate the pixel noise; until nothing changes
 
@@ -195,8 +193,8 @@ class SelfCheckOptions:
     # features are compared: 0 for what lies on the floor; a crowd seen from above may match better at 1.7.
     warp_height_m: float = 0.0
     # OpenCV SIFT runs on the narrow images (and warps) reduced by the integer factor that brings their longer
-    # side nearest this: 1624x1234 -> 2 (a 6-rig crowd: 3.8x faster, a median 660 instead of 1 003 matches per
-    # pair, the measured distances as close to the truth; rigsfm.run.checks.self_check), 812x617 -> 1.
+    # side nearest this (1624x1234 -> 2, 812x617 -> 1): faster, with distances as close to the truth (see
+    # benchmarks/README.md).
     sift_size: int = 800
     # Per-rig frame offsets of the narrow images (rigsfm.run.checks.sync): None checks synchronisation when the check
     # fails; "auto" estimates the offsets and pairs the frames by time; a path: a yaml file 'rig03: 1' applied.

@@ -324,7 +324,7 @@ def self_check_section(summary: Summary | None) -> str:
     if check.get("skipped"):
         parts.append(f'<p class="note">Nothing checked: {esc(check["skipped"])}.</p>')
         return "".join(parts)
-    from rigsfm.run.checks.self_check import describe
+    from rigsfm.core.summary import describe_self_check as describe
 
     pairs = check.get("pairs", [])
     parts.append(f'<p class="note">{esc(describe(check)[0].upper() + describe(check)[1:])}.</p>')

@@ -21,9 +21,7 @@ import numpy as np
 import pyceres
 import pycolmap
 
-
-def skew(v: np.ndarray) -> np.ndarray:
-    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+from rigsfm.core.geometry import skew
 
 
 def quaternion_plus_jacobian(q_xyzw: np.ndarray) -> np.ndarray:

@@ -31,6 +31,7 @@ import numpy as np
 import pycolmap
 
 from rigsfm.core.errors import InputError
+from rigsfm.core.geometry import skew
 from rigsfm.core.rig import MAX_SIGMA_ROTATION_DEG, RigCalibration, check_camera_sigmas
 
 logger = logging.getLogger(__name__)
@@ -50,7 +51,7 @@ class BoardDefaults:
     (``rigsfm.synth.cameras.perturb_rig_from``: focal +-0.05..0.15 %, RMS 0.10 %; principal point
     +-0.2..0.8 px, RMS 0.53 px; k1 / k2 +-2..6e-4 / +-1..3e-4 on the wide camera, half on the narrow; p1, p2
     within 1e-5; E^sl rotated 0.05..0.1 deg about a random axis, RMS 0.044 deg per axis; translation +-1 mm
-    uniform, RMS 0.58 mm per axis) nor for issue 13's "realistic" ones (focal +-0.2 %, principal point +-1 px).
+    uniform, RMS 0.58 mm per axis) nor for the "realistic" ones (focal +-0.2 %, principal point +-1 px).
     """
 
     focal_relative: float = 0.0012  # 0.12 % of the focal length
@@ -139,28 +140,19 @@ def pose_prior_residual_covariance(covariance: np.ndarray, prior: pycolmap.Rigid
     ``[w, dt]`` (``R = Exp(w) R_prior``, ``t = t_prior + dt``) has ``covariance``: to first order the residual
     is ``[w, dt + [t_prior]x w]``."""
     jacobian = np.eye(6)
-    jacobian[3:, :3] = _skew(np.asarray(prior.translation, dtype=np.float64))
+    jacobian[3:, :3] = skew(np.asarray(prior.translation, dtype=np.float64))
     return jacobian @ np.asarray(covariance, dtype=np.float64) @ jacobian.T
 
 
 def tangent_covariance_from_residual(covariance: np.ndarray, prior: pycolmap.Rigid3d) -> np.ndarray:
     """The inverse of :func:`pose_prior_residual_covariance`."""
     jacobian = np.eye(6)
-    jacobian[3:, :3] = -_skew(np.asarray(prior.translation, dtype=np.float64))
+    jacobian[3:, :3] = -skew(np.asarray(prior.translation, dtype=np.float64))
     return jacobian @ np.asarray(covariance, dtype=np.float64) @ jacobian.T
-
-
-def _skew(v: np.ndarray) -> np.ndarray:
-    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
 
 
 # ------------------------------------------------------------------------------------------------------------
 # Reading and checking
-
-
-def _check_camera_sigmas(sigmas: np.ndarray, camera: pycolmap.Camera, where: str) -> None:
-    """rigsfm.core.rig's check, the one place its bounds live (rigs.yaml's sigmas pass it when read)."""
-    check_camera_sigmas(sigmas, camera, f"{where} sigmas")
 
 
 def _check_pose_covariance(covariance: np.ndarray, where: str, source: str) -> None:
@@ -200,7 +192,7 @@ def rig_prior(rig: RigCalibration, sigmas=None, where: str | None = None,
             if values.shape != (len(camera.params),):
                 raise InputError(f"{where} sensor {sensor} sigmas: expected {len(camera.params)} numbers (one per "
                                  f"entry of params), got {values.size}")
-            _check_camera_sigmas(values, camera, f"{where} sensor {sensor}")
+            check_camera_sigmas(values, camera, f"{where} sensor {sensor} sigmas")  # core.rig's, as rigs.yaml's
         cameras[sensor] = values
     default = defaults.narrow_from_wide_covariance()
     covariance = None if sigmas is None else sigmas.covariance

@@ -17,52 +17,17 @@
 
 from __future__ import annotations
 
-from collections.abc import Iterable
 from pathlib import Path
 
 import numpy as np
 import pycolmap
 
 from rigsfm.core.geometry import PLANAR, Config, sampson_error_px
-from rigsfm.core.graph import DisjointSets
-from rigsfm.core.names import name_of
 from rigsfm.run.adjustment.scale import ScaleEstimate
 from rigsfm.run.inputs.database import open_database
+from rigsfm.run.mapping.ties import loosely_tied_rigs, rig_groups, rig_of
 
-MIN_SHARED_POINTS = 20  # three-view points that tie a rig to the others
 MAX_NORMALISED_RESIDUAL = 5.0
-
-
-def _rig_of(image: pycolmap.Image) -> str:
-    return name_of(image).rig
-
-
-def loosely_tied_rigs(reconstruction: pycolmap.Reconstruction) -> list[str]:
-    """Rigs not tied to the largest group of rigs by points seen from at least three rigs."""
-    rig_of_image = {image.image_id: _rig_of(image) for image in reconstruction.images.values() if image.has_pose}
-    rigs = sorted(set(rig_of_image.values()))
-    if len(rigs) < 3:
-        return []
-    shared: dict[tuple[str, str], int] = {}
-    for point in reconstruction.points3D.values():
-        seen = sorted({rig_of_image[e.image_id] for e in point.track.elements if e.image_id in rig_of_image})
-        if len(seen) < 3:
-            continue
-        for i, a in enumerate(seen):
-            for b in seen[i + 1:]:
-                shared[(a, b)] = shared.get((a, b), 0) + 1
-    largest = max(_groups(rigs, [pair for pair, count in shared.items() if count >= MIN_SHARED_POINTS]), key=len)
-    if len(largest) < 3:  # no rigid core at all
-        return rigs
-    return sorted(rig for rig in rigs if rig not in largest)
-
-
-def _groups(rigs: list[str], links: Iterable[tuple[str, str]]) -> list[list[str]]:
-    """Connected components of the rigs under ``links``."""
-    sets = DisjointSets(rigs)
-    for a, b in links:
-        sets.union(a, b)
-    return sets.groups()
 
 
 WEAK = {**dict.fromkeys(PLANAR, "on one plane"),
@@ -78,7 +43,7 @@ def _pairs_between_rigs(db: pycolmap.Database, reconstruction: pycolmap.Reconstr
     for pair_id, geometry in zip(*db.read_two_view_geometries()):
         id1, id2 = pycolmap.pair_id_to_image_pair(pair_id)
         image1, image2 = registered.get(names[id1]), registered.get(names[id2])
-        if (image1 is not None and image2 is not None and _rig_of(image1) != _rig_of(image2)
+        if (image1 is not None and image2 is not None and rig_of(image1) != rig_of(image2)
                 and len(geometry.inlier_matches) >= MIN_PAIR_INLIERS):
             yield id1, image1, id2, image2, geometry
 
@@ -87,21 +52,21 @@ def weakly_tied_rigs(database_path: Path, reconstruction: pycolmap.Reconstructio
     """Registered rigs tied to the largest group of rigs only through weak image pairs (planar, or not
     consistent with the calibration), each with those pairs (``"rig01-rig02: 68 matches on one plane"``);
     empty when every rig has a sound link."""
-    rigs = sorted({_rig_of(image) for image in reconstruction.images.values() if image.has_pose})
+    rigs = sorted({rig_of(image) for image in reconstruction.images.values() if image.has_pose})
     if len(rigs) < 2:
         return {}
     sound: list = []
     weak: dict = {}
     with open_database(database_path) as db:
         for _, image1, _, image2, geometry in _pairs_between_rigs(db, reconstruction):
-            a, b = _rig_of(image1), _rig_of(image2)
+            a, b = rig_of(image1), rig_of(image2)
             if geometry.config in WEAK:
                 row = f"{min(a, b)}-{max(a, b)}: {len(geometry.inlier_matches)} matches {WEAK[geometry.config]}"
                 weak.setdefault(a, []).append(row)
                 weak.setdefault(b, []).append(row)
             else:
                 sound.append((a, b))
-    largest = max(_groups(rigs, sound), key=len)
+    largest = max(rig_groups(rigs, sound), key=len)
     core = largest if len(largest) > 1 else []
     return {rig: sorted(set(weak[rig])) for rig in rigs if rig not in core and rig in weak}
 
@@ -130,7 +95,7 @@ def contradicted_pairs(database_path: Path, reconstruction: pycolmap.Reconstruct
                                       db.read_keypoints(id1)[matches[:, 0], :2], db.read_keypoints(id2)[matches[:, 1], :2])
             median = float(np.median(errors))
             if median > MAX_PAIR_ERROR_PX:
-                a, b = sorted((_rig_of(image1), _rig_of(image2)))
+                a, b = sorted((rig_of(image1), rig_of(image2)))
                 rows.append(f"{a}-{b}: {len(matches)} matches, median error {median:.1f} px")
     return sorted(rows)
 

@@ -40,8 +40,8 @@ import pycolmap
 
 from rigsfm.core.errors import InputError
 from rigsfm.core.io import load_yaml_or_json
-from rigsfm.core.names import name_of
-from rigsfm.run.checks.self_check import (
+from rigsfm.core.names import name_of, registered_narrow_images
+from rigsfm.run.checks.guided import (
     KEYPOINT_NOISE_PX,
     MIN_MATCHES,
     WIDE_FACTOR,
@@ -124,9 +124,8 @@ class SyncEstimate:
 def rig_frames(reconstruction: pycolmap.Reconstruction) -> dict[str, list[pycolmap.Image]]:
     """Rig -> its registered narrow images in frame-name order: a rig's frame index is the position here."""
     frames: dict[str, list[pycolmap.Image]] = {}
-    for image in sorted(reconstruction.images.values(), key=lambda im: im.name):
-        if image.has_pose and name_of(image).is_narrow:
-            frames.setdefault(name_of(image).rig, []).append(image)
+    for image in registered_narrow_images(reconstruction):
+        frames.setdefault(name_of(image).rig, []).append(image)
     return dict(sorted(frames.items()))
 
 

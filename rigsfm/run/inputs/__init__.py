@@ -1,1 +1,2 @@
-"""Stage 1-2: every input validated before any heavy work (images, scale.yaml), and the COLMAP database."""
+"""Stages 1-2, validate and database: every input checked before any heavy work (the image folder, scale.yaml;
+hand-picked matches in ``matching.manual_matches``), then the COLMAP database."""

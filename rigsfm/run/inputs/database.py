@@ -1,4 +1,4 @@
-"""Stage 1: the COLMAP database — calibrated cameras, images and the rig configuration with E^sl.
+"""Stage 2, database: the COLMAP database — calibrated cameras, images and the rig configuration with E^sl.
 
 One camera per rig sensor (intrinsics from rigs.yaml, never refined), one image row per file, and one
 ``pycolmap.Rig`` per rig with the wide camera as reference sensor and ``narrow_from_wide`` as the narrow

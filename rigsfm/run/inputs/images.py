@@ -1,4 +1,4 @@
-"""The image folder contract: ``IMAGES/<rig>/<sensor>/<frame file>``, validated against rigs.yaml.
+"""Stage 1, validate: the image folder contract: ``IMAGES/<rig>/<sensor>/<frame file>``, validated against rigs.yaml.
 
 Files with the same name under one rig are one synchronised frame. Every frame needs its wide image;
 the narrow image is optional. Image names inside the workspace are ``<rig>/<sensor>/<frame file>``, spelled as on

@@ -1,4 +1,4 @@
-"""Stage 3: register the wide cameras with COLMAP's incremental or global mapper (``auto``, the default: the
+"""Stage 5, mapping: register the wide cameras with COLMAP's incremental or global mapper (``auto``, the default: the
 global one from 16 wide frames, where it is faster at the same accuracy; the incremental one below).
 
 Intrinsics and every ``sensor_from_rig`` (E^sl) stay fixed. Small networks (2-4 rigs) only have
@@ -44,11 +44,9 @@ def _incremental_options(options: MappingOptions, num_wide: int, num_threads: in
     )
     pipeline.mapper.abs_pose_refine_focal_length = False
     pipeline.mapper.abs_pose_refine_extra_params = False
-    # Rigs far apart round an arena share many points between neighbours only: keep two-view tracks
-    # (verified, and the rig-constraint stage adjusts with a robust loss and drops outliers). Measured at 12 and
-    # 16 rigs: they cost 1.5-1.7x the mapping CPU and 1.4-2.2x the adjustment's, and they pay where the wide
-    # views share a textured centre (12-rig crowd circle: narrow distance error 0.24 % with, 0.37 % without;
-    # rotation 0.140 vs 0.147 deg); on a featureless centre they change nothing (16 rigs: 0.316 vs 0.320 %).
+    # Rigs far apart round an arena share many points between neighbours only: keep two-view tracks (verified,
+    # and the adjustment drops outliers with a robust loss); they cost time and pay where the wide views share a
+    # textured centre (see benchmarks/README.md).
     pipeline.triangulation.ignore_two_view_tracks = False
     return pipeline
 
@@ -82,9 +80,8 @@ def _global_options(options: MappingOptions, num_wide: int, num_threads: int) ->
     return pipeline
 
 
-# Measured on the rendered full circles at 1624x1234 (benchmarks/README.md, "Arena scale"): 64 rigs, 32 216 tracks
-# -> 1 652, global positioning 89-124 s -> 1.7 s, mapping 128 -> 40 s, narrow rotation median 0.1040 -> 0.1038 deg
-# after the adjustment; 16 rigs: mapping 11.1 -> 5.0 s, the same model.
+# The global mapper keeps this many tracks per view: far faster global positioning on large circles, the same
+# accuracy after the adjustment (see benchmarks/README.md, "Arena scale").
 GLOBAL_TRACKS_PER_VIEW = 500
 
 

@@ -1,1 +1,2 @@
-"""Stage 3: features, image pairs and verified matches (SIFT or ASIFT, a feature cache, hand-picked matches)."""
+"""Stages 3-4, features and matching: features (SIFT or ASIFT, a feature cache, earlier work reused), the image
+pairs worth matching, verified matches, and hand-picked matches merged."""

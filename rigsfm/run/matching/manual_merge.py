@@ -47,7 +47,7 @@ class PairReport:
         return dict(self.__dict__)
 
 
-MAX_H_INLIER_RATIO = 0.95  # as rigsfm.run.matching.features: "planar" only if a homography explains nearly every inlier
+MAX_H_INLIER_RATIO = 0.95  # as rigsfm.run.matching.extract: "planar" only if a homography explains nearly every inlier
 
 
 def verification_options(max_error_px: float) -> pycolmap.TwoViewGeometryOptions:

@@ -1,1 +1,2 @@
-"""Stage 6: the world frame (the floor fit, z = 0 on the floor, z up, metres) and the ground maps."""
+"""Stage 7, world: the floor frame (z = 0 on the floor, z up, metres) from the floor fit and floor matching, the
+floor the bands use, and the ground maps."""

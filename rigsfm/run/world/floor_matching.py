@@ -1,23 +1,18 @@
 """Floor points the sparse model lacks, matched through a plane-induced warp.
 
 Round an arena the cameras see the floor at grazing angles from azimuths tens of degrees apart: the floor's
-texture is foreshortened differently in every view and SIFT matches almost none of it (rendered 8-rig arena:
-~40 of 8700 sparse points within 20 cm of the floor, most at the foot of the wall). With the poses known and a
+texture is foreshortened differently in every view and SIFT matches almost none of it. With the poses known and a
 rough floor plane, image ``j`` is warped into image ``i``'s view through the plane (ray of every pixel of i ->
 plane -> projected into j with its lens model, ``cv2.remap``): on the floor the warped ``j`` looks like ``i``,
 and SIFT matches: each feature of i with the warp's features anywhere (ratio test: a rough plane still matches)
 and, for the features without such a match, among those within ``search_radius_px`` of the same pixel (where
-the plane is right the floor is there; rendered 3-rig arc: 57 triangulated points against 43, enough for a
-floor: 45 on it against 14). The warp only removes the perspective; the match positions are detected in ``i`` and in the
+the plane is right the floor is there). The warp only removes the perspective; the match positions are detected in ``i`` and in the
 warped ``j`` and mapped back to ``j``'s own pixels, so the triangulated points do not depend on the guessed
 plane (a guess a few decimetres or degrees off still matches). Matches whose triangulation reprojects worse
 than ``max_reprojection_px`` in either image, lies behind a camera or meets at less than ``min_angle_deg`` are
 dropped; images of the same rig are not paired (no baseline; the floor is static, so images of different frames
-of different rigs are paired). Which of the rest are floor is :func:`rigsfm.run.world.floor.fit_floor`'s job.
-
-Measured: 4 wide cameras (f = 450 px, 812x617) at 12 m round a textured floor, 3.5 m up, 90 deg apart:
-3092 triangulated floor matches through the warp against 127 for plain SIFT on the same images; rendered
-8-rig arena (tests/test_world_rendered.py): ~700 matches from 24 pairs, ~630 of them on the floor.
+of different rigs are paired). Which of the rest are floor is :func:`rigsfm.run.world.floor_fit.fit_floor`'s job. The warp matches many times
+the floor points plain SIFT does (see benchmarks/README.md).
 """
 
 from __future__ import annotations
@@ -51,8 +46,8 @@ class FloorMatchOptions:
     max_ratio: float = 0.8
     contrast_threshold: float = 0.01  # OpenCV SIFT; lower than the default 0.04: floors are low-contrast
     # SIFT runs on the images (and warps) reduced by the integer factor that brings their longer side nearest
-    # this (OpenCV's SIFT doubles its input first): 1624x1234 -> 2, 812x617 -> 1. Full-size 8- and 16-rig
-    # circles: 2.1-2.3x faster, floor normal and camera heights as close to the truth (benchmarks/README.md).
+    # this (OpenCV's SIFT doubles its input first): 1624x1234 -> 2, 812x617 -> 1; faster, the floor as close to the
+    # truth (see benchmarks/README.md).
     sift_size: int = 800
     max_features: int = 20000
     max_reprojection_px: float = 2.0
@@ -261,8 +256,8 @@ def load_floor_images(reconstruction: pycolmap.Reconstruction, image_dir: Path,
 
 def neighbour_pairs(images: list[FloorImage], options: FloorMatchOptions | None = None) -> list[tuple[int, int]]:
     """Pairs (i, j), i < j, of images of different rigs to match: each image with the images of the
-    ``options.neighbours`` rigs nearest to it (camera centres; all pairs when ``neighbours`` is 0). Round an
-    8-rig arena the neighbouring rigs gave 45-105 floor matches per pair, rigs farther round 1-19."""
+    ``options.neighbours`` rigs nearest to it (camera centres; all pairs when ``neighbours`` is 0): rigs farther
+    round match few floor points."""
     opt = options or FloorMatchOptions()
     rigs = [name_of(f.image).rig for f in images]
     candidates = [(i, j) for i, j in itertools.combinations(range(len(images)), 2) if rigs[i] != rigs[j]]

@@ -1,4 +1,4 @@
-"""Stage 5b (after ``adjust``): the result in the analyst's world -- z = 0 on the floor, z up, metres.
+"""Stage 7, world (after ``adjust``): the result in the analyst's world -- z = 0 on the floor, z up, metres.
 
 ``--world floor`` (default): the floor plane is found (:func:`rigsfm.run.world.floor.estimate_floor`: the sparse points
 and the known-length markers, which lie on the floor, and only when they do not fix it precisely enough,
@@ -28,17 +28,14 @@ import numpy as np
 import pycolmap
 
 from rigsfm.core.errors import InputError
+from rigsfm.core.geometry import Plane
 from rigsfm.core.ground import Footprint, coverage, footprints, ground_from_image, pairwise_overlaps
-from rigsfm.core.names import ImageName, name_of
+from rigsfm.core.names import ImageName, name_of, registered_narrow_images
 from rigsfm.run.inputs.scale_file import ScaleSpec
 from rigsfm.run.options import WorldFrame, WorldOptions
-from rigsfm.run.world.floor import (
-    FloorEstimate,
-    apply_floor_frame,
-    estimate_floor,
-    floor_markers,
-    rig_positions,
-)
+from rigsfm.run.world.analysis_floor import find_floor
+from rigsfm.run.world.floor import FloorEstimate, apply_floor_frame, estimate_floor
+from rigsfm.run.world.floor_model import floor_markers, rig_positions
 
 logger = logging.getLogger(__name__)
 
@@ -88,15 +85,19 @@ class WorldResult:
     metric: bool = True
     warnings: list[str] = field(default_factory=list)
 
-    def floor_plane(self):
-        """The floor as ``rigsfm.run.adjustment.uncertainty.Plane`` in the frame it was fitted in (before :meth:`apply`);
-        None unless the floor frame was found."""
+    def floor_plane(self) -> Plane | None:
+        """The floor in the frame it was fitted in (before :meth:`apply`); None unless the floor frame was found."""
         if self.frame != WorldFrame.FLOOR:
             return None
-        from rigsfm.run.adjustment.uncertainty import Plane
+        fit = self.estimate.fit  # type: ignore[union-attr]  # FLOOR: estimated
+        return Plane(np.asarray(fit.normal, dtype=np.float64), float(fit.offset), int(fit.num_points))  # type: ignore[union-attr]  # NoFloor is falsy: a FloorFit here
 
-        fit = self.estimate.fit
-        return Plane(np.asarray(fit.normal, dtype=np.float64), float(fit.offset), int(fit.num_points))
+    def analysis_floor(self, reconstruction: pycolmap.Reconstruction,
+                       scale: ScaleSpec | None) -> tuple[Plane | None, str]:
+        """The floor the epipolar bands' analysis points lie on, in ``reconstruction``'s frame (before :meth:`apply`),
+        and where it comes from: the floor fit (``floor_fit``), else :func:`find_floor`'s."""
+        plane = self.floor_plane()
+        return (plane, "floor_fit") if plane is not None else find_floor(reconstruction, scale)
 
     def apply(self, reconstruction: pycolmap.Reconstruction) -> None:
         """Move ``reconstruction`` (in place, scale 1) into this frame; nothing for the mapper's frame."""
@@ -221,8 +222,7 @@ class GroundMaps:
 def ground_maps(reconstruction: pycolmap.Reconstruction, heights: Sequence[float]) -> GroundMaps:
     """Ground maps of every registered narrow image on each plane ``z = h`` (the model in the floor frame).
     Overlaps and coverage count cameras: each narrow camera by its first registered frame (rigs are static)."""
-    images = sorted((im for im in reconstruction.images.values() if im.has_pose and name_of(im).is_narrow),
-                    key=lambda im: im.name)
+    images = registered_narrow_images(reconstruction)
     per_image: dict[str, list] = {im.name: [] for im in images}
     first: dict = {}
     for image in images:

@@ -1,5 +1,5 @@
 """Never worse than holding the calibration: the adjustment refines a rig's intrinsics and E^sl only where the images
-inform them (``rigsfm.run.adjustment.adjust.hold_or_refine``), on a rendered weak network registered from simulated clicks."""
+inform them (``rigsfm.run.adjustment.decisions.hold_or_refine``), on a rendered weak network registered from simulated clicks."""
 
 from __future__ import annotations
 

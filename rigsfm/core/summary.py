@@ -33,7 +33,7 @@ class CameraError:
 
 @dataclass(kw_only=True)
 class ScaleSummary:
-    source: str = "none"  # measurements, narrow_baselines or none (rigsfm.run.adjustment.adjust.ScaleSource)
+    source: str = "none"  # measurements, narrow_baselines or none (rigsfm.run.adjustment.result.ScaleSource)
     metres_per_mapping_unit: float | None = None
     relative_sigma_percent: float | None = None
     measurements: list[dict] = field(default_factory=list)  # rigsfm.run.adjustment.scale.ScaleEstimate.residuals()
@@ -56,7 +56,7 @@ class InputsSummary:
 
 @dataclass(kw_only=True)
 class NarrowUncertaintySummary:
-    """1 sigma of one narrow camera relative to the network (rigsfm.run.adjustment.uncertainty.narrow_uncertainty)."""
+    """1 sigma of one narrow camera relative to the network (rigsfm.run.adjustment.narrow.narrow_uncertainty)."""
 
     centre_sigma_mm: float | None = None
     rotation_sigma_deg: float | None = None
@@ -64,7 +64,7 @@ class NarrowUncertaintySummary:
 
 @dataclass(kw_only=True)
 class PairBandSummary:
-    """One narrow pair's 95 % epipolar band (rigsfm.run.adjustment.uncertainty.PairBand)."""
+    """One narrow pair's 95 % epipolar band (rigsfm.run.adjustment.bands.PairBand)."""
 
     i: str = ""
     j: str = ""
@@ -106,10 +106,10 @@ class Summary:
     epipolar_self_check: dict | None = None  # rigsfm.run.checks.self_check.SelfCheck.to_dict
     frame_offsets: dict | None = None  # asked (auto, a file, None), applied, estimate (rigsfm.run.checks.sync)
     uncertainty: UncertaintySummary | None = None  # rigsfm.run.adjustment.uncertainty
-    # per rig, its calibration refined or held at rigs.yaml's values and why (rigsfm.run.adjustment.adjust.hold_or_refine;
+    # per rig, its calibration refined or held at rigs.yaml's values and why (rigsfm.run.adjustment.decisions.hold_or_refine;
     # empty with --fixed-calibration)
     calibration_decisions: list[dict] = field(default_factory=list)
-    pairs: dict | None = None  # rigsfm.run.matching.extract.pairs_report: pairs matched, skipped, missed
+    pairs: dict | None = None  # rigsfm.run.checks.missed_pairs.pairs_report: pairs matched, skipped, missed
     cpu_s: dict[str, float] = field(default_factory=dict)  # CPU seconds per stage (all threads)
 
     def to_json(self) -> dict:

@@ -55,7 +55,7 @@ def narrow_images(reconstruction: pycolmap.Reconstruction) -> list[pycolmap.Imag
 
 def narrow_poses(reconstruction: pycolmap.Reconstruction, *, metric: bool, bands: dict | None = None,
                  world: dict | None = None, ground=None) -> dict:
-    """The narrow-camera deliverable as a JSON-ready dict; ``bands``: ``(i, j) -> rigsfm.run.adjustment.uncertainty.PairBand``;
+    """The narrow-camera deliverable as a JSON-ready dict; ``bands``: ``(i, j) -> rigsfm.run.adjustment.bands.PairBand``;
     ``world`` (``WorldResult.to_dict()``) and ``ground`` (:class:`rigsfm.run.world.frame.GroundMaps`) when known."""
     images = narrow_images(reconstruction)
     bands = bands or {}

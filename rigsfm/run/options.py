@@ -43,7 +43,7 @@ class Features(enum.StrEnum):
 
 
 class Pairs(enum.StrEnum):
-    """Which pairs of featured images are matched fully (rigsfm.run.matching.extract.select_pairs)."""
+    """Which pairs of featured images are matched fully (rigsfm.run.matching.pairs.select_pairs)."""
 
     AUTO = "auto"  # a cheap first pass picks each image's best partners: about linear in the images
     EXHAUSTIVE = "exhaustive"  # every pair: quadratic in the images
@@ -80,8 +80,8 @@ class MatchingOptions:
     max_ratio: float = 0.8  # Lowe's ratio test
     cross_check: bool = True  # mutual nearest neighbours
     max_num_features: int = 8192
-    # SIFT's first octave: -1 doubles the image first (COLMAP's default), 0 does not (3.3x less CPU, 2.9x less
-    # memory). None: 0 for networks of rigsfm.run.matching.extract.COARSE_SIFT_MIN_FRAMES wide frames or more whose
+    # SIFT's first octave: -1 doubles the image first (COLMAP's default), 0 does not (far less CPU and memory).
+    # None: 0 for networks of rigsfm.run.matching.extract.COARSE_SIFT_MIN_FRAMES wide frames or more whose
     # images are COARSE_SIFT_MIN_SIDE_PX or larger, -1 otherwise (rigsfm.run.matching.extract.resolved_first_octave).
     first_octave: int | None = None
     # Verify pairs of frames with the rigs' generalized relative pose. None: on unless narrow features

@@ -46,7 +46,7 @@ def grid_pixels(camera: pycolmap.Camera, n: int = 15) -> np.ndarray:
 def band_points(reconstruction: pycolmap.Reconstruction, image_i: pycolmap.Image, image_j: pycolmap.Image,
                 plane: Plane | None, grid: int = 15, num_depths: int = 48,
                 min_points: int = 12) -> tuple[np.ndarray, np.ndarray, str]:
-    """Analysis points of a pair (module docstring, 3.): pixels of image i (N x 2) and their depths in camera i
+    """Analysis points of a pair (module docstring): pixels of image i (N x 2) and their depths in camera i
     (N), kind ``floor`` or ``depths``; empty when the images share no view."""
     camera_i, camera_j = (reconstruction.cameras[im.camera_id] for im in (image_i, image_j))
     pixels = grid_pixels(camera_i, grid)
@@ -128,7 +128,7 @@ class PairBand:
 
 
 class PairModel:
-    """The linear model ``d = J z`` of one pair's analysis points (module docstring, 3.)."""
+    """The linear model ``d = J z`` of one pair's analysis points (module docstring)."""
 
     def __init__(self, reconstruction: pycolmap.Reconstruction, covariance: JointCovariance,
                  image_i: pycolmap.Image, image_j: pycolmap.Image, ray_cache: dict):

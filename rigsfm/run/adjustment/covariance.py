@@ -1,7 +1,7 @@
 """The joint covariance of rig poses and calibration, 3D points marginalised out.
 
 :func:`joint_covariance`: the covariance of every rig pose, E^sl and camera (3D points marginalised out). Ceres'
-Jacobian of the adjustment's own problem (``rigsfm.run.adjustment.adjust.JointProblem``, squared loss: the inliers'
+Jacobian of the adjustment's own problem (``rigsfm.run.adjustment.problem.JointProblem``, squared loss: the inliers'
 covariance; ``Problem.evaluate_jacobian``, tangent space), the points eliminated by a Schur complement of their
 3x3 blocks, the rest inverted densely, times the images' weighting noise squared (every residual is in pixels).
 COLMAP's ``estimate_ba_covariance`` is not used: it gives a non-pose block only on its own, without its

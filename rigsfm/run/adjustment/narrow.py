@@ -42,7 +42,7 @@ def narrow_tangent_jacobians(frame_pose: pycolmap.Rigid3d, sensor: pycolmap.Rigi
 
 def narrow_uncertainty(reconstruction: pycolmap.Reconstruction,
                        covariance: JointCovariance) -> dict[str, NarrowUncertainty]:
-    """Per narrow image (module docstring, 2.): centre and rotation uncertainty relative to the network."""
+    """Per narrow image (module docstring): centre and rotation uncertainty relative to the network."""
     frames = sorted(f for f in reconstruction.reg_frame_ids() if ("frame", f) in covariance.offsets)
     if not frames:
         return {}

@@ -45,7 +45,7 @@ class AdjustResult:
     pixel_sigma: float | None = None  # REFINE: estimated reprojection noise (px per image coordinate)
     rounds: int = 0
     seconds: float = 0.0
-    covariance: JointCovariance | None = None  # rigsfm.run.adjustment.uncertainty.joint_covariance, once computed
+    covariance: JointCovariance | None = None  # rigsfm.run.adjustment.covariance.joint_covariance, once computed
     held_rigs: frozenset[str] = frozenset()  # REFINE: rigs whose calibration was held at rigs.yaml's (hold_or_refine)
     decisions: list[CalibrationDecision] = field(default_factory=list)  # REFINE: per rig, held or refined and why
     warnings: list[str] = field(default_factory=list)  # for the run's summary
@@ -66,7 +66,7 @@ class CalibrationDecision:
 
 @dataclass(frozen=True)
 class JointCovariance:
-    """Joint covariance of rig poses and calibration, points marginalised out (module docstring, 1.).
+    """Joint covariance of rig poses and calibration, points marginalised out (``rigsfm.run.adjustment.covariance``).
     Held parameters (the gauge, sigma-0 intrinsics) have zero rows."""
 
     keys: tuple[tuple[str, int], ...]

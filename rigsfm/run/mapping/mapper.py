@@ -130,7 +130,7 @@ def wide_pairs(database: pycolmap.Database) -> list[WidePair]:
 
 # COLMAP relaxes a failed initialisation twice by halving init_min_num_inliers, then init_min_tri_angle.
 RELAXATIONS = ((1, 1), (2, 1), (2, 2), (4, 2), (4, 4))
-MAX_INITIAL_PAIR_TESTS = 100  # 0.05-0.1 s each
+MAX_INITIAL_PAIR_TESTS = 100  # each test is a two-view reconstruction: bound their time
 
 
 def initial_pair(cache: pycolmap.DatabaseCache, pipeline: pycolmap.IncrementalPipelineOptions,

@@ -42,10 +42,9 @@ def resolved_first_octave(database_path: Path, images: Sequence[ImageEntry], opt
     ``COARSE_SIFT_MIN_FRAMES`` wide frames whose wide images are at least ``COARSE_SIFT_MIN_SIDE_PX`` on their
     longer side, else -1 (COLMAP's default).
 
-    At 16 rigs of 1624x1234 images, octave 0 took 16 instead of 54 CPU seconds to extract (5.5k instead of
-    12.6k keypoints per image), matching 7 instead of 23, peak memory 480 instead of 1370 MB; the narrow
-    errors were 3-5 % larger (rotation 0.106 vs 0.103 deg, distance 0.246 vs 0.235 %). Small networks and small
-    images keep every feature: they are cheap, and wide separations need every match."""
+    On large networks of large images octave 0 costs a fraction of the extraction and matching time and memory
+    for slightly larger narrow errors (see benchmarks/README.md). Small networks and small images keep every
+    feature: they are cheap, and wide separations need every match."""
     if options.first_octave is not None:
         return options.first_octave
     wide = [e.name for e in images if e.sensor == "wide"]

@@ -93,7 +93,7 @@ SIFT_NORM_SQUARED = 512.0**2  # COLMAP's uint8 SIFT descriptors have L2 norm 512
 
 def _best_two(squared: np.ndarray, axis: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Along ``axis``: the index of the nearest and the squared distances of the nearest two (inf if there is
-    one). Two passes of min (argpartition is ~20x slower here); ``squared`` is restored afterwards."""
+    one). Two passes of min (argpartition is much slower here); ``squared`` is restored afterwards."""
     best = np.expand_dims(np.argmin(squared, axis=axis), axis)
     first = np.take_along_axis(squared, best, axis)
     if squared.shape[axis] < 2:

@@ -85,6 +85,37 @@ class UncertaintySummary:
     refined_calibration: dict[str, dict] = field(default_factory=dict)  # per camera: change and posterior sigma
 
 
+@dataclass
+class MissedPairSummary:
+    image_a: str = ""
+    image_b: str = ""
+    predicted_points: int = 0  # model points seen by one image that the other sees from a similar direction
+    weakest_matched: int = 0  # the same count for the weakest pair matched for either image
+
+
+@dataclass
+class PairsSummary:
+    """The image pairs: candidates, matched and skipped (rigsfm.run.matching.pairs), and the skipped pairs the model
+    says would have shared many points (rigsfm.run.checks.missed_pairs)."""
+
+    mode: str = "auto"
+    candidates: int = 0
+    matched: int = 0
+    skipped: int = 0
+    first_pass_s: float = 0.0
+    missed: list[MissedPairSummary] = field(default_factory=list)  # the worst ones first, at most 20
+    num_missed: int = 0
+
+
+@dataclass
+class FrameOffsetsSummary:
+    """Per-rig frame offsets of the narrow images (rigsfm.run.checks.sync)."""
+
+    asked: str | None = None  # "auto", a file, or None (estimated only when the self-check fails)
+    applied: dict[str, int] = field(default_factory=dict)  # rig -> frames
+    estimate: dict | None = None  # the estimate's record, when one was made
+
+
 @dataclass(kw_only=True)
 class Summary:
     rigsfm_version: str = ""
@@ -104,12 +135,12 @@ class Summary:
     manual_matches: dict | None = None  # rigsfm.run.matching.manual_merge.manual_matches_summary
     world: dict | None = None  # the result's frame and its floor fit (rigsfm.run.world.frame.WorldResult.to_dict)
     epipolar_self_check: dict | None = None  # rigsfm.run.checks.self_check.SelfCheck.to_dict
-    frame_offsets: dict | None = None  # asked (auto, a file, None), applied, estimate (rigsfm.run.checks.sync)
+    frame_offsets: FrameOffsetsSummary | None = None
     uncertainty: UncertaintySummary | None = None  # rigsfm.run.adjustment.uncertainty
     # per rig, its calibration refined or held at rigs.yaml's values and why (rigsfm.run.adjustment.decisions.hold_or_refine;
     # empty with --fixed-calibration)
     calibration_decisions: list[dict] = field(default_factory=list)
-    pairs: dict | None = None  # rigsfm.run.checks.missed_pairs.pairs_report: pairs matched, skipped, missed
+    pairs: PairsSummary | None = None
     cpu_s: dict[str, float] = field(default_factory=dict)  # CPU seconds per stage (all threads)
 
     def to_json(self) -> dict:
@@ -125,6 +156,12 @@ class Summary:
         values["registered"] = {k: _typed(Registration, v) for k, v in (values.get("registered") or {}).items()}
         values["reprojection_error"] = {k: _typed(CameraError, v)
                                         for k, v in (values.get("reprojection_error") or {}).items()}
+        if isinstance(values.get("pairs"), dict):
+            pairs = _typed(PairsSummary, values["pairs"])
+            pairs.missed = [_typed(MissedPairSummary, v) for v in pairs.missed or []]
+            values["pairs"] = pairs
+        if isinstance(values.get("frame_offsets"), dict):
+            values["frame_offsets"] = _typed(FrameOffsetsSummary, values["frame_offsets"])
         if isinstance(values.get("uncertainty"), dict):
             uncertainty = _typed(UncertaintySummary, values["uncertainty"])
             uncertainty.narrow = {k: _typed(NarrowUncertaintySummary, v) for k, v in (uncertainty.narrow or {}).items()}

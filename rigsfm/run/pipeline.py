@@ -24,6 +24,7 @@ from rigsfm.core.residuals import reprojection_errors
 from rigsfm.core.rig import RigCalibration, load_rigs
 from rigsfm.core.summary import (
     CameraError,
+    FrameOffsetsSummary,
     InputsSummary,
     MappingSummary,
     Registration,
@@ -269,7 +270,7 @@ def _given_frame_offsets(options: RunOptions, inputs: Inputs) -> dict[str, int] 
 
 
 def _self_check(poses: dict, inputs: Inputs, reconstruction: pycolmap.Reconstruction, options: RunOptions,
-                given_offsets: dict[str, int] | None) -> tuple[SelfCheck, dict]:
+                given_offsets: dict[str, int] | None) -> tuple[SelfCheck, FrameOffsetsSummary]:
     """The epipolar self-check against ``poses`` (narrow_poses.json's record, as written), its frames paired by time where offsets are given or estimated (``auto``); when
     it fails without offsets and the recording has several frames, the offsets are estimated, and the pairs a
     rig off in time explains are put down to it (rigsfm.run.checks.sync) instead of the calibration."""
@@ -292,7 +293,7 @@ def _self_check(poses: dict, inputs: Inputs, reconstruction: pycolmap.Reconstruc
             check.blame_time(sync.unsynchronised, sync.warning)
     elif asked == "auto" and sync.unsynchronised:  # type: ignore[union-attr]  # auto: estimated above
         logger.warning("Frame offsets estimated and applied: %s", sync.unsynchronised)  # type: ignore[union-attr]
-    record = {"asked": asked, "applied": applied, "estimate": None if sync is None else sync.to_dict()}
+    record = FrameOffsetsSummary(asked=asked, applied=applied, estimate=None if sync is None else sync.to_dict())
     return check, record
 
 

@@ -10,6 +10,7 @@ import pycolmap
 
 from rigsfm.core.geometry import project_world
 from rigsfm.core.names import ImageName
+from rigsfm.core.summary import MissedPairSummary, PairsSummary
 from rigsfm.run.matching.pairs import PairSelection
 from rigsfm.run.options import Pairs
 
@@ -92,10 +93,11 @@ def missed_pairs(reconstruction: pycolmap.Reconstruction, selection: PairSelecti
     return sorted(missed, key=lambda m: -m.predicted_points)
 
 
-def pairs_report(reconstruction: pycolmap.Reconstruction, selection: PairSelection) -> tuple[dict, str | None]:
+def pairs_report(reconstruction: pycolmap.Reconstruction, selection: PairSelection) -> tuple[PairsSummary, str | None]:
     """summary.json's ``pairs`` (counts, first-pass time, missed pairs) and a warning when pairs were missed."""
     missed = missed_pairs(reconstruction, selection)
-    report = {**selection.summary(), "missed": [vars(m) for m in missed[:20]], "num_missed": len(missed)}
+    report = PairsSummary(**selection.summary(), missed=[MissedPairSummary(**vars(m)) for m in missed[:20]],
+                          num_missed=len(missed))
     if not missed:
         return report, None
     worst = missed[0]

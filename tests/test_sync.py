@@ -143,29 +143,24 @@ def test_offsets_file_is_checked(tmp_path):
 
 @pytest.mark.parametrize("asked", [None, "auto"])
 def test_run_names_the_rig_or_applies_the_estimate(world, tmp_path, asked):
-    """The run's self-check stage (rigsfm.run.pipeline._self_check): without --frame-offsets the failures are put
-    down to time; with --frame-offsets auto the estimate is applied and the check passes."""
-    import json
-
-    from rigsfm.core.workspace import Workspace
+    """The run's self-check stage (rigsfm.run.pipeline._self_check), given narrow_poses.json's record: without
+    --frame-offsets the failures are put down to time; with --frame-offsets auto the estimate is applied and the
+    check passes."""
     from rigsfm.run.options import RunOptions
     from rigsfm.run.pipeline import Inputs, _self_check
 
     rec = world[0]
     images = tmp_path / "images"
     poses = rendered(world, images, {"rig03": 1})
-    workspace = Workspace(tmp_path / "out")
-    workspace.root.mkdir()
-    workspace.narrow_poses.write_text(json.dumps(poses))
     options = RunOptions(self_check=SelfCheckOptions(max_frames=FRAMES, frame_offsets=asked))
-    check, record = _self_check(workspace, Inputs(images, [], [], None), rec, options, None)
-    assert record["asked"] == asked and record["estimate"]["unsynchronised"] == {"rig03": 1}
+    check, record = _self_check(poses, Inputs(images, [], [], None), rec, options, None)
+    assert record.asked == asked and record.estimate["unsynchronised"] == {"rig03": 1}
     assert not any(p.verdict == "failed" for p in check.pairs)
     if asked is None:
-        assert record["applied"] == {} and [w.split(":")[0] for w in check.warnings] == ["FRAMES NOT SYNCHRONISED"]
+        assert record.applied == {} and [w.split(":")[0] for w in check.warnings] == ["FRAMES NOT SYNCHRONISED"]
         assert any(p.verdict == "not synchronised" for p in check.pairs)
     else:
-        assert record["applied"] == {"rig03": 1} and check.warnings == []
+        assert record.applied == {"rig03": 1} and check.warnings == []
         assert sum(p.verdict == "ok" for p in check.pairs) >= 4
 
 

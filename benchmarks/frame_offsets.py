@@ -1,4 +1,4 @@
-"""Frame-offset estimation (rigsfm.run.sync) on rendered recordings with known per-rig offsets.
+"""Frame-offset estimation (rigsfm.run.checks.sync) on rendered recordings with known per-rig offsets.
 
     python benchmarks/frame_offsets.py WORK     # JSON lines: true and estimated offsets, per-pair scores
 
@@ -20,10 +20,10 @@ from test_self_check import fine_texture
 from test_sync import STEP_TEXELS, recording
 
 from rigsfm.core.names import name_of
+from rigsfm.run.checks.sync import estimate_frame_offsets
 from rigsfm.run.deliver import narrow_poses
 from rigsfm.run.options import WorldOptions
-from rigsfm.run.sync import estimate_frame_offsets
-from rigsfm.run.world import place_in_world
+from rigsfm.run.world.frame import place_in_world
 
 base = ring(seed=42, num_rigs=5, model_from_truth=pycolmap.Rigid3d(), narrow_model="PINHOLE").reconstruction
 place_in_world(base, None, None, ["rig01"], WorldOptions())

@@ -59,11 +59,16 @@ def scenes(click_sets: int, scene_seeds: int = 3) -> dict[str, tuple[SceneOption
 def mapped_model(root: Path, options: SceneOptions, click_seed: int | None, clicks: int = 34):
     """Render (once) and map (once per click set); returns (dataset, inputs, mapping model) or the error."""
     from rigsfm.core.workspace import Workspace, colmap_log_to
-    from rigsfm.run.database import create_database
-    from rigsfm.run.features import extract_features, match_features
-    from rigsfm.run.manual_matches import read_manual_matches, validate_manual_matches, write_manual_matches
-    from rigsfm.run.manual_merge import add_manual_matches
-    from rigsfm.run.mapping import run_mapping
+    from rigsfm.run.inputs.database import create_database
+    from rigsfm.run.mapping.mapper import run_mapping
+    from rigsfm.run.matching.extract import extract_features
+    from rigsfm.run.matching.manual_matches import (
+        read_manual_matches,
+        validate_manual_matches,
+        write_manual_matches,
+    )
+    from rigsfm.run.matching.manual_merge import add_manual_matches
+    from rigsfm.run.matching.match import match_features
     from rigsfm.run.options import MappingOptions, MatchingOptions
     from rigsfm.run.pipeline import load_inputs
     from rigsfm.synth.clicks import simulate_clicks
@@ -110,8 +115,8 @@ def mapped_model(root: Path, options: SceneOptions, click_seed: int | None, clic
 
 def epipolar_p95(estimate: pycolmap.Reconstruction, truth: pycolmap.Reconstruction) -> float | None:
     """The worst narrow pair's 95th percentile of the true epipolar distance (px)."""
+    from rigsfm.core.geometry import correspondence_check
     from rigsfm.run.deliver import narrow_images
-    from rigsfm.run.uncertainty import correspondence_check
 
     names = sorted(im.name for im in narrow_images(estimate))
     worst = None
@@ -128,7 +133,7 @@ def epipolar_p95(estimate: pycolmap.Reconstruction, truth: pycolmap.Reconstructi
 
 
 def measure(name: str, options: SceneOptions, click_seed: int | None, work: Path) -> dict:
-    from rigsfm.run.adjust import adjust
+    from rigsfm.run.adjustment.adjust import adjust
     from rigsfm.run.options import AdjustOptions, Calibration
     from rigsfm.synth.truth import compare_to_ground_truth
 
@@ -186,7 +191,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", type=Path, default=None)
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.WARNING, format="%(name)s %(levelname)s %(message)s")
-    logging.getLogger("rigsfm.run.adjust").setLevel(logging.INFO)
+    logging.getLogger("rigsfm.run.adjustment.adjust").setLevel(logging.INFO)
     chosen = scenes(args.click_sets)
     names = args.scenes or list(chosen)
     rows = []

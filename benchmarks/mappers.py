@@ -41,7 +41,7 @@ def map_one(method: str, database: Path, image_dir: Path, num_wide: int, out: Pa
     """Run one mapper on ``database``; write its largest model to ``out``; its timings."""
     import pycolmap
 
-    from rigsfm.run.mapping import _incremental_options, _map
+    from rigsfm.run.mapping.mapper import _incremental_options, _map
     from rigsfm.run.options import Mapper, MappingOptions
 
     threads = os.cpu_count() or 1
@@ -85,7 +85,7 @@ def adjust_and_score(scene: Path, model: Path) -> dict:
     import pycolmap
 
     from benchmarks.metrics import evaluate
-    from rigsfm.run.adjust import adjust
+    from rigsfm.run.adjustment.adjust import adjust
     from rigsfm.run.pipeline import load_inputs
 
     inputs = load_inputs(scene / "images", scene / "rigs.yaml", scene / "scale.yaml")
@@ -100,7 +100,7 @@ def adjust_and_score(scene: Path, model: Path) -> dict:
 def child(method: str, scene: Path, workspace: Path, out: Path) -> None:
     """One mapper in this process (so that its peak RSS is its own), on a private copy of the database."""
     from rigsfm.core.names import ImageName
-    from rigsfm.run.database import open_database
+    from rigsfm.run.inputs.database import open_database
 
     with tempfile.TemporaryDirectory() as tmp:
         database = Path(tmp) / "database.db"

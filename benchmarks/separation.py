@@ -27,7 +27,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from rigsfm.core.errors import RigsfmError
 from rigsfm.core.io import write_json_atomic, write_text_atomic
-from rigsfm.run.manual_matches import write_manual_matches
+from rigsfm.run.matching.manual_matches import write_manual_matches
 from rigsfm.run.options import Features, MatchingOptions
 from rigsfm.run.pipeline import RunOptions, run
 from rigsfm.synth.clicks import simulate_clicks

@@ -35,8 +35,9 @@ def scene(seed: int) -> Scene:
 
 
 def measure(seed: int, work: Path) -> dict:
-    from rigsfm.run.adjust import adjust
-    from rigsfm.run.uncertainty import estimate_uncertainty
+    from rigsfm.run.adjustment.adjust import adjust
+    from rigsfm.run.adjustment.uncertainty import estimate_uncertainty
+    from rigsfm.run.world.analysis_floor import find_floor
 
     s = scene(seed)
     prepare(s, work)
@@ -47,7 +48,8 @@ def measure(seed: int, work: Path) -> dict:
     out = {"seed": seed, "frames": adjusted.reconstruction.num_reg_frames()}
     for band, sampled in (("sampled", True), ("linear", False)):
         start = time.perf_counter()
-        uncertainty = estimate_uncertainty(adjusted, sampled=sampled)
+        plane, source = find_floor(adjusted.reconstruction, adjusted.scale_spec)
+        uncertainty = estimate_uncertainty(adjusted, sampled=sampled, floor=plane, floor_source=source)
         out[band] = {"seconds": time.perf_counter() - start,
                      "pairs": score_bands(adjusted.reconstruction, prepared.truth, uncertainty.bands)}
     return out

@@ -48,8 +48,8 @@ from rigsfm.core.io import write_json_atomic  # noqa: E402
 from rigsfm.synth.scene import SceneOptions  # noqa: E402
 
 if TYPE_CHECKING:
+    from rigsfm.run.adjustment.priors import CalibrationPriors
     from rigsfm.run.pipeline import Inputs
-    from rigsfm.run.priors import CalibrationPriors
 
 logger = logging.getLogger("benchmarks.trust")
 DEFAULT_WORK = REPO / "benchmarks" / "results" / "trust"
@@ -121,9 +121,10 @@ def ensure_sigmas(scene_dir: Path) -> None:
 
 def prepare(scene: Scene, work: Path, force: bool = False) -> None:
     from rigsfm.core.workspace import Workspace, colmap_log_to
-    from rigsfm.run.database import create_database
-    from rigsfm.run.features import extract_features, match_features
-    from rigsfm.run.mapping import run_mapping
+    from rigsfm.run.inputs.database import create_database
+    from rigsfm.run.mapping.mapper import run_mapping
+    from rigsfm.run.matching.extract import extract_features
+    from rigsfm.run.matching.match import match_features
     from rigsfm.run.options import MappingOptions, MatchingOptions
     from rigsfm.run.pipeline import load_inputs
     from rigsfm.synth.dataset import render_dataset
@@ -197,7 +198,7 @@ def pair_errors(estimate: pycolmap.Reconstruction, truth: pycolmap.Reconstructio
 
 
 def score_bands(estimate: pycolmap.Reconstruction, truth: pycolmap.Reconstruction, bands: dict) -> list[dict]:
-    from rigsfm.run.uncertainty import correspondence_check
+    from rigsfm.core.geometry import correspondence_check
 
     rows = []
     for (name_i, name_j), band in sorted(bands.items()):
@@ -227,8 +228,8 @@ class Prepared:
 
 def load_prepared(scene: Scene, work: Path) -> Prepared | str:
     """The scene ``prepare`` made under ``work``, or the error that stopped it."""
+    from rigsfm.run.adjustment.priors import calibration_priors
     from rigsfm.run.pipeline import load_inputs
-    from rigsfm.run.priors import calibration_priors
 
     root = work / "scenes" / scene.name
     prepared = json.loads((root / "prepared.json").read_text())
@@ -243,9 +244,10 @@ def load_prepared(scene: Scene, work: Path) -> Prepared | str:
 
 
 def measure(scene: Scene, work: Path, force: bool = False) -> dict | None:
-    from rigsfm.run.adjust import adjust
+    from rigsfm.run.adjustment.adjust import adjust
+    from rigsfm.run.adjustment.uncertainty import estimate_uncertainty
     from rigsfm.run.options import AdjustOptions, Calibration
-    from rigsfm.run.uncertainty import estimate_uncertainty
+    from rigsfm.run.world.analysis_floor import find_floor
     from rigsfm.synth.truth import compare_to_ground_truth, oracle
 
     out_path = work / "results" / f"{scene.name}.json"
@@ -265,7 +267,8 @@ def measure(scene: Scene, work: Path, force: bool = False) -> dict | None:
         adjusted = adjust(mapped, inputs.rigs, inputs.scale, AdjustOptions(calibration=calibration), priors)
         adjust_s = time.perf_counter() - t
         t = time.perf_counter()
-        uncertainty = estimate_uncertainty(adjusted)
+        plane, source = find_floor(adjusted.reconstruction, adjusted.scale_spec)
+        uncertainty = estimate_uncertainty(adjusted, floor=plane, floor_source=source)
         rec = adjusted.reconstruction
         estimates[variant] = rec
         result["variants"][variant] = {
@@ -305,7 +308,7 @@ def main() -> None:
     args.work.mkdir(parents=True, exist_ok=True)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s",
                         handlers=[logging.FileHandler(args.work / "trust.log"), logging.StreamHandler()])
-    for noisy in ("rigsfm.run.mapping", "rigsfm.run.features", "rigsfm.run.scale", "rigsfm.run.database"):
+    for noisy in ("rigsfm.run.mapping.mapper", "rigsfm.run.matching.extract", "rigsfm.run.adjustment.scale", "rigsfm.run.inputs.database"):
         logging.getLogger(noisy).setLevel(logging.WARNING)
     chosen = [scenes()[n] for n in args.names] if args.names else list(scenes().values())
     if args.step in ("prepare", "all"):

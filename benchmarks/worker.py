@@ -34,12 +34,12 @@ def import_common() -> None:
 
 def peak_rss_mb() -> float:
     """The run's peak resident memory (MB, VmHWM, C++ allocations included): this process's or that of any of
-    rigsfm's stage processes, whichever is larger (``rigsfm.core.stages.stage_peak_rss_mb``).
+    rigsfm's stage processes, whichever is larger (``rigsfm.core.processes.stage_peak_rss_mb``).
 
     Not ``ru_maxrss`` from the parent's ``wait4``: Linux carries the parent's peak RSS at fork over
     the exec into the child's ru_maxrss, so every child would report at least the parent's size.
     """
-    from rigsfm.core.stages import stage_peak_rss_mb
+    from rigsfm.core.processes import stage_peak_rss_mb
 
     return round(stage_peak_rss_mb(), 1)
 
@@ -47,7 +47,7 @@ def peak_rss_mb() -> float:
 def cpu_seconds() -> float:
     """User + system CPU time of this process and of rigsfm's stage processes (which the forkserver, not this
     process, waits for), every thread included (robust to a shared machine's load)."""
-    from rigsfm.core.stages import stage_cpu_seconds
+    from rigsfm.core.processes import stage_cpu_seconds
 
     return stage_cpu_seconds()
 
@@ -59,12 +59,12 @@ def run_method(method: str, scene: Path, out: Path, estimate: Path | None) -> di
         return {"timings_s": {}, "metric": False}
     if method.startswith("rigsfm-"):
         if os.environ.get("RIGSFM_BENCH_FREE_INITIAL_PAIR"):
-            # Let COLMAP choose the initial pair (what the fix of rigsfm.run.mapping.initial_pair, under way in
+            # Let COLMAP choose the initial pair (what the fix of rigsfm.run.mapping.mapper.initial_pair, under way in
             # parallel, does when the strongest pair is too narrow to start from): the forced pair of a full
             # circle is rejected and retried 1000 times (~160 s at 16 rigs).
-            import rigsfm.run.mapping
+            import rigsfm.run.mapping.mapper
 
-            rigsfm.run.mapping.initial_pair = lambda database_path: None
+            rigsfm.run.mapping.mapper.initial_pair = lambda database_path: None
         from rigsfm.run.options import Mapper, MappingOptions, MatchingOptions, Pairs
         from rigsfm.run.pipeline import RunOptions, run
 

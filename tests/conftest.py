@@ -57,9 +57,9 @@ def _once(root: Path, key: str, make):
 def shared_caches(tmp_path_factory):
     """Made once per session, for every worker and every process they start: the synthetic scenes' textures
     (~6-9 s per seed and process; rigsfm.synth.scene, RIGSFM_TEXTURE_CACHE) and the features of each rendered
-    image (many tests run the same scenes into new workspaces; rigsfm.run.feature_cache, RIGSFM_FEATURE_CACHE).
+    image (many tests run the same scenes into new workspaces; rigsfm.run.matching.feature_cache, RIGSFM_FEATURE_CACHE).
     A test of extraction itself unsets the latter (``monkeypatch.delenv``)."""
-    from rigsfm.run.feature_cache import FEATURE_CACHE_ENV
+    from rigsfm.run.matching.feature_cache import FEATURE_CACHE_ENV
     from rigsfm.synth.scene import TEXTURE_CACHE_ENV
 
     os.environ[TEXTURE_CACHE_ENV] = str(_shared_root(tmp_path_factory) / "textures")

@@ -17,8 +17,8 @@ import pycolmap
 
 from rigsfm.core.geometry import project_world
 from rigsfm.core.rig import RigCalibration
-from rigsfm.run.database import rig_configs
-from rigsfm.run.inputs import ImageEntry
+from rigsfm.run.inputs.database import rig_configs
+from rigsfm.run.inputs.images import ImageEntry
 
 
 @dataclass

@@ -5,7 +5,7 @@ import pycolmap
 import pytest
 
 from rigsfm.core.sift import opencv_sift
-from rigsfm.run.asift import asift_features, colmap_sift_descriptors
+from rigsfm.run.matching.asift import asift_features, colmap_sift_descriptors
 from rigsfm.run.options import Features, MatchingOptions
 from rigsfm.run.pipeline import RunOptions, run
 from rigsfm.synth.scene import SceneOptions

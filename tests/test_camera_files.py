@@ -206,7 +206,7 @@ def finished_workspace(root):
     from rigsfm.core.workspace import Workspace
     from rigsfm.run.deliver import write_model, write_narrow_poses
     from rigsfm.run.options import WorldOptions
-    from rigsfm.run.world import ground_maps, place_in_world
+    from rigsfm.run.world.frame import ground_maps, place_in_world
 
     rec = ring(seed=30, num_rigs=4).reconstruction
     world = place_in_world(rec, None, None, ["rig01"], WorldOptions())

@@ -9,12 +9,13 @@ from synthetic_db import make_network
 
 from rigsfm.core.errors import InputError, ReconstructionError
 from rigsfm.core.workspace import Workspace
-from rigsfm.run.adjust import adjust
-from rigsfm.run.diagnostics import check_reconstruction, contradicted_pairs, loosely_tied_rigs
-from rigsfm.run.mapping import run_mapping
+from rigsfm.run.adjustment.adjust import adjust
+from rigsfm.run.adjustment.scale import Measurement, ScaleEstimate, estimate_scale
+from rigsfm.run.checks.diagnostics import check_reconstruction, contradicted_pairs
+from rigsfm.run.inputs.scale_file import CameraDistance, ScaleSpec
+from rigsfm.run.mapping.mapper import run_mapping
+from rigsfm.run.mapping.ties import loosely_tied_rigs
 from rigsfm.run.options import MappingOptions
-from rigsfm.run.scale import Measurement, ScaleEstimate, estimate_scale
-from rigsfm.run.scale_file import CameraDistance, ScaleSpec
 
 
 def test_a_rigid_network_passes(tmp_path):
@@ -87,7 +88,7 @@ def test_a_rig_moved_off_its_verified_matches_is_flagged(tmp_path):
 
 def test_scale_messages_name_the_measurement_and_why(tmp_path):
     """A zero model length names its measurement; a known length says which of its images were not registered."""
-    from rigsfm.run.scale_file import KnownLength, LengthObservation
+    from rigsfm.run.inputs.scale_file import KnownLength, LengthObservation
 
     rec = make_network(tmp_path, num_rigs=3, seed=2).ground_truth
     same = CameraDistance("rig01/wide", "rig01/wide/frame0000.png", 1.0)  # validation refuses it; scale.py names it
@@ -120,7 +121,7 @@ def _distances(rec, pairs, factors, sensors=("wide", "wide")) -> ScaleSpec:
 def test_a_distance_in_other_units_is_named_before_the_adjustment(tmp_path):
     """Measurements imply one scale of the mapped model: one 1000x off (millimetres written as metres) is named with
     the distance the others give; it made the adjustment and the uncertainty stage take minutes."""
-    from rigsfm.run.scale_check import check_scale_agreement
+    from rigsfm.run.adjustment.scale_check import check_scale_agreement
 
     net = make_network(tmp_path, num_rigs=4, seed=5)
     rec = net.ground_truth

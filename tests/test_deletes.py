@@ -310,7 +310,7 @@ def picker(tmp_path):
 
 
 def test_stale_pages_add_their_pairs_to_the_newer_ones(picker):
-    from rigsfm.run.manual_matches import read_manual_matches
+    from rigsfm.run.matching.manual_matches import read_manual_matches
 
     server, csv = picker
     _, opened = request(server.url + "api/state")  # three pages opened on the empty CSV
@@ -338,7 +338,7 @@ def test_stale_pages_add_their_pairs_to_the_newer_ones(picker):
 
 
 def test_every_backup_generation_is_kept(picker):
-    from rigsfm.run.manual_matches import read_manual_matches
+    from rigsfm.run.matching.manual_matches import read_manual_matches
 
     server, csv = picker
     generations = []
@@ -360,7 +360,7 @@ def test_a_csv_folder_made_a_file_is_told_and_nothing_is_claimed_saved(tmp_path)
     import socket
     import time
 
-    from rigsfm.run.manual_matches import read_manual_matches
+    from rigsfm.run.matching.manual_matches import read_manual_matches
 
     picker_images(tmp_path)
     (tmp_path / "sub").mkdir()
@@ -448,7 +448,7 @@ def test_a_csv_broken_while_the_picker_runs_is_left_as_it_is(picker):
     assert status == 500 and f"cannot save to {csv}" in answer["error"]
     assert csv.read_text() == "image_a;x_a\nhalf an edit\n"
     rescue = Path(answer["error"].split("are kept in ")[1].split(";")[0])
-    from rigsfm.run.manual_matches import read_manual_matches
+    from rigsfm.run.matching.manual_matches import read_manual_matches
 
     assert [[*r.xy_a, *r.xy_b] for r in read_manual_matches(rescue)] == [pair(0), pair(1), pair(2)]
     assert server.session.unsaved is not None and len(server.session.pairs) == 2

@@ -251,8 +251,8 @@ def test_track_refuses_tagged_frames(tagged_copy, tmp_path):
 def test_report_self_check_and_floor_matching_read_the_stored_pixels(tagged_copy):
     from rigsfm.inspect.report.html import epipolar_section
     from rigsfm.inspect.report.write import load_result
-    from rigsfm.run.floor_matching import load_floor_images
-    from rigsfm.run.self_check import _load
+    from rigsfm.run.checks.self_check import _load
+    from rigsfm.run.world.floor_matching import load_floor_images
 
     dataset, out, images = tagged_copy
     reconstruction, narrow, summary = load_result(out)

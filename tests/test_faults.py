@@ -353,7 +353,7 @@ def test_a_database_removed_during_matching_is_named_then_made_again(scene, tmp_
     """COLMAP opens database.db by its path at every step: removed under a run, the next step makes an empty one
     and the mapper found no matches. The run names the file instead, and the same command then makes it again."""
     import rigsfm.run.pipeline
-    from rigsfm.core import stages
+    from rigsfm.core import processes as stages
 
     dataset, out = scene
     copy = copy_workspace(out, tmp_path)
@@ -387,7 +387,7 @@ def test_picker_put_that_empties_the_csv_keeps_a_backup(tmp_path):
 
     from rigsfm.pick.server import PickerServer
     from rigsfm.pick.session import PickerSession, picker_image
-    from rigsfm.run.manual_matches import read_manual_matches
+    from rigsfm.run.matching.manual_matches import read_manual_matches
 
     rng = np.random.default_rng(0)
     paths = []

@@ -9,9 +9,9 @@ import numpy as np
 import pycolmap
 import pytest
 
-from rigsfm.run.database import create_database
-from rigsfm.run.feature_cache import FEATURE_CACHE_ENV
-from rigsfm.run.features import extract_features
+from rigsfm.run.inputs.database import create_database
+from rigsfm.run.matching.extract import extract_features
+from rigsfm.run.matching.feature_cache import FEATURE_CACHE_ENV
 from rigsfm.run.options import MatchingOptions
 from rigsfm.run.pipeline import load_inputs
 from rigsfm.synth.scene import SceneOptions
@@ -29,7 +29,7 @@ def _features(db_path) -> dict[str, tuple[np.ndarray, np.ndarray]]:
 def extract(tmp_path, caplog):
     """``extract(images, name, options) -> (features per image, how many were extracted, how many came from the
     cache)``: a new workspace's database, as ``rigsfm run`` extracts into it."""
-    caplog.set_level(logging.INFO, logger="rigsfm.run.features")
+    caplog.set_level(logging.INFO, logger="rigsfm.run.matching.extract")
 
     def run(images, rigs, name, options=MatchingOptions()):  # noqa: B008 - read, never changed
         inputs = load_inputs(images, rigs)

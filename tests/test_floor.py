@@ -8,15 +8,8 @@ import pycolmap
 import pytest
 from synthetic_world import ring
 
-from rigsfm.run.floor import (
-    FloorOptions,
-    NoFloor,
-    apply_floor_frame,
-    fit_floor,
-    guess_floor,
-    rig_positions,
-    up_prior,
-)
+from rigsfm.run.world.floor import FloorOptions, NoFloor, apply_floor_frame, fit_floor, guess_floor, up_prior
+from rigsfm.run.world.floor_model import rig_positions
 
 
 def truth_up_in_model(world) -> np.ndarray:

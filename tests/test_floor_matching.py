@@ -9,8 +9,8 @@ import pytest
 from synthetic_world import HEIGHT, WIDTH, ring
 
 from rigsfm.core.errors import InputError
-from rigsfm.run.floor import estimate_floor
-from rigsfm.run.floor_matching import match_floor_points, plane_hits, triangulate_pairs
+from rigsfm.run.world.floor import estimate_floor
+from rigsfm.run.world.floor_matching import match_floor_points, plane_hits, triangulate_pairs
 
 CELL = 0.01  # metres per texture pixel
 HALF = 20.0  # the texture covers [-HALF, HALF]^2

@@ -23,9 +23,9 @@ from hypothesis import strategies as st
 from rigsfm.core.errors import InputError, RigsfmError
 from rigsfm.core.io import parse_yaml
 from rigsfm.core.rig import load_rigs
-from rigsfm.run.inputs import ImageEntry
-from rigsfm.run.manual_matches import read_manual_matches, validate_manual_matches
-from rigsfm.run.scale_file import load_scale
+from rigsfm.run.inputs.images import ImageEntry
+from rigsfm.run.inputs.scale_file import load_scale
+from rigsfm.run.matching.manual_matches import read_manual_matches, validate_manual_matches
 
 pytestmark = pytest.mark.slow  # hypothesis examples by the hundred (`-m 'not slow'` skips them)
 
@@ -360,7 +360,7 @@ def _make_non_regular(path, kind):
 def test_what_is_not_a_regular_file_is_refused_or_ignored_never_read(tmp_path_factory, kind, rig, sensor, name):
     import threading
 
-    from rigsfm.run.inputs import IMAGE_SUFFIXES
+    from rigsfm.run.inputs.images import IMAGE_SUFFIXES
     from rigsfm.run.pipeline import load_inputs
 
     root = tmp_path_factory.mktemp("special")

@@ -196,7 +196,7 @@ def test_overlaps_and_coverage_of_two_footprints():
 def test_ground_maps_are_json_ready():
     import json
 
-    from rigsfm.run.world import ground_maps
+    from rigsfm.run.world.frame import ground_maps
 
     rec = straight_down_camera(10.0)
     maps = ground_maps(rec, heights=(0.0, 1.7))

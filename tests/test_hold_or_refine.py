@@ -1,5 +1,5 @@
 """Never worse than holding the calibration: the adjustment refines a rig's intrinsics and E^sl only where the images
-inform them (``rigsfm.run.adjust.hold_or_refine``), on a rendered weak network registered from simulated clicks."""
+inform them (``rigsfm.run.adjustment.decisions.hold_or_refine``), on a rendered weak network registered from simulated clicks."""
 
 from __future__ import annotations
 
@@ -9,12 +9,16 @@ import numpy as np
 import pytest
 
 from rigsfm.core.workspace import Workspace, colmap_log_to
-from rigsfm.run.adjust import adjust
-from rigsfm.run.database import create_database
-from rigsfm.run.features import extract_features
-from rigsfm.run.manual_matches import read_manual_matches, validate_manual_matches, write_manual_matches
-from rigsfm.run.manual_merge import add_manual_matches
-from rigsfm.run.mapping import run_mapping
+from rigsfm.run.adjustment.adjust import adjust
+from rigsfm.run.inputs.database import create_database
+from rigsfm.run.mapping.mapper import run_mapping
+from rigsfm.run.matching.extract import extract_features
+from rigsfm.run.matching.manual_matches import (
+    read_manual_matches,
+    validate_manual_matches,
+    write_manual_matches,
+)
+from rigsfm.run.matching.manual_merge import add_manual_matches
 from rigsfm.run.options import AdjustOptions, Calibration, MappingOptions, MatchingOptions
 from rigsfm.run.pipeline import load_inputs
 from rigsfm.synth.clicks import simulate_clicks

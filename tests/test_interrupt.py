@@ -22,14 +22,13 @@ import numpy as np
 import pycolmap
 import pytest
 
-from rigsfm.core import stages
+from rigsfm.core import processes as stages
 from rigsfm.core.errors import InputError, WorkspaceError
 from rigsfm.core.rig import load_rigs
 from rigsfm.core.workspace import Workspace
-from rigsfm.run.database import create_database
-from rigsfm.run.features import extract_features, match_features
-from rigsfm.run.inputs import scan_images
-from rigsfm.run.mapping import (
+from rigsfm.run.inputs.database import create_database
+from rigsfm.run.inputs.images import scan_images
+from rigsfm.run.mapping.mapper import (
     RELAXATIONS,
     _incremental_options,
     choose_mapper,
@@ -37,6 +36,8 @@ from rigsfm.run.mapping import (
     run_mapping,
     wide_pairs,
 )
+from rigsfm.run.matching.extract import extract_features
+from rigsfm.run.matching.match import match_features
 from rigsfm.run.options import Mapper, MappingOptions, MatchingOptions
 from rigsfm.synth.dataset import render_dataset
 from rigsfm.synth.scene import SceneOptions

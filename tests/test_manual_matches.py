@@ -17,7 +17,7 @@ from typer.testing import CliRunner
 from rigsfm.cli import app
 from rigsfm.core.errors import ReconstructionError
 from rigsfm.core.geometry import sampson_error_px
-from rigsfm.run.manual_matches import (
+from rigsfm.run.matching.manual_matches import (
     Correspondence,
     DegenerateCorrespondencesError,
     ManualMatchError,

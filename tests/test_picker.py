@@ -8,7 +8,7 @@ from support import browser_page
 from test_manual_matches import A, B, synthetic_correspondences
 
 from rigsfm.pick import start_picker
-from rigsfm.run.manual_matches import read_manual_matches
+from rigsfm.run.matching.manual_matches import read_manual_matches
 from rigsfm.synth.clicks import farthest_points
 from rigsfm.synth.scene import SceneOptions
 

@@ -192,8 +192,8 @@ def test_commands_on_a_folder_without_result_fail_cleanly(tmp_path):
 def test_figures_are_capped_to_the_widest_and_narrowest_bands(result):
     """With fewer figures allowed than pairs: the widest bands first, then the narrowest; every pair is still
     listed, with whether (and why) it is drawn."""
+    from rigsfm.core.summary import Summary
     from rigsfm.inspect.report.html import choose_figures, epipolar_section
-    from rigsfm.run.summary import Summary
 
     _, out, rec = result
     pairs = json.loads((out / "narrow_poses.json").read_text())["pairs"]
@@ -216,9 +216,9 @@ def test_report_structure_top_view_bands_and_self_check(result):
     import dataclasses
     import re
 
+    from rigsfm.core.summary import Summary
+    from rigsfm.core.summary import describe_self_check as describe
     from rigsfm.inspect.report.html import self_check_section
-    from rigsfm.run.self_check import describe
-    from rigsfm.run.summary import Summary
 
     _, out, rec = result
     runner = CliRunner().invoke(app, ["report", str(out)])

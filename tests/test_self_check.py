@@ -13,19 +13,13 @@ import pytest
 from synthetic_world import ring
 from test_floor_matching import HALF, render
 
+from rigsfm.core.geometry import correspondence_check
 from rigsfm.core.ground import image_to_plane
+from rigsfm.run.checks.guided import _candidates, _Features, _guided_matches, _segments
+from rigsfm.run.checks.self_check import epipolar_self_check, synchronised_frames
 from rigsfm.run.deliver import narrow_poses
 from rigsfm.run.options import SelfCheckOptions, WorldOptions
-from rigsfm.run.self_check import (
-    _candidates,
-    _Features,
-    _guided_matches,
-    _segments,
-    epipolar_self_check,
-    synchronised_frames,
-)
-from rigsfm.run.uncertainty import correspondence_check
-from rigsfm.run.world import place_in_world
+from rigsfm.run.world.frame import place_in_world
 
 
 def test_candidates_equal_brute_force():

@@ -1,4 +1,4 @@
-"""rigsfm.core.stages: a stage function in a child process, stopped at once by the caller's signals."""
+"""rigsfm.core.processes: a stage function in a child process, stopped at once by the caller's signals."""
 
 import logging
 import os
@@ -10,9 +10,9 @@ import numpy as np
 import pycolmap
 import pytest
 
-from rigsfm.core import stages
+from rigsfm.core import processes as stages
 from rigsfm.core.errors import InputError
-from rigsfm.core.stages import StageDied, in_child
+from rigsfm.core.processes import StageDied, in_child
 
 
 # Stage functions must be importable by name: module level.
@@ -162,7 +162,7 @@ def test_a_child_whose_caller_left_during_its_start_prints_nothing(tmp_path, sen
     script.write_text(
         "import os, pickle, sys, time\n"
         "from multiprocessing import forkserver\n"
-        "from rigsfm.core import stages\n"
+        "from rigsfm.core import processes as stages\n"
         "stages.start()\n"
         "_, work = forkserver._forkserver.connect_to_new_process([])\n"
         f"os.write(work, pickle.dumps('x' * 45)[:{sent}])\n"

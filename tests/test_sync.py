@@ -1,4 +1,4 @@
-"""Unsynchronised recordings (rigsfm.run.sync): narrow images rendered from a floor texture that moves rigidly
+"""Unsynchronised recordings (rigsfm.run.checks.sync): narrow images rendered from a floor texture that moves rigidly
 between frames (a flat crowd walking), each rig's frame k taken at time k + its offset; the estimate names the
 shifted rig and its offset, a synchronised recording is not flagged, and the self-check puts its failures down to
 time instead of the calibration."""
@@ -14,10 +14,8 @@ from test_self_check import fine_texture
 
 from rigsfm.core.errors import InputError
 from rigsfm.core.names import name_of
-from rigsfm.run.deliver import narrow_poses
-from rigsfm.run.options import SelfCheckOptions, WorldOptions
-from rigsfm.run.self_check import epipolar_self_check
-from rigsfm.run.sync import (
+from rigsfm.run.checks.self_check import epipolar_self_check
+from rigsfm.run.checks.sync import (
     OffsetScore,
     PairSync,
     _solve,
@@ -25,7 +23,9 @@ from rigsfm.run.sync import (
     frames_by_time,
     read_frame_offsets,
 )
-from rigsfm.run.world import place_in_world
+from rigsfm.run.deliver import narrow_poses
+from rigsfm.run.options import SelfCheckOptions, WorldOptions
+from rigsfm.run.world.frame import place_in_world
 
 FRAMES = 3
 STEP_TEXELS = 25  # the texture moves 25 cm along x and y per frame (a walker's 0.35 m)
@@ -143,29 +143,24 @@ def test_offsets_file_is_checked(tmp_path):
 
 @pytest.mark.parametrize("asked", [None, "auto"])
 def test_run_names_the_rig_or_applies_the_estimate(world, tmp_path, asked):
-    """The run's self-check stage (rigsfm.run.pipeline._self_check): without --frame-offsets the failures are put
-    down to time; with --frame-offsets auto the estimate is applied and the check passes."""
-    import json
-
-    from rigsfm.core.workspace import Workspace
+    """The run's self-check stage (rigsfm.run.pipeline._self_check), given narrow_poses.json's record: without
+    --frame-offsets the failures are put down to time; with --frame-offsets auto the estimate is applied and the
+    check passes."""
     from rigsfm.run.options import RunOptions
     from rigsfm.run.pipeline import Inputs, _self_check
 
     rec = world[0]
     images = tmp_path / "images"
     poses = rendered(world, images, {"rig03": 1})
-    workspace = Workspace(tmp_path / "out")
-    workspace.root.mkdir()
-    workspace.narrow_poses.write_text(json.dumps(poses))
     options = RunOptions(self_check=SelfCheckOptions(max_frames=FRAMES, frame_offsets=asked))
-    check, record = _self_check(workspace, Inputs(images, [], [], None), rec, options, None)
-    assert record["asked"] == asked and record["estimate"]["unsynchronised"] == {"rig03": 1}
+    check, record = _self_check(poses, Inputs(images, [], [], None), rec, options, None)
+    assert record.asked == asked and record.estimate["unsynchronised"] == {"rig03": 1}
     assert not any(p.verdict == "failed" for p in check.pairs)
     if asked is None:
-        assert record["applied"] == {} and [w.split(":")[0] for w in check.warnings] == ["FRAMES NOT SYNCHRONISED"]
+        assert record.applied == {} and [w.split(":")[0] for w in check.warnings] == ["FRAMES NOT SYNCHRONISED"]
         assert any(p.verdict == "not synchronised" for p in check.pairs)
     else:
-        assert record["applied"] == {"rig03": 1} and check.warnings == []
+        assert record.applied == {"rig03": 1} and check.warnings == []
         assert sum(p.verdict == "ok" for p in check.pairs) >= 4
 
 
@@ -173,8 +168,8 @@ def test_narrow_features_match_only_simultaneous_narrow_images_of_two_rigs():
     from pathlib import Path
 
     from rigsfm.core.names import Sensor
-    from rigsfm.run.features import image_pairs
-    from rigsfm.run.inputs import ImageEntry
+    from rigsfm.run.inputs.images import ImageEntry
+    from rigsfm.run.matching.pairs import image_pairs
     from rigsfm.run.options import MatchingOptions
 
     images = [ImageEntry(rig, Sensor(sensor), f"f{k}.png", Path(f"{rig}/{sensor}/f{k}.png"))

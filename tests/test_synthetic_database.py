@@ -6,10 +6,10 @@ import pytest
 from synthetic_db import make_network
 
 from rigsfm.core.workspace import Workspace
-from rigsfm.run.adjust import ScaleSource, adjust
-from rigsfm.run.mapping import run_mapping
+from rigsfm.run.adjustment.adjust import ScaleSource, adjust
+from rigsfm.run.inputs.scale_file import CameraDistance, ScaleSpec
+from rigsfm.run.mapping.mapper import run_mapping
 from rigsfm.run.options import AdjustOptions, Calibration, Mapper, MappingOptions
-from rigsfm.run.scale_file import CameraDistance, ScaleSpec
 from rigsfm.synth.truth import compare_to_ground_truth, oracle
 
 

@@ -17,39 +17,26 @@ from synthetic_db import make_network, perturbed_model
 
 from rigsfm.calibrate.uncertainty import RigSigmas, add_sigmas
 from rigsfm.core.errors import InputError
-from rigsfm.core.geometry import project_world
+from rigsfm.core.geometry import correspondence_check, epipolar_lines, line_distances, project_world
 from rigsfm.core.rig import RigCalibration, load_rigs, rigs_to_yaml
 from rigsfm.core.workspace import Workspace
-from rigsfm.run.adjust import (
-    FINAL_SETTLE_CHI2,
-    Gauge,
-    JointProblem,
-    ScaleSource,
-    adjust,
-    frames_without_points,
-    sensor_from_rig_view,
-)
-from rigsfm.run.costs import CameraDistanceCost, CentreTerm, LengthCost, quaternion_plus_jacobian
-from rigsfm.run.mapping import run_mapping
-from rigsfm.run.options import AdjustOptions, Calibration, MappingOptions
-from rigsfm.run.priors import (
+from rigsfm.run.adjustment.adjust import Gauge, JointProblem, ScaleSource, adjust, frames_without_points
+from rigsfm.run.adjustment.bands import PairModel, band_points, pooled_quantile
+from rigsfm.run.adjustment.costs import CameraDistanceCost, CentreTerm, LengthCost, quaternion_plus_jacobian
+from rigsfm.run.adjustment.model import sensor_from_rig_view
+from rigsfm.run.adjustment.priors import (
     calibration_priors,
     draw_calibration,
     pose_prior_residual_covariance,
     tangent_covariance_from_residual,
 )
-from rigsfm.run.scale_file import CameraDistance, ScaleSpec
-from rigsfm.run.uncertainty import (
-    _PairModel,
-    band_points,
-    correspondence_check,
-    distances_under,
-    epipolar_lines,
-    estimate_uncertainty,
-    line_distances,
-    pooled_quantile,
-    pooled_shifted_quantile,
-)
+from rigsfm.run.adjustment.problem import FINAL_SETTLE_CHI2
+from rigsfm.run.adjustment.sampled import distances_under, pooled_shifted_quantile
+from rigsfm.run.adjustment.uncertainty import estimate_uncertainty
+from rigsfm.run.inputs.scale_file import CameraDistance, ScaleSpec
+from rigsfm.run.mapping.mapper import run_mapping
+from rigsfm.run.options import AdjustOptions, Calibration, MappingOptions
+from rigsfm.run.world.analysis_floor import find_floor
 from rigsfm.synth.cameras import calibration_error_sigmas, perturb_rig_from
 
 DATA = Path(__file__).resolve().parent / "data"
@@ -389,7 +376,7 @@ def test_frames_without_points_name_each_frame_once():
     assert frames_without_points(synthetic)[0] == "rig01"
 
 
-def _exact_distances(model: _PairModel, z: np.ndarray, pixels: np.ndarray, depths: np.ndarray) -> np.ndarray:
+def _exact_distances(model: PairModel, z: np.ndarray, pixels: np.ndarray, depths: np.ndarray) -> np.ndarray:
     """The band's quantity without linearisation: move frames, E^sl and cameras by ``z`` (our tangents), then the
     distance of the drawn truth's correspondence from the estimated line."""
     rec = model.reconstruction
@@ -431,7 +418,7 @@ def test_band_model_matches_the_exact_distances(refined_network):
     image_i, image_j = rec.find_image_with_name(names[0]), rec.find_image_with_name(names[2])
     pixels, depths, kind = band_points(rec, image_i, image_j, None)
     assert kind == "depths" and len(pixels) > 50
-    model = _PairModel(rec, covariance, image_i, image_j, {})
+    model = PairModel(rec, covariance, image_i, image_j, {})
     jacobian = model.jacobian(pixels, depths)
     assert np.allclose(_exact_distances(model, np.zeros(model.size), pixels, depths), 0.0, atol=1e-6)
     rng = np.random.default_rng(1)
@@ -447,7 +434,7 @@ def test_band_model_matches_the_exact_distances(refined_network):
                                    atol=1e-6 * np.abs(exact).max())
 
 
-def _moved_reconstruction(model: _PairModel, z: np.ndarray) -> pycolmap.Reconstruction:
+def _moved_reconstruction(model: PairModel, z: np.ndarray) -> pycolmap.Reconstruction:
     """A copy of the model's reconstruction with its frames, E^sl and cameras moved by ``z`` (our tangents)."""
     rec = pycolmap.Reconstruction(model.reconstruction)
     for key in model.keys:
@@ -545,7 +532,8 @@ def _network_with_a_drawn_calibration(tmp_path, seed: int, num_rigs: int):
     mapped = run_mapping(Workspace(root), root, MappingOptions(), num_wide=num_rigs).reconstruction
     user = draw_calibration(net.rigs, calibration_priors(net.rigs), np.random.default_rng(seed))
     result = adjust(mapped, user, _scale_spec(root, net, num_rigs), AdjustOptions(pixel_sigma_inflation=1.0))
-    return net, result, estimate_uncertainty(result)
+    plane, source = find_floor(result.reconstruction, result.scale_spec)
+    return net, result, estimate_uncertainty(result, floor=plane, floor_source=source)
 
 
 @pytest.mark.slow
@@ -572,7 +560,7 @@ def test_band_coverage_on_networks_with_a_known_calibration_error(tmp_path):
             seen_j = project_world(truth.cameras[image_j.camera_id], image_j.cam_from_world(), points)[1]
             both = seen_i & seen_j
             depths = np.asarray(image_i.cam_from_world() * points)[both, 2]
-            model = _PairModel(rec, uncertainty.covariance, rec.find_image_with_name(name_i),
+            model = PairModel(rec, uncertainty.covariance, rec.find_image_with_name(name_i),
                                rec.find_image_with_name(name_j), {})
             jacobian = model.jacobian(pixels[both], depths)
             normalised.append(distances / np.sqrt(np.einsum("pk,kl,pl->p", jacobian, model.covariance, jacobian)))

@@ -11,14 +11,16 @@ import pycolmap
 import pytest
 from synthetic_db import make_network
 
+from rigsfm.core.geometry import correspondence_check
 from rigsfm.core.workspace import Workspace
-from rigsfm.run.adjust import adjust
+from rigsfm.run.adjustment.adjust import adjust
+from rigsfm.run.adjustment.priors import BoardDefaults, calibration_priors
+from rigsfm.run.adjustment.uncertainty import estimate_uncertainty
 from rigsfm.run.deliver import narrow_images
-from rigsfm.run.mapping import run_mapping
+from rigsfm.run.inputs.scale_file import CameraDistance, ScaleSpec
+from rigsfm.run.mapping.mapper import run_mapping
 from rigsfm.run.options import AdjustOptions, MappingOptions
-from rigsfm.run.priors import BoardDefaults, calibration_priors
-from rigsfm.run.scale_file import CameraDistance, ScaleSpec
-from rigsfm.run.uncertainty import correspondence_check, estimate_uncertainty
+from rigsfm.run.world.analysis_floor import find_floor
 
 NOISE_PX = 0.5
 TIGHT = BoardDefaults(focal_relative=1.2e-6, principal_point_px=6e-4, radial=(5e-7, 3e-7, 1e-7), tangential=1e-8,
@@ -58,7 +60,8 @@ def test_band_coverage_of_the_image_noise(tmp_path):
         result, truth = estimate(tmp_path / str(seed), seed)
         # The pixel noise is estimated from the residuals: it recovers the keypoint noise.
         assert result.pixel_sigma == pytest.approx(NOISE_PX, rel=0.2)
-        uncertainty = estimate_uncertainty(result)
+        plane, source = find_floor(result.reconstruction, result.scale_spec)
+        uncertainty = estimate_uncertainty(result, floor=plane, floor_source=source)
         assert uncertainty.floor == "none"  # random points: no floor, points at every depth
         rng = np.random.default_rng(seed)
         for (name_i, name_j), band in uncertainty.bands.items():
@@ -81,7 +84,8 @@ def test_band_grows_with_pixel_noise(tmp_path):
     for noise, sub in ((0.25, "low"), (1.0, "high")):
         result, _ = estimate(tmp_path / sub, seed=3, num_rigs=3, noise_px=noise)
         names = [im.name for im in narrow_images(result.reconstruction)]
-        found = estimate_uncertainty(result).bands
+        plane, source = find_floor(result.reconstruction, result.scale_spec)
+        found = estimate_uncertainty(result, floor=plane, floor_source=source).bands
         bands.append(np.array([found[pair].band_px for pair in itertools.combinations(names, 2)]))
     ratio = bands[1] / bands[0]
     assert len(ratio) == 3 and np.all((ratio > 2.5) & (ratio < 6.0)), ratio

@@ -17,7 +17,7 @@ from rigsfm.core.errors import InputError, WorkspaceError
 from rigsfm.core.rig import RigSigmas, load_rigs
 from rigsfm.core.rig import write_rigs as write_rig_file
 from rigsfm.core.workspace import Workspace, read_json, read_model
-from rigsfm.run.manual_matches import ManualMatchError, read_manual_matches
+from rigsfm.run.matching.manual_matches import ManualMatchError, read_manual_matches
 from rigsfm.run.options import AdjustOptions, MappingOptions, MatchingOptions, RunOptions
 from rigsfm.run.pipeline import load_inputs
 
@@ -490,7 +490,7 @@ def _socket(path):
 ])
 def test_what_is_not_a_regular_image_file_is_refused_before_any_read(tmp_path, make, words):
     from rigsfm.core.rig import load_rigs as read_rigs
-    from rigsfm.run.inputs import scan_images
+    from rigsfm.run.inputs.images import scan_images
 
     images, rigs_path, _ = make_inputs(tmp_path)
     keep = make(images / "rig02" / "wide" / "f1.png")
@@ -667,7 +667,7 @@ def test_options_beyond_what_the_stages_take_are_refused(make, words):
 ])
 def test_plane_height_that_is_no_number_is_named_so(height, words):
     from rigsfm.run.options import WorldOptions
-    from rigsfm.run.world import validate_world_options
+    from rigsfm.run.world.frame import validate_world_options
 
     with pytest.raises(InputError, match=words):
         validate_world_options(WorldOptions(plane_heights=(height,)))
@@ -688,7 +688,7 @@ def test_priors_check_camera_sigmas_with_rigs_yaml_bounds():
     import pycolmap
 
     from rigsfm.core.rig import RigCalibration
-    from rigsfm.run.priors import rig_prior
+    from rigsfm.run.adjustment.priors import rig_prior
 
     camera = pycolmap.Camera(model="PINHOLE", width=W, height=H, params=[50.0, 50.0, 32.0, 24.0])
     rig = RigCalibration("rig01", camera, camera, pycolmap.Rigid3d(pycolmap.Rotation3d(), [0.06, 0.0, 0.0]))
@@ -761,7 +761,7 @@ def test_a_failed_atomic_write_names_the_users_file_not_the_temporary_one(tmp_pa
 
 
 def test_manual_matches_name_a_decomposed_rig_folder_in_composed_form(tmp_path):
-    from rigsfm.run.manual_matches import validate_manual_matches
+    from rigsfm.run.matching.manual_matches import validate_manual_matches
 
     images, rigs_path, composed, decomposed = _nfd_inputs(tmp_path)
     rng = np.random.default_rng(1)

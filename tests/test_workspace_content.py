@@ -18,8 +18,10 @@ from bad_inputs_table import RUN, inputs
 
 from rigsfm.core.errors import WorkspaceError
 from rigsfm.core.workspace import MARKER, Workspace
-from rigsfm.run.database import check_database_kept, create_database
-from rigsfm.run.features import drop_changed_images, extract_features, match_features
+from rigsfm.run.inputs.database import check_database_kept, create_database
+from rigsfm.run.matching.extract import extract_features
+from rigsfm.run.matching.match import match_features
+from rigsfm.run.matching.reuse import drop_changed_images
 from rigsfm.run.options import MatchingOptions
 from rigsfm.run.pipeline import load_inputs
 from rigsfm.synth.scene import SceneOptions
@@ -62,7 +64,7 @@ def test_a_changed_image_loses_its_features_and_matches_and_only_it(rendered, tm
     path = images / CHANGED
     image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     cv2.imwrite(str(path), np.roll(image, 12, axis=1))  # the rig turned: a new recording under the same name
-    caplog.set_level(logging.WARNING, logger="rigsfm.run.features")
+    caplog.set_level(logging.WARNING, logger="rigsfm.run.matching.extract")
     assert drop_changed_images(workspace.database, workspace.image_contents, scene.images) == [CHANGED]
     assert (f"1 image changed since the last run in this workspace ({CHANGED}): its features and matches are made "
             "again") in caplog.text
@@ -117,7 +119,7 @@ def test_a_damaged_or_emptied_database_is_made_again(tmp_path, caplog, damage, w
     create_database(db, scene.rigs, scene.images)
     (tmp_path / "out" / "database.db-journal").write_bytes(b"a journal of the damaged file")
     damage(db)
-    caplog.set_level(logging.WARNING, logger="rigsfm.run.database")
+    caplog.set_level(logging.WARNING, logger="rigsfm.run.inputs.database")
     create_database(db, scene.rigs, scene.images)
     assert f"'{db}' {words}" in caplog.text and "it is made again, and so are its features and matches" in caplog.text
     assert not (tmp_path / "out" / "database.db-journal").exists()  # never applied to the new file

@@ -18,7 +18,7 @@ from rigsfm.core.ground import footprints, image_to_plane
 from rigsfm.inspect.report.figures import STEREO_SVG
 from rigsfm.run.deliver import narrow_poses
 from rigsfm.run.options import WorldFrame, WorldOptions
-from rigsfm.run.world import ground_maps, place_in_world, validate_world_options
+from rigsfm.run.world.frame import ground_maps, place_in_world, validate_world_options
 
 
 def names(world):
@@ -148,8 +148,8 @@ def test_report_shows_the_floor_map_and_the_self_check(tmp_path):
     from test_camera_files import finished_workspace
 
     from rigsfm.core.io import write_json_atomic
+    from rigsfm.core.summary import Summary
     from rigsfm.inspect.report.write import write_report
-    from rigsfm.run.summary import Summary
 
     finished_workspace(tmp_path / "out")
     narrow = json.loads((tmp_path / "out" / "narrow_poses.json").read_text())

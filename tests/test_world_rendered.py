@@ -23,11 +23,11 @@ import pycolmap
 import pytest
 from world_truth import floor_errors, ground_distance_errors, self_check_truth
 
+from rigsfm.run.checks.self_check import epipolar_self_check
 from rigsfm.run.deliver import narrow_poses
 from rigsfm.run.options import RunOptions, SelfCheckOptions, WorldOptions
 from rigsfm.run.pipeline import load_inputs, run
-from rigsfm.run.self_check import epipolar_self_check
-from rigsfm.run.world import ground_maps, place_in_world
+from rigsfm.run.world.frame import ground_maps, place_in_world
 from rigsfm.synth.dataset import render_dataset
 from rigsfm.synth.scene import SceneOptions
 from rigsfm.synth.truth import oracle

@@ -14,8 +14,8 @@ from __future__ import annotations
 import numpy as np
 import pycolmap
 
+from rigsfm.core.geometry import correspondence_check
 from rigsfm.core.ground import image_to_plane, undistort_pixels
-from rigsfm.run.uncertainty import correspondence_check
 
 UP = np.array([0.0, 0.0, 1.0])
 

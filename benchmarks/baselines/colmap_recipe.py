@@ -8,7 +8,7 @@
    default two-view verification).
 4. The incremental mapper with the calibration held: intrinsics and ``sensor_from_rig`` not refined;
    otherwise COLMAP's defaults (two-view tracks ignored, COLMAP picks the initial pair). The largest model.
-5. Metric fix: the similarity scale from scale.yaml (``rigsfm.run.scale.estimate_scale``: the rangefinder
+5. Metric fix: the similarity scale from scale.yaml (``rigsfm.run.adjustment.scale.estimate_scale``: the rangefinder
    distance and the known length), then E^sl and the intrinsics restored from rigs.yaml (a Sim3 scales every
    ``sensor_from_rig`` too). No further adjustment.
 """
@@ -22,10 +22,10 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 
-from rigsfm.run.adjust import restore_calibration
-from rigsfm.run.database import create_database
+from rigsfm.run.adjustment.adjust import restore_calibration
+from rigsfm.run.adjustment.scale import estimate_scale
+from rigsfm.run.inputs.database import create_database
 from rigsfm.run.pipeline import load_inputs
-from rigsfm.run.scale import estimate_scale
 
 
 def run_colmap_recipe(scene: Path, out: Path, num_threads: int = -1) -> tuple[pycolmap.Reconstruction | None, dict]:

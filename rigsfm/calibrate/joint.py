@@ -279,7 +279,7 @@ def joint_refine(wide: CameraCalibration, narrow: CameraCalibration, narrow_pair
 
     view_of_row = np.repeat(np.arange(len(blocks)), [2 * len(b[3]) for b in blocks])
     camera_of_view = np.array([b[0] for b in blocks])
-    # Corner noise differs between views by 10x (0.02 px on a frontal board, 0.2 px at 60+ deg tilt) and
+    # Corner noise differs between views by an order of magnitude (a frontal board against a steep tilt) and
     # between cameras (the narrow one sees bigger squares), so each view's residuals are weighted by
     # 1 / (its noise), estimated from the fit itself; refit until the noise levels settle.
     noise = np.where(camera_of_view == 0, wide.rms, narrow.rms) / np.sqrt(2) + 1e-3

@@ -23,7 +23,7 @@ from scipy.optimize import least_squares
 from rigsfm.calibrate.board import read_gray
 from rigsfm.core.conventions import opencv_from_resized_pixels
 from rigsfm.core.errors import ReconstructionError
-from rigsfm.core.geometry import sampson
+from rigsfm.core.geometry import sampson, skew
 from rigsfm.core.sift import detect, opencv_sift
 
 logger = logging.getLogger(__name__)
@@ -69,10 +69,6 @@ def _normalise(points: np.ndarray, K: np.ndarray, dist: np.ndarray) -> np.ndarra
     return cv2.undistortPoints(points.reshape(-1, 1, 2), K, dist, criteria=criteria).reshape(-1, 2)
 
 
-def _skew(v: np.ndarray) -> np.ndarray:
-    return np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
-
-
 def _refine(R0: np.ndarray, t0: np.ndarray, x1: np.ndarray, x2: np.ndarray, scale: float):
     """Minimise the Sampson error over the rotation (3) and the unit translation direction (2)."""
     t0 = t0 / np.linalg.norm(t0)
@@ -87,7 +83,7 @@ def _refine(R0: np.ndarray, t0: np.ndarray, x1: np.ndarray, x2: np.ndarray, scal
 
     def residuals(p):
         R, t = unpack(p)
-        return scale * sampson(_skew(t) @ R, x1, x2)
+        return scale * sampson(skew(t) @ R, x1, x2)
 
     fit = least_squares(residuals, np.zeros(5), loss="huber", f_scale=RANSAC_PX, x_scale=1e-3)
     return unpack(fit.x)
@@ -126,7 +122,7 @@ def estimate_from_scene(frames: list[tuple[Path, Path]], K_wide: np.ndarray, dis
         raise ReconstructionError(f"{where}: only {int(keep.sum())} of {len(pw)} scene matches agree on one relative "
                                   f"pose (need {MIN_INLIERS}); use a scene with more texture and depth")
     R, direction = _refine(R, t.reshape(3), x1[keep], x2[keep], f)
-    errors = f * sampson(_skew(direction) @ R, x1, x2)
+    errors = f * sampson(skew(direction) @ R, x1, x2)
     keep = np.abs(errors) < 3 * RANSAC_PX
     rms = float(np.sqrt(np.mean(errors[keep] ** 2)))
     logger.info("%s: scene E^sl from %d inliers of %d matches, RMS %.2f px", where, keep.sum(), len(pw), rms)

@@ -87,8 +87,8 @@ def fail_cleanly(command):
             if signum is None and isinstance(error, (KeyboardInterrupt, Terminated)):
                 signum = signal.SIGINT if isinstance(error, KeyboardInterrupt) else signal.SIGTERM
             if signum is not None:
-                if "rigsfm.core.stages" in sys.modules:
-                    sys.modules["rigsfm.core.stages"].stop()
+                if "rigsfm.core.processes" in sys.modules:
+                    sys.modules["rigsfm.core.processes"].stop()
                 _signals.forget_unhandled_interrupt()
                 say_stopped(signum)
                 raise typer.Exit(_signals.exit_code(signum)) from None

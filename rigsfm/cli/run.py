@@ -88,15 +88,15 @@ def print_world(summary) -> None:
     elif world:
         console.print("world: the mapper's frame" + ("" if world.get("asked") == "mapping" else " (no floor found)"))
     if check.get("pairs"):
-        from rigsfm.run.self_check import describe
+        from rigsfm.core.summary import describe_self_check as describe
 
         console.print(f"epipolar self-check: {describe(check)}")
-    offsets = summary.frame_offsets or {}
-    if offsets.get("asked"):
-        applied = ", ".join(f"{rig} {off:+d}" for rig, off in sorted((offsets.get("applied") or {}).items()))
-        untold = [r for r, o in ((offsets.get("estimate") or {}).get("offsets") or {}).items() if o is None]
+    offsets = summary.frame_offsets
+    if offsets is not None and offsets.asked:
+        applied = ", ".join(f"{rig} {off:+d}" for rig, off in sorted((offsets.applied or {}).items()))
+        untold = [r for r, o in ((offsets.estimate or {}).get("offsets") or {}).items() if o is None]
         why = f"no offset told for {', '.join(untold)}" if untold else "all rigs at 0"
-        console.print(f"frame offsets ({offsets['asked']}): {applied or f'none applied ({why})'}")
+        console.print(f"frame offsets ({offsets.asked}): {applied or f'none applied ({why})'}")
 
 
 def print_manual_matches(report: dict) -> None:

@@ -1,8 +1,8 @@
-"""Imported last by the forkserver of :mod:`rigsfm.core.stages`, only there.
+"""Imported last by the forkserver of :mod:`rigsfm.core.processes`, only there.
 
 pycolmap's import installs glog's failure handler for SIGTERM, which prints a C stack trace; a forkserver
 terminated with its process group (systemd, Slurm) should just end, as it would without pycolmap. It was started
-with SIGINT and SIGTERM blocked (:func:`rigsfm.core.stages.start`): they are let through here, SIGTERM ending
+with SIGINT and SIGTERM blocked (:func:`rigsfm.core.processes.start`): they are let through here, SIGTERM ending
 it quietly and SIGINT ignored (a terminal's Ctrl-C reaches the whole group: the caller decides).
 
 A child forked here first reads its work from the caller. When the caller is stopped by a signal in the middle of

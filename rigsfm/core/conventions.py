@@ -91,3 +91,41 @@ def rotation_vector(rotation: pycolmap.Rotation3d) -> np.ndarray:
     from scipy.spatial.transform import Rotation
 
     return Rotation.from_quat(np.asarray(rotation.quat)).as_rotvec()
+
+
+# narrow_poses.json's "conventions" block (also the exports' poses.json)
+CONVENTIONS = {
+    "cam_from_world": "x_cam = R @ x_world + t (metres); centre = -R.T @ t",
+    "quaternion": "[w, x, y, z]",
+    "pixels": "COLMAP: centre of the first pixel at (0.5, 0.5)",
+    "narrow_j_from_narrow_i": "x_j = R @ x_i + t",
+    "euler_zyx_deg": "(yaw, pitch, roll), R = Rz(yaw) @ Ry(pitch) @ Rx(roll), intrinsic z-y'-x''",
+    "centre_direction_in_i": "unit vector from centre i to centre j, in camera i's frame",
+    "F_ji": "x_j^T F_ji x_i = 0, homogeneous COLMAP pixels of undistorted images (pinhole K of each camera)",
+    "E_ji": "[t]_x R of narrow_j_from_narrow_i",
+    "epipolar_band_95_px": "half-width (pinhole px of j) of the band around the epipolar line of a point of i "
+                           "that holds its true correspondence with 95 % probability, pooled over the analysis "
+                           "points (epipolar_band_points: 'floor' = the floor seen by both cameras on a 15x15 "
+                           "grid of image i; 'depths' = that grid at every depth at which it appears in j; "
+                           "their depths in camera i: epipolar_band_depth_range_m) and over the joint "
+                           "uncertainty of rig poses, intrinsics and E^sl (rigs.yaml's sigmas included). "
+                           "Calibrated, not a bound: the calibration's error is one draw per pair, so one pair "
+                           "may hold fewer of its points; epipolar_band_p_below_85 is the model's probability "
+                           "that under 85 % of this pair's points lie inside. null if it could not be estimated "
+                           "or the images share no view",
+    "world": "the frame of every pose and point: see world.frame, world.origin, world.x_axis, world.z_axis",
+    "ground_from_image": "3x3 H: (x, y, w) = H @ (u, v, 1) for an undistorted COLMAP pixel (u, v) of the camera's "
+                         "pinhole K (as F_ji); the point on the plane z = plane_height_m is (x / w, y / w) in "
+                         "world metres; w > 0 only for pixels whose ray meets the plane in front of the camera "
+                         "(below the horizon). Raw pixels: undistort with the camera model first",
+    "footprint_m": "the part of the plane the image sees: counter-clockwise polygon (x, y) in world metres, the "
+                   "image border (pixel edges) through the full camera model; clipped = cut at the horizon or "
+                   "at 20 camera heights' depth",
+    "footprint_centre_m": "where the ray of the image centre (W/2, H/2) meets the plane",
+    "gsd_mm_per_px": "ground sampling distance at footprint_centre_m: sqrt |det J| of the pixel -> plane "
+                     "Jacobian (mm per pixel); gsd_mm_per_px_xy: along image x and y",
+    "ground_overlap_m2": "per plane of world.plane_heights_m, the area (m^2) seen by both narrow cameras of the "
+                         "pair; null for two images of the same camera",
+    "seen_by_two_or_more_m2": "per plane of world.plane_heights_m, the area seen by two or more narrow cameras "
+                              "(where stereo analysis is possible), counted on a 5 cm raster",
+}

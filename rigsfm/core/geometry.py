@@ -1,10 +1,12 @@
 """Geometry shared by every verb: the one projection helper, the one Sampson error, epipolar lines and
-two-view measures on calibrated cameras.
+two-view measures on calibrated cameras, the one ``skew`` and the one ``Plane``.
 
 Pixels are COLMAP's (centre of the first pixel at (0.5, 0.5)) throughout.
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import cv2
 import numpy as np
@@ -100,3 +102,64 @@ def planar_fraction(
                 residual = np.linalg.norm(mapped[:, :2] / mapped[:, 2:] - n2, axis=1)
             best = max(best, int(np.sum(residual < threshold)))
     return best / len(xy1)
+
+
+def skew(v: np.ndarray) -> np.ndarray:
+    """The cross-product matrix: ``skew(v) @ w == np.cross(v, w)``."""
+    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+
+
+@dataclass(frozen=True)
+class Plane:
+    normal: np.ndarray  # unit, pointing to the cameras' side
+    offset: float  # normal . x + offset = 0
+    inliers: int
+
+    def intersect(self, origins: np.ndarray, directions: np.ndarray) -> np.ndarray:
+        """Ray parameter of each ray's intersection (inf when parallel or behind)."""
+        denominator = directions @ self.normal
+        with np.errstate(divide="ignore", invalid="ignore"):
+            s = -(origins @ self.normal + self.offset) / denominator
+        return np.where((np.abs(denominator) > 1e-12) & (s > 0), s, np.inf)
+
+
+def epipolar_lines(camera_i: pycolmap.Camera, camera_j: pycolmap.Camera, j_from_i: pycolmap.Rigid3d,
+                   pixels_i: np.ndarray) -> np.ndarray:
+    """Lines (a, b, c) in camera j's pinhole pixels for raw pixels of image i (distortion removed)."""
+    rays = np.asarray(camera_i.cam_from_img(np.asarray(pixels_i, dtype=np.float64)))
+    rays = np.column_stack([rays, np.ones(len(rays))])
+    essential = np.asarray(pycolmap.essential_matrix_from_pose(j_from_i))
+    k_j = np.asarray(camera_j.calibration_matrix())
+    return (np.linalg.inv(k_j).T @ essential @ rays.T).T
+
+
+def line_distances(camera_j: pycolmap.Camera, lines: np.ndarray, points_in_j: np.ndarray) -> np.ndarray:
+    """Signed distance (pinhole pixels of j) of the projection of camera-j points from pixel lines."""
+    k_j = np.asarray(camera_j.calibration_matrix())
+    projected = points_in_j @ k_j.T
+    projected = projected / projected[..., 2:3]
+    return np.sum(lines * projected, axis=-1) / np.linalg.norm(lines[..., :2], axis=-1)
+
+
+def correspondence_check(estimate: pycolmap.Reconstruction, truth: pycolmap.Reconstruction, name_i: str,
+                         name_j: str, world_points: np.ndarray) -> np.ndarray:
+    """Distances (pinhole px of j) of true correspondences from their estimated epipolar lines.
+
+    ``world_points`` (truth's frame) are projected with the true poses and cameras into both raw images; those
+    seen by both give a true pixel pair, whose image-i pixel defines the estimated epipolar line in j (estimated
+    cameras and pose) and whose image-j pixel (undistorted with the estimated camera j) is measured against it.
+    """
+    pixels = []
+    for name in (name_i, name_j):
+        image = truth.find_image_with_name(name)
+        pixels.append(project_world(truth.cameras[image.camera_id], image.cam_from_world(),
+                                    np.asarray(world_points, dtype=np.float64)))
+    both = pixels[0][1] & pixels[1][1]
+    if not both.any():
+        return np.zeros(0)
+    image_i, image_j = (estimate.find_image_with_name(n) for n in (name_i, name_j))
+    camera_i, camera_j = estimate.cameras[image_i.camera_id], estimate.cameras[image_j.camera_id]
+    j_from_i = image_j.cam_from_world() * image_i.cam_from_world().inverse()
+    lines = epipolar_lines(camera_i, camera_j, j_from_i, pixels[0][0][both])
+    rays_j = np.asarray(camera_j.cam_from_img(pixels[1][0][both]))
+    return np.abs(line_distances(camera_j, lines, np.column_stack([rays_j, np.ones(len(rays_j))])))

@@ -1,7 +1,7 @@
 """Metres on the ground, per camera: plane homographies, footprints, ground sampling distance, overlaps.
 
 Everything here works in the reconstruction's world frame and assumes it is the **floor frame** (z = 0 on the
-floor, z up, metres: :mod:`rigsfm.run.world`). A "plane at height h" is ``z = h`` (e.g.
+floor, z up, metres: :mod:`rigsfm.run.world.frame`). A "plane at height h" is ``z = h`` (e.g.
 ``h = 1.7`` for heads).
 
 - ``ground_from_image(image, h)``: 3x3 homography from **undistorted COLMAP pixels** (the pinhole ``K`` of the
@@ -216,7 +216,7 @@ class Overlap:
 
 def pairwise_overlaps(prints: dict[str, Footprint], min_area: float = 0.0, *, pieces: bool = True) -> list[Overlap]:
     """Exact intersections of every pair of footprints with more than ``min_area`` m^2 in common; with
-    ``pieces=False`` only their areas (:func:`intersection_area`, ~10x faster on distorted footprints)."""
+    ``pieces=False`` only their areas (:func:`intersection_area`, much faster on distorted footprints)."""
     result = []
     for (name_a, a), (name_b, b) in itertools.combinations(sorted(prints.items()), 2):
         lo = np.maximum(a.polygon.min(axis=0), b.polygon.min(axis=0))

@@ -221,8 +221,8 @@ def read_user_text(path: Path, what: str, *, max_bytes: int | None = None) -> st
                          "in a spreadsheet)") from None
 
 
-# libyaml's parser where PyYAML was built with it (its wheels are): the same documents, ~9x faster than the pure-Python
-# one (a rigs.yaml with sigmas: 1.6 against 13.7 ms), which the fuzz tests' thousands of files felt.
+# libyaml's parser where PyYAML was built with it (its wheels are): the same documents, far faster than the
+# pure-Python one, which the fuzz tests' thousands of files feel.
 _SAFE_LOADER = getattr(yaml, "CSafeLoader", yaml.SafeLoader)
 
 

@@ -37,15 +37,15 @@ def candidate_matches(descriptors_i: np.ndarray, descriptors_j: np.ndarray, a: n
 
 
 # The whole table of descriptor products (one BLAS product) when the candidates are at least 1/16 of it and it
-# holds at most 16 M entries (64 MB): 3x faster than gathering two descriptors per candidate (floor matching and
-# the self-check's guided matching: 100 k - 700 k candidates among 1 k - 5 k features a side).
+# holds at most 16 M entries (64 MB): faster than gathering two descriptors per candidate when the candidates are
+# that dense (floor matching and the self-check's guided matching).
 DENSE_FACTOR = 16
 DENSE_MAX = 1 << 24
 
 
 def _grouped(feature: np.ndarray, by_distance: np.ndarray) -> np.ndarray:
     """``np.lexsort((distance, feature))`` from the stable distance order: one more stable sort, by feature
-    (a radix sort when the indices fit 16 bits), 2-3x faster than lexsort's two."""
+    (a radix sort when the indices fit 16 bits), faster than lexsort's two."""
     keys = feature[by_distance]
     if keys.max() < 1 << 16:
         keys = keys.astype(np.uint16)

@@ -1,8 +1,8 @@
 """COLMAP's binary model files walked record by record before pycolmap reads them.
 
 pycolmap trusts every count in ``cameras.bin``, ``images.bin``, ``points3D.bin``, ``rigs.bin`` and ``frames.bin``:
-reading past the end of a cut file yields garbage counts, which it reserves and loops over (a ``points3D.bin`` cut
-to 1000 bytes took 16 GB and minutes). Here each file's records are checked to fit its size, counts against the
+reading past the end of a cut file yields garbage counts, which it reserves and loops over (gigabytes and
+minutes for a cut file). Here each file's records are checked to fit its size, counts against the
 bytes left, camera models against COLMAP's list and the ids each file refers to against the others, so that a
 truncated or damaged model is named at once and pycolmap only ever sees a consistent one.
 """

@@ -49,6 +49,12 @@ def name_of(image) -> ImageName:
     return ImageName.parse(image.name)
 
 
+def registered_narrow_images(reconstruction) -> list:
+    """The registered narrow images of a ``pycolmap.Reconstruction``, sorted by name."""
+    return sorted((im for im in reconstruction.images.values() if im.has_pose and name_of(im).is_narrow),
+                  key=lambda im: im.name)
+
+
 def quoted(names) -> str:
     """Names as messages show them: each in single quotes, so that one with spaces or brackets reads as one
     (``'rig 01', 'rig[2]'``)."""

@@ -9,7 +9,7 @@ import pycolmap
 def reprojection_errors(reconstruction: pycolmap.Reconstruction) -> dict[str, np.ndarray]:
     """For every registered image name, the pixel distance between each observation and its projection."""
     errors = {}
-    # Every point's position read once (a lookup per observation through Reconstruction.point3D costs 2.5x more).
+    # Every point's position read once (a lookup per observation through Reconstruction.point3D costs more).
     xyz_of = {point3D_id: point.xyz for point3D_id, point in reconstruction.points3D.items()}
     for image in reconstruction.images.values():
         if not image.has_pose:

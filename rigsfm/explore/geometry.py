@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 import pycolmap
 
-from rigsfm.core.geometry import project_world
+from rigsfm.core.geometry import project_world, skew
 
 CHI2_2D_95 = 5.991464547107979  # the 95 % quantile of chi-square with 2 degrees of freedom
 SAMPLES = 160  # points of one band's centre curve
@@ -161,10 +161,6 @@ def _projection_and_jacobian(view: View, point: np.ndarray) -> tuple[np.ndarray,
     return xy[0], ((xy[1:4] - xy[4:7]) / (2 * STEP_M)).T
 
 
-def _skew(v: np.ndarray) -> np.ndarray:
-    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
-
-
 def _moved(view: View, d_centre: np.ndarray, d_rotation: np.ndarray) -> View:
     """The view with its centre moved and its orientation turned (world frame)."""
     world_from_cam = view.cam_from_world.inverse()
@@ -210,7 +206,7 @@ def triangulate(views: list[View], pixels: list, click_sigma_px: float) -> Trian
         j_point = jac[2 * k:2 * k + 2]
         # Moving the camera's centre by dc moves the point by -dc in its frame; turning the camera by w about its
         # centre (world frame) turns the point by -w: X' = C + Exp(-w) (X - C), dX'/dw = [X - C]x.
-        j_rotation = j_point @ _skew(point - view.centre)
+        j_rotation = j_point @ skew(point - view.centre)
         noise = (click_sigma_px ** 2 * np.eye(2) + view.centre_sigma_m ** 2 / 3 * j_point @ j_point.T
                  + view.rotation_sigma_rad ** 2 / 3 * j_rotation @ j_rotation.T)
         information += j_point.T @ np.linalg.solve(noise, j_point)

@@ -19,10 +19,10 @@ import pycolmap
 from rigsfm.core.errors import InputError, WorkspaceError
 from rigsfm.core.ground import parse_heights  # noqa: F401  (re-exported)
 from rigsfm.core.names import ImageName, name_of, quoted
+from rigsfm.core.summary import Summary
 from rigsfm.core.workspace import Workspace
 from rigsfm.explore.geometry import View, band_in_view, floor_trace, triangulate
 from rigsfm.explore.labels import ForeignRow, Label, parse_row, read_labels, save_labels
-from rigsfm.run.summary import Summary
 
 logger = logging.getLogger(__name__)
 
@@ -41,7 +41,7 @@ class ExploreResult:
     """What the explorer reads from a finished OUT: the narrow views per frame, the bands, the uncertainties."""
 
     def __init__(self, out: Path, images: Path | None = None, *, need_images: bool = True):
-        from rigsfm.run.self_check import synchronised_frames
+        from rigsfm.run.checks.self_check import synchronised_frames
 
         self.workspace = Workspace(Path(out))
         self.workspace.require_result()

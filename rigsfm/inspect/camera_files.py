@@ -11,7 +11,7 @@ Both layouts hold, per camera, OpenCV intrinsics and the world-to-camera pose:
   such key and always uses the pinhole model, so fisheye cameras are refused there. Other COLMAP models (FOV,
   THIN_PRISM_FISHEYE, RAD_TAN_THIN_PRISM_FISHEYE, DIVISION, ...) have no OpenCV equivalent and are refused.
 - ``R`` (Rodrigues 3x1) and ``T`` (3x1): ``x_cam = R x_world + T``, in the reconstruction's world and units
-  (metres for ``OUT/sparse``: the floor frame unless the run kept the mapper's, see ``rigsfm.run.world``).
+  (metres for ``OUT/sparse``: the floor frame unless the run kept the mapper's, see ``rigsfm.run.world.frame``).
 
 One entry per COLMAP camera (one per rig sensor), named ``<rig>_<sensor>`` (characters other than letters,
 digits, ``_`` and ``-`` become ``_``: OpenCV's FileStorage refuses them in keys). Its pose is that of its

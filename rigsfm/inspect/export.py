@@ -35,16 +35,15 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 
-from rigsfm.core.conventions import opengl_c2w_from_cam_from_world
+from rigsfm.core.conventions import CONVENTIONS, opengl_c2w_from_cam_from_world
 from rigsfm.core.errors import InputError, WorkspaceError
 from rigsfm.core.io import sha256_file, write_json_atomic
 from rigsfm.core.names import name_of
 from rigsfm.core.serialise import camera_to_dict, pose_to_dict
+from rigsfm.core.summary import Summary
 from rigsfm.core.workspace import Workspace
 from rigsfm.inspect.camera_files import write_opencv, write_toml, write_wildtrack
 from rigsfm.inspect.options import ExportFormat, ExportOptions
-from rigsfm.run.deliver import CONVENTIONS
-from rigsfm.run.summary import Summary
 
 logger = logging.getLogger(__name__)
 

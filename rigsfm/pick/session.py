@@ -34,7 +34,7 @@ from rigsfm.core.io import write_bytes_atomic
 from rigsfm.core.rig import RigCalibration
 from rigsfm.core.workspace import os_error_text
 from rigsfm.pick.epipolar import MIN_PAIRS, EpipolarModel, fit_model
-from rigsfm.run.manual_matches import (
+from rigsfm.run.matching.manual_matches import (
     Correspondence,
     ManualMatchError,
     format_manual_matches,

@@ -2,17 +2,23 @@
 
 Library use: ``run(IMAGES, rigs.yaml, OUT, scale.yaml, RunOptions(...)) -> RunResult``.
 
-The stages, in pipeline order (:func:`rigsfm.run.pipeline.run` calls them):
+The stages, in pipeline order (:func:`rigsfm.run.pipeline.run` calls them; each is timed under its name in
+summary.json's ``timings_s``), over the sub-packages that hold them:
 
-1. ``inputs``, ``scale_file``, ``manual_matches`` — validate every input before any heavy work;
-2. ``database`` — calibrated cameras, images, the rig configuration with E^sl;
-3. ``features`` (``asift``) — features and verified matches; ``manual_merge`` adds hand-picked ones;
-4. ``mapping`` — COLMAP's incremental or global mapper on the wide images;
-5. ``adjust`` (``scale``) — the metric bundle adjustment with the rigs' calibration;
-5b. ``world`` (``floor``, ``floor_matching``) — the floor frame: z = 0 on the floor, z up, metres; ground maps;
-6. ``uncertainty``, ``diagnostics`` — what the result is worth, and warnings;
-7. ``deliver`` — sparse/, narrow_poses.json, points3D.ply; ``self_check`` — epipolar distances of matches
-   between synchronised narrow images against the band; ``summary`` — summary.json.
+1. ``validate`` -- ``inputs.images``, ``inputs.scale_file``, ``matching.manual_matches``: every input checked first;
+2. ``database`` -- ``inputs.database``: calibrated cameras, images, the rig configuration with E^sl;
+3. ``features`` -- ``matching.extract`` (``reuse``, ``feature_cache``, ``asift``, ``gpu``);
+4. ``matching`` -- ``matching.pairs``, ``matching.match``; ``manual_matches``: ``matching.manual_merge``;
+5. ``mapping`` -- ``mapping.mapper`` (``mapping.ties``): COLMAP's incremental or global mapper on the wide images;
+6. ``adjust`` -- ``adjustment.adjust`` (``problem``, ``priors``, ``costs``, ``scale``, ``decisions``): the metric
+   bundle adjustment with the rigs' calibration;
+7. ``world`` -- ``world.frame`` (``floor``, ``floor_fit``, ``floor_matching``, ``analysis_floor``): the floor frame;
+8. ``uncertainty`` -- ``adjustment.uncertainty`` (``covariance``, ``narrow``, ``bands``, ``sampled``);
+9. ``deliver`` -- ``deliver``: sparse/, narrow_poses.json, points3D.ply; summary.json (``rigsfm.core.summary``)
+   with ``checks.diagnostics``' warnings;
+10. ``check_pairs`` -- ``checks.missed_pairs``: skipped pairs the model says would have shared many points;
+11. ``self_check`` -- ``checks.self_check`` (``guided``, ``sync``): epipolar distances of matches between
+    synchronised narrow images against the band.
 """
 
 from rigsfm.core.lazy import lazy_exports
@@ -30,5 +36,5 @@ __getattr__, __all__ = lazy_exports(__name__, {
     "WorldFrame": "rigsfm.run.options",
     "WorldOptions": "rigsfm.run.options",
     "SelfCheckOptions": "rigsfm.run.options",
-    "Summary": "rigsfm.run.summary",
+    "Summary": "rigsfm.core.summary",
 })

@@ -1,4 +1,4 @@
-"""Stage 5: write the deliverables — COLMAP model, narrow_poses.json, points3D.ply.
+"""Stage 9, deliver: write the deliverables — COLMAP model, narrow_poses.json, points3D.ply.
 
 ``narrow_poses.json`` conventions (also in the file's ``conventions`` block):
 - ``cam_from_world``: x_cam = R x_world + t, metres; ``centre`` = -R^T t, world frame.
@@ -9,9 +9,9 @@
   *undistorted* images (pinhole part of each camera); ``E_ji`` the same for normalised coordinates.
 - ``epipolar_band_95_px``: half-width of the band around the epipolar line in j (pinhole pixels of j) that
   holds the true correspondence of a floor point of image i with 95 % probability, pooled over the floor points
-  the two cameras share and over the joint uncertainty of poses and calibration (``rigsfm.run.uncertainty``);
+  the two cameras share and over the joint uncertainty of poses and calibration (``rigsfm.run.adjustment.uncertainty``);
   null when it cannot be estimated or the images share no view.
-- ``world``: the frame of every pose (``rigsfm.run.world``): by default the floor frame (z = 0 on the floor, z
+- ``world``: the frame of every pose (``rigsfm.run.world.frame``): by default the floor frame (z = 0 on the floor, z
   up, metres, origin under the rigs' centroid, x towards the first rig), with how the floor was found.
 - per narrow image, ``ground``: one entry per plane z = h (the floor, then ``--plane-height``) with
   ``ground_from_image`` (undistorted COLMAP pixels -> plane metres, as ``F_ji``), the footprint polygon and
@@ -27,49 +27,13 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 
-from rigsfm.core.conventions import euler_zyx_degrees
+from rigsfm.core.conventions import CONVENTIONS, euler_zyx_degrees
 from rigsfm.core.errors import WorkspaceError
 from rigsfm.core.io import atomic_directory, write_json_atomic
 from rigsfm.core.names import name_of
 from rigsfm.core.serialise import camera_to_dict, pose_to_dict
 
 logger = logging.getLogger(__name__)
-
-CONVENTIONS = {
-    "cam_from_world": "x_cam = R @ x_world + t (metres); centre = -R.T @ t",
-    "quaternion": "[w, x, y, z]",
-    "pixels": "COLMAP: centre of the first pixel at (0.5, 0.5)",
-    "narrow_j_from_narrow_i": "x_j = R @ x_i + t",
-    "euler_zyx_deg": "(yaw, pitch, roll), R = Rz(yaw) @ Ry(pitch) @ Rx(roll), intrinsic z-y'-x''",
-    "centre_direction_in_i": "unit vector from centre i to centre j, in camera i's frame",
-    "F_ji": "x_j^T F_ji x_i = 0, homogeneous COLMAP pixels of undistorted images (pinhole K of each camera)",
-    "E_ji": "[t]_x R of narrow_j_from_narrow_i",
-    "epipolar_band_95_px": "half-width (pinhole px of j) of the band around the epipolar line of a point of i "
-                           "that holds its true correspondence with 95 % probability, pooled over the analysis "
-                           "points (epipolar_band_points: 'floor' = the floor seen by both cameras on a 15x15 "
-                           "grid of image i; 'depths' = that grid at every depth at which it appears in j; "
-                           "their depths in camera i: epipolar_band_depth_range_m) and over the joint "
-                           "uncertainty of rig poses, intrinsics and E^sl (rigs.yaml's sigmas included). "
-                           "Calibrated, not a bound: the calibration's error is one draw per pair, so one pair "
-                           "may hold fewer of its points; epipolar_band_p_below_85 is the model's probability "
-                           "that under 85 % of this pair's points lie inside. null if it could not be estimated "
-                           "or the images share no view",
-    "world": "the frame of every pose and point: see world.frame, world.origin, world.x_axis, world.z_axis",
-    "ground_from_image": "3x3 H: (x, y, w) = H @ (u, v, 1) for an undistorted COLMAP pixel (u, v) of the camera's "
-                         "pinhole K (as F_ji); the point on the plane z = plane_height_m is (x / w, y / w) in "
-                         "world metres; w > 0 only for pixels whose ray meets the plane in front of the camera "
-                         "(below the horizon). Raw pixels: undistort with the camera model first",
-    "footprint_m": "the part of the plane the image sees: counter-clockwise polygon (x, y) in world metres, the "
-                   "image border (pixel edges) through the full camera model; clipped = cut at the horizon or "
-                   "at 20 camera heights' depth",
-    "footprint_centre_m": "where the ray of the image centre (W/2, H/2) meets the plane",
-    "gsd_mm_per_px": "ground sampling distance at footprint_centre_m: sqrt |det J| of the pixel -> plane "
-                     "Jacobian (mm per pixel); gsd_mm_per_px_xy: along image x and y",
-    "ground_overlap_m2": "per plane of world.plane_heights_m, the area (m^2) seen by both narrow cameras of the "
-                         "pair; null for two images of the same camera",
-    "seen_by_two_or_more_m2": "per plane of world.plane_heights_m, the area seen by two or more narrow cameras "
-                              "(where stereo analysis is possible), counted on a 5 cm raster",
-}
 
 
 def pinhole_matrix(camera: pycolmap.Camera) -> np.ndarray:
@@ -91,8 +55,8 @@ def narrow_images(reconstruction: pycolmap.Reconstruction) -> list[pycolmap.Imag
 
 def narrow_poses(reconstruction: pycolmap.Reconstruction, *, metric: bool, bands: dict | None = None,
                  world: dict | None = None, ground=None) -> dict:
-    """The narrow-camera deliverable as a JSON-ready dict; ``bands``: ``(i, j) -> rigsfm.run.uncertainty.PairBand``;
-    ``world`` (``WorldResult.to_dict()``) and ``ground`` (:class:`rigsfm.run.world.GroundMaps`) when known."""
+    """The narrow-camera deliverable as a JSON-ready dict; ``bands``: ``(i, j) -> rigsfm.run.adjustment.bands.PairBand``;
+    ``world`` (``WorldResult.to_dict()``) and ``ground`` (:class:`rigsfm.run.world.frame.GroundMaps`) when known."""
     images = narrow_images(reconstruction)
     bands = bands or {}
     entries = []

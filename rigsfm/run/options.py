@@ -39,18 +39,18 @@ def _choice(kind: type[enum.StrEnum], value, name: str):
 
 class Features(enum.StrEnum):
     SIFT = "sift"  # COLMAP's SIFT
-    ASIFT = "asift"  # affine-simulated SIFT (rigsfm.run.asift), for large perspective changes between rigs
+    ASIFT = "asift"  # affine-simulated SIFT (rigsfm.run.matching.asift), for large perspective changes between rigs
 
 
 class Pairs(enum.StrEnum):
-    """Which pairs of featured images are matched fully (rigsfm.run.features.select_pairs)."""
+    """Which pairs of featured images are matched fully (rigsfm.run.matching.pairs.select_pairs)."""
 
     AUTO = "auto"  # a cheap first pass picks each image's best partners: about linear in the images
     EXHAUSTIVE = "exhaustive"  # every pair: quadratic in the images
 
 
 class Device(enum.StrEnum):
-    """Where SIFT extraction and matching run (rigsfm.run.gpu.use_gpu)."""
+    """Where SIFT extraction and matching run (rigsfm.run.matching.gpu.use_gpu)."""
 
     AUTO = "auto"  # a CUDA GPU when pycolmap is built with CUDA (rigsfm[gpu]) and one is found, else the CPU
     CPU = "cpu"
@@ -80,9 +80,9 @@ class MatchingOptions:
     max_ratio: float = 0.8  # Lowe's ratio test
     cross_check: bool = True  # mutual nearest neighbours
     max_num_features: int = 8192
-    # SIFT's first octave: -1 doubles the image first (COLMAP's default), 0 does not (3.3x less CPU, 2.9x less
-    # memory). None: 0 for networks of rigsfm.run.features.COARSE_SIFT_MIN_FRAMES wide frames or more whose
-    # images are COARSE_SIFT_MIN_SIDE_PX or larger, -1 otherwise (rigsfm.run.features.resolved_first_octave).
+    # SIFT's first octave: -1 doubles the image first (COLMAP's default), 0 does not (far less CPU and memory).
+    # None: 0 for networks of rigsfm.run.matching.extract.COARSE_SIFT_MIN_FRAMES wide frames or more whose
+    # images are COARSE_SIFT_MIN_SIDE_PX or larger, -1 otherwise (rigsfm.run.matching.extract.resolved_first_octave).
     first_octave: int | None = None
     # Verify pairs of frames with the rigs' generalized relative pose. None: on unless narrow features
     # are extracted (with textured narrow views it took over 15 minutes for 24 images).
@@ -93,7 +93,7 @@ class MatchingOptions:
     pairs: Pairs = Pairs.AUTO
     neighbours: int = 8  # with pairs auto: the best partners kept per image (of other rigs)
     device: Device = Device.AUTO
-    # With narrow features: per-rig frame offsets (rigsfm.run.sync) of an unsynchronised recording; narrow images
+    # With narrow features: per-rig frame offsets (rigsfm.run.checks.sync) of an unsynchronised recording; narrow images
     # of two rigs are matched only when taken at the same time. None: not applied (frame names as they are).
     frame_offsets: dict[str, int] | None = None
 
@@ -112,11 +112,9 @@ class MatchingOptions:
         return (not self.narrow_features) if self.rig_verification is None else self.rig_verification
 
 
-# --mapper auto: the global mapper from this many wide frames, the incremental one below. Measured on rendered full
-# circles at 1624x1234 (benchmarks/README.md): from 16 rigs the global mapper is faster at the same accuracy
-# (16 rigs 33.7-41.7 s against 38.7-46.8 s end to end, 64 rigs 248 s); below, the incremental one, which hands
-# the frames it cannot reach to the global mapper: alone, the global mapper registered 0 of 4 rigs of a
-# featureless 4-rig circle and once converged to a wrong shape on an 8-rig crowd.
+# --mapper auto: the global mapper from this many wide frames (faster there at the same accuracy), the incremental
+# one below, where the global mapper alone can fail on small featureless circles; the incremental one hands the
+# frames it cannot reach to the global mapper (see benchmarks/README.md).
 GLOBAL_FROM_FRAMES = 16
 
 
@@ -125,7 +123,7 @@ class MappingOptions:
     mapper: Mapper = Mapper.AUTO
     global_from_frames: int = GLOBAL_FROM_FRAMES  # AUTO's threshold
     seed: int = 0
-    # Lower COLMAP's match-count thresholds (rigsfm.run.mapping.relax_for_few_matches). None: on when manual
+    # Lower COLMAP's match-count thresholds (rigsfm.run.mapping.mapper.relax_for_few_matches). None: on when manual
     # matches are given, off otherwise. Not on by default: relaxed, a pair of rigs with 21 wrong-but-consistent
     # SIFT matches registers 70 degrees off instead of failing with a clear message.
     few_matches: bool | None = None
@@ -145,13 +143,13 @@ class MappingOptions:
 class Calibration(enum.StrEnum):
     """What the metric bundle adjustment does with rigs.yaml's intrinsics and E^sl."""
 
-    REFINE = "refine"  # refined with the images, each weighted by its calibration sigma (rigsfm.run.priors)
-    FIXED = "fixed"  # held exactly at rigs.yaml (--fixed-calibration; rigsfm before issue 13)
+    REFINE = "refine"  # refined with the images, each weighted by its calibration sigma (rigsfm.run.adjustment.priors)
+    FIXED = "fixed"  # held exactly at rigs.yaml (--fixed-calibration)
 
 
 @dataclass(kw_only=True)
 class AdjustOptions:
-    """The metric bundle adjustment after mapping (rigsfm.run.adjust)."""
+    """The metric bundle adjustment after mapping (rigsfm.run.adjustment.adjust)."""
 
     loss: Loss = Loss.CAUCHY
     loss_scale_px: float = 1.0
@@ -160,8 +158,8 @@ class AdjustOptions:
     calibration: Calibration = Calibration.REFINE
     # REFINE: the images' weight against the calibration priors and measurements. Reprojection residuals count
     # as if their noise were this many times the one estimated from them: SIFT positions err systematically
-    # between views 45-60 deg apart, and at 1 the images pulled the wide intrinsics 2-4x further from the truth
-    # than the posterior allowed (rendered arena; the band then held 89 % instead of 95 %).
+    # between views far apart, and at 1 the images pull the intrinsics further than the posterior allows (see
+    # benchmarks/README.md).
     pixel_sigma_inflation: float = 3.0
     max_rounds: int = 4  # REFINE: adjust, drop outliers, re-estimate the pixel noise; until nothing changes
 
@@ -173,7 +171,7 @@ class AdjustOptions:
 
 
 class WorldFrame(enum.StrEnum):
-    """The frame of the result (rigsfm.run.world)."""
+    """The frame of the result (rigsfm.run.world.frame)."""
 
     FLOOR = "floor"  # z = 0 on the floor, z up, origin under the rigs' centroid, x towards the first rig
     MAPPING = "mapping"  # the mapper's frame (after the metric adjustment)
@@ -187,7 +185,7 @@ class WorldOptions:
 
 @dataclass(kw_only=True)
 class SelfCheckOptions:
-    """The epipolar self-check on synchronised narrow images (rigsfm.run.self_check)."""
+    """The epipolar self-check on synchronised narrow images (rigsfm.run.checks.self_check)."""
 
     enabled: bool = True
     max_frames: int = 1  # frame names checked (the first ones shared by two or more rigs)
@@ -195,10 +193,10 @@ class SelfCheckOptions:
     # features are compared: 0 for what lies on the floor; a crowd seen from above may match better at 1.7.
     warp_height_m: float = 0.0
     # OpenCV SIFT runs on the narrow images (and warps) reduced by the integer factor that brings their longer
-    # side nearest this: 1624x1234 -> 2 (a 6-rig crowd: 3.8x faster, a median 660 instead of 1 003 matches per
-    # pair, the measured distances as close to the truth; rigsfm.run.self_check), 812x617 -> 1.
+    # side nearest this (1624x1234 -> 2, 812x617 -> 1): faster, with distances as close to the truth (see
+    # benchmarks/README.md).
     sift_size: int = 800
-    # Per-rig frame offsets of the narrow images (rigsfm.run.sync): None checks synchronisation when the check
+    # Per-rig frame offsets of the narrow images (rigsfm.run.checks.sync): None checks synchronisation when the check
     # fails; "auto" estimates the offsets and pairs the frames by time; a path: a yaml file 'rig03: 1' applied.
     frame_offsets: str | Path | None = None
     max_offset_frames: int = 2  # offsets searched: -this .. this (and within the recording)
@@ -219,7 +217,7 @@ class RunOptions:
     adjust: AdjustOptions = field(default_factory=AdjustOptions)
     world: WorldOptions = field(default_factory=WorldOptions)
     self_check: SelfCheckOptions = field(default_factory=SelfCheckOptions)
-    manual_matches: Path | None = None  # CSV of correspondences between wide images (rigsfm.run.manual_matches)
+    manual_matches: Path | None = None  # CSV of correspondences between wide images (rigsfm.run.matching.manual_matches)
     overwrite: bool = False
     num_threads: int = -1  # every stage; -1: all cores
     # Feature extraction: local (pycolmap's threads on this machine) or ray (one task per image on a Ray

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import contextlib
-import json
 import logging
 import time
 from collections.abc import Callable, Iterator
@@ -15,58 +14,62 @@ import numpy as np
 import pycolmap
 
 import rigsfm
-from rigsfm.core import stages
+from rigsfm.core import processes as stages
 from rigsfm.core.errors import InputError, ReconstructionError
 from rigsfm.core.executors import Executor, check_reachable
 from rigsfm.core.io import write_json_atomic
 from rigsfm.core.names import SENSORS, ImageName
+from rigsfm.core.processes import in_child
 from rigsfm.core.residuals import reprojection_errors
 from rigsfm.core.rig import RigCalibration, load_rigs
-from rigsfm.core.stages import in_child
+from rigsfm.core.summary import (
+    CameraError,
+    FrameOffsetsSummary,
+    InputsSummary,
+    MappingSummary,
+    Registration,
+    ScaleSummary,
+    Summary,
+)
 from rigsfm.core.workspace import Workspace, colmap_log_to, disk_errors_named
 from rigsfm.inspect.report import write_report
-from rigsfm.run.adjust import AdjustResult, ScaleSource, adjust
-from rigsfm.run.database import check_database_kept, create_database
-from rigsfm.run.deliver import write_model, write_narrow_poses, write_points_ply
-from rigsfm.run.diagnostics import check_reconstruction
-from rigsfm.run.features import (
-    drop_changed_images,
-    drop_stale_work,
-    drop_unsynchronised_pairs,
-    extract_features,
-    match_features,
-    pairs_report,
-    resolved_first_octave,
-    select_pairs,
-)
-from rigsfm.run.inputs import (
+from rigsfm.run.adjustment.adjust import AdjustResult, ScaleSource, adjust
+from rigsfm.run.adjustment.priors import CalibrationPriors, calibration_priors
+from rigsfm.run.adjustment.scale_check import check_scale_agreement
+from rigsfm.run.adjustment.uncertainty import estimate_uncertainty, uncertainty_summary
+from rigsfm.run.checks.diagnostics import check_reconstruction
+from rigsfm.run.checks.missed_pairs import pairs_report
+from rigsfm.run.deliver import narrow_poses, write_model, write_points_ply
+from rigsfm.run.inputs.database import check_database_kept, create_database
+from rigsfm.run.inputs.images import (
     ImageEntry,
     check_image_folder,
     rigs_without_narrow,
     scan_images,
     with_folder_names,
 )
-from rigsfm.run.manual_matches import read_manual_matches, validate_manual_matches
-from rigsfm.run.manual_merge import add_manual_matches, manual_matches_summary
-from rigsfm.run.mapping import MappingResult, run_mapping
+from rigsfm.run.inputs.scale_file import ScaleSpec, load_scale
+from rigsfm.run.mapping.mapper import MappingResult, run_mapping
+from rigsfm.run.matching.extract import extract_features, resolved_first_octave
+from rigsfm.run.matching.manual_matches import read_manual_matches, validate_manual_matches
+from rigsfm.run.matching.manual_merge import add_manual_matches, manual_matches_summary
+from rigsfm.run.matching.match import match_features
+from rigsfm.run.matching.pairs import drop_unsynchronised_pairs, select_pairs
+from rigsfm.run.matching.reuse import drop_changed_images, drop_stale_work
 from rigsfm.run.options import RunOptions
-from rigsfm.run.priors import CalibrationPriors, calibration_priors
-from rigsfm.run.scale_check import check_scale_agreement
-from rigsfm.run.scale_file import ScaleSpec, load_scale
-from rigsfm.run.summary import CameraError, InputsSummary, MappingSummary, Registration, ScaleSummary, Summary
-from rigsfm.run.uncertainty import estimate_uncertainty, uncertainty_summary
-from rigsfm.run.world import ground_maps, locate_world, validate_world_options
+from rigsfm.run.world.frame import ground_maps, locate_world, validate_world_options
 
 if TYPE_CHECKING:
-    from rigsfm.run.self_check import SelfCheck
+    from rigsfm.run.checks.self_check import SelfCheck
 
 logger = logging.getLogger(__name__)
 
 # progress(stage, done, total); (stage, 0, 0) when a stage starts, before its total is known.
 Progress = Callable[[str, int, int], None]
 
-# The heavy stages run in a child process (rigsfm.core.stages: Ctrl-C and SIGTERM stop them at once).
-STAGE_MODULES = ("rigsfm.run.features", "rigsfm.run.mapping", "rigsfm.run.adjust", "rigsfm.run.uncertainty")
+# The heavy stages run in a child process (rigsfm.core.processes: Ctrl-C and SIGTERM stop them at once).
+STAGE_MODULES = ("rigsfm.run.matching.extract", "rigsfm.run.matching.pairs", "rigsfm.run.matching.match",
+                 "rigsfm.run.mapping.mapper", "rigsfm.run.adjustment.adjust", "rigsfm.run.adjustment.uncertainty")
 
 
 @dataclass(frozen=True)
@@ -76,7 +79,7 @@ class Inputs:
     images: list[ImageEntry]
     scale: ScaleSpec | None
     priors: CalibrationPriors | None = None  # the calibration's uncertainty (rigs.yaml's sigmas or defaults)
-    without_narrow: tuple[str, ...] = ()  # rigsfm.run.inputs.rigs_without_narrow: one line per rig
+    without_narrow: tuple[str, ...] = ()  # rigsfm.run.inputs.images.rigs_without_narrow: one line per rig
 
 
 @dataclass
@@ -258,7 +261,7 @@ def _given_frame_offsets(options: RunOptions, inputs: Inputs) -> dict[str, int] 
     given = options.self_check.frame_offsets
     if given is None or str(given) == "auto":
         return None
-    from rigsfm.run.sync import read_frame_offsets
+    from rigsfm.run.checks.sync import read_frame_offsets
 
     frames: dict[str, int] = {}
     for entry in inputs.images:
@@ -267,16 +270,15 @@ def _given_frame_offsets(options: RunOptions, inputs: Inputs) -> dict[str, int] 
     return read_frame_offsets(Path(given), [rig.name for rig in inputs.rigs], frames)
 
 
-def _self_check(workspace: Workspace, inputs: Inputs, reconstruction: pycolmap.Reconstruction, options: RunOptions,
-                given_offsets: dict[str, int] | None) -> tuple[SelfCheck, dict]:
-    """The epipolar self-check, its frames paired by time where offsets are given or estimated (``auto``); when
+def _self_check(poses: dict, inputs: Inputs, reconstruction: pycolmap.Reconstruction, options: RunOptions,
+                given_offsets: dict[str, int] | None) -> tuple[SelfCheck, FrameOffsetsSummary]:
+    """The epipolar self-check against ``poses`` (narrow_poses.json's record, as written), its frames paired by time where offsets are given or estimated (``auto``); when
     it fails without offsets and the recording has several frames, the offsets are estimated, and the pairs a
-    rig off in time explains are put down to it (rigsfm.run.sync) instead of the calibration."""
-    from rigsfm.run.self_check import epipolar_self_check
-    from rigsfm.run.sync import estimate_frame_offsets
+    rig off in time explains are put down to it (rigsfm.run.checks.sync) instead of the calibration."""
+    from rigsfm.run.checks.self_check import epipolar_self_check
+    from rigsfm.run.checks.sync import estimate_frame_offsets
 
     opt = options.self_check
-    poses = json.loads(workspace.narrow_poses.read_text(encoding="utf-8"))
 
     def estimate():
         return estimate_frame_offsets(reconstruction, inputs.image_dir, poses, max_offset=opt.max_offset_frames,
@@ -292,7 +294,7 @@ def _self_check(workspace: Workspace, inputs: Inputs, reconstruction: pycolmap.R
             check.blame_time(sync.unsynchronised, sync.warning)
     elif asked == "auto" and sync.unsynchronised:  # type: ignore[union-attr]  # auto: estimated above
         logger.warning("Frame offsets estimated and applied: %s", sync.unsynchronised)  # type: ignore[union-attr]
-    record = {"asked": asked, "applied": applied, "estimate": None if sync is None else sync.to_dict()}
+    record = FrameOffsetsSummary(asked=asked, applied=applied, estimate=None if sync is None else sync.to_dict())
     return check, record
 
 
@@ -360,20 +362,22 @@ def _run_locked(workspace: Workspace, inputs: Inputs, manual_pairs: dict, option
             world = locate_world(result.reconstruction, inputs.image_dir, inputs.scale,
                                  [rig.name for rig in inputs.rigs], options.world, metric=metric)
         with timings.stage("uncertainty"):
-            uncertainty = in_child(estimate_uncertainty, result, floor=world.floor_plane())
+            floor, floor_source = world.analysis_floor(result.reconstruction, result.scale_spec)
+            uncertainty = in_child(estimate_uncertainty, result, floor=floor, floor_source=floor_source)
         with timings.stage("deliver"):
             world.apply(result.reconstruction)  # a rigid move: the bands and sigmas above are unchanged by it
             ground = ground_maps(result.reconstruction, world.plane_heights) if world.plane_heights else None
             write_model(result.reconstruction, workspace.sparse, overwrite=True)
-            write_narrow_poses(result.reconstruction, workspace.narrow_poses, metric=metric, overwrite=True,
-                               bands=uncertainty.bands, world=world.to_dict(), ground=ground)
+            poses = narrow_poses(result.reconstruction, metric=metric, bands=uncertainty.bands, world=world.to_dict(),
+                                 ground=ground)
+            write_json_atomic(workspace.narrow_poses, poses, overwrite=True)
             write_points_ply(result.reconstruction, workspace.points_ply, overwrite=True)
         with timings.stage("check_pairs"):
             pairs, pairs_warning = pairs_report(result.reconstruction, selection)
     self_check = frame_offsets = None
     if options.self_check.enabled:
         with timings.stage("self_check"):
-            self_check, frame_offsets = _self_check(workspace, inputs, result.reconstruction, options, given_offsets)
+            self_check, frame_offsets = _self_check(poses, inputs, result.reconstruction, options, given_offsets)
     summary = build_summary(inputs, options, mapping, result, timings, workspace.database)
     summary.world = world.to_dict()
     summary.warnings.extend(world.warnings)

@@ -74,8 +74,8 @@ def _newton_undistort(u: np.ndarray, v: np.ndarray, dist: np.ndarray) -> tuple[n
 
 def _undistort(pixels: np.ndarray, K: np.ndarray, dist: np.ndarray, chunk: int = 1 << 18) -> np.ndarray:
     """Normalised coordinates (N x 2) of OpenCV ``pixels`` (N x 2), by :func:`_newton_undistort`. The board
-    cameras' 2.8 M supersamples: equal to ``cv2.undistortPoints`` (100 iterations, eps 1e-14) within 5e-16
-    and 5-6x faster (0.5-0.9 s against 2.7-4.4 s). A ValueError where it does not converge (pixels beyond the
+    cameras' supersamples: equal to ``cv2.undistortPoints`` (100 iterations, eps 1e-14) to rounding, and
+    several times faster. A ValueError where it does not converge (pixels beyond the
     distortion's monotonic range: no ray to render)."""
     if len(dist) > 5:
         raise ValueError(f"the board renderer takes OpenCV distortions (k1, k2, p1, p2, k3), not {len(dist)} terms")

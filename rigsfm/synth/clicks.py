@@ -14,7 +14,7 @@ import numpy as np
 import pycolmap
 
 from rigsfm.core.geometry import project_world
-from rigsfm.run.manual_matches import Correspondence
+from rigsfm.run.matching.manual_matches import Correspondence
 from rigsfm.synth.render import visible
 from rigsfm.synth.scene import Arena, Box, Pillar
 

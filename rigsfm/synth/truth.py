@@ -18,10 +18,10 @@ import pycolmap
 from rigsfm.core.conventions import rotation_angle_deg
 from rigsfm.core.names import name_of
 from rigsfm.core.rig import RigCalibration
-from rigsfm.run.adjust import AdjustOptions, adjust, restore_calibration
+from rigsfm.run.adjustment.adjust import AdjustOptions, adjust, restore_calibration
+from rigsfm.run.adjustment.scale import triangulate_in_images
+from rigsfm.run.inputs.scale_file import ScaleSpec
 from rigsfm.run.options import Calibration
-from rigsfm.run.scale import triangulate_in_images
-from rigsfm.run.scale_file import ScaleSpec
 
 
 def _posed(reconstruction: pycolmap.Reconstruction, sensor: str) -> dict[str, pycolmap.Image]:

@@ -26,7 +26,7 @@ from rigsfm.core.executors import check_reachable
 from rigsfm.core.io import file_sha256, write_bytes_atomic, write_json_atomic, write_text_atomic
 from rigsfm.core.rig import RigCalibration, nfc
 from rigsfm.core.workspace import TrackPaths, Workspace, colmap_log_to
-from rigsfm.run.inputs import check_image_folder, rig_folders, scan_images
+from rigsfm.run.inputs.images import check_image_folder, rig_folders, scan_images
 from rigsfm.track.executors import run_frames
 from rigsfm.track.options import TrackOptions
 from rigsfm.track.plot import plot_rig

@@ -23,7 +23,7 @@ import pycolmap
 from rigsfm.core.errors import ReconstructionError, WorkspaceError
 from rigsfm.core.names import ImageName, name_of
 from rigsfm.core.workspace import Workspace
-from rigsfm.run.database import damage
+from rigsfm.run.inputs.database import damage
 from rigsfm.track.options import RegistrationOptions
 from rigsfm.track.pose import estimate_rig_pose, pose_covariance
 

@@ -15,8 +15,8 @@ from pathlib import Path
 import numpy as np
 from synthetic_db import make_network, perturbed_model
 
-from rigsfm.run.adjust import adjust
-from rigsfm.run.scale_file import CameraDistance, ScaleSpec
+from rigsfm.run.adjustment.adjust import adjust
+from rigsfm.run.inputs.scale_file import CameraDistance, ScaleSpec
 
 root = Path(sys.argv[1])
 root.mkdir(parents=True, exist_ok=True)

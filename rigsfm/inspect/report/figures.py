@@ -23,7 +23,7 @@ from rigsfm.core.names import name_of
 
 COLOURS_BGR = [charts.bgr(colour) for colour in charts.SERIES]
 WIDE_SVG, NARROW_SVG = charts.hex_colour("wide"), charts.hex_colour("narrow")
-JPEG_QUALITY = 85  # the epipolar panels are photographs with thin lines: ~15x smaller than PNG, lines still crisp
+JPEG_QUALITY = 85  # the epipolar panels are photographs with thin lines: far smaller than PNG, lines still crisp
 
 
 def pick_points(image_gray: np.ndarray, camera: pycolmap.Camera, count: int = 8) -> np.ndarray:

@@ -12,6 +12,7 @@ import pycolmap
 from rigsfm.core import charts
 from rigsfm.core.names import ImageName, name_of
 from rigsfm.core.residuals import reprojection_errors
+from rigsfm.core.summary import Summary
 from rigsfm.core.workspace import Workspace
 from rigsfm.inspect.report.figures import (
     JPEG_QUALITY,
@@ -20,7 +21,6 @@ from rigsfm.inspect.report.figures import (
     read_image,
     topdown_svg,
 )
-from rigsfm.run.summary import Summary
 
 logger = logging.getLogger(__name__)
 
@@ -324,7 +324,7 @@ def self_check_section(summary: Summary | None) -> str:
     if check.get("skipped"):
         parts.append(f'<p class="note">Nothing checked: {esc(check["skipped"])}.</p>')
         return "".join(parts)
-    from rigsfm.run.self_check import describe
+    from rigsfm.core.summary import describe_self_check as describe
 
     pairs = check.get("pairs", [])
     parts.append(f'<p class="note">{esc(describe(check)[0].upper() + describe(check)[1:])}.</p>')

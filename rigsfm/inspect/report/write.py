@@ -13,9 +13,9 @@ from pathlib import Path
 import pycolmap
 
 from rigsfm.core.io import write_text_atomic
+from rigsfm.core.summary import Summary
 from rigsfm.core.workspace import Workspace
 from rigsfm.inspect.report.html import render_page
-from rigsfm.run.summary import Summary
 
 logger = logging.getLogger(__name__)
 

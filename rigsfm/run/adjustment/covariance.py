@@ -1,0 +1,273 @@
+"""The joint covariance of rig poses and calibration, 3D points marginalised out.
+
+:func:`joint_covariance`: the covariance of every rig pose, E^sl and camera (3D points marginalised out). Ceres'
+Jacobian of the adjustment's own problem (``rigsfm.run.adjustment.problem.JointProblem``, squared loss: the inliers'
+covariance; ``Problem.evaluate_jacobian``, tangent space), the points eliminated by a Schur complement of their
+3x3 blocks, the rest inverted densely, times the images' weighting noise squared (every residual is in pixels).
+COLMAP's ``estimate_ba_covariance`` is not used: it gives a non-pose block only on its own, without its
+cross-covariance with the poses, which the band needs (an E^sl error and a rig pose error partly cancel).
+- ``REFINE``: the posterior of the adjustment with calibration priors.
+- ``FIXED``: the calibration was held, so the images did not improve it: the poses' image noise plus the
+  calibration prior pushed through the estimate's sensitivity to it ("consider parameters": with the reduced
+  normal matrix ``[[A, B], [B^T, C]]`` over poses and calibration, ``S = -A^-1 B``, ``Cov(poses) =
+  sigma^2 A^-1 + S Sigma_c S^T``, ``Cov(poses, calibration) = S Sigma_c``, ``Cov(calibration) = Sigma_c``).
+Tangents: ``("frame", frame_id)``: ``rig_from_world``, ``("sensor_from_rig", camera_id)``: a narrow camera's
+E^sl, both ``[w, dt]`` with ``R' = Exp(w) R``, ``t' = t + dt`` (rad, m); ``("camera", camera_id)``: the params.
+A parameter no image observes keeps its prior, independent of the rest (``prior_only``)."""
+
+from __future__ import annotations
+
+import logging
+import time
+from typing import Any
+
+import numpy as np
+import pyceres
+import pycolmap
+import scipy.linalg
+import scipy.sparse as sp
+
+from rigsfm.core.geometry import skew
+from rigsfm.run.adjustment.model import estimate_pixel_sigma, sensor_from_rig_view
+from rigsfm.run.adjustment.priors import calibration_priors
+from rigsfm.run.adjustment.problem import JointProblem
+from rigsfm.run.adjustment.result import AdjustResult, Gauge, JointCovariance, ScaleSource
+from rigsfm.run.options import Calibration
+
+logger = logging.getLogger(__name__)
+
+
+DAMPING = 1e-8  # added to each point's 3x3 block in the Schur complement
+RANK_TOLERANCE = 1e-10  # smallest / largest eigenvalue of the Jacobi-scaled reduced normal matrix
+
+
+def _csr(jacobian: pyceres.CRSMatrix) -> sp.csr_matrix:
+    return sp.csr_matrix((np.asarray(jacobian.values), np.asarray(jacobian.cols), np.asarray(jacobian.rows)),
+                         shape=(jacobian.num_rows, jacobian.num_cols))
+
+
+def _reduced_system(jp: JointProblem):
+    """Ceres' Jacobian of ``jp`` (tangent space) with the points eliminated (Schur complement, 3x3 blocks): the
+    reduced normal matrix over the other blocks, every entry ``(key, block or None, size, tangent dims)``, the
+    variable ones, and the prior-only covariances; None (with a warning) when a point carries no information."""
+    rec, problem = jp.reconstruction, jp.problem
+    entries: list[tuple[tuple, Any, int, Any]] = []  # (key, block or None, size, dims or None)
+    for frame_id in jp.frame_ids:
+        block = jp.frame_block(frame_id)
+        if not jp.has_variable(block):
+            entries.append((("frame", frame_id), None, 6, None))
+            continue
+        dims = list(range(6))
+        if jp.subset_frame is not None and jp.subset_frame[0] == frame_id:
+            dims.remove(3 + jp.subset_frame[1])
+        entries.append((("frame", frame_id), block, 6, dims))
+    prior_only = {}
+    for rig_id, sensor_id, camera_id, rig_name in jp.narrow_sensors():
+        view = sensor_from_rig_view(rec, rig_id, sensor_id)
+        key = ("sensor_from_rig", camera_id)
+        if jp.has_variable(view.params):
+            entries.append((key, view.params, 6, list(range(6))))
+        else:
+            prior_only[key] = jp.priors[rig_name].narrow_from_wide
+            entries.append((key, None, 6, None))
+    for camera_id in sorted(rec.cameras):
+        if camera_id not in jp.camera_names:
+            continue
+        camera = rec.cameras[camera_id]
+        key, sigmas = ("camera", camera_id), jp.camera_sigmas(camera_id)
+        if jp.has_variable(camera.params):
+            entries.append((key, camera.params, len(sigmas), np.flatnonzero(sigmas > 0).tolist()))
+        else:
+            prior_only[key] = np.diag(sigmas**2)
+            entries.append((key, None, len(sigmas), None))
+    variable = [entry for entry in entries if entry[1] is not None]
+    end_points = [p for p in jp.end_points if jp.has_variable(p)]
+    points = [p.xyz for p in rec.points3D.values() if jp.has_variable(p.xyz)]
+    blocks = [block for _, block, _, _ in variable] + end_points + points
+    for key, block, _, dims in variable:
+        if problem.parameter_block_tangent_size(block) != len(dims):
+            raise RuntimeError(f"unexpected tangent size of {key}")
+    evaluate = pyceres.EvaluateOptions()
+    evaluate.set_parameter_blocks(blocks)
+    jac = _csr(problem.evaluate_jacobian(evaluate)).tocsc()
+    num_a = sum(len(dims) for _, _, _, dims in variable) + 3 * len(end_points)
+    j_a, j_p = jac[:, :num_a], jac[:, num_a:]
+    h_aa = (j_a.T @ j_a).toarray()
+    if j_p.shape[1]:
+        h_pp = (j_p.T @ j_p).tobsr(blocksize=(3, 3))
+        num_points = j_p.shape[1] // 3
+        if not (np.array_equal(h_pp.indices, np.arange(num_points))
+                and np.array_equal(h_pp.indptr, np.arange(num_points + 1))):
+            logger.warning("No joint covariance: some 3D points carry no information (every observation of them is "
+                           "degenerate or cannot be projected)")
+            return None
+        inverse = np.linalg.inv(h_pp.data + DAMPING * np.eye(3))
+        h_pp_inv = sp.bsr_matrix((inverse, np.arange(num_points), np.arange(num_points + 1)), shape=h_pp.shape)
+        h_ap = (j_a.T @ j_p).tocsr()
+        schur = h_aa - (h_ap @ h_pp_inv @ h_ap.T).toarray()
+    else:
+        schur = h_aa
+    return 0.5 * (schur + schur.T), entries, variable, prior_only
+
+
+def _inverse(matrix: np.ndarray) -> np.ndarray | None:
+    """Inverse of a symmetric positive definite matrix with Jacobi scaling (radians, metres, pixels and
+    distortion units differ by orders of magnitude), by Cholesky; None when rank deficient (a pivot below
+    ``RANK_TOLERANCE`` of the largest)."""
+    if matrix.size == 0:
+        return matrix.copy()
+    scaling = 1.0 / np.sqrt(np.clip(np.diag(matrix), 1e-300, None))
+    scaled = matrix * np.outer(scaling, scaling)
+    try:
+        factor = np.linalg.cholesky(scaled)
+    except np.linalg.LinAlgError:
+        factor = None
+    pivots = np.diag(factor) ** 2 if factor is not None else np.zeros(1)
+    if factor is None or pivots.min() <= RANK_TOLERANCE * pivots.max():
+        logger.warning("No joint covariance: the problem is rank deficient (smallest Cholesky pivot %.3g of %.3g)",
+                       pivots.min(), pivots.max())
+        return None
+    inverse_factor = scipy.linalg.solve_triangular(factor, np.eye(len(factor)), lower=True)
+    return (inverse_factor.T @ inverse_factor) * np.outer(scaling, scaling)
+
+
+def _tangent_factors(variable) -> np.ndarray:
+    """Per variable tangent dimension: ours / Ceres' (``w = 2 delta`` for quaternion tangents, else 1)."""
+    return np.concatenate([[2.0 if key[0] in ("frame", "sensor_from_rig") and d < 3 else 1.0 for d in dims]
+                           # the empty case
+                           for key, _, _, dims in variable] or [np.zeros(0)])  # type: ignore[list-item]
+
+
+def _assemble(entries, variable, cov_a: np.ndarray, prior_only: dict) -> tuple:
+    """Full covariance in our tangents (held rows zero) from the covariance over the variable dimensions
+    (already in our tangents; the end points' trailing rows are dropped)."""
+    offsets, start = {}, 0
+    for key, _, size, _ in entries:
+        offsets[key] = (start, size)
+        start += size
+    full = np.zeros((start, start))
+    # the empty case
+    target = np.concatenate([[offsets[key][0] + d for d in dims] for key, _, _, dims in variable] or [np.zeros(0)])  # type: ignore[list-item]
+    target = target.astype(int)
+    full[np.ix_(target, target)] = cov_a[: len(target), : len(target)]
+    for key, cov in prior_only.items():
+        s = slice(offsets[key][0], sum(offsets[key]))
+        full[s, s] = cov
+    return tuple(key for key, _, _, _ in entries), offsets, full
+
+
+def joint_covariance(result: AdjustResult, image_only: bool = False) -> JointCovariance | None:
+    """The joint covariance of ``result`` (not modified): the posterior for ``REFINE``, the consider covariance
+    for ``FIXED`` (module docstring); with ``image_only`` the image noise's part alone (the consider covariance
+    of a calibration known exactly); None when the problem is rank deficient (a warning says why)."""
+    start = time.perf_counter()
+    rec = pycolmap.Reconstruction(result.reconstruction)
+    rigs = result.rigs
+    priors = result.priors or calibration_priors(rigs)
+    options = result.options
+    pixel_sigma = result.pixel_sigma or estimate_pixel_sigma(rec, options.max_reprojection_error_px)
+    gauge = Gauge.TWO_CAMS_FROM_WORLD if result.scale_source == ScaleSource.NONE else Gauge.RIGID
+    refined = result.calibration == Calibration.REFINE and not image_only
+    held = result.held_rigs if refined else frozenset()
+    jp = JointProblem(rec, rigs, priors, result.scale_spec, options, pixel_sigma, gauge=gauge, robust=False,
+                      with_priors=refined, held_rigs=held, consider_held=True)
+    reduced = _reduced_system(jp)
+    if reduced is None:
+        return None
+    schur, entries, variable, prior_only = reduced
+    factors = _tangent_factors(variable)
+    num_end = schur.shape[0] - len(factors)
+    factors = np.r_[factors, np.ones(num_end)]
+    if refined and held:  # the refined rigs' posterior, the held rigs' calibration considered
+        cov = _consider(jp, schur, variable, factors, consider_rigs=held)
+        if cov is None:
+            return None
+        kind = "posterior"
+    elif refined:
+        inverse = _inverse(schur)
+        if inverse is None:
+            return None
+        cov = inverse * jp.weight_sigma**2 * np.outer(factors, factors)
+        kind = "posterior"
+    else:
+        cov = _consider(jp, schur, variable, factors, 0.0 if image_only else 1.0)
+        if cov is None:
+            return None
+        kind = "image" if image_only else "consider"
+    if image_only:
+        prior_only = {key: np.zeros_like(value) for key, value in prior_only.items()}
+    keys, offsets, full = _assemble(entries, variable, cov, prior_only)
+    return JointCovariance(keys, offsets, full, jp.weight_sigma, kind, frozenset(prior_only),
+                           time.perf_counter() - start)
+
+
+def _consider(jp: JointProblem, schur: np.ndarray, variable, factors: np.ndarray,
+              prior_weight: float = 1.0, consider_rigs: frozenset[str] | None = None) -> np.ndarray | None:
+    """The consider covariance (our tangents) over the variable dimensions, end points last. ``consider_rigs``:
+    only these rigs' calibration is considered, the others' is estimated with the poses (their priors in
+    ``schur``); None: every rig's is considered."""
+    pose_index: list[int] = []
+    calibration_index: list[int] = []
+    prior_blocks: list = []
+    k = 0
+    for key, _, _, dims in variable:
+        if key[0] == "frame" or (consider_rigs is not None and jp.camera_names[key[1]].rig not in consider_rigs):
+            pose_index.extend(range(k, k + len(dims)))
+        else:
+            if key[0] == "camera":
+                block = np.diag(jp.camera_sigmas(key[1]) ** 2)
+            else:
+                block = jp.priors[jp.camera_names[key[1]].rig].narrow_from_wide
+            prior_blocks.append(block[np.ix_(dims, dims)])
+            calibration_index.extend(range(k, k + len(dims)))
+        k += len(dims)
+    pose_index += list(range(k, schur.shape[0]))  # the known lengths' end points go with the poses
+    # Everything in our tangents: the normal matrix scales with 1 / factor.
+    scaled = schur / np.outer(factors, factors)
+    a = scaled[np.ix_(pose_index, pose_index)]
+    b = scaled[np.ix_(pose_index, calibration_index)]
+    a_inv = _inverse(a)
+    if a_inv is None:
+        return None
+    prior = np.zeros((len(calibration_index), len(calibration_index)))
+    at = 0
+    for block in prior_blocks:
+        prior[at:at + len(block), at:at + len(block)] = block
+        at += len(block)
+    prior *= prior_weight
+    sensitivity = -a_inv @ b
+    cov = np.zeros_like(schur)
+    cov[np.ix_(pose_index, pose_index)] = a_inv * jp.weight_sigma**2 + sensitivity @ prior @ sensitivity.T
+    cov[np.ix_(pose_index, calibration_index)] = sensitivity @ prior
+    cov[np.ix_(calibration_index, pose_index)] = (sensitivity @ prior).T
+    cov[np.ix_(calibration_index, calibration_index)] = prior
+    return cov
+
+
+def frame_centre_jacobian(rigid: pycolmap.Rigid3d) -> tuple[np.ndarray, np.ndarray]:
+    """Centre ``-R^T t`` of a pose and its Jacobian (3x6) with respect to ``[w, dt]``."""
+    r, t = rigid.rotation.matrix(), np.asarray(rigid.translation)
+    return -r.T @ t, np.hstack([-r.T @ skew(t), -r.T])
+
+
+def network_size_sigma(covariance: JointCovariance | None, reconstruction: pycolmap.Reconstruction) -> float | None:
+    """Relative 1-sigma uncertainty of the distance between the two registered frames farthest apart: how well
+    the network's size (its metric scale) is known."""
+    if covariance is None:
+        return None
+    frames = sorted(reconstruction.reg_frame_ids())
+    # registered frames have their poses
+    centres = {f: frame_centre_jacobian(reconstruction.frame(f).rig_from_world) for f in frames}  # type: ignore[arg-type]
+    best, pair = 0.0, None
+    for k, a in enumerate(frames):
+        for b in frames[k + 1:]:
+            d = float(np.linalg.norm(centres[a][0] - centres[b][0]))
+            if d > best:
+                best, pair = d, (a, b)
+    if pair is None or best <= 0:
+        return None
+    a, b = pair
+    u = (centres[a][0] - centres[b][0]) / best
+    jac = np.hstack([u @ centres[a][1], -u @ centres[b][1]])
+    cov = covariance.sub([("frame", a), ("frame", b)])
+    return float(np.sqrt(max(jac @ cov @ jac, 0.0))) / best

@@ -1,0 +1,134 @@
+"""Hold or refine: per rig, whether the images inform its calibration enough, and agree with rigs.yaml, for the
+refined calibration to be kept (:func:`hold_or_refine`)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.linalg
+
+from rigsfm.core.names import name_of
+from rigsfm.run.adjustment.model import sensor_from_rig_view
+from rigsfm.run.adjustment.result import AdjustResult, CalibrationDecision, JointCovariance
+
+# Directions whose prior variance the images reduce by less are left out of the consistency test: the final solve
+# stops with up to FINAL_SETTLE_CHI2 (0.04) of chi^2 left to gain, which adds up to 0.04 / g to the test along a
+# direction of gain g (0.4 at this floor), and a rig none of whose directions reaches it is barely observed.
+MIN_GAIN = 0.1
+HOLD_QUANTILE = 0.95  # of the consistency test
+
+
+@dataclass(frozen=True)
+class _CalibrationChange:
+    """The refined-minus-rigs.yaml change of the observed calibration (the covariance's tangent), over the parameters
+    with a non-zero prior sigma: ``delta``, the prior and posterior covariances, and each coordinate's rig."""
+
+    delta: np.ndarray
+    prior: np.ndarray
+    posterior: np.ndarray
+    rigs: np.ndarray
+
+
+def _calibration_change(result: AdjustResult, covariance: JointCovariance) -> _CalibrationChange:
+    rec, priors = result.reconstruction, result.priors
+    calibration = {r.name: r for r in result.rigs}
+    keys, changes, prior_blocks, owners = [], [], [], []
+    for image in sorted(rec.images.values(), key=lambda im: im.image_id):
+        name = name_of(image)
+        if not image.has_pose or name.rig not in calibration:
+            continue
+        key = ("camera", image.camera_id)
+        if key in covariance.offsets and key not in covariance.prior_only and key not in keys:
+            keys.append(key)
+            changes.append(np.asarray(rec.cameras[image.camera_id].params)
+                           - np.asarray(calibration[name.rig].camera(name.sensor).params))
+            # priors are set with covariance
+            prior_blocks.append(np.diag(priors[name.rig].sensor(name.sensor) ** 2))  # type: ignore[index]
+            owners += [name.rig] * len(changes[-1])
+        key = ("sensor_from_rig", image.camera_id)
+        if name.is_narrow and key in covariance.offsets and key not in covariance.prior_only and key not in keys:
+            keys.append(key)
+            sensor = sensor_from_rig_view(rec, rec.frame(image.frame_id).rig_id, rec.cameras[image.camera_id].sensor_id)
+            given = calibration[name.rig].narrow_from_wide
+            turn = sensor.rotation * given.rotation.inverse()  # R = Exp(w) R_yaml: w is its rotation vector
+            quat = np.asarray(turn.quat)  # x, y, z, w
+            axis = quat[:3] / max(float(np.linalg.norm(quat[:3])), 1e-300) * (1.0 if quat[3] >= 0 else -1.0)
+            changes.append(np.r_[axis * turn.angle(), np.asarray(sensor.translation) - np.asarray(given.translation)])
+            # priors are set with covariance
+            prior_blocks.append(priors[name.rig].narrow_from_wide)  # type: ignore[index]
+            owners += [name.rig] * 6
+    size = sum(len(c) for c in changes)
+    prior = np.zeros((size, size))
+    at = 0
+    for block in prior_blocks:
+        prior[at:at + len(block), at:at + len(block)] = block
+        at += len(block)
+    keep = np.diag(prior) > 0  # sigma 0: held exactly by the prior itself
+    posterior = covariance.sub(keys) if keys else np.zeros((0, 0))
+    delta = np.concatenate(changes) if changes else np.zeros(0)
+    return _CalibrationChange(delta[keep], prior[np.ix_(keep, keep)], posterior[np.ix_(keep, keep)],
+                              np.asarray(owners, dtype=object)[keep])
+
+
+def _gains(prior: np.ndarray, posterior: np.ndarray, delta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The share ``g_k`` of the prior variance the images removed along each eigen-direction of ``I - Q`` (``Q`` the
+    posterior in the prior's whitened coordinates) and the whitened change's coordinates along them."""
+    inverse = scipy.linalg.solve_triangular(np.linalg.cholesky(prior), np.eye(len(prior)), lower=True)
+    gains, vectors = np.linalg.eigh(np.eye(len(prior)) - inverse @ posterior @ inverse.T)
+    return gains, vectors.T @ (inverse @ delta)
+
+
+def hold_or_refine(result: AdjustResult, covariance: JointCovariance | None) -> list[CalibrationDecision]:
+    """Per rig, whether its refined calibration is kept or held at rigs.yaml's values.
+
+    In the prior's whitened coordinates (``u = L^-1 (c - c_yaml)``, ``Sigma = L L^T``) the images remove a share
+    ``g_k`` of the prior variance along each eigen-direction ``v_k`` of ``I - L^-1 P L^-T`` (``P`` the posterior
+    covariance). Three tests:
+
+    - the network's observability: refine only if some direction of the whole calibration (over all rigs: the
+      images inform combinations, such as two rigs' focal lengths against each other) has ``g_k >= 1/2``, i.e. the
+      images inform it more than rigs.yaml's sigmas do; below that the posterior is mostly the prior, and a change
+      is mostly whatever the images' unmodelled errors (wrong clicks, systematic feature offsets) pulled it to;
+    - each rig's observability: ``g_k >= MIN_GAIN`` in some direction of its own calibration (its marginal);
+    - each rig's consistency: were priors and images both right, its change would be distributed as ``N(0, I - Q)``
+      (the spread of the posterior mean), so ``sum_k (v_k . u)^2 / g_k`` over its directions with ``g_k >=
+      MIN_GAIN`` is chi-square with that many degrees of freedom; above the ``HOLD_QUANTILE`` quantile the images
+      moved the calibration further than their information allows, and the move is not trusted.
+
+    Without a covariance (a rank-deficient problem) every rig is held."""
+    from scipy.stats import chi2 as chi2_distribution  # scipy.stats takes a while to import
+
+    rigs = sorted({name_of(im).rig for im in result.reconstruction.images.values() if im.has_pose}
+                  & {r.name for r in result.rigs})
+    if covariance is None:
+        return [CalibrationDecision(rig, True, "no covariance to test its refinement against") for rig in rigs]
+    change = _calibration_change(result, covariance)
+    network_gain = float(_gains(change.prior, change.posterior, change.delta)[0].max(initial=0.0)) \
+        if len(change.delta) else 0.0
+    decisions = []
+    for rig in rigs:
+        mine = change.rigs == rig
+        if not mine.any():
+            decisions.append(CalibrationDecision(rig, True, "no image observes its calibration"))
+            continue
+        gains, z = _gains(change.prior[np.ix_(mine, mine)], change.posterior[np.ix_(mine, mine)], change.delta[mine])
+        tested = gains >= MIN_GAIN
+        chi2, dof = float(np.sum(z[tested] ** 2 / gains[tested])), int(tested.sum())
+        limit = float(chi2_distribution.ppf(HOLD_QUANTILE, dof)) if dof else 0.0
+        largest = float(gains.max())
+        if network_gain < 0.5:
+            held, reason = True, (f"the images inform no direction of the network's calibration more than rigs.yaml's "
+                                  f"sigmas do (they remove at most {int(100 * max(network_gain, 0.0))} % of one's prior "
+                                  "variance)")
+        elif not dof:
+            held, reason = True, (f"the images barely observe its calibration (at most {int(100 * max(largest, 0.0))} % "
+                                  "of a direction's prior variance removed)")
+        elif chi2 > limit:
+            held, reason = True, (f"the refinement moved it further than the images' information allows (chi-square "
+                                  f"{chi2:.1f} > {limit:.1f}, {dof} dof)")
+        else:
+            held, reason = False, (f"the images inform it (up to {100 * largest:.0f} % of a direction's prior variance "
+                                   f"removed) and agree with rigs.yaml (chi-square {chi2:.1f} <= {limit:.1f}, {dof} dof)")
+        decisions.append(CalibrationDecision(rig, held, reason, largest, chi2, dof, limit))
+    return decisions

@@ -1,0 +1,136 @@
+"""Do scale.yaml's measurements agree on the scale of the mapped model? (a plausibility check before the adjustment)
+
+Each measurement i (a camera distance or a known length) of M_i metres has a length L_i in the mapped model,
+so it implies M_i / L_i metres per model unit. Measurements of one network imply one scale: a distance written in
+millimetres, centimetres or feet implies 1000x, 100x or 3.3x the others' scale and, weighted by its small sigma,
+would drag the whole adjustment (and make the uncertainty stage take minutes) before the run ended with residuals
+no one can read. :func:`check_scale_agreement` compares each measurement's scale with the median of the others' and
+refuses, in one line naming them and the fix, those off by more than :data:`PLAUSIBLE_FACTOR` beyond their sigmas.
+
+The mapped model is the mapper's, before the adjustment: its shape is good where rigs share points (its errors are
+percent, far inside the factor) but open for rigs tied loosely to the rest, whose distances the adjustment settles
+with the measurements themselves. Distances to such rigs are left out here, as are measurements the mapped model
+cannot hold (unregistered cameras, a bar seen in fewer than two registered images). A narrow camera's centre is its
+rig's wide centre, with the rig's baseline |t| added to the distance's uncertainty.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import pycolmap
+
+from rigsfm.core.errors import InputError
+from rigsfm.core.rig import RigCalibration
+from rigsfm.run.adjustment.scale import UnusableMeasurement, camera_centre, known_length_in_model
+from rigsfm.run.inputs.scale_file import ScaleSpec
+from rigsfm.run.mapping.ties import loosely_tied_rigs
+
+# Beyond their sigmas, measurements of one network may imply scales this far apart in the mapped model before they
+# are refused: the mapper's shape errors between well-tied rigs are percent; unit mistakes are 3.3x (feet), 10x and
+# more.
+PLAUSIBLE_FACTOR = 2.0
+SIGMAS = 3.0
+
+
+@dataclass(frozen=True)
+class _Implied:
+    label: str
+    meters: float
+    model_length: float
+    relative_sigma: float  # of meters / model_length
+
+    @property
+    def log_scale(self) -> float:
+        return math.log(self.meters / self.model_length)
+
+
+def _wide_end(camera: str, rigs: dict[str, RigCalibration]) -> tuple[str, float]:
+    """``<rig>/<sensor>[/<file>]`` -> the name whose centre the mapped model holds (the wide camera's: the mapper
+    poses wide images), and how far (metres) the named camera's centre may lie from it."""
+    parts = camera.split("/")
+    if len(parts) >= 2 and parts[1] == "narrow":
+        rig = rigs.get(parts[0])
+        baseline = float(np.linalg.norm(rig.narrow_from_wide.translation)) if rig is not None else 0.0
+        return f"{parts[0]}/wide", baseline
+    return camera, 0.0
+
+
+def implied_scales(reconstruction: pycolmap.Reconstruction, spec: ScaleSpec,
+                   rigs: Sequence[RigCalibration]) -> list[_Implied]:
+    """The measurements the mapped model holds, each with the scale it implies and that scale's relative sigma."""
+    by_name = {rig.name: rig for rig in rigs}
+    loose = set(loosely_tied_rigs(reconstruction))
+    implied = []
+    for i, d in enumerate(spec.camera_distances):
+        (a, slack_a), (b, slack_b) = _wide_end(d.a, by_name), _wide_end(d.b, by_name)
+        if {a.split("/")[0], b.split("/")[0]} & loose:
+            continue
+        try:
+            length = float(np.linalg.norm(camera_centre(reconstruction, a) - camera_centre(reconstruction, b)))
+        except UnusableMeasurement:
+            continue
+        if length <= 0.0:
+            continue
+        sigma = math.hypot(d.sigma, slack_a + slack_b) / d.meters
+        implied.append(_Implied(f"camera_distance[{i}] ('{d.a}' - '{d.b}', {d.meters:g} m)", d.meters, length, sigma))
+    for i, item in enumerate(spec.known_lengths):
+        try:
+            length, model_sigma = known_length_in_model(reconstruction, item, spec.pixel_sigma)
+        except UnusableMeasurement:
+            continue
+        if length <= 0.0 or not math.isfinite(length):
+            continue
+        sigma = math.hypot(item.sigma / item.meters, model_sigma / length)
+        implied.append(_Implied(f"known_length[{i}] ({item.meters:g} m)", item.meters, length, sigma))
+    return implied
+
+
+def _times(ratio: float) -> str:
+    """``ratio`` in words a unit mistake is recognised by: 1000x, 3.3x, 1/1000."""
+    big = ratio if ratio >= 1.0 else 1.0 / ratio
+    words = f"{big:.0f}" if big >= 10.0 else f"{big:.2g}"
+    return f"{words}x" if ratio >= 1.0 else f"1/{words}"
+
+
+def _agree(a: _Implied, b: _Implied) -> bool:
+    tolerance = math.log(PLAUSIBLE_FACTOR) + SIGMAS * math.log1p(a.relative_sigma + b.relative_sigma)
+    return abs(a.log_scale - b.log_scale) <= tolerance
+
+
+def check_scale_agreement(reconstruction: pycolmap.Reconstruction, spec: ScaleSpec,
+                          rigs: Sequence[RigCalibration]) -> None:
+    """Refuse (``InputError``, one line) measurements whose scale in the mapped model disagrees with the others'
+    by more than :data:`PLAUSIBLE_FACTOR` beyond :data:`SIGMAS` of their uncertainties: those outside the largest
+    group that agree with one another when it holds most of them, else all; nothing with fewer than two
+    measurements the model holds."""
+    implied = implied_scales(reconstruction, spec, rigs)
+    if len(implied) < 2:
+        return
+    groups = [[o for o in implied if _agree(m, o)] for m in implied]
+    group = max(groups, key=len)
+    if len(group) == len(implied):
+        return
+    fix = "in other units than metres (millimetres, feet) or measures other points: fix it, or remove it"
+    if 2 * len(group) > len(implied):  # most agree: the others are the odd ones out
+        reference = float(np.median([m.log_scale for m in group]))
+        parts = []
+        for m in implied:
+            if m not in group:
+                ratio = math.exp(m.log_scale - reference)
+                parts.append(f"{m.label} is {_times(ratio)} what the other {len(group)} measurement(s) give in the "
+                             f"mapped model ({m.meters / ratio:.4g} m)")
+        raise InputError(f"{spec.path}: {'; '.join(parts)}: a unit mistake (millimetres, feet) or other end points? "
+                         "Give it in metres between the points named, or remove it")
+    if len(implied) == 2:
+        first, second = implied
+        ratio = math.exp(first.log_scale - second.log_scale)
+        raise InputError(f"{spec.path}: {first.label} and {second.label} disagree on the scale by {_times(ratio)} in "
+                         f"the mapped model (by the second, the first would be {first.meters / ratio:.4g} m): one is "
+                         f"{fix}")
+    spread = math.exp(max(m.log_scale for m in implied) - min(m.log_scale for m in implied))
+    raise InputError(f"{spec.path}: {', '.join(m.label for m in implied)} disagree on the scale by up to "
+                     f"{_times(spread)} in the mapped model, no group of them agreeing: one or more is {fix}")

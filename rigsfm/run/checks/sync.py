@@ -1,0 +1,283 @@
+"""Are the narrow images of one frame name simultaneous? The per-rig frame offset of an unsynchronised recording.
+
+Rigs are static, so their poses, ``F_ji`` and bands hold for every frame; only the moving crowd tells whether
+frame ``k`` of two rigs is one instant. A rig whose frame ``k`` was taken at time ``k + o`` (frames) is ``o``
+frames off. For each pair of rigs (a, b) whose narrow footprints overlap and each candidate ``d`` in
+``-max_offset .. max_offset``, narrow a frame ``k`` is matched with narrow b frame ``k + d`` exactly as the
+epipolar self-check matches a pair (:mod:`rigsfm.run.checks.self_check`: j warped into i's view through the floor,
+candidates near i's epipolar line and between heights 0 and 2.2 m, ratio test, mutual best), with a fixed lateral
+tolerance of ``WIDE_FACTOR`` x band + keypoint noise; the pair's score at ``d`` is the share of the matches within
+band + keypoint noise of their epipolar lines (pooled over up to ``frames_per_offset`` frame pairs). Simultaneous
+images of a moving crowd match on their lines (share near 1); images a frame apart match walkers that have moved,
+so the matches spread over the whole tolerance (share near band / tolerance). a_k and b_{k+d} are simultaneous
+when ``d = o_a - o_b``.
+
+Per-rig offsets: the integer offsets (``-max_offset .. max_offset``) that maximise the summed scores of the pairs
+(each at ``d = o_a - o_b``), every assignment tried for up to ``BRUTE_FORCE_RIGS`` rigs (coordinate ascent beyond),
+then shifted so that most rigs are at 0 (ties: the first rig at 0). A rig is named unsynchronised only where the
+evidence is clear: one of its pairs is consistent (score >= ``CONSISTENT``) at the rig's offset and not with the
+rig at 0 (a pair whose epipolar lines run along the crowd's motion cannot tell, so one pair that can is enough).
+
+Sub-frame offsets are not estimated: a walker crosses several pixels of a long-focal view in a tenth of a frame,
+so the score's peak is narrower than a frame and interpolating it between integer offsets does not measure the
+fraction; a fraction shows as no consistent integer offset (the rig is not named).
+
+Needs matches on the crowd: flat-shaded persons seen from rigs tens of degrees apart share few features between
+narrow views, and then no offset is told (``offsets[r]`` None or no rig ``clear``).
+"""
+
+from __future__ import annotations
+
+import itertools
+import logging
+import math
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import pycolmap
+
+from rigsfm.core.errors import InputError
+from rigsfm.core.io import load_yaml_or_json
+from rigsfm.core.names import name_of, quoted, registered_narrow_images
+from rigsfm.run.checks.guided import (
+    KEYPOINT_NOISE_PX,
+    MIN_MATCHES,
+    WIDE_FACTOR,
+    _candidates,
+    _distances,
+    _guided_matches,
+    _load,
+    _overlapping_pairs,
+    _segments,
+    pair_features,
+)
+
+logger = logging.getLogger(__name__)
+
+CONSISTENT = 0.6  # share of matches within the band that makes a frame pairing simultaneous
+BRUTE_FORCE_RIGS = 8
+MIN_SYNC_MATCHES = MIN_MATCHES // 2  # pooled matches below which a pairing gets no score
+
+
+@dataclass(frozen=True)
+class OffsetScore:
+    d: int  # narrow a frame k against narrow b frame k + d
+    matches: int
+    consistent: float | None  # share of the matches within band + keypoint noise; None: too few matches
+
+    def to_dict(self) -> dict:
+        return {"d": self.d, "matches": self.matches,
+                "consistent": None if self.consistent is None else round(self.consistent, 4)}
+
+
+@dataclass
+class PairSync:
+    a: str  # rig names, a < b
+    b: str
+    scores: list[OffsetScore] = field(default_factory=list)
+
+    def score(self, d: int) -> float | None:
+        return next((s.consistent for s in self.scores if s.d == d), None)
+
+    def to_dict(self) -> dict:
+        return {"a": self.a, "b": self.b, "scores": [s.to_dict() for s in self.scores]}
+
+
+@dataclass
+class SyncEstimate:
+    """Per-rig integer frame offsets (module docstring); ``offsets[r]`` is None where the evidence is not clear
+    (no pair consistent at any searched offset: featureless views, or a fraction of a frame off)."""
+
+    offsets: dict[str, int | None]
+    pairs: list[PairSync]
+    frames_per_rig: dict[str, int]
+    max_offset: int
+    seconds: float
+    skipped: str | None = None
+    clear: dict[str, bool] = field(default_factory=dict)  # the rig's offset is backed by consistent pairs
+
+    @property
+    def unsynchronised(self) -> dict[str, int]:
+        """Rigs clearly off by a non-zero number of frames."""
+        return {r: o for r, o in self.offsets.items() if o and self.clear.get(r)}
+
+    @property
+    def warning(self) -> str | None:
+        off = self.unsynchronised
+        if not off:
+            return None
+        rigs = ", ".join(f"{r} is about {o:+d} frame{'s' if abs(o) > 1 else ''} off" for r, o in sorted(off.items()))
+        return (f"FRAMES NOT SYNCHRONISED: {rigs} (the moving crowd in its narrow images matches the other rigs' "
+                "on the epipolar lines only at that shift; frame k of it was taken at the others' frame k + offset): "
+                "not a calibration fault; give --frame-offsets auto (or a file 'rig: offset') to pair the frames "
+                "by time")
+
+    def to_dict(self) -> dict:
+        return {"offsets": dict(self.offsets), "unsynchronised": self.unsynchronised, "clear": dict(self.clear),
+                "frames_per_rig": dict(self.frames_per_rig), "max_offset": self.max_offset,
+                "seconds": round(self.seconds, 3), "skipped": self.skipped, "consistent_share": CONSISTENT,
+                "pairs": [p.to_dict() for p in self.pairs]}
+
+
+def rig_frames(reconstruction: pycolmap.Reconstruction) -> dict[str, list[pycolmap.Image]]:
+    """Rig -> its registered narrow images in frame-name order: a rig's frame index is the position here."""
+    frames: dict[str, list[pycolmap.Image]] = {}
+    for image in registered_narrow_images(reconstruction):
+        frames.setdefault(name_of(image).rig, []).append(image)
+    return dict(sorted(frames.items()))
+
+
+def frames_by_time(reconstruction: pycolmap.Reconstruction,
+                   offsets: dict[str, int]) -> dict[str, list[pycolmap.Image]]:
+    """Like ``synchronised_frames`` but grouping rig r's k-th narrow frame at time ``k + offsets[r]``: label ->
+    images of that instant (two or more rigs). The label is the frame name of a rig at offset 0 where one has it."""
+    by_time: dict[int, list[pycolmap.Image]] = {}
+    for rig, images in rig_frames(reconstruction).items():
+        for k, image in enumerate(images):
+            by_time.setdefault(k + int(offsets.get(rig, 0)), []).append(image)
+    grouped = {}
+    for t, images in sorted(by_time.items()):
+        if len({name_of(im).rig for im in images}) < 2:
+            continue
+        at_zero = [name_of(im).frame for im in images if not offsets.get(name_of(im).rig, 0)]
+        grouped[at_zero[0] if at_zero else f"time {t}"] = images
+    return grouped
+
+
+def _distances_for(first, second, f_ji: np.ndarray, band: float, floor_frame: bool) -> np.ndarray:
+    """Distances (px) of the guided matches of two narrow images from their epipolar lines."""
+    fi, fj = pair_features(first, second)
+    if fi is None or fj is None or len(fi.xy) < 2 or len(fj.xy) < 2:
+        return np.zeros(0)
+    lines = np.c_[fi.undistorted, np.ones(len(fi.undistorted))] @ f_ji.T
+    segments = _segments(first.image, second.image, fi.undistorted, floor_frame)
+    candidates = _candidates(f_ji, lines, fj.undistorted, segments, WIDE_FACTOR * band + KEYPOINT_NOISE_PX)
+    matches = _guided_matches(fi, fj, candidates.a, candidates.b)
+    return _distances(lines, fj, matches) if len(matches) else np.zeros(0)
+
+
+def _solve(rigs: list[str], pairs: list[PairSync], max_offset: int) -> dict[str, int]:
+    """Integer offsets maximising the pairs' summed scores at d = o_a - o_b (module docstring)."""
+    index = {r: n for n, r in enumerate(rigs)}
+    values = np.arange(-max_offset, max_offset + 1)
+    tables = []
+    for pair in pairs:
+        table = np.zeros(4 * max_offset + 1)  # by d + 2 max_offset
+        for s in pair.scores:
+            table[s.d + 2 * max_offset] = s.consistent or 0.0
+        tables.append((index[pair.a], index[pair.b], table))
+
+    def total(assignment: np.ndarray) -> np.ndarray:  # assignment: (..., rigs)
+        return sum(t[assignment[..., a] - assignment[..., b] + 2 * max_offset] for a, b, t in tables)
+
+    if len(rigs) <= BRUTE_FORCE_RIGS:
+        rest = np.array(list(itertools.product(values, repeat=len(rigs) - 1)), dtype=int).reshape(-1, len(rigs) - 1)
+        assignments = np.c_[np.zeros(len(rest), int), rest]
+        scores = total(assignments) if tables else np.zeros(len(assignments))
+        # ties: the assignment nearest all-zero
+        best = assignments[np.lexsort((np.abs(assignments).sum(axis=1), -scores))[0]]
+    else:
+        best = np.zeros(len(rigs), int)
+        for _ in range(10):
+            before = best.copy()
+            for r in range(1, len(rigs)):
+                trials = np.repeat(best[None], len(values), axis=0)
+                trials[:, r] = values
+                best = trials[int(np.argmax(total(trials)))]
+            if (best == before).all():
+                break
+    counts = {int(v): int((best == v).sum()) for v in set(best.tolist())}
+    shift = min(counts, key=lambda v: (-counts[v], v != 0, abs(v)))
+    shifted = best - shift
+    if np.abs(shifted).max(initial=0) > max_offset:  # the gauge would leave the searched range: keep rig 1 at 0
+        shifted = best
+    return {r: int(shifted[index[r]]) for r in rigs}
+
+
+def estimate_frame_offsets(reconstruction: pycolmap.Reconstruction, image_dir: Path, narrow_poses: dict, *,
+                           max_offset: int = 2, frames_per_offset: int = 2, sift_size: int = 800,
+                           warp_height_m: float = 0.0) -> SyncEstimate:
+    """Per-rig frame offsets of the narrow images (module docstring), with the ``F_ji`` and bands of
+    ``narrow_poses`` (narrow_poses.json of this model)."""
+    start = time.perf_counter()
+    world = narrow_poses.get("world") or {}
+    floor_frame = world.get("frame") == "floor" and bool(narrow_poses.get("metric"))
+    per_rig = rig_frames(reconstruction)
+    counts = {r: len(images) for r, images in per_rig.items()}
+    rigs = list(per_rig)
+    if len(rigs) < 2 or min(counts.values(), default=0) < 2:
+        return SyncEstimate({r: None for r in rigs}, [], counts, max_offset, time.perf_counter() - start,
+                            "needs narrow images of two or more rigs with two or more frames each")
+    max_offset = max(0, min(max_offset, min(counts.values()) - 1))
+    by_pair = {(p["i"], p["j"]): p for p in narrow_poses.get("pairs", [])}
+    first_frames = [images[0] for images in per_rig.values()]
+    overlapping = {tuple(sorted((name_of(reconstruction.find_image_with_name(i)).rig,
+                                 name_of(reconstruction.find_image_with_name(j)).rig)))
+                   for i, j in _overlapping_pairs(reconstruction, first_frames, floor_frame)}
+    cache: dict[str, object] = {}
+
+    def loaded(image: pycolmap.Image):
+        if image.name not in cache:
+            cache[image.name] = _load(image, Path(image_dir), warp_height_m if floor_frame else None, sift_size)
+        return cache[image.name]
+
+    pairs = []
+    for a, b in sorted(overlapping):
+        pair = PairSync(a, b)
+        for d in range(-max_offset, max_offset + 1):
+            ks = [k for k in range(counts[a]) if 0 <= k + d < counts[b]][:max(1, frames_per_offset)]
+            pooled = []
+            for k in ks:
+                image_i, image_j = per_rig[a][k], per_rig[b][k + d]
+                entry = by_pair.get((image_i.name, image_j.name))
+                band = None if entry is None else entry.get("epipolar_band_95_px")
+                if band is None or not math.isfinite(band):
+                    continue
+                first, second = loaded(image_i), loaded(image_j)
+                if first is None or second is None:
+                    continue
+                fundamental = np.asarray(entry["F_ji"], dtype=np.float64)  # type: ignore[index]  # a band: entry is set
+                distances = _distances_for(first, second, fundamental, band, floor_frame)
+                pooled.append(distances / (band + KEYPOINT_NOISE_PX))
+            distances = np.concatenate(pooled) if pooled else np.zeros(0)
+            share = float(np.mean(distances <= 1.0)) if len(distances) >= MIN_SYNC_MATCHES else None
+            pair.scores.append(OffsetScore(d, len(distances), share))
+            logger.info("sync %s frame k <-> %s frame k%+d: %d matches, %s within the band", a, b, d, len(distances),
+                        "-" if share is None else f"{100 * share:.0f} %")
+        pairs.append(pair)
+    offsets = _solve(rigs, pairs, max_offset)
+    clear = {}
+    for rig in rigs:
+        moved = dict(offsets, **{rig: 0})
+        clear[rig] = any((p.score(offsets[p.a] - offsets[p.b]) or 0.0) >= CONSISTENT
+                         and (offsets[rig] == 0 or (p.score(moved[p.a] - moved[p.b]) or 0.0) < CONSISTENT)
+                         for p in pairs if rig in (p.a, p.b))
+    estimate = SyncEstimate({r: (offsets[r] if clear[r] else None) for r in rigs}, pairs, counts, max_offset,
+                            time.perf_counter() - start, None if pairs else "no two rigs' narrow footprints overlap",
+                            clear)
+    logger.info("frame offsets: %s (%.1f s)", estimate.offsets, estimate.seconds)
+    return estimate
+
+
+def read_frame_offsets(path: Path, rigs: list[str], frames_per_rig: dict[str, int]) -> dict[str, int]:
+    """A frame-offsets file (``rig03: 1``, one rig a line, integer frames; unnamed rigs are at 0), checked against
+    the rigs and the recording's length; an ``InputError`` naming the rig and the fix otherwise."""
+    path = Path(path)
+    data = load_yaml_or_json(path, "frame offsets")
+    offsets = {}
+    for rig, value in data.items():
+        rig = str(rig)
+        if rig not in rigs:
+            raise InputError(f"{path}: rig {rig!r} is not in rigs.yaml ({quoted(rigs)}); fix its name or remove "
+                             "the line")
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise InputError(f"{path}: the offset of rig '{rig}' must be a whole number of frames (e.g. '{rig}: 1'), got "
+                             f"{value!r}")
+        frames = frames_per_rig.get(rig, 0)
+        if abs(value) >= max(frames, 1):
+            raise InputError(f"{path}: the offset {value:+d} of rig '{rig}' is beyond the recording ({frames} narrow "
+                             f"frame(s) of '{rig}': offsets {-(frames - 1)}..{frames - 1}); fix the offset")
+        offsets[rig] = value
+    return offsets

@@ -1,0 +1,254 @@
+"""The robust floor fit (``rigsfm.run.world.floor``'s steps 2-5): RANSAC over tilted-plane hypotheses, the
+refinement, its precision and the floor frame."""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+import pycolmap
+
+from rigsfm.core.names import name_of
+from rigsfm.run.world.floor_model import (
+    FloorFit,
+    FloorOptions,
+    NoFloor,
+    fit_plane,
+    posed_images,
+    rig_positions,
+    up_prior,
+)
+
+logger = logging.getLogger(__name__)
+
+
+FIRST_TRIPLES = 100  # RANSAC's first batch; then batches double up to FloorOptions.ransac_iterations
+
+
+def _ransac(points: np.ndarray, up: np.ndarray, max_tilt_deg: float, centres: np.ndarray, threshold: float,
+            margin: float, max_below_fraction: float, iterations: int, rng: np.random.Generator,
+            min_inlier_fraction: float, confidence: float = 0.999) -> tuple[np.ndarray, float] | None:
+    """Best plane (MSAC) among random triples whose normal is near ``up``, that has every centre above it and
+    fewer than ``max_below_fraction`` points per inlier more than ``margin`` below it.
+
+    Triples are drawn in batches (``FIRST_TRIPLES``, doubling up to ``iterations``) until, with ``confidence``,
+    one of them lies on the best plane found (adaptive RANSAC: ``log(1 - confidence) / log(1 - w^3)`` triples
+    for its inlier fraction w), or on a plane holding ``min_inlier_fraction`` of the points when none is found.
+    A large fixed batch wastes time where a few triples suffice, and a fixed count misses a floor that holds a small
+    share of the candidates (a small arc), depending on tiny pose changes."""
+    n = len(points)
+
+    def needed(fraction: float) -> int:
+        if fraction >= 1.0:  # every candidate on the plane: one triple
+            return 1
+        return int(np.ceil(np.log(1.0 - confidence) / np.log1p(-max(fraction, 1e-9) ** 3)))
+
+    best, best_cost, best_inliers, drawn = None, np.inf, 0, 0
+    t2 = threshold**2
+    degenerate = 1e-12 * max(1.0, float(np.abs(points).max())) ** 2  # |normal| of three collinear points
+    min_cos_tilt = np.cos(np.radians(max_tilt_deg))
+    while drawn < needed(max(best_inliers / n, min_inlier_fraction)):
+        batch = min(iterations, max(FIRST_TRIPLES, drawn))  # doubling: a plane holding most points stops early
+        triples = rng.integers(0, n, size=(batch, 3))
+        drawn += batch
+        a, b, c = points[triples[:, 0]], points[triples[:, 1]], points[triples[:, 2]]
+        normals = np.cross(b - a, c - a)
+        norms = np.linalg.norm(normals, axis=1)
+        ok = norms > degenerate
+        normals[ok] /= norms[ok, None]
+        normals *= np.sign(normals @ up)[:, None]
+        ok &= normals @ up >= min_cos_tilt
+        offsets = -np.einsum("ij,ij->i", normals, a)
+        ok &= (centres @ normals.T + offsets).min(axis=0) > threshold
+        normals, offsets = normals[ok], offsets[ok]
+        for start in range(0, len(normals), 256):
+            r = points @ normals[start:start + 256].T + offsets[start:start + 256]
+            cost = np.minimum(r**2, t2).sum(axis=0)
+            below = (r < -margin).sum(axis=0)
+            inliers = (np.abs(r) < threshold).sum(axis=0)
+            cost[below > max_below_fraction * inliers] = np.inf
+            k = int(np.argmin(cost))
+            if np.isfinite(cost[k]) and cost[k] < best_cost:
+                best_cost, best, best_inliers = cost[k], (normals[start + k], float(offsets[start + k])), int(inliers[k])
+    return best
+
+
+def _refine(points: np.ndarray, normal: np.ndarray, offset: float, up: np.ndarray, threshold: float,
+            max_rounds: int = 20) -> tuple[np.ndarray, float, np.ndarray, float]:
+    """Iterate LSQ fit on inliers and threshold = 3 robust sigmas, the sigma from the points within 3 RANSAC
+    thresholds (floor matches of different image pairs are offset from each other by the pose errors, up to
+    +-4 cm with a realistic rigs.yaml: a threshold from the inliers alone shrank onto a few pairs and tilted
+    the floor by 0.2 deg)."""
+    inliers = np.abs(points @ normal + offset) < threshold
+    t = threshold
+    for _ in range(max_rounds):
+        if inliers.sum() < 3:
+            break
+        normal, offset = fit_plane(points[inliers])
+        if normal @ up < 0:
+            normal, offset = -normal, -offset
+        r = points @ normal + offset
+        near = np.abs(r) < 3.0 * threshold
+        sigma = 1.4826 * float(np.median(np.abs(r[near])))
+        t = float(np.clip(3.0 * sigma, threshold, 3.0 * threshold))
+        new = np.abs(r) < t
+        if np.array_equal(new, inliers):
+            break
+        inliers = new
+    return normal, offset, inliers, t
+
+
+def plane_precision(points: np.ndarray, normal: np.ndarray, sigma: float,
+                    centres: np.ndarray) -> tuple[float, float]:
+    """Standard errors of a least-squares plane through ``points`` with residual noise ``sigma``: of its
+    normal's tilt (degrees, the worse axis) and of the heights of ``centres`` above it (the largest).
+
+    Height above the plane near the points' centroid c: h(x) = e + a u + b v, (u, v) in-plane coordinates of
+    x - c; cov(e) = sigma^2 / N, cov(a, b) = sigma^2 (sum of [u v]^T [u v])^-1; (a, b) is the tilt in radians."""
+    p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    if len(p) < 3 or not np.isfinite(sigma):
+        return float("inf"), float("inf")
+    a = np.cross(normal, [1.0, 0.0, 0.0] if abs(normal[0]) < 0.9 else [0.0, 1.0, 0.0])
+    a /= np.linalg.norm(a)
+    b = np.cross(normal, a)
+    centroid = p.mean(axis=0)
+    uv = (p - centroid) @ np.stack([a, b]).T
+    scatter = uv.T @ uv
+    if np.linalg.cond(scatter) > 1e12:
+        return float("inf"), float("inf")
+    tilt = sigma**2 * np.linalg.inv(scatter)
+    normal_sigma = float(np.degrees(np.sqrt(np.linalg.eigvalsh(tilt).max())))
+    at = (np.asarray(centres, dtype=np.float64).reshape(-1, 3) - centroid) @ np.stack([a, b]).T
+    variance = sigma**2 / len(p) + np.einsum("ij,jk,ik->i", at, tilt, at)
+    return normal_sigma, float(np.sqrt(variance.max())) if len(at) else float("inf")
+
+
+def _occupied_cells(points: np.ndarray, normal: np.ndarray, cell: float) -> int:
+    """How many square cells of side ``cell`` of the plane (normal ``normal``) the points fall in."""
+    a = np.cross(normal, [1.0, 0.0, 0.0] if abs(normal[0]) < 0.9 else [0.0, 1.0, 0.0])
+    a /= np.linalg.norm(a)
+    b = np.cross(normal, a)
+    ij = np.floor(np.c_[points @ a, points @ b] / cell).astype(np.int64)
+    return len(np.unique(ij, axis=0))
+
+
+def _floor_frame(normal: np.ndarray, offset: float, reconstruction: pycolmap.Reconstruction,
+                 x_towards: str | None) -> tuple[pycolmap.Rigid3d, str]:
+    rigs = rig_positions(reconstruction)
+    centroid = np.mean([c for _, c in rigs.values()], axis=0)
+    origin = centroid - (normal @ centroid + offset) * normal
+    if x_towards is None:
+        name, target = next(iter(rigs.values()))
+    else:
+        matches = [(n, c) for n, c in rigs.values() if n == x_towards]
+        if not matches:
+            raise ValueError(f"x_towards={x_towards!r} is not a registered rig ({', '.join(n for n, _ in rigs.values())})")
+        name, target = matches[0]
+    x = target - origin
+    x -= (x @ normal) * normal
+    if np.linalg.norm(x) < 1e-9 * max(1.0, float(np.linalg.norm(target))):
+        image = next(im for im in posed_images(reconstruction)
+                     if name_of(im).rig == name and not name_of(im).is_narrow)
+        x = np.asarray(image.viewing_direction(), dtype=np.float64)
+        x -= (x @ normal) * normal
+    x /= np.linalg.norm(x)
+    y = np.cross(normal, x)
+    rotation = np.stack([x, y, normal])  # rows: floor axes in model coordinates
+    floor_from_model = pycolmap.Rigid3d(pycolmap.Rotation3d(rotation), -rotation @ origin)
+    return floor_from_model, name
+
+
+def fit_floor(reconstruction: pycolmap.Reconstruction, markers: np.ndarray | None = None,
+              options: FloorOptions | None = None, *, extra_points: np.ndarray | None = None,
+              x_towards: str | None = None, quiet: bool = False) -> FloorFit | NoFloor:
+    """Fit the floor plane to the sparse points, ``extra_points`` (e.g. from
+    :func:`rigsfm.run.world.floor_matching.match_floor_points`) and ``markers`` (model-frame points known to be on
+    the floor), and define the floor frame (module docstring). Returns :class:`NoFloor` with the reason when
+    the scene has no detectable floor. ``quiet``: leave the warnings in the result, unlogged."""
+    opt = options or FloorOptions()
+    images = posed_images(reconstruction)
+    if len(images) < 1:
+        return NoFloor("no registered image")
+    up, prior_source = up_prior(reconstruction)
+    max_tilt = opt.max_tilt_deg if prior_source == "camera x axes" else min(2.0 * opt.max_tilt_deg, 60.0)
+    centres = np.array([im.projection_center() for im in images])
+    lowest = float((centres @ up).min())
+
+    ids, xyz = [], []
+    for point_id, point in reconstruction.points3D.items():
+        if point.track.length() >= opt.min_track_length and point.error <= opt.max_reprojection_error:
+            ids.append(point_id)
+            xyz.append(point.xyz)
+    ids = np.asarray(ids, dtype=np.int64)  # type: ignore[assignment]  # here an array
+    xyz = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)  # type: ignore[assignment]
+    below = xyz @ up < lowest
+    ids, xyz = ids[below], xyz[below]
+    markers = np.zeros((0, 3)) if markers is None else np.asarray(markers, dtype=np.float64).reshape(-1, 3)
+    extra = np.zeros((0, 3)) if extra_points is None else np.asarray(extra_points, dtype=np.float64).reshape(-1, 3)
+    extra = extra[extra @ up < lowest]
+    points = np.vstack([xyz, extra, markers])
+    source = np.repeat(np.array(["sparse", "matched", "markers"]), [len(xyz), len(extra), len(markers)])
+    is_marker = source == "markers"
+    if len(points) < opt.min_points:
+        return NoFloor(f"only {len(points)} sparse points lie below the cameras (need {opt.min_points}): "
+                       "the floor is not textured or not seen")
+
+    depth_below = lowest - points @ up
+    scale = float(np.median(depth_below))  # ~ the camera height when most points are on the floor
+    threshold = opt.threshold if opt.threshold is not None else 0.01 * scale
+    margin = max(3 * threshold, 0.05 * scale)
+    rng = np.random.default_rng(opt.seed)
+    best = _ransac(points, up, max_tilt, centres, threshold, margin, opt.max_below_fraction,
+                   opt.ransac_iterations, rng, opt.min_inlier_fraction)
+    if best is None:
+        return NoFloor(f"no plane within {max_tilt:.0f} deg of the cameras' up direction has all cameras above it "
+                       "and few points below it")
+    normal, offset, inliers, t = _refine(points, *best, up, threshold)
+    count = int(inliers.sum())
+    if count < opt.min_points or count < opt.min_inlier_fraction * len(points):
+        return NoFloor(f"the best floor candidate holds {count} of the {len(points)} points below the cameras "
+                       f"(need {opt.min_points} and {100 * opt.min_inlier_fraction:.0f} %)")
+    heights_of_centres = centres @ normal + offset
+    if heights_of_centres.min() <= 0:
+        return NoFloor("the best floor candidate has a camera below it")
+    median_height = float(np.median(heights_of_centres))
+    cells = _occupied_cells(points[inliers], normal, median_height / 2)
+    if cells < opt.min_cells:
+        return NoFloor(f"the best floor candidate ({count} points) covers only {cells} cells of "
+                       f"{median_height / 2:.3g} x {median_height / 2:.3g} (half the camera height; need "
+                       f"{opt.min_cells}): box tops or a platform, not the floor")
+    r = points @ normal + offset
+    below_fraction = float(np.sum(r < -max(3 * t, 0.05 * median_height)) / count)
+    if below_fraction > opt.max_below_fraction:
+        return NoFloor(f"the best floor candidate has {100 * below_fraction:.0f} % as many points well below it as "
+                       "on it: it is not the lowest surface (no floor seen, or a floor reflecting the scene)")
+    residuals = r[inliers]
+    rms = float(np.sqrt(np.mean(residuals**2)))
+    robust_sigma = 1.4826 * float(np.median(np.abs(residuals)))
+    warnings = []
+    if below_fraction > 0.2:
+        warnings.append(f"{100 * below_fraction:.0f} % as many points lie well below the floor as on it: a pit, "
+                        "stands below floor level, or reflections in a glossy floor?")
+    marker_residuals = [float(v) for v in r[is_marker]]
+    far = [v for v in marker_residuals if abs(v) > 3 * t]
+    if far:
+        warnings.append(f"{len(far)} known-length end point(s) are off the floor by up to {max(map(abs, far)):.3g}: "
+                        "are the markers on the floor?")
+    angle = float(np.degrees(np.arccos(np.clip(normal @ up, -1.0, 1.0))))
+    normal_sigma, height_sigma = plane_precision(points[inliers], normal, max(robust_sigma, rms / 3), centres)
+    floor_from_model, origin_rig = _floor_frame(normal, offset, reconstruction, x_towards)
+    for w in warnings if not quiet else ():
+        logger.warning("floor: %s", w)
+    logger.info("floor: %d of %d points below the cameras, RMS %.3g, normal %.2f deg from the %s", count,
+                len(points), rms, angle, prior_source)
+    return FloorFit(
+        normal=normal, offset=float(offset), rms=rms, robust_sigma=robust_sigma, threshold=t, num_points=count,
+        num_candidates=len(points),
+        points_by_source={k: int(np.sum(inliers & (source == k))) for k in ("sparse", "matched", "markers")},
+        up_prior=up, up_prior_source=prior_source, prior_angle_deg=angle,
+        floor_from_model=floor_from_model, origin_rig=origin_rig,
+        camera_heights={im.name: float(h) for im, h in zip(images, heights_of_centres)},
+        marker_residuals=marker_residuals, below_fraction=below_fraction,
+        inlier_ids=ids[inliers[: len(ids)]], warnings=tuple(warnings),
+        normal_sigma_deg=normal_sigma, height_sigma=height_sigma,
+    )

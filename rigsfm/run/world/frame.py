@@ -1,0 +1,240 @@
+"""Stage 7, world (after ``adjust``): the result in the analyst's world -- z = 0 on the floor, z up, metres.
+
+``--world floor`` (default): the floor plane is found (:func:`rigsfm.run.world.floor.estimate_floor`: the sparse points
+and the known-length markers, which lie on the floor, and only when they do not fix it precisely enough,
+floor matches between the wide images through a plane-induced warp) and the model is moved into the floor
+frame with a scale-1 similarity, so E^sl and the metres are untouched:
+
+- z: the floor's upward normal; the floor is z = 0;
+- origin: under the centroid of the rigs (mean wide-camera centre of each registered rig);
+- x: horizontal, from the origin towards the first rig of rigs.yaml (the first registered one); y = z x x.
+
+When no floor is found the mapper's frame is kept and the warning ``NO FLOOR FOUND`` says why and what to do.
+``--world mapping`` keeps the mapper's frame (after the metric adjustment) without looking for a floor.
+
+In the floor frame every narrow camera gets its ground maps (:func:`ground_maps`, written into
+narrow_poses.json): ``ground_from_image`` on the floor and on ``--plane-height`` (e.g. 1.7 for heads), the
+footprint polygon and the ground sampling distance at the footprint centre; pairs get the area both see.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import pycolmap
+
+from rigsfm.core.errors import InputError
+from rigsfm.core.geometry import Plane
+from rigsfm.core.ground import Footprint, coverage, footprints, ground_from_image, pairwise_overlaps
+from rigsfm.core.names import ImageName, name_of, registered_narrow_images
+from rigsfm.run.inputs.scale_file import ScaleSpec
+from rigsfm.run.options import WorldFrame, WorldOptions
+from rigsfm.run.world.analysis_floor import find_floor
+from rigsfm.run.world.floor import FloorEstimate, apply_floor_frame, estimate_floor
+from rigsfm.run.world.floor_model import floor_markers, rig_positions
+
+logger = logging.getLogger(__name__)
+
+ORIGIN = "on the floor under the centroid of the rigs (mean wide-camera centre of each registered rig)"
+X_AXIS = "horizontal, from the origin towards the first registered rig of rigs.yaml ({rig})"
+Z_AXIS = "up, normal to the floor; z = 0 on the floor"
+NO_FLOOR_HELP = "give known-length markers on the floor (scale.yaml), or --world mapping"
+
+
+def validate_world_options(options: WorldOptions) -> None:
+    """Refuse impossible world options before any heavy work (the camera heights are checked once the floor
+    is known, :func:`check_plane_heights`)."""
+    for height in options.plane_heights:
+        if not np.isfinite(height):
+            raise InputError(f"--plane-height {height} is not a height: give one above the floor in metres (e.g. 1.7 "
+                             "for heads)")
+        if height < 0:
+            raise InputError(f"--plane-height {height:g} m is below the floor: give a height above it in metres "
+                             "(e.g. 1.7 for heads)")
+    if options.plane_heights and options.frame == WorldFrame.MAPPING:
+        raise InputError("--plane-height needs the floor frame: leave out --world mapping")
+
+
+def check_plane_heights(heights: Sequence[float], camera_heights: dict[str, float]) -> None:
+    """Refuse a plane at or above a narrow camera (it would not see it)."""
+    narrow = {n: h for n, h in camera_heights.items() if ImageName.parse(n).is_narrow}
+    if not narrow:
+        return
+    lowest_name = min(narrow, key=narrow.get)  # type: ignore[arg-type]  # typeshed: get's overloads
+    for height in heights:
+        if height >= narrow[lowest_name]:
+            raise InputError(
+                f"--plane-height {height:g} m is above the narrow cameras (the lowest, {lowest_name}, is "
+                f"{narrow[lowest_name]:.2f} m above the floor): give a height below it (e.g. 1.7 for heads); "
+                "features and matches in OUT are reused by a re-run with --overwrite")
+
+
+@dataclass
+class WorldResult:
+    """The frame the result is in and how it was found (``to_dict`` goes into narrow_poses.json and summary.json)."""
+
+    asked: WorldFrame
+    frame: WorldFrame  # the frame used: floor, or mapping (asked, or no floor found)
+    estimate: FloorEstimate | None = None
+    x_rig: str | None = None
+    plane_heights: tuple[float, ...] = ()  # planes of the ground maps (0 = the floor first)
+    metric: bool = True
+    warnings: list[str] = field(default_factory=list)
+
+    def floor_plane(self) -> Plane | None:
+        """The floor in the frame it was fitted in (before :meth:`apply`); None unless the floor frame was found."""
+        if self.frame != WorldFrame.FLOOR:
+            return None
+        fit = self.estimate.fit  # type: ignore[union-attr]  # FLOOR: estimated
+        return Plane(np.asarray(fit.normal, dtype=np.float64), float(fit.offset), int(fit.num_points))  # type: ignore[union-attr]  # NoFloor is falsy: a FloorFit here
+
+    def analysis_floor(self, reconstruction: pycolmap.Reconstruction,
+                       scale: ScaleSpec | None) -> tuple[Plane | None, str]:
+        """The floor the epipolar bands' analysis points lie on, in ``reconstruction``'s frame (before :meth:`apply`),
+        and where it comes from: the floor fit (``floor_fit``), else :func:`find_floor`'s."""
+        plane = self.floor_plane()
+        return (plane, "floor_fit") if plane is not None else find_floor(reconstruction, scale)
+
+    def apply(self, reconstruction: pycolmap.Reconstruction) -> None:
+        """Move ``reconstruction`` (in place, scale 1) into this frame; nothing for the mapper's frame."""
+        if self.frame != WorldFrame.FLOOR:
+            return
+        fit = self.estimate.fit  # type: ignore[union-attr]  # FLOOR: estimated
+        apply_floor_frame(reconstruction, fit)  # type: ignore[arg-type]  # NoFloor is falsy: a FloorFit here
+        logger.info("World: floor frame (%d floor points: %s; RMS %.3g)", fit.num_points, fit.points_by_source,  # type: ignore[union-attr]
+                    fit.rms)  # type: ignore[union-attr]
+
+    def to_dict(self) -> dict:
+        data: dict[str, object] = {"asked": str(self.asked), "frame": str(self.frame)}
+        if self.frame == WorldFrame.FLOOR:
+            data.update({"units": "metres" if self.metric else "arbitrary (not metric)", "origin": ORIGIN,
+                         "x_axis": X_AXIS.format(rig=self.x_rig), "z_axis": Z_AXIS,
+                         "plane_heights_m": list(self.plane_heights)})
+        else:
+            data["description"] = ("the mapper's frame after the metric adjustment (arbitrary orientation and "
+                                   "origin)")
+        if self.estimate is not None:
+            fit = self.estimate.fit
+            # FloorFit is truthy: a NoFloor here; NoFloor is falsy: a FloorFit here
+            floor = fit.to_dict() if fit else {"found": False, "reason": fit.reason}  # type: ignore[union-attr]
+            if fit:
+                floor = {"found": True, **{k: floor[k] for k in (
+                    "num_points", "points_by_source", "rms", "robust_sigma", "threshold", "num_candidates",
+                    "normal_sigma_deg", "camera_height_sigma", "camera_height", "prior_angle_deg",
+                    "up_prior_source", "marker_residuals", "floor_from_model")}}
+                floor["floor_from_mapping"] = floor.pop("floor_from_model")
+            floor["matching"] = {"ran": self.estimate.why_matched is not None, "why": self.estimate.why_matched,
+                                 "rounds": self.estimate.rounds, "image_pairs": self.estimate.pairs,
+                                 "matched_points": self.estimate.matched_points,
+                                 "seconds": round(self.estimate.seconds, 3)}
+            data["floor"] = floor
+        return data
+
+
+def first_registered_rig(reconstruction: pycolmap.Reconstruction, rig_names: Sequence[str]) -> str | None:
+    registered = {name for name, _ in rig_positions(reconstruction).values()}
+    return next((name for name in rig_names if name in registered), None)
+
+
+def locate_world(reconstruction: pycolmap.Reconstruction, image_dir: Path | None, scale: ScaleSpec | None,
+                 rig_names: Sequence[str], options: WorldOptions, *, metric: bool = True) -> WorldResult:
+    """Find the frame ``options.frame`` asks for (module docstring) without moving ``reconstruction``:
+    :meth:`WorldResult.apply` moves it."""
+    if options.frame == WorldFrame.MAPPING:
+        return WorldResult(options.frame, WorldFrame.MAPPING, metric=metric)
+    x_rig = first_registered_rig(reconstruction, rig_names)
+    markers = floor_markers(reconstruction, scale)
+    estimate = estimate_floor(reconstruction, image_dir, markers, x_towards=x_rig)
+    fit = estimate.fit
+    if not fit:
+        # FloorFit is truthy: a NoFloor here
+        warning = f"NO FLOOR FOUND: {fit.reason}; the mapper's frame is kept: {NO_FLOOR_HELP}"  # type: ignore[union-attr]
+        logger.warning(warning)
+        return WorldResult(options.frame, WorldFrame.MAPPING, estimate, metric=metric, warnings=[warning])
+    heights = tuple(options.plane_heights)
+    if heights and metric:
+        # NoFloor is falsy: a FloorFit here
+        check_plane_heights(heights, fit.camera_heights)  # type: ignore[union-attr]
+    warnings = [f"FLOOR: {w}" for w in fit.warnings]  # type: ignore[union-attr]
+    if heights and not metric:
+        warnings.append(f"PLANE HEIGHT IGNORED: the result is not metric, so {heights[0]:g} m has no meaning "
+                        "here; give a scale.yaml")
+        heights = ()
+    # NoFloor is falsy: a FloorFit here
+    return WorldResult(options.frame, WorldFrame.FLOOR, estimate, fit.origin_rig,  # type: ignore[union-attr]
+                       tuple(dict.fromkeys((0.0, *heights))), metric, warnings)
+
+
+def place_in_world(reconstruction: pycolmap.Reconstruction, image_dir: Path | None, scale: ScaleSpec | None,
+                   rig_names: Sequence[str], options: WorldOptions, *, metric: bool = True) -> WorldResult:
+    """Move ``reconstruction`` (in place) into the frame ``options.frame`` asks for (module docstring)."""
+    world = locate_world(reconstruction, image_dir, scale, rig_names, options, metric=metric)
+    world.apply(reconstruction)
+    return world
+
+
+# --- ground maps (narrow_poses.json) ---------------------------------------------------------------------
+
+
+def _footprint_dict(image: pycolmap.Image, height: float, fp: Footprint | None) -> dict:
+    try:
+        homography = ground_from_image(image, height).tolist()
+    except ValueError:
+        homography = None
+    entry = {"plane_height_m": float(height), "ground_from_image": homography}
+    if fp is None:
+        entry.update({"footprint_m": None, "footprint_area_m2": 0.0, "footprint_centre_m": None,
+                      "gsd_mm_per_px": None, "gsd_mm_per_px_xy": None, "clipped": None})
+        return entry
+    entry.update({
+        "footprint_m": np.round(fp.polygon, 4).tolist(),
+        "footprint_area_m2": fp.area,
+        "footprint_centre_m": None if fp.centre is None else fp.centre.tolist(),
+        "gsd_mm_per_px": fp.gsd_mm_per_px,
+        "gsd_mm_per_px_xy": None if fp.gsd_mm_per_px_xy is None else list(fp.gsd_mm_per_px_xy),
+        "clipped": fp.clipped,
+    })
+    return entry
+
+
+@dataclass(frozen=True)
+class GroundMaps:
+    """Per plane height: every narrow image's ground entry; per pair of narrow cameras (``<rig>/narrow``) the
+    area both see; the area seen by two or more narrow cameras."""
+
+    heights: tuple[float, ...]
+    per_image: dict[str, list[dict]]  # image name -> one entry per height (narrow_poses.json "ground")
+    overlaps: dict[tuple[str, str], list[float]]  # (camera a, camera b) -> overlap area (m^2) per height
+    seen_twice_m2: list[float]  # area seen by >= 2 narrow cameras, per height
+
+    def overlap(self, image_a: str, image_b: str) -> list[float] | None:
+        """Overlap areas per height of the cameras of two images (None for the same camera)."""
+        a, b = ImageName.parse(image_a).camera, ImageName.parse(image_b).camera
+        if a == b:
+            return None
+        return self.overlaps.get((min(a, b), max(a, b)), [0.0] * len(self.heights))
+
+
+def ground_maps(reconstruction: pycolmap.Reconstruction, heights: Sequence[float]) -> GroundMaps:
+    """Ground maps of every registered narrow image on each plane ``z = h`` (the model in the floor frame).
+    Overlaps and coverage count cameras: each narrow camera by its first registered frame (rigs are static)."""
+    images = registered_narrow_images(reconstruction)
+    per_image: dict[str, list] = {im.name: [] for im in images}
+    first: dict = {}
+    for image in images:
+        first.setdefault(name_of(image).camera, image.name)
+    overlaps: dict[tuple[str, str], list[float]] = {}
+    seen_twice = []
+    for k, height in enumerate(heights):
+        prints = footprints(reconstruction, "narrow", height)
+        for image in images:
+            per_image[image.name].append(_footprint_dict(image, height, prints.get(image.name)))
+        cameras = {camera: prints[name] for camera, name in first.items() if name in prints}
+        for overlap in pairwise_overlaps(cameras, pieces=False):
+            overlaps.setdefault((overlap.a, overlap.b), [0.0] * len(heights))[k] = overlap.area
+        seen_twice.append(coverage(cameras).area_at_least(2))
+    return GroundMaps(tuple(float(h) for h in heights), per_image, overlaps, seen_twice)

@@ -67,6 +67,10 @@ logger = logging.getLogger(__name__)
 # progress(stage, done, total); (stage, 0, 0) when a stage starts, before its total is known.
 Progress = Callable[[str, int, int], None]
 
+NO_COVARIANCE = ("NO BANDS: the joint covariance of rig poses and calibration could not be computed (the log's "
+                 "'No joint covariance' line says why): narrow_poses.json holds no epipolar bands and no pose sigmas, and "
+                 "every rig's calibration stays at rigs.yaml's; the poses are usable, but search correspondences without a "
+                 "band (or with the self-check's measured spread) and report the run with its colmap.log and database.db")
 # The heavy stages run in a child process (rigsfm.core.processes: Ctrl-C and SIGTERM stop them at once).
 STAGE_MODULES = ("rigsfm.run.matching.extract", "rigsfm.run.matching.pairs", "rigsfm.run.matching.match",
                  "rigsfm.run.mapping.mapper", "rigsfm.run.adjustment.adjust", "rigsfm.run.adjustment.uncertainty")
@@ -392,6 +396,8 @@ def _run_locked(workspace: Workspace, inputs: Inputs, manual_pairs: dict, option
     if options.manual_matches is not None:
         summary.manual_matches = manual_matches_summary(options.manual_matches, manual_reports)
     summary.uncertainty = uncertainty_summary(result, uncertainty)
+    if uncertainty.covariance is None:
+        summary.warnings.append(NO_COVARIANCE)
     write_json_atomic(workspace.summary, summary.to_json())
     write_report(workspace.root)
     return RunResult(workspace, result.reconstruction, summary, self_check)

@@ -66,6 +66,7 @@ from rigsfm.run.adjustment.scale import (
     ScaleEstimate,
     estimate_scale,
 )
+from rigsfm.run.adjustment.track_baseline import delete_points_without_baseline
 from rigsfm.run.inputs.scale_file import ScaleSpec
 from rigsfm.run.mapping.ties import loosely_tied_rigs
 from rigsfm.run.options import AdjustOptions, Calibration
@@ -250,6 +251,7 @@ def _refine(mapped: pycolmap.Reconstruction, rigs: Sequence[RigCalibration], sca
         first = estimate_scale(rec, scale_spec)  # type: ignore[arg-type]  # MEASUREMENTS come from a scale spec
         rec.transform(pycolmap.Sim3d(first.metres_per_unit, pycolmap.Rotation3d(), np.zeros(3)))
     restore_calibration(rec, rigs)
+    delete_points_without_baseline(rec)  # the mapper's, before round 1's squared loss meets them
     try:
         pixel_sigma = estimate_pixel_sigma(rec, options.max_reprojection_error_px)
     except ReconstructionError:  # a start far from the solution: most observations are beyond the threshold

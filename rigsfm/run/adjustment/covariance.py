@@ -124,8 +124,9 @@ def _inverse(matrix: np.ndarray) -> np.ndarray | None:
         factor = None
     pivots = np.diag(factor) ** 2 if factor is not None else np.zeros(1)
     if factor is None or pivots.min() <= RANK_TOLERANCE * pivots.max():
-        logger.warning("No joint covariance: the problem is rank deficient (smallest Cholesky pivot %.3g of %.3g)",
-                       pivots.min(), pivots.max())
+        logger.warning("No joint covariance: the problem is rank deficient (%s)",
+                       "its Cholesky factorisation failed: not positive definite" if factor is None
+                       else f"smallest Cholesky pivot {pivots.min():.3g} of {pivots.max():.3g}")
         return None
     inverse_factor = scipy.linalg.solve_triangular(factor, np.eye(len(factor)), lower=True)
     return (inverse_factor.T @ inverse_factor) * np.outer(scaling, scaling)

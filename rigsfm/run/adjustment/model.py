@@ -14,6 +14,7 @@ from rigsfm.core.names import name_of
 from rigsfm.core.residuals import reprojection_errors
 from rigsfm.core.rig import RigCalibration
 from rigsfm.run.adjustment.scale import UnusableMeasurement
+from rigsfm.run.adjustment.track_baseline import delete_points_without_baseline
 from rigsfm.run.options import AdjustOptions
 
 
@@ -89,7 +90,8 @@ def constrained_bundle_adjustment(
 
 def filter_outliers(reconstruction: pycolmap.Reconstruction, max_error_px: float) -> int:
     manager = pycolmap.ObservationManager(reconstruction)
-    return manager.filter_all_points3D(max_error_px, 0.5)
+    # and the tracks of one camera centre (a static rig's frames), whose point COLMAP's angle test keeps at the lens
+    return manager.filter_all_points3D(max_error_px, 0.5) + delete_points_without_baseline(reconstruction)
 
 
 def frames_without_points(reconstruction: pycolmap.Reconstruction) -> list[str]:

@@ -49,7 +49,8 @@ from rigsfm.run.inputs import (
 from rigsfm.run.manual_matches import read_manual_matches, validate_manual_matches
 from rigsfm.run.manual_merge import add_manual_matches, manual_matches_summary
 from rigsfm.run.mapping import MappingResult, run_mapping
-from rigsfm.run.options import RunOptions
+from rigsfm.run.narrow_obs import held_out_check, second_pass
+from rigsfm.run.options import NarrowMode, RunOptions
 from rigsfm.run.priors import CalibrationPriors, calibration_priors
 from rigsfm.run.scale_file import ScaleSpec, load_scale
 from rigsfm.run.summary import CameraError, InputsSummary, MappingSummary, Registration, ScaleSummary, Summary
@@ -356,6 +357,11 @@ def _run_locked(workspace: Workspace, inputs: Inputs, manual_pairs: dict, option
         with timings.stage("world"):  # the floor, fitted in the adjusted model's frame; moved there after the bands
             world = locate_world(result.reconstruction, inputs.image_dir, inputs.scale,
                                  [rig.name for rig in inputs.rigs], options.world, metric=metric)
+        narrow = None
+        if options.narrow != NarrowMode.OFF:  # narrow observations: a second adjustment where they are used
+            with timings.stage("narrow_observations"):
+                result, narrow = second_pass(result, world, inputs, options)
+                metric = is_metric(result)
         with timings.stage("uncertainty"):
             uncertainty = in_child(estimate_uncertainty, result, floor=world.floor_plane())
         with timings.stage("deliver"):
@@ -371,6 +377,8 @@ def _run_locked(workspace: Workspace, inputs: Inputs, manual_pairs: dict, option
     if options.self_check.enabled:
         with timings.stage("self_check"):
             self_check, frame_offsets = _self_check(workspace, inputs, result.reconstruction, options, given_offsets)
+    if narrow is not None and narrow.used:
+        narrow.held_out_checks = held_out_check(result.reconstruction, narrow.pairs, uncertainty.bands)
     summary = build_summary(inputs, options, mapping, result, timings, workspace.database)
     summary.world = world.to_dict()
     summary.warnings.extend(world.warnings)
@@ -378,6 +386,8 @@ def _run_locked(workspace: Workspace, inputs: Inputs, manual_pairs: dict, option
         summary.epipolar_self_check = self_check.to_dict()
         summary.warnings.extend(self_check.warnings)
         summary.frame_offsets = frame_offsets
+    if narrow is not None:
+        summary.narrow_observations = narrow.to_dict()
     summary.pairs = pairs
     summary.cpu_s = dict(timings.cpu)
     if pairs_warning:

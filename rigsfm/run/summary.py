@@ -108,6 +108,7 @@ class Summary:
     calibration_decisions: list[dict] = field(default_factory=list)
     pairs: dict | None = None  # rigsfm.run.features.pairs_report: pairs matched, skipped, missed
     cpu_s: dict[str, float] = field(default_factory=dict)  # CPU seconds per stage (all threads)
+    narrow_observations: dict | None = None  # --narrow: decided, used, held-out check (rigsfm.run.narrow_obs)
 
     def to_json(self) -> dict:
         return asdict(self)

@@ -1,0 +1,398 @@
+"""Narrow observations (``rigsfm run --narrow auto|on|off``): synchronised narrow images matched with pose-guided,
+height-aware search after a first adjustment, and the matches added to the adjustment as observations.
+
+Narrow images of different rigs with the same frame name were taken at the same instant, so a crowd, static within
+that instant, is one scene in both: matches between them observe the narrow cameras (and E^sl) directly. Wide-only
+mapping cannot find them cheaply (the views are tens of degrees apart and 4x magnified), but once the network is
+adjusted the search is short:
+
+1. **Features**: OpenCV SIFT on each narrow image of the first ``max_frames`` synchronised frames, reduced to about
+   ``sift_size`` px (the self-check's, :mod:`rigsfm.run.self_check`); no plane warp: a head is a blob at 1.4-1.8 m,
+   and the floor warp that suits a crowd painted on the floor distorts every head.
+2. **Height-aware guidance**: keypoint j is a candidate for keypoint i where it lies within ``tolerance`` px of the
+   part of i's epipolar line between the floor and ``self_check.TOP_HEIGHT_M`` (a plane sweep over every height
+   a person can reach, in the floor frame; the same segment the association of persons searches); then Lowe's
+   ratio among each keypoint's candidates and mutual best matches.
+3. **Decision** (``auto``): the narrow images carry usable texture when at least ``MIN_TEXTURED_SHARE`` of the
+   overlapping pairs (and ``MIN_TEXTURED_PAIRS``) give ``MIN_PAIR_MATCHES`` matches each; featureless views give
+   none, and then nothing changes (the result is the adjustment without narrow observations, bit for bit).
+4. **Observations**: matches are joined into tracks across pairs (one keypoint per image), every ``HOLD_OUT_EVERY``-th
+   match of each pair (ordered by its pixel in i: deterministic) is held out, the rest triangulated and added to
+   the model as 3D points of the frame; the adjustment runs again from the adjusted model, with the calibration
+   priors, and its robust loss and outlier rounds judge them like any other observation.
+5. **Held-out check**: the held-out matches never enter the adjustment; their distances from the delivered epipolar
+   lines, next to the band, give a verdict per pair (``ok`` when their 95th percentile is within the band plus
+   ``self_check.KEYPOINT_NOISE_PX``), independent of what the adjustment fitted.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import pycolmap
+
+from rigsfm.run.deliver import fundamental_matrix
+from rigsfm.run.options import NarrowMode, SelfCheckOptions
+
+logger = logging.getLogger(__name__)
+
+# Lateral search tolerance around i's epipolar line, as a share of the narrow image's width: the first adjustment's
+# epipolar error is a few pixels (a realistic rigs.yaml, full size: 95th percentile ~7 px at 1624 px).
+TOLERANCE_FRACTION = 0.008
+MIN_PAIR_MATCHES = 20  # a pair with this many guided matches sees texture
+MAX_SPREAD_FRACTION = 0.25  # ... when they are concentrated on the epipolar lines (PairMatches.textured)
+MIN_TEXTURED_SHARE = 0.25  # of the overlapping pairs
+MIN_TEXTURED_PAIRS = 2
+HOLD_OUT_EVERY = 5  # every 5th match of a pair (20 %) is kept out of the adjustment
+MIN_HELD_OUT = 10  # held-out matches a pair needs for a verdict
+MIN_TRIANGULATION_DEG = 1.0  # rays closer than this make no point
+
+
+@dataclass
+class PairMatches:
+    frame: str
+    i: str
+    j: str
+    xy_i: np.ndarray  # raw COLMAP pixels
+    xy_j: np.ndarray
+    held_out: np.ndarray  # bool per match: kept out of the adjustment
+    key_i: np.ndarray = field(repr=False, default_factory=lambda: np.zeros(0, int))  # keypoint indices (tracks)
+    key_j: np.ndarray = field(repr=False, default_factory=lambda: np.zeros(0, int))
+    tolerance_px: float = 0.0  # of the search
+    in_adjustment: bool = False  # its matches (less the held-out ones) entered the adjustment
+    spread_px: float | None = None  # robust sigma of the matches' signed distances from the epipolar lines
+
+    @property
+    def textured(self) -> bool:
+        """Matches enough, and concentrated on the epipolar lines: false matches spread evenly over the search
+        band (a robust sigma of tolerance / 1.7), true ones within the geometry's error."""
+        return self.matches >= MIN_PAIR_MATCHES and self.spread_px is not None and \
+            self.spread_px <= MAX_SPREAD_FRACTION * self.tolerance_px
+
+    @property
+    def matches(self) -> int:
+        return len(self.xy_i)
+
+
+@dataclass
+class HeldOutCheck:
+    i: str
+    j: str
+    band_px: float | None
+    held_out: int
+    median_px: float | None = None
+    p95_px: float | None = None
+    within_band: float | None = None
+    verdict: str = "too few matches"
+
+    def to_dict(self) -> dict:
+        return {k: (round(v, 4) if isinstance(v, float) else v) for k, v in self.__dict__.items()}
+
+
+@dataclass
+class NarrowObservations:
+    """What ``--narrow`` decided and did (summary.json ``narrow_observations``)."""
+
+    asked: str
+    used: bool
+    reason: str
+    pairs: list[PairMatches] = field(default_factory=list)
+    points_added: int = 0
+    observations_added: int = 0
+    held_out: int = 0
+    seconds: float = 0.0
+    held_out_checks: list[HeldOutCheck] = field(default_factory=list)
+
+    def line(self) -> str:
+        """The terminal's line."""
+        return describe_record(self.to_dict())
+
+    def to_dict(self) -> dict:
+        return {
+            "asked": self.asked, "used": self.used, "reason": self.reason, "seconds": round(self.seconds, 3),
+            "points_added": self.points_added, "observations_added": self.observations_added,
+            "held_out_matches": self.held_out,
+            "pairs": [{"frame": p.frame, "i": p.i, "j": p.j, "matches": p.matches,
+                       "spread_px": None if p.spread_px is None else round(p.spread_px, 3),
+                       "search_px": round(p.tolerance_px, 3), "textured": p.textured,
+                       "in_adjustment": p.in_adjustment, "held_out": int(p.held_out.sum()) if p.in_adjustment else 0}
+                      for p in self.pairs],
+            "held_out_check": [c.to_dict() for c in self.held_out_checks],
+        }
+
+
+def describe_record(record: dict) -> str:
+    """One line on a ``NarrowObservations.to_dict`` record (the terminal's)."""
+    line = (f"narrow observations {'used' if record['used'] else 'not used'} (--narrow {record['asked']}): "
+            f"{record['reason']}")
+    if record["used"]:
+        verdicts = [c["verdict"] for c in record.get("held_out_check") or []]
+        line += (f"; {record['observations_added']} observations of {record['points_added']} points added, "
+                 f"{record['held_out_matches']} matches held out")
+        if verdicts:
+            rest = len(verdicts) - verdicts.count("ok") - verdicts.count("failed")
+            line += (f"; held-out check: {verdicts.count('ok')} ok, {verdicts.count('failed')} failed, "
+                     f"{rest} without verdict")
+    return line
+
+
+def _j_from_i(image_i: pycolmap.Image, image_j: pycolmap.Image) -> pycolmap.Rigid3d:
+    return image_j.cam_from_world() * image_i.cam_from_world().inverse()
+
+
+def find_matches(floor_model: pycolmap.Reconstruction, image_dir: Path, options: SelfCheckOptions | None = None,
+                 *, floor_frame: bool = True) -> list[PairMatches]:
+    """Guided matches (module docstring, steps 1-2) of every overlapping synchronised narrow pair of the first
+    ``options.max_frames`` frames; ``floor_model`` is the adjusted model in the floor frame (z up, metres); without
+    ``floor_frame`` (no floor found) every narrow pair is searched along the whole epipolar line."""
+    from rigsfm.run.self_check import (
+        _candidates,
+        _guided_matches,
+        _load,
+        _overlapping_pairs,
+        _segments,
+        synchronised_frames,
+    )
+
+    opt = options or SelfCheckOptions()
+    frames = synchronised_frames(floor_model)
+    found = []
+    for frame in list(frames)[:max(1, opt.max_frames)]:
+        images = frames[frame]
+        pairs = _overlapping_pairs(floor_model, images, floor_frame)
+        loaded = {name: _load(floor_model.find_image_with_name(name), Path(image_dir), None, opt.sift_size)
+                  for name in sorted({n for p in pairs for n in p})}
+        for name_i, name_j in pairs:
+            first, second = loaded[name_i], loaded[name_j]
+            if first is None or second is None or first.features is None or second.features is None:
+                found.append(_empty(frame, name_i, name_j))
+                continue
+            fi, fj = first.features, second.features
+            image_i, image_j = first.image, second.image
+            # a model's images have their cameras
+            f_ji = fundamental_matrix(_j_from_i(image_i, image_j), image_i.camera, image_j.camera)  # type: ignore[arg-type]
+            lines = np.c_[fi.undistorted, np.ones(len(fi.undistorted))] @ f_ji.T
+            segments = _segments(image_i, image_j, fi.undistorted, floor_frame)
+            tolerance = TOLERANCE_FRACTION * image_j.camera.width  # type: ignore[union-attr]
+            candidates = _candidates(f_ji, lines, fj.undistorted, segments, tolerance)
+            matches = _guided_matches(fi, fj, candidates.a, candidates.b)
+            if len(matches) == 0:
+                found.append(_empty(frame, name_i, name_j))
+                continue
+            hj = np.c_[fj.undistorted[matches[:, 1]], np.ones(len(matches))]
+            line = lines[matches[:, 0]]
+            signed = np.einsum("ij,ij->i", line, hj) / np.linalg.norm(line[:, :2], axis=1)
+            spread = 1.4826 * float(np.median(np.abs(signed - np.median(signed))))
+            xy_i, xy_j = fi.xy[matches[:, 0]], fj.xy[matches[:, 1]]
+            order = np.lexsort((xy_i[:, 0], xy_i[:, 1]))
+            held = np.zeros(len(matches), bool)
+            held[order[::HOLD_OUT_EVERY]] = True
+            found.append(PairMatches(frame, name_i, name_j, xy_i, xy_j, held, matches[:, 0], matches[:, 1],
+                                     tolerance_px=tolerance, spread_px=spread))
+            logger.info("narrow observations %s -> %s: %d guided matches, lateral spread %.2f of %.2f px",
+                        name_i, name_j, len(matches), spread, tolerance)
+    return found
+
+
+def _empty(frame: str, i: str, j: str) -> PairMatches:
+    return PairMatches(frame, i, j, np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0, bool))
+
+
+def decide(asked: NarrowMode, pairs: list[PairMatches]) -> tuple[bool, str]:
+    """Whether the matches enter the adjustment (module docstring, step 3), and why."""
+    textured = sum(p.textured for p in pairs)
+    counts = (f"{textured} of {len(pairs)} overlapping synchronised narrow pairs give >= {MIN_PAIR_MATCHES} guided "
+              "matches concentrated on the epipolar lines")
+    if asked == NarrowMode.ON:
+        return bool(pairs) and any(p.matches for p in pairs), f"asked (--narrow on); {counts}"
+    enough = textured >= max(MIN_TEXTURED_PAIRS, MIN_TEXTURED_SHARE * len(pairs))
+    return enough, (f"the narrow images carry usable texture: {counts}" if enough
+                    else f"the narrow images carry no usable texture: {counts}")
+
+
+def _tracks(pairs: list[PairMatches]) -> list[dict[str, int]]:
+    """Matches not held out, joined across pairs into tracks {image name: keypoint index}; a track that would hold
+    two keypoints of one image is dropped (a match is wrong)."""
+    parent: dict[tuple[str, int], tuple[str, int]] = {}
+
+    def find(x):
+        parent.setdefault(x, x)
+        while parent[x] != x:
+            parent[x] = parent[parent[x]]
+            x = parent[x]
+        return x
+
+    for pair in pairs:
+        for a, b, held in zip(pair.key_i, pair.key_j, pair.held_out, strict=True):
+            if not held:
+                parent[find((pair.i, int(a)))] = find((pair.j, int(b)))
+    groups: dict[tuple[str, int], list[tuple[str, int]]] = {}
+    for node in list(parent):
+        groups.setdefault(find(node), []).append(node)
+    tracks = []
+    for members in groups.values():
+        names = [m[0] for m in members]
+        if len(members) >= 2 and len(set(names)) == len(names):
+            tracks.append(dict(members))
+    return tracks
+
+
+def _triangulate(images: list[pycolmap.Image], pixels: list[np.ndarray]) -> np.ndarray | None:
+    """Linear triangulation (normalised rays) of one point seen in ``images``; None when the rays are nearly
+    parallel or the point lies behind a camera."""
+    rows, centres, directions = [], [], []
+    for image, xy in zip(images, pixels, strict=True):
+        ray = np.append(np.asarray(image.camera.cam_from_img(xy.reshape(1, 2)), dtype=np.float64)[0], 1.0)  # type: ignore[union-attr]
+        if not np.isfinite(ray).all():
+            return None
+        p = np.asarray(image.cam_from_world().matrix(), dtype=np.float64)
+        rows.append(ray[0] * p[2] - p[0])
+        rows.append(ray[1] * p[2] - p[1])
+        centres.append(np.asarray(image.projection_center()))
+        directions.append(image.cam_from_world().rotation.inverse() * (ray / np.linalg.norm(ray)))
+    _, _, vt = np.linalg.svd(np.asarray(rows))
+    if abs(vt[-1, 3]) < 1e-12:
+        return None
+    point = vt[-1, :3] / vt[-1, 3]
+    widest = max(np.degrees(np.arccos(np.clip(np.dot(a, b), -1, 1)))
+                 for k, a in enumerate(directions) for b in directions[k + 1:])
+    if widest < MIN_TRIANGULATION_DEG:
+        return None
+    for image in images:
+        if (image.cam_from_world() * point)[2] <= 0:
+            return None
+    return point
+
+
+def add_observations(model: pycolmap.Reconstruction, pairs: list[PairMatches],
+                     keypoints: dict[str, dict[int, np.ndarray]]) -> tuple[pycolmap.Reconstruction, int, int]:
+    """A copy of ``model`` with the tracks of ``pairs`` (held-out matches excluded) as 3D points; their pixels are
+    appended to each image's 2D points. Returns (copy, points added, observations added)."""
+    copy = pycolmap.Reconstruction(model)
+    by_name = {im.name: im.image_id for im in copy.images.values()}
+    appended: dict[str, list[np.ndarray]] = {}
+    tracks = []
+    for track in _tracks(pairs):
+        images = [copy.image(by_name[n]) for n in track]
+        pixels = [keypoints[n][k] for n, k in track.items()]
+        point = _triangulate(images, pixels)
+        if point is not None:
+            tracks.append((track, point))
+    base = {n: copy.image(by_name[n]).num_points2D() for t, _ in tracks for n in t}
+    index: dict[tuple[str, int], int] = {}
+    for track, _ in tracks:
+        for name, key in track.items():
+            if (name, key) not in index:
+                index[(name, key)] = base[name] + len(appended.setdefault(name, []))
+                appended[name].append(keypoints[name][key])
+    for name, xys in appended.items():
+        image = copy.image(by_name[name])
+        points = list(image.points2D) + [pycolmap.Point2D(np.asarray(xy, dtype=np.float64)) for xy in xys]
+        image.points2D = pycolmap.Point2DList(points)
+    observations = 0
+    for track, point in tracks:
+        colmap_track = pycolmap.Track()
+        for name, key in track.items():
+            colmap_track.add_element(by_name[name], index[(name, key)])
+            observations += 1
+        copy.add_point3D(point, colmap_track)
+    return copy, len(tracks), observations
+
+
+def keypoint_table(pairs: list[PairMatches]) -> dict[str, dict[int, np.ndarray]]:
+    """Image name -> keypoint index -> raw COLMAP pixel, of every match."""
+    table: dict[str, dict[int, np.ndarray]] = {}
+    for p in pairs:
+        for name, keys, xy in ((p.i, p.key_i, p.xy_i), (p.j, p.key_j, p.xy_j)):
+            entry = table.setdefault(name, {})
+            for k, pixel in zip(keys, xy, strict=True):
+                entry[int(k)] = pixel
+    return table
+
+
+def held_out_check(model: pycolmap.Reconstruction, pairs: list[PairMatches], bands: dict) -> list[HeldOutCheck]:
+    """Per pair: the held-out matches' distances (pinhole px of j) from the delivered epipolar lines of ``model``,
+    against the pair's band (``bands``: (i, j) -> rigsfm.run.uncertainty.PairBand or a float)."""
+    from rigsfm.core.ground import undistort_pixels
+    from rigsfm.run.self_check import KEYPOINT_NOISE_PX
+
+    checks = []
+    for pair in pairs:
+        if not pair.in_adjustment:
+            continue
+        band = bands.get((pair.i, pair.j))
+        band_px = getattr(band, "band_px", band)
+        band_px = None if band_px is None else float(band_px)
+        held = pair.held_out
+        check = HeldOutCheck(pair.i, pair.j, band_px, int(held.sum()))
+        checks.append(check)
+        if check.held_out < MIN_HELD_OUT:
+            continue
+        image_i, image_j = model.find_image_with_name(pair.i), model.find_image_with_name(pair.j)
+        camera_i, camera_j = model.cameras[image_i.camera_id], model.cameras[image_j.camera_id]
+        f_ji = fundamental_matrix(_j_from_i(image_i, image_j), camera_i, camera_j)
+        ui, uj = undistort_pixels(camera_i, pair.xy_i[held]), undistort_pixels(camera_j, pair.xy_j[held])
+        lines = np.c_[ui, np.ones(len(ui))] @ f_ji.T
+        distances = np.abs(np.einsum("ij,ij->i", lines, np.c_[uj, np.ones(len(uj))])) / np.linalg.norm(
+            lines[:, :2], axis=1)
+        distances = distances[np.isfinite(distances)]
+        if len(distances) < MIN_HELD_OUT:
+            continue
+        check.median_px, check.p95_px = float(np.median(distances)), float(np.percentile(distances, 95))
+        if band_px is None or not np.isfinite(band_px):
+            check.verdict = "no band"
+            continue
+        check.within_band = float(np.mean(distances <= band_px))
+        check.verdict = "failed" if check.p95_px > band_px + KEYPOINT_NOISE_PX else "ok"
+    return checks
+
+
+def narrow_observations(result, world, image_dir: Path, asked: NarrowMode, options: SelfCheckOptions | None = None,
+                        ) -> tuple[pycolmap.Reconstruction | None, NarrowObservations]:
+    """Match (in the floor frame; without a floor, along the whole epipolar lines), decide, and return the adjusted model with the narrow observations added (None
+    when they are not used) with the record. ``result``: the first AdjustResult; ``world``: its WorldResult."""
+    start = time.perf_counter()
+    if asked == NarrowMode.OFF:
+        return None, NarrowObservations(str(asked), False, "not asked (--narrow off)")
+    if not world.metric:
+        return None, NarrowObservations(str(asked), False, "the result is not metric: the narrow poses are unknown")
+    floor_model = pycolmap.Reconstruction(result.reconstruction)
+    floor_frame = world.frame == "floor"
+    if floor_frame:
+        world.apply(floor_model)
+    pairs = find_matches(floor_model, image_dir, options, floor_frame=floor_frame)
+    used, reason = decide(asked, pairs)
+    record = NarrowObservations(str(asked), used, reason, pairs)
+    model: pycolmap.Reconstruction | None = None
+    if used:
+        # The floor frame is a rigid motion of the adjusted model's: pixels and tracks carry over unchanged.
+        chosen = pairs if asked == NarrowMode.ON else [p for p in pairs if p.textured]
+        for p in chosen:
+            p.in_adjustment = True
+        model, record.points_added, record.observations_added = add_observations(
+            result.reconstruction, chosen, keypoint_table(chosen))
+        record.held_out = int(sum(p.held_out.sum() for p in chosen))
+        if record.points_added == 0:
+            record.used, record.reason = False, reason + "; no match triangulates"
+            model = None
+    record.seconds = time.perf_counter() - start
+    logger.info(record.line())
+    return model, record
+
+
+def second_pass(result, world, inputs, options):
+    """The pipeline's hook after the world stage: ``(result, record)``, the result adjusted again with the narrow
+    observations when they are used, else the one given (unchanged). The world stage's floor is kept: the second
+    adjustment starts from the first's model with the same gauge (one frame held), so the floor moves by the
+    adjustment's change alone, and fitting it again would cost more than the whole second pass."""
+    from rigsfm.core.stages import in_child
+    from rigsfm.run.adjust import adjust
+
+    model, record = narrow_observations(result, world, inputs.image_dir, options.narrow, options.self_check)
+    if model is None:
+        return result, record
+    return in_child(adjust, model, inputs.rigs, inputs.scale, options.adjust, inputs.priors), record

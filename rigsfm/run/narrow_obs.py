@@ -6,9 +6,10 @@ that instant, is one scene in both: matches between them observe the narrow came
 mapping cannot find them cheaply (the views are tens of degrees apart and 4x magnified), but once the network is
 adjusted the search is short:
 
-1. **Features**: OpenCV SIFT on each narrow image of the first ``max_frames`` synchronised frames, reduced to about
-   ``sift_size`` px (the self-check's, :mod:`rigsfm.run.self_check`); no plane warp: a head is a blob at 1.4-1.8 m,
-   and the floor warp that suits a crowd painted on the floor distorts every head.
+1. **Features**: the self-check's (:mod:`rigsfm.run.self_check`, step 1): OpenCV SIFT on each narrow image of the
+   first ``max_frames`` synchronised frames, reduced to about ``sift_size`` px, and on j warped into i's view through
+   the plane at ``warp_height_m`` (the floor) in the floor frame: without the warp a crowd painted on the floor gave
+   5 of 28 pairs with 20 or more matches instead of 28.
 2. **Height-aware guidance**: keypoint j is a candidate for keypoint i where it lies within ``tolerance`` px of the
    part of i's epipolar line between the floor and ``self_check.TOP_HEIGHT_M`` (a plane sweep over every height
    a person can reach, in the floor frame; the same segment the association of persons searches); then Lowe's
@@ -20,9 +21,10 @@ adjusted the search is short:
    match of each pair (ordered by its pixel in i: deterministic) is held out, the rest triangulated and added to
    the model as 3D points of the frame; the adjustment runs again from the adjusted model, with the calibration
    priors, and its robust loss and outlier rounds judge them like any other observation.
-5. **Held-out check**: the held-out matches never enter the adjustment; their distances from the delivered epipolar
-   lines, next to the band, give a verdict per pair (``ok`` when their 95th percentile is within the band plus
-   ``self_check.KEYPOINT_NOISE_PX``), independent of what the adjustment fitted.
+5. **Checks**: the held-out matches never enter the adjustment; their distances from the delivered epipolar lines,
+   next to the band, give a verdict per pair (``ok`` when their 95th percentile is within the band plus
+   ``self_check.KEYPOINT_NOISE_PX``), independent of what the adjustment fitted. The self-check then leaves out the
+   keypoints of i whose matches entered the adjustment in that pair, and measures the rest.
 """
 
 from __future__ import annotations
@@ -60,8 +62,6 @@ class PairMatches:
     xy_i: np.ndarray  # raw COLMAP pixels
     xy_j: np.ndarray
     held_out: np.ndarray  # bool per match: kept out of the adjustment
-    key_i: np.ndarray = field(repr=False, default_factory=lambda: np.zeros(0, int))  # keypoint indices (tracks)
-    key_j: np.ndarray = field(repr=False, default_factory=lambda: np.zeros(0, int))
     tolerance_px: float = 0.0  # of the search
     in_adjustment: bool = False  # its matches (less the held-out ones) entered the adjustment
     spread_px: float | None = None  # robust sigma of the matches' signed distances from the epipolar lines
@@ -107,6 +107,10 @@ class NarrowObservations:
     seconds: float = 0.0
     held_out_checks: list[HeldOutCheck] = field(default_factory=list)
 
+    def adjusted_keypoints(self) -> dict[tuple[str, str], np.ndarray]:
+        """(i, j) -> raw pixels in i of the matches that entered the adjustment (the self-check leaves them out)."""
+        return {(p.i, p.j): p.xy_i[~p.held_out] for p in self.pairs if p.in_adjustment and self.used}
+
     def line(self) -> str:
         """The terminal's line."""
         return describe_record(self.to_dict())
@@ -145,33 +149,45 @@ def _j_from_i(image_i: pycolmap.Image, image_j: pycolmap.Image) -> pycolmap.Rigi
 
 
 def find_matches(floor_model: pycolmap.Reconstruction, image_dir: Path, options: SelfCheckOptions | None = None,
-                 *, floor_frame: bool = True) -> list[PairMatches]:
+                 *, floor_frame: bool = True, offsets: dict[str, int] | None = None) -> list[PairMatches]:
     """Guided matches (module docstring, steps 1-2) of every overlapping synchronised narrow pair of the first
     ``options.max_frames`` frames; ``floor_model`` is the adjusted model in the floor frame (z up, metres); without
-    ``floor_frame`` (no floor found) every narrow pair is searched along the whole epipolar line."""
+    ``floor_frame`` (no floor found) every narrow pair is searched along the whole epipolar line; with ``offsets``
+    (rig -> frames, --frame-offsets FILE) frames are paired by time (rigsfm.run.sync.frames_by_time)."""
     from rigsfm.run.self_check import (
         _candidates,
         _guided_matches,
         _load,
         _overlapping_pairs,
         _segments,
+        pair_features,
         synchronised_frames,
     )
 
     opt = options or SelfCheckOptions()
-    frames = synchronised_frames(floor_model)
+    offsets = {r: int(o) for r, o in (offsets or {}).items() if o}
+    if offsets:
+        from rigsfm.run.sync import frames_by_time
+
+        frames = frames_by_time(floor_model, offsets)
+    else:
+        frames = synchronised_frames(floor_model)
     found = []
     for frame in list(frames)[:max(1, opt.max_frames)]:
         images = frames[frame]
         pairs = _overlapping_pairs(floor_model, images, floor_frame)
-        loaded = {name: _load(floor_model.find_image_with_name(name), Path(image_dir), None, opt.sift_size)
+        loaded = {name: _load(floor_model.find_image_with_name(name), Path(image_dir),
+                              opt.warp_height_m if floor_frame else None, opt.sift_size)
                   for name in sorted({n for p in pairs for n in p})}
         for name_i, name_j in pairs:
             first, second = loaded[name_i], loaded[name_j]
             if first is None or second is None or first.features is None or second.features is None:
                 found.append(_empty(frame, name_i, name_j))
                 continue
-            fi, fj = first.features, second.features
+            fi, fj = pair_features(first, second)  # j warped into i's view (floor frame)
+            if fi is None or fj is None or len(fi.xy) < 2:
+                found.append(_empty(frame, name_i, name_j))
+                continue
             image_i, image_j = first.image, second.image
             # a model's images have their cameras
             f_ji = fundamental_matrix(_j_from_i(image_i, image_j), image_i.camera, image_j.camera)  # type: ignore[arg-type]
@@ -191,8 +207,8 @@ def find_matches(floor_model: pycolmap.Reconstruction, image_dir: Path, options:
             order = np.lexsort((xy_i[:, 0], xy_i[:, 1]))
             held = np.zeros(len(matches), bool)
             held[order[::HOLD_OUT_EVERY]] = True
-            found.append(PairMatches(frame, name_i, name_j, xy_i, xy_j, held, matches[:, 0], matches[:, 1],
-                                     tolerance_px=tolerance, spread_px=spread))
+            found.append(PairMatches(frame, name_i, name_j, xy_i, xy_j, held, tolerance_px=tolerance,
+                                     spread_px=spread))
             logger.info("narrow observations %s -> %s: %d guided matches, lateral spread %.2f of %.2f px",
                         name_i, name_j, len(matches), spread, tolerance)
     return found
@@ -214,104 +230,111 @@ def decide(asked: NarrowMode, pairs: list[PairMatches]) -> tuple[bool, str]:
                     else f"the narrow images carry no usable texture: {counts}")
 
 
-def _tracks(pairs: list[PairMatches]) -> list[dict[str, int]]:
-    """Matches not held out, joined across pairs into tracks {image name: keypoint index}; a track that would hold
-    two keypoints of one image is dropped (a match is wrong)."""
-    parent: dict[tuple[str, int], tuple[str, int]] = {}
+Key = tuple[str, float, float]  # image name, pixel (rounded): a keypoint of one image, whichever pair found it
 
-    def find(x):
+
+def _key(name: str, xy: np.ndarray) -> Key:
+    return name, round(float(xy[0]), 3), round(float(xy[1]), 3)
+
+
+def _tracks(pairs: list[PairMatches]) -> list[list[Key]]:
+    """Matches not held out, joined across pairs into tracks of keypoints (a keypoint of i is the same pixel in
+    every pair; j's come from a warp per pair); a track that would hold two keypoints of one image falls apart
+    into its matches, each a two-view track (one of them is wrong, and the adjustment's rounds judge which)."""
+    parent: dict[Key, Key] = {}
+
+    def find(x: Key) -> Key:
         parent.setdefault(x, x)
         while parent[x] != x:
             parent[x] = parent[parent[x]]
             x = parent[x]
         return x
 
+    edges = []
     for pair in pairs:
-        for a, b, held in zip(pair.key_i, pair.key_j, pair.held_out, strict=True):
+        for xy_i, xy_j, held in zip(pair.xy_i, pair.xy_j, pair.held_out, strict=True):
             if not held:
-                parent[find((pair.i, int(a)))] = find((pair.j, int(b)))
-    groups: dict[tuple[str, int], list[tuple[str, int]]] = {}
+                a, b = _key(pair.i, xy_i), _key(pair.j, xy_j)
+                edges.append((a, b))
+                parent[find(a)] = find(b)
+    groups: dict[Key, list[Key]] = {}
     for node in list(parent):
         groups.setdefault(find(node), []).append(node)
-    tracks = []
-    for members in groups.values():
-        names = [m[0] for m in members]
-        if len(members) >= 2 and len(set(names)) == len(names):
-            tracks.append(dict(members))
+    consistent = {root for root, members in groups.items() if len({m[0] for m in members}) == len(members)}
+    tracks = [members for root, members in groups.items() if root in consistent]
+    tracks += [[a, b] for a, b in edges if find(a) not in consistent]
     return tracks
 
 
-def _triangulate(images: list[pycolmap.Image], pixels: list[np.ndarray]) -> np.ndarray | None:
-    """Linear triangulation (normalised rays) of one point seen in ``images``; None when the rays are nearly
-    parallel or the point lies behind a camera."""
-    rows, centres, directions = [], [], []
-    for image, xy in zip(images, pixels, strict=True):
-        ray = np.append(np.asarray(image.camera.cam_from_img(xy.reshape(1, 2)), dtype=np.float64)[0], 1.0)  # type: ignore[union-attr]
-        if not np.isfinite(ray).all():
-            return None
-        p = np.asarray(image.cam_from_world().matrix(), dtype=np.float64)
-        rows.append(ray[0] * p[2] - p[0])
-        rows.append(ray[1] * p[2] - p[1])
-        centres.append(np.asarray(image.projection_center()))
-        directions.append(image.cam_from_world().rotation.inverse() * (ray / np.linalg.norm(ray)))
-    _, _, vt = np.linalg.svd(np.asarray(rows))
-    if abs(vt[-1, 3]) < 1e-12:
-        return None
-    point = vt[-1, :3] / vt[-1, 3]
-    widest = max(np.degrees(np.arccos(np.clip(np.dot(a, b), -1, 1)))
-                 for k, a in enumerate(directions) for b in directions[k + 1:])
-    if widest < MIN_TRIANGULATION_DEG:
-        return None
-    for image in images:
-        if (image.cam_from_world() * point)[2] <= 0:
-            return None
-    return point
+def _triangulate(tracks: list[list[Key]], model: pycolmap.Reconstruction,
+                 by_name: dict[str, int]) -> list[np.ndarray | None]:
+    """Each track's point, nearest its rays in the least-squares sense (the N-view midpoint, all tracks at once:
+    thousands of tracks through pycolmap's objects one by one took seconds); None where the widest angle between
+    its rays is below ``MIN_TRIANGULATION_DEG``, a ray is not finite, or the point lies behind a camera."""
+    track_of = np.repeat(np.arange(len(tracks)), [len(t) for t in tracks])
+    keys = [key for track in tracks for key in track]
+    names = sorted({key[0] for key in keys})
+    rays = np.zeros((len(keys), 3))
+    rotations, translations = np.zeros((len(keys), 3, 3)), np.zeros((len(keys), 3))
+    for name in names:  # per image: its rays at once
+        rows = np.array([k for k, key in enumerate(keys) if key[0] == name])
+        image = model.image(by_name[name])
+        pose = image.cam_from_world()
+        xy = np.array([[keys[k][1], keys[k][2]] for k in rows])
+        rays[rows, :2] = np.asarray(image.camera.cam_from_img(xy), dtype=np.float64)  # type: ignore[union-attr]
+        rays[rows, 2] = 1.0
+        rotations[rows], translations[rows] = np.asarray(pose.rotation.matrix()), np.asarray(pose.translation)
+    finite = np.isfinite(rays).all(axis=1)
+    rays[~finite] = [0.0, 0.0, 1.0]
+    directions = np.einsum("nji,nj->ni", rotations, rays / np.linalg.norm(rays, axis=1, keepdims=True))
+    centres = -np.einsum("nji,nj->ni", rotations, translations)
+    projector = np.eye(3) - directions[:, :, None] * directions[:, None, :]
+    a, b = np.zeros((len(tracks), 3, 3)), np.zeros((len(tracks), 3))
+    np.add.at(a, track_of, projector)
+    np.add.at(b, track_of, np.einsum("nij,nj->ni", projector, centres))
+    first = directions[np.r_[0, np.cumsum([len(t) for t in tracks])[:-1]]]
+    angle = np.degrees(np.arccos(np.clip(np.einsum("ni,ni->n", directions, first[track_of]), -1.0, 1.0)))
+    widest = np.zeros(len(tracks))
+    np.maximum.at(widest, track_of, angle)
+    ok = widest >= MIN_TRIANGULATION_DEG
+    np.logical_and.at(ok, track_of, finite)
+    points = np.full((len(tracks), 3), np.nan)
+    points[ok] = np.linalg.solve(a[ok], b[ok][:, :, None])[:, :, 0]
+    depth = np.einsum("nij,nj->ni", rotations, points[track_of])[:, 2] + translations[:, 2]
+    np.logical_and.at(ok, track_of, depth > 0)
+    return [points[t] if ok[t] else None for t in range(len(tracks))]
 
 
-def add_observations(model: pycolmap.Reconstruction, pairs: list[PairMatches],
-                     keypoints: dict[str, dict[int, np.ndarray]]) -> tuple[pycolmap.Reconstruction, int, int]:
+def add_observations(model: pycolmap.Reconstruction, pairs: list[PairMatches]
+                     ) -> tuple[pycolmap.Reconstruction, int, int]:
     """A copy of ``model`` with the tracks of ``pairs`` (held-out matches excluded) as 3D points; their pixels are
     appended to each image's 2D points. Returns (copy, points added, observations added)."""
     copy = pycolmap.Reconstruction(model)
     by_name = {im.name: im.image_id for im in copy.images.values()}
     appended: dict[str, list[np.ndarray]] = {}
-    tracks = []
-    for track in _tracks(pairs):
-        images = [copy.image(by_name[n]) for n in track]
-        pixels = [keypoints[n][k] for n, k in track.items()]
-        point = _triangulate(images, pixels)
-        if point is not None:
-            tracks.append((track, point))
-    base = {n: copy.image(by_name[n]).num_points2D() for t, _ in tracks for n in t}
-    index: dict[tuple[str, int], int] = {}
-    for track, _ in tracks:
-        for name, key in track.items():
-            if (name, key) not in index:
-                index[(name, key)] = base[name] + len(appended.setdefault(name, []))
-                appended[name].append(keypoints[name][key])
+    base: dict[str, int] = {}
+    observations = points = 0
+    tracks_of_points: list[tuple[np.ndarray, pycolmap.Track]] = []
+    tracks = _tracks(pairs)
+    for track, point in zip(tracks, _triangulate(tracks, copy, by_name) if tracks else [], strict=True):
+        if point is None:
+            continue
+        pixels = [np.array([x, y]) for _, x, y in track]
+        colmap_track = pycolmap.Track()
+        for (name, _, _), xy in zip(track, pixels, strict=True):
+            base.setdefault(name, copy.image(by_name[name]).num_points2D())
+            colmap_track.add_element(by_name[name], base[name] + len(appended.setdefault(name, [])))
+            appended[name].append(xy)
+        points += 1
+        observations += len(track)
+        tracks_of_points.append((point, colmap_track))
     for name, xys in appended.items():
         image = copy.image(by_name[name])
-        points = list(image.points2D) + [pycolmap.Point2D(np.asarray(xy, dtype=np.float64)) for xy in xys]
-        image.points2D = pycolmap.Point2DList(points)
-    observations = 0
-    for track, point in tracks:
-        colmap_track = pycolmap.Track()
-        for name, key in track.items():
-            colmap_track.add_element(by_name[name], index[(name, key)])
-            observations += 1
+        image.points2D = pycolmap.Point2DList(
+            list(image.points2D) + [pycolmap.Point2D(np.asarray(xy, dtype=np.float64)) for xy in xys])
+    for point, colmap_track in tracks_of_points:
         copy.add_point3D(point, colmap_track)
-    return copy, len(tracks), observations
-
-
-def keypoint_table(pairs: list[PairMatches]) -> dict[str, dict[int, np.ndarray]]:
-    """Image name -> keypoint index -> raw COLMAP pixel, of every match."""
-    table: dict[str, dict[int, np.ndarray]] = {}
-    for p in pairs:
-        for name, keys, xy in ((p.i, p.key_i, p.xy_i), (p.j, p.key_j, p.xy_j)):
-            entry = table.setdefault(name, {})
-            for k, pixel in zip(keys, xy, strict=True):
-                entry[int(k)] = pixel
-    return table
+    return copy, points, observations
 
 
 def held_out_check(model: pycolmap.Reconstruction, pairs: list[PairMatches], bands: dict) -> list[HeldOutCheck]:
@@ -352,7 +375,7 @@ def held_out_check(model: pycolmap.Reconstruction, pairs: list[PairMatches], ban
 
 
 def narrow_observations(result, world, image_dir: Path, asked: NarrowMode, options: SelfCheckOptions | None = None,
-                        ) -> tuple[pycolmap.Reconstruction | None, NarrowObservations]:
+                        offsets: dict[str, int] | None = None) -> tuple[pycolmap.Reconstruction | None, NarrowObservations]:
     """Match (in the floor frame; without a floor, along the whole epipolar lines), decide, and return the adjusted model with the narrow observations added (None
     when they are not used) with the record. ``result``: the first AdjustResult; ``world``: its WorldResult."""
     start = time.perf_counter()
@@ -364,7 +387,7 @@ def narrow_observations(result, world, image_dir: Path, asked: NarrowMode, optio
     floor_frame = world.frame == "floor"
     if floor_frame:
         world.apply(floor_model)
-    pairs = find_matches(floor_model, image_dir, options, floor_frame=floor_frame)
+    pairs = find_matches(floor_model, image_dir, options, floor_frame=floor_frame, offsets=offsets)
     used, reason = decide(asked, pairs)
     record = NarrowObservations(str(asked), used, reason, pairs)
     model: pycolmap.Reconstruction | None = None
@@ -373,8 +396,7 @@ def narrow_observations(result, world, image_dir: Path, asked: NarrowMode, optio
         chosen = pairs if asked == NarrowMode.ON else [p for p in pairs if p.textured]
         for p in chosen:
             p.in_adjustment = True
-        model, record.points_added, record.observations_added = add_observations(
-            result.reconstruction, chosen, keypoint_table(chosen))
+        model, record.points_added, record.observations_added = add_observations(result.reconstruction, chosen)
         record.held_out = int(sum(p.held_out.sum() for p in chosen))
         if record.points_added == 0:
             record.used, record.reason = False, reason + "; no match triangulates"
@@ -384,15 +406,16 @@ def narrow_observations(result, world, image_dir: Path, asked: NarrowMode, optio
     return model, record
 
 
-def second_pass(result, world, inputs, options):
+def second_pass(result, world, inputs, options, offsets: dict[str, int] | None = None):
     """The pipeline's hook after the world stage: ``(result, record)``, the result adjusted again with the narrow
     observations when they are used, else the one given (unchanged). The world stage's floor is kept: the second
     adjustment starts from the first's model with the same gauge (one frame held), so the floor moves by the
-    adjustment's change alone, and fitting it again would cost more than the whole second pass."""
+    adjustment's change alone, and fitting it again would cost more than the whole second pass. ``offsets``: the
+    --frame-offsets FILE's (narrow frames paired by time)."""
     from rigsfm.core.stages import in_child
     from rigsfm.run.adjust import adjust
 
-    model, record = narrow_observations(result, world, inputs.image_dir, options.narrow, options.self_check)
+    model, record = narrow_observations(result, world, inputs.image_dir, options.narrow, options.self_check, offsets)
     if model is None:
         return result, record
     return in_child(adjust, model, inputs.rigs, inputs.scale, options.adjust, inputs.priors), record

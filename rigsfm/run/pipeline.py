@@ -268,7 +268,7 @@ def _given_frame_offsets(options: RunOptions, inputs: Inputs) -> dict[str, int] 
 
 
 def _self_check(workspace: Workspace, inputs: Inputs, reconstruction: pycolmap.Reconstruction, options: RunOptions,
-                given_offsets: dict[str, int] | None, exclude: dict | None = None) -> tuple[SelfCheck, dict]:
+                given_offsets: dict[str, int] | None, cached: dict | None = None) -> tuple[SelfCheck, dict]:
     """The epipolar self-check, its frames paired by time where offsets are given or estimated (``auto``); when
     it fails without offsets and the recording has several frames, the offsets are estimated, and the pairs a
     rig off in time explains are put down to it (rigsfm.run.sync) instead of the calibration."""
@@ -285,7 +285,7 @@ def _self_check(workspace: Workspace, inputs: Inputs, reconstruction: pycolmap.R
     asked = None if opt.frame_offsets is None else str(opt.frame_offsets)
     sync = estimate() if asked == "auto" else None
     applied = dict(given_offsets or {}) if sync is None else sync.unsynchronised
-    check = epipolar_self_check(reconstruction, inputs.image_dir, poses, opt, applied, exclude)
+    check = epipolar_self_check(reconstruction, inputs.image_dir, poses, opt, applied, cached)
     if asked is None and any(p.verdict == "failed" for p in check.pairs):
         sync = estimate()
         if sync.warning:
@@ -377,7 +377,7 @@ def _run_locked(workspace: Workspace, inputs: Inputs, manual_pairs: dict, option
     if options.self_check.enabled:
         with timings.stage("self_check"):
             self_check, frame_offsets = _self_check(workspace, inputs, result.reconstruction, options, given_offsets,
-                                                    None if narrow is None else narrow.adjusted_keypoints())
+                                                    None if narrow is None else narrow.features)
     if narrow is not None and narrow.used:
         narrow.held_out_checks = held_out_check(result.reconstruction, narrow.pairs, uncertainty.bands)
     summary = build_summary(inputs, options, mapping, result, timings, workspace.database)

@@ -92,7 +92,6 @@ class PairCheck:
     band_matches: int = 0  # matches selected inside the band + keypoint noise
     measured_within_px: float | None = None  # lateral tolerance of the measuring selection
     verdict: str = "too few matches"  # ok, failed, too few matches, inconclusive, no band
-    excluded: int = 0  # keypoints of i left out: the adjustment observed them in this pair (rigsfm.run.narrow_obs)
     xy_i: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)), repr=False)  # raw COLMAP pixels, measured
     xy_j: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)), repr=False)
     distances_px: np.ndarray = field(default_factory=lambda: np.zeros(0), repr=False)
@@ -101,7 +100,7 @@ class PairCheck:
         return {"frame": self.frame, "i": self.i, "j": self.j, "band_px": self.band_px, "matches": self.matches,
                 "median_px": self.median_px, "p95_px": self.p95_px, "within_band": self.within_band,
                 "band_matches": self.band_matches, "measured_within_px": self.measured_within_px,
-                "verdict": self.verdict, "excluded": self.excluded}
+                "verdict": self.verdict}
 
 
 @dataclass
@@ -343,20 +342,19 @@ def pair_features(first: _Narrow, second: _Narrow) -> tuple[_Features | None, _F
 
 
 def check_pair(first: _Narrow, second: _Narrow, f_ji: np.ndarray, band: float | None, floor_frame: bool,
-               exclude_i: np.ndarray | None = None) -> PairCheck:
-    """One pair (module docstring, steps 2-4); ``exclude_i``: raw pixels of i's keypoints left out (the narrow
-    observations' matches of this pair that entered the adjustment: the check stays independent of them)."""
+               cached: tuple[_Features, _Features] | None = None) -> PairCheck:
+    """One pair (module docstring, steps 2-4); ``cached``: its features from an earlier pass on the same images
+    (rigsfm.run.narrow_obs; raw pixels and descriptors kept, undistorted again with this model's cameras)."""
     image_i, image_j = first.image, second.image
     check = PairCheck(name_of(image_i).frame, image_i.name, image_j.name, band)
     if band is None or not np.isfinite(band):
         check.verdict = "no band"
         return check
-    fi, fj = pair_features(first, second)
-    if fi is not None and exclude_i is not None and len(exclude_i):
-        used = {(round(x, 3), round(y, 3)) for x, y in exclude_i}
-        keep = np.array([(round(x, 3), round(y, 3)) not in used for x, y in fi.xy], bool)
-        check.excluded = int((~keep).sum())
-        fi = fi.subset(keep)
+    if cached is None:
+        fi, fj = pair_features(first, second)
+    else:  # a model's images have their cameras
+        fi = _to_features(image_i.camera, cached[0].xy, cached[0].descriptors)  # type: ignore[arg-type]
+        fj = _to_features(image_j.camera, cached[1].xy, cached[1].descriptors)  # type: ignore[arg-type]
     if fi is None or fj is None or len(fi.xy) < 2:
         return check
     f_ji = np.asarray(f_ji, dtype=np.float64)
@@ -414,11 +412,12 @@ def describe(check: dict) -> str:
 
 def epipolar_self_check(reconstruction: pycolmap.Reconstruction, image_dir: Path, narrow_poses: dict,
                         options: SelfCheckOptions | None = None, offsets: dict[str, int] | None = None,
-                        exclude: dict[tuple[str, str], np.ndarray] | None = None) -> SelfCheck:
+                        cached: dict[tuple[str, str], tuple[_Features, _Features]] | None = None) -> SelfCheck:
     """The self-check (module docstring) of the first ``options.max_frames`` synchronised frames, with the
     ``F_ji`` and ``epipolar_band_95_px`` of ``narrow_poses`` (the narrow_poses.json of this model); with
     ``offsets`` (rig -> frames, rigsfm.run.sync) rig r's k-th frame is paired with the others' (k + offset)-th;
-    ``exclude``: (i, j) -> keypoints of i left out of that pair (:func:`check_pair`)."""
+    ``cached``: (i, j) -> the pair's features from an earlier pass (:func:`check_pair`): images whose pairs all
+    have them are not read again."""
     opt = options or SelfCheckOptions()
     start = time.perf_counter()
     world = narrow_poses.get("world") or {}
@@ -440,8 +439,11 @@ def epipolar_self_check(reconstruction: pycolmap.Reconstruction, image_dir: Path
     for frame in chosen:
         images = frames[frame]
         pairs = [p for p in _overlapping_pairs(reconstruction, images, floor_frame) if p in by_pair]
+        cached = cached or {}
+        needed = {n for p in pairs if p not in cached for n in p}
         loaded = {name: _load(reconstruction.find_image_with_name(name), Path(image_dir),
-                              opt.warp_height_m if floor_frame else None, opt.sift_size)
+                              opt.warp_height_m if floor_frame else None, opt.sift_size) if name in needed
+                  else _Narrow(reconstruction.find_image_with_name(name), np.zeros((0, 0), np.uint8), None)
                   for name in sorted({n for p in pairs for n in p})}
         for name_i, name_j in pairs:
             entry = by_pair[(name_i, name_j)]
@@ -450,8 +452,7 @@ def epipolar_self_check(reconstruction: pycolmap.Reconstruction, image_dir: Path
                 continue
             # pairs of loaded images only
             checks.append(check_pair(loaded[name_i], loaded[name_j], np.asarray(entry["F_ji"]),  # type: ignore[arg-type]
-                                     entry.get("epipolar_band_95_px"), floor_frame,
-                                     (exclude or {}).get((name_i, name_j))))
+                                     entry.get("epipolar_band_95_px"), floor_frame, cached.get((name_i, name_j))))
             c = checks[-1]
             logger.info("self-check %s -> %s: %d matches, p95 %s px, band %s px: %s", name_i, name_j, c.matches,
                         "-" if c.p95_px is None else f"{c.p95_px:.2f}",

@@ -3,13 +3,13 @@ height-aware search after a first adjustment, and the matches added to the adjus
 
 Narrow images of different rigs with the same frame name were taken at the same instant, so a crowd, static within
 that instant, is one scene in both: matches between them observe the narrow cameras (and E^sl) directly. Wide-only
-mapping cannot find them cheaply (the views are tens of degrees apart and 4x magnified), but once the network is
+mapping cannot find them cheaply (the views are tens of degrees apart and magnified), but once the network is
 adjusted the search is short:
 
 1. **Features**: the self-check's (:mod:`rigsfm.run.self_check`, step 1): OpenCV SIFT on each narrow image of the
    first ``max_frames`` synchronised frames, reduced to about ``sift_size`` px, and on j warped into i's view through
-   the plane at ``warp_height_m`` (the floor) in the floor frame: without the warp a crowd painted on the floor gave
-   5 of 28 pairs with 20 or more matches instead of 28.
+   the plane at ``warp_height_m`` (the floor) in the floor frame: without the warp the views, tens of degrees apart,
+   give few comparable descriptors (benchmarks/README.md, "Narrow observations").
 2. **Height-aware guidance**: keypoint j is a candidate for keypoint i where it lies within ``tolerance`` px of the
    part of i's epipolar line between the floor and ``self_check.TOP_HEIGHT_M`` (a plane sweep over every height
    a person can reach, in the floor frame; the same segment the association of persons searches); then Lowe's
@@ -19,13 +19,14 @@ adjusted the search is short:
    none, and then nothing changes (the result is the adjustment without narrow observations, bit for bit).
 4. **Observations**: matches are joined into tracks across pairs (one keypoint per image), every ``HOLD_OUT_EVERY``-th
    match of each pair (ordered by its pixel in i: deterministic) is held out, the rest triangulated and added to
-   the model as 3D points of the frame; the adjustment runs again from the adjusted model, with the calibration
+   the model as 3D points of the frame (at most ``MAX_PAIR_MATCHES`` per pair); the adjustment runs again from the adjusted model, with the calibration
    priors, and its robust loss and outlier rounds judge them like any other observation.
 5. **Checks**: the held-out matches never enter the adjustment; their distances from the delivered epipolar lines,
    next to the band, give a verdict per pair (``ok`` when their 95th percentile is within the band plus
-   ``self_check.KEYPOINT_NOISE_PX``), independent of what the adjustment fitted. The self-check runs as before, on
-   all its matches (most of them also found here: it is not independent of the adjustment; leaving out the
-   keypoints the adjustment used kept the ones this search had rejected, and the check measured those).
+   ``self_check.KEYPOINT_NOISE_PX``), independent of what the adjustment fitted. The self-check runs as before on
+   all its matches, with the features found here (the same images, SIFT and warp): most of its matches are also
+   found here, so it is not independent of the adjustment (leaving out the keypoints the adjustment used would keep
+   the ones this search rejected, and measure those).
 """
 
 from __future__ import annotations
@@ -44,16 +45,15 @@ from rigsfm.run.options import NarrowMode, SelfCheckOptions
 logger = logging.getLogger(__name__)
 
 # Lateral search tolerance around i's epipolar line, as a share of the narrow image's width: the first adjustment's
-# epipolar error is a few pixels (a realistic rigs.yaml, full size: 95th percentile ~7 px at 1624 px).
+# epipolar error with a realistic rigs.yaml is a few pixels.
 TOLERANCE_FRACTION = 0.008
 MIN_PAIR_MATCHES = 20  # a pair with this many guided matches sees texture
 MAX_SPREAD_FRACTION = 0.25  # ... when they are concentrated on the epipolar lines (PairMatches.textured)
 MIN_TEXTURED_SHARE = 0.25  # of the overlapping pairs
 MIN_TEXTURED_PAIRS = 2
 HOLD_OUT_EVERY = 5  # every 5th match of a pair (20 %) is kept out of the adjustment
-# Matches kept per pair, evenly over the pair's matches ordered by pixel: a flat 8-rig crowd gave 94-775 per pair, and
-# all of them (13 676 observations) took the run to 1.45x the CPU time of the run without, for a band 5x narrower
-# than the true epipolar error (their errors are not independent: SIFT on warped views).
+# Matches kept per pair, evenly over the pair's matches ordered by pixel: a textured pair gives hundreds, whose
+# second adjustment costs more than they add, and whose errors are not independent (SIFT on warped views).
 MAX_PAIR_MATCHES = 150
 MIN_HELD_OUT = 10  # held-out matches a pair needs for a verdict
 MIN_TRIANGULATION_DEG = 1.0  # rays closer than this make no point

@@ -412,8 +412,10 @@ def narrow_observations(result, world, image_dir: Path, asked: NarrowMode, optio
         model, record.points_added, record.observations_added = add_observations(result.reconstruction, chosen)
         record.held_out = int(sum(p.held_out.sum() for p in chosen))
         if record.points_added == 0:
-            record.used, record.reason = False, reason + "; no match triangulates"
+            record.used, record.reason, record.held_out = False, reason + "; no match triangulates", 0
             model = None
+            for p in chosen:
+                p.in_adjustment = False
     record.seconds = time.perf_counter() - start
     logger.info(record.line())
     return model, record

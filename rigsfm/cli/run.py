@@ -29,6 +29,7 @@ from rigsfm.run.options import (
     Mapper,
     MappingOptions,
     MatchingOptions,
+    NarrowMode,
     Pairs,
     RunOptions,
     SelfCheckOptions,
@@ -51,8 +52,8 @@ def print_summary(summary, out: Path) -> None:
         table.add_row(camera, str(row.observations), "-" if row.mean_px is None else f"{row.mean_px:.3f}")
     console.print(table)
     if any(row.observations == 0 and camera.endswith("/narrow") for camera, row in summary.reprojection_error.items()):
-        console.print("narrow cameras with no observations ('-'): narrow images are matched only with "
-                      "--narrow-features; their poses follow from their wide camera through E^sl")
+        console.print("narrow cameras with no observations ('-'): their poses follow from their wide camera "
+                      "through E^sl (--narrow: narrow images without usable texture give none)")
     reg, scale = summary.registered, summary.scale
     console.print(
         f"registered: wide {reg['wide'].registered}/{reg['wide'].total}, "
@@ -91,6 +92,10 @@ def print_world(summary) -> None:
         from rigsfm.core.summary import describe_self_check as describe
 
         console.print(f"epipolar self-check: {describe(check)}")
+    if summary.narrow_observations:
+        from rigsfm.run.narrow.observations import describe_record
+
+        console.print(describe_record(summary.narrow_observations))
     offsets = summary.frame_offsets
     if offsets is not None and offsets.asked:
         applied = ", ".join(f"{rig} {off:+d}" for rig, off in sorted((offsets.applied or {}).items()))
@@ -126,8 +131,13 @@ def run_command(
         "--scale", help="scale.yaml: rangefinder distances and known lengths  [default: none, the result is not "
                         "metric]", show_default=False)] = None,
     mapper: Annotated[Mapper, typer.Option("--mapper", help=MAPPER_HELP)] = Mapper.AUTO,
-    narrow_features: Annotated[bool, flag("--narrow-features", help="also extract and match features in the narrow "
-                                                                    "images (textured or crowded narrow views)")] = False,
+    narrow: Annotated[NarrowMode, typer.Option(
+        "--narrow", help="narrow observations: synchronised narrow images matched along the epipolar band at every "
+                         "height a person reaches, after a first adjustment, and adjusted again with them; auto: where "
+                         "the narrow images carry texture (a crowd), on: wherever they give matches, off: never")
+                  ] = NarrowMode.AUTO,
+    narrow_features: Annotated[bool, typer.Option("--narrow-features", hidden=True,
+                                                  help="the old name of --narrow on")] = False,
     features: Annotated[Features, typer.Option("--features", help="sift, or asift: affine-robust, for large perspective "
                                                                   "changes between rigs (slower)")] = Features.SIFT,
     manual_matches: Annotated[Path | None, typer.Option(
@@ -139,7 +149,7 @@ def run_command(
                                               help="keep only mutual nearest-neighbour matches")] = True,
     rig_verification: Annotated[bool | None, typer.Option(
         "--rig-verification/--no-rig-verification",
-        help="verify matches of two frames with both rigs' cameras at once  [default: on, off with --narrow-features]",
+        help="verify matches of two frames with both rigs' cameras at once  [default: on]",
         show_default=False)] = None,
     seed: Annotated[int, typer.Option("--seed", metavar="N", help="random seed of the mapper's RANSAC and sampling")] = 0,
     incremental_time_limit: Annotated[int, typer.Option(
@@ -187,12 +197,13 @@ def run_command(
 
     options = RunOptions(
         matching=MatchingOptions(max_ratio=max_ratio, cross_check=cross_check, rig_verification=rig_verification,
-                                 narrow_features=narrow_features, features=features, pairs=pairs,
+                                 features=features, pairs=pairs,
                                  neighbours=neighbours, device=device),
         mapping=MappingOptions(mapper=mapper, seed=seed, incremental_time_limit_s=incremental_time_limit),
         world=WorldOptions(frame=world, plane_heights=() if plane_height is None else (plane_height,)),
         adjust=AdjustOptions(calibration=Calibration.FIXED if fixed_calibration else Calibration.REFINE),
         self_check=SelfCheckOptions(frame_offsets=frame_offsets),
+        narrow=NarrowMode.ON if narrow_features else narrow,
         overwrite=overwrite,
         manual_matches=manual_matches,
         executor=executor,

@@ -142,6 +142,7 @@ class Summary:
     calibration_decisions: list[dict] = field(default_factory=list)
     pairs: PairsSummary | None = None
     cpu_s: dict[str, float] = field(default_factory=dict)  # CPU seconds per stage (all threads)
+    narrow_observations: dict | None = None  # --narrow: decided, used, held-out check (rigsfm.run.narrow)
 
     def to_json(self) -> dict:
         return asdict(self)

@@ -42,6 +42,14 @@ class Features(enum.StrEnum):
     ASIFT = "asift"  # affine-simulated SIFT (rigsfm.run.matching.asift), for large perspective changes between rigs
 
 
+class NarrowMode(enum.StrEnum):
+    """Narrow observations (rigsfm.run.narrow): synchronised narrow images matched after a first adjustment."""
+
+    AUTO = "auto"  # used where the narrow images carry usable texture (a guided match count per pair)
+    ON = "on"  # used wherever they give matches
+    OFF = "off"  # never (wide-only adjustment)
+
+
 class Pairs(enum.StrEnum):
     """Which pairs of featured images are matched fully (rigsfm.run.matching.pairs.select_pairs)."""
 
@@ -217,6 +225,7 @@ class RunOptions:
     adjust: AdjustOptions = field(default_factory=AdjustOptions)
     world: WorldOptions = field(default_factory=WorldOptions)
     self_check: SelfCheckOptions = field(default_factory=SelfCheckOptions)
+    narrow: NarrowMode = NarrowMode.AUTO  # narrow observations after a first adjustment (rigsfm.run.narrow)
     manual_matches: Path | None = None  # CSV of correspondences between wide images (rigsfm.run.matching.manual_matches)
     overwrite: bool = False
     num_threads: int = -1  # every stage; -1: all cores
@@ -230,6 +239,7 @@ class RunOptions:
         if self.num_threads != -1:
             _check_range("num_threads (-1: all cores)", self.num_threads, 1, 4096, integer=True)
         self.executor = _choice(Executor, self.executor, "--executor")
+        self.narrow = _choice(NarrowMode, self.narrow, "--narrow")
         _check_range("workers", self.workers, 1, 100_000, integer=True)
         if self.address is not None and self.executor != Executor.RAY:
             raise InputError("--address is the address of a Ray cluster: use it with --executor ray")

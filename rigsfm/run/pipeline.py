@@ -56,7 +56,8 @@ from rigsfm.run.matching.manual_merge import add_manual_matches, manual_matches_
 from rigsfm.run.matching.match import match_features
 from rigsfm.run.matching.pairs import drop_unsynchronised_pairs, select_pairs
 from rigsfm.run.matching.reuse import drop_changed_images, drop_stale_work
-from rigsfm.run.options import RunOptions
+from rigsfm.run.narrow.stage import held_out_check, second_pass
+from rigsfm.run.options import NarrowMode, RunOptions
 from rigsfm.run.world.frame import ground_maps, locate_world, validate_world_options
 
 if TYPE_CHECKING:
@@ -275,7 +276,8 @@ def _given_frame_offsets(options: RunOptions, inputs: Inputs) -> dict[str, int] 
 
 
 def _self_check(poses: dict, inputs: Inputs, reconstruction: pycolmap.Reconstruction, options: RunOptions,
-                given_offsets: dict[str, int] | None) -> tuple[SelfCheck, FrameOffsetsSummary]:
+                given_offsets: dict[str, int] | None, cached: dict | None = None
+                ) -> tuple[SelfCheck, FrameOffsetsSummary]:
     """The epipolar self-check against ``poses`` (narrow_poses.json's record, as written), its frames paired by time where offsets are given or estimated (``auto``); when
     it fails without offsets and the recording has several frames, the offsets are estimated, and the pairs a
     rig off in time explains are put down to it (rigsfm.run.checks.sync) instead of the calibration."""
@@ -291,7 +293,7 @@ def _self_check(poses: dict, inputs: Inputs, reconstruction: pycolmap.Reconstruc
     asked = None if opt.frame_offsets is None else str(opt.frame_offsets)
     sync = estimate() if asked == "auto" else None
     applied = dict(given_offsets or {}) if sync is None else sync.unsynchronised
-    check = epipolar_self_check(reconstruction, inputs.image_dir, poses, opt, applied)
+    check = epipolar_self_check(reconstruction, inputs.image_dir, poses, opt, applied, cached)
     if asked is None and any(p.verdict == "failed" for p in check.pairs):
         sync = estimate()
         if sync.warning:
@@ -365,9 +367,14 @@ def _run_locked(workspace: Workspace, inputs: Inputs, manual_pairs: dict, option
         with timings.stage("world"):  # the floor, fitted in the adjusted model's frame; moved there after the bands
             world = locate_world(result.reconstruction, inputs.image_dir, inputs.scale,
                                  [rig.name for rig in inputs.rigs], options.world, metric=metric)
-        with timings.stage("uncertainty"):
-            floor, floor_source = world.analysis_floor(result.reconstruction, result.scale_spec)
-            uncertainty = in_child(estimate_uncertainty, result, floor=floor, floor_source=floor_source)
+        narrow, banded = None, result
+        if options.narrow != NarrowMode.OFF:  # narrow observations: a second adjustment where they are used
+            with timings.stage("narrow_observations"):
+                result, narrow = second_pass(result, world, inputs, options, given_offsets)
+                metric = is_metric(result)
+        with timings.stage("uncertainty"):  # of the adjustment without narrow observations (narrow.observations)
+            floor, floor_source = world.analysis_floor(banded.reconstruction, banded.scale_spec)
+            uncertainty = in_child(estimate_uncertainty, banded, floor=floor, floor_source=floor_source)
         with timings.stage("deliver"):
             world.apply(result.reconstruction)  # a rigid move: the bands and sigmas above are unchanged by it
             ground = ground_maps(result.reconstruction, world.plane_heights) if world.plane_heights else None
@@ -381,7 +388,10 @@ def _run_locked(workspace: Workspace, inputs: Inputs, manual_pairs: dict, option
     self_check = frame_offsets = None
     if options.self_check.enabled:
         with timings.stage("self_check"):
-            self_check, frame_offsets = _self_check(poses, inputs, result.reconstruction, options, given_offsets)
+            self_check, frame_offsets = _self_check(poses, inputs, result.reconstruction, options, given_offsets,
+                                                    None if narrow is None else narrow.features)
+    if narrow is not None and narrow.used:
+        narrow.held_out_checks = held_out_check(result.reconstruction, narrow.pairs, uncertainty.bands)
     summary = build_summary(inputs, options, mapping, result, timings, workspace.database)
     summary.world = world.to_dict()
     summary.warnings.extend(world.warnings)
@@ -389,6 +399,8 @@ def _run_locked(workspace: Workspace, inputs: Inputs, manual_pairs: dict, option
         summary.epipolar_self_check = self_check.to_dict()
         summary.warnings.extend(self_check.warnings)
         summary.frame_offsets = frame_offsets
+    if narrow is not None:
+        summary.narrow_observations = narrow.to_dict()
     summary.pairs = pairs
     summary.cpu_s = dict(timings.cpu)
     if pairs_warning:

@@ -110,9 +110,9 @@ def reprojection_section(reconstruction: pycolmap.Reconstruction) -> str:
     return ("<h2>Reprojection error per camera</h2>"
             + table(["camera", "observations", "mean (px)", "RMS (px)", "95th pct (px)",
                      "not projectable"], rows)
-            + '<p class="note">Narrow images are matched only with --narrow-features, and homogeneous views give '
-              "few features anyway: a narrow camera without observations takes its pose from its wide camera "
-              "through E^sl.</p>"
+            + '<p class="note">Narrow images are matched after a first adjustment where they carry texture (--narrow '
+              "auto); homogeneous views give no usable matches: a narrow camera without observations takes its pose "
+              "from its wide camera through E^sl.</p>"
             + f'<div class="hists">{"".join(figures)}</div>')
 
 

@@ -277,14 +277,20 @@ def pair_features(first: _Narrow, second: _Narrow) -> tuple[_Features | None, _F
     return fi, fj
 
 
-def check_pair(first: _Narrow, second: _Narrow, f_ji: np.ndarray, band: float | None, floor_frame: bool) -> PairCheck:
-    """One pair (module docstring, steps 2-4)."""
+def check_pair(first: _Narrow, second: _Narrow, f_ji: np.ndarray, band: float | None, floor_frame: bool,
+               cached: tuple[_Features, _Features] | None = None) -> PairCheck:
+    """One pair (module docstring, steps 2-4); ``cached``: its features from an earlier pass on the same images
+    (rigsfm.run.narrow; raw pixels and descriptors kept, undistorted again with this model's cameras)."""
     image_i, image_j = first.image, second.image
     check = PairCheck(name_of(image_i).frame, image_i.name, image_j.name, band)
     if band is None or not np.isfinite(band):
         check.verdict = "no band"
         return check
-    fi, fj = pair_features(first, second)
+    if cached is None:
+        fi, fj = pair_features(first, second)
+    else:  # a model's images have their cameras
+        fi = _to_features(image_i.camera, cached[0].xy, cached[0].descriptors)  # type: ignore[arg-type]
+        fj = _to_features(image_j.camera, cached[1].xy, cached[1].descriptors)  # type: ignore[arg-type]
     if fi is None or fj is None or len(fi.xy) < 2:
         return check
     f_ji = np.asarray(f_ji, dtype=np.float64)

@@ -25,7 +25,9 @@ from rigsfm.run.checks.guided import (
     TOP_HEIGHT_M,
     WIDE_FACTOR,
     PairCheck,
+    _Features,
     _load,
+    _Narrow,
     _overlapping_pairs,
     check_pair,
 )
@@ -87,10 +89,13 @@ def synchronised_frames(reconstruction: pycolmap.Reconstruction) -> dict[str, li
 
 
 def epipolar_self_check(reconstruction: pycolmap.Reconstruction, image_dir: Path, narrow_poses: dict,
-                        options: SelfCheckOptions | None = None, offsets: dict[str, int] | None = None) -> SelfCheck:
+                        options: SelfCheckOptions | None = None, offsets: dict[str, int] | None = None,
+                        cached: dict[tuple[str, str], tuple[_Features, _Features]] | None = None) -> SelfCheck:
     """The self-check (module docstring) of the first ``options.max_frames`` synchronised frames, with the
     ``F_ji`` and ``epipolar_band_95_px`` of ``narrow_poses`` (the narrow_poses.json of this model); with
-    ``offsets`` (rig -> frames, rigsfm.run.checks.sync) rig r's k-th frame is paired with the others' (k + offset)-th."""
+    ``offsets`` (rig -> frames, rigsfm.run.checks.sync) rig r's k-th frame is paired with the others' (k + offset)-th;
+    ``cached``: (i, j) -> the pair's features from an earlier pass (:func:`check_pair`): images whose pairs all
+    have them are not read again."""
     opt = options or SelfCheckOptions()
     start = time.perf_counter()
     world = narrow_poses.get("world") or {}
@@ -110,8 +115,11 @@ def epipolar_self_check(reconstruction: pycolmap.Reconstruction, image_dir: Path
     for frame in chosen:
         images = frames[frame]
         pairs = [p for p in _overlapping_pairs(reconstruction, images, floor_frame) if p in by_pair]
+        cached = cached or {}
+        needed = {n for p in pairs if p not in cached for n in p}
         loaded = {name: _load(reconstruction.find_image_with_name(name), Path(image_dir),
-                              opt.warp_height_m if floor_frame else None, opt.sift_size)
+                              opt.warp_height_m if floor_frame else None, opt.sift_size) if name in needed
+                  else _Narrow(reconstruction.find_image_with_name(name), np.zeros((0, 0), np.uint8), None)
                   for name in sorted({n for p in pairs for n in p})}
         for name_i, name_j in pairs:
             entry = by_pair[(name_i, name_j)]
@@ -120,7 +128,7 @@ def epipolar_self_check(reconstruction: pycolmap.Reconstruction, image_dir: Path
                 continue
             # pairs of loaded images only
             checks.append(check_pair(loaded[name_i], loaded[name_j], np.asarray(entry["F_ji"]),  # type: ignore[arg-type]
-                                     entry.get("epipolar_band_95_px"), floor_frame))
+                                     entry.get("epipolar_band_95_px"), floor_frame, cached.get((name_i, name_j))))
             c = checks[-1]
             logger.info("self-check %s -> %s: %d matches, p95 %s px, band %s px: %s", name_i, name_j, c.matches,
                         "-" if c.p95_px is None else f"{c.p95_px:.2f}",

@@ -1,0 +1,112 @@
+"""The narrow-observations stage (``rigsfm run --narrow``; :mod:`rigsfm.run.narrow.observations` says how the
+matches are found): the second adjustment with them, the check of the held-out matches, and the terminal's line."""
+
+from __future__ import annotations
+
+import logging
+import time
+from pathlib import Path
+
+import numpy as np
+import pycolmap
+
+from rigsfm.core.ground import undistort_pixels
+from rigsfm.core.processes import in_child
+from rigsfm.run.adjustment.adjust import adjust
+from rigsfm.run.checks.guided import KEYPOINT_NOISE_PX
+from rigsfm.run.deliver import fundamental_matrix
+from rigsfm.run.narrow.observations import (
+    MIN_HELD_OUT,
+    HeldOutCheck,
+    NarrowObservations,
+    PairMatches,
+    _j_from_i,
+    add_observations,
+    decide,
+    find_matches,
+)
+from rigsfm.run.options import NarrowMode, SelfCheckOptions
+
+logger = logging.getLogger(__name__)
+
+
+def held_out_check(model: pycolmap.Reconstruction, pairs: list[PairMatches], bands: dict) -> list[HeldOutCheck]:
+    """Per pair: the held-out matches' distances (pinhole px of j) from the delivered epipolar lines of ``model``,
+    against the pair's band (``bands``: (i, j) -> rigsfm.run.uncertainty.PairBand or a float)."""
+
+    checks = []
+    for pair in pairs:
+        if not pair.in_adjustment:
+            continue
+        band = bands.get((pair.i, pair.j))
+        band_px = getattr(band, "band_px", band)
+        band_px = None if band_px is None else float(band_px)
+        held = pair.held_out
+        check = HeldOutCheck(pair.i, pair.j, band_px, int(held.sum()))
+        checks.append(check)
+        if check.held_out < MIN_HELD_OUT:
+            continue
+        image_i, image_j = model.find_image_with_name(pair.i), model.find_image_with_name(pair.j)
+        camera_i, camera_j = model.cameras[image_i.camera_id], model.cameras[image_j.camera_id]
+        f_ji = fundamental_matrix(_j_from_i(image_i, image_j), camera_i, camera_j)
+        ui, uj = undistort_pixels(camera_i, pair.xy_i[held]), undistort_pixels(camera_j, pair.xy_j[held])
+        lines = np.c_[ui, np.ones(len(ui))] @ f_ji.T
+        distances = np.abs(np.einsum("ij,ij->i", lines, np.c_[uj, np.ones(len(uj))])) / np.linalg.norm(
+            lines[:, :2], axis=1)
+        distances = distances[np.isfinite(distances)]
+        if len(distances) < MIN_HELD_OUT:
+            continue
+        check.median_px, check.p95_px = float(np.median(distances)), float(np.percentile(distances, 95))
+        if band_px is None or not np.isfinite(band_px):
+            check.verdict = "no band"
+            continue
+        check.within_band = float(np.mean(distances <= band_px))
+        check.verdict = "failed" if check.p95_px > band_px + KEYPOINT_NOISE_PX else "ok"
+    return checks
+
+
+def narrow_observations(result, world, image_dir: Path, asked: NarrowMode, options: SelfCheckOptions | None = None,
+                        offsets: dict[str, int] | None = None) -> tuple[pycolmap.Reconstruction | None, NarrowObservations]:
+    """Match (in the floor frame; without a floor, along the whole epipolar lines), decide, and return the adjusted model with the narrow observations added (None
+    when they are not used) with the record. ``result``: the first AdjustResult; ``world``: its WorldResult."""
+    start = time.perf_counter()
+    if asked == NarrowMode.OFF:
+        return None, NarrowObservations(str(asked), False, "not asked (--narrow off)")
+    if not world.metric:
+        return None, NarrowObservations(str(asked), False, "the result is not metric: the narrow poses are unknown")
+    floor_model = pycolmap.Reconstruction(result.reconstruction)
+    floor_frame = world.frame == "floor"
+    if floor_frame:
+        world.apply(floor_model)
+    features: dict = {}
+    pairs = find_matches(floor_model, image_dir, options, floor_frame=floor_frame, offsets=offsets, features=features)
+    used, reason = decide(asked, pairs)
+    record = NarrowObservations(str(asked), used, reason, pairs, features=features)
+    model: pycolmap.Reconstruction | None = None
+    if used:
+        # The floor frame is a rigid motion of the adjusted model's: pixels and tracks carry over unchanged.
+        chosen = pairs if asked == NarrowMode.ON else [p for p in pairs if p.textured]
+        for p in chosen:
+            p.in_adjustment = True
+        model, record.points_added, record.observations_added = add_observations(result.reconstruction, chosen)
+        record.held_out = int(sum(p.held_out.sum() for p in chosen))
+        if record.points_added == 0:
+            record.used, record.reason, record.held_out = False, reason + "; no match triangulates", 0
+            model = None
+            for p in chosen:
+                p.in_adjustment = False
+    record.seconds = time.perf_counter() - start
+    logger.info(record.line())
+    return model, record
+
+
+def second_pass(result, world, inputs, options, offsets: dict[str, int] | None = None):
+    """The pipeline's hook after the world stage: ``(result, record)``, the result adjusted again with the narrow
+    observations when they are used, else the one given (unchanged). The world stage's floor is kept: the second
+    adjustment starts from the first's model with the same gauge (one frame held), so the floor moves by the
+    adjustment's change alone, and fitting it again would cost more than the whole second pass. ``offsets``: the
+    --frame-offsets FILE's (narrow frames paired by time)."""
+    model, record = narrow_observations(result, world, inputs.image_dir, options.narrow, options.self_check, offsets)
+    if model is None:
+        return result, record
+    return in_child(adjust, model, inputs.rigs, inputs.scale, options.adjust, inputs.priors), record

@@ -1,0 +1,84 @@
+"""Narrow observations (``rigsfm run --narrow auto|on|off``, rigsfm.run.narrow_obs) on rendered scenes."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from rigsfm.run.narrow.observations import MIN_PAIR_MATCHES, PairMatches, decide
+from rigsfm.run.options import NarrowMode, RunOptions
+from rigsfm.run.pipeline import run
+from rigsfm.synth.scene import SceneOptions
+from rigsfm.synth.truth import compare_to_ground_truth
+
+# A flat crowd seen by 4 rigs over 90 deg: textured narrow views (the same scene as test_interrupt's).
+CROWD = SceneOptions(num_rigs=4, arc_deg=90.0, textured_centre=True, image_scale=0.5, seed=0)
+
+
+def _pair(signed: np.ndarray, tolerance: float = 6.0) -> PairMatches:
+    n = len(signed)
+    xy = np.c_[np.arange(n, dtype=float), np.zeros(n)]
+    spread = 1.4826 * float(np.median(np.abs(signed - np.median(signed))))
+    return PairMatches("f", "a", "b", xy, xy, np.zeros(n, bool), found=n, tolerance_px=tolerance, spread_px=spread)
+
+
+def test_auto_needs_matches_concentrated_on_the_epipolar_lines():
+    rng = np.random.default_rng(0)
+    false = [_pair(rng.uniform(-6, 6, 40)) for _ in range(4)]  # evenly over the search band: chance matches
+    true = [_pair(rng.normal(0, 0.8, 40)) for _ in range(4)]
+    few = [_pair(rng.normal(0, 0.8, MIN_PAIR_MATCHES - 1)) for _ in range(4)]
+    assert decide(NarrowMode.AUTO, false)[0] is False
+    assert decide(NarrowMode.AUTO, few)[0] is False
+    used, reason = decide(NarrowMode.AUTO, true)
+    assert used and reason.startswith("the narrow images carry usable texture: 4 of 4")
+    assert decide(NarrowMode.ON, false)[0] is True  # asked: used wherever there are matches
+
+
+def test_narrow_features_is_the_old_name_of_narrow_on():
+    from typer.testing import CliRunner
+
+    from rigsfm.cli import app
+
+    result = CliRunner().invoke(app, ["run", "--help"])
+    assert "--narrow " in result.output and "--narrow-features" not in result.output
+    with pytest.raises(Exception, match="--narrow must be one of auto, on, off"):
+        RunOptions(narrow="sometimes")  # type: ignore[arg-type]
+
+
+@pytest.fixture(scope="module")
+def crowd_runs(rendered, tmp_path_factory):
+    dataset = rendered(CROWD)
+    root = tmp_path_factory.mktemp("narrow_obs")
+    return dataset, {mode: run(dataset.images, dataset.rigs, root / str(mode), dataset.scale,
+                               RunOptions(narrow=mode)) for mode in (NarrowMode.OFF, NarrowMode.AUTO)}
+
+
+def test_auto_uses_a_crowds_narrow_images_and_comes_closer_to_the_truth(crowd_runs):
+    dataset, runs = crowd_runs
+    truth = dataset.load_ground_truth()
+    record = runs[NarrowMode.AUTO].summary.narrow_observations
+    assert record["asked"] == "auto" and record["used"], record["reason"]
+    assert record["observations_added"] > 200 and record["held_out_matches"] > 30
+    # the held-out matches never entered the adjustment: they check it, and agree with its bands
+    verdicts = [c["verdict"] for c in record["held_out_check"]]
+    assert verdicts.count("ok") >= 0.75 * len(verdicts) > 0
+    error = {mode: compare_to_ground_truth(r.reconstruction, truth, "narrow")["relative_rotation_deg"]["median"]
+             for mode, r in runs.items()}
+    assert error[NarrowMode.AUTO] < 0.8 * error[NarrowMode.OFF], error
+    narrow_rows = runs[NarrowMode.AUTO].summary.reprojection_error
+    assert all(row.observations > 0 for camera, row in narrow_rows.items() if camera.endswith("/narrow"))
+    assert runs[NarrowMode.OFF].summary.narrow_observations is None  # off: the run of before
+
+
+def test_auto_stays_off_on_featureless_narrow_views_and_changes_nothing(three_rig_run, tmp_path):
+    dataset, out, output = three_rig_run  # the CLI's defaults: --narrow auto
+    summary = json.loads((out / "summary.json").read_text())
+    record = summary["narrow_observations"]
+    assert record["asked"] == "auto" and record["used"] is False
+    assert "no usable texture" in record["reason"] and "narrow observations not used (--narrow auto)" in output
+    off = run(dataset.images, dataset.rigs, tmp_path / "off", dataset.scale, RunOptions(narrow=NarrowMode.OFF))
+    poses = json.loads((out / "narrow_poses.json").read_text())
+    poses_off = json.loads((off.workspace.narrow_poses).read_text())
+    assert poses["narrow"] == poses_off["narrow"] and poses["pairs"] == poses_off["pairs"]

@@ -1,4 +1,4 @@
-"""``--narrow-features`` against wide-only on a full circle with textured narrow views (issue 10).
+"""``--narrow-features`` against wide-only on a full circle with textured narrow views.
 
     python benchmarks/narrow_features.py WORK [--num-rigs 12] [--image-scale 0.5] [--seed 0] [--out results.json]
 

@@ -1,4 +1,4 @@
-"""Epipolar geometry an analyst can trust (issue 13): band coverage, accuracy against the fixed-calibration oracle,
+"""Epipolar geometry an analyst can trust: band coverage, accuracy against the fixed-calibration oracle,
 the measurement-constrained 4-rig circle, and the cost of the adjustment + covariance + band.
 
     python benchmarks/trust.py prepare [NAME ...]   # render + map each scene once (cached under --work)
@@ -15,7 +15,7 @@ sides, 4 rigs 45 deg apart with textured narrow views, 8- and 16-rig circles; se
 mapped once (database, features, matching, mapping: the stages before ``adjust``); ``measure`` runs on the saved
 mapping model:
 
-- ``fixed``: ``--fixed-calibration`` (rigsfm before issue 13) with its consider-covariance band;
+- ``fixed``: ``--fixed-calibration`` (the calibration held, as rigsfm did before it refined it) with its consider-covariance band;
 - ``refine``: the default adjustment (calibration priors, measurements inside) with its posterior band;
 - the fixed-calibration oracle (``rigsfm.synth.truth.oracle``): the fixed stage started from the true poses.
 

@@ -1,5 +1,5 @@
 """Ctrl-C and SIGTERM stop `rigsfm run` in any stage with one line, and the same command then resumes; the
-incremental mapper starts from a pair COLMAP accepts (issue 10).
+incremental mapper starts from a pair COLMAP accepts.
 
 The scene: 4 rigs 30 deg apart on a 90 deg arc, textured ground in the centre. Neighbouring rigs share the most
 matches, mostly on the ground: COLMAP's initial-pair test rejects them (labelled planar, the pose from the

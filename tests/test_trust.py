@@ -1,4 +1,4 @@
-"""Epipolar geometry an analyst can trust (issue 13): the calibration's uncertainty read and checked, its conventions,
+"""Epipolar geometry an analyst can trust: the calibration's uncertainty read and checked, its conventions,
 the adjustment's residuals and the band's linear model against finite differences, ``--fixed-calibration`` against
 the poses rigsfm gave before, and the band's coverage on synthetic networks with a known calibration error."""
 

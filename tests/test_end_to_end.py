@@ -37,7 +37,8 @@ def test_every_camera_registered_metric_and_reported(scene):
     distance, = [m for m in summary["scale"]["measurements"] if m["kind"] == "camera_distance"]
     assert abs(distance["residual_percent"]) < 0.1
     assert set(summary["timings_s"]) == {"validate", "database", "features", "matching", "mapping",
-                                         "adjust", "world", "uncertainty", "deliver", "check_pairs", "self_check"}
+                                         "adjust", "world", "narrow_observations", "uncertainty", "deliver",
+                                         "check_pairs", "self_check"}
     for camera, row in summary["reprojection_error"].items():
         if camera.endswith("/wide"):
             assert row["observations"] > 300 and row["mean_px"] < 0.5

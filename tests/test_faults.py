@@ -96,7 +96,7 @@ def test_export_refuses_the_workspace_and_folders_that_hold_it(scene):
     for dest in (out, out.parent, out / "sparse"):
         result = invoke("export", out, "--format", "json", "--dest", dest, "--overwrite")
         assert result.exit_code == 1
-        assert f"--dest {dest} is" in one_error_line(result)
+        assert f"--dest '{dest}' is" in one_error_line(result)
     assert sorted(p.name for p in out.iterdir()) == before
 
 

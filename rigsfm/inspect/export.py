@@ -224,7 +224,7 @@ def check_destination(dest: Path, workspace: Workspace, *, overwrite: bool) -> P
         raise WorkspaceError(f"--dest '{dest}' is the workspace or a folder that holds it; choose a folder of its own "
                              f"(the default is {workspace.export('FORMAT')})")
     if resolved.is_relative_to(root) and not resolved.is_relative_to(root / "export"):
-        raise WorkspaceError(f"--dest {dest} is inside the workspace's own files; use {root / 'export'}/... or a folder "
+        raise WorkspaceError(f"--dest '{dest}' is inside the workspace's own files; use {root / 'export'}/... or a folder "
                              "outside the workspace")
     if not dest.exists():
         return Previous()

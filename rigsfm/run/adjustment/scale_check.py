@@ -16,6 +16,7 @@ rig's wide centre, with the rig's baseline |t| added to the distance's uncertain
 
 from __future__ import annotations
 
+import logging
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -32,8 +33,14 @@ from rigsfm.run.mapping.ties import loosely_tied_rigs
 # Beyond their sigmas, measurements of one network may imply scales this far apart in the mapped model before they
 # are refused: the mapper's shape errors between well-tied rigs are percent; unit mistakes are 3.3x (feet), 10x and
 # more.
+logger = logging.getLogger(__name__)
+
 PLAUSIBLE_FACTOR = 2.0
 SIGMAS = 3.0
+# Without a majority to name the odd one out, a disagreement may as well be the mapped model's (a pair registered
+# wrongly from weak matches, which the adjustment's own checks then report): only one of a unit mistake's size
+# (millimetres, centimetres, inches) is refused.
+UNDECIDED_FACTOR = 10.0
 
 
 @dataclass(frozen=True)
@@ -125,12 +132,17 @@ def check_scale_agreement(reconstruction: pycolmap.Reconstruction, spec: ScaleSp
                              f"mapped model ({m.meters / ratio:.4g} m)")
         raise InputError(f"{spec.path}: {'; '.join(parts)}: a unit mistake (millimetres, feet) or other end points? "
                          "Give it in metres between the points named, or remove it")
+    spread = math.exp(max(m.log_scale for m in implied) - min(m.log_scale for m in implied))
+    if spread < UNDECIDED_FACTOR:
+        logger.warning("%s: %s disagree on the scale by up to %s in the mapped model: left to the adjustment, whose "
+                       "warnings say which (a wrong pose or a measurement off)", spec.path,
+                       ", ".join(m.label for m in implied), _times(spread))
+        return
     if len(implied) == 2:
         first, second = implied
         ratio = math.exp(first.log_scale - second.log_scale)
         raise InputError(f"{spec.path}: {first.label} and {second.label} disagree on the scale by {_times(ratio)} in "
                          f"the mapped model (by the second, the first would be {first.meters / ratio:.4g} m): one is "
                          f"{fix}")
-    spread = math.exp(max(m.log_scale for m in implied) - min(m.log_scale for m in implied))
     raise InputError(f"{spec.path}: {', '.join(m.label for m in implied)} disagree on the scale by up to "
                      f"{_times(spread)} in the mapped model, no group of them agreeing: one or more is {fix}")

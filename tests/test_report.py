@@ -216,7 +216,7 @@ def test_report_structure_top_view_bands_and_self_check(result):
     import dataclasses
     import re
 
-    from rigsfm.core.summary import Summary
+    from rigsfm.core.summary import Summary, self_check_from_json
     from rigsfm.core.summary import describe_self_check as describe
     from rigsfm.inspect.report.html import self_check_section
 
@@ -238,14 +238,15 @@ def test_report_structure_top_view_bands_and_self_check(result):
     pair = {"frame": "frame0000.png", "i": "rig01/narrow/frame0000.png", "j": "rig02/narrow/frame0000.png",
             "band_px": 12.3, "matches": 0, "median_px": None, "p95_px": None, "within_band": None,
             "band_matches": 0, "measured_within_px": None, "verdict": "too few matches"}
-    featureless = {"frames": ["frame0000.png"], "guided_by": "epipolar band", "skipped": None, "seconds": 5.3,
-                   "settings": {"min_matches": 50, "wide_factor": 5.0, "keypoint_noise_px": 1.0},
-                   "pairs": [pair] * 28}
+    featureless = self_check_from_json({
+        "frames": ["frame0000.png"], "guided_by": "epipolar band", "skipped": None, "seconds": 5.3,
+        "settings": {"min_matches": 50, "wide_factor": 5.0, "keypoint_noise_px": 1.0}, "pairs": [pair] * 28})
     section = self_check_section(dataclasses.replace(summary, epipolar_self_check=featureless))
     assert "<table" not in section and "None of the 28 synchronised narrow pairs could be checked" in section
     assert describe(featureless).startswith("none of the 28 synchronised narrow pairs could be checked (0 matches "
                                             "in each, 50 needed): featureless narrow views")
-    mixed = dict(featureless, pairs=[dict(pair, matches=120, verdict="ok")] + [pair] * 2)
+    mixed = dataclasses.replace(featureless, pairs=[dataclasses.replace(featureless.pairs[0], matches=120, verdict="ok")]
+                                + featureless.pairs[:2])
     assert "<table" in self_check_section(dataclasses.replace(summary, epipolar_self_check=mixed))
     assert describe(mixed) == "1 ok, 0 failed, 2 without verdict: 2 fewer than 50 matches (featureless views)"
 

@@ -251,6 +251,33 @@ def test_report_structure_top_view_bands_and_self_check(result):
     assert describe(mixed) == "1 ok, 0 failed, 2 without verdict: 2 fewer than 50 matches (featureless views)"
 
 
+def test_summary_reads_back_typed_and_writes_the_same_bytes(result, tmp_path):
+    """summary.json read into its typed record (every section a record, read as attributes) writes out the same
+    bytes; a summary of an older run without the world, self-check, --narrow or manual-matches sections reads with
+    None for them, and the report and the terminal lines still come."""
+    from rigsfm.cli.run import print_world
+    from rigsfm.core.summary import NarrowObservationsSummary, SelfCheckSummary, Summary, WorldSummary
+
+    _, out, _ = result
+    text = (out / "summary.json").read_text()
+    summary = Summary.from_json(json.loads(text))
+    assert isinstance(summary.world, WorldSummary) and isinstance(summary.epipolar_self_check, SelfCheckSummary)
+    assert isinstance(summary.narrow_observations, NarrowObservationsSummary)
+    assert summary.epipolar_self_check.pairs[0].verdict and summary.world.frame in ("floor", "mapping")
+    assert json.dumps(summary.to_json(), indent=2) + "\n" == text
+
+    old = copy_run(out, tmp_path / "old")
+    sections = ("world", "epipolar_self_check", "narrow_observations", "manual_matches")
+    data = {k: v for k, v in json.loads(text).items() if k not in sections}
+    (old / "summary.json").write_text(json.dumps(data, indent=2) + "\n")
+    summary = Summary.read(old / "summary.json")
+    assert summary is not None and all(getattr(summary, k) is None for k in sections)
+    print_world(summary)  # nothing to print, no error
+    runner = CliRunner().invoke(app, ["report", str(old)])
+    assert runner.exit_code == 0, runner.output
+    assert "Not run." in (old / "report.html").read_text()
+
+
 def test_view_frustum_is_the_pyramid_alone():
     """A frustum in `rigsfm view` is the camera's pyramid: Open3D's camera axes (lines as long as the frustum is
     deep, out of the image sideways) are not drawn in the frustum's colour."""

@@ -127,7 +127,7 @@ def test_sift_fails_and_manual_matches_register_the_pair(scenes):
         rows, _ = synthetic_correspondences(apart, n=60, seed=seed)
         result = run(apart.images, apart.rigs, root / "sift_only", apart.scale,
                      replace(again, manual_matches=write_manual_matches(root / f"sixty{seed}.csv", rows)))
-        assert result.summary.manual_matches["pairs"][0]["given"] == 60  # this set's clicks, not the last set's
+        assert result.summary.manual_matches.pairs[0].given == 60  # this set's clicks, not the last set's
         errors.append(_narrow_rotation_error(result.reconstruction, apart))
     print(f"\nreference {reference_error:.3f}, 34 clicks {manual_error:.3f}, 60 clicks {np.round(errors, 3)} deg")
     assert np.median(errors) < 2.0 * reference_error
@@ -193,8 +193,8 @@ def test_manual_merge_is_idempotent_and_drops_stale_rows(scenes, tmp_path):
     with pycolmap.Database.open(tmp_path / "out" / "database.db") as db:
         assert [db.num_keypoints_for_image(i) for i in (1, 3)] == sizes
         # (a few raw SIFT matches that fit the pose may join the verified inliers)
-        assert db.read_two_view_geometry(1, 3).inlier_matches.shape[0] == third["pairs"][0]["inliers_after"]
-        assert third["kept"] < first["kept"]
+        assert db.read_two_view_geometry(1, 3).inlier_matches.shape[0] == third.pairs[0].inliers_after
+        assert third.kept < first["kept"]
 
 
 def _csv(tmp_path, text):

@@ -59,10 +59,10 @@ def test_auto_uses_a_crowds_narrow_images_and_comes_closer_to_the_truth(crowd_ru
     dataset, runs = crowd_runs
     truth = dataset.load_ground_truth()
     record = runs[NarrowMode.AUTO].summary.narrow_observations
-    assert record["asked"] == "auto" and record["used"], record["reason"]
-    assert record["observations_added"] > 200 and record["held_out_matches"] > 30
+    assert record is not None and record.asked == "auto" and record.used, record
+    assert record.observations_added > 200 and record.held_out_matches > 30
     # the held-out matches never entered the adjustment: they check it, and agree with its bands
-    verdicts = [c["verdict"] for c in record["held_out_check"]]
+    verdicts = [c.verdict for c in record.held_out_check]
     assert verdicts.count("ok") >= 0.75 * len(verdicts) > 0
     error = {mode: compare_to_ground_truth(r.reconstruction, truth, "narrow")["relative_rotation_deg"]["median"]
              for mode, r in runs.items()}

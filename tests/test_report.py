@@ -216,7 +216,7 @@ def test_report_structure_top_view_bands_and_self_check(result):
     import dataclasses
     import re
 
-    from rigsfm.core.summary import Summary
+    from rigsfm.core.summary import Summary, self_check_from_json
     from rigsfm.core.summary import describe_self_check as describe
     from rigsfm.inspect.report.html import self_check_section
 
@@ -238,16 +238,44 @@ def test_report_structure_top_view_bands_and_self_check(result):
     pair = {"frame": "frame0000.png", "i": "rig01/narrow/frame0000.png", "j": "rig02/narrow/frame0000.png",
             "band_px": 12.3, "matches": 0, "median_px": None, "p95_px": None, "within_band": None,
             "band_matches": 0, "measured_within_px": None, "verdict": "too few matches"}
-    featureless = {"frames": ["frame0000.png"], "guided_by": "epipolar band", "skipped": None, "seconds": 5.3,
-                   "settings": {"min_matches": 50, "wide_factor": 5.0, "keypoint_noise_px": 1.0},
-                   "pairs": [pair] * 28}
+    featureless = self_check_from_json({
+        "frames": ["frame0000.png"], "guided_by": "epipolar band", "skipped": None, "seconds": 5.3,
+        "settings": {"min_matches": 50, "wide_factor": 5.0, "keypoint_noise_px": 1.0}, "pairs": [pair] * 28})
     section = self_check_section(dataclasses.replace(summary, epipolar_self_check=featureless))
     assert "<table" not in section and "None of the 28 synchronised narrow pairs could be checked" in section
     assert describe(featureless).startswith("none of the 28 synchronised narrow pairs could be checked (0 matches "
                                             "in each, 50 needed): featureless narrow views")
-    mixed = dict(featureless, pairs=[dict(pair, matches=120, verdict="ok")] + [pair] * 2)
+    mixed = dataclasses.replace(featureless, pairs=[dataclasses.replace(featureless.pairs[0], matches=120, verdict="ok")]
+                                + featureless.pairs[:2])
     assert "<table" in self_check_section(dataclasses.replace(summary, epipolar_self_check=mixed))
     assert describe(mixed) == "1 ok, 0 failed, 2 without verdict: 2 fewer than 50 matches (featureless views)"
+
+
+def test_summary_reads_back_typed_and_writes_the_same_bytes(result, tmp_path):
+    """summary.json read into its typed record (every section a record, read as attributes) writes out the same
+    bytes; a summary of an older run without the world, self-check, --narrow or manual-matches sections reads with
+    None for them, and the report and the terminal lines still come."""
+    from rigsfm.cli.run import print_world
+    from rigsfm.core.summary import NarrowObservationsSummary, SelfCheckSummary, Summary, WorldSummary
+
+    _, out, _ = result
+    text = (out / "summary.json").read_text()
+    summary = Summary.from_json(json.loads(text))
+    assert isinstance(summary.world, WorldSummary) and isinstance(summary.epipolar_self_check, SelfCheckSummary)
+    assert isinstance(summary.narrow_observations, NarrowObservationsSummary)
+    assert summary.epipolar_self_check.pairs[0].verdict and summary.world.frame in ("floor", "mapping")
+    assert json.dumps(summary.to_json(), indent=2) + "\n" == text
+
+    old = copy_run(out, tmp_path / "old")
+    sections = ("world", "epipolar_self_check", "narrow_observations", "manual_matches")
+    data = {k: v for k, v in json.loads(text).items() if k not in sections}
+    (old / "summary.json").write_text(json.dumps(data, indent=2) + "\n")
+    summary = Summary.read(old / "summary.json")
+    assert summary is not None and all(getattr(summary, k) is None for k in sections)
+    print_world(summary)  # nothing to print, no error
+    runner = CliRunner().invoke(app, ["report", str(old)])
+    assert runner.exit_code == 0, runner.output
+    assert "Not run." in (old / "report.html").read_text()
 
 
 def test_view_frustum_is_the_pyramid_alone():

@@ -156,9 +156,10 @@ def test_report_shows_the_floor_map_and_the_self_check(tmp_path):
     pair = {"frame": "f0.png", "i": "rig01/narrow/f0.png", "j": "rig02/narrow/f0.png", "band_px": 1.2,
             "matches": 300, "median_px": 2.0, "p95_px": 4.5, "within_band": 0.2, "band_matches": 40,
             "measured_within_px": 14.0, "verdict": "failed"}
-    summary = Summary(world=narrow["world"], warnings=["EPIPOLAR CHECK FAILED: 1 of 1 narrow pairs ..."],
-                      epipolar_self_check={"frames": ["f0.png"], "guided_by": "epipolar band", "skipped": None,
-                                           "seconds": 1.0, "settings": {"wide_factor": 5.0}, "pairs": [pair]})
+    summary = Summary.from_json({
+        "world": narrow["world"], "warnings": ["EPIPOLAR CHECK FAILED: 1 of 1 narrow pairs ..."],
+        "epipolar_self_check": {"frames": ["f0.png"], "guided_by": "epipolar band", "skipped": None, "seconds": 1.0,
+                                "settings": {"wide_factor": 5.0}, "pairs": [pair]}})
     write_json_atomic(tmp_path / "out" / "summary.json", summary.to_json())
     page = write_report(tmp_path / "out").read_text()
     world = page[page.index("<h2>World frame and floor map</h2>"):page.index("<h2>Narrow camera pairs</h2>")]

@@ -18,6 +18,7 @@ from rigsfm.cli.common import (
     flag,
     progress_bars,
 )
+from rigsfm.core.summary import ManualMatchesSummary
 from rigsfm.inspect.options import ExportFormat
 from rigsfm.run.options import (
     GLOBAL_FROM_FRAMES,
@@ -80,15 +81,15 @@ def print_calibration_decisions(decisions: list[dict]) -> None:
 
 def print_world(summary) -> None:
     """The result's frame and the epipolar self-check, one line each."""
-    world, check = summary.world or {}, summary.epipolar_self_check or {}
-    floor = world.get("floor") or {}
-    if world.get("frame") == "floor":
+    world, check = summary.world, summary.epipolar_self_check
+    floor = (world.floor if world else None) or {}
+    if world and world.frame == "floor":
         heights = floor.get("camera_height") or {}
         console.print(f"world: floor frame ({floor.get('num_points')} floor points, RMS {1000 * floor['rms']:.1f} mm; "
                       f"cameras {heights.get('min', 0):.2f}-{heights.get('max', 0):.2f} m above the floor)")
     elif world:
-        console.print("world: the mapper's frame" + ("" if world.get("asked") == "mapping" else " (no floor found)"))
-    if check.get("pairs"):
+        console.print("world: the mapper's frame" + ("" if world.asked == "mapping" else " (no floor found)"))
+    if check and check.pairs:
         from rigsfm.core.summary import describe_self_check as describe
 
         console.print(f"epipolar self-check: {describe(check)}")
@@ -104,19 +105,19 @@ def print_world(summary) -> None:
         console.print(f"frame offsets ({offsets.asked}): {applied or f'none applied ({why})'}")
 
 
-def print_manual_matches(report: dict) -> None:
-    table = Table(title=f"manual matches ({report['file']})")
+def print_manual_matches(report: ManualMatchesSummary) -> None:
+    table = Table(title=f"manual matches ({report.file})")
     for column in ("image a", "image b", "given", "kept (inliers)", "automatic inliers", "verified after"):
         table.add_column(column, justify="left" if column.startswith("image") else "right")
-    for pair in report["pairs"]:
-        table.add_row(pair["image_a"], pair["image_b"], str(pair["given"]), str(pair["kept"]),
-                      str(pair["automatic_inliers"]), str(pair["inliers_after"]))
+    for pair in report.pairs:
+        table.add_row(pair.image_a, pair.image_b, str(pair.given), str(pair.kept),
+                      str(pair.automatic_inliers), str(pair.inliers_after))
     console.print(table)
-    for pair in report["pairs"]:
-        for row in pair["rejected"]:
+    for pair in report.pairs:
+        for row in pair.rejected:
             error = "-" if row["epipolar_error_px"] is None else f"{row['epipolar_error_px']:.1f} px"
-            console.print(f"  rejected line {row['line']}: {pair['image_a']} ({row['xy_a'][0]:.1f}, "
-                          f"{row['xy_a'][1]:.1f}) <-> {pair['image_b']} ({row['xy_b'][0]:.1f}, {row['xy_b'][1]:.1f}),"
+            console.print(f"  rejected line {row['line']}: {pair.image_a} ({row['xy_a'][0]:.1f}, "
+                          f"{row['xy_a'][1]:.1f}) <-> {pair.image_b} ({row['xy_b'][0]:.1f}, {row['xy_b'][1]:.1f}),"
                           f" epipolar error {error}")
 
 

@@ -117,6 +117,134 @@ class FrameOffsetsSummary:
 
 
 @dataclass(kw_only=True)
+class WorldSummary:
+    """The result's frame and its floor fit (rigsfm.run.world.frame.WorldResult.summary); also narrow_poses.json's
+    ``world``."""
+
+    asked: str = ""  # floor or mapping (rigsfm.run.options.WorldFrame)
+    frame: str = ""  # the frame used
+    units: str | None = None  # the floor frame's description: units to plane_heights_m (None in the mapper's)
+    origin: str | None = None
+    x_axis: str | None = None
+    z_axis: str | None = None
+    plane_heights_m: list[float] | None = None
+    description: str | None = None  # the mapper's frame's description (None in the floor frame)
+    floor: dict | None = None  # the floor fit's record (rigsfm.run.world.floor_fit), when one was tried
+
+    def to_json(self) -> dict:
+        # the keys of the other frame are left out, not written as null (the file's form since the floor frame)
+        return {k: v for k, v in asdict(self).items() if v is not None}
+
+
+@dataclass(kw_only=True)
+class SelfCheckSettings:
+    wide_factor: float = 5.0  # rigsfm.run.checks.guided.WIDE_FACTOR
+    keypoint_noise_px: float = 1.0
+    min_matches: int = SELF_CHECK_MIN_MATCHES
+    top_height_m: float = 2.2
+
+
+@dataclass(kw_only=True)
+class SelfCheckPairSummary:
+    """One narrow pair of the self-check (rigsfm.run.checks.guided.PairCheck)."""
+
+    frame: str = ""
+    i: str = ""
+    j: str = ""
+    band_px: float | None = None
+    matches: int = 0
+    median_px: float | None = None
+    p95_px: float | None = None
+    within_band: float | None = None
+    band_matches: int = 0
+    measured_within_px: float | None = None
+    verdict: str = "too few matches"
+
+
+@dataclass(kw_only=True)
+class SelfCheckSummary:
+    """The epipolar self-check on synchronised narrow images (rigsfm.run.checks.self_check.SelfCheck.summary)."""
+
+    frames: list[str] = field(default_factory=list)
+    guided_by: str = ""
+    skipped: str | None = None  # why nothing was checked
+    frame_offsets: dict[str, int] = field(default_factory=dict)
+    seconds: float = 0.0
+    settings: SelfCheckSettings = field(default_factory=SelfCheckSettings)
+    pairs: list[SelfCheckPairSummary] = field(default_factory=list)
+
+
+@dataclass(kw_only=True)
+class NarrowPairSummary:
+    """One narrow pair's guided matches (rigsfm.run.narrow.observations.PairMatches)."""
+
+    frame: str = ""
+    i: str = ""
+    j: str = ""
+    found: int = 0
+    matches: int = 0
+    spread_px: float | None = None
+    search_px: float = 0.0
+    textured: bool = False
+    in_adjustment: bool = False
+    held_out: int = 0
+
+
+@dataclass(kw_only=True)
+class HeldOutCheckSummary:
+    """One pair's held-out matches against its band (rigsfm.run.narrow.observations.HeldOutCheck)."""
+
+    i: str = ""
+    j: str = ""
+    band_px: float | None = None
+    held_out: int = 0
+    median_px: float | None = None
+    p95_px: float | None = None
+    within_band: float | None = None
+    verdict: str = "too few matches"
+
+
+@dataclass(kw_only=True)
+class NarrowObservationsSummary:
+    """What ``--narrow`` decided and did (rigsfm.run.narrow.observations.NarrowObservations.summary)."""
+
+    asked: str = ""
+    used: bool = False
+    reason: str = ""
+    seconds: float = 0.0
+    points_added: int = 0
+    observations_added: int = 0
+    held_out_matches: int = 0
+    pairs: list[NarrowPairSummary] = field(default_factory=list)
+    held_out_check: list[HeldOutCheckSummary] = field(default_factory=list)
+    bands: str | None = None  # which adjustment the delivered bands are from, when used
+
+
+@dataclass(kw_only=True)
+class ManualPairSummary:
+    """One image pair of --manual-matches (rigsfm.run.matching.manual_merge.PairReport)."""
+
+    image_a: str = ""
+    image_b: str = ""
+    given: int = 0
+    kept: int = 0
+    automatic_inliers: int = 0
+    inliers_after: int = 0
+    config: str = ""
+    rejected: list[dict] = field(default_factory=list)  # {line, xy_a, xy_b, epipolar_error_px}
+
+
+@dataclass(kw_only=True)
+class ManualMatchesSummary:
+    """--manual-matches: per pair given / kept and the rejected lines (rigsfm.run.matching.manual_merge)."""
+
+    file: str = ""
+    given: int = 0
+    kept: int = 0
+    pairs: list[ManualPairSummary] = field(default_factory=list)
+
+
+@dataclass(kw_only=True)
 class Summary:
     rigsfm_version: str = ""
     pycolmap_version: str = ""
@@ -132,9 +260,9 @@ class Summary:
     reprojection_error: dict[str, CameraError] = field(default_factory=dict)  # per camera <rig>/<sensor>
     timings_s: dict[str, float] = field(default_factory=dict)
     warnings: list[str] = field(default_factory=list)
-    manual_matches: dict | None = None  # rigsfm.run.matching.manual_merge.manual_matches_summary
-    world: dict | None = None  # the result's frame and its floor fit (rigsfm.run.world.frame.WorldResult.to_dict)
-    epipolar_self_check: dict | None = None  # rigsfm.run.checks.self_check.SelfCheck.to_dict
+    manual_matches: ManualMatchesSummary | None = None
+    world: WorldSummary | None = None
+    epipolar_self_check: SelfCheckSummary | None = None
     frame_offsets: FrameOffsetsSummary | None = None
     uncertainty: UncertaintySummary | None = None  # rigsfm.run.adjustment.uncertainty
     # per rig, its calibration refined or held at rigs.yaml's values and why (rigsfm.run.adjustment.decisions.hold_or_refine;
@@ -142,10 +270,13 @@ class Summary:
     calibration_decisions: list[dict] = field(default_factory=list)
     pairs: PairsSummary | None = None
     cpu_s: dict[str, float] = field(default_factory=dict)  # CPU seconds per stage (all threads)
-    narrow_observations: dict | None = None  # --narrow: decided, used, held-out check (rigsfm.run.narrow)
+    narrow_observations: NarrowObservationsSummary | None = None  # --narrow (None: off)
 
     def to_json(self) -> dict:
-        return asdict(self)
+        data = asdict(self)
+        if self.world is not None:
+            data["world"] = self.world.to_json()
+        return data
 
     @classmethod
     def from_json(cls, data: dict) -> Summary:
@@ -168,6 +299,14 @@ class Summary:
             uncertainty.narrow = {k: _typed(NarrowUncertaintySummary, v) for k, v in (uncertainty.narrow or {}).items()}
             uncertainty.pairs = [_typed(PairBandSummary, v) for v in uncertainty.pairs or []]
             values["uncertainty"] = uncertainty
+        if isinstance(values.get("world"), dict):
+            values["world"] = _typed(WorldSummary, values["world"])
+        if isinstance(values.get("epipolar_self_check"), dict):
+            values["epipolar_self_check"] = self_check_from_json(values["epipolar_self_check"])
+        if isinstance(values.get("narrow_observations"), dict):
+            values["narrow_observations"] = narrow_observations_from_json(values["narrow_observations"])
+        if isinstance(values.get("manual_matches"), dict):
+            values["manual_matches"] = manual_matches_from_json(values["manual_matches"])
         return cls(**values)
 
     @classmethod
@@ -188,15 +327,38 @@ def _typed(kind, values: dict):
     return kind(**{k: v for k, v in values.items() if k in known})
 
 
-def describe_self_check(check: dict) -> str:
-    """One line on a self-check record (``SelfCheck.to_dict``): the verdicts, and why pairs have none."""
-    pairs = check.get("pairs") or []
+def self_check_from_json(data: dict) -> SelfCheckSummary:
+    """A self-check record from its JSON (``summary.json``'s ``epipolar_self_check``)."""
+    check = _typed(SelfCheckSummary, data)
+    check.settings = _typed(SelfCheckSettings, data.get("settings") or {})
+    check.pairs = [_typed(SelfCheckPairSummary, p) for p in data.get("pairs") or []]
+    return check
+
+
+def narrow_observations_from_json(data: dict) -> NarrowObservationsSummary:
+    """A ``--narrow`` record from its JSON (``summary.json``'s ``narrow_observations``)."""
+    record = _typed(NarrowObservationsSummary, data)
+    record.pairs = [_typed(NarrowPairSummary, p) for p in data.get("pairs") or []]
+    record.held_out_check = [_typed(HeldOutCheckSummary, c) for c in data.get("held_out_check") or []]
+    return record
+
+
+def manual_matches_from_json(data: dict) -> ManualMatchesSummary:
+    """A --manual-matches record from its JSON (``summary.json``'s ``manual_matches``)."""
+    record = _typed(ManualMatchesSummary, data)
+    record.pairs = [_typed(ManualPairSummary, p) for p in data.get("pairs") or []]
+    return record
+
+
+def describe_self_check(check: SelfCheckSummary) -> str:
+    """One line on a self-check record: the verdicts, and why pairs have none."""
+    pairs = check.pairs
     if not pairs:
-        return f"nothing checked: {check.get('skipped') or 'no pair of synchronised narrow images'}"
-    verdicts = [p["verdict"] for p in pairs]
-    needed = (check.get("settings") or {}).get("min_matches", SELF_CHECK_MIN_MATCHES)
+        return f"nothing checked: {check.skipped or 'no pair of synchronised narrow images'}"
+    verdicts = [p.verdict for p in pairs]
+    needed = check.settings.min_matches
     if all(v == "too few matches" for v in verdicts):
-        most = max(p.get("matches", 0) for p in pairs)
+        most = max(p.matches for p in pairs)
         found = "0 matches in each" if most == 0 else f"at most {most} matches"
         return (f"none of the {len(pairs)} synchronised narrow pairs could be checked ({found}, {needed} needed): "
                 "featureless narrow views, as expected in a homogeneous scene; the bands are the model's alone")

@@ -393,14 +393,14 @@ def _run_locked(workspace: Workspace, inputs: Inputs, manual_pairs: dict, option
     if narrow is not None and narrow.used:
         narrow.held_out_checks = held_out_check(result.reconstruction, narrow.pairs, uncertainty.bands)
     summary = build_summary(inputs, options, mapping, result, timings, workspace.database)
-    summary.world = world.to_dict()
+    summary.world = world.summary()
     summary.warnings.extend(world.warnings)
     if self_check is not None:
-        summary.epipolar_self_check = self_check.to_dict()
+        summary.epipolar_self_check = self_check.summary()
         summary.warnings.extend(self_check.warnings)
         summary.frame_offsets = frame_offsets
     if narrow is not None:
-        summary.narrow_observations = narrow.to_dict()
+        summary.narrow_observations = narrow.summary()
     summary.pairs = pairs
     summary.cpu_s = dict(timings.cpu)
     if pairs_warning:

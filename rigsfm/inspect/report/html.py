@@ -312,38 +312,38 @@ def self_check_section(summary: Summary | None) -> str:
     parts = ["<h2>Epipolar self-check on synchronised narrow images</h2>",
              '<p class="note">Narrow images of different rigs with the same frame name were taken at the same '
              "instant: features matched between them (searched only near each epipolar line"
-             + ("" if not check else f": {esc(check.get('guided_by'))}") +
+             + ("" if not check else f": {esc(check.guided_by)}") +
              ") must lie within the predicted 95 % band. The distances are measured on matches searched in a band "
-             f"at least {esc((check or {}).get('settings', {}).get('wide_factor', '5'))}x wider than the "
+             f"at least {esc(check.settings.wide_factor if check else 5)}x wider than the "
              "prediction, widened until the matches stay well inside it, so a band that is too narrow shows; a "
              "pair fails when the 95th percentile exceeds the band by more than the keypoints' own noise "
-             f"({esc((check or {}).get('settings', {}).get('keypoint_noise_px', 1.0))} px).</p>"]
+             f"({esc(check.settings.keypoint_noise_px if check else 1.0)} px).</p>"]
     if not check:
         parts.append('<p class="note">Not run.</p>')
         return "".join(parts)
-    if check.get("skipped"):
-        parts.append(f'<p class="note">Nothing checked: {esc(check["skipped"])}.</p>')
+    if check.skipped:
+        parts.append(f'<p class="note">Nothing checked: {esc(check.skipped)}.</p>')
         return "".join(parts)
     from rigsfm.core.summary import describe_self_check as describe
 
-    pairs = check.get("pairs", [])
+    pairs = check.pairs
     parts.append(f'<p class="note">{esc(describe(check)[0].upper() + describe(check)[1:])}.</p>')
-    if all(p["verdict"] == "too few matches" for p in pairs):  # a table of empty rows would say nothing more
-        parts.append(f'<p class="note">{fmt(check.get("seconds"), 3)} s.</p>')
+    if all(p.verdict == "too few matches" for p in pairs):  # a table of empty rows would say nothing more
+        parts.append(f'<p class="note">{fmt(check.seconds, 3)} s.</p>')
         return "".join(parts)
     rows = []
     for p in pairs:
-        verdict = esc(p["verdict"])
-        if p["verdict"] == "failed":
+        verdict = esc(p.verdict)
+        if p.verdict == "failed":
             verdict = f'<span class="warn">{verdict}</span>'
-        within = p.get("within_band")
-        rows.append([esc(p["frame"]), esc(p["i"]), esc(p["j"]), fmt(p.get("band_px"), 3), p["matches"],
-                     fmt(p.get("median_px"), 3), fmt(p.get("p95_px"), 3),
-                     "–" if within is None else f"{100 * within:.0f} %", fmt(p.get("measured_within_px"), 3),
+        within = p.within_band
+        rows.append([esc(p.frame), esc(p.i), esc(p.j), fmt(p.band_px, 3), p.matches,
+                     fmt(p.median_px, 3), fmt(p.p95_px, 3),
+                     "–" if within is None else f"{100 * within:.0f} %", fmt(p.measured_within_px, 3),
                      verdict])
     parts.append(table(["frame", "narrow i", "narrow j", "band 95 % (px)", "matches", "median (px)",
                         "95th pct (px)", "within band", "searched within (px)", "verdict"], rows, left=3))
-    parts.append(f'<p class="note">{fmt(check.get("seconds"), 3)} s.</p>')
+    parts.append(f'<p class="note">{fmt(check.seconds, 3)} s.</p>')
     return "".join(parts)
 
 

@@ -19,6 +19,7 @@ import numpy as np
 import pycolmap
 
 from rigsfm.core.names import ImageName, name_of, registered_narrow_images
+from rigsfm.core.summary import SelfCheckPairSummary, SelfCheckSettings, SelfCheckSummary
 from rigsfm.run.checks.guided import (
     KEYPOINT_NOISE_PX,
     MIN_MATCHES,
@@ -66,13 +67,14 @@ class SelfCheck:
                 f"(worst {worst.i} -> {worst.j}: 95th percentile {worst.p95_px:.2f} px, band {worst.band_px:.2f} px): "
                 "the poses moved since the calibration, or rigs.yaml is off"]
 
-    def to_dict(self) -> dict:
-        return {"frames": self.frames, "guided_by": self.guided_by, "skipped": self.skipped,
-                "frame_offsets": dict(self.frame_offsets),
-                "seconds": round(self.seconds, 3),
-                "settings": {"wide_factor": WIDE_FACTOR, "keypoint_noise_px": KEYPOINT_NOISE_PX,
-                             "min_matches": MIN_MATCHES, "top_height_m": TOP_HEIGHT_M},
-                "pairs": [p.to_dict() for p in self.pairs]}
+    def summary(self) -> SelfCheckSummary:
+        """summary.json's ``epipolar_self_check``."""
+        return SelfCheckSummary(
+            frames=self.frames, guided_by=self.guided_by, skipped=self.skipped, frame_offsets=dict(self.frame_offsets),
+            seconds=round(self.seconds, 3),
+            settings=SelfCheckSettings(wide_factor=WIDE_FACTOR, keypoint_noise_px=KEYPOINT_NOISE_PX,
+                                       min_matches=MIN_MATCHES, top_height_m=TOP_HEIGHT_M),
+            pairs=[SelfCheckPairSummary(**p.to_dict()) for p in self.pairs])
 
 
 def name_of_str(name: str) -> str:

@@ -19,6 +19,7 @@ import numpy as np
 import pycolmap
 
 from rigsfm.core.geometry import PLANAR, POSED, Config, planar_fraction, sampson_error_px
+from rigsfm.core.summary import ManualMatchesSummary, ManualPairSummary
 from rigsfm.run.inputs.database import open_database
 from rigsfm.run.matching.manual_matches import (
     MIN_CORRESPONDENCES,
@@ -277,11 +278,7 @@ def add_manual_matches(
         ]
 
 
-def manual_matches_summary(path: Path, reports: Sequence[PairReport]) -> dict:
+def manual_matches_summary(path: Path, reports: Sequence[PairReport]) -> ManualMatchesSummary:
     """The ``manual_matches`` entry of summary.json: per pair given / kept and the rejected lines."""
-    return {
-        "file": str(path),
-        "given": sum(r.given for r in reports),
-        "kept": sum(r.kept for r in reports),
-        "pairs": [r.as_dict() for r in reports],
-    }
+    return ManualMatchesSummary(file=str(path), given=sum(r.given for r in reports), kept=sum(r.kept for r in reports),
+                                pairs=[ManualPairSummary(**r.as_dict()) for r in reports])

@@ -38,6 +38,7 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 
+from rigsfm.core.summary import HeldOutCheckSummary, NarrowObservationsSummary, NarrowPairSummary
 from rigsfm.run.checks.guided import (
     _candidates,
     _guided_matches,
@@ -129,31 +130,32 @@ class NarrowObservations:
 
     def line(self) -> str:
         """The terminal's line."""
-        return describe_record(self.to_dict())
+        return describe_record(self.summary())
 
-    def to_dict(self) -> dict:
-        return {
-            "asked": self.asked, "used": self.used, "reason": self.reason, "seconds": round(self.seconds, 3),
-            "points_added": self.points_added, "observations_added": self.observations_added,
-            "held_out_matches": self.held_out,
-            "pairs": [{"frame": p.frame, "i": p.i, "j": p.j, "found": p.found, "matches": p.matches,
-                       "spread_px": None if p.spread_px is None else round(p.spread_px, 3),
-                       "search_px": round(p.tolerance_px, 3), "textured": p.textured,
-                       "in_adjustment": p.in_adjustment, "held_out": int(p.held_out.sum()) if p.in_adjustment else 0}
-                      for p in self.pairs],
-            "held_out_check": [c.to_dict() for c in self.held_out_checks],
-            "bands": BANDS_FROM if self.used else None,
-        }
+    def summary(self) -> NarrowObservationsSummary:
+        """summary.json's ``narrow_observations``."""
+        return NarrowObservationsSummary(
+            asked=self.asked, used=self.used, reason=self.reason, seconds=round(self.seconds, 3),
+            points_added=self.points_added, observations_added=self.observations_added,
+            held_out_matches=self.held_out,
+            pairs=[NarrowPairSummary(frame=p.frame, i=p.i, j=p.j, found=p.found, matches=p.matches,
+                                     spread_px=None if p.spread_px is None else round(p.spread_px, 3),
+                                     search_px=round(p.tolerance_px, 3), textured=p.textured,
+                                     in_adjustment=p.in_adjustment,
+                                     held_out=int(p.held_out.sum()) if p.in_adjustment else 0)
+                   for p in self.pairs],
+            held_out_check=[HeldOutCheckSummary(**c.to_dict()) for c in self.held_out_checks],
+            bands=BANDS_FROM if self.used else None)
 
 
-def describe_record(record: dict) -> str:
-    """One line on a ``NarrowObservations.to_dict`` record (the terminal's)."""
-    line = (f"narrow observations {'used' if record['used'] else 'not used'} (--narrow {record['asked']}): "
-            f"{record['reason']}")
-    if record["used"]:
-        verdicts = [c["verdict"] for c in record.get("held_out_check") or []]
-        line += (f"; {record['observations_added']} observations of {record['points_added']} points added, "
-                 f"{record['held_out_matches']} matches held out; bands from {record.get('bands') or BANDS_FROM}")
+def describe_record(record: NarrowObservationsSummary) -> str:
+    """One line on a ``--narrow`` record (the terminal's)."""
+    line = (f"narrow observations {'used' if record.used else 'not used'} (--narrow {record.asked}): "
+            f"{record.reason}")
+    if record.used:
+        verdicts = [c.verdict for c in record.held_out_check]
+        line += (f"; {record.observations_added} observations of {record.points_added} points added, "
+                 f"{record.held_out_matches} matches held out; bands from {record.bands or BANDS_FROM}")
         if verdicts:
             rest = len(verdicts) - verdicts.count("ok") - verdicts.count("failed")
             line += (f"; held-out check: {verdicts.count('ok')} ok, {verdicts.count('failed')} failed, "

@@ -31,6 +31,7 @@ from rigsfm.core.errors import InputError
 from rigsfm.core.geometry import Plane
 from rigsfm.core.ground import Footprint, coverage, footprints, ground_from_image, pairwise_overlaps
 from rigsfm.core.names import ImageName, name_of, registered_narrow_images
+from rigsfm.core.summary import WorldSummary
 from rigsfm.run.inputs.scale_file import ScaleSpec
 from rigsfm.run.options import WorldFrame, WorldOptions
 from rigsfm.run.world.analysis_floor import find_floor
@@ -109,14 +110,18 @@ class WorldResult:
                     fit.rms)  # type: ignore[union-attr]
 
     def to_dict(self) -> dict:
-        data: dict[str, object] = {"asked": str(self.asked), "frame": str(self.frame)}
+        """narrow_poses.json's ``world`` (summary.json's, as JSON)."""
+        return self.summary().to_json()
+
+    def summary(self) -> WorldSummary:
+        """summary.json's ``world``."""
+        record = WorldSummary(asked=str(self.asked), frame=str(self.frame))
         if self.frame == WorldFrame.FLOOR:
-            data.update({"units": "metres" if self.metric else "arbitrary (not metric)", "origin": ORIGIN,
-                         "x_axis": X_AXIS.format(rig=self.x_rig), "z_axis": Z_AXIS,
-                         "plane_heights_m": list(self.plane_heights)})
+            record.units = "metres" if self.metric else "arbitrary (not metric)"
+            record.origin, record.x_axis, record.z_axis = ORIGIN, X_AXIS.format(rig=self.x_rig), Z_AXIS
+            record.plane_heights_m = list(self.plane_heights)
         else:
-            data["description"] = ("the mapper's frame after the metric adjustment (arbitrary orientation and "
-                                   "origin)")
+            record.description = "the mapper's frame after the metric adjustment (arbitrary orientation and origin)"
         if self.estimate is not None:
             fit = self.estimate.fit
             # FloorFit is truthy: a NoFloor here; NoFloor is falsy: a FloorFit here
@@ -131,8 +136,8 @@ class WorldResult:
                                  "rounds": self.estimate.rounds, "image_pairs": self.estimate.pairs,
                                  "matched_points": self.estimate.matched_points,
                                  "seconds": round(self.estimate.seconds, 3)}
-            data["floor"] = floor
-        return data
+            record.floor = floor
+        return record
 
 
 def first_registered_rig(reconstruction: pycolmap.Reconstruction, rig_names: Sequence[str]) -> str | None:

@@ -186,15 +186,21 @@ def access_problem(path: Path, error: OSError) -> str:
     return f"cannot be read ({error.strerror or type(error).__name__}); check the path"
 
 
+def stat_input(path: Path, label: str) -> tuple[os.stat_result, str | None]:
+    """``path``'s status (following links) and :func:`file_kind` of it; an ``InputError`` starting with ``label``
+    and the path, with the true cause and the fix, when it cannot be read."""
+    try:
+        info = os.stat(path)
+    except OSError as error:
+        raise InputError(f"{label} '{path}' {access_problem(path, error)}") from None
+    return info, file_kind(info.st_mode)
+
+
 def check_regular_file(path: Path, what: str) -> os.stat_result:
     """``path`` is a regular file rigsfm can open (following links); an ``InputError`` with the true cause and the
     fix otherwise: a folder, FIFO or device is no ``what`` file (and a FIFO would block the read forever)."""
     path = Path(path)
-    try:
-        info = os.stat(path)
-    except OSError as error:
-        raise InputError(f"{what} file '{path}' {access_problem(path, error)}") from None
-    kind = file_kind(info.st_mode)
+    info, kind = stat_input(path, f"{what} file")
     if kind is not None:
         raise InputError(f"{what} file '{path}' is {kind}, not a regular file; give the path of the {what} file itself")
     return info

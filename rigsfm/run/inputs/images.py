@@ -20,7 +20,7 @@ import cv2
 
 from rigsfm.core.errors import InputError
 from rigsfm.core.image_files import read_image, refuse_turned_images
-from rigsfm.core.io import access_problem, file_kind
+from rigsfm.core.io import access_problem, file_kind, stat_input
 from rigsfm.core.names import SENSORS, ImageName, Sensor, quoted
 from rigsfm.core.rig import RigCalibration, nfc
 
@@ -55,11 +55,7 @@ def _is_hidden(path: Path) -> bool:
 def check_image_folder(image_dir: Path) -> Path:
     """``image_dir`` is a folder rigsfm can list; an ``InputError`` with the true cause and the fix otherwise."""
     image_dir = Path(image_dir)
-    try:
-        info = os.stat(image_dir)
-    except OSError as error:
-        raise InputError(f"image folder '{image_dir}' {access_problem(image_dir, error)}") from None
-    kind = file_kind(info.st_mode)
+    _, kind = stat_input(image_dir, "image folder")
     if kind != "a folder":
         raise InputError(f"image folder '{image_dir}' is {kind or 'a file'}, not a folder; give the folder that holds "
                          "<rig>/<sensor>/<frame file>")

@@ -133,6 +133,13 @@ def epipolar_lines(camera_i: pycolmap.Camera, camera_j: pycolmap.Camera, j_from_
     return (np.linalg.inv(k_j).T @ essential @ rays.T).T
 
 
+def pixel_line_distances(lines: np.ndarray, pixels: np.ndarray) -> np.ndarray:
+    """Distance (pixels) of each pixel (N x 2) from its line (N x 3, a x + b y + c = 0), both in one image's
+    undistorted pixels."""
+    return np.abs(np.einsum("ij,ij->i", lines, np.c_[pixels, np.ones(len(pixels))])) / np.linalg.norm(
+        lines[:, :2], axis=1)
+
+
 def line_distances(camera_j: pycolmap.Camera, lines: np.ndarray, points_in_j: np.ndarray) -> np.ndarray:
     """Signed distance (pinhole pixels of j) of the projection of camera-j points from pixel lines."""
     k_j = np.asarray(camera_j.calibration_matrix())

@@ -40,6 +40,7 @@ import numpy as np
 import pycolmap
 
 from rigsfm.core.conventions import colmap_from_opencv_pixels, opencv_from_colmap_pixels
+from rigsfm.core.geometry import pixel_line_distances
 from rigsfm.core.ground import (
     footprints,
     ground_from_image,
@@ -256,9 +257,7 @@ def _overlapping_pairs(reconstruction: pycolmap.Reconstruction, images: Sequence
 
 
 def _distances(lines: np.ndarray, fj: _Features, matches: np.ndarray) -> np.ndarray:
-    hj = np.c_[fj.undistorted[matches[:, 1]], np.ones(len(matches))]
-    line = lines[matches[:, 0]]
-    return np.abs(np.einsum("ij,ij->i", line, hj)) / np.linalg.norm(line[:, :2], axis=1)
+    return pixel_line_distances(lines[matches[:, 0]], fj.undistorted[matches[:, 1]])
 
 
 def pair_features(first: _Narrow, second: _Narrow) -> tuple[_Features | None, _Features | None]:

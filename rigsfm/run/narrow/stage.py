@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 
+from rigsfm.core.geometry import pixel_line_distances
 from rigsfm.core.ground import undistort_pixels
 from rigsfm.core.processes import in_child
 from rigsfm.run.adjustment.adjust import adjust
@@ -32,7 +33,7 @@ logger = logging.getLogger(__name__)
 
 def held_out_check(model: pycolmap.Reconstruction, pairs: list[PairMatches], bands: dict) -> list[HeldOutCheck]:
     """Per pair: the held-out matches' distances (pinhole px of j) from the delivered epipolar lines of ``model``,
-    against the pair's band (``bands``: (i, j) -> rigsfm.run.uncertainty.PairBand or a float)."""
+    against the pair's band (``bands``: (i, j) -> rigsfm.run.adjustment.bands.PairBand or a float)."""
 
     checks = []
     for pair in pairs:
@@ -50,9 +51,7 @@ def held_out_check(model: pycolmap.Reconstruction, pairs: list[PairMatches], ban
         camera_i, camera_j = model.cameras[image_i.camera_id], model.cameras[image_j.camera_id]
         f_ji = fundamental_matrix(_j_from_i(image_i, image_j), camera_i, camera_j)
         ui, uj = undistort_pixels(camera_i, pair.xy_i[held]), undistort_pixels(camera_j, pair.xy_j[held])
-        lines = np.c_[ui, np.ones(len(ui))] @ f_ji.T
-        distances = np.abs(np.einsum("ij,ij->i", lines, np.c_[uj, np.ones(len(uj))])) / np.linalg.norm(
-            lines[:, :2], axis=1)
+        distances = pixel_line_distances(np.c_[ui, np.ones(len(ui))] @ f_ji.T, uj)
         distances = distances[np.isfinite(distances)]
         if len(distances) < MIN_HELD_OUT:
             continue
@@ -67,8 +66,9 @@ def held_out_check(model: pycolmap.Reconstruction, pairs: list[PairMatches], ban
 
 def narrow_observations(result, world, image_dir: Path, asked: NarrowMode, options: SelfCheckOptions | None = None,
                         offsets: dict[str, int] | None = None) -> tuple[pycolmap.Reconstruction | None, NarrowObservations]:
-    """Match (in the floor frame; without a floor, along the whole epipolar lines), decide, and return the adjusted model with the narrow observations added (None
-    when they are not used) with the record. ``result``: the first AdjustResult; ``world``: its WorldResult."""
+    """Match (in the floor frame; without a floor, along the whole epipolar lines), decide, and return the adjusted
+    model with the narrow observations added (None when they are not used) with the record. ``result``: the first
+    AdjustResult; ``world``: its WorldResult."""
     start = time.perf_counter()
     if asked == NarrowMode.OFF:
         return None, NarrowObservations(str(asked), False, "not asked (--narrow off)")

@@ -120,3 +120,18 @@ def rigsfm_floor_pixels(image, floor_m):
 
     h = np.c_[np.asarray(floor_m), np.ones(len(floor_m))] @ image_from_plane(image, 0.0).T
     return h[:, :2] / h[:, 2:] - 0.5  # COLMAP -> OpenCV pixel centres
+
+
+def picker_images(root: Path) -> list[Path]:
+    """Two small random wide images, ROOT/images/rig01|rig02/wide/f0.png, for the picker's tests."""
+    import cv2
+    import numpy as np
+
+    rng = np.random.default_rng(0)
+    paths = []
+    for rig in ("rig01", "rig02"):
+        path = root / "images" / rig / "wide" / "f0.png"
+        path.parent.mkdir(parents=True)
+        cv2.imwrite(str(path), rng.integers(0, 255, (60, 80), dtype=np.uint8))
+        paths.append(path)
+    return paths

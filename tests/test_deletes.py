@@ -13,6 +13,7 @@ import numpy as np
 import pycolmap
 import pytest
 from bad_inputs_table import workspace
+from support import picker_images
 from typer.testing import CliRunner
 
 from rigsfm.cli import app
@@ -266,19 +267,6 @@ def test_a_render_into_a_folder_from_elsewhere_is_refused(tmp_path):
 
 
 # --- picker: stale pages add to the newer pairs; every backup generation is kept; a failed save is told -----------
-
-def picker_images(root: Path) -> list[Path]:
-    import cv2
-
-    rng = np.random.default_rng(0)
-    paths = []
-    for rig in ("rig01", "rig02"):
-        path = root / "images" / rig / "wide" / "f0.png"
-        path.parent.mkdir(parents=True)
-        cv2.imwrite(str(path), rng.integers(0, 255, (60, 80), dtype=np.uint8))
-        paths.append(path)
-    return paths
-
 
 def request(url: str, method: str = "GET", body=None) -> tuple[int, dict]:
     import urllib.error

@@ -19,6 +19,7 @@ import pycolmap
 import pytest
 import yaml
 from conftest import copy_run
+from support import picker_images
 from typer.testing import CliRunner
 
 from rigsfm.cli import app
@@ -389,13 +390,7 @@ def test_picker_put_that_empties_the_csv_keeps_a_backup(tmp_path):
     from rigsfm.pick.session import PickerSession, picker_image
     from rigsfm.run.matching.manual_matches import read_manual_matches
 
-    rng = np.random.default_rng(0)
-    paths = []
-    for rig in ("rig01", "rig02"):
-        path = tmp_path / "images" / rig / "wide" / "f0.png"
-        path.parent.mkdir(parents=True)
-        cv2.imwrite(str(path), rng.integers(0, 255, (60, 80), dtype=np.uint8))
-        paths.append(path)
+    paths = picker_images(tmp_path)
     csv = tmp_path / "matches.csv"
     other = "rig03/wide/f0.png,1.000,2.000,rig04/wide/f0.png,3.000,4.000\n"
     session = PickerSession(picker_image(paths[0], None), picker_image(paths[1], None), csv)

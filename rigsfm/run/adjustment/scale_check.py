@@ -6,6 +6,9 @@ millimetres, centimetres or feet implies 1000x, 100x or 3.3x the others' scale a
 would drag the whole adjustment (and make the uncertainty stage take minutes) before the run ended with residuals
 no one can read. :func:`check_scale_agreement` compares each measurement's scale with the median of the others' and
 refuses, in one line naming them and the fix, those off by more than :data:`PLAUSIBLE_FACTOR` beyond their sigmas.
+Without a majority (two measurements, or no group holding most) the odd one cannot be named, and the mapped model
+itself may be wrong (two rigs registered from weak matches): only a disagreement of :data:`UNDECIDED_FACTOR` or
+more is refused, a smaller one is logged and left to the adjustment's warnings.
 
 The mapped model is the mapper's, before the adjustment: its shape is good where rigs share points (its errors are
 percent, far inside the factor) but open for rigs tied loosely to the rest, whose distances the adjustment settles
@@ -112,8 +115,8 @@ def check_scale_agreement(reconstruction: pycolmap.Reconstruction, spec: ScaleSp
                           rigs: Sequence[RigCalibration]) -> None:
     """Refuse (``InputError``, one line) measurements whose scale in the mapped model disagrees with the others'
     by more than :data:`PLAUSIBLE_FACTOR` beyond :data:`SIGMAS` of their uncertainties: those outside the largest
-    group that agree with one another when it holds most of them, else all; nothing with fewer than two
-    measurements the model holds."""
+    group that agree with one another when it holds most of them, else all, and then only when they are
+    :data:`UNDECIDED_FACTOR` or more apart; nothing with fewer than two measurements the model holds."""
     implied = implied_scales(reconstruction, spec, rigs)
     if len(implied) < 2:
         return

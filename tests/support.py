@@ -135,3 +135,11 @@ def picker_images(root: Path) -> list[Path]:
         cv2.imwrite(str(path), rng.integers(0, 255, (60, 80), dtype=np.uint8))
         paths.append(path)
     return paths
+
+
+def as_from_a_terminal() -> None:
+    """SIGINT as a terminal's foreground job has it (a shell starts background jobs with SIGINT ignored, and a
+    child keeps that): a ``preexec_fn`` for commands a test stops with Ctrl-C."""
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_DFL)

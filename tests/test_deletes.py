@@ -13,7 +13,7 @@ import numpy as np
 import pycolmap
 import pytest
 from bad_inputs_table import workspace
-from support import picker_images
+from support import as_from_a_terminal, picker_images
 from typer.testing import CliRunner
 
 from rigsfm.cli import app
@@ -358,7 +358,8 @@ def test_a_csv_folder_made_a_file_is_told_and_nothing_is_claimed_saved(tmp_path)
     env = {**os.environ, "PYTHONPATH": str(REPO), "COLUMNS": "400"}
     process = subprocess.Popen([sys.executable, "-m", "rigsfm", "pick", "images/rig01/wide/f0.png",
                                 "images/rig02/wide/f0.png", "--out", "sub/m.csv", "--port", str(port)],
-                               cwd=tmp_path, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                               cwd=tmp_path, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                               preexec_fn=as_from_a_terminal)
     try:
         url = f"http://127.0.0.1:{port}/"
         for _ in range(300):

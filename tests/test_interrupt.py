@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 import pytest
+from support import as_from_a_terminal
 
 from rigsfm.core import processes as stages
 from rigsfm.core.errors import InputError, WorkspaceError
@@ -186,18 +187,13 @@ def _alive(pid: int) -> bool:
     return state != "Z"
 
 
-def _as_from_a_terminal() -> None:
-    """SIGINT as a terminal's foreground job has it (a shell starts background jobs with SIGINT ignored)."""
-    signal.signal(signal.SIGINT, signal.SIG_DFL)
-
-
 def _run(scene, out, env, *, signum=None, when=None, group=False) -> tuple[int, str, str]:
     """Run the command; with ``signum``, send it once ``when`` appears in OUT/colmap.log (to the process group
     with ``group``, as a terminal's Ctrl-C does). Returns exit code, stderr, and colmap.log."""
     log = out / "colmap.log"
     start = log.stat().st_size if log.exists() else 0
     process = subprocess.Popen(_command(scene, out), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                               env=env, cwd=ROOT, start_new_session=True, preexec_fn=_as_from_a_terminal)
+                               env=env, cwd=ROOT, start_new_session=True, preexec_fn=as_from_a_terminal)
     helpers: set[int] = set()
     if signum is not None:
         while process.poll() is None:
@@ -344,12 +340,12 @@ def _catches_sigterm(pid: int) -> bool:
 
 def _with_signals_blocked() -> None:
     """A terminal's foreground job started by a parent that had SIGINT and SIGTERM blocked (the mask is inherited)."""
-    _as_from_a_terminal()
+    as_from_a_terminal()
     signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT, signal.SIGTERM})
 
 
 def _stop(args: list[str], cwd: Path, signum: int, delay: float, ready: str = "",
-          start=_as_from_a_terminal) -> tuple[int, list[str], str]:
+          start=as_from_a_terminal) -> tuple[int, list[str], str]:
     """Start ``rigsfm ARGS``, send ``signum`` to its process group ``delay`` s after its handler is in place (or
     once its output shows ``ready``); returns the exit code, its error lines (log warnings left out) and its
     output."""
@@ -457,7 +453,7 @@ def test_a_stopped_process_pool_ends_its_workers_at_once(tmp_path, signum, group
     script = tmp_path / "pool.py"
     script.write_text(POOL_SCRIPT)
     process = subprocess.Popen([sys.executable, str(script)], env=_env(), text=True, stdout=subprocess.PIPE,
-                               stderr=subprocess.PIPE, start_new_session=True, preexec_fn=_as_from_a_terminal)
+                               stderr=subprocess.PIPE, start_new_session=True, preexec_fn=as_from_a_terminal)
     def holds_pycolmap(pid: int) -> bool:
         try:
             return "pycolmap" in Path(f"/proc/{pid}/maps").read_text(errors="replace")
@@ -503,7 +499,7 @@ def _stop_track(args: list[str], signum: int, log: Path, registered: int) -> tup
     offset = log.stat().st_size
     process = subprocess.Popen([sys.executable, "-m", "rigsfm", "track", *args], env=_env(), text=True,
                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, start_new_session=True,
-                               preexec_fn=_as_from_a_terminal)
+                               preexec_fn=as_from_a_terminal)
     while process.poll() is None and len(re.findall(r"Frame \S+: registered", log.read_text(errors="replace")[offset:])) < registered:
         time.sleep(0.05)
     assert process.poll() is None, f"track ended before registering {registered} frames: {process.communicate()}"

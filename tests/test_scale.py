@@ -26,7 +26,7 @@ from rigsfm.run.checks.missed_pairs import missed_pairs
 from rigsfm.run.inputs.database import create_database
 from rigsfm.run.matching.extract import _extraction_options, extract_features, extract_one
 from rigsfm.run.matching.feature_cache import FEATURE_CACHE_ENV
-from rigsfm.run.matching.gpu import cuda_device_count, decide, use_gpu
+from rigsfm.run.matching.gpu import cuda_device_count, decide, pycolmap_device, use_gpu
 from rigsfm.run.matching.pairs import PairSelection, _spanning_tree, first_pass_scores
 from rigsfm.run.options import Device, MatchingOptions, Pairs, RunOptions
 from rigsfm.run.pipeline import load_inputs, run
@@ -53,6 +53,32 @@ def test_gpu_decision():
     # This machine: GPU SIFT exactly when pycolmap is the CUDA build and the driver reports a device.
     assert use_gpu(Device.AUTO) == (bool(pycolmap.has_cuda) and cuda_device_count() > 0)
     assert use_gpu(Device.CPU) is False
+
+
+def test_pycolmap_device_is_named_for_each_decision():
+    """pycolmap's own default (Device.auto) would run a CUDA build on the GPU whatever the options say."""
+    assert pycolmap_device(False) == pycolmap.Device.cpu
+    assert pycolmap_device(True) == pycolmap.Device.cuda
+
+
+def test_device_cpu_extracts_on_the_cpu(rendered, tmp_path):
+    """--device cpu gives the CPU's SIFT, bit for bit, also with pycolmap's CUDA build on a GPU machine (where
+    pycolmap's default device put the extraction on the GPU): the workspace's record of the device is then true."""
+    dataset = rendered(SceneOptions(num_rigs=2, image_scale=0.3, seed=0))
+    inputs = load_inputs(dataset.images, dataset.rigs)
+    name = sorted(e.name for e in inputs.images if e.sensor == "wide")[0]
+    options = MatchingOptions(device=Device.CPU)
+    db_path = create_database(tmp_path / "database.db", inputs.rigs, inputs.images)
+    extract_features(db_path, dataset.images, [e for e in inputs.images if e.name == name], options, num_threads=1)
+    with pycolmap.Database.open(db_path) as db:
+        image_id = db.read_image_with_name(name).image_id
+        keypoints, descriptors = db.read_keypoints(image_id), db.read_descriptors(image_id).data
+    cpu = _extraction_options(options, num_threads=1, first_octave=-1)
+    assert cpu.use_gpu is False
+    features = extract_one((name, (dataset.images / name).read_bytes(), ".png"), cpu)  # Device.cpu, explicitly
+    assert len(keypoints) > 100
+    np.testing.assert_array_equal(features.keypoints, keypoints)
+    np.testing.assert_array_equal(features.descriptors, descriptors)
 
 
 def test_first_pass_counts_shared_features():

@@ -25,7 +25,7 @@ from rigsfm.core.executors import Executor, map_unordered
 from rigsfm.run.inputs.database import open_database
 from rigsfm.run.inputs.images import ImageEntry
 from rigsfm.run.matching.feature_cache import FeatureCache, features_from_cache, features_to_cache
-from rigsfm.run.matching.gpu import use_gpu
+from rigsfm.run.matching.gpu import pycolmap_device, use_gpu
 from rigsfm.run.options import Features, MatchingOptions, Pairs
 
 logger = logging.getLogger(__name__)
@@ -115,8 +115,8 @@ def extract_one(task: tuple[str, bytes, str], extraction: pycolmap.FeatureExtrac
     if limit > 0:
         bitmap.thumbnail(limit)  # what COLMAP's image reader does beyond max_image_size (bilinear)
     scale_x, scale_y = width / bitmap.width, height / bitmap.height  # back to the file's pixels, as COLMAP
-    device = pycolmap.Device.cuda if extraction.use_gpu else pycolmap.Device.cpu
-    keypoints, descriptors = pycolmap.FeatureExtractor.create(extraction, device).extract(bitmap)
+    keypoints, descriptors = pycolmap.FeatureExtractor.create(
+        extraction, pycolmap_device(extraction.use_gpu)).extract(bitmap)
     rows = []
     for keypoint in keypoints:
         if scale_x != 1.0 or scale_y != 1.0:
@@ -226,6 +226,7 @@ def _extract(database_path: Path, image_dir: Path, paths: dict[str, Path], ids: 
             image_names=batch,
             camera_mode=pycolmap.CameraMode.PER_IMAGE,
             extraction_options=extraction,
+            device=pycolmap_device(extraction.use_gpu),
         )
         if progress:
             progress(start + len(batch), len(todo))

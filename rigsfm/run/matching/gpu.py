@@ -11,9 +11,13 @@ from __future__ import annotations
 import ctypes
 import functools
 import logging
+from typing import TYPE_CHECKING
 
 from rigsfm.core.errors import InputError
 from rigsfm.run.options import Device
+
+if TYPE_CHECKING:
+    import pycolmap
 
 logger = logging.getLogger(__name__)
 
@@ -45,6 +49,15 @@ def cuda_device_count() -> int:
             return 0
         return int(count.value)
     return 0
+
+
+def pycolmap_device(gpu: bool) -> pycolmap.Device:
+    """The ``device`` argument of pycolmap's extraction and matching for this decision. It must always be given:
+    pycolmap's default, ``Device.auto``, overrides ``use_gpu=False`` in the options and runs on the GPU whenever
+    its build has CUDA, so ``--device cpu`` would silently extract on the GPU."""
+    import pycolmap
+
+    return pycolmap.Device.cuda if gpu else pycolmap.Device.cpu
 
 
 @functools.cache

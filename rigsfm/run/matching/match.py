@@ -13,7 +13,7 @@ import pycolmap
 from rigsfm.run.inputs.database import open_database
 from rigsfm.run.inputs.images import ImageEntry
 from rigsfm.run.matching.extract import Progress
-from rigsfm.run.matching.gpu import use_gpu
+from rigsfm.run.matching.gpu import pycolmap_device, use_gpu
 from rigsfm.run.matching.pairs import PairSelection, select_pairs
 from rigsfm.run.options import MatchingOptions
 
@@ -62,6 +62,7 @@ def match_features(
             matching_options=matching,
             pairing_options=pycolmap.ImportedPairingOptions(match_list_path=pairs_path),
             verification_options=verification,
+            device=pycolmap_device(gpu),
         )
         if progress:
             progress(start + len(batch), len(todo))
@@ -75,6 +76,7 @@ def match_features(
                 matching_options=matching,
                 pairing_options=pycolmap.ImportedPairingOptions(match_list_path=pairs_path),
                 verification_options=verification,
+                device=pycolmap_device(gpu),
             )
     pairs_path.unlink(missing_ok=True)
     logger.info("Matched %d image pairs", len(todo))

@@ -4,6 +4,7 @@ with the fix instead of an internal error."""
 
 import logging
 import os
+import shlex
 import shutil
 import sqlite3
 import subprocess
@@ -168,3 +169,13 @@ def test_the_warning_reaches_the_terminal_while_colmap_logs_to_out(tmp_path):
     assert "internal error" not in done.stderr and "Traceback" not in done.stderr, done.stderr
     with pycolmap.Database.open(out / "database.db") as database:
         assert database.num_images() == 4 and database.num_keypoints() > 0
+
+
+def test_suggested_commands_keep_a_folder_with_spaces_one_word(tmp_path):
+    """A message's suggested command can be pasted into a shell as it is: the folder is shell-quoted."""
+    missing = Workspace(tmp_path / "my runs" / "it's here")
+    with pytest.raises(WorkspaceError) as error:
+        missing.require_result()
+    command = str(error.value).split("`")[1]
+    assert shlex.split(command)[-1] == str(missing.root)
+    assert shlex.split(missing.rerun_hint.split("`")[1])[-2] == str(missing.root)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import shlex
 import threading
 from pathlib import Path
 from typing import Annotated
@@ -45,4 +46,4 @@ def pick_command(
                  if session.rescue is not None else "nothing could keep them")
         raise WorkspaceError(f"the last save of {len(session.unsaved)} pairs of {session.images[0].name} <-> "
                              f"{session.images[1].name} failed ({session.save_error}); {where}") from None
-    console.print(f"stopped: {len(session.pairs)} pairs in {out} (for `rigsfm run ... --manual-matches {out}`)")
+    console.print(f"stopped: {len(session.pairs)} pairs in {out} (for `rigsfm run ... --manual-matches {shlex.quote(str(out))}`)")

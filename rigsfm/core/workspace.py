@@ -25,6 +25,7 @@ import json
 import logging
 import os
 import re
+import shlex
 import shutil
 import sys
 import tempfile
@@ -151,21 +152,26 @@ class Workspace:
     def require_result(self) -> None:
         """Raise a ``WorkspaceError`` saying what to do when OUT holds no finished run."""
         if not self.root.is_dir():
-            raise WorkspaceError(f"'{self.root}' does not exist: run `rigsfm run IMAGES --rigs rigs.yaml --out {self.root}`"
+            raise WorkspaceError(f"'{self.root}' does not exist: run `rigsfm run IMAGES --rigs rigs.yaml --out {self.shell_root}`"
                                  " first")
         demo_run = Workspace(self.root / "run")
         if not (self.sparse / "images.bin").is_file() and demo_run.has_result():
             raise WorkspaceError(f"'{self.root}' is a `rigsfm demo` folder, whose result is in its run/ folder: use "
-                                 f"{demo_run.root} (e.g. `rigsfm view {demo_run.root}`)")
+                                 f"{demo_run.root} (e.g. `rigsfm view {demo_run.shell_root}`)")
         if not (self.sparse / "images.bin").is_file():
             raise WorkspaceError(f"'{self.root}' holds no result ('{self.sparse}' is missing): run `rigsfm run ... --out "
-                                 f"{self.root}` first")
+                                 f"{self.shell_root}` first")
         if not self.narrow_poses.is_file():
-            raise WorkspaceError(f"'{self.narrow_poses}' is missing: re-run `rigsfm run ... --out {self.root} --overwrite`")
+            raise WorkspaceError(f"'{self.narrow_poses}' is missing: re-run `rigsfm run ... --out {self.shell_root} --overwrite`")
+
+    @property
+    def shell_root(self) -> str:
+        """The folder as a shell word, for the commands that messages suggest (a space or quote stays one word)."""
+        return shlex.quote(str(self.root))
 
     @property
     def rerun_hint(self) -> str:
-        return f"re-run `rigsfm run IMAGES --rigs rigs.yaml --out {self.root} --overwrite`"
+        return f"re-run `rigsfm run IMAGES --rigs rigs.yaml --out {self.shell_root} --overwrite`"
 
     def read_sparse(self) -> pycolmap.Reconstruction:
         """The final model (``sparse/``), or a ``WorkspaceError`` naming the damaged file and the fix."""

@@ -20,6 +20,7 @@ from rigsfm.run.checks.sync import (
     OffsetScore,
     PairSync,
     _solve,
+    describe_record,
     estimate_frame_offsets,
     frames_by_time,
     read_frame_offsets,
@@ -265,6 +266,8 @@ def test_run_with_auto_reports_a_fraction_it_cannot_apply(world, tmp_path):
     assert not any(p.verdict == "failed" for p in check.pairs)
     assert any(p.verdict == "not synchronised" for p in check.pairs)
     assert check.warnings[0].startswith("FRAMES NOT SYNCHRONISED: rig05 is about +0.5 frame off; whole frames applied")
+    line = describe_record(record)  # the terminal's line
+    assert "estimated rig05 +0.5 frame (+-0.0" in line and line.endswith("a fraction of a frame is not applied (frames are images)")
 
 
 def test_fractions_are_combined_with_most_rigs_on_whole_frames():

@@ -44,6 +44,7 @@ import pycolmap
 from rigsfm.core.errors import InputError
 from rigsfm.core.io import load_yaml_or_json
 from rigsfm.core.names import name_of, quoted, registered_narrow_images
+from rigsfm.core.summary import FrameOffsetsSummary
 from rigsfm.run.checks.guided import (
     KEYPOINT_NOISE_PX,
     MIN_MATCHES,
@@ -164,6 +165,24 @@ class SyncEstimate:
                 "seconds": round(self.seconds, 3), "skipped": self.skipped, "consistent_share": CONSISTENT,
                 "pairs": [p.to_dict() for p in self.pairs],
                 "subframe": None if self.subframe is None else self.subframe.to_dict()}
+
+
+def describe_record(record: FrameOffsetsSummary) -> str:
+    """The terminal's line on summary.json's ``frame_offsets``: what was applied, and the offsets estimated with
+    their fractions (only whole frames can be applied)."""
+    estimate = record.estimate or {}
+    applied = ", ".join(f"{rig} {off:+d}" for rig, off in sorted((record.applied or {}).items()))
+    sigmas = (estimate.get("subframe") or {}).get("sigmas") or {}
+    measured = (estimate.get("subframe") or {}).get("offsets") or {}
+    untold = [r for r, o in (estimate.get("offsets") or {}).items() if o is None and measured.get(r) is None]
+    why = f"no offset told for {', '.join(untold)}" if untold else "all rigs at 0"
+    named = estimate.get("named") or {}
+    whole = ", ".join(f"{rig} {_frames(off)}" + (f" (+-{sigmas[rig]:.2f})" if sigmas.get(rig) is not None else "")
+                      for rig, off in sorted(named.items()))
+    fraction = any(abs(o - round(o)) >= 0.05 for o in named.values())
+    return (f"frame offsets ({record.asked}): {'applied ' + applied if applied else f'none applied ({why})'}"
+            + (f"; estimated {whole}" if whole else "")
+            + ("; a fraction of a frame is not applied (frames are images)" if fraction else ""))
 
 
 def _frames(offset: float) -> str:

@@ -329,7 +329,10 @@ def estimate_frame_offsets(reconstruction: pycolmap.Reconstruction, image_dir: P
     for a, b in sorted(overlapping):
         d = offsets[a] - offsets[b]
         ks = [k for k in range(counts[a]) if 0 <= k + d < counts[b]][:max(1, frames_per_offset)]
-        entry = by_pair.get((per_rig[a][ks[0]].name, per_rig[b][ks[0] + d].name)) if ks else None
+        if not ks:
+            fractions.append(PairFraction(a, b, d, None, None, 0, 0, "no frames of both rigs at that pairing"))
+            continue
+        entry = by_pair.get((per_rig[a][ks[0]].name, per_rig[b][ks[0] + d].name))
         band = None if entry is None else entry.get("epipolar_band_95_px")
         if band is None or not math.isfinite(band):
             fractions.append(PairFraction(a, b, d, None, None, 0, 0, "no band"))

@@ -14,7 +14,7 @@ inliers, ``tau = -sum(s g) / sum(g^2)``. Its standard error joins the scatter's,
 the lines' own error, ``band / 1.96 / rms(g)`` (common to the pair's matches, so it does not average down). Only
 matches moving at least ``MIN_MOTION_PX`` across their line per frame count: a static feature, or a walker moving
 along the line, cannot tell time. A pair with fewer than ``MIN_TRACKS`` such inliers tells no fraction ("too
-little motion").
+little motion"; fewer tracked matches at all: "too few matches tracked").
 
 Per rig: least squares over the pairs' ``O_a - O_b = d + tau`` (weights 1 / sigma^2) with the first rig at 0,
 the standard errors from the normal equations, scaled up by the fit's reduced chi-square where the pairs disagree
@@ -166,6 +166,8 @@ def measure_pair(first, frames: list, features: Callable, f_ji: np.ndarray, band
 def fit_tau(s: np.ndarray, g: np.ndarray, band: float) -> tuple[float | None, float | None, int, str | None]:
     """tau, its standard error, the inliers and why none (module docstring)."""
     threshold = band + KEYPOINT_NOISE_PX
+    if len(s) < MIN_TRACKS:
+        return None, None, 0, f"too few matches tracked between the rig's frames ({len(s)})"
     moving = np.abs(g) >= MIN_MOTION_PX
     s, g = s[moving], g[moving]
     if len(s) < MIN_TRACKS:

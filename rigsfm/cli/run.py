@@ -99,10 +99,9 @@ def print_world(summary) -> None:
         console.print(describe_record(summary.narrow_observations))
     offsets = summary.frame_offsets
     if offsets is not None and offsets.asked:
-        applied = ", ".join(f"{rig} {off:+d}" for rig, off in sorted((offsets.applied or {}).items()))
-        untold = [r for r, o in ((offsets.estimate or {}).get("offsets") or {}).items() if o is None]
-        why = f"no offset told for {', '.join(untold)}" if untold else "all rigs at 0"
-        console.print(f"frame offsets ({offsets.asked}): {applied or f'none applied ({why})'}")
+        from rigsfm.run.checks.sync import describe_record as describe_offsets
+
+        console.print(describe_offsets(offsets))
 
 
 def print_manual_matches(report: ManualMatchesSummary) -> None:

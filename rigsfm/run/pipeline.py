@@ -292,14 +292,18 @@ def _self_check(poses: dict, inputs: Inputs, reconstruction: pycolmap.Reconstruc
 
     asked = None if opt.frame_offsets is None else str(opt.frame_offsets)
     sync = estimate() if asked == "auto" else None
-    applied = dict(given_offsets or {}) if sync is None else sync.unsynchronised
+    applied = dict(given_offsets or {}) if sync is None else sync.applicable
     check = epipolar_self_check(reconstruction, inputs.image_dir, poses, opt, applied, cached)
     if asked is None and any(p.verdict == "failed" for p in check.pairs):
         sync = estimate()
         if sync.warning:
-            check.blame_time(sync.unsynchronised, sync.warning)
-    elif asked == "auto" and sync.unsynchronised:  # type: ignore[union-attr]  # auto: estimated above
-        logger.warning("Frame offsets estimated and applied: %s", sync.unsynchronised)  # type: ignore[union-attr]
+            check.blame_time(sync.named, sync.warning)
+    elif asked == "auto":
+        if applied:
+            logger.warning("Frame offsets estimated and applied: %s", applied)
+        left = sync.left_after(applied)  # type: ignore[union-attr]
+        if left:  # a fraction of a frame: only whole frames can be applied
+            check.blame_time(left, sync.fraction_warning(applied))  # type: ignore[union-attr]
     record = FrameOffsetsSummary(asked=asked, applied=applied, estimate=None if sync is None else sync.to_dict())
     return check, record
 

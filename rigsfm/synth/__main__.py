@@ -35,7 +35,8 @@ def main(argv: list[str] | None = None) -> int:
                         help="3D persons standing and walking on the centre disc (e.g. 4); 0: none")
     parser.add_argument("--frame-period-s", type=float, default=0.5, help="time between a rig's frames")
     parser.add_argument("--frame-offsets", default="",
-                        help="unsynchronised rigs: rig02=1,rig05=-2 takes rig02's frame k at time k+1 (frames)")
+                        help="unsynchronised rigs: rig02=1,rig05=-0.5 takes rig02's frame k at time k+1 and rig05's at "
+                             "k-0.5 (frames; fractions too: the persons walk continuously)")
     parser.add_argument("--exposure-jitter", type=float, default=0.0,
                         help="each image's exposure gain uniform in 1 +- this (e.g. 0.15)")
     parser.add_argument("--jpeg-quality", type=int, default=0, help="write JPEG images of this quality (1..100)")

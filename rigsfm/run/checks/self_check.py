@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -48,7 +49,7 @@ class SelfCheck:
     frame_offsets: dict[str, int] = field(default_factory=dict)  # frames paired by time with these (rigsfm.run.checks.sync)
     sync_warning: str | None = None  # FRAMES NOT SYNCHRONISED (rigsfm.run.checks.sync.SyncEstimate.warning)
 
-    def blame_time(self, unsynchronised: dict[str, int], warning: str) -> None:
+    def blame_time(self, unsynchronised: Mapping[str, float], warning: str) -> None:
         """Failed pairs with a rig found off in time get the verdict 'not synchronised' (not the calibration)."""
         for pair in self.pairs:
             if pair.verdict == "failed" and {name_of_str(pair.i), name_of_str(pair.j)} & set(unsynchronised):

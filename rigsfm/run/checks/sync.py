@@ -18,9 +18,12 @@ then shifted so that most rigs are at 0 (ties: the first rig at 0). A rig is nam
 evidence is clear: one of its pairs is consistent (score >= ``CONSISTENT``) at the rig's offset and not with the
 rig at 0 (a pair whose epipolar lines run along the crowd's motion cannot tell, so one pair that can is enough).
 
-Sub-frame offsets are not estimated: a walker crosses several pixels of a long-focal view in a tenth of a frame,
-so the score's peak is narrower than a frame and interpolating it between integer offsets does not measure the
-fraction; a fraction shows as no consistent integer offset (the rig is not named).
+Sub-frame offsets: a walker crosses several pixels of a long-focal view in a tenth of a frame, so the score's
+peak is narrower than a frame and interpolating it between integer offsets does not measure the fraction (a
+fraction shows as no consistent integer offset). The fraction is measured instead from the matches' motion across
+their epipolar lines between a rig's consecutive frames (:mod:`rigsfm.run.checks.subframe`), at the integer
+pairing found here; a rig is then named by its whole offset (``rig05 is about +0.5 frame off``). Only the integer
+part can pair frames (frames are images); the fraction is reported.
 
 Needs matches on the crowd: flat-shaded persons seen from rigs tens of degrees apart share few features between
 narrow views, and then no offset is told (``offsets[r]`` None or no rig ``clear``).
@@ -41,6 +44,7 @@ import pycolmap
 from rigsfm.core.errors import InputError
 from rigsfm.core.io import load_yaml_or_json
 from rigsfm.core.names import name_of, quoted, registered_narrow_images
+from rigsfm.core.summary import FrameOffsetsSummary
 from rigsfm.run.checks.guided import (
     KEYPOINT_NOISE_PX,
     MIN_MATCHES,
@@ -52,6 +56,14 @@ from rigsfm.run.checks.guided import (
     _overlapping_pairs,
     _segments,
     pair_features,
+)
+from rigsfm.run.checks.subframe import (
+    NAMED_FRAMES,
+    PairFraction,
+    SubframeEstimate,
+    combine,
+    fit_tau,
+    measure_pair,
 )
 
 logger = logging.getLogger(__name__)
@@ -97,6 +109,7 @@ class SyncEstimate:
     seconds: float
     skipped: str | None = None
     clear: dict[str, bool] = field(default_factory=dict)  # the rig's offset is backed by consistent pairs
+    subframe: SubframeEstimate | None = None  # integer + fraction, where the motion allows
 
     @property
     def unsynchronised(self) -> dict[str, int]:
@@ -104,21 +117,79 @@ class SyncEstimate:
         return {r: o for r, o in self.offsets.items() if o and self.clear.get(r)}
 
     @property
+    def named(self) -> dict[str, float]:
+        """Rigs clearly off in time, by their whole offset: where a fraction was measured, the measured offset
+        (named when clear of its error, rigsfm.run.checks.subframe); elsewhere the integer estimate's."""
+        measured = self.subframe.offsets if self.subframe else {}
+        named = {r: float(o) for r, o in self.unsynchronised.items() if measured.get(r) is None}
+        named.update(self.subframe.named if self.subframe else {})
+        return named
+
+    @property
+    def applicable(self) -> dict[str, int]:
+        """The whole frames ``--frame-offsets auto`` pairs frames by: the nearest whole frame of each named rig's
+        offset (frames are images; the fraction is reported, not applied)."""
+        whole = {r: math.floor(o + 0.5) for r, o in self.named.items()}
+        return {r: o for r, o in whole.items() if o}
+
+    def left_after(self, applied: dict[str, int]) -> dict[str, float]:
+        """The named rigs still off once ``applied`` pairs the frames (a fraction that cannot be applied)."""
+        return {r: o - applied.get(r, 0) for r, o in self.named.items() if abs(o - applied.get(r, 0)) >= NAMED_FRAMES}
+
+    @property
     def warning(self) -> str | None:
-        off = self.unsynchronised
+        off = self.named
         if not off:
             return None
-        rigs = ", ".join(f"{r} is about {o:+d} frame{'s' if abs(o) > 1 else ''} off" for r, o in sorted(off.items()))
+        rigs = ", ".join(f"{r} is about {_frames(o)} off" for r, o in sorted(off.items()))
+        fraction = any(abs(o - round(o)) >= 0.05 for o in off.values())
         return (f"FRAMES NOT SYNCHRONISED: {rigs} (the moving crowd in its narrow images matches the other rigs' "
                 "on the epipolar lines only at that shift; frame k of it was taken at the others' frame k + offset): "
                 "not a calibration fault; give --frame-offsets auto (or a file 'rig: offset') to pair the frames "
-                "by time")
+                "by time" + ("; a fraction of a frame cannot be paired away (frames are images): its moving crowd "
+                             "stays off the epipolar lines by that fraction's motion" if fraction else ""))
+
+    def fraction_warning(self, applied: dict[str, int]) -> str:
+        """The warning once ``applied`` pairs the frames, naming the rigs ``left_after`` it."""
+        rigs = ", ".join(f"{r} is about {_frames(self.named[r])} off" for r in sorted(self.left_after(applied)))
+        whole = ", ".join(f"{r} {o:+d}" for r, o in sorted(applied.items())) or "none"
+        return (f"FRAMES NOT SYNCHRONISED: {rigs}; whole frames applied ({whole}), a fraction of a frame cannot be "
+                "(frames are images): the moving crowd in its narrow images stays off the epipolar lines by that "
+                "fraction's motion; not a calibration fault")
 
     def to_dict(self) -> dict:
         return {"offsets": dict(self.offsets), "unsynchronised": self.unsynchronised, "clear": dict(self.clear),
+                "named": {r: round(o, 3) for r, o in self.named.items()},
+                "applicable": self.applicable,
                 "frames_per_rig": dict(self.frames_per_rig), "max_offset": self.max_offset,
                 "seconds": round(self.seconds, 3), "skipped": self.skipped, "consistent_share": CONSISTENT,
-                "pairs": [p.to_dict() for p in self.pairs]}
+                "pairs": [p.to_dict() for p in self.pairs],
+                "subframe": None if self.subframe is None else self.subframe.to_dict()}
+
+
+def describe_record(record: FrameOffsetsSummary) -> str:
+    """The terminal's line on summary.json's ``frame_offsets``: what was applied, and the offsets estimated with
+    their fractions (only whole frames can be applied)."""
+    estimate = record.estimate or {}
+    applied = ", ".join(f"{rig} {off:+d}" for rig, off in sorted((record.applied or {}).items()))
+    sigmas = (estimate.get("subframe") or {}).get("sigmas") or {}
+    measured = (estimate.get("subframe") or {}).get("offsets") or {}
+    untold = [r for r, o in (estimate.get("offsets") or {}).items() if o is None and measured.get(r) is None]
+    why = f"no offset told for {', '.join(untold)}" if untold else "all rigs at 0"
+    named = estimate.get("named") or {}
+    whole = ", ".join(f"{rig} {_frames(off)}" + (f" (+-{sigmas[rig]:.2f})" if sigmas.get(rig) is not None else "")
+                      for rig, off in sorted(named.items()))
+    fraction = any(abs(o - round(o)) >= 0.05 for o in named.values())
+    return (f"frame offsets ({record.asked}): {'applied ' + applied if applied else f'none applied ({why})'}"
+            + (f"; estimated {whole}" if whole else "")
+            + ("; a fraction of a frame is not applied (frames are images)" if fraction else ""))
+
+
+def _frames(offset: float) -> str:
+    """+1 frame, +2 frames, +0.5 frame, +1.3 frames (tenths where the offset is not whole)."""
+    whole = round(offset)
+    text = f"{whole:+d}" if abs(offset - whole) < 0.05 else f"{offset:+.1f}"
+    return f"{text} frame{'s' if abs(offset) >= 1.05 or abs(whole) > 1 else ''}"
 
 
 def rig_frames(reconstruction: pycolmap.Reconstruction) -> dict[str, list[pycolmap.Image]]:
@@ -254,10 +325,44 @@ def estimate_frame_offsets(reconstruction: pycolmap.Reconstruction, image_dir: P
         clear[rig] = any((p.score(offsets[p.a] - offsets[p.b]) or 0.0) >= CONSISTENT
                          and (offsets[rig] == 0 or (p.score(moved[p.a] - moved[p.b]) or 0.0) < CONSISTENT)
                          for p in pairs if rig in (p.a, p.b))
+    fractions, refining = [], time.perf_counter()
+    for a, b in sorted(overlapping):
+        d = offsets[a] - offsets[b]
+        ks = [k for k in range(counts[a]) if 0 <= k + d < counts[b]][:max(1, frames_per_offset)]
+        if not ks:
+            fractions.append(PairFraction(a, b, d, None, None, 0, 0, "no frames of both rigs at that pairing"))
+            continue
+        entry = by_pair.get((per_rig[a][ks[0]].name, per_rig[b][ks[0] + d].name))
+        band = None if entry is None else entry.get("epipolar_band_95_px")
+        if band is None or not math.isfinite(band):
+            fractions.append(PairFraction(a, b, d, None, None, 0, 0, "no band"))
+            continue
+        s, g, tracked = [], [], 0
+        for k in ks:
+            j = k + d
+            frames = [loaded(per_rig[b][i]) if 0 <= i < counts[b] else None for i in (j - 1, j, j + 1)]
+            first = loaded(per_rig[a][k])
+            if first is None or frames[1] is None:
+                continue
+            f_ji = np.asarray(by_pair[(per_rig[a][k].name, per_rig[b][j].name)]["F_ji"], dtype=np.float64)
+            signed, motion, n = measure_pair(first, frames, pair_features, f_ji, band, floor_frame)
+            s.append(signed)
+            g.append(motion)
+            tracked += n
+        tau, sigma, inliers, why = fit_tau(np.concatenate(s) if s else np.zeros(0),
+                                           np.concatenate(g) if g else np.zeros(0), band)
+        fractions.append(PairFraction(a, b, d, tau, sigma, tracked, inliers, why))
+        logger.info("sync %s frame k <-> %s frame k%+d%s: %d tracked matches, %d inliers%s", a, b, d,
+                    "" if tau is None else f"{tau:+.3f} (+-{sigma:.3f})", tracked, inliers,
+                    f" ({why})" if why else "")
+    subframe = combine(rigs, offsets, fractions) if fractions else None
+    if subframe is not None:
+        subframe.seconds = time.perf_counter() - refining
     estimate = SyncEstimate({r: (offsets[r] if clear[r] else None) for r in rigs}, pairs, counts, max_offset,
                             time.perf_counter() - start, None if pairs else "no two rigs' narrow footprints overlap",
-                            clear)
-    logger.info("frame offsets: %s (%.1f s)", estimate.offsets, estimate.seconds)
+                            clear, subframe)
+    logger.info("frame offsets: %s, with fractions %s (%.1f s)", estimate.offsets,
+                estimate.subframe and estimate.subframe.offsets, estimate.seconds)
     return estimate
 
 

@@ -125,8 +125,17 @@ def test_association_against_the_truth_and_a_fixed_threshold(crowd):
 
 def test_reported_uncertainty_holds_the_run_s_error(crowd):
     """The run's pose errors are shared by every person (a centre sigma of a few centimetres here): the reported
-    covariance carries them, so the 95 % ellipsoids hold the right persons' errors."""
+    covariance carries them, so the 95 % ellipsoids hold the right persons' errors. The run delivers each narrow
+    centre's 3x3 covariance (its trace the centre sigma's square): cameras on an arc at one height move more
+    horizontally than vertically, and so do the persons' points (their vertical error is the smallest here), which
+    a sigma per camera cannot say."""
     dataset, out = crowd
+    narrow = json.loads((out / "summary.json").read_text())["uncertainty"]["narrow"]
+    for name, entry in narrow.items():
+        matrix = np.asarray(entry["centre_covariance_mm2"])
+        assert matrix.shape == (3, 3) and np.allclose(matrix, matrix.T), name
+        assert np.trace(matrix) == pytest.approx(entry["centre_sigma_mm"] ** 2, rel=1e-6), name
+        assert np.all(np.linalg.eigvalsh(np.asarray(entry["rotation_covariance_deg2"])) >= -1e-12), name
     errors, inside = [], []
     for seed in range(3):
         model, truth = _detections(dataset, out, seed)
@@ -136,6 +145,40 @@ def test_reported_uncertainty_holds_the_run_s_error(crowd):
         inside += list(i)
     assert len(errors) >= 5 and np.median(errors) < 0.15, errors
     assert np.mean(inside) >= 0.75, (errors, inside)
+    assert len(model.centre_covariance_m2) == len(narrow)
+    for name, covariance in model.centre_covariance_m2.items():  # the world's axes, the floor at z = 0
+        assert covariance[2, 2] < (covariance[0, 0] + covariance[1, 1]) / 2, name
+    # The same persons with a third of each trace on every axis instead: the 3x3 moves variance from the vertical to
+    # the horizontal.
+    model.centre_covariance_m2 = {}
+    isotropic = associate_frames(model, from_arrays(truth.points), AssociateOptions(pixel_sigma=1.5))[0].result
+    assert np.array_equal(isotropic.members, frame.result.members)
+    change = frame.result.covariances - isotropic.covariances
+    assert np.all(change[:, 2, 2] < 0) and np.all(change[:, 0, 0] + change[:, 1, 1] > 0)
+
+
+def test_the_crowd_gives_its_detection_probability_and_heights(crowd):
+    """Not assumed: the detection probability and the persons' heights come from the frame's own persons (on the
+    exact poses, where the association finds enough of them), and the association uses them."""
+    from rigsfm.associate.pipeline import RunModel
+
+    dataset, out = crowd
+    model, truth = _detections(dataset, out)
+    exact = pycolmap.Reconstruction(str(dataset / "ground_truth"))
+    images = {im.name: im for im in exact.images.values() if im.name in model.images}
+    posed = RunModel(images, model.bands, model.known, model.world, model.centre_sigma_m)
+    result = associate_frames(posed, from_arrays(truth.points), AssociateOptions(pixel_sigma=1.5))[0].result
+    ids = np.concatenate(list(truth.person.values()))
+    seen = np.bincount(ids[ids >= 0])
+    # the persons detected in three views or more (taller heads hide less: ~8 cm above the crowd's mean here)
+    heads = true_heads(dataset, 0)[: len(seen), 2][seen >= 3]
+    assert result.detection_probability is not None and 0.4 < result.detection_probability < 0.95
+    assert result.height_prior is not None, "too few confident persons to estimate the heights"
+    mean, sigma = result.height_prior
+    assert abs(mean - heads.mean()) < 0.05 and 0.03 < sigma < 0.25, (result.height_prior, heads.mean(), heads.std())
+    given = associate_frames(posed, from_arrays(truth.points),
+                             AssociateOptions(pixel_sigma=1.5, detection_probability=0.6, height_prior=(1.2, 0.1)))
+    assert given[0].result.detection_probability == 0.6 and given[0].result.height_prior == (1.2, 0.1)
 
 
 def test_cli_writes_every_output_and_joins_back(crowd, tmp_path):

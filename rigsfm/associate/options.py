@@ -10,7 +10,12 @@ from pathlib import Path
 class AssociateOptions:
     heights: tuple[float, float] = (1.0, 2.1)  # metres above the floor where the points (heads) may lie
     pixel_sigma: float = 2.0  # the detector's noise per coordinate (px), added to each view's band
-    detection_probability: float = 0.7  # a person's point is detected in a view that sees it (occlusion included)
+    # A person's point is detected in a view that sees it (occlusion included); None: estimated from the frame's
+    # persons (rigsfm.associate.rates), starting from 0.7.
+    detection_probability: float | None = None
+    # Mean and sigma (m) of the points' heights, the score's prior over height inside ``heights``; None: estimated
+    # from the frame's confident persons (uniform over ``heights`` until there are enough).
+    height_prior: tuple[float, float] | None = None
     persons_per_m2: float = 2.0  # the prior density of persons on the floor (the score's price of a new person)
     clutter_radius_px: float = 40.0  # the local density of detections (chance matches) is counted within this
     gate_sigmas: float = 3.5  # candidate pairs: distance to i's ray segment in j within this many sigmas
@@ -36,8 +41,10 @@ class AssociateOptions:
             raise ValueError(f"heights must be two increasing numbers (m), got {lo}, {hi}")
         if not self.pixel_sigma > 0:
             raise ValueError(f"pixel sigma must be > 0 px, got {self.pixel_sigma}")
-        if not 0 < self.detection_probability < 1:
+        if self.detection_probability is not None and not 0 < self.detection_probability < 1:
             raise ValueError(f"detection probability must be in (0, 1), got {self.detection_probability}")
+        if self.height_prior is not None and not self.height_prior[1] > 0:
+            raise ValueError(f"the height prior's sigma must be > 0 m, got {self.height_prior[1]}")
         if not (self.gate_sigmas > 0 and self.member_gate > 0 and self.cell_m > 0 and self.time_limit_s > 0
                 and self.persons_per_m2 > 0):
             raise ValueError("gates, cell size and time limit must be > 0")

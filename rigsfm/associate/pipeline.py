@@ -8,6 +8,7 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numpy as np
 import pycolmap
 
 from rigsfm.associate.detections import Detections, read_detections
@@ -29,6 +30,8 @@ class RunModel:
     known: set[str]  # every image name of the run's inputs (registered or not)
     world: dict | None
     centre_sigma_m: dict[str, float] = field(default_factory=dict)  # per narrow image, 1 sigma of its centre
+    # per narrow image, its centre's 3x3 covariance (m^2, world axes), where the run delivers it
+    centre_covariance_m2: dict[str, np.ndarray] = field(default_factory=dict)
 
 
 def load_run(out: Path) -> RunModel:
@@ -51,15 +54,21 @@ def load_run(out: Path) -> RunModel:
             bands[(pair["i"], pair["j"])] = float(band)
             bands[(pair["j"], pair["i"])] = float(band)
     known = {image.name for image in reconstruction.images.values()} | set(images)
-    centres = {}
+    centres, covariances = {}, {}
     try:
         narrow = json.loads(workspace.summary.read_text(encoding="utf-8"))["uncertainty"]["narrow"]
         centres = {name: float(entry["centre_sigma_mm"]) / 1000.0 for name, entry in narrow.items()
                    if entry.get("centre_sigma_mm") is not None}
+        for name, entry in narrow.items():
+            matrix = entry.get("centre_covariance_mm2")
+            if name in images and matrix is not None:
+                # delivered in the camera's axes: back to the world's through the delivered pose
+                axes = images[name].cam_from_world().rotation.matrix()
+                covariances[name] = 1e-6 * axes.T @ np.asarray(matrix, dtype=np.float64).reshape(3, 3) @ axes
     except (OSError, ValueError, KeyError, TypeError):
         logger.warning("%s holds no camera centre uncertainty; the persons' covariances leave it out",
                        workspace.summary)
-    return RunModel(images, bands, known, poses.get("world"), centres)
+    return RunModel(images, bands, known, poses.get("world"), centres, covariances)
 
 
 def require_floor(model: RunModel, out: Path) -> None:
@@ -92,6 +101,7 @@ def frame_views(model: RunModel, detections: Detections, frame: str, names: list
     for view in views:
         view.sigma_pose_px = sigmas[view.name]
         view.centre_sigma_m = model.centre_sigma_m.get(view.name, 0.0)
+        view.centre_covariance_m2 = model.centre_covariance_m2.get(view.name)
     return views
 
 
@@ -101,7 +111,7 @@ def associate_frames(model: RunModel, detections: Detections, options: Associate
     A narrow camera's pose error is the same in every frame, so the shifts the crowd finds in one frame carry to the
     next frame's images of the same cameras (pooled with each frame's own groups); a frame whose cameras all carry
     one is associated once instead of self-calibrating from scratch."""
-    out = []
+    out: list[FramePersons] = []
     carried: dict[str, View] = {}  # per camera (<rig>/narrow), its view in the latest frame
     for frame, names in detections.frames().items():
         views = frame_views(model, detections, frame, names)
@@ -114,7 +124,7 @@ def associate_frames(model: RunModel, detections: Detections, options: Associate
                 view.shift_sigma_px, view.sigma_pose_px = before.shift_sigma_px, before.sigma_pose_px
                 view.band_sigma_px = before.band_sigma_px
         wall, cpu = time.perf_counter(), time.process_time()
-        result = associate_views(views, options, carried=known)
+        result = associate_views(views, options, carried=known, earlier=out[-1].result if out else None)
         wall, cpu = time.perf_counter() - wall, time.process_time() - cpu
         logger.info("%s: %d persons in %.2f s (%.2f s CPU)", frame, len(result), wall, cpu)
         carried.update((camera, view) for camera, view in zip(cameras, views) if view.band_sigma_px is not None)

@@ -27,6 +27,7 @@ Per frame:
 from __future__ import annotations
 
 import copy
+import dataclasses
 import logging
 import math
 from dataclasses import dataclass, field
@@ -38,6 +39,7 @@ import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
 from rigsfm.associate.options import AssociateOptions
+from rigsfm.associate.rates import truncated_binomial_p
 from rigsfm.core.ground import undistort_pixels
 
 logger = logging.getLogger(__name__)
@@ -60,6 +62,7 @@ class View:
     xy: np.ndarray  # N x 2 raw COLMAP pixels
     sigma_pose_px: float = 0.0
     centre_sigma_m: float = 0.0  # the camera centre's 1 sigma relative to the network (the run's uncertainty)
+    centre_covariance_m2: np.ndarray | None = None  # its 3x3 covariance (world axes), where the run delivers it
     # The crowd's own correction of the run's pose error (a shift of the undistorted pixels, i.e. a small rotation
     # for a narrow camera) and the band sigma before it.
     shift_px: np.ndarray = field(default_factory=lambda: np.zeros(2))
@@ -159,6 +162,8 @@ class FrameResult:
     covariances: np.ndarray  # P x 3 x 3
     scores: np.ndarray  # P: log-likelihood ratio against clutter
     members: np.ndarray  # P x V: index of the detection in each view's list, or -1
+    detection_probability: float | None = None  # the crowd's, as this frame's persons say it
+    height_prior: tuple[float, float] | None = None  # mean and sigma (m) of the persons' heights, as they say it
 
     @property
     def confidence(self) -> np.ndarray:
@@ -398,12 +403,19 @@ class _Frame:
 
     def score(self, members: np.ndarray, points: np.ndarray, covariance: np.ndarray) -> np.ndarray:
         p_d = self.options.detection_probability
+        assert p_d is not None  # associate_views resolves it
         lo, hi = self.options.heights
-        # A person's point is a priori anywhere in the crowd's volume: the likelihood integrated over it (Laplace)
-        # pays for the three coordinates the detections themselves fix.
-        prior = math.log(self.options.persons_per_m2 / (hi - lo)) + 1.5 * math.log(2 * math.pi)
+        # A person's point is a priori anywhere on the crowd's floor, at a height the crowd's persons have: the
+        # likelihood integrated over it (Laplace) pays for the three coordinates the detections themselves fix.
+        if self.options.height_prior is None:
+            height = np.full(len(points), -math.log(hi - lo))
+        else:
+            mean, sigma = self.options.height_prior
+            var = sigma ** 2 + np.maximum(covariance[:, 2, 2], 0.0)
+            height = -0.5 * np.log(2 * math.pi * var) - 0.5 * (points[:, 2] - mean) ** 2 / var
+        prior = math.log(self.options.persons_per_m2) + height + 1.5 * math.log(2 * math.pi)
         sign, logdet = np.linalg.slogdet(covariance)
-        prior = prior + 0.5 * np.where(sign > 0, logdet, -np.inf)  # type: ignore[assignment]  # one per group
+        prior = prior + 0.5 * np.where(sign > 0, logdet, -np.inf)
         d2 = self.residuals(members, points)
         present = members >= 0
         clutter = np.where(present, self.clutter[np.where(present, members, 0)], 1.0)
@@ -416,6 +428,14 @@ class _Frame:
             seen = view.inside(uv, z) & ~present[:, v]
             total += np.where(seen, miss, 0.0)
         return total
+
+    def seen(self, points: np.ndarray) -> np.ndarray:
+        """How many views see each point inside their image (G)."""
+        count = np.zeros(len(points), dtype=np.int64)
+        for view in self.views:
+            uv, z = view.project(points)
+            count += view.inside(uv, z)
+        return count
 
     def hypotheses(self, free: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Candidate persons (members, points, covariances, scores); ``free``: only among these detections."""
@@ -772,7 +792,22 @@ def _corrected(views: list[View], correction: ViewCorrection, options: Associate
     return trial
 
 
-def associate_views(views: list[View], options: AssociateOptions, carried: bool = False) -> FrameResult:
+def _centre_term(views: list[View], members: np.ndarray) -> np.ndarray:
+    """Per group (G x 3 x 3), the covariance its views' own position errors add to its point.
+
+    The cameras' position errors are shared by every person they see, so they do not shrink with more views: each
+    person carries its views' mean centre covariance on top of the triangulation's; the views' errors move together
+    (the network bends as a whole), so their mean is not divided by the number of views. The run's 3x3 says how the
+    error leans (a ring of rigs moves more horizontally than vertically); where the run gives only the root of its
+    trace, each axis holds a third of its square."""
+    centre = np.array([v.centre_covariance_m2 if v.centre_covariance_m2 is not None
+                       else v.centre_sigma_m ** 2 / 3.0 * np.eye(3) for v in views]).reshape(len(views), 3, 3)
+    present = (members >= 0).astype(np.float64)
+    return np.einsum("gv,vij->gij", present, centre) / np.maximum(present.sum(axis=1), 1)[:, None, None]
+
+
+def associate_views(views: list[View], options: AssociateOptions, carried: bool = False,
+                    earlier: FrameResult | None = None) -> FrameResult:
     """Persons seen by the detections of one frame's views (each view: pose, camera and raw detections).
 
     Every view's pose error is shared by all the persons it sees. With ``options.self_calibration_rounds`` > 0 the
@@ -783,8 +818,16 @@ def associate_views(views: list[View], options: AssociateOptions, carried: bool 
     under tight bands break the groups up); the views are updated in place.
 
     ``carried``: the views already hold the shifts of earlier frames of the same cameras (a static rig's pose
-    error is the same in every frame): one association, whose confident groups refine the shifts in place."""
+    error is the same in every frame): one association, whose confident groups refine the shifts in place.
+    ``earlier``: an earlier frame's result, whose detection probability and heights this one starts from (where
+    ``options`` leaves them to the crowd)."""
     names = [v.name for v in views]
+    given = options
+    start = earlier.detection_probability if earlier is not None else None
+    options = dataclasses.replace(options, detection_probability=options.detection_probability or start
+                                  or START_DETECTION)
+    if options.height_prior is None and earlier is not None:
+        options = dataclasses.replace(options, height_prior=earlier.height_prior)
     state = _solve(views, options)
     count = len(_confident(state[1], state[4], options))
     if carried:
@@ -820,17 +863,45 @@ def associate_views(views: list[View], options: AssociateOptions, carried: bool 
         state, count, grew = tried, tried_count, tried_count > count
         if not grew:
             break  # converged: the crowd holds no more confident groups to learn from
+    if not carried:
+        # The crowd's own detection probability and heights, once, from the persons of the corrected views:
+        # associated once more where they differ from what the association assumed.
+        estimated = _crowd_rates(state, options, given)
+        if estimated != options:
+            options = estimated
+            state = _solve(views, options)
     frame, members, points, covariance, scores, positive = state
     total = int(frame.offsets[-1])
-    # The cameras' own position errors are shared by every person they see, so they do not shrink with more views:
-    # each person's covariance carries its views' mean centre variance on top of the triangulation's. The run's
-    # centre sigma is the root of its covariance's trace, so each axis holds a third of its square; the views'
-    # errors move together (the network bends as a whole), so their mean is not divided by the number of views.
-    centre_var = np.array([v.centre_sigma_m ** 2 / 3.0 for v in views])
-    present = members >= 0
-    shared = (present * centre_var[None]).sum(axis=1) / np.maximum(present.sum(axis=1), 1)
-    covariance = covariance + shared[:, None, None] * np.eye(3)[None]
+    covariance = covariance + _centre_term(views, members)
     local = np.where(members >= 0, members - frame.offsets[:-1][None], -1)
     order = np.lexsort((points[:, 1], points[:, 0]))
     logger.info("%d persons from %d detections in %d views (%d hypotheses)", len(order), total, len(views), positive)
-    return FrameResult(names, points[order], covariance[order], scores[order], local[order])
+    # The rates this frame used carry to the next frame as they are: the persons found under a height prior are
+    # already shaped by it, so estimating it again from them would narrow it frame by frame.
+    return FrameResult(names, points[order], covariance[order], scores[order], local[order],
+                       options.detection_probability, options.height_prior)
+
+
+START_DETECTION = 0.7  # the detection probability assumed until the frame's persons say otherwise
+MIN_RATE_GROUPS = 20  # persons needed to estimate the detection probability or the heights from
+
+
+def _crowd_rates(state: tuple, options: AssociateOptions, given: AssociateOptions) -> AssociateOptions:
+    """``options`` with the detection probability and the height prior the association ``state`` found, each only
+    where ``given`` leaves it to the crowd and enough persons say it (rounded: a change below that is noise)."""
+    frame, members, points, covariance, scores, _ = state
+    size = np.sum(members >= 0, axis=1)
+    changes: dict = {}
+    if given.detection_probability is None and len(members) >= MIN_RATE_GROUPS:
+        p = truncated_binomial_p(size, np.maximum(frame.seen(points), size))
+        if p is not None:
+            changes["detection_probability"] = round(p, 2)
+    confident = (size >= 3) & (scores > options.self_calibration_min_score)
+    if given.height_prior is None and confident.sum() >= MIN_RATE_GROUPS:
+        z = points[confident, 2]
+        own = float(np.median(covariance[confident, 2, 2]))  # the score adds each point's own on top
+        sigma = math.sqrt(max(float(np.var(z)) - own, 0.02 ** 2))
+        changes["height_prior"] = (round(float(np.mean(z)), 2), round(sigma, 2))
+    if changes:
+        logger.info("the crowd's rates: %s", changes)
+    return dataclasses.replace(options, **changes)

@@ -23,9 +23,10 @@ def associate_command(
                                          help="the points' heights above the floor (m)")] = "1.0-2.1",
     pixel_sigma: Annotated[float, typer.Option("--pixel-sigma", min=0.01, metavar="PX", help="detection noise per coordinate (px)")]
     = 2.0,
-    detection_probability: Annotated[float, typer.Option(
+    detection_probability: Annotated[float | None, typer.Option(
         "--detection-probability", min=0.01, max=0.99, metavar="P", help="a person is detected in a view that sees it (occlusion "
-                                                            "included)")] = 0.7,
+                                                            "included) [default: estimated from each frame's persons]",
+        show_default=False)] = None,
     self_calibration_rounds: Annotated[int, typer.Option(
         "--self-calibration-rounds", min=0, metavar="N",
         help="correct each view's pose error from the crowd, re-associating up to this many times (0: the run's poses)")] = 4,

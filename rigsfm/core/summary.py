@@ -60,6 +60,8 @@ class NarrowUncertaintySummary:
 
     centre_sigma_mm: float | None = None
     rotation_sigma_deg: float | None = None
+    centre_covariance_mm2: list[list[float]] | None = None  # 3x3, in the camera's axes (x right, y down, z forward)
+    rotation_covariance_deg2: list[list[float]] | None = None  # 3x3, in the camera's axes
 
 
 @dataclass(kw_only=True)

@@ -23,6 +23,16 @@ from rigsfm.run.adjustment.result import JointCovariance
 class NarrowUncertainty:
     centre_sigma_mm: float  # sqrt(trace) of the centre's 3x3 covariance, relative to the network (mm)
     rotation_sigma_deg: float  # sqrt(trace) of the orientation's 3x3 covariance, relative to the network (deg)
+    # The 3x3 covariances themselves (a network's errors are not isotropic: a ring of rigs moves more horizontally
+    # than vertically, which a trace cannot say), in the camera's own axes (x right, y down, z forward), so they
+    # hold unchanged when the world stage moves the model into the floor frame.
+    centre_covariance_mm2: tuple[tuple[float, ...], ...] | None = None
+    rotation_covariance_deg2: tuple[tuple[float, ...], ...] | None = None
+
+
+def _rows(matrix: np.ndarray) -> tuple[tuple[float, ...], ...]:
+    symmetric = (matrix + matrix.T) / 2
+    return tuple(tuple(float(x) for x in row) for row in symmetric)
 
 
 def _world_jacobian(pose: pycolmap.Rigid3d) -> np.ndarray:
@@ -71,7 +81,10 @@ def narrow_uncertainty(reconstruction: pycolmap.Reconstruction,
         correction[3:, :3] = -skew(pose.inverse().translation - mean_centre)  # the gauge rotation moves the centre
         row -= correction @ datum
         cov = row @ covariance.covariance @ row.T
+        axes = pose.rotation.matrix()  # world -> camera axes
         out[image.name] = NarrowUncertainty(
             centre_sigma_mm=1000.0 * float(np.sqrt(max(np.trace(cov[3:, 3:]), 0.0))),
-            rotation_sigma_deg=float(np.degrees(np.sqrt(max(np.trace(cov[:3, :3]), 0.0)))))
+            rotation_sigma_deg=float(np.degrees(np.sqrt(max(np.trace(cov[:3, :3]), 0.0)))),
+            centre_covariance_mm2=_rows(1e6 * axes @ cov[3:, 3:] @ axes.T),
+            rotation_covariance_deg2=_rows(np.degrees(1.0) ** 2 * axes @ cov[:3, :3] @ axes.T))
     return out

@@ -123,7 +123,11 @@ def uncertainty_summary(result: AdjustResult, uncertainty: Uncertainty):
         pixel_sigma_px=None if covariance is None else covariance.pixel_sigma,
         floor=uncertainty.floor,
         bands="sampled" if uncertainty.sampled else "linear",
-        narrow={name: NarrowUncertaintySummary(centre_sigma_mm=u.centre_sigma_mm, rotation_sigma_deg=u.rotation_sigma_deg)
+        narrow={name: NarrowUncertaintySummary(
+            centre_sigma_mm=u.centre_sigma_mm, rotation_sigma_deg=u.rotation_sigma_deg,
+            centre_covariance_mm2=None if u.centre_covariance_mm2 is None else [list(r) for r in u.centre_covariance_mm2],
+            rotation_covariance_deg2=None if u.rotation_covariance_deg2 is None
+            else [list(r) for r in u.rotation_covariance_deg2])
                 for name, u in uncertainty.narrow.items()},
         pairs=[PairBandSummary(i=i, j=j, band_px=b.band_px, points=b.points, predicted_below_85=b.predicted_below_85)
                for (i, j), b in sorted(uncertainty.bands.items())],

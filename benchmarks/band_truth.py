@@ -175,7 +175,7 @@ def main() -> None:
     if args.independent_views:
         import rigsfm.run.adjustment.covariance as covariance
 
-        covariance.repeated_view_correlation = lambda *a, **k: 0.0
+        covariance.repeated_view_correlation = lambda *a, **k: {}
         args.tag += "_independent"
     logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(name)s %(levelname)s %(message)s")
     logger.setLevel(logging.INFO)

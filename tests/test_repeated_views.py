@@ -70,3 +70,32 @@ def test_weights_of_repeated_views():
     np.testing.assert_allclose(weights[:6], 1.0 / np.sqrt(2.5))
     np.testing.assert_allclose(weights[6:], 1.0)
     np.testing.assert_allclose(repeated_view_weights(jac, num_a, camera_of_column, {8: 0.75}), 1.0)
+
+
+def test_a_repeated_static_frame_adds_no_information(tmp_path):
+    """A second frame of a static rig whose wide keypoints repeat the first's exactly tells nothing new: the other
+    rigs' pose uncertainty stays that of the one-frame network (within 5 %; counted as independent views, the
+    repeated keypoints made it smaller by more than that)."""
+    from pathlib import Path
+
+    from synthetic_db import make_network, perturbed_model
+    from test_static_frames import _second_static_frame
+
+    from rigsfm.run.adjustment.adjust import adjust
+    from rigsfm.run.adjustment.covariance import joint_covariance
+    from rigsfm.run.inputs.scale_file import CameraDistance, ScaleSpec
+
+    net = make_network(tmp_path, num_rigs=3, seed=3)
+    a, b = "rig01/wide/frame0000.png", "rig03/wide/frame0000.png"
+    metres = float(np.linalg.norm(net.ground_truth.find_image_with_name(a).projection_center()
+                                  - net.ground_truth.find_image_with_name(b).projection_center()))
+    spec = ScaleSpec(Path(tmp_path / "scale.yaml"), (CameraDistance(a, b, metres),), ())
+    sigmas = []
+    for repeated in (False, True):
+        mapped = perturbed_model(net.ground_truth, seed=3)
+        if repeated:
+            _second_static_frame(mapped, "rig01", np.zeros(3))
+        result = adjust(mapped, net.rigs, spec)
+        frame_id = result.reconstruction.find_image_with_name("rig02/wide/frame0000.png").frame_id
+        sigmas.append(joint_covariance(result).sigma(("frame", frame_id))[:3])
+    np.testing.assert_allclose(sigmas[1], sigmas[0], rtol=0.05)

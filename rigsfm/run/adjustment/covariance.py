@@ -13,7 +13,8 @@ cross-covariance with the poses, which the band needs (an E^sl error and a rig p
   sigma^2 A^-1 + S Sigma_c S^T``, ``Cov(poses, calibration) = S Sigma_c``, ``Cov(calibration) = Sigma_c``).
 Tangents: ``("frame", frame_id)``: ``rig_from_world``, ``("sensor_from_rig", camera_id)``: a narrow camera's
 E^sl, both ``[w, dt]`` with ``R' = Exp(w) R``, ``t' = t + dt`` (rad, m); ``("camera", camera_id)``: the params.
-A parameter no image observes keeps its prior, independent of the rest (``prior_only``)."""
+A parameter no image observes keeps its prior, independent of the rest (``prior_only``). A camera's repeated views of
+a point (a static rig's frames) are weighed as correlated observations (``rigsfm.run.adjustment.repeated``)."""
 
 from __future__ import annotations
 
@@ -31,6 +32,7 @@ from rigsfm.core.geometry import skew
 from rigsfm.run.adjustment.model import estimate_pixel_sigma, sensor_from_rig_view
 from rigsfm.run.adjustment.priors import calibration_priors
 from rigsfm.run.adjustment.problem import JointProblem
+from rigsfm.run.adjustment.repeated import repeated_view_correlation, repeated_view_weights
 from rigsfm.run.adjustment.result import AdjustResult, Gauge, JointCovariance, ScaleSource
 from rigsfm.run.options import Calibration
 
@@ -46,7 +48,7 @@ def _csr(jacobian: pyceres.CRSMatrix) -> sp.csr_matrix:
                          shape=(jacobian.num_rows, jacobian.num_cols))
 
 
-def _reduced_system(jp: JointProblem):
+def _reduced_system(jp: JointProblem, max_error_px: float | None = None, inflation: float = 1.0):
     """Ceres' Jacobian of ``jp`` (tangent space) with the points eliminated (Schur complement, 3x3 blocks): the
     reduced normal matrix over the other blocks, every entry ``(key, block or None, size, tangent dims)``, the
     variable ones, and the prior-only covariances; None (with a warning) when a point carries no information."""
@@ -89,8 +91,16 @@ def _reduced_system(jp: JointProblem):
             raise RuntimeError(f"unexpected tangent size of {key}")
     evaluate = pyceres.EvaluateOptions()
     evaluate.set_parameter_blocks(blocks)
-    jac = _csr(problem.evaluate_jacobian(evaluate)).tocsc()
     num_a = sum(len(dims) for _, _, _, dims in variable) + 3 * len(end_points)
+    jac = _csr(problem.evaluate_jacobian(evaluate))
+    rho = repeated_view_correlation(rec, inflation, max_error_px)
+    if rho:  # a static rig's repeated views are not independent observations (module repeated)
+        camera_of_column = np.concatenate([np.full(len(dims), key[1] if key[0] == "camera" else -1)
+                                           for key, _, _, dims in variable] + [np.full(3 * len(end_points), -1)])
+        jac = sp.diags(repeated_view_weights(jac, num_a, camera_of_column.astype(np.int64), rho)) @ jac
+        logger.info("Covariance: repeated views of a point by one camera weighed as correlated (%d cameras, "
+                    "correlation %.2f-%.2f)", len(rho), min(rho.values()), max(rho.values()))
+    jac = jac.tocsc()
     j_a, j_p = jac[:, :num_a], jac[:, num_a:]
     h_aa = (j_a.T @ j_a).toarray()
     if j_p.shape[1]:
@@ -172,7 +182,7 @@ def joint_covariance(result: AdjustResult, image_only: bool = False) -> JointCov
     held = result.held_rigs if refined else frozenset()
     jp = JointProblem(rec, rigs, priors, result.scale_spec, options, pixel_sigma, gauge=gauge, robust=False,
                       with_priors=refined, held_rigs=held, consider_held=True)
-    reduced = _reduced_system(jp)
+    reduced = _reduced_system(jp, options.max_reprojection_error_px, options.pixel_sigma_inflation)
     if reduced is None:
         return None
     schur, entries, variable, prior_only = reduced

@@ -127,6 +127,10 @@ class NarrowObservations:
     held_out_checks: list[HeldOutCheck] = field(default_factory=list)
     # (i, j) -> the pair's SIFT features (the self-check reuses them: the same images, SIFT and warp as its own)
     features: dict = field(default_factory=dict, repr=False)
+    matched_by: str = "floor warp"  # or "heads" (rigsfm.run.narrow.heads)
+    head_persons: int | None = None  # confident persons of the heads' association, where it ran
+    head_candidates: int | None = None
+    head_verdicts: int = 0  # self-check pairs given a verdict by their head matches
 
     def line(self) -> str:
         """The terminal's line."""
@@ -145,7 +149,8 @@ class NarrowObservations:
                                      held_out=int(p.held_out.sum()) if p.in_adjustment else 0)
                    for p in self.pairs],
             held_out_check=[HeldOutCheckSummary(**c.to_dict()) for c in self.held_out_checks],
-            bands=BANDS_FROM if self.used else None)
+            bands=BANDS_FROM if self.used else None, matched_by=self.matched_by, head_persons=self.head_persons,
+            head_candidates=self.head_candidates, head_verdicts=self.head_verdicts)
 
 
 def describe_record(record: NarrowObservationsSummary) -> str:

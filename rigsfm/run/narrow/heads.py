@@ -12,7 +12,7 @@ SIFT on flat-shaded, view-dependent silhouettes gives chance matches only. Heads
    associate_views` (``rigsfm associate``'s library call: candidates inside each pair's band between two heights,
    triangulation, multi-view growth, a global set packing, and the crowd's own correction of each view's pose
    error), on the first adjustment's poses and bands. Only confident persons are kept: ``MIN_GROUP_VIEWS`` views
-   or more, a score above zero.
+   or more, a score above ``MIN_GROUP_SCORE``.
 3. **Observations**: each person is a track (its head centres); every ``HOLD_OUT_EVERY``-th person (in the
    association's order: deterministic) is held out of the adjustment. Its pairs become
    :class:`rigsfm.run.narrow.observations.PairMatches`, so the tracks, the second adjustment and the held-out
@@ -53,10 +53,14 @@ HOUGH_PARAM1 = 50.0  # Canny's upper threshold of the Hough search
 HOUGH_PARAM2 = 0.6  # the circles' "perfectness" (HOUGH_GRADIENT_ALT)
 HEAD_PIXEL_SIGMA = 1.5  # a head centre's localisation noise per coordinate (px)
 MIN_GROUP_VIEWS = 3  # a person enters the adjustment when seen in this many views
+# ... and scoring above this (log-likelihood ratio against clutter): below it, on a dense crowd (275 heads per
+# view), most groups of three or four views join different persons' heads.
+MIN_GROUP_SCORE = 2.0
 MIN_HEAD_GROUPS = 12  # confident persons that make the heads usable (auto)
 MIN_HEAD_MATCHES = 10  # head matches a pair needs for a self-check verdict
 HEAD_NOISE_PX = 2.0 * 1.96 * HEAD_PIXEL_SIGMA / math.sqrt(2.0)  # allowed on top of the band (two centres' noise)
 REFINE_RAYS = 64
+MIN_SEARCH_RADIUS_PX = 12.0  # heads expected smaller than this are searched on the image enlarged
 
 
 @dataclass
@@ -64,7 +68,7 @@ class HeadMatches:
     """What the heads gave: per image its candidates, the confident persons, and their pairs."""
 
     candidates: dict[str, int] = field(default_factory=dict)  # image -> head candidates
-    persons: int = 0  # confident persons (>= MIN_GROUP_VIEWS views, score > 0)
+    persons: int = 0  # confident persons (>= MIN_GROUP_VIEWS views, score > MIN_GROUP_SCORE)
     held_out_persons: int = 0
     pairs: list[PairMatches] = field(default_factory=list)
 
@@ -132,12 +136,17 @@ def detect_heads(image: pycolmap.Image, gray: np.ndarray) -> np.ndarray:
     low, high = RADIUS_RATIO[0] * float(expected.min()), RADIUS_RATIO[1] * float(expected.max())
     if high < 4.0 or low > 0.5 * min(width, height):
         return np.zeros((0, 3))
-    low = max(low, 3.0)
-    found = cv2.HoughCircles(cv2.GaussianBlur(gray, (5, 5), 1.0), cv2.HOUGH_GRADIENT_ALT, 1.5, 0.8 * low,
+    # Small heads are searched on the image enlarged twice: the Hough gradient misses most circles below ~12 px.
+    factor = 2 if low < MIN_SEARCH_RADIUS_PX else 1
+    search = gray if factor == 1 else cv2.resize(gray, None, fx=factor, fy=factor, interpolation=cv2.INTER_LINEAR)
+    low, high = max(low * factor, 3.0), high * factor
+    found = cv2.HoughCircles(cv2.GaussianBlur(search, (5, 5), 1.0), cv2.HOUGH_GRADIENT_ALT, 1.5, 0.8 * low,
                              param1=HOUGH_PARAM1, param2=HOUGH_PARAM2, minRadius=int(low), maxRadius=int(high) + 1)
     if found is None:
         return np.zeros((0, 3))
-    circles = _refine(gray, np.asarray(found[0], dtype=np.float64).reshape(-1, 3))
+    circles = _refine(search, np.asarray(found[0], dtype=np.float64).reshape(-1, 3))
+    circles[:, :2] = (circles[:, :2] + 0.5) / factor - 0.5  # the image's OpenCV pixels
+    circles[:, 2] /= factor
     xy = colmap_from_opencv_pixels(circles[:, :2])
     with np.errstate(invalid="ignore"):
         ratio = circles[:, 2] / expected_radius(image, xy)
@@ -178,7 +187,7 @@ def match_heads(floor_model: pycolmap.Reconstruction, image_dir: Path, frames: d
             view.sigma_pose_px = sigmas[view.name]
         result = associate_views(views, _association_options())
         present = result.members >= 0
-        confident = np.flatnonzero((present.sum(axis=1) >= MIN_GROUP_VIEWS) & (result.scores > 0))
+        confident = np.flatnonzero((present.sum(axis=1) >= MIN_GROUP_VIEWS) & (result.scores > MIN_GROUP_SCORE))
         per_pair: dict[tuple[str, str], tuple[list, list, list]] = {p: ([], [], []) for p in overlapping}
         for g in confident:
             held = person % HOLD_OUT_EVERY == 0

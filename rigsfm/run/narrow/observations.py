@@ -27,6 +27,9 @@ adjusted the search is short:
    all its matches, with the features found here (the same images, SIFT and warp): most of its matches are also
    found here, so it is not independent of the adjustment (leaving out the keypoints the adjustment used would keep
    the ones this search rejected, and measure those).
+
+Where no pair is textured through the floor warp (a crowd of 3D persons: heads off the floor), heads are matched
+instead (:mod:`rigsfm.run.narrow.heads`) and enter through the same tracks, adjustment and held-out check.
 """
 
 from __future__ import annotations

@@ -39,6 +39,9 @@ SCENES = {
     "plain8": dict(num_rigs=8),
     "flat4": dict(num_rigs=4, arc_deg=135.0, textured_centre=True),
     "persons4": dict(num_rigs=4, arc_deg=135.0, persons_per_m2=4.0),
+    # the narrow cameras aimed at the crowd's centre (as benchmarks/associate.py's crowds): heads seen by several
+    # narrow views; persons8's narrow views, aimed 14 deg lower, share no head
+    "persons8c": dict(num_rigs=8, persons_per_m2=4.0, narrow_extra_pitch_deg=-4.0),
 }
 
 
@@ -51,6 +54,24 @@ def dataset(work: Path, name: str, image_scale: float, seed: int):
         return SyntheticDataset(root, root / "images", root / "rigs.yaml", root / "rigs_exact.yaml",
                                 root / "scale.yaml", root / "ground_truth", options, ())
     return render_dataset(root, options)
+
+
+def floor_scale(data) -> Path:
+    """The scene's scale.yaml, or where the crowd left no room for the renderer's bar (a camera distance only, so no
+    floor frame), one with the bar's exact end points in two wide images as a surveyor's marks would give."""
+    from rigsfm.synth.cameras import make_rigs
+    from rigsfm.synth.dataset import _scale_yaml, choose_bar
+    from rigsfm.synth.scene import build_arena
+
+    if "known_length" in Path(data.scale).read_text(encoding="utf-8") or not data.options.persons_per_m2:
+        return data.scale
+    rigs = make_rigs(data.options)
+    bar = choose_bar(build_arena(data.options), rigs[0], rigs[1])
+    if bar is None:
+        return data.scale
+    path = Path(data.root) / "scale_floor_bar.yaml"
+    path.write_text(_scale_yaml(rigs, bar, rigs[0], rigs[1]))
+    return path
 
 
 def verdicts(pairs: list[dict]) -> dict:
@@ -69,7 +90,7 @@ def measure(data, out: Path, mode: NarrowMode) -> dict:
 
     shutil.rmtree(out, ignore_errors=True)
     start = time.perf_counter()
-    result = run(data.images, data.rigs, out, data.scale, RunOptions(narrow=mode))
+    result = run(data.images, data.rigs, out, floor_scale(data), RunOptions(narrow=mode))
     seconds = time.perf_counter() - start
     truth = pycolmap.Reconstruction(str(data.ground_truth))
     narrow = compare_to_ground_truth(result.reconstruction, truth, "narrow")
@@ -85,6 +106,8 @@ def measure(data, out: Path, mode: NarrowMode) -> dict:
         "narrow_used": record.get("used"), "narrow_reason": record.get("reason"),
         "narrow_observations": record.get("observations_added"), "held_out": record.get("held_out_matches"),
         "held_out_check": verdicts(record.get("held_out_check") or []),
+        "matched_by": record.get("matched_by"), "head_persons": record.get("head_persons"),
+        "head_verdicts": record.get("head_verdicts"),
         "stages_s": summary["timings_s"],
     }
 

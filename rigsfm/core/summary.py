@@ -220,6 +220,10 @@ class NarrowObservationsSummary:
     pairs: list[NarrowPairSummary] = field(default_factory=list)
     held_out_check: list[HeldOutCheckSummary] = field(default_factory=list)
     bands: str | None = None  # which adjustment the delivered bands are from, when used
+    matched_by: str = "floor warp"  # or "heads": persons matched across views (rigsfm.run.narrow.heads)
+    head_persons: int | None = None  # confident persons the heads' association found, where it ran
+    head_candidates: int | None = None  # head candidates in the narrow images, where searched
+    head_verdicts: int = 0  # self-check pairs whose verdict comes from their head matches
 
 
 @dataclass(kw_only=True)

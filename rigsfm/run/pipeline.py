@@ -56,6 +56,7 @@ from rigsfm.run.matching.manual_merge import add_manual_matches, manual_matches_
 from rigsfm.run.matching.match import match_features
 from rigsfm.run.matching.pairs import drop_unsynchronised_pairs, select_pairs
 from rigsfm.run.matching.reuse import drop_changed_images, drop_stale_work
+from rigsfm.run.narrow.heads import head_self_check
 from rigsfm.run.narrow.stage import held_out_check, second_pass
 from rigsfm.run.options import NarrowMode, RunOptions
 from rigsfm.run.world.frame import ground_maps, locate_world, validate_world_options
@@ -372,13 +373,14 @@ def _run_locked(workspace: Workspace, inputs: Inputs, manual_pairs: dict, option
             world = locate_world(result.reconstruction, inputs.image_dir, inputs.scale,
                                  [rig.name for rig in inputs.rigs], options.world, metric=metric)
         narrow, banded = None, result
-        if options.narrow != NarrowMode.OFF:  # narrow observations: a second adjustment where they are used
-            with timings.stage("narrow_observations"):
-                result, narrow = second_pass(result, world, inputs, options, given_offsets)
-                metric = is_metric(result)
-        with timings.stage("uncertainty"):  # of the adjustment without narrow observations (narrow.observations)
+        # Of the adjustment without narrow observations (narrow.observations); before them: the heads search its bands.
+        with timings.stage("uncertainty"):
             floor, floor_source = world.analysis_floor(banded.reconstruction, banded.scale_spec)
             uncertainty = in_child(estimate_uncertainty, banded, floor=floor, floor_source=floor_source)
+        if options.narrow != NarrowMode.OFF:  # narrow observations: a second adjustment where they are used
+            with timings.stage("narrow_observations"):
+                result, narrow = second_pass(result, world, inputs, options, given_offsets, uncertainty.bands)
+                metric = is_metric(result)
         with timings.stage("deliver"):
             world.apply(result.reconstruction)  # a rigid move: the bands and sigmas above are unchanged by it
             ground = ground_maps(result.reconstruction, world.plane_heights) if world.plane_heights else None
@@ -396,6 +398,8 @@ def _run_locked(workspace: Workspace, inputs: Inputs, manual_pairs: dict, option
                                                     None if narrow is None else narrow.features)
     if narrow is not None and narrow.used:
         narrow.held_out_checks = held_out_check(result.reconstruction, narrow.pairs, uncertainty.bands)
+        if self_check is not None and narrow.matched_by == "heads":
+            narrow.head_verdicts = head_self_check(self_check.pairs, narrow.pairs, result.reconstruction, poses)
     summary = build_summary(inputs, options, mapping, result, timings, workspace.database)
     summary.world = world.summary()
     summary.warnings.extend(world.warnings)

@@ -27,6 +27,9 @@ adjusted the search is short:
    all its matches, with the features found here (the same images, SIFT and warp): most of its matches are also
    found here, so it is not independent of the adjustment (leaving out the keypoints the adjustment used would keep
    the ones this search rejected, and measure those).
+
+Where no pair is textured through the floor warp (a crowd of 3D persons: heads off the floor), heads are matched
+instead (:mod:`rigsfm.run.narrow.heads`) and enter through the same tracks, adjustment and held-out check.
 """
 
 from __future__ import annotations
@@ -127,6 +130,10 @@ class NarrowObservations:
     held_out_checks: list[HeldOutCheck] = field(default_factory=list)
     # (i, j) -> the pair's SIFT features (the self-check reuses them: the same images, SIFT and warp as its own)
     features: dict = field(default_factory=dict, repr=False)
+    matched_by: str = "floor warp"  # or "heads" (rigsfm.run.narrow.heads)
+    head_persons: int | None = None  # confident persons of the heads' association, where it ran
+    head_candidates: int | None = None
+    head_verdicts: int = 0  # self-check pairs given a verdict by their head matches
 
     def line(self) -> str:
         """The terminal's line."""
@@ -145,7 +152,8 @@ class NarrowObservations:
                                      held_out=int(p.held_out.sum()) if p.in_adjustment else 0)
                    for p in self.pairs],
             held_out_check=[HeldOutCheckSummary(**c.to_dict()) for c in self.held_out_checks],
-            bands=BANDS_FROM if self.used else None)
+            bands=BANDS_FROM if self.used else None, matched_by=self.matched_by, head_persons=self.head_persons,
+            head_candidates=self.head_candidates, head_verdicts=self.head_verdicts)
 
 
 def describe_record(record: NarrowObservationsSummary) -> str:

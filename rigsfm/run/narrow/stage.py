@@ -15,7 +15,10 @@ from rigsfm.core.ground import undistort_pixels
 from rigsfm.core.processes import in_child
 from rigsfm.run.adjustment.adjust import adjust
 from rigsfm.run.checks.guided import KEYPOINT_NOISE_PX
+from rigsfm.run.checks.self_check import synchronised_frames
+from rigsfm.run.checks.sync import frames_by_time
 from rigsfm.run.deliver import fundamental_matrix
+from rigsfm.run.narrow.heads import decide_heads, match_heads
 from rigsfm.run.narrow.observations import (
     MIN_HELD_OUT,
     HeldOutCheck,
@@ -65,10 +68,12 @@ def held_out_check(model: pycolmap.Reconstruction, pairs: list[PairMatches], ban
 
 
 def narrow_observations(result, world, image_dir: Path, asked: NarrowMode, options: SelfCheckOptions | None = None,
-                        offsets: dict[str, int] | None = None) -> tuple[pycolmap.Reconstruction | None, NarrowObservations]:
+                        offsets: dict[str, int] | None = None, bands: dict | None = None
+                        ) -> tuple[pycolmap.Reconstruction | None, NarrowObservations]:
     """Match (in the floor frame; without a floor, along the whole epipolar lines), decide, and return the adjusted
     model with the narrow observations added (None when they are not used) with the record. ``result``: the first
-    AdjustResult; ``world``: its WorldResult."""
+    AdjustResult; ``world``: its WorldResult; ``bands``: the first adjustment's (i, j) -> PairBand or px, which the
+    heads' association searches (rigsfm.run.narrow.heads: where the floor matching finds no texture)."""
     start = time.perf_counter()
     if asked == NarrowMode.OFF:
         return None, NarrowObservations(str(asked), False, "not asked (--narrow off)")
@@ -82,10 +87,15 @@ def narrow_observations(result, world, image_dir: Path, asked: NarrowMode, optio
     pairs = find_matches(floor_model, image_dir, options, floor_frame=floor_frame, offsets=offsets, features=features)
     used, reason = decide(asked, pairs)
     record = NarrowObservations(str(asked), used, reason, pairs, features=features)
+    if floor_frame and not any(p.textured for p in pairs):
+        # No texture through the floor warp: heads, off the floor, are the features of a crowd of 3D persons.
+        heads = heads_instead(floor_model, image_dir, options, offsets, bands, record)
+        if heads:
+            pairs, used = record.pairs, record.used
     model: pycolmap.Reconstruction | None = None
     if used:
         # The floor frame is a rigid motion of the adjusted model's: pixels and tracks carry over unchanged.
-        chosen = pairs if asked == NarrowMode.ON else [p for p in pairs if p.textured]
+        chosen = pairs if asked == NarrowMode.ON or record.matched_by == "heads" else [p for p in pairs if p.textured]
         for p in chosen:
             p.in_adjustment = True
         model, record.points_added, record.observations_added = add_observations(result.reconstruction, chosen)
@@ -100,13 +110,37 @@ def narrow_observations(result, world, image_dir: Path, asked: NarrowMode, optio
     return model, record
 
 
-def second_pass(result, world, inputs, options, offsets: dict[str, int] | None = None):
+def heads_instead(floor_model: pycolmap.Reconstruction, image_dir: Path, options: SelfCheckOptions | None,
+                  offsets: dict[str, int] | None, bands: dict | None, record: NarrowObservations) -> bool:
+    """Match heads (rigsfm.run.narrow.heads); where they decide on (``auto``: enough confident persons; ``on``:
+    any), ``record`` takes their pairs and decision. Returns whether it did."""
+    opt = options or SelfCheckOptions()
+    offsets = {r: int(o) for r, o in (offsets or {}).items() if o}
+    frames = frames_by_time(floor_model, offsets) if offsets else synchronised_frames(floor_model)
+    floats = {}
+    for key, band in (bands or {}).items():
+        value = getattr(band, "band_px", band)
+        if value is not None:
+            floats[key] = floats[(key[1], key[0])] = float(value)
+    heads = match_heads(floor_model, image_dir, frames, floats, opt.max_frames)
+    enough, reason = decide_heads(heads)
+    record.head_persons, record.head_candidates = heads.persons, sum(heads.candidates.values())
+    if not (enough or (record.asked == str(NarrowMode.ON) and heads.persons > 0)):
+        record.reason += f"; {reason}"
+        return False
+    record.pairs, record.used, record.matched_by = heads.pairs, True, "heads"
+    record.reason = reason if enough else f"asked (--narrow on); {reason}"
+    return True
+
+
+def second_pass(result, world, inputs, options, offsets: dict[str, int] | None = None, bands: dict | None = None):
     """The pipeline's hook after the world stage: ``(result, record)``, the result adjusted again with the narrow
     observations when they are used, else the one given (unchanged). The world stage's floor is kept: the second
     adjustment starts from the first's model with the same gauge (one frame held), so the floor moves by the
     adjustment's change alone, and fitting it again would cost more than the whole second pass. ``offsets``: the
     --frame-offsets FILE's (narrow frames paired by time)."""
-    model, record = narrow_observations(result, world, inputs.image_dir, options.narrow, options.self_check, offsets)
+    model, record = narrow_observations(result, world, inputs.image_dir, options.narrow, options.self_check, offsets,
+                                        bands)
     if model is None:
         return result, record
     return in_child(adjust, model, inputs.rigs, inputs.scale, options.adjust, inputs.priors), record

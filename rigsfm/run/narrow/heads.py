@@ -1,0 +1,253 @@
+"""Narrow observations from heads (``rigsfm run --narrow``, where the floor-guided SIFT finds no texture): a crowd
+of 3D persons stands off the floor, so the floor warp that matches a painted crowd is wrong for every head, and
+SIFT on flat-shaded, view-dependent silhouettes gives chance matches only. Heads themselves are the features:
+
+1. **Head candidates** per narrow image, without a detector's input: heads are round blobs of a known size. In the
+   floor frame a pixel's ray meets the head-centre plane (``HEAD_CENTRE_M``) at a distance that gives the radius a
+   head of ``HEAD_RADIUS_M`` would have there; OpenCV's Hough circles search the image's range of those radii,
+   each circle is kept when its radius is within ``RADIUS_RATIO`` of the one expected at its centre, and its centre
+   is refined to sub-pixel by a circle fitted to the strongest radial edge along 64 rays (trimmed: occluded arcs
+   drop out), kept only where the fit moved it little.
+2. **Association** of the candidates across the synchronised narrow views: :func:`rigsfm.associate.solve.
+   associate_views` (``rigsfm associate``'s library call: candidates inside each pair's band between two heights,
+   triangulation, multi-view growth, a global set packing, and the crowd's own correction of each view's pose
+   error), on the first adjustment's poses and bands. Only confident persons are kept: ``MIN_GROUP_VIEWS`` views
+   or more, a score above ``MIN_GROUP_SCORE``.
+3. **Observations**: each person is a track (its head centres); every ``HOLD_OUT_EVERY``-th person (in the
+   association's order: deterministic) is held out of the adjustment. Its pairs become
+   :class:`rigsfm.run.narrow.observations.PairMatches`, so the tracks, the second adjustment and the held-out
+   check are the floor matches' own.
+4. **Decision** (``auto``): used when at least ``MIN_HEAD_GROUPS`` confident persons are found; a featureless view
+   gives no circles at head size that three views agree on.
+5. **Self-check**: a pair whose SIFT self-check found too few matches gets a verdict from its head matches (every
+   person, used or held out) against the delivered epipolar lines, when it holds ``MIN_HEAD_MATCHES``: ``ok``
+   when their 95th percentile is within the band plus ``HEAD_NOISE_PX`` (the two head centres' localisation noise).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pycolmap
+
+from rigsfm.associate.options import AssociateOptions
+from rigsfm.associate.solve import View, associate_views, view_pose_sigmas
+from rigsfm.core.conventions import colmap_from_opencv_pixels
+from rigsfm.core.geometry import pixel_line_distances
+from rigsfm.core.ground import undistort_pixels
+from rigsfm.core.image_files import read_image
+from rigsfm.run.checks.guided import _overlapping_pairs
+from rigsfm.run.narrow.observations import HOLD_OUT_EVERY, PairMatches
+
+logger = logging.getLogger(__name__)
+
+HEAD_RADIUS_M = 0.1  # a head's radius (a head is about 0.2 m across)
+HEAD_CENTRE_M = 1.6  # the plane where the expected radius is computed (heads' centres: ~1.4-1.8 m)
+RADIUS_RATIO = (0.7, 1.45)  # a circle's radius against the one expected at its centre
+HOUGH_PARAM1 = 50.0  # Canny's upper threshold of the Hough search
+HOUGH_PARAM2 = 0.6  # the circles' "perfectness" (HOUGH_GRADIENT_ALT)
+HEAD_PIXEL_SIGMA = 1.5  # a head centre's localisation noise per coordinate (px)
+MIN_GROUP_VIEWS = 3  # a person enters the adjustment when seen in this many views
+# ... and scoring above this (log-likelihood ratio against clutter): below it, on a dense crowd (275 heads per
+# view), most groups of three or four views join different persons' heads.
+MIN_GROUP_SCORE = 2.0
+MIN_HEAD_GROUPS = 12  # confident persons that make the heads usable (auto)
+MIN_HEAD_MATCHES = 10  # head matches a pair needs for a self-check verdict
+HEAD_NOISE_PX = 2.0 * 1.96 * HEAD_PIXEL_SIGMA / math.sqrt(2.0)  # allowed on top of the band (two centres' noise)
+REFINE_RAYS = 64
+MIN_SEARCH_RADIUS_PX = 12.0  # heads expected smaller than this are searched on the image enlarged
+
+
+@dataclass
+class HeadMatches:
+    """What the heads gave: per image its candidates, the confident persons, and their pairs."""
+
+    candidates: dict[str, int] = field(default_factory=dict)  # image -> head candidates
+    persons: int = 0  # confident persons (>= MIN_GROUP_VIEWS views, score > MIN_GROUP_SCORE)
+    held_out_persons: int = 0
+    pairs: list[PairMatches] = field(default_factory=list)
+
+
+def expected_radius(image: pycolmap.Image, xy: np.ndarray) -> np.ndarray:
+    """The radius (px) of a head centred at ``HEAD_CENTRE_M`` seen at raw COLMAP pixels ``xy`` (floor frame);
+    NaN where the ray does not reach that plane in front of the camera."""
+    camera = image.camera
+    normalised = np.asarray(camera.cam_from_img(np.asarray(xy, dtype=np.float64).reshape(-1, 2)),  # type: ignore[union-attr]
+                            dtype=np.float64)
+    rays = np.c_[normalised, np.ones(len(normalised))] @ np.asarray(image.cam_from_world().rotation.matrix())
+    centre = np.asarray(image.projection_center(), dtype=np.float64)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = (HEAD_CENTRE_M - centre[2]) / rays[:, 2]
+        distance = np.where(t > 0, t * np.linalg.norm(rays, axis=1), np.nan)
+        return HEAD_RADIUS_M * float(camera.focal_length_x) / distance  # type: ignore[union-attr]
+
+
+def _refine(gray: np.ndarray, circles: np.ndarray) -> np.ndarray:
+    """Circles (OpenCV pixels x, y, r) refined to sub-pixel: per ray from the centre the strongest radial edge
+    between 0.6 and 1.4 radii, a circle fitted to the strongest 60 % of them, trimmed twice; a circle keeps its
+    Hough centre where too few edges agree or the fit moved it by more than 15 % of its radius."""
+    smooth = cv2.GaussianBlur(gray.astype(np.float32), (0, 0), 1.0)
+    gx, gy = cv2.Sobel(smooth, cv2.CV_32F, 1, 0), cv2.Sobel(smooth, cv2.CV_32F, 0, 1)
+    height, width = gray.shape
+    angles = np.linspace(0.0, 2.0 * np.pi, REFINE_RAYS, endpoint=False)
+    ca, sa = np.cos(angles)[:, None], np.sin(angles)[:, None]
+    rows = np.arange(REFINE_RAYS)
+    out = circles.copy()
+    for n, (x, y, r) in enumerate(circles):
+        radii = np.linspace(0.6 * r, 1.4 * r, 33)[None, :]
+        px, py = (x + radii * ca).astype(np.float32), (y + radii * sa).astype(np.float32)
+        inside = (px >= 0) & (px < width - 1) & (py >= 0) & (py < height - 1)
+        radial = np.abs(cv2.remap(gx, px, py, cv2.INTER_LINEAR) * ca + cv2.remap(gy, px, py, cv2.INTER_LINEAR) * sa)
+        radial = radial * inside
+        k = radial.argmax(axis=1)
+        strength = radial[rows, k]
+        ex, ey = px[rows, k].astype(np.float64), py[rows, k].astype(np.float64)
+        keep = strength > np.percentile(strength, 40)
+        fitted = None
+        for _ in range(3):
+            if keep.sum() < REFINE_RAYS * 3 // 8:
+                fitted = None
+                break
+            a = np.c_[2.0 * ex[keep], 2.0 * ey[keep], np.ones(keep.sum())]
+            sol = np.linalg.lstsq(a, ex[keep] ** 2 + ey[keep] ** 2, rcond=None)[0]
+            cr = math.sqrt(max(sol[2] + sol[0] ** 2 + sol[1] ** 2, 0.0))
+            fitted = (sol[0], sol[1], cr)
+            residual = np.abs(np.hypot(ex - sol[0], ey - sol[1]) - cr)
+            keep = keep & (residual < max(1.0, 2.5 * float(np.median(residual[keep]))))
+        if fitted is not None and math.hypot(fitted[0] - x, fitted[1] - y) <= 0.15 * r and abs(fitted[2] / r - 1) <= 0.15:
+            out[n] = fitted
+    return out
+
+
+def detect_heads(image: pycolmap.Image, gray: np.ndarray) -> np.ndarray:
+    """Head candidates of one narrow image (module docstring, step 1): N x 3, raw COLMAP pixels x, y and the radius
+    (px). ``image``: its pose in the floor frame (metres, z up); ``gray``: its pixels."""
+    height, width = gray.shape
+    grid = np.array([[x, y] for x in np.linspace(0, width, 5) for y in np.linspace(0, height, 5)], dtype=np.float64)
+    expected = expected_radius(image, grid)
+    expected = expected[np.isfinite(expected) & (expected > 0)]
+    if len(expected) == 0:
+        return np.zeros((0, 3))
+    low, high = RADIUS_RATIO[0] * float(expected.min()), RADIUS_RATIO[1] * float(expected.max())
+    if high < 4.0 or low > 0.5 * min(width, height):
+        return np.zeros((0, 3))
+    # Small heads are searched on the image enlarged twice: the Hough gradient misses most circles below ~12 px.
+    factor = 2 if low < MIN_SEARCH_RADIUS_PX else 1
+    search = gray if factor == 1 else cv2.resize(gray, None, fx=factor, fy=factor, interpolation=cv2.INTER_LINEAR)
+    low, high = max(low * factor, 3.0), high * factor
+    found = cv2.HoughCircles(cv2.GaussianBlur(search, (5, 5), 1.0), cv2.HOUGH_GRADIENT_ALT, 1.5, 0.8 * low,
+                             param1=HOUGH_PARAM1, param2=HOUGH_PARAM2, minRadius=int(low), maxRadius=int(high) + 1)
+    if found is None:
+        return np.zeros((0, 3))
+    circles = _refine(search, np.asarray(found[0], dtype=np.float64).reshape(-1, 3))
+    circles[:, :2] = (circles[:, :2] + 0.5) / factor - 0.5  # the image's OpenCV pixels
+    circles[:, 2] /= factor
+    xy = colmap_from_opencv_pixels(circles[:, :2])
+    with np.errstate(invalid="ignore"):
+        ratio = circles[:, 2] / expected_radius(image, xy)
+    keep = (ratio >= RADIUS_RATIO[0]) & (ratio <= RADIUS_RATIO[1])
+    return np.c_[xy[keep], circles[keep, 2]]
+
+
+def _association_options() -> AssociateOptions:
+    return AssociateOptions(pixel_sigma=HEAD_PIXEL_SIGMA)
+
+
+def match_heads(floor_model: pycolmap.Reconstruction, image_dir: Path, frames: dict[str, list[pycolmap.Image]],
+                bands: dict[tuple[str, str], float], max_frames: int = 1) -> HeadMatches:
+    """Heads matched across the synchronised narrow views of the first ``max_frames`` frames (module docstring,
+    steps 1-3). ``floor_model``: the first adjustment in the floor frame; ``frames``: frame -> its narrow images
+    (of ``floor_model``); ``bands``: (i, j) -> the pair's 95 % band (px) from the first adjustment's uncertainty."""
+    out = HeadMatches()
+    person = 0
+    for frame in list(frames)[:max(1, max_frames)]:
+        images = frames[frame]
+        overlapping = _overlapping_pairs(floor_model, images, True)
+        names = sorted({n for p in overlapping for n in p})
+        if len(names) < 2:
+            continue
+        views = []
+        for name in names:
+            image = floor_model.find_image_with_name(name)
+            gray = read_image(Path(image_dir) / name, cv2.IMREAD_GRAYSCALE)
+            heads = np.zeros((0, 3)) if gray is None else detect_heads(image, gray)
+            out.candidates[name] = len(heads)
+            views.append(View.of(image, heads[:, :2]))
+        if sum(len(v.xy) for v in views) == 0:
+            continue
+        pair_bands = {key: float(b) for key, b in bands.items() if key[0] in names and key[1] in names
+                      and b is not None and math.isfinite(float(b))}
+        sigmas = view_pose_sigmas(names, pair_bands)
+        for view in views:
+            view.sigma_pose_px = sigmas[view.name]
+        result = associate_views(views, _association_options())
+        present = result.members >= 0
+        confident = np.flatnonzero((present.sum(axis=1) >= MIN_GROUP_VIEWS) & (result.scores > MIN_GROUP_SCORE))
+        per_pair: dict[tuple[str, str], tuple[list, list, list]] = {p: ([], [], []) for p in overlapping}
+        for g in confident:
+            held = person % HOLD_OUT_EVERY == 0
+            person += 1
+            out.held_out_persons += held
+            seen = [v for v in range(len(views)) if present[g, v]]
+            for a in seen:
+                for b in seen:
+                    key = (views[a].name, views[b].name)
+                    if key in per_pair:
+                        per_pair[key][0].append(views[a].xy[result.members[g, a]])
+                        per_pair[key][1].append(views[b].xy[result.members[g, b]])
+                        per_pair[key][2].append(held)
+        out.persons += len(confident)
+        for (i, j), (xy_i, xy_j, held) in per_pair.items():
+            out.pairs.append(PairMatches(frame, i, j, np.asarray(xy_i, dtype=np.float64).reshape(-1, 2),
+                                         np.asarray(xy_j, dtype=np.float64).reshape(-1, 2), np.asarray(held, bool),
+                                         found=len(held)))
+        logger.info("narrow observations from heads, %s: %s candidates per image, %d confident persons of %d",
+                    frame, [len(v.xy) for v in views], len(confident), len(result))
+    return out
+
+
+def decide_heads(heads: HeadMatches) -> tuple[bool, str]:
+    """Whether the heads' matches enter the adjustment (``auto``), and why."""
+    enough = heads.persons >= MIN_HEAD_GROUPS
+    counts = (f"{heads.persons} persons matched in >= {MIN_GROUP_VIEWS} views from "
+              f"{sum(heads.candidates.values())} head candidates in {len(heads.candidates)} narrow images "
+              f"(>= {MIN_HEAD_GROUPS} needed)")
+    return enough, ("heads usable: " if enough else "no usable heads: ") + counts
+
+
+def head_self_check(checks: list, head_pairs: list[PairMatches], reconstruction: pycolmap.Reconstruction,
+                    narrow_poses: dict) -> int:
+    """Verdicts from heads (module docstring, step 5) for the self-check's pairs (rigsfm.run.checks.guided.PairCheck,
+    changed in place) that have none; ``reconstruction`` and ``narrow_poses`` as delivered. Returns how many got one."""
+    by_pair = {(p["i"], p["j"]): p for p in narrow_poses.get("pairs", [])}
+    heads = {(p.frame, p.i, p.j): p for p in head_pairs}
+    given = 0
+    for check in checks:
+        pair = heads.get((check.frame, check.i, check.j))
+        entry = by_pair.get((check.i, check.j))
+        if check.verdict != "too few matches" or pair is None or entry is None or pair.matches < MIN_HEAD_MATCHES:
+            continue
+        camera_i = reconstruction.find_image_with_name(check.i).camera
+        camera_j = reconstruction.find_image_with_name(check.j).camera
+        ui, uj = undistort_pixels(camera_i, pair.xy_i), undistort_pixels(camera_j, pair.xy_j)
+        f_ji = np.asarray(entry["F_ji"], dtype=np.float64)
+        distances = pixel_line_distances(np.c_[ui, np.ones(len(ui))] @ f_ji.T, uj)
+        distances = distances[np.isfinite(distances)]
+        if len(distances) < MIN_HEAD_MATCHES:
+            continue
+        band = entry.get("epipolar_band_95_px")
+        check.matches, check.xy_i, check.xy_j, check.distances_px = len(distances), pair.xy_i, pair.xy_j, distances
+        check.median_px, check.p95_px = float(np.median(distances)), float(np.percentile(distances, 95))
+        check.measured_within_px = None
+        if band is None:
+            check.verdict = "no band"
+        else:
+            check.within_band = float(np.mean(distances <= band))
+            check.verdict = "failed" if check.p95_px > band + HEAD_NOISE_PX else "ok"
+        given += 1
+    return given

@@ -1,0 +1,59 @@
+"""Narrow observations from heads (rigsfm.run.narrow.heads) on a rendered crowd of 3D persons."""
+
+from __future__ import annotations
+
+import csv
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.spatial import cKDTree
+
+from rigsfm.run.checks.self_check import synchronised_frames
+from rigsfm.run.narrow.heads import HeadMatches, decide_heads, match_heads
+from rigsfm.synth.scene import SceneOptions
+
+# 3D persons (heads at 1.5-1.9 m, occluding flat-shaded bodies, 4 per m2) round which the narrow cameras, aimed at
+# the crowd's centre, share heads (benchmarks/associate.py's crowds).
+PERSONS = SceneOptions(num_rigs=6, image_scale=0.5, seed=1, persons_per_m2=4.0, narrow_extra_pitch_deg=-4.0)
+BAND_PX = 8.0  # the 95 % band of a realistic first adjustment (benchmarks/README.md, "Association")
+
+
+def _true_heads(root: Path) -> dict[str, np.ndarray]:
+    """image -> rows x, y, person of every head whose centre is inside it (persons/heads.csv)."""
+    heads: dict[str, list] = {}
+    with open(root / "persons" / "heads.csv", newline="") as f:
+        for row in csv.DictReader(f):
+            heads.setdefault(row["image"], []).append((float(row["x"]), float(row["y"]), int(row["person"])))
+    return {name: np.asarray(rows) for name, rows in heads.items()}
+
+
+@pytest.mark.slow
+def test_heads_are_matched_across_views_and_turn_the_observations_on(rendered):
+    dataset = rendered(PERSONS)
+    truth = dataset.load_ground_truth()  # the floor frame, exact poses
+    names = [im.name for im in truth.images.values() if "/narrow/" in im.name]
+    bands = {(a, b): BAND_PX for a in names for b in names if a != b}
+    heads = match_heads(truth, dataset.images, synchronised_frames(truth), bands)
+    used, reason = decide_heads(heads)
+    assert used, reason
+    assert heads.held_out_persons >= 1  # every fifth person kept out of the adjustment
+    # The matches are mostly the same person's head in both views (each centre within 6 px of a true head; 77 % when
+    # written).
+    known = _true_heads(Path(dataset.root))
+    right = total = 0
+    for pair in heads.pairs:
+        if not pair.matches:
+            continue
+        ti, tj = known[pair.i], known[pair.j]
+        di, ii = cKDTree(ti[:, :2]).query(pair.xy_i)
+        dj, jj = cKDTree(tj[:, :2]).query(pair.xy_j)
+        right += int(np.sum((di < 6) & (dj < 6) & (ti[ii, 2] == tj[jj, 2])))
+        total += pair.matches
+    assert total >= 40 and right >= 0.7 * total, (right, total)
+
+
+def test_auto_needs_enough_confident_persons():
+    assert decide_heads(HeadMatches(candidates={"a": 40, "b": 40}, persons=3))[0] is False
+    used, reason = decide_heads(HeadMatches(candidates={"a": 40, "b": 40}, persons=30))
+    assert used and reason.startswith("heads usable: 30 persons")

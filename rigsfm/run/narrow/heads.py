@@ -202,10 +202,10 @@ def match_heads(floor_model: pycolmap.Reconstruction, image_dir: Path, frames: d
                         per_pair[key][1].append(views[b].xy[result.members[g, b]])
                         per_pair[key][2].append(held)
         out.persons += len(confident)
-        for (i, j), (xy_i, xy_j, held) in per_pair.items():
+        for (i, j), (xy_i, xy_j, held_out) in per_pair.items():
             out.pairs.append(PairMatches(frame, i, j, np.asarray(xy_i, dtype=np.float64).reshape(-1, 2),
-                                         np.asarray(xy_j, dtype=np.float64).reshape(-1, 2), np.asarray(held, bool),
-                                         found=len(held)))
+                                         np.asarray(xy_j, dtype=np.float64).reshape(-1, 2), np.asarray(held_out, bool),
+                                         found=len(held_out)))
         logger.info("narrow observations from heads, %s: %s candidates per image, %d confident persons of %d",
                     frame, [len(v.xy) for v in views], len(confident), len(result))
     return out
@@ -232,8 +232,8 @@ def head_self_check(checks: list, head_pairs: list[PairMatches], reconstruction:
         entry = by_pair.get((check.i, check.j))
         if check.verdict != "too few matches" or pair is None or entry is None or pair.matches < MIN_HEAD_MATCHES:
             continue
-        camera_i = reconstruction.find_image_with_name(check.i).camera
-        camera_j = reconstruction.find_image_with_name(check.j).camera
+        camera_i = reconstruction.cameras[reconstruction.find_image_with_name(check.i).camera_id]
+        camera_j = reconstruction.cameras[reconstruction.find_image_with_name(check.j).camera_id]
         ui, uj = undistort_pixels(camera_i, pair.xy_i), undistort_pixels(camera_j, pair.xy_j)
         f_ji = np.asarray(entry["F_ji"], dtype=np.float64)
         distances = pixel_line_distances(np.c_[ui, np.ones(len(ui))] @ f_ji.T, uj)

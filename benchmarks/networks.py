@@ -24,7 +24,8 @@ epipolar distance (px, true floor points), per pair the delivered ``epipolar_ban
 correspondences (pooled coverage, band median, median of band / true p95), CPU seconds (summary.json ``cpu_s``, all
 stages) and wall seconds, what ``--narrow auto`` decided, the self-check's verdicts, and for ``shift`` networks each
 rig's estimated offset (summary.json ``frame_offsets``) against the truth. Results: ``WORK/results/<name>.json``
-(kept: a rerun skips scored networks unless ``--force``), all of them in ``--out`` (default ``WORK/networks.json``),
+(kept: a rerun skips scored networks unless ``--force``; workers started side by side share the list, each
+network measured by the first to claim it), all of them in ``--out`` (default ``WORK/networks.json``),
 and a markdown table on stdout.
 """
 
@@ -33,6 +34,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import os
 import shutil
 import sys
 import time
@@ -218,6 +220,24 @@ def measure(network: Network, work: Path, force: bool = False) -> dict:
     return result
 
 
+def claim(folder: Path) -> bool:
+    """Whether this process may measure the network in ``folder``: workers started side by side share the list."""
+    folder.mkdir(parents=True, exist_ok=True)
+    path = folder / "claimed"
+    for _ in range(2):
+        try:
+            with open(path, "x") as f:
+                f.write(str(os.getpid()))
+            return True
+        except FileExistsError:
+            try:
+                os.kill(int(path.read_text() or 0), 0)
+                return False
+            except (ProcessLookupError, ValueError):  # its worker is gone: take it over
+                path.unlink(missing_ok=True)
+    return False
+
+
 def _brief(row: dict) -> str:
     rot = row["rotation_deg"] or {}
     return (f"rotation {rot.get('median')} / {rot.get('max')} deg, p95 {row['true_epipolar_p95_px']}, "
@@ -300,9 +320,17 @@ def main() -> None:
             if path.exists():
                 results.append(json.loads(path.read_text()))
             continue
-        t = time.perf_counter()
-        results.append(measure(network, args.work, args.force))
-        logger.info("%s done in %.0f s", network.name, time.perf_counter() - t)
+        if not path.exists() or args.force:
+            if not claim(args.work / network.name):
+                logger.info("%s: another worker measures it", network.name)
+                continue
+            t = time.perf_counter()
+            try:
+                measure(network, args.work, args.force)
+            finally:
+                (args.work / network.name / "claimed").unlink(missing_ok=True)
+            logger.info("%s done in %.0f s", network.name, time.perf_counter() - t)
+        results.append(json.loads(path.read_text()))
     write_json_atomic(args.out or args.work / "networks.json", {"results": results}, overwrite=True)
     print(table(results))
     print()

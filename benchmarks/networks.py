@@ -245,18 +245,46 @@ def _brief(row: dict) -> str:
             f"wall {row['wall_s']:.0f} s")
 
 
+def analysed(bands: list[dict]) -> list[dict]:
+    """The pairs an analyst searches: two rigs, one frame name (a rig's own frames share its pose; frames of two
+    times duplicate the synchronised pair)."""
+    def rig_frame(name: str) -> tuple[str, str]:
+        parts = name.split("/")
+        return parts[0], parts[-1]
+
+    out = []
+    for band in bands:
+        (rig_i, frame_i), (rig_j, frame_j) = (rig_frame(n) for n in band["pair"])
+        if rig_i != rig_j and frame_i == frame_j:
+            out.append(band)
+    return out
+
+
+def band_stats(bands: list[dict]) -> dict:
+    """Pooled coverage, band median, true p95 median and median band / true p95 over ``analysed(bands)``."""
+    rows = analysed(bands)
+    counted = sum(r["num_true_points"] for r in rows)
+    if not counted:
+        return {"pairs": 0, "coverage": None, "band_median_px": None, "true_p95_median_px": None, "ratio_median": None}
+    return {"pairs": len(rows),
+            "coverage": sum(r["coverage"] * r["num_true_points"] for r in rows) / counted,
+            "band_median_px": float(np.median([r["band_px"] for r in rows])),
+            "true_p95_median_px": float(np.median([r["true_p95_px"] for r in rows])),
+            "ratio_median": float(np.median([r["band_px"] / r["true_p95_px"] for r in rows if r["true_p95_px"] > 0]))}
+
+
 def _f(value, digits: int = 3, suffix: str = "") -> str:
     return "-" if value is None else f"{value:.{digits}f}{suffix}"
 
 
 def table(results: list[dict]) -> str:
     lines = ["| network | narrow used | rotation median / max (deg): default | fixed | oracle | true epipolar p95 (px): "
-             "default / fixed | coverage | band median (px) | band / true p95 | CPU / wall (s) | offsets: true -> "
-             "estimated (max error) |",
-             "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
+             "default / fixed | pairs | coverage | band median (px) | band / true p95 | CPU / wall (s) | offsets: true "
+             "-> estimated (max error) |",
+             "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
     for r in results:
         if "error" in r:
-            lines.append(f"| {r['network']} | fails: {r['error'][:80]} | | | | | | | | | |")
+            lines.append(f"| {r['network']} | fails: {r['error'][:80]} | | | | | | | | | | |")
             continue
         d, f = r["default"], r["fixed"]
         o = r.get("oracle", {}).get("rotation_deg") or {}
@@ -268,16 +296,26 @@ def table(results: list[dict]) -> str:
             else:
                 shifted = {k: int(v) for k, v in fo["true"].items() if v} or "all 0"
                 told = {k: v for k, v in fo["estimated"].items() if v}
-                offsets = (f"{shifted} -> {told or 'all 0'}, {fo['rigs_told']}/{fo['rigs']} told"
-                           f" ({_f(fo['max_abs_error_frames'], 0)})")
+                offsets = (f"{shifted} -> none told" if not fo["rigs_told"] else
+                           f"{shifted} -> {told or 'all 0'}, {fo['rigs_told']}/{fo['rigs']} told"
+                           f" (max error {_f(fo['max_abs_error_frames'], 0)})")
+        b = band_stats(d["bands"])
         lines.append(
             f"| {r['network']} | {d['narrow_used']} | {_f(d['rotation_deg']['median'], 4)} / "
             f"{_f(d['rotation_deg']['max'], 4)} | {_f(f['rotation_deg']['median'], 4)} / {_f(f['rotation_deg']['max'], 4)}"
             f" | {_f(o.get('median'), 4)} / {_f(o.get('max'), 4)} | {_f(d['true_epipolar_p95_px'], 2)} / "
-            f"{_f(f['true_epipolar_p95_px'], 2)} | {_f(100 * d['coverage'] if d['coverage'] is not None else None, 1, ' %')}"
-            f" | {_f(d['band_median_px'], 2)} | {_f(d['band_over_true_p95_median'], 2)} | {d['cpu_s']:.0f} / "
+            f"{_f(f['true_epipolar_p95_px'], 2)} | {b['pairs']} | "
+            f"{_f(100 * b['coverage'] if b['coverage'] is not None else None, 1, ' %')} | {_f(b['band_median_px'], 2)}"
+            f" | {_f(b['ratio_median'], 2)} | {d['cpu_s']:.0f} / "
             f"{d['wall_s']:.0f} | {offsets} |")
     return "\n".join(lines)
+
+
+def _stat(values: list[float]) -> str:
+    if not values:
+        return "- (no pair)"
+    return (f"{np.median(values):.2f} (quartiles {np.quantile(values, 0.25):.2f}-{np.quantile(values, 0.75):.2f}, "
+            f"{len(values)} pairs)")
 
 
 def summary_lines(results: list[dict]) -> str:
@@ -285,15 +323,19 @@ def summary_lines(results: list[dict]) -> str:
     ok = [r for r in results if "error" not in r]
     if not ok:
         return "no network scored"
-    points = sum(b["num_true_points"] for r in ok for b in r["default"]["bands"])
-    inside = sum(b["coverage"] * b["num_true_points"] for r in ok for b in r["default"]["bands"])
-    ratios = [b["band_px"] / b["true_p95_px"] for r in ok for b in r["default"]["bands"] if b["true_p95_px"] > 0]
+    bands = [b for r in ok for b in analysed(r["default"]["bands"])]
+    points = sum(b["num_true_points"] for b in bands)
+    inside = sum(b["coverage"] * b["num_true_points"] for b in bands)
+    ratios = [b["band_px"] / b["true_p95_px"] for r in ok if not r["default"]["narrow_used"]
+              for b in analysed(r["default"]["bands"]) if b["true_p95_px"] > 0]
+    used = [b["band_px"] / b["true_p95_px"] for r in ok if r["default"]["narrow_used"]
+            for b in analysed(r["default"]["bands"]) if b["true_p95_px"] > 0]
     rot = [r["default"]["rotation_deg"]["max"] / r["fixed"]["rotation_deg"]["max"] for r in ok]
     epi = [r["default"]["true_epipolar_p95_px"] / r["fixed"]["true_epipolar_p95_px"] for r in ok
            if r["default"]["true_epipolar_p95_px"] and r["fixed"]["true_epipolar_p95_px"]]
-    return (f"{len(ok)} networks, {sum(len(r['default']['bands']) for r in ok)} pairs: pooled coverage "
-            f"{100 * inside / points:.1f} %, band / true p95 median {np.median(ratios):.2f} (quartiles "
-            f"{np.quantile(ratios, 0.25):.2f}-{np.quantile(ratios, 0.75):.2f}); default / fixed: max rotation "
+    return (f"{len(ok)} networks, {len(bands)} pairs: pooled coverage "
+            f"{100 * inside / points:.1f} %; band / true p95 median {_stat(ratios)} without narrow observations, "
+            f"{_stat(used)} with them; default / fixed: max rotation "
             f"median {np.median(rot):.2f}x (worst {max(rot):.2f}x, {sum(x <= 1.0 for x in rot)} of {len(rot)} <= 1), "
             f"worst-pair epipolar p95 median {np.median(epi):.2f}x (worst {max(epi):.2f}x, "
             f"{sum(x <= 1.0 for x in epi)} of {len(epi)} <= 1)")

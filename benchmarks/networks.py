@@ -2,6 +2,7 @@
 exact truth: narrow accuracy, the delivered band's coverage and width, run time, and the frame offsets' error.
 
     python benchmarks/networks.py WORK [--only NAME ...] [--force] [--out FILE] [--report]
+    python benchmarks/networks.py WORK --measured benchmarks/measured_networks.json   # the saved tables again
 
 Networks (``networks()``; rendered once into ``WORK/<name>/scene`` by ``rigsfm.synth`` at ``--image-scale 0.5``,
 812x617, to keep 20 of them affordable on 2 cores; realistic calibration error in rigs.yaml with its sigmas): 2-16
@@ -348,7 +349,15 @@ def main() -> None:
     parser.add_argument("--force", action="store_true", help="measure again networks already scored")
     parser.add_argument("--report", action="store_true", help="only the table of the networks already scored")
     parser.add_argument("--out", type=Path, default=None)
+    parser.add_argument("--measured", type=Path, default=None,
+                        help="print the table and summary of this saved copy (benchmarks/measured_networks.json)")
     args = parser.parse_args()
+    if args.measured:
+        results = json.loads(args.measured.read_text())["results"]
+        print(table(results))
+        print()
+        print(summary_lines(results))
+        return
     args.work.mkdir(parents=True, exist_ok=True)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s",
                         handlers=[logging.FileHandler(args.work / "networks.log"), logging.StreamHandler()])

@@ -110,6 +110,9 @@ def frame_views(model: RunModel, detections: Detections, frame: str, names: list
         view.centre_covariance_m2 = model.centre_covariance_m2.get(view.name)
         if model.images_root is not None:
             view.grey = read_grey(model.images_root / view.name)
+            if view.grey is None:
+                logger.warning("%s cannot be read, so %s is associated by geometry only (no appearance)",
+                               model.images_root / view.name, frame)
     return views
 
 

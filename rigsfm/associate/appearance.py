@@ -116,9 +116,9 @@ def estimate(descriptors: np.ndarray, view_of: np.ndarray, groups: np.ndarray,
         return None
     rng = np.random.default_rng(seed)
     n = len(descriptors)
-    a, b = rng.integers(0, n, MAX_PAIRS_RANDOM), rng.integers(0, n, MAX_PAIRS_RANDOM)
-    keep = view_of[a] != view_of[b]
-    random_d = descriptors[a[keep]] - descriptors[b[keep]]
+    first, second = rng.integers(0, n, MAX_PAIRS_RANDOM), rng.integers(0, n, MAX_PAIRS_RANDOM)
+    keep = view_of[first] != view_of[second]
+    random_d = descriptors[first[keep]] - descriptors[second[keep]]
     random_d = random_d[np.all(np.isfinite(random_d), axis=1)]
     if len(random_d) < MIN_PAIRS:
         return None

@@ -30,6 +30,9 @@ class AssociateOptions:
     self_calibration_rounds: int = 4
     self_calibration_min_score: float = 0.0
     self_calibration_min_members: int = 10  # a view's shift needs this many group members (else it stays as run)
+    # Add the heads' and torsos' greys to the score where the run's narrow images can be read (rigsfm.associate.
+    # appearance): its model comes from the frame's own confident persons.
+    appearance: bool = True
     time_limit_s: float = 20.0  # per frame, for the global set packing (then the best solution found)
     cell_m: float = 1.0  # density grid cell (m)
     out: Path | None = None  # DIR; None: OUT/associate

@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 
+from rigsfm.associate.appearance import read_grey
 from rigsfm.associate.detections import Detections, read_detections
 from rigsfm.associate.options import AssociateOptions
 from rigsfm.associate.solve import FrameResult, View, associate_views, view_pose_sigmas
@@ -32,6 +33,7 @@ class RunModel:
     centre_sigma_m: dict[str, float] = field(default_factory=dict)  # per narrow image, 1 sigma of its centre
     # per narrow image, its centre's 3x3 covariance (m^2, world axes), where the run delivers it
     centre_covariance_m2: dict[str, np.ndarray] = field(default_factory=dict)
+    images_root: Path | None = None  # where the run read its images (the appearance cue), None: unknown
 
 
 def load_run(out: Path) -> RunModel:
@@ -55,8 +57,12 @@ def load_run(out: Path) -> RunModel:
             bands[(pair["j"], pair["i"])] = float(band)
     known = {image.name for image in reconstruction.images.values()} | set(images)
     centres, covariances = {}, {}
+    images_root = None
     try:
-        narrow = json.loads(workspace.summary.read_text(encoding="utf-8"))["uncertainty"]["narrow"]
+        summary = json.loads(workspace.summary.read_text(encoding="utf-8"))
+        root = (summary.get("inputs") or {}).get("images")
+        images_root = Path(root) if isinstance(root, str) and Path(root).is_dir() else None
+        narrow = summary["uncertainty"]["narrow"]
         centres = {name: float(entry["centre_sigma_mm"]) / 1000.0 for name, entry in narrow.items()
                    if entry.get("centre_sigma_mm") is not None}
         for name, entry in narrow.items():
@@ -68,7 +74,7 @@ def load_run(out: Path) -> RunModel:
     except (OSError, ValueError, KeyError, TypeError):
         logger.warning("%s holds no camera centre uncertainty; the persons' covariances leave it out",
                        workspace.summary)
-    return RunModel(images, bands, known, poses.get("world"), centres, covariances)
+    return RunModel(images, bands, known, poses.get("world"), centres, covariances, images_root)
 
 
 def require_floor(model: RunModel, out: Path) -> None:
@@ -102,6 +108,11 @@ def frame_views(model: RunModel, detections: Detections, frame: str, names: list
         view.sigma_pose_px = sigmas[view.name]
         view.centre_sigma_m = model.centre_sigma_m.get(view.name, 0.0)
         view.centre_covariance_m2 = model.centre_covariance_m2.get(view.name)
+        if model.images_root is not None:
+            view.grey = read_grey(model.images_root / view.name)
+            if view.grey is None:
+                logger.warning("%s cannot be read, so %s is associated by geometry only (no appearance)",
+                               model.images_root / view.name, frame)
     return views
 
 

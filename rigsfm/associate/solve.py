@@ -38,6 +38,7 @@ import scipy.optimize
 import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
+from rigsfm.associate.appearance import AppearanceModel, describe, estimate, head_radius_px
 from rigsfm.associate.options import AssociateOptions
 from rigsfm.associate.rates import truncated_binomial_p
 from rigsfm.core.ground import undistort_pixels
@@ -68,6 +69,8 @@ class View:
     shift_px: np.ndarray = field(default_factory=lambda: np.zeros(2))
     band_sigma_px: float | None = None
     shift_sigma_px: float | None = None  # the shift's own posterior sigma (None: not estimated)
+    grey: np.ndarray | None = None  # the image's greys, where readable (the appearance cue)
+    descriptor: np.ndarray | None = None  # N x D appearance of its detections (rigsfm.associate.appearance)
 
     @classmethod
     def of(cls, image: pycolmap.Image, xy: np.ndarray) -> View:
@@ -164,6 +167,7 @@ class FrameResult:
     members: np.ndarray  # P x V: index of the detection in each view's list, or -1
     detection_probability: float | None = None  # the crowd's, as this frame's persons say it
     height_prior: tuple[float, float] | None = None  # mean and sigma (m) of the persons' heights, as they say it
+    appearance: AppearanceModel | None = None  # the appearance cue's model, where the images gave one
 
     @property
     def confidence(self) -> np.ndarray:
@@ -176,9 +180,11 @@ class FrameResult:
 class _Frame:
     """The stacked detections of one frame's views."""
 
-    def __init__(self, views: list[View], options: AssociateOptions):
+    def __init__(self, views: list[View], options: AssociateOptions, appearance: AppearanceModel | None = None):
         self.views = views
         self.options = options
+        self.appearance = appearance if views and all(v.descriptor is not None for v in views) else None
+        self.descriptors = np.concatenate([v.descriptor for v in views]) if self.appearance is not None else None  # type: ignore[misc]
         self.noise = np.array([math.sqrt(v.sigma_pose_px ** 2 + options.pixel_sigma ** 2) for v in views])
         counts = [len(v.xy) for v in views]
         self.offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
@@ -427,6 +433,8 @@ class _Frame:
             uv, z = view.project(points)
             seen = view.inside(uv, z) & ~present[:, v]
             total += np.where(seen, miss, 0.0)
+        if self.appearance is not None and self.descriptors is not None:
+            total += self.appearance.group_log_ratio(self.descriptors, members)
         return total
 
     def seen(self, points: np.ndarray) -> np.ndarray:
@@ -513,10 +521,11 @@ def _pack(members: np.ndarray, scores: np.ndarray, total: int, time_limit: float
     return chosen
 
 
-def _solve(views: list[View], options: AssociateOptions) -> tuple[_Frame, np.ndarray, np.ndarray, np.ndarray,
-                                                                   np.ndarray, int]:
-    """One association of a frame: hypotheses, their scores and the global packing."""
-    frame = _Frame(views, options)
+def _solve(views: list[View], options: AssociateOptions, appearance: AppearanceModel | None = None
+           ) -> tuple[_Frame, np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:
+    """One association of a frame: hypotheses, their scores (with the appearance term where given) and the global
+    packing."""
+    frame = _Frame(views, options, appearance)
     total = int(frame.offsets[-1])
     members, points, covariance, scores = frame.hypotheses()
     positive = scores > options.min_score
@@ -870,6 +879,12 @@ def associate_views(views: list[View], options: AssociateOptions, carried: bool 
         if estimated != options:
             options = estimated
             state = _solve(views, options)
+    model = None
+    if options.appearance and views and all(v.grey is not None for v in views):
+        # The crowd's own appearance model, from this association's confident groups: associated once more with it.
+        model = appearance_model(state, views, options)
+        if model is not None:
+            state = _solve(views, options, model)
     frame, members, points, covariance, scores, positive = state
     total = int(frame.offsets[-1])
     covariance = covariance + _centre_term(views, members)
@@ -879,7 +894,7 @@ def associate_views(views: list[View], options: AssociateOptions, carried: bool 
     # The rates this frame used carry to the next frame as they are: the persons found under a height prior are
     # already shaped by it, so estimating it again from them would narrow it frame by frame.
     return FrameResult(names, points[order], covariance[order], scores[order], local[order],
-                       options.detection_probability, options.height_prior)
+                       options.detection_probability, options.height_prior, model)
 
 
 START_DETECTION = 0.7  # the detection probability assumed until the frame's persons say otherwise
@@ -905,3 +920,21 @@ def _crowd_rates(state: tuple, options: AssociateOptions, given: AssociateOption
     if changes:
         logger.info("the crowd's rates: %s", changes)
     return dataclasses.replace(options, **changes)
+
+
+def appearance_model(state: tuple, views: list[View], options: AssociateOptions) -> AppearanceModel | None:
+    """Each view's detections described at the apparent head size of its persons (the median depth of the persons
+    it sees in ``state``), and the same-against-different model from ``state``'s confident groups."""
+    frame, members, points = state[0], state[1], state[2]
+    for v, view in enumerate(views):
+        seen = members[:, v] >= 0
+        if not seen.any() or view.grey is None:
+            view.descriptor = None
+            continue
+        _, z = view.project(points[seen])
+        view.descriptor = describe(view.grey, view.xy, head_radius_px(view.focal, float(np.median(z))))
+    if not all(v.descriptor is not None for v in views):
+        logger.info("appearance: a view sees no person of the first association; left out")
+        return None
+    descriptors = np.concatenate([v.descriptor for v in views])  # type: ignore[misc]
+    return estimate(descriptors, frame.view_of, _confident(members, state[4], options))

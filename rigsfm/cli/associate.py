@@ -30,6 +30,8 @@ def associate_command(
     self_calibration_rounds: Annotated[int, typer.Option(
         "--self-calibration-rounds", min=0, metavar="N",
         help="correct each view's pose error from the crowd, re-associating up to this many times (0: the run's poses)")] = 4,
+    no_appearance: Annotated[bool, flag("--no-appearance", help="geometry only: leave out the heads' and torsos' greys "
+                                        "sampled from the run's narrow images")] = False,
     overwrite: Annotated[bool, flag("--overwrite", help="replace an earlier association in --out")] = False,
     verbose: Annotated[bool, flag("--verbose", "-v", help="show rigsfm's log (info level) on the terminal")] = False,
 ) -> None:
@@ -42,7 +44,8 @@ def associate_command(
     try:
         options = AssociateOptions(heights=parse_heights(heights), pixel_sigma=pixel_sigma,
                                    detection_probability=detection_probability,
-                                   self_calibration_rounds=self_calibration_rounds, out=dest, overwrite=overwrite)
+                                   self_calibration_rounds=self_calibration_rounds, appearance=not no_appearance,
+                                   out=dest, overwrite=overwrite)
     except ValueError as e:
         raise InputError(f"{e}; see rigsfm associate --help") from None
     console.print(f"persons: {associate(out, detections, options)}")

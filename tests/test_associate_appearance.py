@@ -58,3 +58,26 @@ def test_appearance_separates_same_person_from_different_persons(crowd):  # noqa
     own = frame.result.appearance
     own_auc = _auc(own.log_ratio(descriptors[same_a], descriptors[same_b]), own.log_ratio(descriptors[a], descriptors[b]))
     assert own_auc > 0.65, own_auc
+
+
+def test_an_image_changed_since_the_run_lends_no_appearance(tmp_path, caplog):
+    """A new recording under the run's image names is not the run's: its pixels are not read for the cue."""
+    import logging
+
+    import cv2
+
+    from rigsfm.associate.pipeline import RunModel, _run_image_grey
+    from rigsfm.core.io import file_sha256
+
+    name = "rig01/narrow/f0.png"
+    path = tmp_path / name
+    path.parent.mkdir(parents=True)
+    cv2.imwrite(str(path), np.full((8, 8), 100, np.uint8))
+    recorded = file_sha256(path)
+    model = RunModel({}, {}, set(), None, images_root=tmp_path, image_sha256={name: recorded})
+    assert _run_image_grey(model, name) is not None
+    cv2.imwrite(str(path), np.full((8, 8), 200, np.uint8))  # another recording, same name
+    with caplog.at_level(logging.WARNING):
+        assert _run_image_grey(model, name) is None
+    assert "changed since the run" in caplog.text
+    assert _run_image_grey(RunModel({}, {}, set(), None, images_root=tmp_path), name) is not None  # nothing recorded

@@ -19,6 +19,8 @@ from pathlib import Path
 
 import numpy as np
 
+from rigsfm.core.image_files import read_image
+
 logger = logging.getLogger(__name__)
 
 HEAD_RADIUS_M = 0.11  # a head's radius, what sets each view's box size
@@ -29,10 +31,11 @@ MAX_PAIRS_RANDOM = 20000
 
 
 def read_grey(path: Path) -> np.ndarray | None:
-    """The image as float greys, or None where it cannot be read (the cue is then left out)."""
+    """The image as float greys (its pixels as stored, as every reader of rigsfm's), or None where it cannot be read
+    (the cue is then left out)."""
     import cv2
 
-    image = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+    image = read_image(path, cv2.IMREAD_GRAYSCALE)
     return None if image is None else image.astype(np.float64)
 
 

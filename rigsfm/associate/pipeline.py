@@ -16,8 +16,10 @@ from rigsfm.associate.detections import Detections, read_detections
 from rigsfm.associate.options import AssociateOptions
 from rigsfm.associate.solve import FrameResult, View, associate_views, view_pose_sigmas
 from rigsfm.core.errors import InputError
+from rigsfm.core.io import file_sha256
 from rigsfm.core.names import ImageName
 from rigsfm.core.workspace import Workspace
+from rigsfm.run.matching.reuse import recorded_contents
 
 logger = logging.getLogger(__name__)
 
@@ -34,6 +36,7 @@ class RunModel:
     # per narrow image, its centre's 3x3 covariance (m^2, world axes), where the run delivers it
     centre_covariance_m2: dict[str, np.ndarray] = field(default_factory=dict)
     images_root: Path | None = None  # where the run read its images (the appearance cue), None: unknown
+    image_sha256: dict[str, str] = field(default_factory=dict)  # the content the run was made from (images.json)
 
 
 def load_run(out: Path) -> RunModel:
@@ -74,7 +77,28 @@ def load_run(out: Path) -> RunModel:
     except (OSError, ValueError, KeyError, TypeError):
         logger.warning("%s holds no camera centre uncertainty; the persons' covariances leave it out",
                        workspace.summary)
-    return RunModel(images, bands, known, poses.get("world"), centres, covariances, images_root)
+    return RunModel(images, bands, known, poses.get("world"), centres, covariances, images_root,
+                    recorded_contents(workspace.image_contents))
+
+
+def _run_image_grey(model: RunModel, name: str) -> np.ndarray | None:
+    """The narrow image the run was made from, as greys; None (and why, logged) where it is unreadable or its file
+    now holds other pixels (a new recording under the same names must not lend its appearance to the run's)."""
+    assert model.images_root is not None
+    path = model.images_root / name
+    recorded = model.image_sha256.get(name)
+    try:
+        changed = recorded is not None and file_sha256(path) != recorded
+    except OSError:
+        changed = False  # read_grey below says it cannot be read
+    if changed:
+        logger.warning("%s changed since the run (its content is not the one the run recorded), so its view is "
+                       "associated by geometry only (no appearance); re-run `rigsfm run` on these images", path)
+        return None
+    grey = read_grey(path)
+    if grey is None:
+        logger.warning("%s cannot be read, so its view is associated by geometry only (no appearance)", path)
+    return grey
 
 
 def require_floor(model: RunModel, out: Path) -> None:
@@ -109,10 +133,7 @@ def frame_views(model: RunModel, detections: Detections, frame: str, names: list
         view.centre_sigma_m = model.centre_sigma_m.get(view.name, 0.0)
         view.centre_covariance_m2 = model.centre_covariance_m2.get(view.name)
         if model.images_root is not None:
-            view.grey = read_grey(model.images_root / view.name)
-            if view.grey is None:
-                logger.warning("%s cannot be read, so %s is associated by geometry only (no appearance)",
-                               model.images_root / view.name, frame)
+            view.grey = _run_image_grey(model, view.name)
     return views
 
 

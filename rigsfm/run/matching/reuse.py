@@ -68,7 +68,7 @@ def image_digests(images: Sequence[ImageEntry]) -> dict[str, str]:
     return contents
 
 
-def _recorded_contents(record_path: Path) -> dict[str, str]:
+def recorded_contents(record_path: Path) -> dict[str, str]:
     """The record :func:`drop_changed_images` wrote ({} when missing or unreadable: nothing is then trusted)."""
     try:
         data = json.loads(record_path.read_text(encoding="utf-8"))
@@ -88,7 +88,7 @@ def drop_changed_images(database_path: Path, record_path: Path, images: Sequence
     name (a workspace of an older rigsfm, a removed record) is cleared too: what it was made from is unknown.
     Unchanged images keep their work. Returns the names whose work was cleared."""
     now = image_digests(images)
-    before = _recorded_contents(record_path)
+    before = recorded_contents(record_path)
     with open_database(database_path) as database:
         ids = {image.name: image.image_id for image in database.read_all_images()}
         paired: dict[int, list[int]] = {}  # image id -> the ids it has matches or a two-view geometry with

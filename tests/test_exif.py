@@ -251,7 +251,7 @@ def test_track_refuses_tagged_frames(tagged_copy, tmp_path):
 def test_report_self_check_and_floor_matching_read_the_stored_pixels(tagged_copy):
     from rigsfm.inspect.report.html import epipolar_section
     from rigsfm.inspect.report.write import load_result
-    from rigsfm.run.checks.self_check import _load
+    from rigsfm.run.checks.guided import load_narrow
     from rigsfm.run.world.floor_matching import load_floor_images
 
     dataset, out, images = tagged_copy
@@ -262,7 +262,7 @@ def test_report_self_check_and_floor_matching_read_the_stored_pixels(tagged_copy
         sections.append(epipolar_section(out, summary, reconstruction, narrow))
     assert "<figure>" in sections[0] and sections[1] == sections[0]  # the same figures, drawn on the same pixels
     image = next(im for im in reconstruction.images.values() if im.has_pose and "/narrow/" in im.name)
-    loaded = _load(image, images, None, 1000)  # the self-check's reader: None meant "cannot read as a WxH image"
+    loaded = load_narrow(image, images, None, 1000)  # the self-check's reader: None meant "cannot read as a WxH image"
     assert loaded is not None and np.array_equal(loaded.gray, read_image(dataset.images / image.name, 0))
     floor = load_floor_images(reconstruction, images)
     assert len(floor) and [len(f.xy) for f in floor] == [len(f.xy) for f in load_floor_images(reconstruction,

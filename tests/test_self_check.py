@@ -15,7 +15,7 @@ from test_floor_matching import HALF, render
 
 from rigsfm.core.geometry import correspondence_check
 from rigsfm.core.ground import image_to_plane
-from rigsfm.run.checks.guided import _candidates, _Features, _guided_matches, _segments
+from rigsfm.run.checks.guided import NarrowFeatures, band_candidates, epipolar_segments, guided_matches
 from rigsfm.run.checks.self_check import epipolar_self_check, synchronised_frames
 from rigsfm.run.deliver import narrow_poses
 from rigsfm.run.options import SelfCheckOptions, WorldOptions
@@ -33,8 +33,8 @@ def test_candidates_equal_brute_force():
     xj = rng.uniform(0, [812, 617], (900, 2))
     lines = np.c_[xi, np.ones(len(xi))] @ f.T
     lateral = np.abs(lines @ np.c_[xj, np.ones(len(xj))].T) / np.linalg.norm(lines[:, :2], axis=1)[:, None]
-    for segments in (None, _segments(i, j, xi, True)):
-        found = _candidates(f, lines, xj, segments, 6.0)
+    for segments in (None, epipolar_segments(i, j, xi, True)):
+        found = band_candidates(f, lines, xj, segments, 6.0)
         ok = lateral <= 6.0
         if segments is not None:
             a, b = np.nonzero(ok)
@@ -58,7 +58,7 @@ def test_guided_matches_equal_opencv_ratio_and_mutual_test():
     mask = (rng.random((300, 350)) < 0.1).astype(np.uint8)
     mask[np.arange(200), np.arange(200)] = 1
     a, b = np.nonzero(mask)
-    ours = {tuple(m) for m in _guided_matches(_Features(di, di, di), _Features(dj, dj, dj), a, b).tolist()}
+    ours = {tuple(m) for m in guided_matches(NarrowFeatures(di, di, di), NarrowFeatures(dj, dj, dj), a, b).tolist()}
     matcher = cv2.BFMatcher(cv2.NORM_L2)
     forward = {}
     for m in matcher.knnMatch(di, dj, k=2, mask=mask):

@@ -93,22 +93,22 @@ class PairCheck:
 
 
 @dataclass(frozen=True)
-class _Features:
+class NarrowFeatures:
     xy: np.ndarray  # raw COLMAP pixels
     undistorted: np.ndarray  # pinhole COLMAP pixels
     descriptors: np.ndarray
 
-    def subset(self, keep: np.ndarray) -> _Features:
-        return _Features(self.xy[keep], self.undistorted[keep], self.descriptors[keep])
+    def subset(self, keep: np.ndarray) -> NarrowFeatures:
+        return NarrowFeatures(self.xy[keep], self.undistorted[keep], self.descriptors[keep])
 
 
 @dataclass
-class _Narrow:
+class NarrowView:
     """One narrow image: its pixels, SIFT features and (floor frame) its rays' hits on the warp plane."""
 
     image: pycolmap.Image
     gray: np.ndarray
-    features: _Features | None
+    features: NarrowFeatures | None
     sift_factor: int = 1  # SIFT ran on it (and runs on warps into it) reduced by this (SelfCheckOptions.sift_size)
     hits: tuple[np.ndarray, np.ndarray] | None = None
     grid_shape: tuple[int, int] | None = None
@@ -118,15 +118,15 @@ def _sift():
     return opencv_sift(8000, contrast_threshold=0.02)
 
 
-def _to_features(camera: pycolmap.Camera, xy_colmap: np.ndarray, descriptors: np.ndarray | None) -> _Features | None:
+def _to_features(camera: pycolmap.Camera, xy_colmap: np.ndarray, descriptors: np.ndarray | None) -> NarrowFeatures | None:
     if descriptors is None or len(xy_colmap) < 2:
         return None
     undistorted = undistort_pixels(camera, xy_colmap)
     finite = np.isfinite(undistorted).all(axis=1)
-    return _Features(xy_colmap[finite], undistorted[finite], descriptors[finite])
+    return NarrowFeatures(xy_colmap[finite], undistorted[finite], descriptors[finite])
 
 
-def _load(image: pycolmap.Image, image_dir: Path, warp_height: float | None, sift_size: int) -> _Narrow | None:
+def load_narrow(image: pycolmap.Image, image_dir: Path, warp_height: float | None, sift_size: int) -> NarrowView | None:
     gray = read_image(image_dir / image.name, cv2.IMREAD_GRAYSCALE)
     # a model's images have their cameras
     if gray is None or gray.shape != (image.camera.height, image.camera.width):  # type: ignore[union-attr]
@@ -136,7 +136,7 @@ def _load(image: pycolmap.Image, image_dir: Path, warp_height: float | None, sif
     factor = reduction_factor(gray.shape, sift_size)
     xy, descriptors = detect(_sift(), gray, None, factor)
     # a model's images have their cameras
-    narrow = _Narrow(image, gray, _to_features(image.camera, colmap_from_opencv_pixels(xy), descriptors), factor)  # type: ignore[arg-type]
+    narrow = NarrowView(image, gray, _to_features(image.camera, colmap_from_opencv_pixels(xy), descriptors), factor)  # type: ignore[arg-type]
     if warp_height is not None:
         # a model's images have their cameras
         normalised, narrow.grid_shape = grid_rays(image.camera)  # type: ignore[arg-type]
@@ -149,7 +149,7 @@ def _dehomogenise(h: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         return h[:, :2] / h[:, 2:], h[:, 2] > 0
 
 
-def _segments(image_i: pycolmap.Image, image_j: pycolmap.Image, undistorted_i: np.ndarray,
+def epipolar_segments(image_i: pycolmap.Image, image_j: pycolmap.Image, undistorted_i: np.ndarray,
               floor_frame: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
     """For keypoints of i: the end points (pinhole pixels of j) of the part of the epipolar line where the
     point is between heights 0 and TOP_HEIGHT_M, and which keypoints have one (None: no height limit)."""
@@ -167,7 +167,7 @@ def _segments(image_i: pycolmap.Image, image_j: pycolmap.Image, undistorted_i: n
 
 
 @dataclass(frozen=True)
-class _Candidates:
+class BandCandidates:
     """Keypoint pairs (a in i, b in j) near i's epipolar line: lateral distance (px) and, when a height segment
     limits the search, the position along the segment (0 at the floor, 1 at TOP_HEIGHT_M) and its length (px)."""
 
@@ -199,8 +199,8 @@ def _pencil(f_ji: np.ndarray, points_j: np.ndarray, lines: np.ndarray):
     return point_angle, np.linalg.norm(offset, axis=1), line_angle
 
 
-def _candidates(f_ji: np.ndarray, lines: np.ndarray, undistorted_j: np.ndarray, segments, tolerance: float,
-                ) -> _Candidates:
+def band_candidates(f_ji: np.ndarray, lines: np.ndarray, undistorted_j: np.ndarray, segments, tolerance: float,
+                ) -> BandCandidates:
     """Every keypoint pair within ``tolerance`` px of i's line (and of its height segment, module docstring).
     Keypoints of j are sorted by their angle about the epipole, so each line only looks at a narrow window of
     them (no n_i x n_j table)."""
@@ -227,19 +227,19 @@ def _candidates(f_ji: np.ndarray, lines: np.ndarray, undistorted_j: np.ndarray, 
         along = np.einsum("ij,ij->i", undistorted_j[b] - start_j[a], direction) / np.maximum(length, 1e-9) ** 2
         keep = valid[a] & np.isfinite(along)
         a, b, lateral, along, length = a[keep], b[keep], lateral[keep], along[keep], length[keep]
-    candidates = _Candidates(a, b, lateral, along, length)
+    candidates = BandCandidates(a, b, lateral, along, length)
     keep = candidates.within(tolerance)
-    return _Candidates(a[keep], b[keep], lateral[keep], None if along is None else along[keep],
+    return BandCandidates(a[keep], b[keep], lateral[keep], None if along is None else along[keep],
                        None if length is None else length[keep])
 
 
-def _guided_matches(fi: _Features, fj: _Features, a: np.ndarray, b: np.ndarray,
+def guided_matches(fi: NarrowFeatures, fj: NarrowFeatures, a: np.ndarray, b: np.ndarray,
                     max_ratio: float = MAX_RATIO) -> np.ndarray:
     """(k, 2) index pairs among the candidate pairs (a, b): ratio test among candidates, mutual best."""
     return candidate_matches(fi.descriptors, fj.descriptors, a, b, max_ratio)
 
 
-def _overlapping_pairs(reconstruction: pycolmap.Reconstruction, images: Sequence[pycolmap.Image],
+def overlapping_pairs(reconstruction: pycolmap.Reconstruction, images: Sequence[pycolmap.Image],
                        floor_frame: bool) -> list[tuple[str, str]]:
     """Pairs of images of different rigs whose footprints (floor or head height) overlap by more than
     MIN_OVERLAP_FRACTION of the smaller one; every pair when the world is not the floor frame."""
@@ -256,11 +256,11 @@ def _overlapping_pairs(reconstruction: pycolmap.Reconstruction, images: Sequence
     return [p for p in pairs if p in keep]
 
 
-def _distances(lines: np.ndarray, fj: _Features, matches: np.ndarray) -> np.ndarray:
+def match_line_distances(lines: np.ndarray, fj: NarrowFeatures, matches: np.ndarray) -> np.ndarray:
     return pixel_line_distances(lines[matches[:, 0]], fj.undistorted[matches[:, 1]])
 
 
-def pair_features(first: _Narrow, second: _Narrow) -> tuple[_Features | None, _Features | None]:
+def pair_features(first: NarrowView, second: NarrowView) -> tuple[NarrowFeatures | None, NarrowFeatures | None]:
     """Features of i and j to compare (module docstring, step 1): in the floor frame j's are found on j warped
     into i's view, and i's are those the warp covers."""
     fi, fj = first.features, second.features
@@ -276,8 +276,8 @@ def pair_features(first: _Narrow, second: _Narrow) -> tuple[_Features | None, _F
     return fi, fj
 
 
-def check_pair(first: _Narrow, second: _Narrow, f_ji: np.ndarray, band: float | None, floor_frame: bool,
-               cached: tuple[_Features, _Features] | None = None) -> PairCheck:
+def check_pair(first: NarrowView, second: NarrowView, f_ji: np.ndarray, band: float | None, floor_frame: bool,
+               cached: tuple[NarrowFeatures, NarrowFeatures] | None = None) -> PairCheck:
     """One pair (module docstring, steps 2-4); ``cached``: its features from an earlier pass on the same images
     (rigsfm.run.narrow; raw pixels and descriptors kept, undistorted again with this model's cameras)."""
     image_i, image_j = first.image, second.image
@@ -294,15 +294,15 @@ def check_pair(first: _Narrow, second: _Narrow, f_ji: np.ndarray, band: float | 
         return check
     f_ji = np.asarray(f_ji, dtype=np.float64)
     lines = np.c_[fi.undistorted, np.ones(len(fi.undistorted))] @ f_ji.T
-    segments = _segments(image_i, image_j, fi.undistorted, floor_frame)
+    segments = epipolar_segments(image_i, image_j, fi.undistorted, floor_frame)
     tolerance = WIDE_FACTOR * band + KEYPOINT_NOISE_PX
     while True:  # widen until the distances are well inside the tolerance (never truncated by it)
-        candidates = _candidates(f_ji, lines, fj.undistorted, segments, tolerance)
-        matches = _guided_matches(fi, fj, candidates.a, candidates.b)
-        distances = _distances(lines, fj, matches) if len(matches) else np.zeros(0)
+        candidates = band_candidates(f_ji, lines, fj.undistorted, segments, tolerance)
+        matches = guided_matches(fi, fj, candidates.a, candidates.b)
+        distances = match_line_distances(lines, fj, matches) if len(matches) else np.zeros(0)
         if check.measured_within_px is None:
             in_band = candidates.within(band + KEYPOINT_NOISE_PX)
-            check.band_matches = len(_guided_matches(fi, fj, candidates.a[in_band], candidates.b[in_band]))
+            check.band_matches = len(guided_matches(fi, fj, candidates.a[in_band], candidates.b[in_band]))
         check.measured_within_px = tolerance
         settled = len(matches) >= MIN_MATCHES and np.percentile(distances, 95) <= 0.5 * tolerance
         if settled or tolerance >= MAX_TOLERANCE_PX:

@@ -26,12 +26,12 @@ from rigsfm.run.checks.guided import (
     MIN_MATCHES,
     TOP_HEIGHT_M,
     WIDE_FACTOR,
+    NarrowFeatures,
+    NarrowView,
     PairCheck,
-    _Features,
-    _load,
-    _Narrow,
-    _overlapping_pairs,
     check_pair,
+    load_narrow,
+    overlapping_pairs,
 )
 from rigsfm.run.checks.sync import frames_by_time
 from rigsfm.run.options import SelfCheckOptions
@@ -93,7 +93,7 @@ def synchronised_frames(reconstruction: pycolmap.Reconstruction) -> dict[str, li
 
 def epipolar_self_check(reconstruction: pycolmap.Reconstruction, image_dir: Path, narrow_poses: dict,
                         options: SelfCheckOptions | None = None, offsets: dict[str, int] | None = None,
-                        cached: dict[tuple[str, str], tuple[_Features, _Features]] | None = None) -> SelfCheck:
+                        cached: dict[tuple[str, str], tuple[NarrowFeatures, NarrowFeatures]] | None = None) -> SelfCheck:
     """The self-check (module docstring) of the first ``options.max_frames`` synchronised frames, with the
     ``F_ji`` and ``epipolar_band_95_px`` of ``narrow_poses`` (the narrow_poses.json of this model); with
     ``offsets`` (rig -> frames, rigsfm.run.checks.sync) rig r's k-th frame is paired with the others' (k + offset)-th;
@@ -117,12 +117,12 @@ def epipolar_self_check(reconstruction: pycolmap.Reconstruction, image_dir: Path
     checks = []
     for frame in chosen:
         images = frames[frame]
-        pairs = [p for p in _overlapping_pairs(reconstruction, images, floor_frame) if p in by_pair]
+        pairs = [p for p in overlapping_pairs(reconstruction, images, floor_frame) if p in by_pair]
         cached = cached or {}
         needed = {n for p in pairs if p not in cached for n in p}
-        loaded = {name: _load(reconstruction.find_image_with_name(name), Path(image_dir),
+        loaded = {name: load_narrow(reconstruction.find_image_with_name(name), Path(image_dir),
                               opt.warp_height_m if floor_frame else None, opt.sift_size) if name in needed
-                  else _Narrow(reconstruction.find_image_with_name(name), np.zeros((0, 0), np.uint8), None)
+                  else NarrowView(reconstruction.find_image_with_name(name), np.zeros((0, 0), np.uint8), None)
                   for name in sorted({n for p in pairs for n in p})}
         for name_i, name_j in pairs:
             entry = by_pair[(name_i, name_j)]

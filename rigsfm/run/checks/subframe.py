@@ -39,9 +39,9 @@ from rigsfm.core.ground import undistort_pixels
 from rigsfm.run.checks.guided import (
     KEYPOINT_NOISE_PX,
     MAX_TOLERANCE_PX,
-    _candidates,
-    _guided_matches,
-    _segments,
+    band_candidates,
+    epipolar_segments,
+    guided_matches,
 )
 
 logger = logging.getLogger(__name__)
@@ -148,10 +148,10 @@ def measure_pair(first, frames: list, features: Callable, f_ji: np.ndarray, band
     motion = float(np.percentile(speed[np.isfinite(speed)], 95)) if np.isfinite(speed).any() else 0.0
     lines = np.c_[fi.undistorted, np.ones(len(fi.undistorted))] @ np.asarray(f_ji, dtype=np.float64).T
     lines /= np.linalg.norm(lines[:, :2], axis=1, keepdims=True)
-    segments = _segments(first.image, second.image, fi.undistorted, floor_frame)
+    segments = epipolar_segments(first.image, second.image, fi.undistorted, floor_frame)
     tolerance = min(band + KEYPOINT_NOISE_PX + motion, MAX_TOLERANCE_PX)
-    candidates = _candidates(f_ji, lines, fj.undistorted, segments, tolerance)
-    matches = _guided_matches(fi, fj, candidates.a, candidates.b)
+    candidates = band_candidates(f_ji, lines, fj.undistorted, segments, tolerance)
+    matches = guided_matches(fi, fj, candidates.a, candidates.b)
     if not len(matches):
         return np.zeros(0), np.zeros(0), 0
     line = lines[matches[:, 0]]

@@ -49,12 +49,12 @@ from rigsfm.run.checks.guided import (
     KEYPOINT_NOISE_PX,
     MIN_MATCHES,
     WIDE_FACTOR,
-    _candidates,
-    _distances,
-    _guided_matches,
-    _load,
-    _overlapping_pairs,
-    _segments,
+    band_candidates,
+    epipolar_segments,
+    guided_matches,
+    load_narrow,
+    match_line_distances,
+    overlapping_pairs,
     pair_features,
 )
 from rigsfm.run.checks.subframe import (
@@ -223,10 +223,10 @@ def _distances_for(first, second, f_ji: np.ndarray, band: float, floor_frame: bo
     if fi is None or fj is None or len(fi.xy) < 2 or len(fj.xy) < 2:
         return np.zeros(0)
     lines = np.c_[fi.undistorted, np.ones(len(fi.undistorted))] @ f_ji.T
-    segments = _segments(first.image, second.image, fi.undistorted, floor_frame)
-    candidates = _candidates(f_ji, lines, fj.undistorted, segments, WIDE_FACTOR * band + KEYPOINT_NOISE_PX)
-    matches = _guided_matches(fi, fj, candidates.a, candidates.b)
-    return _distances(lines, fj, matches) if len(matches) else np.zeros(0)
+    segments = epipolar_segments(first.image, second.image, fi.undistorted, floor_frame)
+    candidates = band_candidates(f_ji, lines, fj.undistorted, segments, WIDE_FACTOR * band + KEYPOINT_NOISE_PX)
+    matches = guided_matches(fi, fj, candidates.a, candidates.b)
+    return match_line_distances(lines, fj, matches) if len(matches) else np.zeros(0)
 
 
 def _solve(rigs: list[str], pairs: list[PairSync], max_offset: int) -> dict[str, int]:
@@ -286,12 +286,12 @@ def estimate_frame_offsets(reconstruction: pycolmap.Reconstruction, image_dir: P
     first_frames = [images[0] for images in per_rig.values()]
     overlapping = {tuple(sorted((name_of(reconstruction.find_image_with_name(i)).rig,
                                  name_of(reconstruction.find_image_with_name(j)).rig)))
-                   for i, j in _overlapping_pairs(reconstruction, first_frames, floor_frame)}
+                   for i, j in overlapping_pairs(reconstruction, first_frames, floor_frame)}
     cache: dict[str, object] = {}
 
     def loaded(image: pycolmap.Image):
         if image.name not in cache:
-            cache[image.name] = _load(image, Path(image_dir), warp_height_m if floor_frame else None, sift_size)
+            cache[image.name] = load_narrow(image, Path(image_dir), warp_height_m if floor_frame else None, sift_size)
         return cache[image.name]
 
     pairs = []

@@ -41,7 +41,7 @@ from rigsfm.core.conventions import colmap_from_opencv_pixels
 from rigsfm.core.geometry import pixel_line_distances
 from rigsfm.core.ground import undistort_pixels
 from rigsfm.core.image_files import read_image
-from rigsfm.run.checks.guided import _overlapping_pairs
+from rigsfm.run.checks.guided import overlapping_pairs
 from rigsfm.run.narrow.observations import HOLD_OUT_EVERY, PairMatches
 
 logger = logging.getLogger(__name__)
@@ -167,7 +167,7 @@ def match_heads(floor_model: pycolmap.Reconstruction, image_dir: Path, frames: d
     person = 0
     for frame in list(frames)[:max(1, max_frames)]:
         images = frames[frame]
-        overlapping = _overlapping_pairs(floor_model, images, True)
+        overlapping = overlapping_pairs(floor_model, images, True)
         names = sorted({n for p in overlapping for n in p})
         if len(names) < 2:
             continue

@@ -43,11 +43,11 @@ import pycolmap
 
 from rigsfm.core.summary import HeldOutCheckSummary, NarrowObservationsSummary, NarrowPairSummary
 from rigsfm.run.checks.guided import (
-    _candidates,
-    _guided_matches,
-    _load,
-    _overlapping_pairs,
-    _segments,
+    band_candidates,
+    epipolar_segments,
+    guided_matches,
+    load_narrow,
+    overlapping_pairs,
     pair_features,
 )
 from rigsfm.run.checks.self_check import synchronised_frames
@@ -192,8 +192,8 @@ def find_matches(floor_model: pycolmap.Reconstruction, image_dir: Path, options:
     found = []
     for frame in list(frames)[:max(1, opt.max_frames)]:
         images = frames[frame]
-        pairs = _overlapping_pairs(floor_model, images, floor_frame)
-        loaded = {name: _load(floor_model.find_image_with_name(name), Path(image_dir),
+        pairs = overlapping_pairs(floor_model, images, floor_frame)
+        loaded = {name: load_narrow(floor_model.find_image_with_name(name), Path(image_dir),
                               opt.warp_height_m if floor_frame else None, opt.sift_size)
                   for name in sorted({n for p in pairs for n in p})}
         for name_i, name_j in pairs:
@@ -211,10 +211,10 @@ def find_matches(floor_model: pycolmap.Reconstruction, image_dir: Path, options:
             # a model's images have their cameras
             f_ji = fundamental_matrix(_j_from_i(image_i, image_j), image_i.camera, image_j.camera)  # type: ignore[arg-type]
             lines = np.c_[fi.undistorted, np.ones(len(fi.undistorted))] @ f_ji.T
-            segments = _segments(image_i, image_j, fi.undistorted, floor_frame)
+            segments = epipolar_segments(image_i, image_j, fi.undistorted, floor_frame)
             tolerance = TOLERANCE_FRACTION * image_j.camera.width  # type: ignore[union-attr]
-            candidates = _candidates(f_ji, lines, fj.undistorted, segments, tolerance)
-            matches = _guided_matches(fi, fj, candidates.a, candidates.b)
+            candidates = band_candidates(f_ji, lines, fj.undistorted, segments, tolerance)
+            matches = guided_matches(fi, fj, candidates.a, candidates.b)
             if len(matches) == 0:
                 found.append(_empty(frame, name_i, name_j))
                 continue

@@ -54,9 +54,10 @@ def match_features(
     direct = [pair for pair in todo if not all(fits_pairs_file(name) for name in pair)]
     todo = [pair for pair in todo if all(fits_pairs_file(name) for name in pair)] + direct
     plain = todo[: len(todo) - len(direct)]
-    for start in range(0, len(plain), batch_size):
-        batch = plain[start : start + batch_size]
-        pairs_path.write_text("".join(f"{a} {b}\n" for a, b in batch))
+
+    def match_listed(pairs: Sequence[tuple[str, str]]) -> None:
+        """COLMAP's matcher on ``pairs`` through the pairs file (none: only its rig verification runs)."""
+        pairs_path.write_text("".join(f"{a} {b}\n" for a, b in pairs))
         pycolmap.match_image_pairs(
             database_path,
             matching_options=matching,
@@ -64,20 +65,17 @@ def match_features(
             verification_options=verification,
             device=pycolmap_device(gpu),
         )
+
+    for start in range(0, len(plain), batch_size):
+        batch = plain[start : start + batch_size]
+        match_listed(batch)
         if progress:
             progress(start + len(batch), len(todo))
     if direct:
         match_pairs_directly(database_path, direct, matching, verification,
                              (lambda done, _: progress(len(plain) + done, len(todo))) if progress else None)
         if matching.rig_verification:  # an empty pairs file: COLMAP's matcher then only runs its rig verification
-            pairs_path.write_text("")
-            pycolmap.match_image_pairs(
-                database_path,
-                matching_options=matching,
-                pairing_options=pycolmap.ImportedPairingOptions(match_list_path=pairs_path),
-                verification_options=verification,
-                device=pycolmap_device(gpu),
-            )
+            match_listed([])
     pairs_path.unlink(missing_ok=True)
     logger.info("Matched %d image pairs", len(todo))
     return len(todo)

@@ -10,7 +10,7 @@ import pytest
 from scipy.spatial import cKDTree
 
 from rigsfm.run.checks.self_check import synchronised_frames
-from rigsfm.run.narrow.heads import HeadMatches, decide_heads, match_heads
+from rigsfm.run.narrow.heads import MIN_HEAD_MATCHES, HeadMatches, decide_heads, match_heads
 from rigsfm.synth.scene import SceneOptions
 
 # 3D persons (heads at 1.5-1.9 m, occluding flat-shaded bodies, 4 per m2) round which the narrow cameras, aimed at
@@ -51,6 +51,11 @@ def test_heads_are_matched_across_views_and_turn_the_observations_on(rendered):
         right += int(np.sum((di < 6) & (dj < 6) & (ti[ii, 2] == tj[jj, 2])))
         total += pair.matches
     assert total >= 40 and right >= 0.7 * total, (right, total)
+    # The self-check counts every person of two or more views scoring above 0: more pairs hold enough head matches
+    # for a verdict than the confident persons alone give.
+    confident = sum(p.matches >= MIN_HEAD_MATCHES for p in heads.pairs)
+    checked = sum(p.matches >= MIN_HEAD_MATCHES for p in heads.check_pairs)
+    assert checked > confident, (checked, confident)
 
 
 def test_auto_needs_enough_confident_persons():

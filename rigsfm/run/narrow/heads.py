@@ -24,9 +24,8 @@ SIFT on flat-shaded, view-dependent silhouettes gives chance matches only. Heads
    the band plus ``HEAD_NOISE_PX`` (the two head centres' localisation noise). Its matches are every person the
    association finds in two or more views scoring above ``CHECK_MIN_SCORE`` (more likely one person than chance),
    not only the adjustment's confident ones: a wrong match costs the adjustment a biased track, but the check only
-   its distance from the line, and the association admits a match only within its band, so a wrong one lies as
-   near the line as a right one; the confident persons alone leave most pairs of a crowd under
-   ``MIN_HEAD_MATCHES``.
+   one distance, which the association's band bounds (it admits a match only inside it); the confident persons
+   alone leave many pairs of a crowd under ``MIN_HEAD_MATCHES``.
 """
 
 from __future__ import annotations

@@ -399,7 +399,8 @@ def _run_locked(workspace: Workspace, inputs: Inputs, manual_pairs: dict, option
     if narrow is not None and narrow.used:
         narrow.held_out_checks = held_out_check(result.reconstruction, narrow.pairs, uncertainty.bands)
         if self_check is not None and narrow.matched_by == "heads":
-            narrow.head_verdicts = head_self_check(self_check.pairs, narrow.pairs, result.reconstruction, poses)
+            narrow.head_verdicts = head_self_check(self_check.pairs, narrow.head_check_pairs, result.reconstruction,
+                                                  poses)
     summary = build_summary(inputs, options, mapping, result, timings, workspace.database)
     summary.world = world.summary()
     summary.warnings.extend(world.warnings)

@@ -19,9 +19,13 @@ SIFT on flat-shaded, view-dependent silhouettes gives chance matches only. Heads
    check are the floor matches' own.
 4. **Decision** (``auto``): used when at least ``MIN_HEAD_GROUPS`` confident persons are found; a featureless view
    gives no circles at head size that three views agree on.
-5. **Self-check**: a pair whose SIFT self-check found too few matches gets a verdict from its head matches (every
-   person, used or held out) against the delivered epipolar lines, when it holds ``MIN_HEAD_MATCHES``: ``ok``
-   when their 95th percentile is within the band plus ``HEAD_NOISE_PX`` (the two head centres' localisation noise).
+5. **Self-check**: a pair whose SIFT self-check found too few matches gets a verdict from its head matches against
+   the delivered epipolar lines, when it holds ``MIN_HEAD_MATCHES``: ``ok`` when their 95th percentile is within
+   the band plus ``HEAD_NOISE_PX`` (the two head centres' localisation noise). Its matches are every person the
+   association finds in two or more views scoring above ``CHECK_MIN_SCORE`` (more likely one person than chance),
+   not only the adjustment's confident ones: a wrong match costs the adjustment a biased track, but the check only
+   one distance, which the association's band bounds (it admits a match only inside it); the confident persons
+   alone leave many pairs of a crowd under ``MIN_HEAD_MATCHES``.
 """
 
 from __future__ import annotations
@@ -56,6 +60,9 @@ MIN_GROUP_VIEWS = 3  # a person enters the adjustment when seen in this many vie
 # ... and scoring above this (log-likelihood ratio against clutter): below it, on a dense crowd (275 heads per
 # view), most groups of three or four views join different persons' heads.
 MIN_GROUP_SCORE = 2.0
+# The self-check's persons: two views or more, scoring above this (the association's log-likelihood ratio of one
+# person against chance detections: above 0, one person is the likelier).
+CHECK_MIN_SCORE = 0.0
 MIN_HEAD_GROUPS = 12  # confident persons that make the heads usable (auto)
 MIN_HEAD_MATCHES = 10  # head matches a pair needs for a self-check verdict
 HEAD_NOISE_PX = 2.0 * 1.96 * HEAD_PIXEL_SIGMA / math.sqrt(2.0)  # allowed on top of the band (two centres' noise)
@@ -71,6 +78,8 @@ class HeadMatches:
     persons: int = 0  # confident persons (>= MIN_GROUP_VIEWS views, score > MIN_GROUP_SCORE)
     held_out_persons: int = 0
     pairs: list[PairMatches] = field(default_factory=list)
+    # The self-check's head matches per pair: every person in >= 2 views scoring above CHECK_MIN_SCORE (step 5).
+    check_pairs: list[PairMatches] = field(default_factory=list)
 
 
 def expected_radius(image: pycolmap.Image, xy: np.ndarray) -> np.ndarray:
@@ -188,27 +197,41 @@ def match_heads(floor_model: pycolmap.Reconstruction, image_dir: Path, frames: d
         result = associate_views(views, _association_options())
         present = result.members >= 0
         confident = np.flatnonzero((present.sum(axis=1) >= MIN_GROUP_VIEWS) & (result.scores > MIN_GROUP_SCORE))
-        per_pair: dict[tuple[str, str], tuple[list, list, list]] = {p: ([], [], []) for p in overlapping}
-        for g in confident:
-            held = person % HOLD_OUT_EVERY == 0
-            person += 1
-            out.held_out_persons += held
-            seen = [v for v in range(len(views)) if present[g, v]]
-            for a in seen:
-                for b in seen:
-                    key = (views[a].name, views[b].name)
-                    if key in per_pair:
-                        per_pair[key][0].append(views[a].xy[result.members[g, a]])
-                        per_pair[key][1].append(views[b].xy[result.members[g, b]])
-                        per_pair[key][2].append(held)
+        held = (person + np.arange(len(confident))) % HOLD_OUT_EVERY == 0
+        person += len(confident)
+        out.held_out_persons += int(held.sum())
+        per_pair = _per_pair(views, result.members, confident, overlapping, held)
         out.persons += len(confident)
-        for (i, j), (xy_i, xy_j, held_out) in per_pair.items():
-            out.pairs.append(PairMatches(frame, i, j, np.asarray(xy_i, dtype=np.float64).reshape(-1, 2),
-                                         np.asarray(xy_j, dtype=np.float64).reshape(-1, 2), np.asarray(held_out, bool),
-                                         found=len(held_out)))
+        out.pairs.extend(_pair_matches(frame, per_pair))
+        checked = np.flatnonzero((present.sum(axis=1) >= 2) & (result.scores > CHECK_MIN_SCORE))
+        out.check_pairs.extend(_pair_matches(frame, _per_pair(views, result.members, checked, overlapping)))
         logger.info("narrow observations from heads, %s: %s candidates per image, %d confident persons of %d",
                     frame, [len(v.xy) for v in views], len(confident), len(result))
     return out
+
+
+def _per_pair(views: list[View], members: np.ndarray, groups: np.ndarray, overlapping: list,
+              held: np.ndarray | None = None) -> dict[tuple[str, str], tuple[list, list, list]]:
+    """(i, j) -> the head centres in i and in j of ``groups`` (rows of ``members``) seen in both, and whether each
+    is held out (``held``: per group; None: none)."""
+    per_pair: dict[tuple[str, str], tuple[list, list, list]] = {p: ([], [], []) for p in overlapping}
+    for n, g in enumerate(groups):
+        seen = np.flatnonzero(members[g] >= 0)
+        for a in seen:
+            for b in seen:
+                key = (views[a].name, views[b].name)
+                if key in per_pair:
+                    per_pair[key][0].append(views[a].xy[members[g, a]])
+                    per_pair[key][1].append(views[b].xy[members[g, b]])
+                    per_pair[key][2].append(bool(held is not None and held[n]))
+    return per_pair
+
+
+def _pair_matches(frame: str, per_pair: dict[tuple[str, str], tuple[list, list, list]]) -> list[PairMatches]:
+    return [PairMatches(frame, i, j, np.asarray(xy_i, dtype=np.float64).reshape(-1, 2),
+                        np.asarray(xy_j, dtype=np.float64).reshape(-1, 2), np.asarray(held_out, bool),
+                        found=len(held_out))
+            for (i, j), (xy_i, xy_j, held_out) in per_pair.items()]
 
 
 def decide_heads(heads: HeadMatches) -> tuple[bool, str]:
@@ -223,7 +246,8 @@ def decide_heads(heads: HeadMatches) -> tuple[bool, str]:
 def head_self_check(checks: list, head_pairs: list[PairMatches], reconstruction: pycolmap.Reconstruction,
                     narrow_poses: dict) -> int:
     """Verdicts from heads (module docstring, step 5) for the self-check's pairs (rigsfm.run.checks.guided.PairCheck,
-    changed in place) that have none; ``reconstruction`` and ``narrow_poses`` as delivered. Returns how many got one."""
+    changed in place) that have none; ``head_pairs``: HeadMatches.check_pairs; ``reconstruction`` and ``narrow_poses``
+    as delivered. Returns how many got one."""
     by_pair = {(p["i"], p["j"]): p for p in narrow_poses.get("pairs", [])}
     heads = {(p.frame, p.i, p.j): p for p in head_pairs}
     given = 0

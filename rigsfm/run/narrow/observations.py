@@ -134,6 +134,7 @@ class NarrowObservations:
     head_persons: int | None = None  # confident persons of the heads' association, where it ran
     head_candidates: int | None = None
     head_verdicts: int = 0  # self-check pairs given a verdict by their head matches
+    head_check_pairs: list[PairMatches] = field(default_factory=list, repr=False)  # the heads' self-check matches
 
     def line(self) -> str:
         """The terminal's line."""

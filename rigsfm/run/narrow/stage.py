@@ -129,6 +129,7 @@ def heads_instead(floor_model: pycolmap.Reconstruction, image_dir: Path, options
         record.reason += f"; {reason}"
         return False
     record.pairs, record.used, record.matched_by = heads.pairs, True, "heads"
+    record.head_check_pairs = heads.check_pairs
     record.reason = reason if enough else f"asked (--narrow on); {reason}"
     return True
 

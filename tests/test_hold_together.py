@@ -19,11 +19,11 @@ CROWD = SceneOptions(num_rigs=4, arc_deg=135.0, textured_centre=True, image_scal
 
 
 def test_a_rig_the_images_contradict_is_not_held_alone(rendered, tmp_path):
-    """Four rigs over 135 deg around a painted crowd (benchmarks/networks.py's flat4_135_s0), the images informing every rig's wide intrinsics, with rig02's
-    wide principal point in rigs.yaml 4 sigmas off on both axes (a board calibration gone wrong, its sigmas unchanged):
-    rig02's own consistency test fails. Held alone, as rig by rig decided, its error moves into the refined rigs'
-    intrinsics and every pose; decided for the network, the informed rigs are held or refined together, and the narrow
-    rotation error is below the rig-by-rig choice's and at most --fixed-calibration's."""
+    """Four rigs over 135 deg around a painted crowd (benchmarks/networks.py's flat4_135_s0), the images informing
+    every rig's wide intrinsics, with rig02's wide principal point in rigs.yaml 4 sigmas off on both axes (a board
+    calibration gone wrong, its sigmas unchanged): rig02's own consistency test fails. Held alone, as rig by rig
+    decided, its error moves into the refined rigs' intrinsics and every pose (0.427 deg; every rig held 0.449 deg);
+    decided for the network, the rigs are refined together here and the images correct part of it (0.363 deg)."""
     dataset = rendered(CROWD)
     mapped = pycolmap.Reconstruction(str(run(dataset.images, dataset.rigs, tmp_path / "run", dataset.scale,
                                              RunOptions(narrow=NarrowMode.OFF)).workspace.mapping))
@@ -41,7 +41,8 @@ def test_a_rig_the_images_contradict_is_not_held_alone(rendered, tmp_path):
                                    ("default", AdjustOptions(), None)):
         result = adjust(mapped, inputs.rigs, inputs.scale, options, inputs.priors, with_covariance=False,
                         held_rigs=held)
-        errors[variant] = compare_to_ground_truth(result.reconstruction, truth, "narrow")["relative_rotation_deg"]["max"]
+        narrow = compare_to_ground_truth(result.reconstruction, truth, "narrow")
+        errors[variant] = narrow["relative_rotation_deg"]["max"]
         decisions = {d.rig: d for d in result.decisions}
     print(f"\nnarrow rotation error (deg): {errors}\n{[(d.rig, d.held, d.reason) for d in decisions.values()]}")
     assert decisions["rig02"].chi2 > decisions["rig02"].limit  # the images contradict rig02's rigs.yaml alone

@@ -1,5 +1,5 @@
-"""Hold or refine: per rig, whether the images inform its calibration enough, and agree with rigs.yaml, for the
-refined calibration to be kept (:func:`hold_or_refine`)."""
+"""Hold or refine: per rig, whether the images inform its calibration enough, and the network's refinement agrees
+with rigs.yaml, for the refined calibration to be kept (:func:`hold_or_refine`)."""
 
 from __future__ import annotations
 
@@ -90,11 +90,15 @@ def hold_or_refine(result: AdjustResult, covariance: JointCovariance | None) -> 
       images inform combinations, such as two rigs' focal lengths against each other) has ``g_k >= 1/2``, i.e. the
       images inform it more than rigs.yaml's sigmas do; below that the posterior is mostly the prior, and a change
       is mostly whatever the images' unmodelled errors (wrong clicks, systematic feature offsets) pulled it to;
-    - each rig's observability: ``g_k >= MIN_GAIN`` in some direction of its own calibration (its marginal);
-    - each rig's consistency: were priors and images both right, its change would be distributed as ``N(0, I - Q)``
-      (the spread of the posterior mean), so ``sum_k (v_k . u)^2 / g_k`` over its directions with ``g_k >=
-      MIN_GAIN`` is chi-square with that many degrees of freedom; above the ``HOLD_QUANTILE`` quantile the images
-      moved the calibration further than their information allows, and the move is not trusted.
+    - each rig's observability: ``g_k >= MIN_GAIN`` in some direction of its own calibration (its marginal); a rig
+      below it is held (the images neither move nor contradict it);
+    - the network's consistency: were priors and images both right, the change would be distributed as ``N(0, I -
+      Q)`` (the spread of the posterior mean), so ``sum_k (v_k . u)^2 / g_k`` over the network's directions with
+      ``g_k >= MIN_GAIN`` is chi-square with that many degrees of freedom; above the ``HOLD_QUANTILE`` quantile the
+      images moved the calibration further than their information allows, and every rig is held. One test for the
+      network, not one per rig: the rigs' calibrations meet in the shared poses, so a rig held at values the images
+      contradict pushes that contradiction into the rigs still refined (their intrinsics and every pose), which is
+      worse than holding them all or none. Each rig's own chi-square is reported with its decision.
 
     Without a covariance (a rank-deficient problem) every rig is held."""
     from scipy.stats import chi2 as chi2_distribution  # scipy.stats takes a while to import
@@ -104,8 +108,13 @@ def hold_or_refine(result: AdjustResult, covariance: JointCovariance | None) -> 
     if covariance is None:
         return [CalibrationDecision(rig, True, "no covariance to test its refinement against") for rig in rigs]
     change = _calibration_change(result, covariance)
-    network_gain = float(_gains(change.prior, change.posterior, change.delta)[0].max(initial=0.0)) \
-        if len(change.delta) else 0.0
+    network_gains, network_z = _gains(change.prior, change.posterior, change.delta) if len(change.delta) \
+        else (np.zeros(0), np.zeros(0))
+    network_gain = float(network_gains.max(initial=0.0))
+    network_tested = network_gains >= MIN_GAIN
+    network_chi2 = float(np.sum(network_z[network_tested] ** 2 / network_gains[network_tested]))
+    network_dof = int(network_tested.sum())
+    network_limit = float(chi2_distribution.ppf(HOLD_QUANTILE, network_dof)) if network_dof else 0.0
     decisions = []
     for rig in rigs:
         mine = change.rigs == rig
@@ -124,11 +133,14 @@ def hold_or_refine(result: AdjustResult, covariance: JointCovariance | None) -> 
         elif not dof:
             held, reason = True, (f"the images barely observe its calibration (at most {int(100 * max(largest, 0.0))} % "
                                   "of a direction's prior variance removed)")
-        elif chi2 > limit:
-            held, reason = True, (f"the refinement moved it further than the images' information allows (chi-square "
-                                  f"{chi2:.1f} > {limit:.1f}, {dof} dof)")
+        elif network_chi2 > network_limit:
+            held, reason = True, (f"the refinement moved the network's calibration further than the images' "
+                                  f"information allows (chi-square {network_chi2:.1f} > {network_limit:.1f}, "
+                                  f"{network_dof} dof; this rig's {chi2:.1f} against {limit:.1f}): every rig held")
         else:
             held, reason = False, (f"the images inform it (up to {100 * largest:.0f} % of a direction's prior variance "
-                                   f"removed) and agree with rigs.yaml (chi-square {chi2:.1f} <= {limit:.1f}, {dof} dof)")
+                                   f"removed) and the network's refinement agrees with rigs.yaml (chi-square "
+                                   f"{network_chi2:.1f} <= {network_limit:.1f}, {network_dof} dof; this rig's "
+                                   f"{chi2:.1f} against {limit:.1f})")
         decisions.append(CalibrationDecision(rig, held, reason, largest, chi2, dof, limit))
     return decisions

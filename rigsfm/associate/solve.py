@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import functools
 import logging
 import math
 from dataclasses import dataclass, field
@@ -156,6 +157,57 @@ def _inverse3(a: np.ndarray) -> np.ndarray:
     return c / det[:, None, None]
 
 
+ROWS_PER_BLOCK = 4096  # hypotheses per block of the row-wise algebra: its temporaries stay in the CPU's cache
+
+
+def _rowwise(method):
+    """Run a method whose array arguments and results are per hypothesis (rows) on blocks of rows: each row's
+    arithmetic is the same, while the temporaries of a hundred thousand hypotheses times the views would not fit
+    any cache (and their allocation alone costs more than the arithmetic)."""
+
+    @functools.wraps(method)
+    def blocked(self, *arrays, **options):
+        n = len(arrays[0])
+        if n <= ROWS_PER_BLOCK:
+            return method(self, *arrays, **options)
+
+        def rows(a, k):
+            return a[k:k + ROWS_PER_BLOCK] if isinstance(a, np.ndarray) and a.ndim and len(a) == n else a
+
+        parts = [method(self, *(rows(a, k) for a in arrays), **{key: rows(a, k) for key, a in options.items()})
+                 for k in range(0, n, ROWS_PER_BLOCK)]
+        if isinstance(parts[0], tuple):
+            return tuple(np.concatenate(column) for column in zip(*parts))
+        return np.concatenate(parts)
+
+    return blocked
+
+
+def _unique_rows(members: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``np.unique(members, axis=0, return_index=True)`` (the same rows, order and first occurrences) for member rows
+    (-1 or a detection): the columns packed into a few integer keys sort far faster than rows compared as records."""
+    if not members.size:
+        return np.unique(members, axis=0, return_index=True)
+    shifted = members + 1  # >= 0
+    bases = shifted.max(axis=0) + 1
+    keys, key, room = [], np.zeros(len(members), dtype=np.int64), 1
+    for c in range(members.shape[1]):
+        if room * int(bases[c]) >= 2 ** 62:
+            keys.append(key)
+            key, room = np.zeros(len(members), dtype=np.int64), 1
+        key = key * bases[c] + shifted[:, c]
+        room *= int(bases[c])
+    keys.append(key)
+    order = np.lexsort(keys[::-1])  # stable: the first of equal rows first; the first column decides first
+    repeated = np.zeros(len(order), dtype=bool)
+    repeated[1:] = True
+    for key in keys:
+        ranked = key[order]
+        repeated[1:] &= ranked[1:] == ranked[:-1]
+    first = order[~repeated]
+    return members[first], first
+
+
 @dataclass
 class FrameResult:
     """The persons of one frame: per person its point, covariance, score, confidence and member detections."""
@@ -212,6 +264,30 @@ class _Frame:
         # Clutter density (detections per px^2) around each detection: crowds fill a band of the image (the heads'
         # heights), where a chance match is far likelier than the image's mean density says.
         self.clutter = self.clutter_among(np.ones(len(self.uv), dtype=bool))
+        # what the groups depend on in each view, to tell a frame whose views were corrected since
+        self._posed = [(v.shift_px.copy(), v.sigma_pose_px, v.xy) for v in views]
+        self._seeds: np.ndarray | None = None  # pair_candidates, once
+        self._grown: dict[bytes | None, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+
+    def rescored(self, views: list[View], options: AssociateOptions, appearance: AppearanceModel | None = None,
+                 ) -> _Frame | None:
+        """This frame under other score options or an appearance model (the views' descriptors as they are now),
+        keeping the groups it grew; None where ``views`` are not its views as they were, or ``options`` change what
+        the groups depend on."""
+        geometry = ("heights", "pixel_sigma", "gate_sigmas", "member_gate", "clutter_radius_px")
+        if len(views) != len(self.views) or any(a is not b for a, b in zip(views, self.views)):
+            return None
+        moved = any(not np.array_equal(shift, v.shift_px) or sigma != v.sigma_pose_px or xy is not v.xy
+                    for (shift, sigma, xy), v in zip(self._posed, views))
+        if moved or any(getattr(options, name) != getattr(self.options, name) for name in geometry):
+            return None
+        frame = copy.copy(self)
+        frame.options = options
+        views = self.views
+        frame.appearance = appearance if views and all(v.descriptor is not None for v in views) else None
+        frame.descriptors = np.concatenate([v.descriptor for v in views]) if frame.appearance is not None else None  # type: ignore[misc]
+        frame.clutter = self.clutter_among(np.ones(len(self.uv), dtype=bool))
+        return frame
 
     def clutter_among(self, free: np.ndarray) -> np.ndarray:
         """Per detection, the density (per px^2) of the ``free`` detections of its view within the clutter radius:
@@ -252,6 +328,7 @@ class _Frame:
         t = np.where(np.isfinite(t) & (t > 0.1), t, 0.1)
         return c + t[:, None] * d
 
+    @_rowwise
     def triangulate(self, members: np.ndarray, points: np.ndarray | None = None,
                     ) -> tuple[np.ndarray, np.ndarray]:
         """Weighted ray intersection of each row's members (G x V, -1: none); returns points and covariances."""
@@ -279,6 +356,7 @@ class _Frame:
             points = np.einsum("gij,gj->gi", covariance, b)
         return points, covariance  # type: ignore[return-value]  # the loop sets points
 
+    @_rowwise
     def residuals(self, members: np.ndarray, points: np.ndarray) -> np.ndarray:
         """Squared reprojection distance of each member over its noise (G x V; NaN where no member)."""
         out = np.full(members.shape, np.nan)
@@ -340,6 +418,7 @@ class _Frame:
             return np.zeros((0, len(self.views)), dtype=np.int64)
         return np.concatenate(seeds)
 
+    @_rowwise
     def grow(self, members: np.ndarray, points: np.ndarray, covariance: np.ndarray, single: bool = False,
              ) -> np.ndarray:
         """Add, in every view without a member, the detection nearest the point's projection within the gate.
@@ -366,9 +445,7 @@ class _Frame:
             largest = (sxx + syy) / 2 + np.sqrt(((sxx - syy) / 2) ** 2 + sxy ** 2)
             reach = np.sqrt(largest) * self.options.member_gate
             k = min(4, len(self.tree_index[v]))
-            # views with detections have trees
-            dist, near = self.trees[v].query(uv, k=k, distance_upper_bound=float(np.max(reach)) + 1.0)  # type: ignore[union-attr]
-            dist, near = dist.reshape(len(rows), k), near.reshape(len(rows), k)
+            dist, near = self._nearest(v, uv, reach + 1.0, k)
             det = sxx * syy - sxy ** 2
             s_inv = np.stack([np.stack([syy, -sxy], axis=1), np.stack([-sxy, sxx], axis=1)], axis=1) / det[:, None, None]
             best = np.full(len(rows), -1, dtype=np.int64)
@@ -393,6 +470,25 @@ class _Frame:
             members[rows, one_view[rows]] = one_det[rows]
         return members
 
+    def _nearest(self, v: int, uv: np.ndarray, bound: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+        """The ``k`` detections of view v nearest each of ``uv`` (into its tree; inf / n where none) among those
+        within the row's ``bound``, or beyond it (those a caller's gate rejects anyway): rows whose bound box misses
+        every detection are not searched, and the others are searched in groups of similar bound, each under its
+        largest (a tight bound prunes the tree's search)."""
+        tree = self.trees[v]
+        assert tree is not None  # views with detections have trees
+        dist = np.full((len(uv), k), np.inf)
+        near = np.full((len(uv), k), tree.n, dtype=np.int64)
+        lo, hi = tree.mins, tree.maxes
+        meets = np.all((uv >= lo - bound[:, None]) & (uv <= hi + bound[:, None]), axis=1)
+        rows = np.flatnonzero(meets)
+        rows = rows[np.argsort(bound[rows], kind="stable")]
+        for part in np.array_split(rows, min(4, len(rows))) if len(rows) else []:
+            d, n = tree.query(uv[part], k=k, distance_upper_bound=float(bound[part[-1]]))
+            dist[part], near[part] = d.reshape(len(part), k), n.reshape(len(part), k)
+        return dist, near
+
+    @_rowwise
     def verify(self, members: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Re-triangulate, drop members outside their band, re-triangulate: members, points, covariances."""
         gate2 = self.options.member_gate ** 2
@@ -407,6 +503,7 @@ class _Frame:
             points, covariance = self.triangulate(members, points)
         return members, points, covariance
 
+    @_rowwise
     def score(self, members: np.ndarray, points: np.ndarray, covariance: np.ndarray) -> np.ndarray:
         p_d = self.options.detection_probability
         assert p_d is not None  # associate_views resolves it
@@ -437,6 +534,7 @@ class _Frame:
             total += self.appearance.group_log_ratio(self.descriptors, members)
         return total
 
+    @_rowwise
     def seen(self, points: np.ndarray) -> np.ndarray:
         """How many views see each point inside their image (G)."""
         count = np.zeros(len(points), dtype=np.int64)
@@ -447,16 +545,32 @@ class _Frame:
 
     def hypotheses(self, free: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Candidate persons (members, points, covariances, scores); ``free``: only among these detections."""
+        # The groups depend on the views' geometry and ``free`` only, not on what the score weighs (the detection
+        # probability, the heights' prior, the appearance, the clutter): a frame associated again with other rates
+        # or an appearance model re-scores the groups it already grew.
+        key = None if free is None else free.tobytes()
+        grown = self._grown.get(key)
+        if grown is None:
+            grown = self._grown_hypotheses(free)
+            self._grown = {k: g for k, g in self._grown.items() if k is None}  # the first pass's, and this one
+            self._grown[key] = grown
+        members, points, covariance = grown
+        return members, points, covariance, self.score(members, points, covariance)
+
+    def _grown_hypotheses(self, free: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The groups of ``hypotheses`` before their scores."""
 
         def only_free(m: np.ndarray) -> np.ndarray:
             return m if free is None else np.where((m >= 0) & ~free[np.maximum(m, 0)], -1, m)
 
-        seeds = self.pair_candidates()
+        if self._seeds is None:
+            self._seeds = self.pair_candidates()
+        seeds = self._seeds
         if free is not None:
             seeds = seeds[np.all((seeds < 0) | free[np.maximum(seeds, 0)], axis=1)]
         if not len(seeds):
             empty = np.zeros((0, len(self.views)), dtype=np.int64)
-            return empty, np.zeros((0, 3)), np.zeros((0, 3, 3)), np.zeros(0)
+            return empty, np.zeros((0, 3)), np.zeros((0, 3, 3))
         points, covariance = self.triangulate(seeds)
         lo, hi = self.options.heights
         ok = (points[:, 2] >= lo) & (points[:, 2] <= hi) & np.all(
@@ -471,22 +585,21 @@ class _Frame:
             members, points, covariance = self.verify(members)
             groups.append(members)
             # seeds of one person grow into the same group: grow each group once
-            members, first = np.unique(members, axis=0, return_index=True)
+            members, first = _unique_rows(members)
             points, covariance = points[first], covariance[first]
-        members = np.unique(np.concatenate(groups), axis=0)
+        members = _unique_rows(np.concatenate(groups))[0]
         members = members[np.sum(members >= 0, axis=1) >= 2]
         if not len(members):
-            return members, np.zeros((0, 3)), np.zeros((0, 3, 3)), np.zeros(0)
+            return members, np.zeros((0, 3)), np.zeros((0, 3, 3))
         members, points, covariance = self.verify(members)
         members = members[np.sum(members >= 0, axis=1) >= 2]
-        members = np.unique(members, axis=0)
+        members = _unique_rows(members)[0]
         points, covariance = self.triangulate(members)
         points, covariance = self.triangulate(members, points)
         d2 = self.residuals(members, points)
         inside = np.all(np.nan_to_num(d2, nan=0.0) <= self.options.member_gate ** 2, axis=1)
         ok = (points[:, 2] >= lo) & (points[:, 2] <= hi) & inside
-        members, points, covariance = members[ok], points[ok], covariance[ok]
-        return members, points, covariance, self.score(members, points, covariance)
+        return members[ok], points[ok], covariance[ok]
 
 
 def _pack(members: np.ndarray, scores: np.ndarray, total: int, time_limit: float) -> np.ndarray:
@@ -521,11 +634,13 @@ def _pack(members: np.ndarray, scores: np.ndarray, total: int, time_limit: float
     return chosen
 
 
-def _solve(views: list[View], options: AssociateOptions, appearance: AppearanceModel | None = None
-           ) -> tuple[_Frame, np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:
+def _solve(views: list[View], options: AssociateOptions, appearance: AppearanceModel | None = None,
+           frame: _Frame | None = None) -> tuple[_Frame, np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:
     """One association of a frame: hypotheses, their scores (with the appearance term where given) and the global
-    packing."""
-    frame = _Frame(views, options, appearance)
+    packing. ``frame``: an earlier association's frame of the same ``views`` (their shifts and bands unchanged),
+    whose grown groups are re-scored instead of grown again."""
+    reused = frame.rescored(views, options, appearance) if frame is not None else None
+    frame = _Frame(views, options, appearance) if reused is None else reused
     total = int(frame.offsets[-1])
     members, points, covariance, scores = frame.hypotheses()
     positive = scores > options.min_score
@@ -878,13 +993,13 @@ def associate_views(views: list[View], options: AssociateOptions, carried: bool 
         estimated = _crowd_rates(state, options, given)
         if estimated != options:
             options = estimated
-            state = _solve(views, options)
+            state = _solve(views, options, frame=state[0])
     model = None
     if options.appearance and views and all(v.grey is not None for v in views):
         # The crowd's own appearance model, from this association's confident groups: associated once more with it.
         model = appearance_model(state, views, options)
         if model is not None:
-            state = _solve(views, options, model)
+            state = _solve(views, options, model, frame=state[0])
     frame, members, points, covariance, scores, positive = state
     total = int(frame.offsets[-1])
     covariance = covariance + _centre_term(views, members)

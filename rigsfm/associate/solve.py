@@ -818,29 +818,37 @@ def pairwise_view_shifts(frame: _Frame, options: AssociateOptions, starts: int =
     sizes = np.array([len(p[2]) for p in pairs])
     pair_of = np.repeat(np.arange(len(pairs)), sizes)
     indptr, indices = np.concatenate([[0], np.cumsum(sizes)]), np.arange(len(d))
-    outer = (grad[:, :, None] * grad[:, None, :]).reshape(len(d), 16)
-    row_cols = cols[pair_of]
+    # the outer products' ten distinct entries (symmetric) and grad * d, summed per pair in one sparse product
+    upper = [(r_, c_) for r_ in range(4) for c_ in range(r_, 4)]
+    full = np.array([upper.index((min(r_, c_), max(r_, c_))) for r_ in range(4) for c_ in range(4)])
+    sums_of = np.c_[np.stack([grad[:, r_] * grad[:, c_] for r_, c_ in upper], axis=1), grad * d[:, None]]
     block_rows = np.repeat(cols, 4, axis=1).ravel()
     block_cols = np.tile(cols, (1, 4)).ravel()
     uniform = np.repeat([1.0 / (2 * p[5]) for p in pairs], sizes)
     var = 2.0 * options.pixel_sigma ** 2
     precision = np.repeat(1.0 / prior ** 2, 2)
 
+    grad_t = np.ascontiguousarray(grad.T)
+
     def residual(x):
-        return d + np.sum(grad * x[row_cols], axis=1)
+        # d + grad . x, the dot summed in np.sum's order; each candidate's four shift coordinates are its pair's
+        # (repeated per pair, not gathered per candidate)
+        xs = [np.repeat(x[cols[:, c_]], sizes) for c_ in range(4)]
+        return d + (((grad_t[0] * xs[0] + grad_t[1] * xs[1]) + grad_t[2] * xs[2]) + grad_t[3] * xs[3])
 
     def normal_equations(w):
-        weighted = sp.csr_matrix((w, indices, indptr), shape=(len(pairs), len(d)))
+        sums = sp.csr_matrix((w, indices, indptr), shape=(len(pairs), len(d))) @ sums_of
         lhs = np.zeros((2 * nv, 2 * nv))
-        np.add.at(lhs, (block_rows, block_cols), (weighted @ outer).ravel() / var)
+        np.add.at(lhs, (block_rows, block_cols), sums[:, full].ravel() / var)
         rhs = np.zeros(2 * nv)
-        np.add.at(rhs, cols.ravel(), (weighted @ (grad * d[:, None])).ravel() / var)
+        np.add.at(rhs, cols.ravel(), sums[:, 10:].ravel() / var)
         return lhs + np.diag(precision), rhs
 
     def loglik(x, share):
         r = residual(x)
-        inlier = share[pair_of] * np.exp(-0.5 * r ** 2 / var) / math.sqrt(2 * math.pi * var)
-        mix = inlier + (1 - share[pair_of]) * uniform
+        shares = np.repeat(share, sizes)  # share[pair_of]
+        inlier = shares * np.exp(-0.5 * r ** 2 / var) / math.sqrt(2 * math.pi * var)
+        mix = inlier + (1 - shares) * uniform
         return float(np.sum(np.log(mix)) - 0.5 * np.sum(precision * x ** 2)), inlier / mix
 
     counts = np.maximum(np.bincount(pair_of, minlength=len(pairs)), 1)

@@ -183,11 +183,10 @@ def _rowwise(method):
     return blocked
 
 
-def _unique_rows(members: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``np.unique(members, axis=0, return_index=True)`` (the same rows, order and first occurrences) for member rows
-    (-1 or a detection): the columns packed into a few integer keys sort far faster than rows compared as records."""
-    if not members.size:
-        return np.unique(members, axis=0, return_index=True)
+def _sorted_rows(members: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The order that sorts member rows (-1 or a detection) as ``np.unique(axis=0)`` does, stable, and where in it a
+    row repeats the one before: the columns packed into a few integer keys sort far faster than rows compared as
+    records."""
     shifted = members + 1  # >= 0
     bases = shifted.max(axis=0) + 1
     keys, key, room = [], np.zeros(len(members), dtype=np.int64), 1
@@ -204,8 +203,27 @@ def _unique_rows(members: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     for key in keys:
         ranked = key[order]
         repeated[1:] &= ranked[1:] == ranked[:-1]
+    return order, repeated
+
+
+def _unique_rows(members: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``np.unique(members, axis=0, return_index=True)`` (the same rows, order and first occurrences) for member
+    rows."""
+    if not members.size:
+        return np.unique(members, axis=0, return_index=True)
+    order, repeated = _sorted_rows(members)
     first = order[~repeated]
     return members[first], first
+
+
+def _unique_inverse(members: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The distinct rows of ``members`` (as ``_unique_rows``) and, per row, which of them it is."""
+    if not members.size:
+        return members, np.zeros(len(members), dtype=np.int64)
+    order, repeated = _sorted_rows(members)
+    rank = np.empty(len(members), dtype=np.int64)
+    rank[order] = np.cumsum(~repeated) - 1
+    return members[order[~repeated]], rank
 
 
 @dataclass
@@ -488,9 +506,14 @@ class _Frame:
             dist[part], near[part] = d.reshape(len(part), k), n.reshape(len(part), k)
         return dist, near
 
-    @_rowwise
     def verify(self, members: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Re-triangulate, drop members outside their band, re-triangulate: members, points, covariances."""
+        return self._verify_steps(members)[:3]
+
+    @_rowwise
+    def _verify_steps(self, members: np.ndarray) -> tuple[np.ndarray, ...]:
+        """``verify``'s members, points and covariances, and the point, covariance and squared residuals of its
+        second check (where it dropped nothing, a fresh triangulation refined once and its residuals: the same)."""
         gate2 = self.options.member_gate ** 2
         points, covariance = self.triangulate(members)
         for _ in range(2):
@@ -500,8 +523,9 @@ class _Frame:
             bad = d2[rows, worst] > gate2
             members = members.copy()
             members[rows[bad], worst[bad]] = -1
+            checked = points, covariance, d2
             points, covariance = self.triangulate(members, points)
-        return members, points, covariance
+        return members, points, covariance, *checked
 
     @_rowwise
     def score(self, members: np.ndarray, points: np.ndarray, covariance: np.ndarray) -> np.ndarray:
@@ -582,7 +606,9 @@ class _Frame:
             members = only_free(self.grow(members, points, covariance, single=True))
             points, covariance = self.triangulate(members, points)
             members = only_free(self.grow(members, points, covariance))
-            members, points, covariance = self.verify(members)
+            # a group's verification depends on its members alone: each distinct group verified once
+            distinct, which = _unique_inverse(members)
+            members, points, covariance = (a[which] for a in self.verify(distinct))
             groups.append(members)
             # seeds of one person grow into the same group: grow each group once
             members, first = _unique_rows(members)
@@ -591,12 +617,20 @@ class _Frame:
         members = members[np.sum(members >= 0, axis=1) >= 2]
         if not len(members):
             return members, np.zeros((0, 3)), np.zeros((0, 3, 3))
-        members, points, covariance = self.verify(members)
-        members = members[np.sum(members >= 0, axis=1) >= 2]
-        members = _unique_rows(members)[0]
-        points, covariance = self.triangulate(members)
-        points, covariance = self.triangulate(members, points)
-        d2 = self.residuals(members, points)
+        verified, _, _, once, once_covariance, once_d2 = self._verify_steps(members)
+        unchanged = np.all(verified == members, axis=1)
+        keep = np.sum(verified >= 0, axis=1) >= 2
+        members, first = _unique_rows(verified[keep])
+        # A fresh triangulation, refined once, and its residuals: what the verification computed already for the
+        # groups it left as they were (the same function of the members); the others anew.
+        fresh = ~unchanged[keep][first]
+        rows = np.flatnonzero(keep)[first]
+        points, covariance, d2 = once[rows], once_covariance[rows], once_d2[rows]
+        if fresh.any():
+            again, again_covariance = self.triangulate(members[fresh])
+            again, again_covariance = self.triangulate(members[fresh], again)
+            points[fresh], covariance[fresh] = again, again_covariance
+            d2[fresh] = self.residuals(members[fresh], again)
         inside = np.all(np.nan_to_num(d2, nan=0.0) <= self.options.member_gate ** 2, axis=1)
         ok = (points[:, 2] >= lo) & (points[:, 2] <= hi) & inside
         return members[ok], points[ok], covariance[ok]

@@ -464,20 +464,23 @@ class _Frame:
             reach = np.sqrt(largest) * self.options.member_gate
             k = min(4, len(self.tree_index[v]))
             dist, near = self._nearest(v, uv, reach + 1.0, k)
-            det = sxx * syy - sxy ** 2
-            s_inv = np.stack([np.stack([syy, -sxy], axis=1), np.stack([-sxy, sxx], axis=1)], axis=1) / det[:, None, None]
             best = np.full(len(rows), -1, dtype=np.int64)
             best_d2 = np.full(len(rows), np.inf)
+            # only the rows with a detection within reach (most have none, or one: the neighbours come nearest first)
+            near_rows = np.flatnonzero(np.isfinite(dist[:, 0]))
+            sxx, sxy, syy = sxx[near_rows], sxy[near_rows], syy[near_rows]
+            det = sxx * syy - sxy ** 2
+            s_inv = np.stack([np.stack([syy, -sxy], axis=1), np.stack([-sxy, sxx], axis=1)], axis=1) / det[:, None, None]
             for q in range(k):
-                ok = np.isfinite(dist[:, q])
-                if not ok.any():
-                    continue
-                cand = np.full(len(rows), 0, dtype=np.int64)
-                cand[ok] = self.tree_index[v][near[ok, q]]
-                diff = self.uv[cand] - uv
-                d2 = np.einsum("ni,nij,nj->n", diff, s_inv, diff)
-                better = ok & (d2 < best_d2) & (d2 <= gate2)
-                best[better], best_d2[better] = cand[better], d2[better]
+                ok = np.flatnonzero(np.isfinite(dist[near_rows, q]))
+                if not len(ok):
+                    break
+                at = near_rows[ok]
+                cand = self.tree_index[v][near[at, q]]
+                diff = self.uv[cand] - uv[at]
+                d2 = np.einsum("ni,nij,nj->n", diff, s_inv[ok], diff)
+                better = (d2 < best_d2[at]) & (d2 <= gate2)
+                best[at[better]], best_d2[at[better]] = cand[better], d2[better]
             if not single:
                 members[rows, v] = best
                 continue

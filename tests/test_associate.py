@@ -368,7 +368,8 @@ def test_shifts_carry_to_the_next_frame(crowd, monkeypatch):
     points.update({n.replace("frame0000", "frame0001"): second.points[n] + put[k] for k, n in enumerate(names)})
     solves = []
     real = solve._solve
-    monkeypatch.setattr(solve, "_solve", lambda views, options: solves.append(views[0].name) or real(views, options))
+    monkeypatch.setattr(solve, "_solve", lambda views, options, *more, **given: solves.append(views[0].name)
+                        or real(views, options, *more, **given))
     frames = associate_frames(posed, from_arrays(points), AssociateOptions(pixel_sigma=1.5, self_calibration_rounds=2))
     assert [f.frame for f in frames] == ["frame0000.png", "frame0001.png"]
     assert sum("frame0000" in n for n in solves) >= 3 and sum("frame0001" in n for n in solves) == 1, solves

@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import functools
 import logging
 import math
 from dataclasses import dataclass, field
@@ -156,6 +157,75 @@ def _inverse3(a: np.ndarray) -> np.ndarray:
     return c / det[:, None, None]
 
 
+ROWS_PER_BLOCK = 4096  # hypotheses per block of the row-wise algebra: its temporaries stay in the CPU's cache
+
+
+def _rowwise(method):
+    """Run a method whose array arguments and results are per hypothesis (rows) on blocks of rows: each row's
+    arithmetic is the same, while the temporaries of a hundred thousand hypotheses times the views would not fit
+    any cache (and their allocation alone costs more than the arithmetic)."""
+
+    @functools.wraps(method)
+    def blocked(self, *arrays, **options):
+        n = len(arrays[0])
+        if n <= ROWS_PER_BLOCK:
+            return method(self, *arrays, **options)
+
+        def rows(a, k):
+            return a[k:k + ROWS_PER_BLOCK] if isinstance(a, np.ndarray) and a.ndim and len(a) == n else a
+
+        parts = [method(self, *(rows(a, k) for a in arrays), **{key: rows(a, k) for key, a in options.items()})
+                 for k in range(0, n, ROWS_PER_BLOCK)]
+        if isinstance(parts[0], tuple):
+            return tuple(np.concatenate(column) for column in zip(*parts))
+        return np.concatenate(parts)
+
+    return blocked
+
+
+def _sorted_rows(members: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The order that sorts member rows (-1 or a detection) as ``np.unique(axis=0)`` does, stable, and where in it a
+    row repeats the one before: the columns packed into a few integer keys sort far faster than rows compared as
+    records."""
+    shifted = members + 1  # >= 0
+    bases = shifted.max(axis=0) + 1
+    keys, key, room = [], np.zeros(len(members), dtype=np.int64), 1
+    for c in range(members.shape[1]):
+        if room * int(bases[c]) >= 2 ** 62:
+            keys.append(key)
+            key, room = np.zeros(len(members), dtype=np.int64), 1
+        key = key * bases[c] + shifted[:, c]
+        room *= int(bases[c])
+    keys.append(key)
+    order = np.lexsort(keys[::-1])  # stable: the first of equal rows first; the first column decides first
+    repeated = np.zeros(len(order), dtype=bool)
+    repeated[1:] = True
+    for key in keys:
+        ranked = key[order]
+        repeated[1:] &= ranked[1:] == ranked[:-1]
+    return order, repeated
+
+
+def _unique_rows(members: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``np.unique(members, axis=0, return_index=True)`` (the same rows, order and first occurrences) for member
+    rows."""
+    if not members.size:
+        return np.unique(members, axis=0, return_index=True)
+    order, repeated = _sorted_rows(members)
+    first = order[~repeated]
+    return members[first], first
+
+
+def _unique_inverse(members: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The distinct rows of ``members`` (as ``_unique_rows``) and, per row, which of them it is."""
+    if not members.size:
+        return members, np.zeros(len(members), dtype=np.int64)
+    order, repeated = _sorted_rows(members)
+    rank = np.empty(len(members), dtype=np.int64)
+    rank[order] = np.cumsum(~repeated) - 1
+    return members[order[~repeated]], rank
+
+
 @dataclass
 class FrameResult:
     """The persons of one frame: per person its point, covariance, score, confidence and member detections."""
@@ -212,6 +282,30 @@ class _Frame:
         # Clutter density (detections per px^2) around each detection: crowds fill a band of the image (the heads'
         # heights), where a chance match is far likelier than the image's mean density says.
         self.clutter = self.clutter_among(np.ones(len(self.uv), dtype=bool))
+        # what the groups depend on in each view, to tell a frame whose views were corrected since
+        self._posed = [(v.shift_px.copy(), v.sigma_pose_px, v.xy) for v in views]
+        self._seeds: np.ndarray | None = None  # pair_candidates, once
+        self._grown: dict[bytes | None, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+
+    def rescored(self, views: list[View], options: AssociateOptions, appearance: AppearanceModel | None = None,
+                 ) -> _Frame | None:
+        """This frame under other score options or an appearance model (the views' descriptors as they are now),
+        keeping the groups it grew; None where ``views`` are not its views as they were, or ``options`` change what
+        the groups depend on."""
+        geometry = ("heights", "pixel_sigma", "gate_sigmas", "member_gate", "clutter_radius_px")
+        if len(views) != len(self.views) or any(a is not b for a, b in zip(views, self.views)):
+            return None
+        moved = any(not np.array_equal(shift, v.shift_px) or sigma != v.sigma_pose_px or xy is not v.xy
+                    for (shift, sigma, xy), v in zip(self._posed, views))
+        if moved or any(getattr(options, name) != getattr(self.options, name) for name in geometry):
+            return None
+        frame = copy.copy(self)
+        frame.options = options
+        views = self.views
+        frame.appearance = appearance if views and all(v.descriptor is not None for v in views) else None
+        frame.descriptors = np.concatenate([v.descriptor for v in views]) if frame.appearance is not None else None  # type: ignore[misc]
+        frame.clutter = self.clutter_among(np.ones(len(self.uv), dtype=bool))
+        return frame
 
     def clutter_among(self, free: np.ndarray) -> np.ndarray:
         """Per detection, the density (per px^2) of the ``free`` detections of its view within the clutter radius:
@@ -252,6 +346,7 @@ class _Frame:
         t = np.where(np.isfinite(t) & (t > 0.1), t, 0.1)
         return c + t[:, None] * d
 
+    @_rowwise
     def triangulate(self, members: np.ndarray, points: np.ndarray | None = None,
                     ) -> tuple[np.ndarray, np.ndarray]:
         """Weighted ray intersection of each row's members (G x V, -1: none); returns points and covariances."""
@@ -279,6 +374,7 @@ class _Frame:
             points = np.einsum("gij,gj->gi", covariance, b)
         return points, covariance  # type: ignore[return-value]  # the loop sets points
 
+    @_rowwise
     def residuals(self, members: np.ndarray, points: np.ndarray) -> np.ndarray:
         """Squared reprojection distance of each member over its noise (G x V; NaN where no member)."""
         out = np.full(members.shape, np.nan)
@@ -340,6 +436,7 @@ class _Frame:
             return np.zeros((0, len(self.views)), dtype=np.int64)
         return np.concatenate(seeds)
 
+    @_rowwise
     def grow(self, members: np.ndarray, points: np.ndarray, covariance: np.ndarray, single: bool = False,
              ) -> np.ndarray:
         """Add, in every view without a member, the detection nearest the point's projection within the gate.
@@ -366,23 +463,24 @@ class _Frame:
             largest = (sxx + syy) / 2 + np.sqrt(((sxx - syy) / 2) ** 2 + sxy ** 2)
             reach = np.sqrt(largest) * self.options.member_gate
             k = min(4, len(self.tree_index[v]))
-            # views with detections have trees
-            dist, near = self.trees[v].query(uv, k=k, distance_upper_bound=float(np.max(reach)) + 1.0)  # type: ignore[union-attr]
-            dist, near = dist.reshape(len(rows), k), near.reshape(len(rows), k)
-            det = sxx * syy - sxy ** 2
-            s_inv = np.stack([np.stack([syy, -sxy], axis=1), np.stack([-sxy, sxx], axis=1)], axis=1) / det[:, None, None]
+            dist, near = self._nearest(v, uv, reach + 1.0, k)
             best = np.full(len(rows), -1, dtype=np.int64)
             best_d2 = np.full(len(rows), np.inf)
+            # only the rows with a detection within reach (most have none, or one: the neighbours come nearest first)
+            near_rows = np.flatnonzero(np.isfinite(dist[:, 0]))
+            sxx, sxy, syy = sxx[near_rows], sxy[near_rows], syy[near_rows]
+            det = sxx * syy - sxy ** 2
+            s_inv = np.stack([np.stack([syy, -sxy], axis=1), np.stack([-sxy, sxx], axis=1)], axis=1) / det[:, None, None]
             for q in range(k):
-                ok = np.isfinite(dist[:, q])
-                if not ok.any():
-                    continue
-                cand = np.full(len(rows), 0, dtype=np.int64)
-                cand[ok] = self.tree_index[v][near[ok, q]]
-                diff = self.uv[cand] - uv
-                d2 = np.einsum("ni,nij,nj->n", diff, s_inv, diff)
-                better = ok & (d2 < best_d2) & (d2 <= gate2)
-                best[better], best_d2[better] = cand[better], d2[better]
+                ok = np.flatnonzero(np.isfinite(dist[near_rows, q]))
+                if not len(ok):
+                    break
+                at = near_rows[ok]
+                cand = self.tree_index[v][near[at, q]]
+                diff = self.uv[cand] - uv[at]
+                d2 = np.einsum("ni,nij,nj->n", diff, s_inv[ok], diff)
+                better = (d2 < best_d2[at]) & (d2 <= gate2)
+                best[at[better]], best_d2[at[better]] = cand[better], d2[better]
             if not single:
                 members[rows, v] = best
                 continue
@@ -393,8 +491,32 @@ class _Frame:
             members[rows, one_view[rows]] = one_det[rows]
         return members
 
+    def _nearest(self, v: int, uv: np.ndarray, bound: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+        """The ``k`` detections of view v nearest each of ``uv`` (into its tree; inf / n where none) among those
+        within the row's ``bound``, or beyond it (those a caller's gate rejects anyway): rows whose bound box misses
+        every detection are not searched, and the others are searched in groups of similar bound, each under its
+        largest (a tight bound prunes the tree's search)."""
+        tree = self.trees[v]
+        assert tree is not None  # views with detections have trees
+        dist = np.full((len(uv), k), np.inf)
+        near = np.full((len(uv), k), tree.n, dtype=np.int64)
+        lo, hi = tree.mins, tree.maxes
+        meets = np.all((uv >= lo - bound[:, None]) & (uv <= hi + bound[:, None]), axis=1)
+        rows = np.flatnonzero(meets)
+        rows = rows[np.argsort(bound[rows], kind="stable")]
+        for part in np.array_split(rows, min(4, len(rows))) if len(rows) else []:
+            d, n = tree.query(uv[part], k=k, distance_upper_bound=float(bound[part[-1]]))
+            dist[part], near[part] = d.reshape(len(part), k), n.reshape(len(part), k)
+        return dist, near
+
     def verify(self, members: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Re-triangulate, drop members outside their band, re-triangulate: members, points, covariances."""
+        return self._verify_steps(members)[:3]
+
+    @_rowwise
+    def _verify_steps(self, members: np.ndarray) -> tuple[np.ndarray, ...]:
+        """``verify``'s members, points and covariances, and the point, covariance and squared residuals of its
+        second check (where it dropped nothing, a fresh triangulation refined once and its residuals: the same)."""
         gate2 = self.options.member_gate ** 2
         points, covariance = self.triangulate(members)
         for _ in range(2):
@@ -404,9 +526,11 @@ class _Frame:
             bad = d2[rows, worst] > gate2
             members = members.copy()
             members[rows[bad], worst[bad]] = -1
+            checked = points, covariance, d2
             points, covariance = self.triangulate(members, points)
-        return members, points, covariance
+        return members, points, covariance, *checked
 
+    @_rowwise
     def score(self, members: np.ndarray, points: np.ndarray, covariance: np.ndarray) -> np.ndarray:
         p_d = self.options.detection_probability
         assert p_d is not None  # associate_views resolves it
@@ -437,6 +561,7 @@ class _Frame:
             total += self.appearance.group_log_ratio(self.descriptors, members)
         return total
 
+    @_rowwise
     def seen(self, points: np.ndarray) -> np.ndarray:
         """How many views see each point inside their image (G)."""
         count = np.zeros(len(points), dtype=np.int64)
@@ -447,16 +572,32 @@ class _Frame:
 
     def hypotheses(self, free: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Candidate persons (members, points, covariances, scores); ``free``: only among these detections."""
+        # The groups depend on the views' geometry and ``free`` only, not on what the score weighs (the detection
+        # probability, the heights' prior, the appearance, the clutter): a frame associated again with other rates
+        # or an appearance model re-scores the groups it already grew.
+        key = None if free is None else free.tobytes()
+        grown = self._grown.get(key)
+        if grown is None:
+            grown = self._grown_hypotheses(free)
+            self._grown = {k: g for k, g in self._grown.items() if k is None}  # the first pass's, and this one
+            self._grown[key] = grown
+        members, points, covariance = grown
+        return members, points, covariance, self.score(members, points, covariance)
+
+    def _grown_hypotheses(self, free: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The groups of ``hypotheses`` before their scores."""
 
         def only_free(m: np.ndarray) -> np.ndarray:
             return m if free is None else np.where((m >= 0) & ~free[np.maximum(m, 0)], -1, m)
 
-        seeds = self.pair_candidates()
+        if self._seeds is None:
+            self._seeds = self.pair_candidates()
+        seeds = self._seeds
         if free is not None:
             seeds = seeds[np.all((seeds < 0) | free[np.maximum(seeds, 0)], axis=1)]
         if not len(seeds):
             empty = np.zeros((0, len(self.views)), dtype=np.int64)
-            return empty, np.zeros((0, 3)), np.zeros((0, 3, 3)), np.zeros(0)
+            return empty, np.zeros((0, 3)), np.zeros((0, 3, 3))
         points, covariance = self.triangulate(seeds)
         lo, hi = self.options.heights
         ok = (points[:, 2] >= lo) & (points[:, 2] <= hi) & np.all(
@@ -468,25 +609,34 @@ class _Frame:
             members = only_free(self.grow(members, points, covariance, single=True))
             points, covariance = self.triangulate(members, points)
             members = only_free(self.grow(members, points, covariance))
-            members, points, covariance = self.verify(members)
+            # a group's verification depends on its members alone: each distinct group verified once
+            distinct, which = _unique_inverse(members)
+            members, points, covariance = (a[which] for a in self.verify(distinct))
             groups.append(members)
             # seeds of one person grow into the same group: grow each group once
-            members, first = np.unique(members, axis=0, return_index=True)
+            members, first = _unique_rows(members)
             points, covariance = points[first], covariance[first]
-        members = np.unique(np.concatenate(groups), axis=0)
+        members = _unique_rows(np.concatenate(groups))[0]
         members = members[np.sum(members >= 0, axis=1) >= 2]
         if not len(members):
-            return members, np.zeros((0, 3)), np.zeros((0, 3, 3)), np.zeros(0)
-        members, points, covariance = self.verify(members)
-        members = members[np.sum(members >= 0, axis=1) >= 2]
-        members = np.unique(members, axis=0)
-        points, covariance = self.triangulate(members)
-        points, covariance = self.triangulate(members, points)
-        d2 = self.residuals(members, points)
+            return members, np.zeros((0, 3)), np.zeros((0, 3, 3))
+        verified, _, _, once, once_covariance, once_d2 = self._verify_steps(members)
+        unchanged = np.all(verified == members, axis=1)
+        keep = np.sum(verified >= 0, axis=1) >= 2
+        members, first = _unique_rows(verified[keep])
+        # A fresh triangulation, refined once, and its residuals: what the verification computed already for the
+        # groups it left as they were (the same function of the members); the others anew.
+        fresh = ~unchanged[keep][first]
+        rows = np.flatnonzero(keep)[first]
+        points, covariance, d2 = once[rows], once_covariance[rows], once_d2[rows]
+        if fresh.any():
+            again, again_covariance = self.triangulate(members[fresh])
+            again, again_covariance = self.triangulate(members[fresh], again)
+            points[fresh], covariance[fresh] = again, again_covariance
+            d2[fresh] = self.residuals(members[fresh], again)
         inside = np.all(np.nan_to_num(d2, nan=0.0) <= self.options.member_gate ** 2, axis=1)
         ok = (points[:, 2] >= lo) & (points[:, 2] <= hi) & inside
-        members, points, covariance = members[ok], points[ok], covariance[ok]
-        return members, points, covariance, self.score(members, points, covariance)
+        return members[ok], points[ok], covariance[ok]
 
 
 def _pack(members: np.ndarray, scores: np.ndarray, total: int, time_limit: float) -> np.ndarray:
@@ -521,11 +671,13 @@ def _pack(members: np.ndarray, scores: np.ndarray, total: int, time_limit: float
     return chosen
 
 
-def _solve(views: list[View], options: AssociateOptions, appearance: AppearanceModel | None = None
-           ) -> tuple[_Frame, np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:
+def _solve(views: list[View], options: AssociateOptions, appearance: AppearanceModel | None = None,
+           frame: _Frame | None = None) -> tuple[_Frame, np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:
     """One association of a frame: hypotheses, their scores (with the appearance term where given) and the global
-    packing."""
-    frame = _Frame(views, options, appearance)
+    packing. ``frame``: an earlier association's frame of the same ``views`` (their shifts and bands unchanged),
+    whose grown groups are re-scored instead of grown again."""
+    reused = frame.rescored(views, options, appearance) if frame is not None else None
+    frame = _Frame(views, options, appearance) if reused is None else reused
     total = int(frame.offsets[-1])
     members, points, covariance, scores = frame.hypotheses()
     positive = scores > options.min_score
@@ -703,29 +855,37 @@ def pairwise_view_shifts(frame: _Frame, options: AssociateOptions, starts: int =
     sizes = np.array([len(p[2]) for p in pairs])
     pair_of = np.repeat(np.arange(len(pairs)), sizes)
     indptr, indices = np.concatenate([[0], np.cumsum(sizes)]), np.arange(len(d))
-    outer = (grad[:, :, None] * grad[:, None, :]).reshape(len(d), 16)
-    row_cols = cols[pair_of]
+    # the outer products' ten distinct entries (symmetric) and grad * d, summed per pair in one sparse product
+    upper = [(r_, c_) for r_ in range(4) for c_ in range(r_, 4)]
+    full = np.array([upper.index((min(r_, c_), max(r_, c_))) for r_ in range(4) for c_ in range(4)])
+    sums_of = np.c_[np.stack([grad[:, r_] * grad[:, c_] for r_, c_ in upper], axis=1), grad * d[:, None]]
     block_rows = np.repeat(cols, 4, axis=1).ravel()
     block_cols = np.tile(cols, (1, 4)).ravel()
     uniform = np.repeat([1.0 / (2 * p[5]) for p in pairs], sizes)
     var = 2.0 * options.pixel_sigma ** 2
     precision = np.repeat(1.0 / prior ** 2, 2)
 
+    grad_t = np.ascontiguousarray(grad.T)
+
     def residual(x):
-        return d + np.sum(grad * x[row_cols], axis=1)
+        # d + grad . x, the dot summed in np.sum's order; each candidate's four shift coordinates are its pair's
+        # (repeated per pair, not gathered per candidate)
+        xs = [np.repeat(x[cols[:, c_]], sizes) for c_ in range(4)]
+        return d + (((grad_t[0] * xs[0] + grad_t[1] * xs[1]) + grad_t[2] * xs[2]) + grad_t[3] * xs[3])
 
     def normal_equations(w):
-        weighted = sp.csr_matrix((w, indices, indptr), shape=(len(pairs), len(d)))
+        sums = sp.csr_matrix((w, indices, indptr), shape=(len(pairs), len(d))) @ sums_of
         lhs = np.zeros((2 * nv, 2 * nv))
-        np.add.at(lhs, (block_rows, block_cols), (weighted @ outer).ravel() / var)
+        np.add.at(lhs, (block_rows, block_cols), sums[:, full].ravel() / var)
         rhs = np.zeros(2 * nv)
-        np.add.at(rhs, cols.ravel(), (weighted @ (grad * d[:, None])).ravel() / var)
+        np.add.at(rhs, cols.ravel(), sums[:, 10:].ravel() / var)
         return lhs + np.diag(precision), rhs
 
     def loglik(x, share):
         r = residual(x)
-        inlier = share[pair_of] * np.exp(-0.5 * r ** 2 / var) / math.sqrt(2 * math.pi * var)
-        mix = inlier + (1 - share[pair_of]) * uniform
+        shares = np.repeat(share, sizes)  # share[pair_of]
+        inlier = shares * np.exp(-0.5 * r ** 2 / var) / math.sqrt(2 * math.pi * var)
+        mix = inlier + (1 - shares) * uniform
         return float(np.sum(np.log(mix)) - 0.5 * np.sum(precision * x ** 2)), inlier / mix
 
     counts = np.maximum(np.bincount(pair_of, minlength=len(pairs)), 1)
@@ -878,13 +1038,13 @@ def associate_views(views: list[View], options: AssociateOptions, carried: bool 
         estimated = _crowd_rates(state, options, given)
         if estimated != options:
             options = estimated
-            state = _solve(views, options)
+            state = _solve(views, options, frame=state[0])
     model = None
     if options.appearance and views and all(v.grey is not None for v in views):
         # The crowd's own appearance model, from this association's confident groups: associated once more with it.
         model = appearance_model(state, views, options)
         if model is not None:
-            state = _solve(views, options, model)
+            state = _solve(views, options, model, frame=state[0])
     frame, members, points, covariance, scores, positive = state
     total = int(frame.offsets[-1])
     covariance = covariance + _centre_term(views, members)

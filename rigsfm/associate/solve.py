@@ -41,6 +41,7 @@ from scipy.spatial import cKDTree
 from rigsfm.associate.appearance import AppearanceModel, describe, estimate, head_radius_px
 from rigsfm.associate.options import AssociateOptions
 from rigsfm.associate.rates import truncated_binomial_p
+from rigsfm.associate.segments import pair_seeds, segment_in_view
 from rigsfm.core.ground import undistort_pixels
 
 logger = logging.getLogger(__name__)
@@ -305,33 +306,10 @@ class _Frame:
                 continue
             p_lo, p_hi = self.ray_points(di, lo), self.ray_points(di, hi)
             for j in range(i + 1, len(self.views)):
-                vj = self.views[j]
-                if self.trees[j] is None:
+                found = pair_seeds(self, i, j, di, p_lo, p_hi, gate)
+                if found is None:
                     continue
-                a, za = vj.project(p_lo)
-                b, zb = vj.project(p_hi)
-                ok = (za > 0) & (zb > 0)
-                if not ok.any():
-                    continue
-                sigma = math.hypot(self.noise[i], self.noise[j])
-                radius = gate * sigma
-                seg = b - a
-                length = np.linalg.norm(seg, axis=1)
-                mid = (a + b) / 2
-                # views with detections have trees
-                near = self.trees[j].query_ball_point(mid[ok], length[ok] / 2 + radius)  # type: ignore[union-attr]
-                rows = np.flatnonzero(ok)
-                counts = np.array([len(n) for n in near])
-                if not counts.sum():
-                    continue
-                ra = np.repeat(rows, counts)
-                cb = self.tree_index[j][np.concatenate([np.asarray(n, dtype=np.int64) for n in near])]
-                p = self.uv[cb]
-                s = seg[ra]
-                l2 = np.maximum(np.sum(s ** 2, axis=1), 1e-12)
-                tt = np.clip(np.sum((p - a[ra]) * s, axis=1) / l2, 0.0, 1.0)
-                dist = np.linalg.norm(p - (a[ra] + tt[:, None] * s), axis=1)
-                keep = dist <= radius
+                ra, cb, keep = found
                 m = np.full((int(keep.sum()), len(self.views)), -1, dtype=np.int64)
                 m[:, i] = di[ra[keep]]
                 m[:, j] = cb[keep]
@@ -622,19 +600,17 @@ def estimate_view_shifts(frame: _Frame, groups: np.ndarray, options: AssociateOp
 
 def _segment_in(frame: _Frame, i: int, j: int, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Where the rays of view i's undistorted pixels ``uv`` between the two heights project in view j: the ends
-    (N x 2 each) and whether both lie in front of j."""
+    (N x 2 each) of their parts in front of j, and whether any part is."""
     lo, hi = frame.options.heights
     centre = frame.centres[i][None]
     d = frame.rays_of_view(uv, i)
-    ends, front = [], np.ones(len(uv), dtype=bool)
+    ends = []
     with np.errstate(divide="ignore", invalid="ignore"):
         for height in (lo, hi):
             t = (height - centre[:, 2]) / d[:, 2]
             t = np.where(np.isfinite(t) & (t > 0.1), t, 0.1)
-            end, z = frame.views[j].project(centre + t[:, None] * d)
-            ends.append(end)
-            front &= z > 0
-    return ends[0], ends[1], front
+            ends.append(centre + t[:, None] * d)
+    return segment_in_view(frame.views[j], ends[0], ends[1])
 
 
 def _signed_distance(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

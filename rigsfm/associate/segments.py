@@ -7,15 +7,18 @@ behind it, and with it every true pair of the two views at that place.
 
 The band around that image is not the two views' pixel noises added as they are: a pixel of view i is an angle, and
 the head it points at moves by that angle times its distance from i, which view j sees at its own distance. A head
-5 m from j and 13 m from i moves ~2.6 px in j for a pixel of i, so the band of the pair is that much wider there
-than where the two views see the head at equal distances.
+twice as far from i as from j moves two pixels in j for a pixel of i, so the band of the pair is that much wider
+there than where the two views see the head at equal distances.
 """
 
 from __future__ import annotations
 
-from typing import Protocol
+from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from rigsfm.associate.solve import _Frame
 
 MIN_DEPTH_M = 0.1  # the nearest a point may be to a camera and still be imaged (as the rays' own start)
 
@@ -75,12 +78,12 @@ def nearest_on_rays(centre_i: np.ndarray, rays_i: np.ndarray, centre_j: np.ndarr
     return centre_i + along[:, None] * rays_i
 
 
-def pair_seeds(frame, i: int, j: int, di: np.ndarray, p_lo: np.ndarray, p_hi: np.ndarray, gate: float,
+def pair_seeds(frame: _Frame, i: int, j: int, di: np.ndarray, p_lo: np.ndarray, p_hi: np.ndarray, gate: float,
                ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
     """View j's detections inside the band of the rays of view i's detections ``di`` between the heights (their
     points ``p_lo``, ``p_hi``), the band ``gate`` sigmas wide where each candidate would put the head: the rows of
     ``di`` and the stacked detections of j of every candidate near a segment, and which are inside (None: none near).
-    ``frame``: rigsfm.associate.solve's stacked detections of the frame."""
+    ``frame``: the frame's stacked detections."""
     view_j = frame.views[j]
     tree = frame.trees[j]
     start, end, ok = in_front(view_j, p_lo, p_hi)

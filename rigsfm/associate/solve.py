@@ -41,7 +41,7 @@ from scipy.spatial import cKDTree
 from rigsfm.associate.appearance import AppearanceModel, describe, estimate, head_radius_px
 from rigsfm.associate.options import AssociateOptions
 from rigsfm.associate.rates import truncated_binomial_p
-from rigsfm.associate.segments import pair_seeds, segment_in_view
+from rigsfm.associate.segments import pair_seeds
 from rigsfm.core.ground import undistort_pixels
 
 logger = logging.getLogger(__name__)
@@ -600,17 +600,21 @@ def estimate_view_shifts(frame: _Frame, groups: np.ndarray, options: AssociateOp
 
 def _segment_in(frame: _Frame, i: int, j: int, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Where the rays of view i's undistorted pixels ``uv`` between the two heights project in view j: the ends
-    (N x 2 each) of their parts in front of j, and whether any part is."""
+    (N x 2 each) and whether both lie in front of j. The pairs' EM keeps only whole segments: its mixture takes a
+    candidate's distance at the two views' noise as they are, which holds where j sees the ray at about i's distance,
+    not for a ray that passes behind j (pair_seeds widens those pairs' bands)."""
     lo, hi = frame.options.heights
     centre = frame.centres[i][None]
     d = frame.rays_of_view(uv, i)
-    ends = []
+    ends, front = [], np.ones(len(uv), dtype=bool)
     with np.errstate(divide="ignore", invalid="ignore"):
         for height in (lo, hi):
             t = (height - centre[:, 2]) / d[:, 2]
             t = np.where(np.isfinite(t) & (t > 0.1), t, 0.1)
-            ends.append(centre + t[:, None] * d)
-    return segment_in_view(frame.views[j], ends[0], ends[1])
+            end, z = frame.views[j].project(centre + t[:, None] * d)
+            ends.append(end)
+            front &= z > 0
+    return ends[0], ends[1], front
 
 
 def _signed_distance(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -42,6 +42,7 @@ from scipy.spatial import cKDTree
 from rigsfm.associate.appearance import AppearanceModel, describe, estimate, head_radius_px
 from rigsfm.associate.options import AssociateOptions
 from rigsfm.associate.rates import truncated_binomial_p
+from rigsfm.associate.segments import pair_seeds
 from rigsfm.core.ground import undistort_pixels
 
 logger = logging.getLogger(__name__)
@@ -401,33 +402,10 @@ class _Frame:
                 continue
             p_lo, p_hi = self.ray_points(di, lo), self.ray_points(di, hi)
             for j in range(i + 1, len(self.views)):
-                vj = self.views[j]
-                if self.trees[j] is None:
+                found = pair_seeds(self, i, j, di, p_lo, p_hi, gate)
+                if found is None:
                     continue
-                a, za = vj.project(p_lo)
-                b, zb = vj.project(p_hi)
-                ok = (za > 0) & (zb > 0)
-                if not ok.any():
-                    continue
-                sigma = math.hypot(self.noise[i], self.noise[j])
-                radius = gate * sigma
-                seg = b - a
-                length = np.linalg.norm(seg, axis=1)
-                mid = (a + b) / 2
-                # views with detections have trees
-                near = self.trees[j].query_ball_point(mid[ok], length[ok] / 2 + radius)  # type: ignore[union-attr]
-                rows = np.flatnonzero(ok)
-                counts = np.array([len(n) for n in near])
-                if not counts.sum():
-                    continue
-                ra = np.repeat(rows, counts)
-                cb = self.tree_index[j][np.concatenate([np.asarray(n, dtype=np.int64) for n in near])]
-                p = self.uv[cb]
-                s = seg[ra]
-                l2 = np.maximum(np.sum(s ** 2, axis=1), 1e-12)
-                tt = np.clip(np.sum((p - a[ra]) * s, axis=1) / l2, 0.0, 1.0)
-                dist = np.linalg.norm(p - (a[ra] + tt[:, None] * s), axis=1)
-                keep = dist <= radius
+                ra, cb, keep = found
                 m = np.full((int(keep.sum()), len(self.views)), -1, dtype=np.int64)
                 m[:, i] = di[ra[keep]]
                 m[:, j] = cb[keep]
@@ -774,7 +752,9 @@ def estimate_view_shifts(frame: _Frame, groups: np.ndarray, options: AssociateOp
 
 def _segment_in(frame: _Frame, i: int, j: int, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Where the rays of view i's undistorted pixels ``uv`` between the two heights project in view j: the ends
-    (N x 2 each) and whether both lie in front of j."""
+    (N x 2 each) and whether both lie in front of j. The pairs' EM keeps only whole segments: its mixture takes a
+    candidate's distance at the two views' noise as they are, which holds where j sees the ray at about i's distance,
+    not for a ray that passes behind j (pair_seeds widens those pairs' bands)."""
     lo, hi = frame.options.heights
     centre = frame.centres[i][None]
     d = frame.rays_of_view(uv, i)

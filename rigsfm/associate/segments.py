@@ -1,0 +1,120 @@
+"""Where a detection's ray between the two heights falls in another view, and how wide its band is there.
+
+A narrow camera looks across the crowd at the rigs on the far side: a ray of it, cut to the heights where heads are,
+runs through the crowd and can pass beside or behind a camera opposite. Only the part of the segment in front of that
+camera has an image there; projecting the two ends as they are would drop the whole segment whenever one end lies
+behind it, and with it every true pair of the two views at that place.
+
+The band around that image is not the two views' pixel noises added as they are: a pixel of view i is an angle, and
+the head it points at moves by that angle times its distance from i, which view j sees at its own distance. A head
+twice as far from i as from j moves two pixels in j for a pixel of i, so the band of the pair is that much wider
+there than where the two views see the head at equal distances.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Protocol
+
+import numpy as np
+
+if TYPE_CHECKING:
+    from rigsfm.associate.solve import _Frame
+
+MIN_DEPTH_M = 0.1  # the nearest a point may be to a camera and still be imaged (as the rays' own start)
+
+
+class _Projecting(Protocol):
+    r: np.ndarray
+    t: np.ndarray
+
+    def project(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]: ...
+
+
+def in_front(view: _Projecting, start: np.ndarray, end: np.ndarray,
+             min_depth: float = MIN_DEPTH_M) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The segments ``start``-``end`` (N x 3 world points each) cut to their parts at least ``min_depth`` in front of
+    ``view``'s camera (world points), and whether any part is."""
+    depth_s = start @ view.r[2] + view.t[2]
+    depth_e = end @ view.r[2] + view.t[2]
+    ok = (depth_s >= min_depth) | (depth_e >= min_depth)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        cut = np.clip((min_depth - depth_s) / (depth_e - depth_s), 0.0, 1.0)
+    crossing = start + np.nan_to_num(cut)[:, None] * (end - start)
+    start = np.where((depth_s < min_depth)[:, None], crossing, start)
+    end = np.where((depth_e < min_depth)[:, None], crossing, end)
+    return start, end, ok
+
+
+def segment_in_view(view: _Projecting, start: np.ndarray, end: np.ndarray,
+                    min_depth: float = MIN_DEPTH_M) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The undistorted pixels of the ends of the segments ``start``-``end`` (N x 3 world points each) in ``view``,
+    each segment cut to its part at least ``min_depth`` in front of the camera, and whether any part is."""
+    start, end, ok = in_front(view, start, end, min_depth)
+    a, _ = view.project(start)
+    b, _ = view.project(end)
+    return a, b, ok
+
+
+def band_sigma(points: np.ndarray, centre_i: np.ndarray, centre_j: np.ndarray, focal_i: float, focal_j: float,
+               noise_i: float, noise_j: float) -> np.ndarray:
+    """Per world point (N x 3), the 1 sigma (px of view j) of a detection in j of a head there about the image of
+    view i's ray through it: j's own noise and i's carried to j at the two distances."""
+    d_i = np.linalg.norm(points - centre_i, axis=1)
+    d_j = np.maximum(np.linalg.norm(points - centre_j, axis=1), MIN_DEPTH_M)
+    carried = noise_i * (focal_j * d_i) / (focal_i * d_j)
+    return np.sqrt(noise_j ** 2 + carried ** 2)
+
+
+def nearest_on_rays(centre_i: np.ndarray, rays_i: np.ndarray, centre_j: np.ndarray, rays_j: np.ndarray,
+                    lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """Per row, the point of ray i (unit directions, N x 3) nearest ray j's, its distance along ray i held between
+    ``lo`` and ``hi`` (N each: the part of ray i where heads may be)."""
+    w = centre_i - centre_j
+    b = np.sum(rays_i * rays_j, axis=1)
+    d, e = rays_i @ w, rays_j @ w
+    with np.errstate(divide="ignore", invalid="ignore"):
+        along = (b * e - d) / (1.0 - b ** 2)
+    along = np.clip(np.nan_to_num(along, nan=0.5 * (lo + hi)), np.minimum(lo, hi), np.maximum(lo, hi))
+    return centre_i + along[:, None] * rays_i
+
+
+def pair_seeds(frame: _Frame, i: int, j: int, di: np.ndarray, p_lo: np.ndarray, p_hi: np.ndarray, gate: float,
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """View j's detections inside the band of the rays of view i's detections ``di`` between the heights (their
+    points ``p_lo``, ``p_hi``), the band ``gate`` sigmas wide where each candidate would put the head: the rows of
+    ``di`` and the stacked detections of j of every candidate near a segment, and which are inside (None: none near).
+    ``frame``: the frame's stacked detections."""
+    view_j = frame.views[j]
+    tree = frame.trees[j]
+    start, end, ok = in_front(view_j, p_lo, p_hi)
+    if tree is None or not ok.any():
+        return None
+    a, _ = view_j.project(start)
+    b, _ = view_j.project(end)
+    args = (frame.centres[i], frame.centres[j], frame.focals[i], frame.focals[j], frame.noise[i], frame.noise[j])
+    # the band's widest anywhere along the segment: i's farthest end, j's nearest point of it
+    centre_i, centre_j = frame.centres[i], frame.centres[j]
+    far_i = np.maximum(np.linalg.norm(start - centre_i, axis=1), np.linalg.norm(end - centre_i, axis=1))
+    step = end - start
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = np.clip(np.nan_to_num(np.sum((centre_j - start) * step, axis=1) / np.sum(step ** 2, axis=1)), 0.0, 1.0)
+    near_j = np.maximum(np.linalg.norm(start + t[:, None] * step - centre_j, axis=1), MIN_DEPTH_M)
+    carried = frame.noise[i] * (frame.focals[j] * far_i) / (frame.focals[i] * near_j)
+    reach = gate * np.sqrt(frame.noise[j] ** 2 + carried ** 2)
+    seg = b - a
+    length = np.linalg.norm(seg, axis=1)
+    rows = np.flatnonzero(ok)
+    near = tree.query_ball_point(((a + b) / 2)[ok], length[ok] / 2 + reach[ok])
+    counts = np.array([len(n) for n in near], dtype=np.int64)
+    if not counts.sum():
+        return None
+    ra = np.repeat(rows, counts)
+    cb = frame.tree_index[j][np.concatenate([np.asarray(n, dtype=np.int64) for n in near])]
+    p = frame.uv[cb]
+    s = seg[ra]
+    l2 = np.maximum(np.sum(s ** 2, axis=1), 1e-12)
+    tt = np.clip(np.sum((p - a[ra]) * s, axis=1) / l2, 0.0, 1.0)
+    dist = np.linalg.norm(p - (a[ra] + tt[:, None] * s), axis=1)
+    head = nearest_on_rays(centre_i, frame.rays[di[ra]], frame.centres[j], frame.rays[cb],
+                           np.linalg.norm(p_lo[ra] - centre_i, axis=1), np.linalg.norm(p_hi[ra] - centre_i, axis=1))
+    return ra, cb, dist <= gate * band_sigma(head, *args)

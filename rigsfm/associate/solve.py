@@ -73,6 +73,7 @@ class View:
     shift_sigma_px: float | None = None  # the shift's own posterior sigma (None: not estimated)
     grey: np.ndarray | None = None  # the image's greys, where readable (the appearance cue)
     descriptor: np.ndarray | None = None  # N x D appearance of its detections (rigsfm.associate.appearance)
+    head_px: float | None = None  # the apparent head radius its descriptors were sampled at (None: not described)
 
     @classmethod
     def of(cls, image: pycolmap.Image, xy: np.ndarray) -> View:
@@ -84,6 +85,14 @@ class View:
                    # a model's images have their cameras
                    np.asarray(image.projection_center(), dtype=np.float64), camera.width, camera.height, camera,  # type: ignore[arg-type,union-attr]
                    np.asarray(xy, dtype=np.float64).reshape(-1, 2))
+
+    def carry(self, before: View) -> None:
+        """Take over what the crowd found about this camera in an earlier frame (a static camera's pose error and
+        its persons' distances are the same in every frame): its shift, bands and head size."""
+        self.shift_px = before.shift_px.copy()
+        self.shift_sigma_px, self.sigma_pose_px = before.shift_sigma_px, before.sigma_pose_px
+        self.band_sigma_px = before.band_sigma_px
+        self.head_px = before.head_px
 
     @property
     def focal(self) -> float:
@@ -965,10 +974,16 @@ def associate_views(views: list[View], options: AssociateOptions, carried: bool 
     pairs' one only where those are enough to re-estimate the shifts from (the crowd's own test of it: wrong shifts
     under tight bands break the groups up); the views are updated in place.
 
-    ``carried``: the views already hold the shifts of earlier frames of the same cameras (a static rig's pose
-    error is the same in every frame): one association, whose confident groups refine the shifts in place.
-    ``earlier``: an earlier frame's result, whose detection probability and heights this one starts from (where
-    ``options`` leaves them to the crowd)."""
+    ``carried``: the views already hold the shifts and head sizes of earlier frames of the same cameras (a static
+    rig's pose error is the same in every frame): one association, with ``earlier``'s appearance model where it has
+    one, whose confident groups refine the shifts in place for the next frame.
+    ``earlier``: an earlier frame's result, whose detection probability, heights and (``carried``) appearance model
+    this one takes (where ``options`` leaves them to the crowd).
+
+    The appearance model is estimated once, from the first frame's association without it, and carried as the rates
+    are: groups found under a model look alike by construction, so a model re-estimated from them would narrow frame
+    by frame. A carried frame without an earlier model (or a view without a carried head size) estimates its own,
+    as a first frame does, at the cost of a second association."""
     names = [v.name for v in views]
     given = options
     start = earlier.detection_probability if earlier is not None else None
@@ -976,7 +991,8 @@ def associate_views(views: list[View], options: AssociateOptions, carried: bool 
                                   or START_DETECTION)
     if options.height_prior is None and earlier is not None:
         options = dataclasses.replace(options, height_prior=earlier.height_prior)
-    state = _solve(views, options)
+    model = _carried_appearance(views, options, earlier) if carried else None
+    state = _solve(views, options, model)
     count = len(_confident(state[1], state[4], options))
     if carried:
         # The views hold earlier frames' shifts: associate once with them, and pool this frame's groups into the
@@ -1018,8 +1034,7 @@ def associate_views(views: list[View], options: AssociateOptions, carried: bool 
         if estimated != options:
             options = estimated
             state = _solve(views, options, frame=state[0])
-    model = None
-    if options.appearance and views and all(v.grey is not None for v in views):
+    if model is None and options.appearance and views and all(v.grey is not None for v in views):
         # The crowd's own appearance model, from this association's confident groups: associated once more with it.
         model = appearance_model(state, views, options)
         if model is not None:
@@ -1061,6 +1076,19 @@ def _crowd_rates(state: tuple, options: AssociateOptions, given: AssociateOption
     return dataclasses.replace(options, **changes)
 
 
+def _carried_appearance(views: list[View], options: AssociateOptions,
+                        earlier: FrameResult | None) -> AppearanceModel | None:
+    """``earlier``'s appearance model, each view's detections described at its carried head size; None (and no view
+    described) where the cue is off, an image unreadable, there is no earlier model or a view carries no head size."""
+    model = earlier.appearance if earlier is not None else None
+    if model is None or not options.appearance or not views \
+            or any(v.grey is None or v.head_px is None for v in views):
+        return None
+    for view in views:
+        view.descriptor = describe(view.grey, view.xy, view.head_px)  # type: ignore[arg-type]
+    return model
+
+
 def appearance_model(state: tuple, views: list[View], options: AssociateOptions) -> AppearanceModel | None:
     """Each view's detections described at the apparent head size of its persons (the median depth of the persons
     it sees in ``state``), and the same-against-different model from ``state``'s confident groups."""
@@ -1071,7 +1099,8 @@ def appearance_model(state: tuple, views: list[View], options: AssociateOptions)
             view.descriptor = None
             continue
         _, z = view.project(points[seen])
-        view.descriptor = describe(view.grey, view.xy, head_radius_px(view.focal, float(np.median(z))))
+        view.head_px = head_radius_px(view.focal, float(np.median(z)))
+        view.descriptor = describe(view.grey, view.xy, view.head_px)
     if not all(v.descriptor is not None for v in views):
         logger.info("appearance: a view sees no person of the first association; left out")
         return None

@@ -5,8 +5,8 @@
 DATASET, OUT: as for benchmarks/associate.py (a crowd rendered with persons, and ``rigsfm run`` on it). Frame 0's
 detections are benchmarks/associate.py's (its true visible heads, 1.5 px noise, 10 % missed, 5 % false, per seed);
 each carried frame k is the same heads with other noise, misses and false detections (seed + 1000 k), associated
-as the next frame of the same static cameras is by ``associate_frames`` (the shifts, bands and rates of the frame
-before carried). A rendered scene of one frame is enough. Prints, per seed and frame, this process's CPU seconds,
+as the next frame of the same static cameras is by ``associate_frames`` (the shifts, bands, head sizes, rates and
+appearance model of the frame before carried). A rendered scene of one frame is enough. Prints, per seed and frame, this process's CPU seconds,
 the wall seconds and the pair F1 against the truth; ``--dump`` writes each seed's persons (members, points,
 covariances, scores) and views' shifts to DIR/seed<S>.npz, to compare two versions of the code exactly.
 """
@@ -38,9 +38,7 @@ def run_seed(dataset: Path, out: Path, seed: int, carried: int, options: Associa
         new = frame_views(model, detections, "frame0000", sorted(detections.images))
         if views is not None:  # as associate_frames carries a camera's view to its next frame
             for view, before in zip(new, views):
-                view.shift_px = before.shift_px.copy()
-                view.shift_sigma_px, view.sigma_pose_px = before.shift_sigma_px, before.sigma_pose_px
-                view.band_sigma_px = before.band_sigma_px
+                view.carry(before)
         views = new
         wall, cpu = time.perf_counter(), time.process_time()
         result = associate_views(views, options, carried=k > 0, earlier=earlier)

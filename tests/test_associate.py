@@ -336,16 +336,14 @@ def test_self_calibration_finds_shifts_put_into_the_views(crowd):
     assert f1[1] > 0.25 and f1[1] > 3 * f1[0], f1
 
 
-def test_shifts_carry_to_the_next_frame(crowd, monkeypatch):
-    """A static rig's pose error is the same in every frame: the shifts the crowd gives the first frame carry to the
-    next frame's images of the same cameras, which are associated once (no self-calibration of their own), as well
-    as the first, and pool their own groups into the shifts."""
+def _two_frames(dataset: Path, out: Path, images_root: Path | None = None):
+    """(run, detections, truths, put): two frames of the crowd's persons (frame0001: other noise, misses and false
+    detections) seen by the exact cameras, each narrow image's detections moved by its own pixel offset ``put`` (as
+    in the test above), with the run's bands; ``images_root``: where both frames' images are, for the appearance."""
     import copy
 
-    import rigsfm.associate.solve as solve
     from rigsfm.associate.pipeline import RunModel
 
-    dataset, out = crowd
     model, first = _detections(dataset, out)
     _, second = _detections(dataset, out, seed=1)  # the same persons, other noise, misses and false detections
     exact = pycolmap.Reconstruction(str(dataset / "ground_truth"))
@@ -361,11 +359,22 @@ def test_shifts_carry_to_the_next_frame(crowd, monkeypatch):
 
     bands = {(a, b): band for (i, j), band in model.bands.items() for a, b in zip(both(i), both(j))}
     centres = {n: sigma for name, sigma in model.centre_sigma_m.items() for n in both(name)}
-    posed = RunModel(images, bands, set(images), model.world, centres)
-    put = np.array([[0.0, 0.0], [0.0, 5.0], [0.0, -5.0], [0.0, 4.0]])  # as in the test above
+    posed = RunModel(images, bands, set(images), model.world, centres, images_root=images_root)
+    put = np.array([[0.0, 0.0], [0.0, 5.0], [0.0, -5.0], [0.0, 4.0]])
     names = sorted(first.points)
     points = {n: first.points[n] + put[k] for k, n in enumerate(names)}
     points.update({n.replace("frame0000", "frame0001"): second.points[n] + put[k] for k, n in enumerate(names)})
+    return posed, points, (first, second), put
+
+
+def test_shifts_carry_to_the_next_frame(crowd, monkeypatch):
+    """A static rig's pose error is the same in every frame: the shifts the crowd gives the first frame carry to the
+    next frame's images of the same cameras, which are associated once (no self-calibration of their own), as well
+    as the first, and pool their own groups into the shifts."""
+    import rigsfm.associate.solve as solve
+
+    dataset, out = crowd
+    posed, points, (first, second), put = _two_frames(dataset, out)
     solves = []
     real = solve._solve
     monkeypatch.setattr(solve, "_solve", lambda views, options, *more, **given: solves.append(views[0].name)

@@ -151,10 +151,7 @@ def associate_frames(model: RunModel, detections: Detections, options: Associate
         known = bool(views) and all(c in carried for c in cameras)
         if known:
             for view, camera in zip(views, cameras):
-                before = carried[camera]
-                view.shift_px = before.shift_px.copy()
-                view.shift_sigma_px, view.sigma_pose_px = before.shift_sigma_px, before.sigma_pose_px
-                view.band_sigma_px = before.band_sigma_px
+                view.carry(carried[camera])
         wall, cpu = time.perf_counter(), time.process_time()
         result = associate_views(views, options, carried=known, earlier=out[-1].result if out else None)
         wall, cpu = time.perf_counter() - wall, time.process_time() - cpu

@@ -73,6 +73,7 @@ class View:
     shift_sigma_px: float | None = None  # the shift's own posterior sigma (None: not estimated)
     grey: np.ndarray | None = None  # the image's greys, where readable (the appearance cue)
     descriptor: np.ndarray | None = None  # N x D appearance of its detections (rigsfm.associate.appearance)
+    head_px: float | None = None  # the apparent head radius its descriptors were sampled at (None: not described)
 
     @classmethod
     def of(cls, image: pycolmap.Image, xy: np.ndarray) -> View:
@@ -84,6 +85,14 @@ class View:
                    # a model's images have their cameras
                    np.asarray(image.projection_center(), dtype=np.float64), camera.width, camera.height, camera,  # type: ignore[arg-type,union-attr]
                    np.asarray(xy, dtype=np.float64).reshape(-1, 2))
+
+    def carry(self, before: View) -> None:
+        """Take over what the crowd found about this camera in an earlier frame (a static camera's pose error and
+        its persons' distances are the same in every frame): its shift, bands and head size."""
+        self.shift_px = before.shift_px.copy()
+        self.shift_sigma_px, self.sigma_pose_px = before.shift_sigma_px, before.sigma_pose_px
+        self.band_sigma_px = before.band_sigma_px
+        self.head_px = before.head_px
 
     @property
     def focal(self) -> float:
@@ -98,17 +107,17 @@ class View:
             uv = h[:, :2] / z[:, None]
         return uv, z
 
-    def jacobian(self, points: np.ndarray) -> np.ndarray:
-        """d pinhole pixel / d world point (N x 2 x 3)."""
+    def projected_covariance(self, points: np.ndarray, covariance: np.ndarray,
+                             ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The xx, xy and yy entries of world points' covariances (N x 3 x 3) carried into the pinhole pixels: each
+        Jacobian row in closed form (a camera's row minus its depth row), no stacked matrix products."""
         cam = points @ self.r.T + self.t
         z = np.where(np.abs(cam[:, 2]) > 1e-9, cam[:, 2], 1e-9)
-        fx, fy = self.k[0, 0], self.k[1, 1]
-        j = np.zeros((len(points), 2, 3))
-        j[:, 0, 0] = fx / z
-        j[:, 0, 2] = -fx * cam[:, 0] / z ** 2
-        j[:, 1, 1] = fy / z
-        j[:, 1, 2] = -fy * cam[:, 1] / z ** 2
-        return j @ self.r
+        a = (self.k[0, 0] / z)[:, None] * (self.r[0][None] - (cam[:, 0] / z)[:, None] * self.r[2][None])
+        b = (self.k[1, 1] / z)[:, None] * (self.r[1][None] - (cam[:, 1] / z)[:, None] * self.r[2][None])
+        ca = np.einsum("nij,nj->ni", covariance, a)
+        cb = np.einsum("nij,nj->ni", covariance, b)
+        return np.einsum("ni,ni->n", a, ca), np.einsum("ni,ni->n", b, ca), np.einsum("ni,ni->n", b, cb)
 
     def inside(self, uv: np.ndarray, z: np.ndarray) -> np.ndarray:
         """Where undistorted pixels fall inside the image (through the lens model) in front of the camera."""
@@ -434,10 +443,9 @@ class _Frame:
             rows, uv = rows[front], uv[front]
             if not len(rows):
                 continue
-            jac = view.jacobian(points[rows])
-            s = jac @ covariance[rows] @ np.transpose(jac, (0, 2, 1)) + np.eye(2)[None] * self.noise[v] ** 2
+            sxx, sxy, syy = view.projected_covariance(points[rows], covariance[rows])
+            sxx, syy = sxx + self.noise[v] ** 2, syy + self.noise[v] ** 2
             # 2x2 symmetric: the largest eigenvalue and the inverse in closed form
-            sxx, sxy, syy = s[:, 0, 0], s[:, 0, 1], s[:, 1, 1]
             largest = (sxx + syy) / 2 + np.sqrt(((sxx - syy) / 2) ** 2 + sxy ** 2)
             reach = np.sqrt(largest) * self.options.member_gate
             k = min(4, len(self.tree_index[v]))
@@ -966,10 +974,16 @@ def associate_views(views: list[View], options: AssociateOptions, carried: bool 
     pairs' one only where those are enough to re-estimate the shifts from (the crowd's own test of it: wrong shifts
     under tight bands break the groups up); the views are updated in place.
 
-    ``carried``: the views already hold the shifts of earlier frames of the same cameras (a static rig's pose
-    error is the same in every frame): one association, whose confident groups refine the shifts in place.
-    ``earlier``: an earlier frame's result, whose detection probability and heights this one starts from (where
-    ``options`` leaves them to the crowd)."""
+    ``carried``: the views already hold the shifts and head sizes of earlier frames of the same cameras (a static
+    rig's pose error is the same in every frame): one association, with ``earlier``'s appearance model where it has
+    one, whose confident groups refine the shifts in place for the next frame.
+    ``earlier``: an earlier frame's result, whose detection probability, heights and (``carried``) appearance model
+    this one takes (where ``options`` leaves them to the crowd).
+
+    The appearance model is estimated once, from the first frame's association without it, and carried as the rates
+    are: groups found under a model look alike by construction, so a model re-estimated from them would narrow frame
+    by frame. A carried frame without an earlier model (or a view without a carried head size) estimates its own,
+    as a first frame does, at the cost of a second association."""
     names = [v.name for v in views]
     given = options
     start = earlier.detection_probability if earlier is not None else None
@@ -977,7 +991,8 @@ def associate_views(views: list[View], options: AssociateOptions, carried: bool 
                                   or START_DETECTION)
     if options.height_prior is None and earlier is not None:
         options = dataclasses.replace(options, height_prior=earlier.height_prior)
-    state = _solve(views, options)
+    model = _carried_appearance(views, options, earlier) if carried else None
+    state = _solve(views, options, model)
     count = len(_confident(state[1], state[4], options))
     if carried:
         # The views hold earlier frames' shifts: associate once with them, and pool this frame's groups into the
@@ -1019,8 +1034,7 @@ def associate_views(views: list[View], options: AssociateOptions, carried: bool 
         if estimated != options:
             options = estimated
             state = _solve(views, options, frame=state[0])
-    model = None
-    if options.appearance and views and all(v.grey is not None for v in views):
+    if model is None and options.appearance and views and all(v.grey is not None for v in views):
         # The crowd's own appearance model, from this association's confident groups: associated once more with it.
         model = appearance_model(state, views, options)
         if model is not None:
@@ -1062,6 +1076,19 @@ def _crowd_rates(state: tuple, options: AssociateOptions, given: AssociateOption
     return dataclasses.replace(options, **changes)
 
 
+def _carried_appearance(views: list[View], options: AssociateOptions,
+                        earlier: FrameResult | None) -> AppearanceModel | None:
+    """``earlier``'s appearance model, each view's detections described at its carried head size; None (and no view
+    described) where the cue is off, an image unreadable, there is no earlier model or a view carries no head size."""
+    model = earlier.appearance if earlier is not None else None
+    if model is None or not options.appearance or not views \
+            or any(v.grey is None or v.head_px is None for v in views):
+        return None
+    for view in views:
+        view.descriptor = describe(view.grey, view.xy, view.head_px)  # type: ignore[arg-type]
+    return model
+
+
 def appearance_model(state: tuple, views: list[View], options: AssociateOptions) -> AppearanceModel | None:
     """Each view's detections described at the apparent head size of its persons (the median depth of the persons
     it sees in ``state``), and the same-against-different model from ``state``'s confident groups."""
@@ -1072,7 +1099,8 @@ def appearance_model(state: tuple, views: list[View], options: AssociateOptions)
             view.descriptor = None
             continue
         _, z = view.project(points[seen])
-        view.descriptor = describe(view.grey, view.xy, head_radius_px(view.focal, float(np.median(z))))
+        view.head_px = head_radius_px(view.focal, float(np.median(z)))
+        view.descriptor = describe(view.grey, view.xy, view.head_px)
     if not all(v.descriptor is not None for v in views):
         logger.info("appearance: a view sees no person of the first association; left out")
         return None

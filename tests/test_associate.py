@@ -391,6 +391,11 @@ def test_shifts_carry_to_the_next_frame(crowd, monkeypatch):
         assert view.shift_sigma_px is not None
     shifts = [np.array([v.shift_px[1] for v in f.views]) for f in frames]
     assert np.max(np.abs((shifts[1] - shifts[1].mean()) - (put[:, 1] - put[:, 1].mean()))) < 1.5, shifts
+    # frame0001's record (its persons.json) holds the shifts its persons were found with, frame0000's; its views
+    # go on with the shifts refined from its own persons
+    for v0, v1 in zip(frames[0].views, frames[1].views):
+        assert np.array_equal(frames[1].result.shift_px[v1.name], frames[0].result.shift_px[v0.name])
+    assert any(not np.array_equal(frames[1].result.shift_px[v.name], v.shift_px) for v in frames[1].views)
 
 
 def test_a_run_without_bands_is_named(crowd, caplog):

@@ -81,10 +81,9 @@ def persons_json(frame) -> dict:
             "views": [v.name for v in views],
             "sigma_pose_px": {v.name: round(v.sigma_pose_px, 4) for v in views},
             # The crowd's correction of each view (undistorted px, subtracted from its detections) and the band's
-            # sigma before it; a zero shift and no band sigma: the view kept the run's pose.
-            "shift_px": {v.name: [round(float(c), 4) for c in v.shift_px] for v in views},
-            "band_sigma_px": {v.name: round(v.band_sigma_px if v.band_sigma_px is not None else v.sigma_pose_px, 4)
-                              for v in views},
+            # sigma before it, as this frame's persons were found with them; a zero shift: the view kept the run's pose.
+            "shift_px": {name: [round(float(c), 4) for c in shift] for name, shift in result.shift_px.items()},
+            "band_sigma_px": {name: round(float(sigma), 4) for name, sigma in result.band_sigma_px.items()},
             "persons": persons, "unassigned": unassigned}
 
 

@@ -248,6 +248,10 @@ class FrameResult:
     detection_probability: float | None = None  # the crowd's, as this frame's persons say it
     height_prior: tuple[float, float] | None = None  # mean and sigma (m) of the persons' heights, as they say it
     appearance: AppearanceModel | None = None  # the appearance cue's model, where the images gave one
+    # Per view, the shift (undistorted px) and band sigma the persons were found with; a carried frame's views go on
+    # to hold the shifts refined from its persons, for the next frame.
+    shift_px: dict[str, np.ndarray] = field(default_factory=dict)
+    band_sigma_px: dict[str, float] = field(default_factory=dict)
 
     @property
     def confidence(self) -> np.ndarray:
@@ -994,12 +998,13 @@ def associate_views(views: list[View], options: AssociateOptions, carried: bool 
     model = _carried_appearance(views, options, earlier) if carried else None
     state = _solve(views, options, model)
     count = len(_confident(state[1], state[4], options))
+    pending: ViewCorrection | None = None
     if carried:
         # The views hold earlier frames' shifts: associate once with them, and pool this frame's groups into the
         # shifts for the next frame (the frame is not associated again: the next one gains, at no extra cost).
         confident = _confident(state[1], state[4], options)
         if options.self_calibration_rounds > 0 and len(confident) >= options.self_calibration_min_members:
-            _apply_correction(views, estimate_view_shifts(state[0], confident, options, pooled=True), options)
+            pending = estimate_view_shifts(state[0], confident, options, pooled=True)
     elif options.self_calibration_rounds > 0 and len(views) >= 3:
         correction, gain = pairwise_view_shifts(state[0], options)
         trial = _corrected(views, correction, options)
@@ -1047,8 +1052,12 @@ def associate_views(views: list[View], options: AssociateOptions, carried: bool 
     logger.info("%d persons from %d detections in %d views (%d hypotheses)", len(order), total, len(views), positive)
     # The rates this frame used carry to the next frame as they are: the persons found under a height prior are
     # already shaped by it, so estimating it again from them would narrow it frame by frame.
+    used = {v.name: v.shift_px.copy() for v in views}
+    bands = {v.name: v.band_sigma_px if v.band_sigma_px is not None else v.sigma_pose_px for v in views}
+    if pending is not None:  # after the frame's own record, which keeps the shifts its persons were found with
+        _apply_correction(views, pending, options)
     return FrameResult(names, points[order], covariance[order], scores[order], local[order],
-                       options.detection_probability, options.height_prior, model)
+                       options.detection_probability, options.height_prior, model, used, bands)
 
 
 START_DETECTION = 0.7  # the detection probability assumed until the frame's persons say otherwise

@@ -69,6 +69,7 @@ MIN_HEAD_GROUPS = 12  # confident persons that make the heads usable (auto)
 MIN_HEAD_MATCHES = 10  # head matches a pair needs for a self-check verdict
 HEAD_NOISE_PX = 2.0 * 1.96 * HEAD_PIXEL_SIGMA / math.sqrt(2.0)  # allowed on top of the band (two centres' noise)
 REFINE_RAYS = 64
+REMAP_CIRCLES = 256  # circles per remap of the circle fit
 MIN_SEARCH_RADIUS_PX = 12.0  # heads expected smaller than this are searched on the image enlarged
 TILE_PX = 128  # the side of a search tile (image pixels), each searched at its own range of radii
 
@@ -116,9 +117,12 @@ def _refine(gray: np.ndarray, circles: np.ndarray) -> np.ndarray:
     radii = np.linspace(0.6 * r, 1.4 * r, 33, axis=1)[:, None, :]
     px, py = (x + radii * ca).astype(np.float32), (y + radii * sa).astype(np.float32)  # circle x ray x step
     inside = (px >= 0) & (px < width - 1) & (py >= 0) & (py < height - 1)
-    shape = (-1, px.shape[2])
-    radial = np.abs(cv2.remap(gx, px.reshape(shape), py.reshape(shape), cv2.INTER_LINEAR).reshape(px.shape) * ca +
-                    cv2.remap(gy, px.reshape(shape), py.reshape(shape), cv2.INTER_LINEAR).reshape(px.shape) * sa)
+    radial = np.empty(px.shape, dtype=np.float32)
+    for start in range(0, len(out), REMAP_CIRCLES):  # remap's maps hold fewer than 32767 rows
+        part = slice(start, start + REMAP_CIRCLES)
+        mx, my = px[part].reshape(-1, px.shape[2]), py[part].reshape(-1, px.shape[2])
+        radial[part] = np.abs(cv2.remap(gx, mx, my, cv2.INTER_LINEAR).reshape(px[part].shape) * ca +
+                              cv2.remap(gy, mx, my, cv2.INTER_LINEAR).reshape(px[part].shape) * sa)
     radial = radial * inside
     k = radial.argmax(axis=2)[:, :, None]
     strength = np.take_along_axis(radial, k, axis=2)[:, :, 0]

@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from rigsfm.run.checks.self_check import synchronised_frames
 from rigsfm.core.image_files import read_image
+from rigsfm.run.checks.self_check import synchronised_frames
 from rigsfm.run.narrow.heads import HeadMatches, decide_heads, detect_heads, match_heads
 from rigsfm.synth.scene import SceneOptions
 

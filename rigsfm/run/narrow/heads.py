@@ -4,11 +4,10 @@ SIFT on flat-shaded, view-dependent silhouettes gives chance matches only. Heads
 
 1. **Head candidates** per narrow image, without a detector's input: heads are round blobs of a known size. In the
    floor frame a pixel's ray meets the head-centre plane (``HEAD_CENTRE_M``) at a distance that gives the radius a
-   head of ``HEAD_RADIUS_M`` would have there; OpenCV's Hough circles search the image tile by tile, each tile at
-   its own range of those radii (enlarged twice where they are small), on one thread (deterministic), each circle
-   is kept when its radius is within ``RADIUS_RATIO`` of the one expected at its centre, and its centre
-   is refined to sub-pixel by a circle fitted to the strongest radial edge along 64 rays (trimmed: occluded arcs
-   drop out), kept only where the fit moved it little.
+   head of ``HEAD_RADIUS_M`` would have there; OpenCV's Hough circles search the image's range of those radii (on
+   one thread: deterministic), each circle is kept when its radius is within ``RADIUS_RATIO`` of the one expected at
+   its centre, and its centre is refined to sub-pixel by a circle fitted to the strongest radial edge along 64 rays
+   (trimmed: occluded arcs drop out), kept only where the fit moved it little.
 2. **Association** of the candidates across the synchronised narrow views: :func:`rigsfm.associate.solve.
    associate_views` (``rigsfm associate``'s library call: candidates inside each pair's band between two heights,
    triangulation, multi-view growth, a global set packing, and the crowd's own correction of each view's pose
@@ -71,7 +70,6 @@ HEAD_NOISE_PX = 2.0 * 1.96 * HEAD_PIXEL_SIGMA / math.sqrt(2.0)  # allowed on top
 REFINE_RAYS = 64
 REMAP_CIRCLES = 256  # circles per remap of the circle fit
 MIN_SEARCH_RADIUS_PX = 12.0  # heads expected smaller than this are searched on the image enlarged
-TILE_PX = 128  # the side of a search tile (image pixels), each searched at its own range of radii
 
 
 @dataclass
@@ -165,54 +163,30 @@ def _one_opencv_thread():
         cv2.setNumThreads(threads)
 
 
-def _search_tile(gray: np.ndarray, core: tuple[int, int, int, int], low: float, high: float) -> np.ndarray:
-    """Circles (the image's OpenCV pixels x, y, r) of radius ``low``-``high`` px centred in ``core`` (x0, y0, x1,
-    y1), searched on the core with a margin that holds a circle and the circle fit's rays, refined to sub-pixel."""
+def detect_heads(image: pycolmap.Image, gray: np.ndarray) -> np.ndarray:
+    """Head candidates of one narrow image (module docstring, step 1): N x 3, raw COLMAP pixels x, y and the radius
+    (px). ``image``: its pose in the floor frame (metres, z up); ``gray``: its pixels."""
     height, width = gray.shape
-    x0, y0, x1, y1 = core
-    margin = int(math.ceil(1.4 * high)) + 4
-    xa, ya, xb, yb = max(x0 - margin, 0), max(y0 - margin, 0), min(x1 + margin, width), min(y1 + margin, height)
-    crop = gray[ya:yb, xa:xb]
+    grid = np.array([[x, y] for x in np.linspace(0, width, 5) for y in np.linspace(0, height, 5)], dtype=np.float64)
+    expected = expected_radius(image, grid)
+    expected = expected[np.isfinite(expected) & (expected > 0)]
+    if len(expected) == 0:
+        return np.zeros((0, 3))
+    low, high = RADIUS_RATIO[0] * float(expected.min()), RADIUS_RATIO[1] * float(expected.max())
+    if high < 4.0 or low > 0.5 * min(width, height):
+        return np.zeros((0, 3))
     # Small heads are searched on the image enlarged twice: the Hough gradient misses most circles below ~12 px.
     factor = 2 if low < MIN_SEARCH_RADIUS_PX else 1
-    search = crop if factor == 1 else cv2.resize(crop, None, fx=factor, fy=factor, interpolation=cv2.INTER_LINEAR)
+    search = gray if factor == 1 else cv2.resize(gray, None, fx=factor, fy=factor, interpolation=cv2.INTER_LINEAR)
     low, high = max(low * factor, 3.0), high * factor
-    if low > 0.5 * min(search.shape):
-        return np.zeros((0, 3))
-    found = cv2.HoughCircles(cv2.GaussianBlur(search, (5, 5), 1.0), cv2.HOUGH_GRADIENT_ALT, 1.5, 0.8 * low,
-                             param1=HOUGH_PARAM1, param2=HOUGH_PARAM2, minRadius=int(low), maxRadius=int(high) + 1)
+    with _one_opencv_thread():
+        found = cv2.HoughCircles(cv2.GaussianBlur(search, (5, 5), 1.0), cv2.HOUGH_GRADIENT_ALT, 1.5, 0.8 * low,
+                                 param1=HOUGH_PARAM1, param2=HOUGH_PARAM2, minRadius=int(low), maxRadius=int(high) + 1)
     if found is None:
         return np.zeros((0, 3))
     circles = _refine(search, np.asarray(found[0], dtype=np.float64).reshape(-1, 3))
-    circles[:, :2] = (circles[:, :2] + 0.5) / factor - 0.5 + (xa, ya)  # the image's OpenCV pixels
+    circles[:, :2] = (circles[:, :2] + 0.5) / factor - 0.5  # the image's OpenCV pixels
     circles[:, 2] /= factor
-    inside = (circles[:, 0] >= x0 - 0.5) & (circles[:, 0] < x1 - 0.5) & (circles[:, 1] >= y0 - 0.5) & \
-        (circles[:, 1] < y1 - 0.5)
-    return circles[inside]
-
-
-def detect_heads(image: pycolmap.Image, gray: np.ndarray) -> np.ndarray:
-    """Head candidates of one narrow image (module docstring, step 1): N x 3, raw COLMAP pixels x, y and the radius
-    (px). ``image``: its pose in the floor frame (metres, z up); ``gray``: its pixels. Searched tile by tile, each at
-    its own range of radii: the Hough's cost grows with its centres times its edge pixels, and a tile where no head
-    at ``HEAD_CENTRE_M`` can be seen is skipped."""
-    height, width = gray.shape
-    found = []
-    with _one_opencv_thread():
-        for y0 in range(0, height, TILE_PX):
-            for x0 in range(0, width, TILE_PX):
-                x1, y1 = min(x0 + TILE_PX, width), min(y0 + TILE_PX, height)
-                grid = np.array([[x, y] for x in np.linspace(x0, x1, 3) for y in np.linspace(y0, y1, 3)])
-                expected = expected_radius(image, grid)
-                expected = expected[np.isfinite(expected) & (expected > 0)]
-                if len(expected) == 0:
-                    continue
-                low, high = RADIUS_RATIO[0] * float(expected.min()), RADIUS_RATIO[1] * float(expected.max())
-                if high >= 4.0:
-                    found.append(_search_tile(gray, (x0, y0, x1, y1), low, high))
-    if not found:
-        return np.zeros((0, 3))
-    circles = np.concatenate(found)
     xy = colmap_from_opencv_pixels(circles[:, :2])
     with np.errstate(invalid="ignore"):
         ratio = circles[:, 2] / expected_radius(image, xy)

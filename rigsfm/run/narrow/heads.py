@@ -4,10 +4,10 @@ SIFT on flat-shaded, view-dependent silhouettes gives chance matches only. Heads
 
 1. **Head candidates** per narrow image, without a detector's input: heads are round blobs of a known size. In the
    floor frame a pixel's ray meets the head-centre plane (``HEAD_CENTRE_M``) at a distance that gives the radius a
-   head of ``HEAD_RADIUS_M`` would have there; OpenCV's Hough circles search the image's range of those radii,
-   each circle is kept when its radius is within ``RADIUS_RATIO`` of the one expected at its centre, and its centre
-   is refined to sub-pixel by a circle fitted to the strongest radial edge along 64 rays (trimmed: occluded arcs
-   drop out), kept only where the fit moved it little.
+   head of ``HEAD_RADIUS_M`` would have there; OpenCV's Hough circles search the image's range of those radii (on
+   one thread: deterministic), each circle is kept when its radius is within ``RADIUS_RATIO`` of the one expected at
+   its centre, and its centre is refined to sub-pixel by a circle fitted to the strongest radial edge along 64 rays
+   (trimmed: occluded arcs drop out), kept only where the fit moved it little.
 2. **Association** of the candidates across the synchronised narrow views: :func:`rigsfm.associate.solve.
    associate_views` (``rigsfm associate``'s library call: candidates inside each pair's band between two heights,
    triangulation, multi-view growth, a global set packing, and the crowd's own correction of each view's pose
@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import logging
 import math
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -67,6 +68,7 @@ MIN_HEAD_GROUPS = 12  # confident persons that make the heads usable (auto)
 MIN_HEAD_MATCHES = 10  # head matches a pair needs for a self-check verdict
 HEAD_NOISE_PX = 2.0 * 1.96 * HEAD_PIXEL_SIGMA / math.sqrt(2.0)  # allowed on top of the band (two centres' noise)
 REFINE_RAYS = 64
+REMAP_CIRCLES = 256  # circles per remap of the circle fit
 MIN_SEARCH_RADIUS_PX = 12.0  # heads expected smaller than this are searched on the image enlarged
 
 
@@ -99,38 +101,66 @@ def expected_radius(image: pycolmap.Image, xy: np.ndarray) -> np.ndarray:
 def _refine(gray: np.ndarray, circles: np.ndarray) -> np.ndarray:
     """Circles (OpenCV pixels x, y, r) refined to sub-pixel: per ray from the centre the strongest radial edge
     between 0.6 and 1.4 radii, a circle fitted to the strongest 60 % of them, trimmed twice; a circle keeps its
-    Hough centre where too few edges agree or the fit moved it by more than 15 % of its radius."""
+    Hough centre where too few edges agree or the fit moved it by more than 15 % of its radius. All circles at once
+    (a Python loop per circle cost as much as the Hough search)."""
+    out = np.asarray(circles, dtype=np.float64).copy()
+    if len(out) == 0:
+        return out
     smooth = cv2.GaussianBlur(gray.astype(np.float32), (0, 0), 1.0)
     gx, gy = cv2.Sobel(smooth, cv2.CV_32F, 1, 0), cv2.Sobel(smooth, cv2.CV_32F, 0, 1)
     height, width = gray.shape
     angles = np.linspace(0.0, 2.0 * np.pi, REFINE_RAYS, endpoint=False)
-    ca, sa = np.cos(angles)[:, None], np.sin(angles)[:, None]
-    rows = np.arange(REFINE_RAYS)
-    out = circles.copy()
-    for n, (x, y, r) in enumerate(circles):
-        radii = np.linspace(0.6 * r, 1.4 * r, 33)[None, :]
-        px, py = (x + radii * ca).astype(np.float32), (y + radii * sa).astype(np.float32)
-        inside = (px >= 0) & (px < width - 1) & (py >= 0) & (py < height - 1)
-        radial = np.abs(cv2.remap(gx, px, py, cv2.INTER_LINEAR) * ca + cv2.remap(gy, px, py, cv2.INTER_LINEAR) * sa)
-        radial = radial * inside
-        k = radial.argmax(axis=1)
-        strength = radial[rows, k]
-        ex, ey = px[rows, k].astype(np.float64), py[rows, k].astype(np.float64)
-        keep = strength > np.percentile(strength, 40)
-        fitted = None
-        for _ in range(3):
-            if keep.sum() < REFINE_RAYS * 3 // 8:
-                fitted = None
-                break
-            a = np.c_[2.0 * ex[keep], 2.0 * ey[keep], np.ones(keep.sum())]
-            sol = np.linalg.lstsq(a, ex[keep] ** 2 + ey[keep] ** 2, rcond=None)[0]
-            cr = math.sqrt(max(sol[2] + sol[0] ** 2 + sol[1] ** 2, 0.0))
-            fitted = (sol[0], sol[1], cr)
-            residual = np.abs(np.hypot(ex - sol[0], ey - sol[1]) - cr)
-            keep = keep & (residual < max(1.0, 2.5 * float(np.median(residual[keep]))))
-        if fitted is not None and math.hypot(fitted[0] - x, fitted[1] - y) <= 0.15 * r and abs(fitted[2] / r - 1) <= 0.15:
-            out[n] = fitted
+    ca, sa = np.cos(angles)[None, :, None], np.sin(angles)[None, :, None]
+    x, y, r = out[:, 0, None, None], out[:, 1, None, None], out[:, 2]
+    radii = np.linspace(0.6 * r, 1.4 * r, 33, axis=1)[:, None, :]
+    px, py = (x + radii * ca).astype(np.float32), (y + radii * sa).astype(np.float32)  # circle x ray x step
+    inside = (px >= 0) & (px < width - 1) & (py >= 0) & (py < height - 1)
+    radial = np.empty(px.shape, dtype=np.float32)
+    for start in range(0, len(out), REMAP_CIRCLES):  # remap's maps hold fewer than 32767 rows
+        part = slice(start, start + REMAP_CIRCLES)
+        mx, my = px[part].reshape(-1, px.shape[2]), py[part].reshape(-1, px.shape[2])
+        radial[part] = np.abs(cv2.remap(gx, mx, my, cv2.INTER_LINEAR).reshape(px[part].shape) * ca +
+                              cv2.remap(gy, mx, my, cv2.INTER_LINEAR).reshape(px[part].shape) * sa)
+    radial = radial * inside
+    k = radial.argmax(axis=2)[:, :, None]
+    strength = np.take_along_axis(radial, k, axis=2)[:, :, 0]
+    # The edges relative to the Hough centre: the fit's normal equations stay well conditioned.
+    ex = np.take_along_axis(px, k, axis=2)[:, :, 0].astype(np.float64) - out[:, 0, None]
+    ey = np.take_along_axis(py, k, axis=2)[:, :, 0].astype(np.float64) - out[:, 1, None]
+    keep = strength > np.percentile(strength, 40, axis=1, keepdims=True)
+    alive = np.ones(len(out), bool)
+    fitted = np.zeros((len(out), 3))
+    for _ in range(3):
+        alive &= keep.sum(axis=1) >= REFINE_RAYS * 3 // 8
+        n = np.flatnonzero(alive)
+        if len(n) == 0:
+            break
+        w = keep[n].astype(np.float64)
+        a = np.stack([2.0 * ex[n], 2.0 * ey[n], np.ones_like(ex[n])], axis=2)  # circle x ray x 3
+        b = ex[n] ** 2 + ey[n] ** 2
+        sol = np.linalg.solve(np.einsum("nk,nki,nkj->nij", w, a, a), np.einsum("nk,nki,nk->ni", w, a, b)[:, :, None])
+        sol = sol[:, :, 0]
+        cr = np.sqrt(np.maximum(sol[:, 2] + sol[:, 0] ** 2 + sol[:, 1] ** 2, 0.0))
+        fitted[n] = np.c_[sol[:, :2], cr]
+        residual = np.abs(np.hypot(ex[n] - sol[:, :1], ey[n] - sol[:, 1:2]) - cr[:, None])
+        median = np.nanmedian(np.where(keep[n], residual, np.nan), axis=1)
+        keep[n] &= residual < np.maximum(1.0, 2.5 * median)[:, None]
+    moved = np.hypot(fitted[:, 0], fitted[:, 1])
+    accept = alive & (moved <= 0.15 * r) & (np.abs(fitted[:, 2] / r - 1) <= 0.15)
+    out[accept] = np.c_[fitted[accept, :2] + out[accept, :2], fitted[accept, 2]]
     return out
+
+
+@contextmanager
+def _one_opencv_thread():
+    """OpenCV on one thread for the block: HOUGH_GRADIENT_ALT gathers its circles from parallel stripes in the order
+    the threads finish and then merges them greedily, so with several threads its circles depend on their timing."""
+    threads = cv2.getNumThreads()
+    cv2.setNumThreads(1)
+    try:
+        yield
+    finally:
+        cv2.setNumThreads(threads)
 
 
 def detect_heads(image: pycolmap.Image, gray: np.ndarray) -> np.ndarray:
@@ -149,8 +179,9 @@ def detect_heads(image: pycolmap.Image, gray: np.ndarray) -> np.ndarray:
     factor = 2 if low < MIN_SEARCH_RADIUS_PX else 1
     search = gray if factor == 1 else cv2.resize(gray, None, fx=factor, fy=factor, interpolation=cv2.INTER_LINEAR)
     low, high = max(low * factor, 3.0), high * factor
-    found = cv2.HoughCircles(cv2.GaussianBlur(search, (5, 5), 1.0), cv2.HOUGH_GRADIENT_ALT, 1.5, 0.8 * low,
-                             param1=HOUGH_PARAM1, param2=HOUGH_PARAM2, minRadius=int(low), maxRadius=int(high) + 1)
+    with _one_opencv_thread():
+        found = cv2.HoughCircles(cv2.GaussianBlur(search, (5, 5), 1.0), cv2.HOUGH_GRADIENT_ALT, 1.5, 0.8 * low,
+                                 param1=HOUGH_PARAM1, param2=HOUGH_PARAM2, minRadius=int(low), maxRadius=int(high) + 1)
     if found is None:
         return np.zeros((0, 3))
     circles = _refine(search, np.asarray(found[0], dtype=np.float64).reshape(-1, 3))

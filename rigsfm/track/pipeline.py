@@ -132,14 +132,15 @@ def track(out: Path, new_images: Path, options: TrackOptions | None = None, *,
         done: list = [0, time.monotonic()]
 
         def on_result(record: dict) -> None:
-            done[0] += 1
-            logger.info("Frame %s/%s: %s (%d of %d)", record["rig"], record["frame"], record["status"], done[0],
-                        len(todo))
+            # kept before it is announced: a Ctrl-C between the two must not lose a frame the log calls registered
             if record["status"] == "bad_input":
                 bad.append(record["reason"])
             else:
                 key = (record["rig"], record["frame"])
                 frames[key] = {**derive(record, reference.rigs[record["rig"]]), "files": files[key]}
+            done[0] += 1
+            logger.info("Frame %s/%s: %s (%d of %d)", record["rig"], record["frame"], record["status"], done[0],
+                        len(todo))
             if done[0] % options.checkpoint_every == 0:
                 _save(paths, assemble(frames, reference, thresholds), plots=False)
             if progress:

@@ -15,13 +15,10 @@ SIFT matches on a textured scene instead, with the baseline length from the boar
 
 from __future__ import annotations
 
-import contextlib
 import logging
-from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import cv2
 import numpy as np
 import pycolmap
 
@@ -41,6 +38,7 @@ from rigsfm.calibrate.stereo import StereoCalibration, calibrate_stereo
 from rigsfm.calibrate.uncertainty import RigSigmas, rig_sigmas
 from rigsfm.core.conventions import rotation_angle_deg
 from rigsfm.core.errors import InputError
+from rigsfm.core.opencv_threads import one_opencv_thread
 from rigsfm.core.rig import RigCalibration
 
 logger = logging.getLogger(__name__)
@@ -157,23 +155,12 @@ def calibrate_rigs(board_dir: Path, board: BoardSpec, *, distortion: Distortion 
         if missing:
             raise InputError(f"scene images: no folder for rig(s) {', '.join(missing)} in {scene_dir} "
                              f"(expected {scene_dir}/<rig>/wide and {scene_dir}/<rig>/narrow)")
-    with _single_threaded_opencv():
+    # OpenCV's threads sum in a varying order, and the ill-conditioned narrow calibration amplifies that into the
+    # narrow principal point: one thread makes the result reproducible bit for bit
+    with one_opencv_thread():
         results = [calibrate_rig(r, board, distortion=distortion, scene=scenes.get(r.name), baseline=baseline)
                    for r in rigs]
     return CalibrationResult(board=board, rigs=results)
-
-
-@contextlib.contextmanager
-def _single_threaded_opencv() -> Iterator[None]:
-    """OpenCV's threads sum in a varying order, and the ill-conditioned narrow calibration amplifies that:
-    two runs on the same images differed by 0.08 px in the narrow principal point. One thread makes the
-    result reproducible bit for bit (measured: 6 concurrent runs identical), for ~25 % more time."""
-    threads = cv2.getNumThreads()
-    cv2.setNumThreads(1)
-    try:
-        yield
-    finally:
-        cv2.setNumThreads(threads)
 
 
 def write_calibration(result: CalibrationResult, out: Path, *, merge: bool = False, overwrite: bool = False,

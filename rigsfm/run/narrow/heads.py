@@ -32,7 +32,6 @@ from __future__ import annotations
 
 import logging
 import math
-from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -46,6 +45,7 @@ from rigsfm.core.conventions import colmap_from_opencv_pixels
 from rigsfm.core.geometry import pixel_line_distances
 from rigsfm.core.ground import undistort_pixels
 from rigsfm.core.image_files import read_image
+from rigsfm.core.opencv_threads import one_opencv_thread
 from rigsfm.run.checks.guided import overlapping_pairs
 from rigsfm.run.narrow.observations import HOLD_OUT_EVERY, PairMatches
 
@@ -151,18 +151,6 @@ def _refine(gray: np.ndarray, circles: np.ndarray) -> np.ndarray:
     return out
 
 
-@contextmanager
-def _one_opencv_thread():
-    """OpenCV on one thread for the block: HOUGH_GRADIENT_ALT gathers its circles from parallel stripes in the order
-    the threads finish and then merges them greedily, so with several threads its circles depend on their timing."""
-    threads = cv2.getNumThreads()
-    cv2.setNumThreads(1)
-    try:
-        yield
-    finally:
-        cv2.setNumThreads(threads)
-
-
 def detect_heads(image: pycolmap.Image, gray: np.ndarray) -> np.ndarray:
     """Head candidates of one narrow image (module docstring, step 1): N x 3, raw COLMAP pixels x, y and the radius
     (px). ``image``: its pose in the floor frame (metres, z up); ``gray``: its pixels."""
@@ -179,7 +167,7 @@ def detect_heads(image: pycolmap.Image, gray: np.ndarray) -> np.ndarray:
     factor = 2 if low < MIN_SEARCH_RADIUS_PX else 1
     search = gray if factor == 1 else cv2.resize(gray, None, fx=factor, fy=factor, interpolation=cv2.INTER_LINEAR)
     low, high = max(low * factor, 3.0), high * factor
-    with _one_opencv_thread():
+    with one_opencv_thread():  # HOUGH_GRADIENT_ALT merges its stripes' circles in the order the threads finish
         found = cv2.HoughCircles(cv2.GaussianBlur(search, (5, 5), 1.0), cv2.HOUGH_GRADIENT_ALT, 1.5, 0.8 * low,
                                  param1=HOUGH_PARAM1, param2=HOUGH_PARAM2, minRadius=int(low), maxRadius=int(high) + 1)
     if found is None:

@@ -367,25 +367,35 @@ def _two_frames(dataset: Path, out: Path, images_root: Path | None = None):
     return posed, points, (first, second), put
 
 
-def test_shifts_carry_to_the_next_frame(crowd, monkeypatch):
-    """A static rig's pose error is the same in every frame: the shifts the crowd gives the first frame carry to the
-    next frame's images of the same cameras, which are associated once (no self-calibration of their own), as well
-    as the first, and pool their own groups into the shifts."""
+def _associate_two_frames(posed, points, monkeypatch) -> tuple[list, list[str]]:
+    """``associate_frames`` on :func:`_two_frames`' frames, and the frame of each association it ran (the first view's
+    name per call of ``_solve``)."""
     import rigsfm.associate.solve as solve
 
-    dataset, out = crowd
-    posed, points, (first, second), put = _two_frames(dataset, out)
-    solves = []
+    solves: list[str] = []
     real = solve._solve
     monkeypatch.setattr(solve, "_solve", lambda views, options, *more, **given: solves.append(views[0].name)
                         or real(views, options, *more, **given))
     frames = associate_frames(posed, from_arrays(points), AssociateOptions(pixel_sigma=1.5, self_calibration_rounds=2))
     assert [f.frame for f in frames] == ["frame0000.png", "frame0001.png"]
+    return frames, solves
+
+
+def _pair_f1(frame, truth) -> float:
+    """A frame's pairwise F1 against the truth of :func:`_two_frames` (named by frame0000's images)."""
+    return score_groups([[(frame.views[v].name.replace("frame0001", "frame0000"), int(i))
+                          for v, i in enumerate(m) if i >= 0] for m in frame.result.members], truth).pair_f1
+
+
+def test_shifts_carry_to_the_next_frame(crowd, monkeypatch):
+    """A static rig's pose error is the same in every frame: the shifts the crowd gives the first frame carry to the
+    next frame's images of the same cameras, which are associated once (no self-calibration of their own), as well
+    as the first, and pool their own groups into the shifts."""
+    dataset, out = crowd
+    posed, points, truths, put = _two_frames(dataset, out)
+    frames, solves = _associate_two_frames(posed, points, monkeypatch)
     assert sum("frame0000" in n for n in solves) >= 3 and sum("frame0001" in n for n in solves) == 1, solves
-    f1 = []
-    for frame, truth in zip(frames, (first, second)):
-        f1.append(score_groups([[(frame.views[v].name.replace("frame0001", "frame0000"), int(i))
-                                 for v, i in enumerate(m) if i >= 0] for m in frame.result.members], truth).pair_f1)
+    f1 = [_pair_f1(frame, truth) for frame, truth in zip(frames, truths)]
     assert f1[0] > 0.25 and f1[1] > 0.8 * f1[0], f1
     for view in frames[1].views:
         assert view.shift_sigma_px is not None

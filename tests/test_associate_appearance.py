@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
-from test_associate import _detections, _two_frames, crowd  # noqa: F401  (the rendered crowd and its run, once per session)
+from test_associate import _associate_two_frames, _detections, _pair_f1, _two_frames, crowd  # noqa: F401  (the rendered crowd and its run, once per session)
 
 from rigsfm.associate import AssociateOptions, associate_frames, from_arrays, load_run
 from rigsfm.associate.appearance import estimate
@@ -87,9 +87,6 @@ def test_a_carried_frame_takes_the_first_frame_s_appearance_model(crowd, tmp_pat
     """The next frame of the same cameras is associated once, with the appearance model and head sizes the first
     frame estimated from its own persons (no association of its own to estimate another from), and finds the
     persons as well as the first frame does."""
-    import rigsfm.associate.solve as solve
-    from rigsfm.associate.evaluate import score_groups
-
     dataset, out = crowd
     root = load_run(out).images_root
     assert root is not None
@@ -99,18 +96,11 @@ def test_a_carried_frame_takes_the_first_frame_s_appearance_model(crowd, tmp_pat
             link.parent.mkdir(parents=True, exist_ok=True)
             link.symlink_to(name)
     posed, points, truths, _ = _two_frames(dataset, out, images_root=tmp_path)
-    solves = []
-    real = solve._solve
-    monkeypatch.setattr(solve, "_solve", lambda views, options, *more, **given: solves.append(views[0].name)
-                        or real(views, options, *more, **given))
-    frames = associate_frames(posed, from_arrays(points), AssociateOptions(pixel_sigma=1.5, self_calibration_rounds=2))
-    assert [f.frame for f in frames] == ["frame0000.png", "frame0001.png"]
+    frames, solves = _associate_two_frames(posed, points, monkeypatch)
     assert frames[0].result.appearance is not None, "the first frame should estimate an appearance model"
     assert sum("frame0001" in n for n in solves) == 1, solves
     assert frames[1].result.appearance is frames[0].result.appearance
     for before, view in zip(frames[0].views, frames[1].views):
         assert view.head_px == before.head_px and view.descriptor is not None and len(view.descriptor) == len(view.xy)
-    f1 = [score_groups([[(frame.views[v].name.replace("frame0001", "frame0000"), int(i))
-                         for v, i in enumerate(m) if i >= 0] for m in frame.result.members], truth).pair_f1
-          for frame, truth in zip(frames, truths)]
+    f1 = [_pair_f1(frame, truth) for frame, truth in zip(frames, truths)]
     assert f1[0] > 0.25 and f1[1] > 0.8 * f1[0], f1

@@ -30,6 +30,19 @@ def _true_heads(root: Path) -> dict[str, np.ndarray]:
     return {name: np.asarray(rows) for name, rows in heads.items()}
 
 
+def _right_matches(pairs, known: dict) -> int:
+    """Matches of ``pairs`` whose two centres each lie within 6 px of a true head, the same person's in both views."""
+    right = 0
+    for pair in pairs:
+        if not pair.matches:
+            continue
+        ti, tj = known[pair.i], known[pair.j]
+        di, ii = cKDTree(ti[:, :2]).query(pair.xy_i)
+        dj, jj = cKDTree(tj[:, :2]).query(pair.xy_j)
+        right += int(np.sum((di < 6) & (dj < 6) & (ti[ii, 2] == tj[jj, 2])))
+    return right
+
+
 @pytest.mark.slow
 def test_heads_are_matched_across_views_and_turn_the_observations_on(rendered):
     dataset = rendered(PERSONS)
@@ -43,15 +56,7 @@ def test_heads_are_matched_across_views_and_turn_the_observations_on(rendered):
     # The matches are mostly the same person's head in both views (each centre within 6 px of a true head; 77 % when
     # written).
     known = _true_heads(Path(dataset.root))
-    right = total = 0
-    for pair in heads.pairs:
-        if not pair.matches:
-            continue
-        ti, tj = known[pair.i], known[pair.j]
-        di, ii = cKDTree(ti[:, :2]).query(pair.xy_i)
-        dj, jj = cKDTree(tj[:, :2]).query(pair.xy_j)
-        right += int(np.sum((di < 6) & (dj < 6) & (ti[ii, 2] == tj[jj, 2])))
-        total += pair.matches
+    right, total = _right_matches(heads.pairs, known), sum(p.matches for p in heads.pairs)
     assert total >= 40 and right >= 0.7 * total, (right, total)
     # The self-check counts every person of two or more views scoring above 0: the confident persons' matches and
     # more (1.48x when written), still mostly right.
@@ -59,14 +64,7 @@ def test_heads_are_matched_across_views_and_turn_the_observations_on(rendered):
     checked = {(p.i, p.j): p.matches for p in heads.check_pairs}
     assert all(checked[key] >= n for key, n in confident.items())
     assert sum(checked.values()) >= 1.3 * sum(confident.values()), (sum(checked.values()), sum(confident.values()))
-    right = 0
-    for pair in heads.check_pairs:
-        if not pair.matches:
-            continue
-        ti, tj = known[pair.i], known[pair.j]
-        di, ii = cKDTree(ti[:, :2]).query(pair.xy_i)
-        dj, jj = cKDTree(tj[:, :2]).query(pair.xy_j)
-        right += int(np.sum((di < 6) & (dj < 6) & (ti[ii, 2] == tj[jj, 2])))
+    right = _right_matches(heads.check_pairs, known)
     assert right >= 0.5 * sum(checked.values()), (right, sum(checked.values()))
 
 

@@ -129,6 +129,34 @@ def classify(rec: pycolmap.Reconstruction, truth: pycolmap.Reconstruction, optio
     return out
 
 
+def inconsistent_tracks(rec: pycolmap.Reconstruction, quantile: float = 0.999) -> set[int]:
+    """Tracks whose reprojection residuals a static point does not explain: ``sum e^2 / sigma^2`` above the
+    chi-square ``quantile`` of its ``2 n - 3`` dof, ``sigma`` from the median track (robust to the few that are not
+    static points)."""
+    from scipy.stats import chi2
+
+    sums, dofs, ids = [], [], []
+    for pid, point in rec.points3D.items():
+        total, n = 0.0, 0
+        for e in point.track.elements:
+            image = rec.images[e.image_id]
+            proj = rec.cameras[image.camera_id].img_from_cam(image.cam_from_world() * point.xyz)
+            if proj is None:
+                continue
+            total += float(np.sum((np.asarray(proj) - image.points2D[e.point2D_idx].xy) ** 2))
+            n += 1
+        if 2 * n - 3 > 0:
+            sums.append(total)
+            dofs.append(2 * n - 3)
+            ids.append(pid)
+    sums, dofs = np.array(sums), np.array(dofs)
+    sigma2 = float(np.median(sums / chi2.median(dofs)))
+    bad = sums / sigma2 > chi2.ppf(quantile, dofs)
+    logger.info("track test: sigma %.3f px per coordinate, %d of %d tracks inconsistent", np.sqrt(sigma2),
+                int(bad.sum()), len(ids))
+    return {pid for pid, b in zip(ids, bad) if b}
+
+
 def frame_key(rec: pycolmap.Reconstruction, frame_id: int) -> str:
     frame = rec.frame(frame_id)
     ref = next(rec.image(d.id) for d in frame.image_ids if rec.image(d.id).is_ref_in_frame())
@@ -167,7 +195,7 @@ def pose_errors(rec: pycolmap.Reconstruction, truth: pycolmap.Reconstruction, co
     return {"chi2": chi2, "dof": int(len(e)), "chi2_over_dof": chi2 / len(e), "frames": per_frame}
 
 
-def consider_sensitivity(result, given, exact, options, unweighted=False):
+def consider_sensitivity(result, given, exact, options, unweighted=False, robust=False):
     """``S = -A^-1 B`` of ``covariance._consider`` at ``result`` (our tangents), the calibration's true error ``dc``
     (rigs.yaml minus rigs_exact.yaml) and its prior, the pose rows and each frame's first row."""
     from rigsfm.run.adjustment import covariance as cv
@@ -178,7 +206,7 @@ def consider_sensitivity(result, given, exact, options, unweighted=False):
     rec = pycolmap.Reconstruction(result.reconstruction)
     sigma = estimate_pixel_sigma(rec, options.max_reprojection_error_px)
     jp = JointProblem(rec, result.rigs, result.priors, result.scale_spec, options, sigma, gauge=Gauge.RIGID,
-                      robust=False, with_priors=False, consider_held=True)
+                      robust=robust, with_priors=False, consider_held=True)
     saved = cv.repeated_view_correlation
     if unweighted:
         cv.repeated_view_correlation = lambda *a, **k: {}
@@ -223,7 +251,8 @@ def consider_sensitivity(result, given, exact, options, unweighted=False):
     return s, dc, prior, pose_index, frame_at, labels
 
 
-def sensitivity_check(mapped, truth, given, exact, options, remove=frozenset(), unweighted=False) -> dict:
+def sensitivity_check(mapped, truth, given, exact, options, remove=frozenset(), unweighted=False,
+                      robust=False) -> dict:
     """The consider model's linear claim, tested: the poses of the rigs.yaml adjustment minus those of the exact
     calibration's (same observations) against ``S dc`` (``S = -A^-1 B`` of ``covariance._consider``, ``dc`` the
     calibration's true error), and ``dc``'s chi-square under rigs.yaml's sigmas. ``unweighted``: S without the
@@ -238,7 +267,8 @@ def sensitivity_check(mapped, truth, given, exact, options, remove=frozenset(), 
         results[label] = adjust(rec, inputs.rigs, inputs.scale, replace(options, calibration=Calibration.FIXED),
                                 inputs.priors)
     result = results["given"]
-    s, dc, prior, pose_index, frame_at, _ = consider_sensitivity(result, given, exact, options, unweighted)
+    s, dc, prior, pose_index, frame_at, _ = consider_sensitivity(result, given, exact, options, unweighted,
+                                                                robust)
     predicted = s @ dc
     # The actual difference, aligned at the gauge frame (the rigs.yaml run onto the exact run).
     given_rec, exact_rec = results["given"].reconstruction, results["exact"].reconstruction
@@ -354,8 +384,16 @@ def band_experiment(mapped, truth, inputs, options, exact_inputs=None, floor=Tru
     result = adjust(pycolmap.Reconstruction(mapped), inputs.rigs, inputs.scale, options, inputs.priors)
     cov = result.covariance or joint_covariance(result)
     rec = result.reconstruction
+    from benchmarks.hold_or_refine import epipolar_p95
+    from benchmarks.metrics import evaluate
+
+    narrow = evaluate(rec, truth, metric=True)["narrow"].get("relative_rotation_deg") or {}
     out = {"calibration": str(result.calibration), "held_rigs": sorted(result.held_rigs),
+           "narrow_rotation_deg": {k: narrow.get(k) for k in ("median", "max")},
+           "true_epipolar_p95_px": epipolar_p95(rec, truth),
            "poses": pose_errors(rec, truth, cov, min(rec.reg_frame_ids()))}
+    logger.info("narrow rotation median / max %s / %s deg, worst pair's true epipolar p95 %.2f px",
+                out["narrow_rotation_deg"]["median"], out["narrow_rotation_deg"]["max"], out["true_epipolar_p95_px"])
     logger.info("%s (held %s): wide poses chi2/dof %.2f (%d dof)", result.calibration, sorted(result.held_rigs),
                 out["poses"]["chi2_over_dof"], out["poses"]["dof"])
     if exact_inputs is not None and result.calibration == Calibration.REFINE:
@@ -535,6 +573,11 @@ def main() -> None:
     parser.add_argument("--inflation", type=float, default=None)
     parser.add_argument("--first-frame-only", action="store_true",
                         help="deregister every frame but each rig's frame0000 before adjusting (a one-frame network)")
+    parser.add_argument("--track-test", action="store_true",
+                        help="remove the tracks inconsistent_tracks finds (no truth) in a first adjustment")
+    parser.add_argument("--track-quantile", type=float, default=0.999)
+    parser.add_argument("--static-only", action="store_true",
+                        help="remove every track that is not on a static surface (classify) before adjusting")
     parser.add_argument("--loss", default=None, help="the adjustment's robust loss (rigsfm.run.options.Loss)")
     parser.add_argument("--sensitivity-only", action="store_true")
     parser.add_argument("--bands-only", action="store_true")
@@ -567,6 +610,27 @@ def main() -> None:
         if args.out:
             args.out.write_text(json.dumps(record, indent=1))
         return
+    if args.track_test:
+        calibration = Calibration.REFINE if args.refine else Calibration.FIXED
+        first = adjust(pycolmap.Reconstruction(mapped), given.rigs, given.scale,
+                       replace(adjust_options, calibration=calibration), given.priors).reconstruction
+        bad = inconsistent_tracks(first, args.track_quantile)
+        classes = classify(mapped, truth, options)
+        counts: dict[str, list[int]] = {}
+        for pid, v in classes.items():
+            row = counts.setdefault(v["class"], [0, 0])
+            row[0] += 1
+            row[1] += pid in bad
+        logger.info("track test by the truth's class (tracks, removed): %s", counts)
+        for pid in bad:
+            if mapped.exists_point3D(pid):
+                mapped.delete_point3D(pid)
+    if args.static_only:
+        classes = classify(mapped, truth, options)
+        for pid, v in classes.items():
+            if v["class"] != "static":
+                mapped.delete_point3D(pid)
+        logger.info("kept %d static tracks, removed %d", mapped.num_points3D(), len(classes) - mapped.num_points3D())
     if args.draws:
         record = draws_experiment(mapped, truth, given, exact, adjust_options, args.draws)
         if args.out:

@@ -1,7 +1,15 @@
 """Why the epipolar band covers less than 95 % on crowds of 3D persons: the adjustment's actual error against its
 predicted covariance, and which observations carry the error (mrcal-style uncertainty validation).
 
-    python benchmarks/crowd_band.py WORK/NETWORK [--run fixed] [--out FILE]
+    python benchmarks/crowd_band.py WORK/NETWORK [--run fixed|default] [--out FILE]      # classes and chi-squares
+    ... --sensitivity-only        # the consider sensitivity S dc against the adjustment's answer to rigs.yaml's error
+    ... --explain                 # per pair: the band's linear model fed the true error, by group of parameters
+    ... --bands-only [--refine]   # the delivered kind of band (FIXED, or the default adjustment) scored, its accuracy
+    ... --draws N                 # the FIXED band over N fresh draws of rigs.yaml's error on these observations
+    options: --static-only (the truth's static tracks only), --track-test [--track-quantile Q] (a truth-free
+    per-track chi-square test), --first-frame-only, --loss TRIVIAL|CAUCHY|..., --inflation X
+
+Results and what they say: benchmarks/README.md, "Why the band is narrow on crowds of 3D persons".
 
 ``WORK/NETWORK`` is a folder of ``benchmarks/networks.py`` (``scene/`` rendered, ``fixed/`` or ``default/`` run).
 The run's mapping model (``<run>/mapping``) is adjusted again with the calibration held (``--fixed-calibration``'s

@@ -40,6 +40,7 @@ import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
 from rigsfm.associate.appearance import AppearanceModel, describe, estimate, head_radius_px
+from rigsfm.associate.occupancy import CountGrid
 from rigsfm.associate.options import AssociateOptions
 from rigsfm.associate.rates import truncated_binomial_p
 from rigsfm.associate.segments import pair_seeds
@@ -291,6 +292,7 @@ class _Frame:
         self.centres = np.array([v.centre for v in views])
         self.focals = np.array([v.focal for v in views])
         self.trees = [cKDTree(u[np.all(np.isfinite(u), axis=1)]) if len(u) else None for u in undist]
+        self.grids = [CountGrid(u[np.all(np.isfinite(u), axis=1)]) if len(u) else None for u in undist]
         self.tree_index = [np.flatnonzero(np.all(np.isfinite(u), axis=1)) + self.offsets[i]
                            for i, u in enumerate(undist)]
         # Clutter density (detections per px^2) around each detection: crowds fill a band of the image (the heads'
@@ -484,14 +486,17 @@ class _Frame:
     def _nearest(self, v: int, uv: np.ndarray, bound: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
         """The ``k`` detections of view v nearest each of ``uv`` (into its tree; inf / n where none) among those
         within the row's ``bound``, or beyond it (those a caller's gate rejects anyway): rows whose bound box misses
-        every detection are not searched, and the others are searched in groups of similar bound, each under its
-        largest (a tight bound prunes the tree's search)."""
+        every detection, or whose disc's grid cells hold none (most rows), are not searched, and the others are
+        searched in groups of similar bound, each under its largest (a tight bound prunes the tree's search)."""
         tree = self.trees[v]
         assert tree is not None  # views with detections have trees
         dist = np.full((len(uv), k), np.inf)
         near = np.full((len(uv), k), tree.n, dtype=np.int64)
         lo, hi = tree.mins, tree.maxes
         meets = np.all((uv >= lo - bound[:, None]) & (uv <= hi + bound[:, None]), axis=1)
+        grid = self.grids[v]
+        assert grid is not None  # built with the tree
+        meets[meets] = grid.any_within(uv[meets], bound[meets])
         rows = np.flatnonzero(meets)
         rows = rows[np.argsort(bound[rows], kind="stable")]
         for part in np.array_split(rows, min(4, len(rows))) if len(rows) else []:
@@ -521,7 +526,11 @@ class _Frame:
         return members, points, covariance, *checked
 
     @_rowwise
-    def score(self, members: np.ndarray, points: np.ndarray, covariance: np.ndarray) -> np.ndarray:
+    def score(self, members: np.ndarray, points: np.ndarray, covariance: np.ndarray, misses: bool = True,
+              floor: float | None = None) -> np.ndarray:
+        """Each group's log-likelihood ratio against clutter. ``misses=False``: without the views that see its point
+        and hold no member (each costs, so that is an upper bound of the full score). ``floor``: a group whose bound
+        is at or below it scores -inf (its full score is at most the bound), its misses not counted."""
         p_d = self.options.detection_probability
         assert p_d is not None  # associate_views resolves it
         lo, hi = self.options.heights
@@ -542,14 +551,33 @@ class _Frame:
         per_member = math.log(p_d) - np.log(clutter) - np.log(2 * math.pi * self.noise ** 2)[None] \
             - 0.5 * np.nan_to_num(d2, nan=0.0, posinf=1e6)
         total = prior + np.sum(np.where(present, per_member, 0.0), axis=1)
+        appearance = self.appearance.group_log_ratio(self.descriptors, members) \
+            if self.appearance is not None and self.descriptors is not None else None
+        kept = None
+        if misses and floor is not None:
+            # the misses (the costly part: every view's lens) only where they can matter
+            kept = (total if appearance is None else total + appearance) > floor
+            rows = np.flatnonzero(kept)
+            miss_total = total[rows]
+            self._add_misses(miss_total, points[rows], present[rows])
+            total[rows] = miss_total
+        elif misses:
+            self._add_misses(total, points, present)
+        if appearance is not None:
+            total += appearance
+        if kept is not None:
+            total[~kept] = -np.inf
+        return total
+
+    def _add_misses(self, total: np.ndarray, points: np.ndarray, present: np.ndarray) -> None:
+        """Add, in place, the cost of every view that sees a point inside its image and holds no member."""
+        p_d = self.options.detection_probability
+        assert p_d is not None  # associate_views resolves it
         miss = math.log(max(1.0 - p_d, 1e-6))
         for v, view in enumerate(self.views):
             uv, z = view.project(points)
             seen = view.inside(uv, z) & ~present[:, v]
             total += np.where(seen, miss, 0.0)
-        if self.appearance is not None and self.descriptors is not None:
-            total += self.appearance.group_log_ratio(self.descriptors, members)
-        return total
 
     @_rowwise
     def seen(self, points: np.ndarray) -> np.ndarray:
@@ -561,7 +589,8 @@ class _Frame:
         return count
 
     def hypotheses(self, free: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """Candidate persons (members, points, covariances, scores); ``free``: only among these detections."""
+        """Candidate persons (members, points, covariances, scores: -inf at or below the options' minimum score);
+        ``free``: only among these detections."""
         # The groups depend on the views' geometry and ``free`` only, not on what the score weighs (the detection
         # probability, the heights' prior, the appearance, the clutter): a frame associated again with other rates
         # or an appearance model re-scores the groups it already grew.
@@ -572,7 +601,8 @@ class _Frame:
             self._grown = {k: g for k, g in self._grown.items() if k is None}  # the first pass's, and this one
             self._grown[key] = grown
         members, points, covariance = grown
-        return members, points, covariance, self.score(members, points, covariance)
+        # those at or below the minimum score are left out by every caller: -inf, their misses not counted
+        return members, points, covariance, self.score(members, points, covariance, floor=self.options.min_score)
 
     def _grown_hypotheses(self, free: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The groups of ``hypotheses`` before their scores."""

@@ -624,6 +624,10 @@ class _Frame:
             np.nan_to_num(self.residuals(seeds, points), nan=0.0) <= self.options.member_gate ** 2, axis=1)
         members = seeds[ok]
         points, covariance = points[ok], covariance[ok]
+        floor = self.options.seed_min_score
+        if floor is not None:
+            strong = self.score(members, points, covariance, misses=False) > floor
+            members, points, covariance = members[strong], points[strong], covariance[strong]
         groups = [members]
         for _ in range(2):
             members = only_free(self.grow(members, points, covariance, single=True))
@@ -1017,8 +1021,14 @@ def associate_views(views: list[View], options: AssociateOptions, carried: bool 
     The appearance model is estimated once, from the first frame's association without it, and carried as the rates
     are: groups found under a model look alike by construction, so a model re-estimated from them would narrow frame
     by frame. A carried frame without an earlier model (or a view without a carried head size) estimates its own,
-    as a first frame does, at the cost of a second association."""
+    as a first frame does, at the cost of a second association.
+
+    ``options.seed_min_score`` holds for carried frames only: a first frame grows every pair seed (its first
+    associations run at the run's wide bands, without the crowd's heights, where a seed's own score says less, and
+    its self-calibration turns small changes of its groups into other shifts)."""
     names = [v.name for v in views]
+    if not carried:
+        options = dataclasses.replace(options, seed_min_score=None)
     given = options
     start = earlier.detection_probability if earlier is not None else None
     options = dataclasses.replace(options, detection_probability=options.detection_probability or start

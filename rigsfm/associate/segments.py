@@ -114,7 +114,7 @@ def pair_seeds(frame: _Frame, i: int, j: int, di: np.ndarray, p_lo: np.ndarray, 
     widest = gate * np.sqrt(frame.noise[j] ** 2 + (frame.noise[i] * (frame.focals[j] * farthest_i)
                                                    / (frame.focals[i] * nearest_j)) ** 2)
     widest = widest * (1 + 1e-9) + 1e-9  # the band below is computed otherwise: room for its rounding
-    ra, cb = _near_segments(frame.uv[frame.tree_index[j]], ((a + b) / 2)[rows], (length / 2 + reach)[rows],
+    ra, cb = near_segments(frame.uv[frame.tree_index[j]], ((a + b) / 2)[rows], (length / 2 + reach)[rows],
                             a[rows], seg[rows], widest[rows])
     if not len(ra):
         return None
@@ -132,7 +132,7 @@ def pair_seeds(frame: _Frame, i: int, j: int, di: np.ndarray, p_lo: np.ndarray, 
 CELLS_PER_BLOCK = 1 << 20  # segment-detection pairs tested at once
 
 
-def _near_segments(points: np.ndarray, centre: np.ndarray, radius: np.ndarray, start: np.ndarray, step: np.ndarray,
+def near_segments(points: np.ndarray, centre: np.ndarray, radius: np.ndarray, start: np.ndarray, step: np.ndarray,
                    widest: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Per segment (``start`` + [0, 1] ``step``), the ``points`` within ``radius`` of ``centre`` (the disc around the
     segment, as a KD-tree's ball query finds them) and within ``widest`` of the segment: the segments' rows and the

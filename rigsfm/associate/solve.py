@@ -43,7 +43,7 @@ from rigsfm.associate.appearance import AppearanceModel, describe, estimate, hea
 from rigsfm.associate.occupancy import CountGrid
 from rigsfm.associate.options import AssociateOptions
 from rigsfm.associate.rates import truncated_binomial_p
-from rigsfm.associate.segments import pair_seeds
+from rigsfm.associate.segments import near_segments, pair_seeds
 from rigsfm.core.ground import undistort_pixels
 
 logger = logging.getLogger(__name__)
@@ -840,12 +840,15 @@ def _epipolar_offsets(frame: _Frame) -> list[tuple[int, int, np.ndarray, np.ndar
             length = np.linalg.norm(b - a, axis=1)
             ok &= length > 1e-6
             gate = frame.options.gate_sigmas * math.hypot(frame.noise[i], frame.noise[j])
-            near = tree.query_ball_point(((a + b) / 2)[ok], length[ok] / 2 + gate)
-            counts = np.array([len(n) for n in near], dtype=np.int64)
-            if not counts.sum():
+            # the detections in the disc around each segment (as a ball search finds them) that may lie in its band
+            # (room for the rounding of the distance below); the others are never kept
+            rows = np.flatnonzero(ok)
+            found, near = near_segments(frame.uv[frame.tree_index[j]], ((a + b) / 2)[rows], length[rows] / 2 + gate,
+                                        a[rows], (b - a)[rows], np.full(len(rows), gate * (1 + 1e-9) + 1e-9))
+            if not len(found):
                 continue
-            ra = np.repeat(np.flatnonzero(ok), counts)
-            p = frame.uv[frame.tree_index[j][np.concatenate([np.asarray(n, dtype=np.int64) for n in near])]]
+            ra = rows[found]
+            p = frame.uv[frame.tree_index[j][near]]
             d, t, normal = _signed_distance(p, a[ra], b[ra])
             keep = (t > 0) & (t < 1) & (np.abs(d) <= gate)
             grad_i = np.zeros((len(d), 2))
@@ -907,11 +910,13 @@ def pairwise_view_shifts(frame: _Frame, options: AssociateOptions, starts: int =
         np.add.at(rhs, cols.ravel(), sums[:, 10:].ravel() / var)
         return lhs + np.diag(precision), rhs
 
-    def loglik(x, share):
+    def loglik(x, share, value=True):
         r = residual(x)
         shares = np.repeat(share, sizes)  # share[pair_of]
         inlier = shares * np.exp(-0.5 * r ** 2 / var) / math.sqrt(2 * math.pi * var)
         mix = inlier + (1 - shares) * uniform
+        if not value:  # the EM's steps need the weights only
+            return None, inlier / mix
         return float(np.sum(np.log(mix)) - 0.5 * np.sum(precision * x ** 2)), inlier / mix
 
     counts = np.maximum(np.bincount(pair_of, minlength=len(pairs)), 1)
@@ -921,7 +926,7 @@ def pairwise_view_shifts(frame: _Frame, options: AssociateOptions, starts: int =
         x = np.zeros(2 * nv) if start == 0 else rng.normal(0.0, np.repeat(prior, 2))
         share = np.full(len(pairs), 0.1)
         for _ in range(50):
-            _, w = loglik(x, share)
+            _, w = loglik(x, share, value=False)
             share = np.clip(np.bincount(pair_of, w, len(pairs)) / counts, 1e-3, 0.999)
             # r = d + J x: the weighted least squares with the prior
             lhs, rhs = normal_equations(w)

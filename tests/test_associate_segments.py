@@ -117,3 +117,26 @@ def test_pair_seeds_are_the_ball_searches_in_their_bands():
     reference = _ball_seeds(frame)
     assert len(reference) > 500  # the crowd fills the bands with chance pairs
     np.testing.assert_array_equal(found, reference)
+
+
+def test_the_pairs_em_candidates_are_the_ball_searches_within_the_gate():
+    from rigsfm.associate.solve import _epipolar_offsets, _segment_in, _signed_distance
+
+    views, _ = _crowd_views(seed=3)
+    frame = _Frame(views, AssociateOptions(pixel_sigma=1.5))
+    found = {(i, j): (d, gi) for i, j, d, gi, _gj, _gate in _epipolar_offsets(frame)}
+    total = 0
+    for i in range(len(views)):
+        di = np.arange(frame.offsets[i], frame.offsets[i + 1])
+        for j in range(i + 1, len(views)):
+            a, b, ok = _segment_in(frame, i, j, frame.uv[di])
+            ok &= np.linalg.norm(b - a, axis=1) > 1e-6
+            gate = frame.options.gate_sigmas * np.hypot(frame.noise[i], frame.noise[j])
+            ball = frame.trees[j].query_ball_point((a + b) / 2, np.linalg.norm(b - a, axis=1) / 2 + gate)
+            ra = np.array([r for r in np.flatnonzero(ok) for _ in ball[r]], dtype=np.int64)
+            cb = frame.tree_index[j][np.array([c for r in np.flatnonzero(ok) for c in ball[r]], dtype=np.int64)]
+            d, t, _ = _signed_distance(frame.uv[cb], a[ra], b[ra])
+            keep = (t > 0) & (t < 1) & (np.abs(d) <= gate)
+            total += int(keep.sum())
+            np.testing.assert_array_equal(found.get((i, j), (np.zeros(0), None))[0], d[keep])
+    assert total > 500

@@ -183,8 +183,7 @@ def detect_heads(image: pycolmap.Image, gray: np.ndarray) -> np.ndarray:
 
 
 def _association_options() -> AssociateOptions:
-    # every pair seed grows: the seeds' floor was measured on rigsfm associate's crowds, not on these heads
-    return AssociateOptions(pixel_sigma=HEAD_PIXEL_SIGMA, seed_min_score=None)
+    return AssociateOptions(pixel_sigma=HEAD_PIXEL_SIGMA)
 
 
 def match_heads(floor_model: pycolmap.Reconstruction, image_dir: Path, frames: dict[str, list[pycolmap.Image]],

@@ -140,3 +140,13 @@ def test_the_pairs_em_candidates_are_the_ball_searches_within_the_gate():
             total += int(keep.sum())
             np.testing.assert_array_equal(found.get((i, j), (np.zeros(0), None))[0], d[keep])
     assert total > 500
+
+
+def test_no_segment_or_no_detection_gives_no_candidate():
+    from rigsfm.associate.segments import near_segments
+
+    points, none = np.array([[10.0, 10.0]]), np.zeros((0, 2))
+    rows, near = near_segments(points, none, np.zeros(0), none, none, np.zeros(0))
+    assert rows.shape == near.shape == (0,)
+    rows, near = near_segments(none, points, np.ones(1), points, points, np.ones(1))
+    assert rows.shape == near.shape == (0,)

@@ -138,7 +138,7 @@ def near_segments(points: np.ndarray, centre: np.ndarray, radius: np.ndarray, st
     segment, as a KD-tree's ball query finds them) and within ``widest`` of the segment: the segments' rows and the
     points' indices, by segment, then point. Every segment against every point, in blocks: a view holds a few hundred
     detections, and the discs around long segments hold ten times more of them than the bands do."""
-    out_rows, out_points = [], []
+    out_rows, out_points = [np.zeros(0, dtype=np.int64)], [np.zeros(0, dtype=np.int64)]
     l2 = np.maximum(step[:, 0] ** 2 + step[:, 1] ** 2, 1e-12)
     # first the line through each segment (one product per pair; never nearer than the segment), with room for
     # rounding, then the exact tests on the few pairs left

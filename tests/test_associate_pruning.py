@@ -62,3 +62,12 @@ def test_the_seeds_floor_leaves_the_persons_of_a_crowd():
     np.testing.assert_array_equal(
         associate_views(copy.deepcopy(views), dataclasses.replace(first, seed_min_score=2.0)).members,
         associate_views(copy.deepcopy(views), dataclasses.replace(first, seed_min_score=None)).members)
+
+
+def test_groups_grown_under_the_seeds_floor_are_not_rescored():
+    views, _ = _crowd_views(seed=4)
+    options = AssociateOptions(pixel_sigma=1.5, detection_probability=0.8)
+    every = dataclasses.replace(options, seed_min_score=None)
+    other = dataclasses.replace(every, detection_probability=0.6)
+    assert _Frame(views, every).rescored(views, other) is not None  # the groups do not depend on the rates
+    assert _Frame(views, options).rescored(views, dataclasses.replace(options, detection_probability=0.6)) is None

@@ -307,13 +307,15 @@ class _Frame:
                  ) -> _Frame | None:
         """This frame under other score options or an appearance model (the views' descriptors as they are now),
         keeping the groups it grew; None where ``views`` are not its views as they were, or ``options`` change what
-        the groups depend on."""
+        the groups depend on (with the seeds' floor, the score itself: its seeds were chosen by it)."""
         geometry = ("heights", "pixel_sigma", "gate_sigmas", "member_gate", "clutter_radius_px")
         if len(views) != len(self.views) or any(a is not b for a, b in zip(views, self.views)):
             return None
         moved = any(not np.array_equal(shift, v.shift_px) or sigma != v.sigma_pose_px or xy is not v.xy
                     for (shift, sigma, xy), v in zip(self._posed, views))
         if moved or any(getattr(options, name) != getattr(self.options, name) for name in geometry):
+            return None
+        if self.options.seed_min_score is not None or options.seed_min_score is not None:
             return None
         frame = copy.copy(self)
         frame.options = options
@@ -593,7 +595,8 @@ class _Frame:
         ``free``: only among these detections."""
         # The groups depend on the views' geometry and ``free`` only, not on what the score weighs (the detection
         # probability, the heights' prior, the appearance, the clutter): a frame associated again with other rates
-        # or an appearance model re-scores the groups it already grew.
+        # or an appearance model re-scores the groups it already grew (not under the seeds' floor, which the score
+        # sets).
         key = None if free is None else free.tobytes()
         grown = self._grown.get(key)
         if grown is None:

@@ -57,3 +57,96 @@ def test_the_head_between_two_facing_cameras_is_a_candidate_pair():
     a, b = _facing_pair(head)
     seeds = _Frame([a, b], AssociateOptions(pixel_sigma=1.5)).pair_candidates()
     assert [0, 1] in seeds.tolist()
+
+
+def _crowd_views(seed: int = 0, heads: int = 120, noise_px: float = 1.0) -> tuple[list[View], np.ndarray]:
+    """Five cameras on a ring 18 m across (two of them facing each other), all aimed at a crowd of ``heads`` heads
+    at 1.6-1.9 m; each detects every head it sees with ``noise_px`` of noise, and a few false heads."""
+    rng = np.random.default_rng(seed)
+    points = np.c_[rng.uniform(-4, 4, (heads, 2)), rng.uniform(1.6, 1.9, heads)]
+    views = []
+    for k, angle in enumerate(np.radians([0, 72, 144, 180, 252])):
+        centre = np.array([9 * np.cos(angle), 9 * np.sin(angle), 3.5])
+        view = _view(f"v{k}", centre, np.array([0.0, 0.0, 1.7]), points)
+        inside = (view.xy[:, 0] >= 0) & (view.xy[:, 0] < W) & (view.xy[:, 1] >= 0) & (view.xy[:, 1] < H)
+        xy = view.xy[inside] + rng.normal(0, noise_px, (int(inside.sum()), 2))
+        view.xy = np.r_[xy, rng.uniform([0, 0], [W, H], (5, 2))]
+        views.append(view)
+    return views, points
+
+
+def _ball_seeds(frame: _Frame) -> np.ndarray:
+    """The pair seeds as every detection of j within a disc around each segment (a KD-tree's ball query), then in
+    its band: what pair_candidates' line test must not change."""
+    from rigsfm.associate.segments import MIN_DEPTH_M, band_sigma, in_front, nearest_on_rays
+
+    lo, hi = frame.options.heights
+    seeds = []
+    for i in range(len(frame.views)):
+        di = np.arange(frame.offsets[i], frame.offsets[i + 1])
+        p_lo, p_hi = frame.ray_points(di, lo), frame.ray_points(di, hi)
+        for j in range(i + 1, len(frame.views)):
+            view_j, ci, cj = frame.views[j], frame.centres[i], frame.centres[j]
+            start, end, ok = in_front(view_j, p_lo, p_hi)
+            a, b = view_j.project(start)[0], view_j.project(end)[0]
+            step = end - start
+            t = np.clip(np.nan_to_num(np.sum((cj - start) * step, axis=1) / np.sum(step ** 2, axis=1)), 0.0, 1.0)
+            near_j = np.maximum(np.linalg.norm(start + t[:, None] * step - cj, axis=1), MIN_DEPTH_M)
+            far_i = np.maximum(np.linalg.norm(start - ci, axis=1), np.linalg.norm(end - ci, axis=1))
+            carried = frame.noise[i] * frame.focals[j] * far_i / (frame.focals[i] * near_j)
+            reach = frame.options.gate_sigmas * np.sqrt(frame.noise[j] ** 2 + carried ** 2)
+            ball = frame.trees[j].query_ball_point((a + b) / 2, np.linalg.norm(b - a, axis=1) / 2 + reach)
+            for r in np.flatnonzero(ok):
+                for c in frame.tree_index[j][np.asarray(ball[r], dtype=np.int64)]:
+                    p, s = frame.uv[c], b[r] - a[r]
+                    along = np.clip(np.dot(p - a[r], s) / max(np.dot(s, s), 1e-12), 0.0, 1.0)
+                    head = nearest_on_rays(ci, frame.rays[di[r]][None], cj, frame.rays[c][None],
+                                           np.linalg.norm(p_lo[r] - ci)[None], np.linalg.norm(p_hi[r] - ci)[None])
+                    sigma = band_sigma(head, ci, cj, frame.focals[i], frame.focals[j], frame.noise[i], frame.noise[j])
+                    if np.linalg.norm(p - (a[r] + along * s)) <= frame.options.gate_sigmas * sigma[0]:
+                        seeds.append((i, di[r], j, c))
+    return np.array(sorted(seeds))
+
+
+def test_pair_seeds_are_the_ball_searches_in_their_bands():
+    views, _ = _crowd_views()
+    frame = _Frame(views, AssociateOptions(pixel_sigma=1.5))
+    seeds = frame.pair_candidates()
+    found = np.array(sorted((int(np.flatnonzero(m >= 0)[0]), int(m[m >= 0][0]), int(np.flatnonzero(m >= 0)[1]),
+                             int(m[m >= 0][1])) for m in seeds))
+    reference = _ball_seeds(frame)
+    assert len(reference) > 500  # the crowd fills the bands with chance pairs
+    np.testing.assert_array_equal(found, reference)
+
+
+def test_the_pairs_em_candidates_are_the_ball_searches_within_the_gate():
+    from rigsfm.associate.solve import _epipolar_offsets, _segment_in, _signed_distance
+
+    views, _ = _crowd_views(seed=3)
+    frame = _Frame(views, AssociateOptions(pixel_sigma=1.5))
+    found = {(i, j): (d, gi) for i, j, d, gi, _gj, _gate in _epipolar_offsets(frame)}
+    total = 0
+    for i in range(len(views)):
+        di = np.arange(frame.offsets[i], frame.offsets[i + 1])
+        for j in range(i + 1, len(views)):
+            a, b, ok = _segment_in(frame, i, j, frame.uv[di])
+            ok &= np.linalg.norm(b - a, axis=1) > 1e-6
+            gate = frame.options.gate_sigmas * np.hypot(frame.noise[i], frame.noise[j])
+            ball = frame.trees[j].query_ball_point((a + b) / 2, np.linalg.norm(b - a, axis=1) / 2 + gate)
+            ra = np.array([r for r in np.flatnonzero(ok) for _ in ball[r]], dtype=np.int64)
+            cb = frame.tree_index[j][np.array([c for r in np.flatnonzero(ok) for c in ball[r]], dtype=np.int64)]
+            d, t, _ = _signed_distance(frame.uv[cb], a[ra], b[ra])
+            keep = (t > 0) & (t < 1) & (np.abs(d) <= gate)
+            total += int(keep.sum())
+            np.testing.assert_array_equal(found.get((i, j), (np.zeros(0), None))[0], d[keep])
+    assert total > 500
+
+
+def test_no_segment_or_no_detection_gives_no_candidate():
+    from rigsfm.associate.segments import near_segments
+
+    points, none = np.array([[10.0, 10.0]]), np.zeros((0, 2))
+    rows, near = near_segments(points, none, np.zeros(0), none, none, np.zeros(0))
+    assert rows.shape == near.shape == (0,)
+    rows, near = near_segments(none, points, np.ones(1), points, points, np.ones(1))
+    assert rows.shape == near.shape == (0,)

@@ -39,14 +39,18 @@ def read_grey(path: Path) -> np.ndarray | None:
     return None if image is None else image.astype(np.float64)
 
 
-def _box_means(integral: np.ndarray, centres: np.ndarray, half: float, shape: tuple[int, int]) -> np.ndarray:
-    h, w = shape
+def _box_means(grey: np.ndarray, centres: np.ndarray, half: float) -> np.ndarray:
+    """The mean grey of the box of half-width ``half`` around each of ``centres``, cut to the image: each box summed
+    where it lies (a few hundred small boxes: far less than an integral image of the whole frame, and for the greys
+    of an image file, whole numbers, the same sums to the bit)."""
+    h, w = grey.shape
     x0 = np.clip(np.round(centres[:, 0] - half), 0, w - 1).astype(np.int64)
     x1 = np.clip(np.round(centres[:, 0] + half) + 1, 1, w).astype(np.int64)
     y0 = np.clip(np.round(centres[:, 1] - half), 0, h - 1).astype(np.int64)
     y1 = np.clip(np.round(centres[:, 1] + half) + 1, 1, h).astype(np.int64)
     x1, y1 = np.maximum(x1, x0 + 1), np.maximum(y1, y0 + 1)
-    total = integral[y1, x1] - integral[y0, x1] - integral[y1, x0] + integral[y0, x0]
+    total = np.array([grey[a:b, c:d].sum() for a, b, c, d in zip(y0.tolist(), y1.tolist(), x0.tolist(), x1.tolist())],
+                     dtype=np.float64)
     return total / ((x1 - x0) * (y1 - y0))
 
 
@@ -55,12 +59,10 @@ def describe(grey: np.ndarray, xy: np.ndarray, head_px: float) -> np.ndarray:
     head's apparent radius being ``head_px``; the torso lies below the head in the image (upright cameras)."""
     if not len(xy):
         return np.zeros((0, 2))
-    integral = np.zeros((grey.shape[0] + 1, grey.shape[1] + 1))
-    integral[1:, 1:] = grey.cumsum(axis=0).cumsum(axis=1)
     median = max(float(np.median(grey)), 1.0)
-    head = _box_means(integral, xy, max(0.5 * head_px, 1.0), grey.shape)
+    head = _box_means(grey, xy, max(0.5 * head_px, 1.0))
     below = xy + np.array([0.0, head_px * TORSO_BELOW_M / HEAD_RADIUS_M])
-    torso = _box_means(integral, below, max(0.8 * head_px, 1.0), grey.shape)
+    torso = _box_means(grey, below, max(0.8 * head_px, 1.0))
     return np.log(np.maximum(np.c_[head, torso], 1.0) / median)
 
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -21,6 +22,10 @@ class AssociateOptions:
     gate_sigmas: float = 3.5  # candidate pairs: distance to i's ray segment in j within this many sigmas
     member_gate: float = 3.5  # a member's reprojection within this many sigmas of the person's point
     min_score: float = -2.0  # keep hypotheses whose score exceeds this (measured best on rendered crowds)
+    # In a carried frame (associate_frames' later frames), a pair seed grows into other views only where its own
+    # score, its misses left out, exceeds this (the chance pairs of a crowd's bands, most of the seeds, grow into
+    # nothing the packing keeps); None: every seed grows. A first frame grows every seed.
+    seed_min_score: float | None = -4.0
     # Associate again among the detections the packing left free, each hypothesis re-scored against the free
     # detections' density (persons seen in two views only).
     second_pass: bool = True
@@ -48,6 +53,8 @@ class AssociateOptions:
             raise ValueError(f"detection probability must be in (0, 1), got {self.detection_probability}")
         if self.height_prior is not None and not self.height_prior[1] > 0:
             raise ValueError(f"the height prior's sigma must be > 0 m, got {self.height_prior[1]}")
+        if self.seed_min_score is not None and not math.isfinite(self.seed_min_score):
+            raise ValueError(f"the seeds' minimum score must be a finite number or None, got {self.seed_min_score}")
         if not (self.gate_sigmas > 0 and self.member_gate > 0 and self.cell_m > 0 and self.time_limit_s > 0
                 and self.persons_per_m2 > 0):
             raise ValueError("gates, cell size and time limit must be > 0")

@@ -104,12 +104,21 @@ def pair_seeds(frame: _Frame, i: int, j: int, di: np.ndarray, p_lo: np.ndarray, 
     seg = b - a
     length = np.linalg.norm(seg, axis=1)
     rows = np.flatnonzero(ok)
-    near = tree.query_ball_point(((a + b) / 2)[ok], length[ok] / 2 + reach[ok])
-    counts = np.array([len(n) for n in near], dtype=np.int64)
-    if not counts.sum():
+    # The band anywhere on the whole segment (the part behind j included, where the candidates' heads may fall):
+    # no candidate farther from its segment than this can be inside its band.
+    full = p_hi - p_lo
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = np.clip(np.nan_to_num(np.sum((centre_j - p_lo) * full, axis=1) / np.sum(full ** 2, axis=1)), 0.0, 1.0)
+    nearest_j = np.maximum(np.linalg.norm(p_lo + t[:, None] * full - centre_j, axis=1), MIN_DEPTH_M)
+    farthest_i = np.maximum(np.linalg.norm(p_lo - centre_i, axis=1), np.linalg.norm(p_hi - centre_i, axis=1))
+    widest = gate * np.sqrt(frame.noise[j] ** 2 + (frame.noise[i] * (frame.focals[j] * farthest_i)
+                                                   / (frame.focals[i] * nearest_j)) ** 2)
+    widest = widest * (1 + 1e-9) + 1e-9  # the band below is computed otherwise: room for its rounding
+    ra, cb = near_segments(frame.uv[frame.tree_index[j]], ((a + b) / 2)[rows], (length / 2 + reach)[rows],
+                            a[rows], seg[rows], widest[rows])
+    if not len(ra):
         return None
-    ra = np.repeat(rows, counts)
-    cb = frame.tree_index[j][np.concatenate([np.asarray(n, dtype=np.int64) for n in near])]
+    ra, cb = rows[ra], frame.tree_index[j][cb]
     p = frame.uv[cb]
     s = seg[ra]
     l2 = np.maximum(np.sum(s ** 2, axis=1), 1e-12)
@@ -118,3 +127,35 @@ def pair_seeds(frame: _Frame, i: int, j: int, di: np.ndarray, p_lo: np.ndarray, 
     head = nearest_on_rays(centre_i, frame.rays[di[ra]], frame.centres[j], frame.rays[cb],
                            np.linalg.norm(p_lo[ra] - centre_i, axis=1), np.linalg.norm(p_hi[ra] - centre_i, axis=1))
     return ra, cb, dist <= gate * band_sigma(head, *args)
+
+
+CELLS_PER_BLOCK = 1 << 20  # segment-detection pairs tested at once
+
+
+def near_segments(points: np.ndarray, centre: np.ndarray, radius: np.ndarray, start: np.ndarray, step: np.ndarray,
+                   widest: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per segment (``start`` + [0, 1] ``step``), the ``points`` within ``radius`` of ``centre`` (the disc around the
+    segment, as a KD-tree's ball query finds them) and within ``widest`` of the segment: the segments' rows and the
+    points' indices, by segment, then point. Every segment against every point, in blocks: a view holds a few hundred
+    detections, and the discs around long segments hold ten times more of them than the bands do."""
+    out_rows, out_points = [np.zeros(0, dtype=np.int64)], [np.zeros(0, dtype=np.int64)]
+    l2 = np.maximum(step[:, 0] ** 2 + step[:, 1] ** 2, 1e-12)
+    # first the line through each segment (one product per pair; never nearer than the segment), with room for
+    # rounding, then the exact tests on the few pairs left
+    line = (widest * (1 + 1e-6)) ** 2 * l2
+    block = max(1, CELLS_PER_BLOCK // max(len(points), 1))
+    for k in range(0, len(centre), block):
+        s, a = step[k:k + block], start[k:k + block]
+        cross = (points[None, :, 0] - a[:, 0, None]) * s[:, 1, None] - (points[None, :, 1] - a[:, 1, None]) * s[:, 0, None]
+        r, q = np.nonzero(cross ** 2 <= line[k:k + block, None])
+        out_rows.append(r + k)
+        out_points.append(q)
+    rows, near = np.concatenate(out_rows), np.concatenate(out_points)
+    p = points[near]
+    d = p - centre[rows]
+    inside = d[:, 0] ** 2 + d[:, 1] ** 2 <= radius[rows] ** 2
+    e, s = p - start[rows], step[rows]
+    t = np.clip((e[:, 0] * s[:, 0] + e[:, 1] * s[:, 1]) / l2[rows], 0.0, 1.0)
+    gap = np.hypot(e[:, 0] - t * s[:, 0], e[:, 1] - t * s[:, 1])
+    keep = inside & (gap <= widest[rows])
+    return rows[keep], near[keep]

@@ -40,9 +40,10 @@ import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
 from rigsfm.associate.appearance import AppearanceModel, describe, estimate, head_radius_px
+from rigsfm.associate.occupancy import CountGrid
 from rigsfm.associate.options import AssociateOptions
 from rigsfm.associate.rates import truncated_binomial_p
-from rigsfm.associate.segments import pair_seeds
+from rigsfm.associate.segments import near_segments, pair_seeds
 from rigsfm.core.ground import undistort_pixels
 
 logger = logging.getLogger(__name__)
@@ -291,6 +292,7 @@ class _Frame:
         self.centres = np.array([v.centre for v in views])
         self.focals = np.array([v.focal for v in views])
         self.trees = [cKDTree(u[np.all(np.isfinite(u), axis=1)]) if len(u) else None for u in undist]
+        self.grids = [CountGrid(u[np.all(np.isfinite(u), axis=1)]) if len(u) else None for u in undist]
         self.tree_index = [np.flatnonzero(np.all(np.isfinite(u), axis=1)) + self.offsets[i]
                            for i, u in enumerate(undist)]
         # Clutter density (detections per px^2) around each detection: crowds fill a band of the image (the heads'
@@ -305,13 +307,15 @@ class _Frame:
                  ) -> _Frame | None:
         """This frame under other score options or an appearance model (the views' descriptors as they are now),
         keeping the groups it grew; None where ``views`` are not its views as they were, or ``options`` change what
-        the groups depend on."""
+        the groups depend on (with the seeds' floor, the score itself: its seeds were chosen by it)."""
         geometry = ("heights", "pixel_sigma", "gate_sigmas", "member_gate", "clutter_radius_px")
         if len(views) != len(self.views) or any(a is not b for a, b in zip(views, self.views)):
             return None
         moved = any(not np.array_equal(shift, v.shift_px) or sigma != v.sigma_pose_px or xy is not v.xy
                     for (shift, sigma, xy), v in zip(self._posed, views))
         if moved or any(getattr(options, name) != getattr(self.options, name) for name in geometry):
+            return None
+        if self.options.seed_min_score is not None or options.seed_min_score is not None:
             return None
         frame = copy.copy(self)
         frame.options = options
@@ -484,14 +488,17 @@ class _Frame:
     def _nearest(self, v: int, uv: np.ndarray, bound: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
         """The ``k`` detections of view v nearest each of ``uv`` (into its tree; inf / n where none) among those
         within the row's ``bound``, or beyond it (those a caller's gate rejects anyway): rows whose bound box misses
-        every detection are not searched, and the others are searched in groups of similar bound, each under its
-        largest (a tight bound prunes the tree's search)."""
+        every detection, or whose disc's grid cells hold none (most rows), are not searched, and the others are
+        searched in groups of similar bound, each under its largest (a tight bound prunes the tree's search)."""
         tree = self.trees[v]
         assert tree is not None  # views with detections have trees
         dist = np.full((len(uv), k), np.inf)
         near = np.full((len(uv), k), tree.n, dtype=np.int64)
         lo, hi = tree.mins, tree.maxes
         meets = np.all((uv >= lo - bound[:, None]) & (uv <= hi + bound[:, None]), axis=1)
+        grid = self.grids[v]
+        assert grid is not None  # built with the tree
+        meets[meets] = grid.any_within(uv[meets], bound[meets])
         rows = np.flatnonzero(meets)
         rows = rows[np.argsort(bound[rows], kind="stable")]
         for part in np.array_split(rows, min(4, len(rows))) if len(rows) else []:
@@ -521,7 +528,11 @@ class _Frame:
         return members, points, covariance, *checked
 
     @_rowwise
-    def score(self, members: np.ndarray, points: np.ndarray, covariance: np.ndarray) -> np.ndarray:
+    def score(self, members: np.ndarray, points: np.ndarray, covariance: np.ndarray, misses: bool = True,
+              floor: float | None = None) -> np.ndarray:
+        """Each group's log-likelihood ratio against clutter. ``misses=False``: without the views that see its point
+        and hold no member (each costs, so that is an upper bound of the full score). ``floor``: a group whose bound
+        is at or below it scores -inf (its full score is at most the bound), its misses not counted."""
         p_d = self.options.detection_probability
         assert p_d is not None  # associate_views resolves it
         lo, hi = self.options.heights
@@ -542,14 +553,33 @@ class _Frame:
         per_member = math.log(p_d) - np.log(clutter) - np.log(2 * math.pi * self.noise ** 2)[None] \
             - 0.5 * np.nan_to_num(d2, nan=0.0, posinf=1e6)
         total = prior + np.sum(np.where(present, per_member, 0.0), axis=1)
+        appearance = self.appearance.group_log_ratio(self.descriptors, members) \
+            if self.appearance is not None and self.descriptors is not None else None
+        kept = None
+        if misses and floor is not None:
+            # the misses (the costly part: every view's lens) only where they can matter
+            kept = (total if appearance is None else total + appearance) > floor
+            rows = np.flatnonzero(kept)
+            miss_total = total[rows]
+            self._add_misses(miss_total, points[rows], present[rows])
+            total[rows] = miss_total
+        elif misses:
+            self._add_misses(total, points, present)
+        if appearance is not None:
+            total += appearance
+        if kept is not None:
+            total[~kept] = -np.inf
+        return total
+
+    def _add_misses(self, total: np.ndarray, points: np.ndarray, present: np.ndarray) -> None:
+        """Add, in place, the cost of every view that sees a point inside its image and holds no member."""
+        p_d = self.options.detection_probability
+        assert p_d is not None  # associate_views resolves it
         miss = math.log(max(1.0 - p_d, 1e-6))
         for v, view in enumerate(self.views):
             uv, z = view.project(points)
             seen = view.inside(uv, z) & ~present[:, v]
             total += np.where(seen, miss, 0.0)
-        if self.appearance is not None and self.descriptors is not None:
-            total += self.appearance.group_log_ratio(self.descriptors, members)
-        return total
 
     @_rowwise
     def seen(self, points: np.ndarray) -> np.ndarray:
@@ -561,10 +591,12 @@ class _Frame:
         return count
 
     def hypotheses(self, free: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """Candidate persons (members, points, covariances, scores); ``free``: only among these detections."""
+        """Candidate persons (members, points, covariances, scores: -inf at or below the options' minimum score);
+        ``free``: only among these detections."""
         # The groups depend on the views' geometry and ``free`` only, not on what the score weighs (the detection
         # probability, the heights' prior, the appearance, the clutter): a frame associated again with other rates
-        # or an appearance model re-scores the groups it already grew.
+        # or an appearance model re-scores the groups it already grew (not under the seeds' floor, which the score
+        # sets).
         key = None if free is None else free.tobytes()
         grown = self._grown.get(key)
         if grown is None:
@@ -572,7 +604,8 @@ class _Frame:
             self._grown = {k: g for k, g in self._grown.items() if k is None}  # the first pass's, and this one
             self._grown[key] = grown
         members, points, covariance = grown
-        return members, points, covariance, self.score(members, points, covariance)
+        # those at or below the minimum score are left out by every caller: -inf, their misses not counted
+        return members, points, covariance, self.score(members, points, covariance, floor=self.options.min_score)
 
     def _grown_hypotheses(self, free: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The groups of ``hypotheses`` before their scores."""
@@ -594,6 +627,10 @@ class _Frame:
             np.nan_to_num(self.residuals(seeds, points), nan=0.0) <= self.options.member_gate ** 2, axis=1)
         members = seeds[ok]
         points, covariance = points[ok], covariance[ok]
+        floor = self.options.seed_min_score
+        if floor is not None:
+            strong = self.score(members, points, covariance, misses=False) > floor
+            members, points, covariance = members[strong], points[strong], covariance[strong]
         groups = [members]
         for _ in range(2):
             members = only_free(self.grow(members, points, covariance, single=True))
@@ -806,12 +843,15 @@ def _epipolar_offsets(frame: _Frame) -> list[tuple[int, int, np.ndarray, np.ndar
             length = np.linalg.norm(b - a, axis=1)
             ok &= length > 1e-6
             gate = frame.options.gate_sigmas * math.hypot(frame.noise[i], frame.noise[j])
-            near = tree.query_ball_point(((a + b) / 2)[ok], length[ok] / 2 + gate)
-            counts = np.array([len(n) for n in near], dtype=np.int64)
-            if not counts.sum():
+            # the detections in the disc around each segment (as a ball search finds them) that may lie in its band
+            # (room for the rounding of the distance below); the others are never kept
+            rows = np.flatnonzero(ok)
+            found, near = near_segments(frame.uv[frame.tree_index[j]], ((a + b) / 2)[rows], length[rows] / 2 + gate,
+                                        a[rows], (b - a)[rows], np.full(len(rows), gate * (1 + 1e-9) + 1e-9))
+            if not len(found):
                 continue
-            ra = np.repeat(np.flatnonzero(ok), counts)
-            p = frame.uv[frame.tree_index[j][np.concatenate([np.asarray(n, dtype=np.int64) for n in near])]]
+            ra = rows[found]
+            p = frame.uv[frame.tree_index[j][near]]
             d, t, normal = _signed_distance(p, a[ra], b[ra])
             keep = (t > 0) & (t < 1) & (np.abs(d) <= gate)
             grad_i = np.zeros((len(d), 2))
@@ -873,11 +913,13 @@ def pairwise_view_shifts(frame: _Frame, options: AssociateOptions, starts: int =
         np.add.at(rhs, cols.ravel(), sums[:, 10:].ravel() / var)
         return lhs + np.diag(precision), rhs
 
-    def loglik(x, share):
+    def loglik(x, share, value=True):
         r = residual(x)
         shares = np.repeat(share, sizes)  # share[pair_of]
         inlier = shares * np.exp(-0.5 * r ** 2 / var) / math.sqrt(2 * math.pi * var)
         mix = inlier + (1 - shares) * uniform
+        if not value:  # the EM's steps need the weights only
+            return None, inlier / mix
         return float(np.sum(np.log(mix)) - 0.5 * np.sum(precision * x ** 2)), inlier / mix
 
     counts = np.maximum(np.bincount(pair_of, minlength=len(pairs)), 1)
@@ -887,7 +929,7 @@ def pairwise_view_shifts(frame: _Frame, options: AssociateOptions, starts: int =
         x = np.zeros(2 * nv) if start == 0 else rng.normal(0.0, np.repeat(prior, 2))
         share = np.full(len(pairs), 0.1)
         for _ in range(50):
-            _, w = loglik(x, share)
+            _, w = loglik(x, share, value=False)
             share = np.clip(np.bincount(pair_of, w, len(pairs)) / counts, 1e-3, 0.999)
             # r = d + J x: the weighted least squares with the prior
             lhs, rhs = normal_equations(w)
@@ -987,8 +1029,14 @@ def associate_views(views: list[View], options: AssociateOptions, carried: bool 
     The appearance model is estimated once, from the first frame's association without it, and carried as the rates
     are: groups found under a model look alike by construction, so a model re-estimated from them would narrow frame
     by frame. A carried frame without an earlier model (or a view without a carried head size) estimates its own,
-    as a first frame does, at the cost of a second association."""
+    as a first frame does, at the cost of a second association.
+
+    ``options.seed_min_score`` holds for carried frames only: a first frame grows every pair seed (its first
+    associations run at the run's wide bands, without the crowd's heights, where a seed's own score says less, and
+    its self-calibration turns small changes of its groups into other shifts)."""
     names = [v.name for v in views]
+    if not carried:
+        options = dataclasses.replace(options, seed_min_score=None)
     given = options
     start = earlier.detection_probability if earlier is not None else None
     options = dataclasses.replace(options, detection_probability=options.detection_probability or start

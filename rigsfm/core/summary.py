@@ -82,6 +82,7 @@ class UncertaintySummary:
     pixel_sigma_px: float | None = None  # the images' weighting noise per coordinate (estimated x inflation)
     floor: str = "none"  # where the bands' analysis points lie: known_lengths, points, none (depths)
     bands: str = "linear"  # linear in the covariance, or sampled (re-adjusted over calibration draws: <= 3 rigs)
+    bands_from: str = "wide only"  # the adjustment they are of: "with narrow observations" or "wide only"
     narrow: dict[str, NarrowUncertaintySummary] = field(default_factory=dict)  # per narrow image
     pairs: list[PairBandSummary] = field(default_factory=list)
     refined_calibration: dict[str, dict] = field(default_factory=dict)  # per camera: change and posterior sigma

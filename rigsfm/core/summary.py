@@ -75,6 +75,9 @@ class PairBandSummary:
     predicted_below_85: float | None = None  # the model's probability that < 85 % of this pair's points are inside
 
 
+BANDS_WITH_NARROW = "with narrow observations"  # UncertaintySummary.bands_from: the adjustment with them
+
+
 @dataclass(kw_only=True)
 class UncertaintySummary:
     calibration: str = "fixed"  # refine or fixed (rigsfm.run.options.Calibration)
@@ -158,7 +161,7 @@ class SelfCheckPairSummary:
     matches: int = 0
     median_px: float | None = None
     p95_px: float | None = None
-    within_band: float | None = None
+    within_band: float | None = None  # share of the matches within band_px + keypoint noise (settings)
     band_matches: int = 0
     measured_within_px: float | None = None
     verdict: str = "too few matches"
@@ -203,7 +206,7 @@ class HeldOutCheckSummary:
     held_out: int = 0
     median_px: float | None = None
     p95_px: float | None = None
-    within_band: float | None = None
+    within_band: float | None = None  # share of the held-out matches within band_px + keypoint noise
     verdict: str = "too few matches"
 
 

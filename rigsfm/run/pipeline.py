@@ -23,6 +23,7 @@ from rigsfm.core.processes import in_child
 from rigsfm.core.residuals import reprojection_errors
 from rigsfm.core.rig import RigCalibration, load_rigs
 from rigsfm.core.summary import (
+    BANDS_WITH_NARROW,
     CameraError,
     FrameOffsetsSummary,
     InputsSummary,
@@ -36,7 +37,7 @@ from rigsfm.inspect.report import write_report
 from rigsfm.run.adjustment.adjust import AdjustResult, ScaleSource, adjust
 from rigsfm.run.adjustment.priors import CalibrationPriors, calibration_priors
 from rigsfm.run.adjustment.scale_check import check_scale_agreement
-from rigsfm.run.adjustment.uncertainty import BANDS_WITH_NARROW, estimate_uncertainty, uncertainty_summary
+from rigsfm.run.adjustment.uncertainty import estimate_uncertainty, uncertainty_summary
 from rigsfm.run.checks.diagnostics import check_reconstruction
 from rigsfm.run.checks.missed_pairs import pairs_report
 from rigsfm.run.deliver import narrow_poses, write_model, write_points_ply

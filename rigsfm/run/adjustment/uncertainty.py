@@ -32,10 +32,7 @@ class Uncertainty:
     floor: str  # where the band's analysis points come from: floor_fit (the world stage), known_lengths, points, none
     seconds: dict[str, float]
     sampled: bool = False  # bands re-adjusted over calibration draws (sampled_pair_bands), not linear
-    bands_from: str = "wide only"  # the adjustment: BANDS_WITH_NARROW when the narrow observations' second one
-
-
-BANDS_WITH_NARROW = "with narrow observations"
+    bands_from: str = "wide only"  # the adjustment: rigsfm.core.summary.BANDS_WITH_NARROW for the second one
 
 
 # Networks this small get the sampled band (sampled_pair_bands): there the linear band covers less than it says

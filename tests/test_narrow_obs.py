@@ -114,3 +114,21 @@ def test_the_delivered_bands_are_the_adjustment_with_narrow_observations(crowd_r
     # the held-out matches are judged against the delivered (narrower) band with their keypoint noise
     checks = runs[NarrowMode.AUTO].summary.narrow_observations.held_out_check
     assert checks and all(c.band_px == pytest.approx(bands[NarrowMode.AUTO][(c.i, c.j)], abs=1e-3) for c in checks)
+
+
+def test_the_covariance_weighs_each_narrow_pair_by_its_own_noise(crowd_runs):
+    """The covariance with narrow observations estimates each narrow pair's noise and correlation from the
+    adjusted model's own epipolar distances (rigsfm.run.adjustment.correlated); a run without them has no narrow
+    pair, so its covariance is the one of before."""
+    from rigsfm.run.adjustment.correlated import narrow_pair_noise
+
+    _, runs = crowd_runs
+    found = {}
+    for mode, result in runs.items():
+        model = result.reconstruction
+        narrow = {image.camera_id for image in model.images.values() if "/narrow/" in image.name}
+        found[mode] = narrow_pair_noise(model, narrow)
+    assert found[NarrowMode.OFF] == ([], {})
+    pairs, by_point = found[NarrowMode.AUTO]
+    assert len(pairs) >= 3 and len(by_point) >= sum(p.points for p in pairs)
+    assert all(0.02 < p.sigma_px < 1.0 and 0.0 <= p.rho < 1.0 for p in pairs), pairs

@@ -13,7 +13,8 @@ epipolar distance's mean square) in place of the pooled one, inflated alike (``p
 adjustment absorbs a shared error into the geometry, so the residuals show less than the matches err; the smooth
 part it absorbs is not seen here either, only what it leaves), so each of the pair's residuals weighs
 ``weight_sigma / (inflation sigma sqrt(1 + (n - 1) rho))`` of a pooled one. A pair noisier than the pooled noise
-weighs less, a quieter one more. Only the covariance uses it; the estimate is unchanged. A network without
+weighs less, a quieter one more; a longer track (one keypoint matched in several pairs) weighs the mean of its
+pairs'. Only the covariance uses it; the estimate is unchanged. A network without
 narrow-only points has nothing to weigh, so its covariance is unchanged."""
 
 from __future__ import annotations
@@ -46,25 +47,26 @@ class PairNoise:
         return weight_sigma / (inflation * self.sigma_px * np.sqrt(1.0 + (self.points - 1) * self.rho))
 
 
-def _narrow_pairs(reconstruction: pycolmap.Reconstruction,
-                  narrow_cameras: set[int]) -> dict[tuple[int, int], tuple[list[int], np.ndarray, np.ndarray]]:
-    """Per pair of narrow images: its 2-view points seen only by narrow cameras (ids, keypoints in each image)."""
-    out: dict[tuple[int, int], tuple[list[int], list, list]] = {}
+def _narrow_points(reconstruction: pycolmap.Reconstruction, narrow_cameras: set[int]
+                   ) -> tuple[dict[tuple[int, int], tuple[list[int], np.ndarray, np.ndarray]], dict[int, list[int]]]:
+    """Points seen only by narrow cameras: per pair of narrow images its 2-view points (ids, keypoints in each
+    image), and the longer tracks (a keypoint of one image matched in several pairs) with their images."""
+    pairs: dict[tuple[int, int], tuple[list[int], list, list]] = {}
+    longer: dict[int, list[int]] = {}
     for point_id, point in reconstruction.points3D.items():
-        elements = point.track.elements
-        if len(elements) != 2:
-            continue
+        elements = sorted(point.track.elements, key=lambda e: e.image_id)
         images = [reconstruction.image(e.image_id) for e in elements]
-        if not all(im.has_pose and im.camera_id in narrow_cameras for im in images):
+        if len(elements) < 2 or not all(im.has_pose and im.camera_id in narrow_cameras for im in images):
             continue
-        order = np.argsort([e.image_id for e in elements])
-        first, second = (elements[k] for k in order)
-        key = (first.image_id, second.image_id)
-        ids, xy_a, xy_b = out.setdefault(key, ([], [], []))
+        if len(elements) > 2:
+            longer[point_id] = [e.image_id for e in elements]
+            continue
+        first, second = elements
+        ids, xy_a, xy_b = pairs.setdefault((first.image_id, second.image_id), ([], [], []))
         ids.append(point_id)
-        xy_a.append(np.asarray(reconstruction.image(first.image_id).points2D[first.point2D_idx].xy))
-        xy_b.append(np.asarray(reconstruction.image(second.image_id).points2D[second.point2D_idx].xy))
-    return {key: (ids, np.array(a), np.array(b)) for key, (ids, a, b) in out.items()}
+        xy_a.append(np.asarray(images[0].points2D[first.point2D_idx].xy))
+        xy_b.append(np.asarray(images[1].points2D[second.point2D_idx].xy))
+    return {key: (ids, np.array(a), np.array(b)) for key, (ids, a, b) in pairs.items()}, longer
 
 
 def _epipolar_distances(reconstruction: pycolmap.Reconstruction, image_a: int, image_b: int,
@@ -102,29 +104,38 @@ def pair_noise(distances: np.ndarray, xy: np.ndarray, images: tuple[int, int] = 
 
 
 def narrow_pair_noise(reconstruction: pycolmap.Reconstruction,
-                      narrow_cameras: set[int]) -> tuple[list[PairNoise], dict[int, PairNoise]]:
-    """Every narrow pair's noise (pairs with at least ``MIN_PAIR_POINTS`` matches), and per point the pair's."""
-    pairs, by_point = [], {}
-    for (image_a, image_b), (ids, xy_a, xy_b) in _narrow_pairs(reconstruction, narrow_cameras).items():
+                      narrow_cameras: set[int]) -> tuple[list[PairNoise], dict[int, list[PairNoise]]]:
+    """Every narrow pair's noise (pairs with at least ``MIN_PAIR_POINTS`` 2-view matches), and per point the pairs
+    its images form (one for a 2-view point; a longer track's, where estimated)."""
+    pairs_points, longer = _narrow_points(reconstruction, narrow_cameras)
+    pairs, by_point, by_images = [], {}, {}
+    for (image_a, image_b), (ids, xy_a, xy_b) in pairs_points.items():
         noise = pair_noise(_epipolar_distances(reconstruction, image_a, image_b, xy_a, xy_b), xy_a,
                            (image_a, image_b))
         if noise is None:
             continue
         pairs.append(noise)
-        by_point.update(dict.fromkeys(ids, noise))
+        by_images[image_a, image_b] = noise
+        by_point.update(dict.fromkeys(ids, [noise]))
+    for point_id, images in longer.items():
+        found = [by_images[a, b] for k, a in enumerate(images) for b in images[k + 1:] if (a, b) in by_images]
+        if found:
+            by_point[point_id] = found
     return pairs, by_point
 
 
 def correlated_point_weights(reconstruction: pycolmap.Reconstruction, narrow_cameras: set[int],
                              point_ids: list[int], weight_sigma: float, inflation: float) -> np.ndarray | None:
-    """Per point of ``point_ids`` (the Jacobian's point columns' order): the weight of its residuals (1 for points
-    not of a narrow pair); None when no narrow pair has matches enough (nothing changes)."""
+    """Per point of ``point_ids`` (the Jacobian's point columns' order): the weight of its residuals, its pair's
+    (a longer track: the mean of its pairs'; 1 for points of no estimated pair); None when no narrow pair has
+    matches enough (nothing changes)."""
     pairs, by_point = narrow_pair_noise(reconstruction, narrow_cameras)
     if not pairs:
         return None
     rho = [p.rho for p in pairs]
     sigma = [p.sigma_px for p in pairs]
     logger.info("Covariance: %d narrow pairs' matches weighed as correlated (correlation %.2f-%.2f, median %.2f; "
-                "noise %.2f-%.2f px against the pooled %.2f)", len(pairs), min(rho), max(rho), float(np.median(rho)),
-                min(sigma), max(sigma), weight_sigma)
-    return np.array([by_point[p].weight(weight_sigma, inflation) if p in by_point else 1.0 for p in point_ids])
+                "noise %.2f-%.2f px against the pooled %.2f / %.1f)", len(pairs), min(rho), max(rho),
+                float(np.median(rho)), min(sigma), max(sigma), weight_sigma / inflation, inflation)
+    return np.array([np.mean([n.weight(weight_sigma, inflation) for n in by_point[p]]) if p in by_point else 1.0
+                     for p in point_ids])

@@ -132,3 +132,5 @@ def test_the_covariance_weighs_each_narrow_pair_by_its_own_noise(crowd_runs):
     pairs, by_point = found[NarrowMode.AUTO]
     assert len(pairs) >= 3 and len(by_point) >= sum(p.points for p in pairs)
     assert all(0.02 < p.sigma_px < 1.0 and 0.0 <= p.rho < 1.0 for p in pairs), pairs
+    sigmas = [p.sigma_px for p in pairs]
+    assert max(sigmas) > 1.5 * min(sigmas), pairs  # pairs differ in noise: one pooled sigma would not do

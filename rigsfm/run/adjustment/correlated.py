@@ -14,7 +14,8 @@ adjustment absorbs a shared error into the geometry, so the residuals show less 
 part it absorbs is not seen here either, only what it leaves), so each of the pair's residuals weighs
 ``weight_sigma / (inflation sigma sqrt(1 + (n - 1) rho))`` of a pooled one. A pair noisier than the pooled noise
 weighs less, a quieter one more; a longer track (one keypoint matched in several pairs) weighs the mean of its
-pairs'. Only the covariance uses it; the estimate is unchanged. A network without
+pairs'. Where a pair's narrow calibration was held (``--fixed-calibration``), its smooth part is mostly that
+calibration's error, which the consider covariance carries already: the white part alone weighs it. Only the covariance uses it; the estimate is unchanged. A network without
 narrow-only points has nothing to weigh, so its covariance is unchanged."""
 
 from __future__ import annotations
@@ -40,10 +41,14 @@ class PairNoise:
     points: int
     sigma_px: float
     rho: float
+    white_px: float  # the white part alone, per image coordinate
 
-    def weight(self, weight_sigma: float, inflation: float) -> float:
+    def weight(self, weight_sigma: float, inflation: float, held: bool = False) -> float:
         """Of each residual, against the pooled weighting noise ``weight_sigma`` (``inflation`` times the pooled
-        noise: the pair's own noise is inflated alike)."""
+        noise: the pair's own noise is inflated alike). ``held``: a camera of the pair kept its calibration, whose
+        error then makes most of the smooth part; the consider covariance carries it, so the white part alone."""
+        if held:
+            return weight_sigma / (inflation * self.white_px)
         return weight_sigma / (inflation * self.sigma_px * np.sqrt(1.0 + (self.points - 1) * self.rho))
 
 
@@ -100,7 +105,8 @@ def pair_noise(distances: np.ndarray, xy: np.ndarray, images: tuple[int, int] = 
     if total <= 1e-18:  # exact matches: nothing to weigh
         return None
     smooth = max(total - white, 0.0)
-    return PairNoise(images, n, float(np.sqrt(total / 2.0)), smooth / (smooth + white) if smooth + white > 0 else 0.0)
+    return PairNoise(images, n, float(np.sqrt(total / 2.0)), smooth / (smooth + white) if smooth + white > 0 else 0.0,
+                     float(np.sqrt(max(white, 1e-18) / 2.0)))
 
 
 def narrow_pair_noise(reconstruction: pycolmap.Reconstruction,
@@ -125,10 +131,12 @@ def narrow_pair_noise(reconstruction: pycolmap.Reconstruction,
 
 
 def correlated_point_weights(reconstruction: pycolmap.Reconstruction, narrow_cameras: set[int],
-                             point_ids: list[int], weight_sigma: float, inflation: float) -> np.ndarray | None:
+                             point_ids: list[int], weight_sigma: float, inflation: float,
+                             held_cameras: set[int] = frozenset()) -> np.ndarray | None:  # type: ignore[assignment]
     """Per point of ``point_ids`` (the Jacobian's point columns' order): the weight of its residuals, its pair's
     (a longer track: the mean of its pairs'; 1 for points of no estimated pair); None when no narrow pair has
-    matches enough (nothing changes)."""
+    matches enough (nothing changes). ``held_cameras``: narrow cameras whose calibration the adjustment held
+    (``PairNoise.weight``'s ``held``)."""
     pairs, by_point = narrow_pair_noise(reconstruction, narrow_cameras)
     if not pairs:
         return None
@@ -137,5 +145,8 @@ def correlated_point_weights(reconstruction: pycolmap.Reconstruction, narrow_cam
     logger.info("Covariance: %d narrow pairs' matches weighed as correlated (correlation %.2f-%.2f, median %.2f; "
                 "noise %.2f-%.2f px against the pooled %.2f / %.1f)", len(pairs), min(rho), max(rho),
                 float(np.median(rho)), min(sigma), max(sigma), weight_sigma / inflation, inflation)
-    return np.array([np.mean([n.weight(weight_sigma, inflation) for n in by_point[p]]) if p in by_point else 1.0
-                     for p in point_ids])
+    def held(noise: PairNoise) -> bool:
+        return any(reconstruction.image(i).camera_id in held_cameras for i in noise.images)
+
+    weights = {id(n): n.weight(weight_sigma, inflation, held(n)) for n in pairs}
+    return np.array([np.mean([weights[id(n)] for n in by_point[p]]) if p in by_point else 1.0 for p in point_ids])

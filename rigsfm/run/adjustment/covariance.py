@@ -50,10 +50,13 @@ def _csr(jacobian: pyceres.CRSMatrix) -> sp.csr_matrix:
                          shape=(jacobian.num_rows, jacobian.num_cols))
 
 
-def _reduced_system(jp: JointProblem, max_error_px: float | None = None, inflation: float = 1.0):
+def _reduced_system(jp: JointProblem, max_error_px: float | None = None, inflation: float = 1.0,
+                    calibration_held: frozenset[str] | None = None):
     """Ceres' Jacobian of ``jp`` (tangent space) with the points eliminated (Schur complement, 3x3 blocks): the
     reduced normal matrix over the other blocks, every entry ``(key, block or None, size, tangent dims)``, the
-    variable ones, and the prior-only covariances; None (with a warning) when a point carries no information."""
+    variable ones, and the prior-only covariances; None (with a warning) when a point carries no information.
+    ``calibration_held``: the rigs whose calibration the estimate held (None: every rig's, ``FIXED``), for the
+    narrow pairs' weights (module correlated)."""
     rec, problem = jp.reconstruction, jp.problem
     entries: list[tuple[tuple, Any, int, Any]] = []  # (key, block or None, size, dims or None)
     for frame_id in jp.frame_ids:
@@ -104,7 +107,8 @@ def _reduced_system(jp: JointProblem, max_error_px: float | None = None, inflati
         logger.info("Covariance: repeated views of a point by one camera weighed as correlated (%d cameras, "
                     "correlation %.2f-%.2f)", len(rho), min(rho.values()), max(rho.values()))
     narrow_cameras = {camera_id for _, _, camera_id, _ in jp.narrow_sensors()}
-    point_weights = correlated_point_weights(rec, narrow_cameras, point_ids, jp.weight_sigma, inflation)
+    held_cameras = {c for c in narrow_cameras if calibration_held is None or jp.camera_names[c].rig in calibration_held}
+    point_weights = correlated_point_weights(rec, narrow_cameras, point_ids, jp.weight_sigma, inflation, held_cameras)
     if point_weights is not None:  # a narrow pair's matches share a smooth error (module correlated)
         jac = jac.tocsr()
         jac = sp.diags(np.r_[point_weights, 1.0][_row_points(jac, num_a, len(point_ids))]) @ jac
@@ -200,7 +204,8 @@ def joint_covariance(result: AdjustResult, image_only: bool = False) -> JointCov
     held = result.held_rigs if refined else frozenset()
     jp = JointProblem(rec, rigs, priors, result.scale_spec, options, pixel_sigma, gauge=gauge, robust=False,
                       with_priors=refined, held_rigs=held, consider_held=True)
-    reduced = _reduced_system(jp, options.max_reprojection_error_px, options.pixel_sigma_inflation)
+    reduced = _reduced_system(jp, options.max_reprojection_error_px, options.pixel_sigma_inflation,
+                              held if refined else None)
     if reduced is None:
         return None
     schur, entries, variable, prior_only = reduced

@@ -75,8 +75,9 @@ HOLD_OUT_EVERY = 5  # every 5th match of a pair (20 %) is kept out of the adjust
 MAX_PAIR_MATCHES = 150
 MIN_HELD_OUT = 10  # held-out matches a pair needs for a verdict
 # With narrow observations the delivered bands are those of the adjustment with them (the pipeline estimates its
-# uncertainty again); the first adjustment's only guide the heads search. Their matches count as independent
-# observations, which SIFT on warped views is not quite: see benchmarks/README.md on the coverage this leaves.
+# uncertainty again); the first adjustment's only guide the heads search. Its covariance weighs each pair's matches
+# by the pair's own noise and correlation, as SIFT on warped views errs alike over a region
+# (rigsfm.run.adjustment.correlated).
 BANDS_FROM = BANDS_WITH_NARROW
 MIN_TRIANGULATION_DEG = 1.0  # rays closer than this make no point
 

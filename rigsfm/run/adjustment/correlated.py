@@ -7,20 +7,16 @@ Counted as independent at the images' pooled weighting noise, a pair's shared er
 band does not allow for it. Per pair, from the adjusted model's own epipolar distances of its matches (not from any
 truth): a quadratic in the position of the match in the first image fits the smooth part; the white part is the
 fit's residual variance (its degrees of freedom counted), the smooth part what is left of the mean square beyond it.
-Its matches are then weighed like correlated observations (as a camera's repeated views are,
-:mod:`rigsfm.run.adjustment.repeated`), by what the shared part does to the geometry: the pair's geometry moves its
-distances nearly affinely in the position (1, x, y), so in an orthonormal basis of the quadratic's columns, where
-white noise puts the same variance on every direction, the smooth part's variance per direction is what the curved
-directions (x^2, xy, y^2) hold beyond the white part (the adjustment has absorbed the affine ones into the geometry;
-the field is taken to spread alike over them). Each of the pair's residuals then weighs
-``weight_sigma / (inflation white sqrt(factor))`` of a pooled one, ``white`` per image coordinate (half the
-distance's variance), inflated like the images' noise (``pixel_sigma_inflation``: what the residuals show
-underestimates what the matches err) and ``factor = 1 + smooth per direction / white``. A pair noisier than the
-pooled noise weighs less, a quieter one more; a longer track (one keypoint matched in several pairs) weighs the
-mean of its pairs'. Where a pair's narrow calibration was held (``--fixed-calibration``), its smooth part is mostly
-that calibration's error, which the consider covariance carries already: the white part alone weighs it. Only the
-covariance uses it; the estimate is unchanged. A network without narrow-only points has nothing to weigh, so its
-covariance is unchanged."""
+Its ``n`` matches are then weighed like a camera's repeated views (:mod:`rigsfm.run.adjustment.repeated`):
+correlation ``rho = smooth / (smooth + white)``, noise the pair's own ``sigma`` (per image coordinate, half the
+epipolar distance's mean square) in place of the pooled one, inflated alike (``pixel_sigma_inflation``: the
+adjustment absorbs a shared error into the geometry, so the residuals show less than the matches err; the smooth
+part it absorbs is not seen here either, only what it leaves), so each of the pair's residuals weighs
+``weight_sigma / (inflation sigma sqrt(1 + (n - 1) rho))`` of a pooled one. A pair noisier than the pooled noise
+weighs less, a quieter one more; a longer track (one keypoint matched in several pairs) weighs the mean of its
+pairs'. Where a pair's narrow calibration was held (``--fixed-calibration``), its smooth part is mostly that
+calibration's error, which the consider covariance carries already: the white part alone weighs it. Only the covariance uses it; the estimate is unchanged. A network without
+narrow-only points has nothing to weigh, so its covariance is unchanged."""
 
 from __future__ import annotations
 
@@ -34,7 +30,6 @@ logger = logging.getLogger(__name__)
 
 MIN_PAIR_POINTS = 15  # a pair with fewer matches keeps the pooled weighting (too few to fit the smooth part)
 SMOOTH_TERMS = 6  # 1, x, y, x^2, xy, y^2 in the first image's position
-AFFINE_TERMS = 3  # 1, x, y: what the pair's geometry changes
 POSITION_SCALE_PX = 100.0  # conditioning of the quadratic's columns
 
 
@@ -47,7 +42,6 @@ class PairNoise:
     sigma_px: float
     rho: float
     white_px: float  # the white part alone, per image coordinate
-    factor: float = 1.0  # variance of the pair's affine directions over the white part's (module docstring)
 
     def weight(self, weight_sigma: float, inflation: float, held: bool = False) -> float:
         """Of each residual, against the pooled weighting noise ``weight_sigma`` (``inflation`` times the pooled
@@ -55,7 +49,7 @@ class PairNoise:
         error then makes most of the smooth part; the consider covariance carries it, so the white part alone."""
         if held:
             return weight_sigma / (inflation * self.white_px)
-        return weight_sigma / (inflation * self.white_px * np.sqrt(self.factor))
+        return weight_sigma / (inflation * self.sigma_px * np.sqrt(1.0 + (self.points - 1) * self.rho))
 
 
 def _narrow_points(reconstruction: pycolmap.Reconstruction, narrow_cameras: set[int]
@@ -104,21 +98,15 @@ def pair_noise(distances: np.ndarray, xy: np.ndarray, images: tuple[int, int] = 
         return None
     u = (xy - xy.mean(axis=0)) / POSITION_SCALE_PX
     design = np.c_[np.ones(n), u, u[:, 0] ** 2, u[:, 0] * u[:, 1], u[:, 1] ** 2]
-    basis, triangle = np.linalg.qr(design)  # orthonormal: white noise puts the same variance on every direction
-    kept = np.abs(np.diag(triangle)) > 1e-9 * np.abs(triangle).max()
-    along = basis.T @ d
-    along[~kept] = 0.0
-    white = float(np.sum(d**2) - np.sum(along**2)) / max(n - int(kept.sum()), 1)
+    coef, *_ = np.linalg.lstsq(design, d, rcond=None)
+    rank = np.linalg.matrix_rank(design)
+    white = float(np.sum((d - design @ coef) ** 2)) / max(n - rank, 1)
     total = float(np.mean(d**2))
     if total <= 1e-18:  # exact matches: nothing to weigh
         return None
     smooth = max(total - white, 0.0)
-    # The geometry moves a pair's distances nearly affinely (its first 3 directions), and the adjustment has
-    # absorbed those; the field's energy per direction is read off the curved ones it left.
-    curved = kept[AFFINE_TERMS:]
-    per_direction = float(np.mean(along[AFFINE_TERMS:][curved] ** 2)) - white if curved.any() else 0.0
     return PairNoise(images, n, float(np.sqrt(total / 2.0)), smooth / (smooth + white) if smooth + white > 0 else 0.0,
-                     float(np.sqrt(max(white, 1e-18) / 2.0)), 1.0 + max(per_direction, 0.0) / max(white, 1e-18))
+                     float(np.sqrt(max(white, 1e-18) / 2.0)))
 
 
 def narrow_pair_noise(reconstruction: pycolmap.Reconstruction,
@@ -152,12 +140,11 @@ def correlated_point_weights(reconstruction: pycolmap.Reconstruction, narrow_cam
     pairs, by_point = narrow_pair_noise(reconstruction, narrow_cameras)
     if not pairs:
         return None
-    factor = [p.factor for p in pairs]
-    white = [p.white_px for p in pairs]
-    logger.info("Covariance: %d narrow pairs' matches weighed as correlated (shared-error factor %.2f-%.2f, median "
-                "%.2f; white noise %.2f-%.2f px against the pooled %.2f, both inflated %.1fx)", len(pairs),
-                min(factor), max(factor), float(np.median(factor)), min(white), max(white), weight_sigma / inflation,
-                inflation)
+    rho = [p.rho for p in pairs]
+    sigma = [p.sigma_px for p in pairs]
+    logger.info("Covariance: %d narrow pairs' matches weighed as correlated (correlation %.2f-%.2f, median %.2f; "
+                "noise %.2f-%.2f px against the pooled %.2f / %.1f)", len(pairs), min(rho), max(rho),
+                float(np.median(rho)), min(sigma), max(sigma), weight_sigma / inflation, inflation)
     def held(noise: PairNoise) -> bool:
         return any(reconstruction.image(i).camera_id in held_cameras for i in noise.images)
 

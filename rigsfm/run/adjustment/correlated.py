@@ -15,8 +15,9 @@ part it absorbs is not seen here either, only what it leaves), so each of the pa
 ``weight_sigma / (inflation sigma sqrt(1 + (n - 1) rho))`` of a pooled one. A pair noisier than the pooled noise
 weighs less, a quieter one more; a longer track (one keypoint matched in several pairs) weighs the mean of its
 pairs'. Where a pair's narrow calibration was held (``--fixed-calibration``), its smooth part is mostly that
-calibration's error, which the consider covariance carries already: the white part alone weighs it. Only the covariance uses it; the estimate is unchanged. A network without
-narrow-only points has nothing to weigh, so its covariance is unchanged."""
+calibration's error, which the consider covariance carries already: the white part alone weighs it. Only the
+covariance uses it; the estimate is unchanged. A network without narrow-only points has nothing to weigh, so its
+covariance is unchanged."""
 
 from __future__ import annotations
 
@@ -29,7 +30,6 @@ import pycolmap
 logger = logging.getLogger(__name__)
 
 MIN_PAIR_POINTS = 15  # a pair with fewer matches keeps the pooled weighting (too few to fit the smooth part)
-SMOOTH_TERMS = 6  # 1, x, y, x^2, xy, y^2 in the first image's position
 POSITION_SCALE_PX = 100.0  # conditioning of the quadratic's columns
 
 
@@ -97,7 +97,8 @@ def pair_noise(distances: np.ndarray, xy: np.ndarray, images: tuple[int, int] = 
     if n < MIN_PAIR_POINTS:
         return None
     u = (xy - xy.mean(axis=0)) / POSITION_SCALE_PX
-    design = np.c_[np.ones(n), u, u[:, 0] ** 2, u[:, 0] * u[:, 1], u[:, 1] ** 2]
+    design = np.c_[  # 1, x, y, x^2, xy, y^2 in the first image's position
+        np.ones(n), u, u[:, 0] ** 2, u[:, 0] * u[:, 1], u[:, 1] ** 2]
     coef, *_ = np.linalg.lstsq(design, d, rcond=None)
     rank = np.linalg.matrix_rank(design)
     white = float(np.sum((d - design @ coef) ** 2)) / max(n - rank, 1)
@@ -132,7 +133,7 @@ def narrow_pair_noise(reconstruction: pycolmap.Reconstruction,
 
 def correlated_point_weights(reconstruction: pycolmap.Reconstruction, narrow_cameras: set[int],
                              point_ids: list[int], weight_sigma: float, inflation: float,
-                             held_cameras: set[int] = frozenset()) -> np.ndarray | None:  # type: ignore[assignment]
+                             held_cameras: frozenset[int] | set[int] = frozenset()) -> np.ndarray | None:
     """Per point of ``point_ids`` (the Jacobian's point columns' order): the weight of its residuals, its pair's
     (a longer track: the mean of its pairs'; 1 for points of no estimated pair); None when no narrow pair has
     matches enough (nothing changes). ``held_cameras``: narrow cameras whose calibration the adjustment held

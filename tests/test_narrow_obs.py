@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -82,3 +83,54 @@ def test_auto_stays_off_on_featureless_narrow_views_and_changes_nothing(three_ri
     poses = json.loads((out / "narrow_poses.json").read_text())
     poses_off = json.loads((off.workspace.narrow_poses).read_text())
     assert poses["narrow"] == poses_off["narrow"] and poses["pairs"] == poses_off["pairs"]
+
+
+def test_the_delivered_bands_are_the_adjustment_with_narrow_observations(crowd_runs):
+    """With the narrow observations used, narrow_poses.json's bands are those of the second adjustment (which the
+    narrow images' points narrow: they fix E^sl and the narrow intrinsics), not the first one's (what ``off``
+    delivers); they still hold the true correspondences of floor points (scored as benchmarks/trust.py does)."""
+    from benchmarks.trust import score_bands
+
+    dataset, runs = crowd_runs
+    truth = dataset.load_ground_truth()
+    bands = {}
+    for mode, result in runs.items():
+        poses = json.loads(result.workspace.narrow_poses.read_text())
+        bands[mode] = {(p["i"], p["j"]): p["epipolar_band_95_px"] for p in poses["pairs"]}
+    assert runs[NarrowMode.AUTO].summary.uncertainty.bands_from == "with narrow observations"
+    assert runs[NarrowMode.OFF].summary.uncertainty.bands_from == "wide only"
+    # summary.json's bands are narrow_poses.json's (one adjustment for both)
+    assert {(p.i, p.j): p.band_px for p in runs[NarrowMode.AUTO].summary.uncertainty.pairs} == pytest.approx(
+        bands[NarrowMode.AUTO], abs=1e-3)
+    assert bands[NarrowMode.AUTO].keys() == bands[NarrowMode.OFF].keys() and bands[NarrowMode.AUTO]
+    wide, final = np.median(list(bands[NarrowMode.OFF].values())), np.median(list(bands[NarrowMode.AUTO].values()))
+    assert final < 0.5 * wide, (final, wide)
+    rows = score_bands(runs[NarrowMode.AUTO].reconstruction, truth,
+                       {k: SimpleNamespace(band_px=b, points=None, predicted_below_85=None, predicted_coverage=0.0)
+                        for k, b in bands[NarrowMode.AUTO].items()})
+    counted = sum(r["num_true_points"] for r in rows)
+    coverage = sum(r["coverage"] * r["num_true_points"] for r in rows) / counted
+    assert len(rows) >= 3 and coverage >= 0.9, rows
+    # the held-out matches are judged against the delivered (narrower) band with their keypoint noise
+    checks = runs[NarrowMode.AUTO].summary.narrow_observations.held_out_check
+    assert checks and all(c.band_px == pytest.approx(bands[NarrowMode.AUTO][(c.i, c.j)], abs=1e-3) for c in checks)
+
+
+def test_the_covariance_weighs_each_narrow_pair_by_its_own_noise(crowd_runs):
+    """The covariance with narrow observations estimates each narrow pair's noise and correlation from the
+    adjusted model's own epipolar distances (rigsfm.run.adjustment.correlated); a run without them has no narrow
+    pair, so its covariance is the one of before."""
+    from rigsfm.run.adjustment.correlated import narrow_pair_noise
+
+    _, runs = crowd_runs
+    found = {}
+    for mode, result in runs.items():
+        model = result.reconstruction
+        narrow = {image.camera_id for image in model.images.values() if "/narrow/" in image.name}
+        found[mode] = narrow_pair_noise(model, narrow)
+    assert found[NarrowMode.OFF] == ([], {})
+    pairs, by_point = found[NarrowMode.AUTO]
+    assert len(pairs) >= 3 and len(by_point) >= sum(p.points for p in pairs)
+    assert all(0.02 < p.sigma_px < 1.0 and 0.0 <= p.rho < 1.0 for p in pairs), pairs
+    sigmas = [p.sigma_px for p in pairs]
+    assert max(sigmas) > 1.5 * min(sigmas), pairs  # pairs differ in noise: one pooled sigma would not do

@@ -15,8 +15,10 @@ from test_self_check import fine_texture
 
 from rigsfm.core.errors import InputError
 from rigsfm.core.names import name_of
+from rigsfm.run.checks.guided import KEYPOINT_NOISE_PX
 from rigsfm.run.checks.self_check import epipolar_self_check
 from rigsfm.run.checks.sync import (
+    CONSISTENT,
     OffsetScore,
     PairSync,
     _solve,
@@ -24,6 +26,7 @@ from rigsfm.run.checks.sync import (
     estimate_frame_offsets,
     frames_by_time,
     read_frame_offsets,
+    search_tolerance,
 )
 from rigsfm.run.deliver import narrow_poses
 from rigsfm.run.options import SelfCheckOptions, WorldOptions
@@ -163,6 +166,14 @@ def test_solver_keeps_most_rigs_at_zero():
     # rig03 frame k = the others' frame k + 1: rig01 frame k+1 meets rig03 frame k, so d(rig01, rig03) = -1
     pairs = [pair("rig01", "rig02", 0), pair("rig01", "rig03", -1), pair("rig02", "rig03", -1)]
     assert _solve(["rig01", "rig02", "rig03"], pairs, 2) == {"rig01": 0, "rig02": 0, "rig03": 1}
+
+
+@pytest.mark.parametrize("band", [0.05, 0.2, 0.5, 1.0, 3.0, 8.0])
+def test_a_pairing_that_is_not_simultaneous_scores_low_even_with_a_band_under_a_pixel(band):
+    """Matches of walkers that moved spread over the whole search tolerance: their score, the share within band +
+    keypoint noise, must stay well under CONSISTENT however narrow the band (with narrow observations a fraction of a
+    pixel), else every frame pairing would look simultaneous."""
+    assert (band + KEYPOINT_NOISE_PX) / search_tolerance(band) < 0.6 * CONSISTENT
 
 
 def test_offsets_file_is_checked(tmp_path):

@@ -39,7 +39,7 @@ def explore_command(
     """Check a result on people you can recognise: click one in a narrow view, see where they can be in the
     others; label correspondences (CSV)."""
     from rigsfm.explore.server import start_explorer
-    from rigsfm.explore.session import ExploreOptions, check_labels, parse_heights
+    from rigsfm.explore.session import ExploreOptions, check_labels, click_allowance_px, parse_heights
 
     configure_logging(False)
     options = ExploreOptions(frame=frame, labels=labels, images=images, heights=parse_heights(heights))
@@ -52,8 +52,10 @@ def explore_command(
         for (i, j), (inside, total) in result.per_pair.items():
             console.print(f"  {i} - {j}: {inside} of {total} inside ({100 * inside / total:.1f} %)")
         rest = f"; {result.without_band} without a band in the other image" if result.without_band else ""
+        noise = click_allowance_px(options.click_sigma_px)
         console.print(f"{result.inside} of {result.pairs} labelled pairs inside their 95 % band "
-                      f"({100 * result.share:.1f} %){rest}")  # type: ignore[operator]  # pairs: a share
+                      f"({100 * result.share:.1f} %), with {noise:.1f} px for the clicks' noise"  # type: ignore[operator]  # pairs: a share
+                      f"{rest}")
         return
     server = start_explorer(out, options, port=port)
     session = server.session

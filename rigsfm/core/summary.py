@@ -75,6 +75,9 @@ class PairBandSummary:
     predicted_below_85: float | None = None  # the model's probability that < 85 % of this pair's points are inside
 
 
+BANDS_WITH_NARROW = "with narrow observations"  # UncertaintySummary.bands_from: the adjustment with them
+
+
 @dataclass(kw_only=True)
 class UncertaintySummary:
     calibration: str = "fixed"  # refine or fixed (rigsfm.run.options.Calibration)
@@ -82,6 +85,7 @@ class UncertaintySummary:
     pixel_sigma_px: float | None = None  # the images' weighting noise per coordinate (estimated x inflation)
     floor: str = "none"  # where the bands' analysis points lie: known_lengths, points, none (depths)
     bands: str = "linear"  # linear in the covariance, or sampled (re-adjusted over calibration draws: <= 3 rigs)
+    bands_from: str = "wide only"  # the adjustment they are of: "with narrow observations" or "wide only"
     narrow: dict[str, NarrowUncertaintySummary] = field(default_factory=dict)  # per narrow image
     pairs: list[PairBandSummary] = field(default_factory=list)
     refined_calibration: dict[str, dict] = field(default_factory=dict)  # per camera: change and posterior sigma
@@ -157,7 +161,7 @@ class SelfCheckPairSummary:
     matches: int = 0
     median_px: float | None = None
     p95_px: float | None = None
-    within_band: float | None = None
+    within_band: float | None = None  # share of the matches within band_px + keypoint noise (settings)
     band_matches: int = 0
     measured_within_px: float | None = None
     verdict: str = "too few matches"
@@ -202,7 +206,7 @@ class HeldOutCheckSummary:
     held_out: int = 0
     median_px: float | None = None
     p95_px: float | None = None
-    within_band: float | None = None
+    within_band: float | None = None  # share of the held-out matches within band_px + keypoint noise
     verdict: str = "too few matches"
 
 

@@ -37,6 +37,13 @@ class ExploreOptions:
     click_sigma_px: float = 1.0  # a click's 1-sigma error per coordinate
 
 
+def click_allowance_px(click_sigma_px: float) -> float:
+    """What the two clicks' own errors add (95 %) to a click's distance from the anchor's band, which is geometric
+    (a fraction of a pixel where the narrow images fixed the calibration): each click ``click_sigma_px`` per
+    coordinate, the anchor's moving its curve in the other narrow view about as much as it moves in its own."""
+    return 1.96 * math.sqrt(2.0) * click_sigma_px
+
+
 class ExploreResult:
     """What the explorer reads from a finished OUT: the narrow views per frame, the bands, the uncertainties."""
 
@@ -172,6 +179,9 @@ class ExploreSession:
                 row["band_px"] = None if band.band_px is None else round(band.band_px, 2)
                 row["band_units"] = (None if distance is None or not band.band_px
                                      else round(distance / band.band_px, 3))
+                noise = click_allowance_px(self.options.click_sigma_px)
+                row["outside"] = bool(distance is not None and band.band_px is not None
+                                      and distance > band.band_px + noise)
             rows.append(row)
         found: dict[str, object] = {"person": anchor.person, "clicks": rows, "point": None}
         if len(clicks) >= 2:
@@ -215,6 +225,7 @@ class ExploreSession:
             "heights": list(self.options.heights),
             "ticks": list(self.options.ticks),
             "click_sigma_px": self.options.click_sigma_px,
+            "click_allowance_px": round(click_allowance_px(self.options.click_sigma_px), 2),
             "pose_uncertainty": self.result.pose_uncertainty,
             "csv": str(self.csv_path),
             "foreign_rows": foreign,
@@ -281,7 +292,8 @@ class CheckResult:
 
 def check_labels(out: Path, labels_csv: Path, options: ExploreOptions = ExploreOptions()) -> CheckResult:
     """The share of labelled pairs (two clicks of one person in one frame, in two rigs' narrow images) whose second
-    click lies inside the first one's band (between ``options.heights``, the pair's 95 % half-width)."""
+    click lies inside the first one's band (between ``options.heights``, the pair's 95 % half-width) widened by the
+    two clicks' own noise (:func:`click_allowance_px` of ``options.click_sigma_px``; 0: the bare band)."""
     result = ExploreResult(out, options.images, need_images=False)  # the check needs no pixels
     if not Path(labels_csv).is_file():
         raise InputError(f"labels file {labels_csv} does not exist")
@@ -303,12 +315,14 @@ def check_labels(out: Path, labels_csv: Path, options: ExploreOptions = ExploreO
                 if distance is None or band.band_px is None:
                     without += 1
                     continue
-                inside = distance <= band.band_px
+                allowed = band.band_px + click_allowance_px(options.click_sigma_px)
+                inside = distance <= allowed
                 counts = per_pair.setdefault((f"{rig_i}/narrow", f"{rig_j}/narrow"), [0, 0])
                 counts[0] += inside
                 counts[1] += 1
                 distances.append({"person": first.person, "i": first.image, "j": second.image,
-                                  "distance_px": distance, "band_px": band.band_px, "inside": bool(inside)})
+                                  "distance_px": distance, "band_px": band.band_px, "allowed_px": allowed,
+                                  "inside": bool(inside)})
     total = sum(c[1] for c in per_pair.values())
     return CheckResult(total, sum(c[0] for c in per_pair.values()), without, len(foreign),
                        {k: (v[0], v[1]) for k, v in sorted(per_pair.items())}, distances)

@@ -23,6 +23,7 @@ from rigsfm.core.processes import in_child
 from rigsfm.core.residuals import reprojection_errors
 from rigsfm.core.rig import RigCalibration, load_rigs
 from rigsfm.core.summary import (
+    BANDS_WITH_NARROW,
     CameraError,
     FrameOffsetsSummary,
     InputsSummary,
@@ -372,15 +373,22 @@ def _run_locked(workspace: Workspace, inputs: Inputs, manual_pairs: dict, option
         with timings.stage("world"):  # the floor, fitted in the adjusted model's frame; moved there after the bands
             world = locate_world(result.reconstruction, inputs.image_dir, inputs.scale,
                                  [rig.name for rig in inputs.rigs], options.world, metric=metric)
-        narrow, banded = None, result
-        # Of the adjustment without narrow observations (narrow.observations); before them: the heads search its bands.
+        narrow = None
+        # Of the adjustment without narrow observations: the heads search its bands (narrow.heads).
         with timings.stage("uncertainty"):
-            floor, floor_source = world.analysis_floor(banded.reconstruction, banded.scale_spec)
-            uncertainty = in_child(estimate_uncertainty, banded, floor=floor, floor_source=floor_source)
+            floor, floor_source = world.analysis_floor(result.reconstruction, result.scale_spec)
+            uncertainty = in_child(estimate_uncertainty, result, floor=floor, floor_source=floor_source)
         if options.narrow != NarrowMode.OFF:  # narrow observations: a second adjustment where they are used
             with timings.stage("narrow_observations"):
-                result, narrow = second_pass(result, world, inputs, options, given_offsets, uncertainty.bands)
+                first, (result, narrow) = result, second_pass(result, world, inputs, options, given_offsets,
+                                                              uncertainty.bands)
                 metric = is_metric(result)
+            if result is not first:  # what is delivered is the second adjustment's: its own bands and sigmas
+                with timings.stage("uncertainty_final"):
+                    # Same gauge as the first (one frame held), world.apply not yet: the floor fit's frame.
+                    floor, floor_source = world.analysis_floor(result.reconstruction, result.scale_spec)
+                    uncertainty = in_child(estimate_uncertainty, result, floor=floor, floor_source=floor_source)
+                    uncertainty.bands_from = BANDS_WITH_NARROW
         with timings.stage("deliver"):
             world.apply(result.reconstruction)  # a rigid move: the bands and sigmas above are unchanged by it
             ground = ground_maps(result.reconstruction, world.plane_heights) if world.plane_heights else None

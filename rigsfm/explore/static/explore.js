@@ -64,7 +64,7 @@ function draw(k) {
   for (const p of state.persons) {
     p.clicks.forEach((click, n) => {
       if (click.view !== k) return;
-      const outside = click.band_units !== undefined && click.band_units !== null && click.band_units > 1;
+      const outside = click.outside === true;  // beyond the band + the two clicks' noise (session.py)
       const cls = "marker" + (p.person === state.current ? " current" : "") + (n === 0 ? " anchor" : "")
         + (outside ? " outside" : "");
       svgElement("circle", { class: cls, cx: click.xy[0], cy: click.xy[1], r, "data-person": p.person }, svg);
@@ -138,7 +138,7 @@ function drawTable() {
     cells.forEach((value, n) => {
       const td = document.createElement("td");
       td.textContent = value;
-      if (n === 6 && p.clicks.some((c) => c.band_units > 1)) td.className = "outside";
+      if (n === 6 && p.clicks.some((c) => c.outside === true)) td.className = "outside";
       row.appendChild(td);
     });
     const td = document.createElement("td");
@@ -163,7 +163,8 @@ function describe() {
   setStatus(`${plural(n, "label")} of ${plural(state.persons.length, "person")} saved to ${info.csv}${elsewhere}`
     + `${foreign}${next}`);
   $("note").textContent = `Band: the anchor's (first click's) epipolar curve between heights ${info.heights[0]} and ` +
-    `${info.heights[1]} m (ticks at ${info.ticks.join(", ")} m), widened by the pair's calibrated 95 % band. ` +
+    `${info.heights[1]} m (ticks at ${info.ticks.join(", ")} m), widened by the pair's calibrated 95 % band; ` +
+    `a click is outside beyond the band + ${info.click_allowance_px} px (the two clicks' noise). ` +
     "Triangulation: linear, then least squares on the pixels; its uncertainty from click noise " +
     `±${info.click_sigma_px} px` + (info.pose_uncertainty
       ? " plus each camera's pose 1-sigma (summary.json: centre, rotation), cameras taken as independent."

@@ -12,7 +12,7 @@ import pycolmap
 from rigsfm.core import charts
 from rigsfm.core.names import ImageName, name_of
 from rigsfm.core.residuals import reprojection_errors
-from rigsfm.core.summary import Summary
+from rigsfm.core.summary import BANDS_WITH_NARROW, Summary
 from rigsfm.core.workspace import Workspace
 from rigsfm.inspect.report.figures import (
     JPEG_QUALITY,
@@ -155,6 +155,9 @@ def uncertainty_section(narrow: dict, summary: Summary | None = None) -> str:
             f"{fmt(u.pixel_sigma_px, 3)} px (weighting)"
             + ("; the bands re-adjust the network over 40 calibration draws (a small network answers a calibration "
                "error far from linearly)" if u.bands == "sampled" else "")
+            + ("; of the adjustment with the narrow images' observations (they fix E^sl and the narrow intrinsics: "
+               "a band of a pixel or less, which the checks below widen by the keypoints' own noise)"
+               if u.bands_from == BANDS_WITH_NARROW else "")
             + f". The 95 % band holds the true correspondence of a point of "
             f"narrow image i with 95 % probability, pooled over the analysis points ({floor}) and over that "
             "covariance: calibrated, not a bound. The calibration's error is one draw per pair, so a single pair may "
@@ -342,7 +345,7 @@ def self_check_section(summary: Summary | None) -> str:
                      "–" if within is None else f"{100 * within:.0f} %", fmt(p.measured_within_px, 3),
                      verdict])
     parts.append(table(["frame", "narrow i", "narrow j", "band 95 % (px)", "matches", "median (px)",
-                        "95th pct (px)", "within band", "searched within (px)", "verdict"], rows, left=3))
+                        "95th pct (px)", "within band + noise", "searched within (px)", "verdict"], rows, left=3))
     parts.append(f'<p class="note">{fmt(check.seconds, 3)} s.</p>')
     return "".join(parts)
 

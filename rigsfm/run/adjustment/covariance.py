@@ -14,7 +14,8 @@ cross-covariance with the poses, which the band needs (an E^sl error and a rig p
 Tangents: ``("frame", frame_id)``: ``rig_from_world``, ``("sensor_from_rig", camera_id)``: a narrow camera's
 E^sl, both ``[w, dt]`` with ``R' = Exp(w) R``, ``t' = t + dt`` (rad, m); ``("camera", camera_id)``: the params.
 A parameter no image observes keeps its prior, independent of the rest (``prior_only``). A camera's repeated views of
-a point (a static rig's frames) are weighed as correlated observations (``rigsfm.run.adjustment.repeated``)."""
+a point (a static rig's frames) are weighed as correlated observations (``rigsfm.run.adjustment.repeated``), and so are
+a narrow pair's matches (``rigsfm.run.adjustment.correlated``)."""
 
 from __future__ import annotations
 
@@ -29,6 +30,7 @@ import scipy.linalg
 import scipy.sparse as sp
 
 from rigsfm.core.geometry import skew
+from rigsfm.run.adjustment.correlated import correlated_point_weights
 from rigsfm.run.adjustment.model import estimate_pixel_sigma, sensor_from_rig_view
 from rigsfm.run.adjustment.priors import calibration_priors
 from rigsfm.run.adjustment.problem import JointProblem
@@ -48,10 +50,13 @@ def _csr(jacobian: pyceres.CRSMatrix) -> sp.csr_matrix:
                          shape=(jacobian.num_rows, jacobian.num_cols))
 
 
-def _reduced_system(jp: JointProblem, max_error_px: float | None = None, inflation: float = 1.0):
+def _reduced_system(jp: JointProblem, max_error_px: float | None = None, inflation: float = 1.0,
+                    calibration_held: frozenset[str] | None = None):
     """Ceres' Jacobian of ``jp`` (tangent space) with the points eliminated (Schur complement, 3x3 blocks): the
     reduced normal matrix over the other blocks, every entry ``(key, block or None, size, tangent dims)``, the
-    variable ones, and the prior-only covariances; None (with a warning) when a point carries no information."""
+    variable ones, and the prior-only covariances; None (with a warning) when a point carries no information.
+    ``calibration_held``: the rigs whose calibration the estimate held (None: every rig's, ``FIXED``), for the
+    narrow pairs' weights (module correlated)."""
     rec, problem = jp.reconstruction, jp.problem
     entries: list[tuple[tuple, Any, int, Any]] = []  # (key, block or None, size, dims or None)
     for frame_id in jp.frame_ids:
@@ -84,7 +89,8 @@ def _reduced_system(jp: JointProblem, max_error_px: float | None = None, inflati
             entries.append((key, None, len(sigmas), None))
     variable = [entry for entry in entries if entry[1] is not None]
     end_points = [p for p in jp.end_points if jp.has_variable(p)]
-    points = [p.xyz for p in rec.points3D.values() if jp.has_variable(p.xyz)]
+    point_ids = [point_id for point_id, p in rec.points3D.items() if jp.has_variable(p.xyz)]
+    points = [rec.points3D[point_id].xyz for point_id in point_ids]
     blocks = [block for _, block, _, _ in variable] + end_points + points
     for key, block, _, dims in variable:
         if problem.parameter_block_tangent_size(block) != len(dims):
@@ -100,6 +106,12 @@ def _reduced_system(jp: JointProblem, max_error_px: float | None = None, inflati
         jac = sp.diags(repeated_view_weights(jac, num_a, camera_of_column.astype(np.int64), rho)) @ jac
         logger.info("Covariance: repeated views of a point by one camera weighed as correlated (%d cameras, "
                     "correlation %.2f-%.2f)", len(rho), min(rho.values()), max(rho.values()))
+    narrow_cameras = {camera_id for _, _, camera_id, _ in jp.narrow_sensors()}
+    held_cameras = {c for c in narrow_cameras if calibration_held is None or jp.camera_names[c].rig in calibration_held}
+    point_weights = correlated_point_weights(rec, narrow_cameras, point_ids, jp.weight_sigma, inflation, held_cameras)
+    if point_weights is not None:  # a narrow pair's matches share a smooth error (module correlated)
+        jac = jac.tocsr()
+        jac = sp.diags(np.r_[point_weights, 1.0][_row_points(jac, num_a, len(point_ids))]) @ jac
     jac = jac.tocsc()
     j_a, j_p = jac[:, :num_a], jac[:, num_a:]
     h_aa = (j_a.T @ j_a).toarray()
@@ -118,6 +130,16 @@ def _reduced_system(jp: JointProblem, max_error_px: float | None = None, inflati
     else:
         schur = h_aa
     return 0.5 * (schur + schur.T), entries, variable, prior_only
+
+
+def _row_points(jacobian: sp.csr_matrix, num_a: int, num_points: int) -> np.ndarray:
+    """Per row: the index of the point whose columns it touches (``num_points``, one past the last, for rows
+    of no point: index a weight array padded with 1)."""
+    rows = np.repeat(np.arange(jacobian.shape[0]), np.diff(jacobian.indptr))
+    point_of = np.where(jacobian.indices >= num_a, (jacobian.indices - num_a) // 3, -1)
+    out = np.full(jacobian.shape[0], -1)
+    np.maximum.at(out, rows, point_of)
+    return np.where(out >= 0, out, num_points)
 
 
 def _inverse(matrix: np.ndarray) -> np.ndarray | None:
@@ -182,7 +204,8 @@ def joint_covariance(result: AdjustResult, image_only: bool = False) -> JointCov
     held = result.held_rigs if refined else frozenset()
     jp = JointProblem(rec, rigs, priors, result.scale_spec, options, pixel_sigma, gauge=gauge, robust=False,
                       with_priors=refined, held_rigs=held, consider_held=True)
-    reduced = _reduced_system(jp, options.max_reprojection_error_px, options.pixel_sigma_inflation)
+    reduced = _reduced_system(jp, options.max_reprojection_error_px, options.pixel_sigma_inflation,
+                              held if refined else None)
     if reduced is None:
         return None
     schur, entries, variable, prior_only = reduced

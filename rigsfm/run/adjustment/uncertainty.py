@@ -32,6 +32,7 @@ class Uncertainty:
     floor: str  # where the band's analysis points come from: floor_fit (the world stage), known_lengths, points, none
     seconds: dict[str, float]
     sampled: bool = False  # bands re-adjusted over calibration draws (sampled_pair_bands), not linear
+    bands_from: str = "wide only"  # the adjustment: rigsfm.core.summary.BANDS_WITH_NARROW for the second one
 
 
 # Networks this small get the sampled band (sampled_pair_bands): there the linear band covers less than it says
@@ -123,6 +124,7 @@ def uncertainty_summary(result: AdjustResult, uncertainty: Uncertainty):
         pixel_sigma_px=None if covariance is None else covariance.pixel_sigma,
         floor=uncertainty.floor,
         bands="sampled" if uncertainty.sampled else "linear",
+        bands_from=uncertainty.bands_from,
         narrow={name: NarrowUncertaintySummary(
             centre_sigma_mm=u.centre_sigma_mm, rotation_sigma_deg=u.rotation_sigma_deg,
             centre_covariance_mm2=None if u.centre_covariance_mm2 is None else [list(r) for r in u.centre_covariance_mm2],

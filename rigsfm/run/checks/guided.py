@@ -19,8 +19,8 @@ lines (the self-check's measurement, ``rigsfm.run.checks.self_check``):
    never show a band that is too narrow. So the statistics come from a wider selection: ``WIDE_FACTOR`` x band
    + keypoint noise, doubled (up to ``MAX_TOLERANCE_PX``) until the matches' 95th percentile lies within half
    of it. Per pair: median, 95th percentile and number of the distances of the matches to their epipolar lines
-   (pinhole pixels of j, as the band), the fraction within the band, and the tolerance they were measured
-   within. ``EPIPOLAR CHECK FAILED`` when the 95th percentile exceeds the band by more than
+   (pinhole pixels of j, as the band), the fraction within the band + keypoint noise, and the tolerance they were
+   measured within. ``EPIPOLAR CHECK FAILED`` when the 95th percentile exceeds the band by more than
    ``KEYPOINT_NOISE_PX`` (SIFT's own localisation error across views). No verdict with fewer than
    ``MIN_MATCHES`` matches, or when even the widest search is filled by them ("inconclusive"). The matches
    inside the band (+ keypoint noise) are counted as ``band_matches``: those an analyst would use.
@@ -77,7 +77,7 @@ class PairCheck:
     matches: int = 0  # measuring selection (wide tolerance)
     median_px: float | None = None
     p95_px: float | None = None
-    within_band: float | None = None  # fraction of the measured matches within the band
+    within_band: float | None = None  # fraction of the measured matches within the band + keypoint noise
     band_matches: int = 0  # matches selected inside the band + keypoint noise
     measured_within_px: float | None = None  # lateral tolerance of the measuring selection
     verdict: str = "too few matches"  # ok, failed, too few matches, inconclusive, no band
@@ -314,7 +314,8 @@ def check_pair(first: NarrowView, second: NarrowView, f_ji: np.ndarray, band: fl
     if check.matches < MIN_MATCHES:
         return check
     check.median_px, check.p95_px = float(np.median(distances)), float(np.percentile(distances, 95))
-    check.within_band = float(np.mean(distances <= band))
+    # keypoints err on their own: against the bare band (which may be under a pixel) even exact poses would miss
+    check.within_band = float(np.mean(distances <= band + KEYPOINT_NOISE_PX))
     if check.p95_px > 0.5 * tolerance:  # the matches fill the whole search band: no measurement
         check.verdict = "inconclusive"
     else:

@@ -6,11 +6,11 @@ frames off. For each pair of rigs (a, b) whose narrow footprints overlap and eac
 ``-max_offset .. max_offset``, narrow a frame ``k`` is matched with narrow b frame ``k + d`` exactly as the
 epipolar self-check matches a pair (:mod:`rigsfm.run.checks.self_check`: j warped into i's view through the floor,
 candidates near i's epipolar line and between heights 0 and 2.2 m, ratio test, mutual best), with a fixed lateral
-tolerance of ``WIDE_FACTOR`` x band + keypoint noise; the pair's score at ``d`` is the share of the matches within
-band + keypoint noise of their epipolar lines (pooled over up to ``frames_per_offset`` frame pairs). Simultaneous
-images of a moving crowd match on their lines (share near 1); images a frame apart match walkers that have moved,
-so the matches spread over the whole tolerance (share near band / tolerance). a_k and b_{k+d} are simultaneous
-when ``d = o_a - o_b``.
+tolerance of ``WIDE_FACTOR`` x band + keypoint noise (at least ``WIDE_FACTOR`` x keypoint noise: a band under a
+pixel); the pair's score at ``d`` is the share of the matches within band + keypoint noise of their epipolar lines
+(pooled over up to ``frames_per_offset`` frame pairs). Simultaneous images of a moving crowd match on their lines
+(share near 1); images a frame apart match walkers that have moved, so the matches spread over the whole tolerance
+(share near (band + keypoint noise) / tolerance). a_k and b_{k+d} are simultaneous when ``d = o_a - o_b``.
 
 Per-rig offsets: the integer offsets (``-max_offset .. max_offset``) that maximise the summed scores of the pairs
 (each at ``d = o_a - o_b``), every assignment tried for up to ``BRUTE_FORCE_RIGS`` rigs (coordinate ascent beyond),
@@ -217,6 +217,13 @@ def frames_by_time(reconstruction: pycolmap.Reconstruction,
     return grouped
 
 
+def search_tolerance(band: float) -> float:
+    """The lateral tolerance the matches of a frame pairing are searched within: ``WIDE_FACTOR`` x band + keypoint
+    noise, and at least ``WIDE_FACTOR`` x keypoint noise, so that matches spread over it (not simultaneous) fill
+    band + keypoint noise (the score's) only as a small share of it even where the band is under a pixel."""
+    return max(WIDE_FACTOR * band + KEYPOINT_NOISE_PX, WIDE_FACTOR * KEYPOINT_NOISE_PX)
+
+
 def _distances_for(first, second, f_ji: np.ndarray, band: float, floor_frame: bool) -> np.ndarray:
     """Distances (px) of the guided matches of two narrow images from their epipolar lines."""
     fi, fj = pair_features(first, second)
@@ -224,7 +231,7 @@ def _distances_for(first, second, f_ji: np.ndarray, band: float, floor_frame: bo
         return np.zeros(0)
     lines = np.c_[fi.undistorted, np.ones(len(fi.undistorted))] @ f_ji.T
     segments = epipolar_segments(first.image, second.image, fi.undistorted, floor_frame)
-    candidates = band_candidates(f_ji, lines, fj.undistorted, segments, WIDE_FACTOR * band + KEYPOINT_NOISE_PX)
+    candidates = band_candidates(f_ji, lines, fj.undistorted, segments, search_tolerance(band))
     matches = guided_matches(fi, fj, candidates.a, candidates.b)
     return match_line_distances(lines, fj, matches) if len(matches) else np.zeros(0)
 

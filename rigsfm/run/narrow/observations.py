@@ -41,7 +41,12 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 
-from rigsfm.core.summary import HeldOutCheckSummary, NarrowObservationsSummary, NarrowPairSummary
+from rigsfm.core.summary import (
+    BANDS_WITH_NARROW,
+    HeldOutCheckSummary,
+    NarrowObservationsSummary,
+    NarrowPairSummary,
+)
 from rigsfm.run.checks.guided import (
     band_candidates,
     epipolar_segments,
@@ -69,9 +74,11 @@ HOLD_OUT_EVERY = 5  # every 5th match of a pair (20 %) is kept out of the adjust
 # second adjustment costs more than they add, and whose errors are not independent (SIFT on warped views).
 MAX_PAIR_MATCHES = 150
 MIN_HELD_OUT = 10  # held-out matches a pair needs for a verdict
-# With narrow observations the delivered bands are those of the adjustment without them: matches of SIFT on warped
-# views are not independent observations, and counted as such they shrink the band below the true error.
-BANDS_FROM = "the adjustment without narrow observations (conservative)"
+# With narrow observations the delivered bands are those of the adjustment with them (the pipeline estimates its
+# uncertainty again); the first adjustment's only guide the heads search. Its covariance weighs each pair's matches
+# by the pair's own noise and correlation, as SIFT on warped views errs alike over a region
+# (rigsfm.run.adjustment.correlated).
+BANDS_FROM = BANDS_WITH_NARROW
 MIN_TRIANGULATION_DEG = 1.0  # rays closer than this make no point
 
 
@@ -164,7 +171,7 @@ def describe_record(record: NarrowObservationsSummary) -> str:
     if record.used:
         verdicts = [c.verdict for c in record.held_out_check]
         line += (f"; {record.observations_added} observations of {record.points_added} points added, "
-                 f"{record.held_out_matches} matches held out; bands from {record.bands or BANDS_FROM}")
+                 f"{record.held_out_matches} matches held out; bands: {record.bands or BANDS_FROM}")
         if verdicts:
             rest = len(verdicts) - verdicts.count("ok") - verdicts.count("failed")
             line += (f"; held-out check: {verdicts.count('ok')} ok, {verdicts.count('failed')} failed, "

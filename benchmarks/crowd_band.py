@@ -6,8 +6,11 @@ predicted covariance, and which observations carry the error (mrcal-style uncert
     ... --explain                 # per pair: the band's linear model fed the true error, by group of parameters
     ... --bands-only [--refine]   # the delivered kind of band (FIXED, or the default adjustment) scored, its accuracy
     ... --draws N                 # the FIXED band over N fresh draws of rigs.yaml's error on these observations
-    options: --static-only (the truth's static tracks only), --track-test [--track-quantile Q] (a truth-free
-    per-track chi-square test), --first-frame-only, --loss TRIVIAL|CAUCHY|..., --inflation X
+    options: --static-only (the truth's static tracks only), --drop-classes person,contour,inconsistent (those
+    truth classes removed), --track-test [--track-quantile Q] [--track-min-observations N] [--keep-noise] (a
+    truth-free per-track chi-square test; --keep-noise: the second adjustment weighted by the first's noise),
+    --pixel-sigma S (the refined adjustment's weighting noise held), --drop-random N SEED, --drop-ids FILE,
+    --first-frame-only, --loss TRIVIAL|CAUCHY|..., --inflation X
 
 Results and what they say: benchmarks/README.md, "Why the band is narrow on crowds of 3D persons".
 
@@ -137,10 +140,19 @@ def classify(rec: pycolmap.Reconstruction, truth: pycolmap.Reconstruction, optio
     return out
 
 
-def inconsistent_tracks(rec: pycolmap.Reconstruction, quantile: float = 0.999) -> set[int]:
+def hold_pixel_sigma(sigma: float) -> None:
+    """The refined adjustment weights the images by ``sigma`` (px) instead of re-estimating it from the residuals
+    (and a held network reports it): the noise, and with it the posterior and the hold-or-refine test, as with every
+    track while tracks are removed."""
+    import rigsfm.run.adjustment.adjust as adjust_module
+
+    adjust_module.estimate_pixel_sigma = lambda *_args, **_kwargs: sigma
+
+
+def inconsistent_tracks(rec: pycolmap.Reconstruction, quantile: float = 0.999, min_observations: int = 2) -> set[int]:
     """Tracks whose reprojection residuals a static point does not explain: ``sum e^2 / sigma^2`` above the
     chi-square ``quantile`` of its ``2 n - 3`` dof, ``sigma`` from the median track (robust to the few that are not
-    static points)."""
+    static points); only tracks of ``min_observations`` or more are judged."""
     from scipy.stats import chi2
 
     sums, dofs, ids = [], [], []
@@ -153,7 +165,7 @@ def inconsistent_tracks(rec: pycolmap.Reconstruction, quantile: float = 0.999) -
                 continue
             total += float(np.sum((np.asarray(proj) - image.points2D[e.point2D_idx].xy) ** 2))
             n += 1
-        if 2 * n - 3 > 0:
+        if 2 * n - 3 > 0 and n >= min_observations:
             sums.append(total)
             dofs.append(2 * n - 3)
             ids.append(pid)
@@ -584,9 +596,22 @@ def main() -> None:
     parser.add_argument("--track-test", action="store_true",
                         help="remove the tracks inconsistent_tracks finds (no truth) in a first adjustment")
     parser.add_argument("--track-quantile", type=float, default=0.999)
+    parser.add_argument("--keep-noise", action="store_true",
+                        help="--track-test: the second adjustment weighted by the first's (every track's) pixel "
+                             "noise, not re-estimated without the removed tracks")
     parser.add_argument("--static-only", action="store_true",
                         help="remove every track that is not on a static surface (classify) before adjusting")
+    parser.add_argument("--drop-classes", default=None,
+                        help="comma-separated truth classes (person, contour, inconsistent) removed before adjusting")
+    parser.add_argument("--track-min-observations", type=int, default=2,
+                        help="--track-test judges only tracks of at least this many observations")
+    parser.add_argument("--drop-random", type=int, nargs=2, default=None, metavar=("N", "SEED"),
+                        help="remove N random tracks (a run-to-run noise floor for the track tests)")
+    parser.add_argument("--drop-ids", type=Path, default=None,
+                        help="a JSON list of 3D point ids of the mapping model, removed before adjusting")
     parser.add_argument("--loss", default=None, help="the adjustment's robust loss (rigsfm.run.options.Loss)")
+    parser.add_argument("--pixel-sigma", type=float, default=None,
+                        help="the refined adjustment's weighting noise held at this (px; not re-estimated)")
     parser.add_argument("--sensitivity-only", action="store_true")
     parser.add_argument("--bands-only", action="store_true")
     parser.add_argument("--explain", action="store_true", help="per pair: the band's J fed the true error")
@@ -612,6 +637,8 @@ def main() -> None:
         adjust_options = replace(adjust_options, loss=args.loss)
     if args.inflation is not None:
         adjust_options = replace(adjust_options, pixel_sigma_inflation=args.inflation)
+    if args.pixel_sigma is not None:
+        hold_pixel_sigma(args.pixel_sigma)
 
     if args.explain:
         record = explain_pairs(mapped, truth, given, exact, adjust_options)
@@ -621,8 +648,11 @@ def main() -> None:
     if args.track_test:
         calibration = Calibration.REFINE if args.refine else Calibration.FIXED
         first = adjust(pycolmap.Reconstruction(mapped), given.rigs, given.scale,
-                       replace(adjust_options, calibration=calibration), given.priors).reconstruction
-        bad = inconsistent_tracks(first, args.track_quantile)
+                       replace(adjust_options, calibration=calibration), given.priors)
+        if args.keep_noise:
+            logger.info("weighting noise held at the first adjustment's %.3f px", first.pixel_sigma)
+            hold_pixel_sigma(first.pixel_sigma)
+        bad = inconsistent_tracks(first.reconstruction, args.track_quantile, args.track_min_observations)
         classes = classify(mapped, truth, options)
         counts: dict[str, list[int]] = {}
         for pid, v in classes.items():
@@ -639,6 +669,21 @@ def main() -> None:
             if v["class"] != "static":
                 mapped.delete_point3D(pid)
         logger.info("kept %d static tracks, removed %d", mapped.num_points3D(), len(classes) - mapped.num_points3D())
+    if args.drop_classes:
+        drop = set(args.drop_classes.split(","))
+        classes = classify(mapped, truth, options)
+        for pid, v in classes.items():
+            if v["class"] in drop:
+                mapped.delete_point3D(pid)
+        logger.info("kept %d static tracks, removed %d", mapped.num_points3D(), len(classes) - mapped.num_points3D())
+    if args.drop_ids:
+        for pid in json.loads(args.drop_ids.read_text()):
+            if mapped.exists_point3D(pid):
+                mapped.delete_point3D(pid)
+    if args.drop_random:
+        ids = sorted(mapped.point3D_ids())
+        for pid in np.random.default_rng(args.drop_random[1]).choice(ids, args.drop_random[0], replace=False):
+            mapped.delete_point3D(int(pid))
     if args.draws:
         record = draws_experiment(mapped, truth, given, exact, adjust_options, args.draws)
         if args.out:

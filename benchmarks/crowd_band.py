@@ -10,7 +10,8 @@ predicted covariance, and which observations carry the error (mrcal-style uncert
     truth classes removed), --track-test [--track-quantile Q] [--track-min-observations N] [--keep-noise] (a
     truth-free per-track chi-square test; --keep-noise: the second adjustment weighted by the first's noise),
     --pixel-sigma S (the refined adjustment's weighting noise held), --drop-random N SEED, --drop-ids FILE,
-    --influence [--influence-drop N | --influence-threshold T] [--influence-score S] [--influence-out FILE] (each
+    --influence [--influence-drop N | --influence-threshold T] [--influence-rounds K] [--influence-score S]
+    [--influence-out FILE] (each
     track's influence on the refined calibration from the adjustment's own linearisation, no truth, ranked against
     the truth's classes; the top N, or those above T, removed, the noise held),
     --first-frame-only, --loss TRIVIAL|CAUCHY|..., --inflation X
@@ -733,6 +734,8 @@ def main() -> None:
                         help="--influence: remove this many top tracks, the noise held at the first adjustment's")
     parser.add_argument("--influence-threshold", type=float, default=None,
                         help="--influence: remove every track whose score is above this (instead of a count)")
+    parser.add_argument("--influence-rounds", type=int, default=1,
+                        help="--influence-threshold: adjust, score and remove again up to this many times in all")
     parser.add_argument("--influence-out", type=Path, default=None, help="--influence: the ranking (JSON)")
     parser.add_argument("--static-only", action="store_true",
                         help="remove every track that is not on a static surface (classify) before adjusting")
@@ -828,6 +831,26 @@ def main() -> None:
                     mapped.delete_point3D(pid)
             logger.info("removed the %d tracks of highest %s, noise held at %.3f px", len(drop),
                         args.influence_score, first.pixel_sigma)
+            for round_ in range(2, args.influence_rounds + 1):
+                if args.influence_threshold is None:
+                    break
+                again = adjust(pycolmap.Reconstruction(mapped), given.rigs, given.scale,
+                               replace(adjust_options, calibration=Calibration.REFINE), given.priors)
+                if again.calibration != Calibration.REFINE or again.held_rigs:
+                    logger.info("round %d: rigs held (%s): no calibration to score", round_, sorted(again.held_rigs))
+                    break
+                influence = track_influence(again)
+                drop = [p for p, v in influence.items() if v[args.influence_score] > args.influence_threshold]
+                by_class = {}
+                for p in drop:
+                    c = classes.get(p, {}).get("class", "-")
+                    by_class[c] = by_class.get(c, 0) + 1
+                logger.info("round %d: %s above %g: %d tracks, by the truth's class %s", round_,
+                            args.influence_score, args.influence_threshold, len(drop), by_class)
+                if not drop:
+                    break
+                for pid in drop:
+                    mapped.delete_point3D(pid)
     if args.static_only:
         classes = classify(mapped, truth, options)
         for pid, v in classes.items():

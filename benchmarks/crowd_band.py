@@ -184,7 +184,7 @@ def inconsistent_tracks(rec: pycolmap.Reconstruction, quantile: float = 0.999, m
     return {pid for pid, b in zip(ids, bad) if b}
 
 
-def track_influence(result) -> dict[int, dict]:
+def track_influence(result, with_deltas: bool = False, robust: bool = False):
     """Per 3D point id of ``result`` (a REFINE adjustment): how far deleting the track would move the refined
     calibration, from the adjustment's own linearisation (squared loss at the solution, priors in; no truth).
     With the point eliminated, the track's reduced Jacobian ``A = P J_a`` and residual ``e = P r`` (``P`` the
@@ -192,6 +192,8 @@ def track_influence(result) -> dict[int, dict]:
     ``d = H^-1 A^T (I - L)^-1 e`` (Woodbury downdate of the reduced normal matrix ``H``; ``L = A H^-1 A^T`` its
     leverage), scored as ``d_c^T Sigma_c^-1 d_c`` with ``Sigma_c = sigma^2 (H^-1)_cc`` (Cook's distance on the
     calibration), and ``d^T H d / sigma^2`` on every parameter."""
+    import scipy.sparse as sp
+
     from rigsfm.run.adjustment import covariance as cv
     from rigsfm.run.adjustment.problem import JointProblem
     from rigsfm.run.adjustment.result import Gauge, ScaleSource
@@ -227,6 +229,19 @@ def track_influence(result) -> dict[int, dict]:
     jac = cv._csr(problem.evaluate_jacobian(evaluate)).tocsr()
     res = np.asarray(problem.evaluate_residuals(evaluate), dtype=np.float64)
     row_point = cv._row_points(jac, num_a, len(point_ids))
+    if robust:  # the Cauchy loss's weights at the solution (IRLS): rows of an observation scaled by sqrt(rho')
+        if str(options.loss) != "CAUCHY":
+            raise RuntimeError(f"--influence-robust knows the Cauchy loss only, not {options.loss}")
+        weights = np.ones(len(res))
+        on_point = np.flatnonzero(row_point < len(point_ids))
+        if len(on_point) % 2 or np.any(row_point[on_point[0::2]] != row_point[on_point[1::2]]):
+            raise RuntimeError("the observations' residuals are not in pairs of rows")
+        squared = res[on_point[0::2]] ** 2 + res[on_point[1::2]] ** 2
+        w = np.sqrt(1.0 / (1.0 + squared / options.loss_scale_px**2))
+        weights[on_point[0::2]] = w
+        weights[on_point[1::2]] = w
+        jac = (sp.diags(weights) @ jac).tocsr()
+        res = res * weights
     calibration = np.zeros(num_a, dtype=bool)
     k = 0
     for key, _, dims in variable:
@@ -256,19 +271,48 @@ def track_influence(result) -> dict[int, dict]:
     sigma2 = jp.weight_sigma**2
     cal = np.flatnonzero(calibration)
     cal_info = np.linalg.inv(h_inv[np.ix_(cal, cal)])  # (H^-1)_cc^-1; Sigma_c^-1 = this / sigma^2
-    out = {}
+    out: dict = {}
+    deltas: dict[int, np.ndarray] = {}
     for pid, (cols, a, e, n) in zip(point_ids, per_point):
         lev = a @ h_inv[np.ix_(cols, cols)] @ a.T
         x = np.linalg.solve(np.eye(len(e)) - lev, e)
         d = h_inv[:, cols] @ (a.T @ x)
         dc = d[cal]
+        deltas[pid] = dc
         out[pid] = {"cook_calibration": float(dc @ cal_info @ dc / sigma2),
                     "cook_all": float(d @ h @ d / sigma2),
                     "leverage": float(np.trace(lev)), "observations": n // 2,
                     "residual_rms_px": float(np.sqrt(np.mean(e**2)))}
     logger.info("track influence: %d tracks, %d calibration parameters, sigma %.3f px", len(out), len(cal),
                 jp.weight_sigma)
+    if with_deltas:
+        # the calibration's parameters in d_c's order: (camera id, parameter index)
+        params = [(key[1], d) for key, _, dims in variable if key[0] != "frame" for d in dims]
+        return out, {"deltas": deltas, "params": params, "info": cal_info / sigma2}
     return out
+
+
+def check_influence(mapped, given, options, first, influence, linear, count: int) -> None:
+    """The downdate against the adjustment: each of the ``count`` most influential tracks deleted alone, the default
+    adjustment run again (noise held at ``first``'s), the refined calibration's change against the predicted ``d_c``,
+    both scored with the same ``Sigma_c``."""
+    hold_pixel_sigma(first.pixel_sigma)
+    ranked = sorted(influence, key=lambda p: -influence[p]["cook_calibration"])[:count]
+    base = np.array([first.reconstruction.cameras[c].params[d] for c, d in linear["params"]])
+    for pid in ranked:
+        rec = pycolmap.Reconstruction(mapped)
+        rec.delete_point3D(pid)
+        again = adjust(rec, given.rigs, given.scale, replace(options, calibration=Calibration.REFINE), given.priors)
+        if again.held_rigs or again.calibration != Calibration.REFINE:
+            logger.info("track %d: predicted D %.2f; deleted, rigs held %s", pid,
+                        influence[pid]["cook_calibration"], sorted(again.held_rigs))
+            continue
+        actual = np.array([again.reconstruction.cameras[c].params[d] for c, d in linear["params"]]) - base
+        predicted = linear["deltas"][pid]
+        info = linear["info"]
+        logger.info("track %d: D predicted %.2f, actual %.2f; |actual - predicted| / |actual| (whitened) %.2f",
+                    pid, predicted @ info @ predicted, actual @ info @ actual,
+                    np.sqrt((actual - predicted) @ info @ (actual - predicted) / max(actual @ info @ actual, 1e-30)))
 
 
 def influence_report(influence: dict, classes: dict, top: tuple[int, ...] = (25, 50, 100, 200)) -> dict:
@@ -736,6 +780,11 @@ def main() -> None:
                         help="--influence: remove every track whose score is above this (instead of a count)")
     parser.add_argument("--influence-rounds", type=int, default=1,
                         help="--influence-threshold: adjust, score and remove again up to this many times in all")
+    parser.add_argument("--influence-check", type=int, default=0,
+                        help="--influence: delete each of this many top tracks alone, re-adjust (noise held) and "
+                             "compare the refined calibration's change with the downdate's prediction")
+    parser.add_argument("--influence-robust", action="store_true",
+                        help="--influence: the Cauchy loss's weights at the solution in the Jacobian and residuals")
     parser.add_argument("--influence-out", type=Path, default=None, help="--influence: the ranking (JSON)")
     parser.add_argument("--static-only", action="store_true",
                         help="remove every track that is not on a static surface (classify) before adjusting")
@@ -806,7 +855,10 @@ def main() -> None:
                        replace(adjust_options, calibration=Calibration.REFINE), given.priors)
         logger.info("first adjustment: %s, held %s, noise %.3f px", first.calibration, sorted(first.held_rigs),
                     first.pixel_sigma)
-        influence = track_influence(first)
+        influence, linear = track_influence(first, with_deltas=True, robust=args.influence_robust)
+        if args.influence_check:
+            check_influence(mapped, given, adjust_options, first, influence, linear, args.influence_check)
+            return
         classes = classify(mapped, truth, options)
         report = influence_report(influence, classes)
         report["held_rigs"] = sorted(first.held_rigs)
@@ -839,7 +891,7 @@ def main() -> None:
                 if again.calibration != Calibration.REFINE or again.held_rigs:
                     logger.info("round %d: rigs held (%s): no calibration to score", round_, sorted(again.held_rigs))
                     break
-                influence = track_influence(again)
+                influence = track_influence(again, robust=args.influence_robust)
                 drop = [p for p, v in influence.items() if v[args.influence_score] > args.influence_threshold]
                 by_class = {}
                 for p in drop:

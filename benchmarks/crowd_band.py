@@ -10,6 +10,10 @@ predicted covariance, and which observations carry the error (mrcal-style uncert
     truth classes removed), --track-test [--track-quantile Q] [--track-min-observations N] [--keep-noise] (a
     truth-free per-track chi-square test; --keep-noise: the second adjustment weighted by the first's noise),
     --pixel-sigma S (the refined adjustment's weighting noise held), --drop-random N SEED, --drop-ids FILE,
+    --influence [--influence-drop N | --influence-threshold T] [--influence-rounds K] [--influence-score S]
+    [--influence-out FILE] (each
+    track's influence on the refined calibration from the adjustment's own linearisation, no truth, ranked against
+    the truth's classes; the top N, or those above T, removed, the noise held),
     --first-frame-only, --loss TRIVIAL|CAUCHY|..., --inflation X
 
 Results and what they say: benchmarks/README.md, "Why the band is narrow on crowds of 3D persons".
@@ -44,14 +48,17 @@ REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
 
 import numpy as np  # noqa: E402
+import pyceres  # noqa: E402
 import pycolmap  # noqa: E402
 import scipy.linalg  # noqa: E402
+import scipy.stats  # noqa: E402
 import yaml  # noqa: E402
 from scipy.spatial.transform import Rotation  # noqa: E402
 
 from rigsfm.core.names import name_of  # noqa: E402
 from rigsfm.run.adjustment.adjust import adjust  # noqa: E402
 from rigsfm.run.adjustment.covariance import joint_covariance  # noqa: E402
+from rigsfm.run.adjustment.model import sensor_from_rig_view  # noqa: E402
 from rigsfm.run.options import AdjustOptions, Calibration  # noqa: E402
 from rigsfm.run.pipeline import load_inputs  # noqa: E402
 from rigsfm.synth.persons import build_crowd  # noqa: E402
@@ -175,6 +182,171 @@ def inconsistent_tracks(rec: pycolmap.Reconstruction, quantile: float = 0.999, m
     logger.info("track test: sigma %.3f px per coordinate, %d of %d tracks inconsistent", np.sqrt(sigma2),
                 int(bad.sum()), len(ids))
     return {pid for pid, b in zip(ids, bad) if b}
+
+
+def track_influence(result, with_deltas: bool = False, robust: bool = False):
+    """Per 3D point id of ``result`` (a REFINE adjustment): how far deleting the track would move the refined
+    calibration, from the adjustment's own linearisation (squared loss at the solution, priors in; no truth).
+    With the point eliminated, the track's reduced Jacobian ``A = P J_a`` and residual ``e = P r`` (``P`` the
+    projector off the point's 3 columns); deleting it moves the other parameters by
+    ``d = H^-1 A^T (I - L)^-1 e`` (Woodbury downdate of the reduced normal matrix ``H``; ``L = A H^-1 A^T`` its
+    leverage), scored as ``d_c^T Sigma_c^-1 d_c`` with ``Sigma_c = sigma^2 (H^-1)_cc`` (Cook's distance on the
+    calibration), and ``d^T H d / sigma^2`` on every parameter."""
+    import scipy.sparse as sp
+
+    from rigsfm.run.adjustment import covariance as cv
+    from rigsfm.run.adjustment.problem import JointProblem
+    from rigsfm.run.adjustment.result import Gauge, ScaleSource
+
+    rec = pycolmap.Reconstruction(result.reconstruction)
+    options = result.options
+    gauge = Gauge.TWO_CAMS_FROM_WORLD if result.scale_source == ScaleSource.NONE else Gauge.RIGID
+    jp = JointProblem(rec, result.rigs, result.priors, result.scale_spec, options, result.pixel_sigma, gauge=gauge,
+                      robust=False, with_priors=True, held_rigs=result.held_rigs)
+    problem = jp.problem
+    variable = []  # (key, block, dims) as covariance._reduced_system orders them
+    for frame_id in jp.frame_ids:
+        block = jp.frame_block(frame_id)
+        if jp.has_variable(block):
+            dims = list(range(6))
+            if jp.subset_frame is not None and jp.subset_frame[0] == frame_id:
+                dims.remove(3 + jp.subset_frame[1])
+            variable.append((("frame", frame_id), block, dims))
+    for rig_id, sensor_id, camera_id, _ in jp.narrow_sensors():
+        view = sensor_from_rig_view(rec, rig_id, sensor_id)
+        if jp.has_variable(view.params):
+            variable.append((("sensor_from_rig", camera_id), view.params, list(range(6))))
+    for camera_id in sorted(rec.cameras):
+        if camera_id in jp.camera_names and jp.has_variable(rec.cameras[camera_id].params):
+            sigmas = jp.camera_sigmas(camera_id)
+            variable.append((("camera", camera_id), rec.cameras[camera_id].params, np.flatnonzero(sigmas > 0).tolist()))
+    end_points = [p for p in jp.end_points if jp.has_variable(p)]
+    point_ids = [pid for pid, p in rec.points3D.items() if jp.has_variable(p.xyz)]
+    blocks = [b for _, b, _ in variable] + end_points + [rec.points3D[pid].xyz for pid in point_ids]
+    evaluate = pyceres.EvaluateOptions()
+    evaluate.set_parameter_blocks(blocks)
+    num_a = sum(len(d) for _, _, d in variable) + 3 * len(end_points)
+    jac = cv._csr(problem.evaluate_jacobian(evaluate)).tocsr()
+    res = np.asarray(problem.evaluate_residuals(evaluate), dtype=np.float64)
+    row_point = cv._row_points(jac, num_a, len(point_ids))
+    if robust:  # the Cauchy loss's weights at the solution (IRLS): rows of an observation scaled by sqrt(rho')
+        if str(options.loss) != "CAUCHY":
+            raise RuntimeError(f"--influence-robust knows the Cauchy loss only, not {options.loss}")
+        weights = np.ones(len(res))
+        on_point = np.flatnonzero(row_point < len(point_ids))
+        if len(on_point) % 2 or np.any(row_point[on_point[0::2]] != row_point[on_point[1::2]]):
+            raise RuntimeError("the observations' residuals are not in pairs of rows")
+        squared = res[on_point[0::2]] ** 2 + res[on_point[1::2]] ** 2
+        w = np.sqrt(1.0 / (1.0 + squared / options.loss_scale_px**2))
+        weights[on_point[0::2]] = w
+        weights[on_point[1::2]] = w
+        jac = (sp.diags(weights) @ jac).tocsr()
+        res = res * weights
+    calibration = np.zeros(num_a, dtype=bool)
+    k = 0
+    for key, _, dims in variable:
+        calibration[k:k + len(dims)] = key[0] != "frame"
+        k += len(dims)
+    jac_a = jac[:, :num_a].tocsr()
+    jac_p = jac[:, num_a:].tocsc()
+    order = np.argsort(row_point, kind="stable")
+    bounds = np.searchsorted(row_point[order], np.arange(len(point_ids) + 1))
+    h = (jac_a.T @ jac_a).toarray()
+    per_point = []
+    for i in range(len(point_ids)):
+        rows = order[bounds[i]:bounds[i + 1]]
+        sub = jac_a[rows]
+        cols = np.unique(sub.indices)
+        ja = sub[:, cols].toarray()
+        jpp = jac_p[:, 3 * i:3 * i + 3][rows].toarray()
+        hpp_inv = np.linalg.inv(jpp.T @ jpp + cv.DAMPING * np.eye(3))
+        proj = np.eye(len(rows)) - jpp @ hpp_inv @ jpp.T
+        a = proj @ ja
+        h[np.ix_(cols, cols)] -= ja.T @ jpp @ hpp_inv @ jpp.T @ ja
+        per_point.append((cols, a, proj @ res[rows], len(rows)))
+    h = 0.5 * (h + h.T)
+    h_inv = cv._inverse(h)
+    if h_inv is None:
+        raise RuntimeError("the reduced normal matrix is rank deficient")
+    sigma2 = jp.weight_sigma**2
+    cal = np.flatnonzero(calibration)
+    cal_info = np.linalg.inv(h_inv[np.ix_(cal, cal)])  # (H^-1)_cc^-1; Sigma_c^-1 = this / sigma^2
+    out: dict = {}
+    deltas: dict[int, np.ndarray] = {}
+    for pid, (cols, a, e, n) in zip(point_ids, per_point):
+        lev = a @ h_inv[np.ix_(cols, cols)] @ a.T
+        x = np.linalg.solve(np.eye(len(e)) - lev, e)
+        d = h_inv[:, cols] @ (a.T @ x)
+        dc = d[cal]
+        deltas[pid] = dc
+        out[pid] = {"cook_calibration": float(dc @ cal_info @ dc / sigma2),
+                    "cook_all": float(d @ h @ d / sigma2),
+                    "leverage": float(np.trace(lev)), "observations": n // 2,
+                    "residual_rms_px": float(np.sqrt(np.mean(e**2)))}
+    logger.info("track influence: %d tracks, %d calibration parameters, sigma %.3f px", len(out), len(cal),
+                jp.weight_sigma)
+    if with_deltas:
+        # the calibration's parameters in d_c's order: (camera id, parameter index)
+        params = [(key[1], d) for key, _, dims in variable if key[0] != "frame" for d in dims]
+        return out, {"deltas": deltas, "params": params, "info": cal_info / sigma2}
+    return out
+
+
+def check_influence(mapped, given, options, first, influence, linear, count: int) -> None:
+    """The downdate against the adjustment: each of the ``count`` most influential tracks deleted alone, the default
+    adjustment run again (noise held at ``first``'s), the refined calibration's change against the predicted ``d_c``,
+    both scored with the same ``Sigma_c``."""
+    hold_pixel_sigma(first.pixel_sigma)
+    ranked = sorted(influence, key=lambda p: -influence[p]["cook_calibration"])[:count]
+    base = np.array([first.reconstruction.cameras[c].params[d] for c, d in linear["params"]])
+    for pid in ranked:
+        rec = pycolmap.Reconstruction(mapped)
+        rec.delete_point3D(pid)
+        again = adjust(rec, given.rigs, given.scale, replace(options, calibration=Calibration.REFINE), given.priors)
+        if again.held_rigs or again.calibration != Calibration.REFINE:
+            logger.info("track %d: predicted D %.2f; deleted, rigs held %s", pid,
+                        influence[pid]["cook_calibration"], sorted(again.held_rigs))
+            continue
+        actual = np.array([again.reconstruction.cameras[c].params[d] for c, d in linear["params"]]) - base
+        predicted = linear["deltas"][pid]
+        info = linear["info"]
+        logger.info("track %d: D predicted %.2f, actual %.2f; |actual - predicted| / |actual| (whitened) %.2f",
+                    pid, predicted @ info @ predicted, actual @ info @ actual,
+                    np.sqrt((actual - predicted) @ info @ (actual - predicted) / max(actual @ info @ actual, 1e-30)))
+
+
+def influence_report(influence: dict, classes: dict, top: tuple[int, ...] = (25, 50, 100, 200)) -> dict:
+    """How well each influence score ranks the truth's person and contour tracks: ROC AUC, hits in the top N, the
+    classes of the top tracks."""
+    ids = [pid for pid in influence if pid in classes]
+    target = np.array([classes[p]["class"] in ("person", "contour") for p in ids])
+    two_view = np.array([influence[p]["observations"] == 2 for p in ids])
+    report = {"tracks": len(ids), "targets": int(target.sum()), "scores": {}}
+    for score in ("cook_calibration", "cook_all", "leverage", "residual_rms_px"):
+        v = np.array([influence[p][score] for p in ids])
+        ranks = scipy.stats.rankdata(v)
+        pos = int(target.sum())
+        auc = float((ranks[target].sum() - pos * (pos + 1) / 2) / (pos * (len(v) - pos))) if 0 < pos < len(v) else None
+        ranks2 = scipy.stats.rankdata(v[two_view])
+        t2 = target[two_view]
+        p2 = int(t2.sum())
+        auc2 = (float((ranks2[t2].sum() - p2 * (p2 + 1) / 2) / (p2 * (len(t2) - p2)))
+                if 0 < p2 < len(t2) else None)
+        order = np.argsort(-v)
+        row = {"auc": auc, "auc_two_view": auc2, "top": {}}
+        for n in top:
+            sel = order[:n]
+            counts: dict[str, int] = {}
+            for j in sel:
+                counts[classes[ids[j]]["class"]] = counts.get(classes[ids[j]]["class"], 0) + 1
+            row["top"][n] = {"targets": int(target[sel].sum()), "classes": counts,
+                             "two_view": int(two_view[sel].sum())}
+        row["top_ids"] = [int(ids[j]) for j in order[:400]]
+        report["scores"][score] = row
+        logger.info("%s: AUC %s (two-view only %s); top 25/50/100/200 person+contour %s; top 50 classes %s", score,
+                    f"{auc:.3f}" if auc is not None else "-", f"{auc2:.3f}" if auc2 is not None else "-",
+                    [row["top"][n]["targets"] for n in top], row["top"][50]["classes"])
+    return report
 
 
 def frame_key(rec: pycolmap.Reconstruction, frame_id: int) -> str:
@@ -370,7 +542,6 @@ def calibration_errors(result, cov, exact) -> dict:
             e = np.asarray(rec.cameras[key[1]].params) - np.asarray(exact_by[name.rig].camera(name.sensor).params)
         else:
             image = next(im for im in rec.images.values() if im.camera_id == key[1])
-            from rigsfm.run.adjustment.model import sensor_from_rig_view
             g = sensor_from_rig_view(rec, rec.frame(image.frame_id).rig_id, rec.cameras[key[1]].sensor_id)
             x = exact_by[name.rig].narrow_from_wide
             w = Rotation.from_matrix(g.rotation.matrix() @ x.rotation.matrix().T).as_rotvec()
@@ -491,7 +662,6 @@ def explain_pairs(mapped, truth, given, exact, options) -> dict:
         narrow_pair_bands,
         registered_narrow_images,
     )
-    from rigsfm.run.adjustment.model import sensor_from_rig_view
 
     result = adjust(pycolmap.Reconstruction(mapped), given.rigs, given.scale,
                     replace(options, calibration=Calibration.FIXED), given.priors)
@@ -599,6 +769,23 @@ def main() -> None:
     parser.add_argument("--keep-noise", action="store_true",
                         help="--track-test: the second adjustment weighted by the first's (every track's) pixel "
                              "noise, not re-estimated without the removed tracks")
+    parser.add_argument("--influence", action="store_true",
+                        help="score every track's influence on the refined calibration (track_influence, no truth) "
+                             "in a first default adjustment, and rank the truth's person and contour tracks by it")
+    parser.add_argument("--influence-score", default="cook_calibration",
+                        help="--influence: the score whose top tracks --influence-drop removes")
+    parser.add_argument("--influence-drop", type=int, default=0,
+                        help="--influence: remove this many top tracks, the noise held at the first adjustment's")
+    parser.add_argument("--influence-threshold", type=float, default=None,
+                        help="--influence: remove every track whose score is above this (instead of a count)")
+    parser.add_argument("--influence-rounds", type=int, default=1,
+                        help="--influence-threshold: adjust, score and remove again up to this many times in all")
+    parser.add_argument("--influence-check", type=int, default=0,
+                        help="--influence: delete each of this many top tracks alone, re-adjust (noise held) and "
+                             "compare the refined calibration's change with the downdate's prediction")
+    parser.add_argument("--influence-robust", action="store_true",
+                        help="--influence: the Cauchy loss's weights at the solution in the Jacobian and residuals")
+    parser.add_argument("--influence-out", type=Path, default=None, help="--influence: the ranking (JSON)")
     parser.add_argument("--static-only", action="store_true",
                         help="remove every track that is not on a static surface (classify) before adjusting")
     parser.add_argument("--drop-classes", default=None,
@@ -663,6 +850,59 @@ def main() -> None:
         for pid in bad:
             if mapped.exists_point3D(pid):
                 mapped.delete_point3D(pid)
+    if args.influence:
+        first = adjust(pycolmap.Reconstruction(mapped), given.rigs, given.scale,
+                       replace(adjust_options, calibration=Calibration.REFINE), given.priors)
+        logger.info("first adjustment: %s, held %s, noise %.3f px", first.calibration, sorted(first.held_rigs),
+                    first.pixel_sigma)
+        influence, linear = track_influence(first, with_deltas=True, robust=args.influence_robust)
+        if args.influence_check:
+            check_influence(mapped, given, adjust_options, first, influence, linear, args.influence_check)
+            return
+        classes = classify(mapped, truth, options)
+        report = influence_report(influence, classes)
+        report["held_rigs"] = sorted(first.held_rigs)
+        if args.influence_out:
+            report["per_track"] = {str(p): {**v, "class": classes[p]["class"]}
+                                   for p, v in influence.items() if p in classes}
+            args.influence_out.write_text(json.dumps(report, indent=1))
+        if args.influence_drop or args.influence_threshold is not None:
+            hold_pixel_sigma(first.pixel_sigma)
+            if args.influence_threshold is not None:
+                drop = [p for p, v in influence.items() if v[args.influence_score] > args.influence_threshold]
+                by_class: dict[str, int] = {}
+                for p in drop:
+                    c = classes.get(p, {}).get("class", "-")
+                    by_class[c] = by_class.get(c, 0) + 1
+                logger.info("%s above %g: %d tracks, by the truth's class %s", args.influence_score,
+                            args.influence_threshold, len(drop), by_class)
+            else:
+                drop = report["scores"][args.influence_score]["top_ids"][:args.influence_drop]
+            for pid in drop:
+                if mapped.exists_point3D(pid):
+                    mapped.delete_point3D(pid)
+            logger.info("removed the %d tracks of highest %s, noise held at %.3f px", len(drop),
+                        args.influence_score, first.pixel_sigma)
+            for round_ in range(2, args.influence_rounds + 1):
+                if args.influence_threshold is None:
+                    break
+                again = adjust(pycolmap.Reconstruction(mapped), given.rigs, given.scale,
+                               replace(adjust_options, calibration=Calibration.REFINE), given.priors)
+                if again.calibration != Calibration.REFINE or again.held_rigs:
+                    logger.info("round %d: rigs held (%s): no calibration to score", round_, sorted(again.held_rigs))
+                    break
+                influence = track_influence(again, robust=args.influence_robust)
+                drop = [p for p, v in influence.items() if v[args.influence_score] > args.influence_threshold]
+                by_class = {}
+                for p in drop:
+                    c = classes.get(p, {}).get("class", "-")
+                    by_class[c] = by_class.get(c, 0) + 1
+                logger.info("round %d: %s above %g: %d tracks, by the truth's class %s", round_,
+                            args.influence_score, args.influence_threshold, len(drop), by_class)
+                if not drop:
+                    break
+                for pid in drop:
+                    mapped.delete_point3D(pid)
     if args.static_only:
         classes = classify(mapped, truth, options)
         for pid, v in classes.items():

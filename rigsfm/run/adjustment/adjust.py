@@ -15,9 +15,9 @@ with the intrinsics and every observed narrow ``sensor_from_rig`` (E^sl) refined
 Then the refinement is tested (:func:`hold_or_refine`: the images must inform some direction of the network's
 calibration more than rigs.yaml's sigmas do, and the network's change must be consistent with the information they
 give about it, else every rig is held); a rig they barely observe is held at rigs.yaml's values and the network
-adjusted again; with every rig held, and the network's shape fixed by the images, the adjustment is ``FIXED``'s. On a weak network (two rigs registered from
-a few dozen clicks) the images cannot inform the calibration, and refining it anyway moved the narrow cameras further
-from the truth than holding it.
+adjusted again; with every rig held, and the network's shape fixed by the images, the adjustment is ``FIXED``'s.
+On a weak network (two rigs registered from a few dozen clicks) the images cannot inform the calibration, and
+refining it anyway moved the narrow cameras further from the truth than holding it.
 
 A parameter no image observes (intrinsics and E^sl of a narrow camera without points) is not in COLMAP's problem:
 it stays at rigs.yaml's value, and its prior enters the covariance as an independent block. Residuals are whitened

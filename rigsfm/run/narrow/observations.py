@@ -74,11 +74,6 @@ HOLD_OUT_EVERY = 5  # every 5th match of a pair (20 %) is kept out of the adjust
 # second adjustment costs more than they add, and whose errors are not independent (SIFT on warped views).
 MAX_PAIR_MATCHES = 150
 MIN_HELD_OUT = 10  # held-out matches a pair needs for a verdict
-# With narrow observations the delivered bands are those of the adjustment with them (the pipeline estimates its
-# uncertainty again); the first adjustment's only guide the heads search. Its covariance weighs each pair's matches
-# by the pair's own noise and correlation, as SIFT on warped views errs alike over a region
-# (rigsfm.run.adjustment.correlated).
-BANDS_FROM = BANDS_WITH_NARROW
 MIN_TRIANGULATION_DEG = 1.0  # rays closer than this make no point
 
 
@@ -160,7 +155,10 @@ class NarrowObservations:
                                      held_out=int(p.held_out.sum()) if p.in_adjustment else 0)
                    for p in self.pairs],
             held_out_check=[HeldOutCheckSummary(**c.to_dict()) for c in self.held_out_checks],
-            bands=BANDS_FROM if self.used else None, matched_by=self.matched_by, head_persons=self.head_persons,
+            # the pipeline estimates the uncertainty again on the adjustment with them (the first adjustment's bands
+            # only guide the heads search); its covariance weighs each pair's matches by the pair's own noise and
+            # correlation, as SIFT on warped views errs alike over a region (rigsfm.run.adjustment.correlated)
+            bands=BANDS_WITH_NARROW if self.used else None, matched_by=self.matched_by, head_persons=self.head_persons,
             head_candidates=self.head_candidates, head_verdicts=self.head_verdicts)
 
 
@@ -171,7 +169,7 @@ def describe_record(record: NarrowObservationsSummary) -> str:
     if record.used:
         verdicts = [c.verdict for c in record.held_out_check]
         line += (f"; {record.observations_added} observations of {record.points_added} points added, "
-                 f"{record.held_out_matches} matches held out; bands: {record.bands or BANDS_FROM}")
+                 f"{record.held_out_matches} matches held out; bands: {record.bands or BANDS_WITH_NARROW}")
         if verdicts:
             rest = len(verdicts) - verdicts.count("ok") - verdicts.count("failed")
             line += (f"; held-out check: {verdicts.count('ok')} ok, {verdicts.count('failed')} failed, "

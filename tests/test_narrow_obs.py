@@ -8,7 +8,8 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from rigsfm.run.narrow.observations import MIN_PAIR_MATCHES, PairMatches, decide
+from rigsfm.core.summary import BANDS_WIDE_ONLY, BANDS_WITH_NARROW
+from rigsfm.run.narrow.observations import MIN_PAIR_MATCHES, NarrowObservations, PairMatches, decide
 from rigsfm.run.options import NarrowMode, RunOptions
 from rigsfm.run.pipeline import run
 from rigsfm.synth.scene import SceneOptions
@@ -134,3 +135,14 @@ def test_the_covariance_weighs_each_narrow_pair_by_its_own_noise(crowd_runs):
     assert all(0.02 < p.sigma_px < 1.0 and 0.0 <= p.rho < 1.0 for p in pairs), pairs
     sigmas = [p.sigma_px for p in pairs]
     assert max(sigmas) > 1.5 * min(sigmas), pairs  # pairs differ in noise: one pooled sigma would not do
+
+
+def test_heads_leave_the_delivered_bands_to_the_first_adjustment():
+    """Only floor matches have a noise model in the covariance (rigsfm.run.adjustment.correlated): with heads as
+    the narrow observations the bands delivered are the first adjustment's, as the record and summary.json say."""
+    floor = NarrowObservations("auto", True, "textured")
+    heads = NarrowObservations("auto", True, "heads", matched_by="heads")
+    unused = NarrowObservations("auto", False, "no texture")
+    assert floor.bands_from == BANDS_WITH_NARROW and floor.summary().bands == BANDS_WITH_NARROW
+    assert heads.bands_from == BANDS_WIDE_ONLY and heads.summary().bands == BANDS_WIDE_ONLY
+    assert unused.bands_from == BANDS_WIDE_ONLY and unused.summary().bands is None

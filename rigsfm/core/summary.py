@@ -76,6 +76,7 @@ class PairBandSummary:
 
 
 BANDS_WITH_NARROW = "with narrow observations"  # UncertaintySummary.bands_from: the adjustment with them
+BANDS_WIDE_ONLY = "wide only"  # ... and the adjustment without them
 
 
 @dataclass(kw_only=True)
@@ -85,7 +86,7 @@ class UncertaintySummary:
     pixel_sigma_px: float | None = None  # the images' weighting noise per coordinate (estimated x inflation)
     floor: str = "none"  # where the bands' analysis points lie: known_lengths, points, none (depths)
     bands: str = "linear"  # linear in the covariance, or sampled (re-adjusted over calibration draws: <= 3 rigs)
-    bands_from: str = "wide only"  # the adjustment they are of: "with narrow observations" or "wide only"
+    bands_from: str = BANDS_WIDE_ONLY  # the adjustment they are of: BANDS_WITH_NARROW or BANDS_WIDE_ONLY
     narrow: dict[str, NarrowUncertaintySummary] = field(default_factory=dict)  # per narrow image
     pairs: list[PairBandSummary] = field(default_factory=list)
     refined_calibration: dict[str, dict] = field(default_factory=dict)  # per camera: change and posterior sigma

@@ -383,7 +383,7 @@ def _run_locked(workspace: Workspace, inputs: Inputs, manual_pairs: dict, option
                 first, (result, narrow) = result, second_pass(result, world, inputs, options, given_offsets,
                                                               uncertainty.bands)
                 metric = is_metric(result)
-            if result is not first:  # what is delivered is the second adjustment's: its own bands and sigmas
+            if result is not first and narrow.bands_from == BANDS_WITH_NARROW:  # (not with heads: bands_from)
                 with timings.stage("uncertainty_final"):
                     # Same gauge as the first (one frame held), world.apply not yet: the floor fit's frame.
                     floor, floor_source = world.analysis_floor(result.reconstruction, result.scale_spec)

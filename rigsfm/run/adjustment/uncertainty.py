@@ -13,6 +13,7 @@ import numpy as np
 from rigsfm.core.errors import ReconstructionError
 from rigsfm.core.geometry import Plane
 from rigsfm.core.names import name_of
+from rigsfm.core.summary import BANDS_WIDE_ONLY
 from rigsfm.run.adjustment.bands import PairBand, narrow_pair_bands
 from rigsfm.run.adjustment.covariance import joint_covariance
 from rigsfm.run.adjustment.model import sensor_from_rig_view
@@ -32,7 +33,7 @@ class Uncertainty:
     floor: str  # where the band's analysis points come from: floor_fit (the world stage), known_lengths, points, none
     seconds: dict[str, float]
     sampled: bool = False  # bands re-adjusted over calibration draws (sampled_pair_bands), not linear
-    bands_from: str = "wide only"  # the adjustment: rigsfm.core.summary.BANDS_WITH_NARROW for the second one
+    bands_from: str = BANDS_WIDE_ONLY  # the adjustment: BANDS_WITH_NARROW for the second one
 
 
 # Networks this small get the sampled band (sampled_pair_bands): there the linear band covers less than it says

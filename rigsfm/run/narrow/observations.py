@@ -42,6 +42,7 @@ import numpy as np
 import pycolmap
 
 from rigsfm.core.summary import (
+    BANDS_WIDE_ONLY,
     BANDS_WITH_NARROW,
     HeldOutCheckSummary,
     NarrowObservationsSummary,
@@ -138,6 +139,14 @@ class NarrowObservations:
     head_verdicts: int = 0  # self-check pairs given a verdict by their head matches
     head_check_pairs: list[PairMatches] = field(default_factory=list, repr=False)  # the heads' self-check matches
 
+    @property
+    def bands_from(self) -> str:
+        """The adjustment whose bands are delivered: the one with these observations where they are matches through
+        the floor, whose noise is modelled per pair (rigsfm.run.adjustment.correlated); the first one where they are
+        heads, whose multi-view tracks have no noise model of their own (counted at the images' noise they narrowed
+        the band far below a 3D crowd's true errors: benchmarks/README.md)."""
+        return BANDS_WITH_NARROW if self.used and self.matched_by != "heads" else BANDS_WIDE_ONLY
+
     def line(self) -> str:
         """The terminal's line."""
         return describe_record(self.summary())
@@ -155,10 +164,7 @@ class NarrowObservations:
                                      held_out=int(p.held_out.sum()) if p.in_adjustment else 0)
                    for p in self.pairs],
             held_out_check=[HeldOutCheckSummary(**c.to_dict()) for c in self.held_out_checks],
-            # the pipeline estimates the uncertainty again on the adjustment with them (the first adjustment's bands
-            # only guide the heads search); its covariance weighs each pair's matches by the pair's own noise and
-            # correlation, as SIFT on warped views errs alike over a region (rigsfm.run.adjustment.correlated)
-            bands=BANDS_WITH_NARROW if self.used else None, matched_by=self.matched_by, head_persons=self.head_persons,
+            bands=self.bands_from if self.used else None, matched_by=self.matched_by, head_persons=self.head_persons,
             head_candidates=self.head_candidates, head_verdicts=self.head_verdicts)
 
 
@@ -169,7 +175,7 @@ def describe_record(record: NarrowObservationsSummary) -> str:
     if record.used:
         verdicts = [c.verdict for c in record.held_out_check]
         line += (f"; {record.observations_added} observations of {record.points_added} points added, "
-                 f"{record.held_out_matches} matches held out; bands: {record.bands or BANDS_WITH_NARROW}")
+                 f"{record.held_out_matches} matches held out; bands: {record.bands}")
         if verdicts:
             rest = len(verdicts) - verdicts.count("ok") - verdicts.count("failed")
             line += (f"; held-out check: {verdicts.count('ok')} ok, {verdicts.count('failed')} failed, "

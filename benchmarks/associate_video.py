@@ -25,7 +25,6 @@ from __future__ import annotations
 import argparse
 import itertools
 import json
-import math
 import sys
 from pathlib import Path
 
@@ -60,7 +59,7 @@ def video_model(model: RunModel, dataset: Path, frames: int) -> RunModel:
     camera_of = {ImageName.parse(n).camera: n for n in model.images}
     renamed: dict[str, dict[str, str]] = {}
     for k in range(frames):
-        for camera, name in camera_of.items():
+        for name in camera_of.values():
             new = name.replace("frame0000", f"frame{k:04d}")
             images[new] = _Posed(new, model.images[name])
             renamed.setdefault(name, {})[f"{k}"] = new
@@ -113,8 +112,55 @@ def link_nearest(frame_a, frame_b, radius: np.ndarray) -> np.ndarray:
     return out
 
 
+WALK_SIGMA_M = 0.08  # per horizontal axis, a walking head's move in one frame period of 0.1 s
+
+
+def link_walk(frame_a, frame_b, gap: int, height: float, neighbours: int = 8) -> np.ndarray:
+    """Per detection of ``frame_a``, its nearest detection of the same view in ``frame_b`` (one to one) under the
+    metric of a walk: the head stays at ``height`` and moves horizontally by ``WALK_SIGMA_M`` per axis per frame
+    (``gap`` frames), carried into the image by the view's Jacobian at the detection's ray at that height (a near
+    level camera sees a walk toward it hardly move the head, so the metric is long along the walk's image and short
+    across it), plus both detections' noise; gated at the 99 % of two degrees of freedom."""
+    from scipy.spatial import cKDTree
+
+    out = np.full(int(frame_a.offsets[-1]), -1, dtype=np.int64)
+    for v, view in enumerate(frame_a.views):
+        a = np.arange(frame_a.offsets[v], frame_a.offsets[v + 1])
+        b = np.arange(frame_b.offsets[v], frame_b.offsets[v + 1])
+        if not len(a) or not len(b):
+            continue
+        x = frame_a.ray_points(a, height)
+        uv0, _ = view.project(x)
+        eps = 0.05
+        jx = (view.project(x + np.array([eps, 0.0, 0.0]))[0] - uv0) / eps
+        jy = (view.project(x + np.array([0.0, eps, 0.0]))[0] - uv0) / eps
+        jac = np.stack([jx, jy], axis=2)  # N x 2 (image) x 2 (floor)
+        cov = (WALK_SIGMA_M * gap) ** 2 * np.einsum("nij,nkj->nik", jac, jac) \
+            + 2 * frame_a.options.pixel_sigma ** 2 * np.eye(2)[None]
+        inv = np.linalg.inv(cov)
+        k = min(neighbours, len(b))
+        _, near = cKDTree(frame_b.uv[b]).query(frame_a.uv[a], k=k)
+        near = near.reshape(len(a), k)
+        diff = frame_b.uv[b][near] - frame_a.uv[a][:, None]  # N x k x 2
+        d2 = np.einsum("nki,nij,nkj->nk", diff, inv, diff)
+        best = np.argmin(d2, axis=1)
+        choice = near[np.arange(len(a)), best]
+        dist = d2[np.arange(len(a)), best]
+        # one to one: where several detections of a chose the same b, the closest keeps it
+        order = np.argsort(dist)
+        taken = np.zeros(len(b), dtype=bool)
+        for i in order:
+            if dist[i] > 9.21 or taken[choice[i]]:
+                continue
+            taken[choice[i]] = True
+            out[a[i]] = b[choice[i]]
+    return out
+
+
 def continue_groups(frame, members: np.ndarray, last_uv: np.ndarray, reach: np.ndarray, motion_px: float,
-                    floor: float, candidates: int = 3) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                    floor: float, previous: np.ndarray, gap: np.ndarray, previous_var: np.ndarray,
+                    candidates: int = 3, motion: bool = True,
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Each group's best continuation in ``frame``: per member view, up to ``candidates`` detections within its
     ``reach`` (px) of where it was last seen (``last_uv``, G x V x 2; NaN: not in the group), every combination's
     evidence (frame_evidence), the best one less log(its number of combinations), as a search over c combinations
@@ -138,6 +184,8 @@ def continue_groups(frame, members: np.ndarray, last_uv: np.ndarray, reach: np.n
     evidence = np.zeros(g)
     tested = np.zeros(g, dtype=bool)
     chosen = np.full((g, nv), -1, dtype=np.int64)
+    points = np.full((g, 3), np.nan)
+    variances = np.full((g, 3, 3), np.nan)
     for n in np.unique(size):
         rows = np.flatnonzero(size == n)
         c = candidates if n <= 3 else 1
@@ -150,8 +198,13 @@ def continue_groups(frame, members: np.ndarray, last_uv: np.ndarray, reach: np.n
                 cand[rows[:, None], v[:, None], combos[None, :, slot]]
         # a combination counts where each of its slots holds a candidate or the view has none at all
         flat = trial.reshape(-1, nv)
-        value, ok = frame_evidence(frame, flat, motion_px, floor)
+        repeat = len(combos)
+        value, ok, where, var = frame_evidence(frame, flat, motion_px, floor,
+                                               np.repeat(previous[rows], repeat, axis=0), np.repeat(gap[rows], repeat),
+                                               motion, np.repeat(previous_var[rows], repeat, axis=0))
+        var = var.reshape(len(rows), repeat, 3, 3)
         value, ok = value.reshape(len(rows), -1), ok.reshape(len(rows), -1)
+        where = where.reshape(len(rows), repeat, 3)
         distinct = np.array([len({tuple(r) for r in t[o]}) for t, o in zip(trial, ok)])
         value = np.where(ok, value, -np.inf)
         best = np.argmax(value, axis=1)
@@ -159,18 +212,40 @@ def continue_groups(frame, members: np.ndarray, last_uv: np.ndarray, reach: np.n
         evidence[rows[has]] = value[has, best[has]] - np.log(np.maximum(distinct[has], 1))
         tested[rows[has]] = True
         chosen[rows[has]] = trial[np.flatnonzero(has), best[has]]
-    return evidence, tested, chosen
+        points[rows[has]] = where[np.flatnonzero(has), best[has]]
+        variances[rows[has]] = var[np.flatnonzero(has), best[has]]
+    return evidence, tested, chosen, points, variances
 
 
-def frame_evidence(frame, members: np.ndarray, motion_px: float, floor: float) -> tuple[np.ndarray, np.ndarray]:
+ROBUST = False  # set by --robust
+WALK_M = 0.13  # a head's farthest walk in one frame period of 0.1 s (1.3 m/s)
+BOB_M = 0.03  # a walking head's height changes by about this between frames
+CHANCE_M = (0.5, 0.1)  # a chance group's point jumps about this far horizontally and vertically between frames
+
+
+def frame_evidence(frame, members: np.ndarray, motion_px: float, floor: float, previous: np.ndarray | None = None,
+                   gap: np.ndarray | None = None, motion: bool = True, previous_cov: np.ndarray | None = None,
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Per group (members in ``frame``; -1: none), the log-likelihood ratio of its residuals, one person against two
-    independent walkers, and whether it had two or more members to test (else 0)."""
+    independent walkers, and whether it had two or more members to test (else 0); with ``previous`` (the group's
+    point where it was last tested, NaN: never) also of its point's move since then (a walker's step against a
+    chance group's jump). Returns the evidence, tested, and the points (NaN where not tested)."""
     n = np.sum(members >= 0, axis=1)
     out = np.zeros(len(members))
     tested = n >= 2
+    where = np.full((len(members), 3), np.nan)
+    variance = np.full((len(members), 3, 3), np.nan)
     if not tested.any():
-        return out, tested
+        return out, tested, where, variance
     m = members[tested]
+    if ROBUST:
+        # a group of three or more members is tested on the members its point keeps (a wrong link in one view
+        # drops that member, as the frame's own verification would, instead of breaking the whole group)
+        big = np.sum(m >= 0, axis=1) >= 3
+        if big.any():
+            kept = m.copy()
+            kept[big] = frame.verify(m[big])[0]
+            m = np.where(np.sum(kept >= 0, axis=1)[:, None] >= 2, kept, m)
     points, covariance = frame.triangulate(m)
     points, covariance = frame.triangulate(m, points)
     d2 = np.nan_to_num(frame.residuals(m, points), nan=0.0, posinf=1e6)
@@ -181,13 +256,35 @@ def frame_evidence(frame, members: np.ndarray, motion_px: float, floor: float) -
     dof = 2 * np.sum(present, axis=1) - 3
     value = np.sum(per, axis=1) * dof / np.maximum(2 * np.sum(present, axis=1), 1)
     lo, hi = frame.options.heights
+    if motion and previous is not None and previous_cov is not None:
+        before = previous[tested]
+        steps = np.maximum(gap[tested], 1) if gap is not None else np.ones(len(m))
+        move = points - before
+        known = np.all(np.isfinite(move), axis=1)
+        # both points' own covariances on either side (a pair's point is long along its nearly parallel rays)
+        own = covariance + previous_cov[tested]
+        walk = np.diag([WALK_M ** 2, WALK_M ** 2, BOB_M ** 2])
+        jump = np.diag([CHANCE_M[0] ** 2, CHANCE_M[0] ** 2, CHANCE_M[1] ** 2])
+        safe = np.where(known[:, None], move, 0.0)
+        same_c = own + walk[None] * (steps ** 2)[:, None, None]
+        chance_c = own + jump[None] * (steps ** 2)[:, None, None]
+        same = -0.5 * np.einsum("ni,ni->n", safe, np.linalg.solve(same_c, safe[..., None])[..., 0]) \
+            - 0.5 * np.linalg.slogdet(same_c)[1]
+        chance = -0.5 * np.einsum("ni,ni->n", safe, np.linalg.solve(chance_c, safe[..., None])[..., 0]) \
+            - 0.5 * np.linalg.slogdet(chance_c)[1]
+        value = value + np.where(known, same - chance, 0.0)
     value = np.where((points[:, 2] >= lo) & (points[:, 2] <= hi), value, floor)
     out[tested] = np.maximum(value, floor)
-    return out, tested
+    where[tested] = points
+    variance[tested] = covariance
+    return out, tested, where, variance
 
 
-def run_seed(dataset: Path, out: Path, seed: int, frames: int, link: str, motion_px: float, floor: float,
-             radius_px: float, options: AssociateOptions, speed_m_s: float = 1.3, period_s: float = 0.1) -> dict:
+def run_seed(dataset: Path, out: Path, seed: int, frames: int, configs: list[tuple[str, bool]], motion_px: float,
+             floor: float, radius_px: float, options: AssociateOptions, speed_m_s: float = 1.3,
+             period_s: float = 0.1) -> dict:
+    """One association of the recording, then frame 0's hypotheses followed under each (link, motion) of
+    ``configs``."""
     model = video_model(load_run(out), dataset, frames)
     sizes = {n: (im.camera.width, im.camera.height) for n, im in model.images.items()}
     truths, points = [], {}
@@ -217,71 +314,108 @@ def run_seed(dataset: Path, out: Path, seed: int, frames: int, link: str, motion
     person = [np.concatenate([truth.person[v.name] for v in f.views]) for f, truth in zip(finals, truths)]
     single_f1 = [score_groups([[(fp.views[v].name, int(i)) for v, i in enumerate(m) if i >= 0]
                                for m in fp.result.members], t).pair_f1 for fp, t in zip(found, truths)]
-    f0 = finals[0]
-    members, pts, cov = f0._grown[None]
-    score0 = f0.score(members, pts, cov)
-    ids = np.where(members >= 0, person[0][np.maximum(members, 0)], -2)
-    size = np.sum(members >= 0, axis=1)
-    first = np.max(np.where(members >= 0, ids, -3), axis=1)
-    right = np.all((members < 0) | (ids == first[:, None]), axis=1) & (first >= 0)
+    prior = finals[0].options.height_prior
+    head_height = prior[0] if prior is not None else float(np.mean(finals[0].options.heights))
     rows = []
-    # each member's latest linked detection and its frame: a member missed in a frame is looked for again in the
-    # next one from where it was last seen (the truth links frame 0 to frame k directly)
-    last = members.copy()
-    last_frame = np.zeros(members.shape, dtype=np.int64)
-    last_uv = np.where((members >= 0)[..., None], f0.uv[np.maximum(members, 0)], np.nan)
-    depth = np.stack([v.project(pts)[1] for v in f0.views], axis=1)  # G x V, the point's depth in each view
-    focal = np.array([v.focal for v in f0.views])
-    summed = score0.copy()
-    tested_frames = np.zeros(len(members), dtype=np.int64)
-    links: dict[tuple[int, int], np.ndarray] = {}
-    for k in range(frames):
-        if k > 0 and link == "search":
-            gap = k - last_frame
-            reach = speed_m_s * period_s * gap * focal[None] / np.maximum(depth, 1.0) + 3 * finals[k].noise[None]
-            evidence, tested, current = continue_groups(finals[k], members, last_uv, reach, motion_px, floor)
-            found_now = current >= 0
-            last_uv = np.where(found_now[..., None], finals[k].uv[np.maximum(current, 0)], last_uv)
-            last_frame = np.where(found_now, k, last_frame)
-            summed = summed + evidence
-            tested_frames += tested
-        elif k > 0:
-            current = np.full(members.shape, -1, dtype=np.int64)
-            for j in np.unique(last_frame[last >= 0]):
-                if (j, k) not in links:
-                    if link == "truth":
-                        links[(j, k)] = link_truth(finals[j], finals[k], person[j], person[k])
-                    else:
-                        links[(j, k)] = link_nearest(finals[j], finals[k], np.full(len(finals[k].views),
-                                                                                    radius_px * (k - j)))
-                here = (last >= 0) & (last_frame == j)
-                current[here] = links[(j, k)][last[here]]
-            found_now = current >= 0
-            last = np.where(found_now, current, last)
-            last_frame = np.where(found_now, k, last_frame)
-            evidence, tested = frame_evidence(finals[k], current, motion_px, floor)
-            summed = summed + evidence
-            tested_frames += tested
-        row = {"seed": seed, "frames": k + 1, "link": link, "single_f1_frame": round(single_f1[k], 4)}
-        for n_views in (2, 3):
-            sel = (size == n_views) & np.isfinite(score0)
-            row[f"auc{n_views}_one"] = round(auc(score0[sel], right[sel]), 4)
-            row[f"auc{n_views}_summed"] = round(auc(summed[sel], right[sel]), 4)
-            row[f"right{n_views}"] = int(right[sel].sum())
-            row[f"wrong{n_views}"] = int((~right[sel]).sum())
-        total = int(f0.offsets[-1])
-        for name, value in (("one", score0), ("summed", summed)):
-            ok = value > options.min_score
-            chosen = solve._pack(members[ok], value[ok] - options.min_score, total, options.time_limit_s)
-            kept = members[ok][chosen]
-            groups = [[(f0.views[v].name, int(i - f0.offsets[v])) for v, i in enumerate(m) if i >= 0] for m in kept]
-            s = score_groups(groups, truths[0])
-            row[f"f1_{name}"] = round(s.pair_f1, 4)
-            row[f"p_{name}"] = round(s.pair_precision, 4)
-            row[f"r_{name}"] = round(s.pair_recall, 4)
-        row["tested_right_frames"] = round(float(np.mean(tested_frames[right])), 2)
-        rows.append(row)
-        print(json.dumps(row), flush=True)
+    for link, motion in configs:
+        f0 = finals[0]
+        members, pts, cov = f0._grown[None]
+        score0 = f0.score(members, pts, cov)
+        ids = np.where(members >= 0, person[0][np.maximum(members, 0)], -2)
+        size = np.sum(members >= 0, axis=1)
+        first = np.max(np.where(members >= 0, ids, -3), axis=1)
+        right = np.all((members < 0) | (ids == first[:, None]), axis=1) & (first >= 0)
+        # each member's latest linked detection and its frame: a member missed in a frame is looked for again in the
+        # next one from where it was last seen (the truth links frame 0 to frame k directly)
+        last = members.copy()
+        last_frame = np.zeros(members.shape, dtype=np.int64)
+        last_uv = np.where((members >= 0)[..., None], f0.uv[np.maximum(members, 0)], np.nan)
+        depth = np.stack([v.project(pts)[1] for v in f0.views], axis=1)  # G x V, the point's depth in each view
+        focal = np.array([v.focal for v in f0.views])
+        summed = score0.copy()
+        previous, previous_frame = pts.copy(), np.zeros(len(members), dtype=np.int64)
+        previous_var = cov.copy()
+        tested_frames = np.zeros(len(members), dtype=np.int64)
+        links: dict[tuple[int, int], np.ndarray] = {}
+        link_counts = [0, 0, 0]  # right links, links, real detections
+        for k in range(frames):
+            if k > 0 and link == "search":
+                gap = k - last_frame
+                reach = speed_m_s * period_s * gap * focal[None] / np.maximum(depth, 1.0) + 3 * finals[k].noise[None]
+                evidence, tested, current, where, var = continue_groups(
+                    finals[k], members, last_uv, reach, motion_px * k, floor, previous, k - previous_frame, previous_var,
+                    motion=motion)
+                found_now = current >= 0
+                last_uv = np.where(found_now[..., None], finals[k].uv[np.maximum(current, 0)], last_uv)
+                last_frame = np.where(found_now, k, last_frame)
+                summed = summed + evidence
+                tested_frames += tested
+                previous = np.where(tested[:, None], where, previous)
+                previous_frame = np.where(tested, k, previous_frame)
+                previous_var = np.where(tested[:, None, None], var, previous_var)
+            elif k > 0:
+                current = np.full(members.shape, -1, dtype=np.int64)
+                for j in np.unique(last_frame[last >= 0]):
+                    if (j, k) not in links:
+                        if link == "truth":
+                            links[(j, k)] = link_truth(finals[j], finals[k], person[j], person[k])
+                        elif link == "walk":
+                            links[(j, k)] = link_walk(finals[j], finals[k], int(k - j), head_height)
+                        else:
+                            links[(j, k)] = link_nearest(finals[j], finals[k], np.full(len(finals[k].views),
+                                                                                        radius_px * (k - j)))
+                        # how often the per-view link joins one true person's detections (consecutive frames)
+                        if link != "truth" and j == k - 1:
+                            step = links[(j, k)]
+                            real = (person[j] >= 0) & (step >= 0)
+                            link_counts[0] += int(np.sum(person[k][step[real]] == person[j][real]))
+                            link_counts[1] += int(real.sum())
+                            link_counts[2] += int(np.sum(person[j] >= 0))
+                    here = (last >= 0) & (last_frame == j)
+                    current[here] = links[(j, k)][last[here]]
+                found_now = current >= 0
+                last = np.where(found_now, current, last)
+                last_frame = np.where(found_now, k, last_frame)
+                evidence, tested, where, var = frame_evidence(finals[k], current, motion_px * k, floor, previous,
+                                                              k - previous_frame, motion, previous_var)
+                summed = summed + evidence
+                tested_frames += tested
+                previous = np.where(tested[:, None], where, previous)
+                previous_frame = np.where(tested, k, previous_frame)
+                previous_var = np.where(tested[:, None, None], var, previous_var)
+            medians = {}
+            if k > 0:  # this frame's evidence, median over the tested right and wrong groups
+                for n_views in (2, 3):
+                    sel = (size == n_views) & tested & np.isfinite(score0)
+                    for label, which in (("right", right), ("wrong", ~right)):
+                        pick = sel & which
+                        medians[f"evidence{n_views}_{label}"] = round(float(np.median(evidence[pick])), 3) \
+                            if pick.any() else None
+                    medians[f"tested{n_views}_wrong"] = round(float(np.mean(tested[(size == n_views) & ~right])), 3)
+            row = {"seed": seed, "frames": k + 1, "link": link, "motion": motion, "single_f1_frame": round(single_f1[k], 4)}
+            for n_views in (2, 3):
+                sel = (size == n_views) & np.isfinite(score0)
+                row[f"auc{n_views}_one"] = round(auc(score0[sel], right[sel]), 4)
+                row[f"auc{n_views}_summed"] = round(auc(summed[sel], right[sel]), 4)
+                row[f"right{n_views}"] = int(right[sel].sum())
+                row[f"wrong{n_views}"] = int((~right[sel]).sum())
+            total = int(f0.offsets[-1])
+            for name, value in (("one", score0), ("summed", summed)):
+                ok = value > options.min_score
+                chosen = solve._pack(members[ok], value[ok] - options.min_score, total, options.time_limit_s)
+                kept = members[ok][chosen]
+                groups = [[(f0.views[v].name, int(i - f0.offsets[v])) for v, i in enumerate(m) if i >= 0] for m in kept]
+                s = score_groups(groups, truths[0])
+                row[f"f1_{name}"] = round(s.pair_f1, 4)
+                row[f"p_{name}"] = round(s.pair_precision, 4)
+                row[f"r_{name}"] = round(s.pair_recall, 4)
+            row.update(medians)
+            if link_counts[1]:
+                row["links_right"] = round(link_counts[0] / link_counts[1], 3)
+                row["linked_share"] = round(link_counts[1] / max(link_counts[2], 1), 3)
+            row["tested_right_frames"] = round(float(np.mean(tested_frames[right])), 2)
+            rows.append(row)
+            print(json.dumps(row), flush=True)
     return {"rows": rows}
 
 
@@ -291,19 +425,27 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("out", type=Path)
     parser.add_argument("--frames", type=int, default=6)
     parser.add_argument("--seeds", type=int, default=2)
-    parser.add_argument("--link", choices=("truth", "nearest", "search"), default="truth")
-    parser.add_argument("--motion-px", type=float, default=8.0, help="a head's typical motion in a frame (px)")
+    parser.add_argument("--link", default="truth",
+                        help="comma-separated: truth (an oracle), nearest (mutual nearest), walk (nearest under a walk's "
+                        "image metric), search (best combination)")
+    parser.add_argument("--motion-px", type=float, default=3.0,
+                        help="two heads' relative motion across the epipolar line in one frame (px)")
     parser.add_argument("--radius-px", type=float, default=16.0,
                         help="nearest linking: a head's farthest move in a frame (px)")
     parser.add_argument("--period-s", type=float, default=0.1, help="the recording's frame period (s)")
+    parser.add_argument("--motion", default="off", help="comma-separated: off, on (the points' move between frames)")
+    parser.add_argument("--robust", action="store_true",
+                        help="groups of three or more: test the members their point keeps (verify)")
     parser.add_argument("--floor", type=float, default=-8.0, help="one frame's evidence at least this")
     parser.add_argument("--pixel-sigma", type=float, default=1.5)
     parser.add_argument("--json", type=Path, default=None)
     args = parser.parse_args(argv)
     options = AssociateOptions(pixel_sigma=args.pixel_sigma)
-    out = [run_seed(args.dataset, args.out, s, args.frames, args.link, args.motion_px, args.floor, args.radius_px,
-                    options, period_s=args.period_s)
-           for s in range(args.seeds)]
+    global ROBUST
+    ROBUST = args.robust
+    configs = [(link, motion == "on") for link in args.link.split(",") for motion in args.motion.split(",")]
+    out = [run_seed(args.dataset, args.out, s, args.frames, configs, args.motion_px, args.floor, args.radius_px,
+                    options, period_s=args.period_s) for s in range(args.seeds)]
     if args.json:
         args.json.write_text(json.dumps(out, indent=1))
     return 0

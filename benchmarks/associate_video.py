@@ -1,7 +1,8 @@
 """Association over several frames of a recording: how much a hypothesis' evidence summed over frames separates
-the right groups from chance ones (an oracle first, then a truth-free per-view linking).
+the right groups from chance ones (an oracle first, then truth-free per-view links). Measurement only.
 
-    python benchmarks/associate_video.py DATASET OUT [--frames 6] [--seeds 2] [--link truth|nearest] [--json F]
+    python benchmarks/associate_video.py DATASET OUT [--frames 6] [--seeds 2] [--link truth,nearest,walk,search]
+        [--motion off,on] [--robust] [--floor -8] [--json F]
 
 DATASET: a crowd rendered with persons over several frames (``python -m rigsfm.synth --frames-per-rig T
 --frame-period-s 0.1``); OUT: ``rigsfm run`` on the same cameras (static rigs: its frame-0 poses are every frame's,
@@ -9,15 +10,20 @@ so a run of the scene's first frame serves: each later frame's images take their
 centre covariance, and the greys come from DATASET/images). Detections per frame as benchmarks/associate.py makes
 them (true visible heads, 1.5 px noise, 10 % missed, 5 % false; seed + 1000 k for frame k).
 
-Every frame is associated by ``associate_frames`` as it is (frame 0 self-calibrates, the rest carry its shifts).
-Then frame 0's hypotheses (its final association's grown groups) are followed through the later frames: each member
-detection is linked to a detection of the same view in the next frame, by the truth's person ids (``--link truth``,
-an oracle) or by mutual nearest neighbours within the distance a walker's head can move in one frame period
-(``--link nearest``, no truth), and the linked group is triangulated again in that frame. A frame's evidence is the
-log-likelihood ratio of its squared residuals between "one person" (chi-square at the pixel noise) and "two persons
-walking independently" (the same residuals spread by the heads' motion in a frame, ``--motion-px``), floored. Reported
-per T (frames summed): ROC AUC of right against wrong 2-view and 3-view hypotheses, one frame's score against the
-summed one, and pair F1 of the first packing of frame 0 with either score.
+Every frame is associated once by ``associate_frames`` as it is (frame 0 self-calibrates, the rest carry its shifts).
+Then frame 0's hypotheses (its final association's grown groups) are followed through the later frames, once per
+(link, motion) configuration: each member detection is linked to a detection of its view in a later frame (a member
+missed in a frame is looked for again from where it was last seen) and the linked group is triangulated again
+there. Links: ``truth`` (the person ids: an oracle), ``nearest`` (mutual nearest within ``--radius-px`` a frame),
+``walk`` (nearest one to one under a walk's image metric, the head at the crowd's mean height), ``search`` (per
+member up to three detections within a walker's reach, the best combination less log of the combinations). A frame's
+evidence is the log-likelihood ratio of the group's squared residuals between "one person" (chi-square at the
+view's noise) and "two persons walking independently" (the residuals spread by ``--motion-px`` times the frames
+since frame 0), floored at ``--floor``; ``--motion on`` adds the group's point's move since it was last tested;
+``--robust`` tests a group of three or more on the members its point keeps. Reported per T (frames summed): ROC AUC
+of right against wrong 2-view and 3-view hypotheses, one frame's score against the summed one; pair F1 of frame 0's
+first packing with either score; the links' accuracy between consecutive frames; each frame's median evidence of
+right and wrong hypotheses. benchmarks/README.md, "Tenth pass: several frames", has the numbers.
 """
 
 from __future__ import annotations

@@ -119,14 +119,19 @@ def link_nearest(frame_a, frame_b, radius: np.ndarray) -> np.ndarray:
 
 
 WALK_SIGMA_M = 0.08  # per horizontal axis, a walking head's move in one frame period of 0.1 s
+ACCEL_SIGMA_M = 0.03  # per horizontal axis, the change of a walking head's move from one frame to the next
 
 
-def link_walk(frame_a, frame_b, gap: int, height: float, neighbours: int = 8) -> np.ndarray:
+def link_walk(frame_a, frame_b, gap: int, height: float, neighbours: int = 8, velocity: np.ndarray | None = None,
+              margin: float = 0.0) -> np.ndarray:
     """Per detection of ``frame_a``, its nearest detection of the same view in ``frame_b`` (one to one) under the
     metric of a walk: the head stays at ``height`` and moves horizontally by ``WALK_SIGMA_M`` per axis per frame
     (``gap`` frames), carried into the image by the view's Jacobian at the detection's ray at that height (a near
     level camera sees a walk toward it hardly move the head, so the metric is long along the walk's image and short
-    across it), plus both detections' noise; gated at the 99 % of two degrees of freedom."""
+    across it), plus both detections' noise; gated at the 99 % of two degrees of freedom. ``velocity`` (stacked
+    N x 2 px a frame, NaN: unknown): where known, the head is predicted to move on at it and the metric is its
+    change (``ACCEL_SIGMA_M`` per axis a frame) and the velocity's own noise. ``margin``: a link only where the
+    second nearest is at least this much farther (squared, in the metric): ambiguous heads stay unlinked."""
     from scipy.spatial import cKDTree
 
     out = np.full(int(frame_a.offsets[-1]), -1, dtype=np.int64)
@@ -141,17 +146,26 @@ def link_walk(frame_a, frame_b, gap: int, height: float, neighbours: int = 8) ->
         jx = (view.project(x + np.array([eps, 0.0, 0.0]))[0] - uv0) / eps
         jy = (view.project(x + np.array([0.0, eps, 0.0]))[0] - uv0) / eps
         jac = np.stack([jx, jy], axis=2)  # N x 2 (image) x 2 (floor)
-        cov = (WALK_SIGMA_M * gap) ** 2 * np.einsum("nij,nkj->nik", jac, jac) \
-            + 2 * frame_a.options.pixel_sigma ** 2 * np.eye(2)[None]
+        jj = np.einsum("nij,nkj->nik", jac, jac)
+        noise = 2 * frame_a.options.pixel_sigma ** 2 * np.eye(2)[None]
+        start = frame_a.uv[a].copy()
+        cov = (WALK_SIGMA_M * gap) ** 2 * jj + noise
+        if velocity is not None:
+            moving = np.all(np.isfinite(velocity[a]), axis=1)
+            start[moving] += velocity[a][moving] * gap
+            cov[moving] = (ACCEL_SIGMA_M * gap) ** 2 * jj[moving] + noise * (1 + gap ** 2)
         inv = np.linalg.inv(cov)
         k = min(neighbours, len(b))
-        _, near = cKDTree(frame_b.uv[b]).query(frame_a.uv[a], k=k)
+        _, near = cKDTree(frame_b.uv[b]).query(start, k=k)
         near = near.reshape(len(a), k)
-        diff = frame_b.uv[b][near] - frame_a.uv[a][:, None]  # N x k x 2
+        diff = frame_b.uv[b][near] - start[:, None]  # N x k x 2
         d2 = np.einsum("nki,nij,nkj->nk", diff, inv, diff)
+        ranked = np.sort(d2, axis=1)
         best = np.argmin(d2, axis=1)
         choice = near[np.arange(len(a)), best]
         dist = d2[np.arange(len(a)), best]
+        if margin > 0 and k > 1:
+            dist = np.where(ranked[:, 1] >= ranked[:, 0] + margin, dist, np.inf)
         # one to one: where several detections of a chose the same b, the closest keeps it
         order = np.argsort(dist)
         taken = np.zeros(len(b), dtype=bool)
@@ -224,6 +238,7 @@ def continue_groups(frame, members: np.ndarray, last_uv: np.ndarray, reach: np.n
 
 
 ROBUST = False  # set by --robust
+TRACK_MARGIN = 6.0  # track links: the second nearest at least this much farther (squared metric)
 WALK_M = 0.13  # a head's farthest walk in one frame period of 0.1 s (1.3 m/s)
 BOB_M = 0.03  # a walking head's height changes by about this between frames
 CHANCE_M = (0.5, 0.1)  # a chance group's point jumps about this far horizontally and vertically between frames
@@ -344,6 +359,32 @@ def run_seed(dataset: Path, out: Path, seed: int, frames: int, configs: list[tup
         tested_frames = np.zeros(len(members), dtype=np.int64)
         links: dict[tuple[int, int], np.ndarray] = {}
         link_counts = [0, 0, 0]  # right links, links, real detections
+
+        def linked(j: int, k: int, link: str = link, links: dict[tuple[int, int], np.ndarray] = links,
+                   ) -> np.ndarray:
+            """Per detection of frame j, its link in frame k (-1: none), computed once."""
+            if (j, k) not in links:
+                if link == "truth":
+                    links[(j, k)] = link_truth(finals[j], finals[k], person[j], person[k])
+                elif link == "nearest":
+                    links[(j, k)] = link_nearest(finals[j], finals[k], np.full(len(finals[k].views),
+                                                                               radius_px * (k - j)))
+                elif link == "walk":
+                    links[(j, k)] = link_walk(finals[j], finals[k], k - j, head_height)
+                else:
+                    links[(j, k)] = link_walk(finals[j], finals[k], k - j, head_height, velocity=velocity(j),
+                                              margin=TRACK_MARGIN)
+            return links[(j, k)]
+
+        def velocity(j: int, links: dict[tuple[int, int], np.ndarray] = links) -> np.ndarray | None:
+            """Per detection of frame j, its move from its linked detection in frame j - 1 (px; NaN: none)."""
+            step = links.get((j - 1, j))
+            if step is None:
+                return None
+            out = np.full((int(finals[j].offsets[-1]), 2), np.nan)
+            linked = np.flatnonzero(step >= 0)
+            out[step[linked]] = finals[j].uv[step[linked]] - finals[j - 1].uv[linked]
+            return out
         for k in range(frames):
             if k > 0 and link == "search":
                 gap = k - last_frame
@@ -361,24 +402,15 @@ def run_seed(dataset: Path, out: Path, seed: int, frames: int, configs: list[tup
                 previous_var = np.where(tested[:, None, None], var, previous_var)
             elif k > 0:
                 current = np.full(members.shape, -1, dtype=np.int64)
+                if link != "truth":  # how often a link between consecutive frames joins one true person's detections
+                    step = linked(k - 1, k)  # every step is linked: a track's velocity comes from its last one
+                    real = (person[k - 1] >= 0) & (step >= 0)
+                    link_counts[0] += int(np.sum(person[k][step[real]] == person[k - 1][real]))
+                    link_counts[1] += int(real.sum())
+                    link_counts[2] += int(np.sum(person[k - 1] >= 0))
                 for j in np.unique(last_frame[last >= 0]):
-                    if (j, k) not in links:
-                        if link == "truth":
-                            links[(j, k)] = link_truth(finals[j], finals[k], person[j], person[k])
-                        elif link == "walk":
-                            links[(j, k)] = link_walk(finals[j], finals[k], int(k - j), head_height)
-                        else:
-                            links[(j, k)] = link_nearest(finals[j], finals[k], np.full(len(finals[k].views),
-                                                                                        radius_px * (k - j)))
-                        # how often the per-view link joins one true person's detections (consecutive frames)
-                        if link != "truth" and j == k - 1:
-                            step = links[(j, k)]
-                            real = (person[j] >= 0) & (step >= 0)
-                            link_counts[0] += int(np.sum(person[k][step[real]] == person[j][real]))
-                            link_counts[1] += int(real.sum())
-                            link_counts[2] += int(np.sum(person[j] >= 0))
                     here = (last >= 0) & (last_frame == j)
-                    current[here] = links[(j, k)][last[here]]
+                    current[here] = linked(int(j), k)[last[here]]
                 found_now = current >= 0
                 last = np.where(found_now, current, last)
                 last_frame = np.where(found_now, k, last_frame)
@@ -433,7 +465,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seeds", type=int, default=2)
     parser.add_argument("--link", default="truth",
                         help="comma-separated: truth (an oracle), nearest (mutual nearest), walk (nearest under a walk's "
-                        "image metric), search (best combination)")
+                        "image metric), track (walk, with each head's velocity from its last link and unambiguous links only), "
+                        "search (best combination)")
     parser.add_argument("--motion-px", type=float, default=3.0,
                         help="two heads' relative motion across the epipolar line in one frame (px)")
     parser.add_argument("--radius-px", type=float, default=16.0,

@@ -257,7 +257,8 @@ def _adjust_refined(mapped: pycolmap.Reconstruction, rigs: Sequence[RigCalibrati
 # after adjustment and pulls the intrinsics and E^sl by several sigma, while a static point's pull is a small share
 # of one. Chosen on the benchmark networks (benchmarks/README.md, "A track's influence on the refined calibration").
 MAX_TRACK_INFLUENCE = 0.5
-# Score, remove and adjust again at most this many times: once the largest pulls are gone the next ones show.
+# At most this many scorings (one fewer removals and adjustments): once the largest pulls are gone the next ones show,
+# and each round costs an adjustment.
 MAX_INFLUENCE_ROUNDS = 4
 
 
@@ -277,7 +278,7 @@ def _without_influential_tracks(mapped: pycolmap.Reconstruction, result: AdjustR
         largest_kept = max((score for score in scores.values() if score <= MAX_TRACK_INFLUENCE), default=0.0)
         if not pulling:
             break
-        if rounds == MAX_INFLUENCE_ROUNDS:  # the cap: the tracks still above it stay (one more pass to check them)
+        if rounds == MAX_INFLUENCE_ROUNDS:  # the cap: these stay (removing them would take a pass nobody scores)
             logger.warning("Track influence: %d tracks still pull the refined calibration after %d rounds; kept",
                            len(pulling), rounds)
             break

@@ -185,3 +185,16 @@ def test_the_sampled_band_draws_and_held_rigs_are_not_scored(tmp_path, held):
     result = adjust(mapped, rigs, spec, priors=priors, held_rigs=held, with_covariance=False)
     assert result.influential is None
     assert all(result.reconstruction.exists_point3D(pid) for pid in wrong)
+
+
+def test_a_network_the_test_holds_is_not_scored(tmp_path):
+    """With priors far tighter than the images can inform (a hundredth of a good board's sigmas), the hold-or-refine
+    test holds every rig on the first pass, and the rule does not run (it may hold what the test refined, never refine
+    what it held): --fixed-calibration's adjustment of every track, the wrong ones included."""
+    rigs, mapped, spec, _, wrong = _network(tmp_path, wrong=6)
+    tight = BoardDefaults(focal_relative=1.2e-5, principal_point_px=0.006, radial=(5e-6, 3e-6, 1e-6), tangential=1e-7,
+                          rotation_deg=4.5e-4, translation_m=6e-6)
+    result = adjust(mapped, rigs, spec, priors=calibration_priors(rigs, defaults=tight))
+    assert result.calibration == Calibration.FIXED and all(d.held for d in result.decisions)
+    assert result.influential is None
+    assert all(result.reconstruction.exists_point3D(pid) for pid in wrong)

@@ -211,13 +211,16 @@ def _adjust_refined(mapped: pycolmap.Reconstruction, rigs: Sequence[RigCalibrati
     those held, no test and no tracks removed (the sampled band's draws repeat the estimate's choice)."""
     result = _refine(mapped, rigs, scale_spec, options, priors, frozenset(held_rigs or ()))
     if held_rigs is None and result.scale_source != ScaleSource.NONE:
+        result.covariance = joint_covariance(result)
+        result.decisions = hold_or_refine(result, result.covariance)
         held_noise, influential = None, None
-        if not has_narrow_observations(mapped):  # with them, a narrow track's pull on E^sl is what it is there for
+        # Only where the test refines every rig, and again after each removal: the rule may hold what the test
+        # refined, never refine what it held (a refinement that passes only once the tracks that pull it are gone).
+        # With narrow observations, a narrow track's pull on E^sl is what it is there for.
+        if not any(d.held for d in result.decisions) and not has_narrow_observations(mapped):
             result, influential = _without_influential_tracks(mapped, result, rigs, scale_spec, options, priors)
             held_noise = result.pixel_sigma if influential.removed else None
             result.influential = influential
-        result.covariance = joint_covariance(result)
-        result.decisions = hold_or_refine(result, result.covariance)
         held = frozenset(d.rig for d in result.decisions if d.held)
         for decision in result.decisions:
             logger.info("Calibration of %s %s: %s", decision.rig, "held at rigs.yaml" if decision.held else "refined",
@@ -265,11 +268,11 @@ MAX_INFLUENCE_ROUNDS = 4
 def _without_influential_tracks(mapped: pycolmap.Reconstruction, result: AdjustResult,
                                 rigs: Sequence[RigCalibration], scale_spec: ScaleSpec | None, options: AdjustOptions,
                                 priors: CalibrationPriors) -> tuple[AdjustResult, InfluentialTracks]:
-    """``result`` (the first refined pass of ``mapped``) again without the tracks that pulled its calibration
-    (``MAX_TRACK_INFLUENCE``), scored and removed until none is above it (at most ``MAX_INFLUENCE_ROUNDS`` scorings),
-    every pass weighted by the first pass's pixel noise (the removed tracks' residuals were part of it, and a noise
-    re-estimated without them would move the hold-or-refine test by itself); ``result`` itself when none is above.
-    With what was removed."""
+    """``result`` (the first refined pass of ``mapped``, its every rig refined by :func:`hold_or_refine`) again without
+    the tracks that pulled its calibration (``MAX_TRACK_INFLUENCE``), scored and removed until none is above it (at
+    most ``MAX_INFLUENCE_ROUNDS`` scorings) or the test holds a rig, every pass weighted by the first pass's pixel
+    noise (the removed tracks' residuals were part of it, and a noise re-estimated without them would move the test by
+    itself), each with its covariance and decisions; ``result`` itself when none is above. With what was removed."""
     start = time.perf_counter()
     pruned, per_round, rounds, largest_kept = None, [], 0, 0.0
     for rounds in range(1, MAX_INFLUENCE_ROUNDS + 1):
@@ -297,6 +300,10 @@ def _without_influential_tracks(mapped: pycolmap.Reconstruction, result: AdjustR
         pruned = trial
         per_round.append(len(pulling))
         result = _refine(pruned, rigs, scale_spec, options, priors, frozenset(), result.pixel_sigma)
+        result.covariance = joint_covariance(result)
+        result.decisions = hold_or_refine(result, result.covariance)
+        if any(d.held for d in result.decisions):  # the test holds now: no more rounds
+            break
     influential = InfluentialTracks(removed=sum(per_round), rounds=rounds, per_round=tuple(per_round),
                                     largest_kept=largest_kept, threshold=MAX_TRACK_INFLUENCE,
                                     seconds=time.perf_counter() - start)

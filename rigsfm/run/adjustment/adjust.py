@@ -12,14 +12,16 @@ with the intrinsics and every observed narrow ``sensor_from_rig`` (E^sl) refined
   (``ReprojErrorCost`` / ``RigReprojErrorCost`` with the file's pixel sigma) tied by ``costs.LengthCost``;
 - COLMAP's robust loss on the reprojection residuals, outliers dropped between rounds.
 
-Before that, the tracks that alone pull the refined calibration by more than ``MAX_TRACK_INFLUENCE`` (Cook's
-distance, ``rigsfm.run.adjustment.influence``: on a crowd, matches across walking bodies that fit after adjustment)
-are removed and the network adjusted again at the first pass's pixel noise, until none is above it (not with narrow
-observations, the mapping model's or the narrow second pass's: there a narrow track's pull on E^sl is its purpose).
 Then the refinement is tested (:func:`hold_or_refine`: the images must inform some direction of the network's
 calibration more than rigs.yaml's sigmas do, and the network's change must be consistent with the information they
 give about it, else every rig is held); a rig they barely observe is held at rigs.yaml's values and the network
 adjusted again; with every rig held, and the network's shape fixed by the images, the adjustment is ``FIXED``'s.
+Where the test refines every rig, the tracks that alone pull the refined calibration by more than
+``MAX_TRACK_INFLUENCE`` (Cook's distance, ``rigsfm.run.adjustment.influence``: on a crowd, matches across walking
+bodies that fit after adjustment) are removed, the network adjusted again at the first pass's pixel noise and tested
+again, until no track is above it or the test holds a rig: the rule may hold what the test refined, never refine what
+it held (not with narrow observations, the mapping model's or the narrow second pass's: there a narrow track's pull
+on E^sl is its purpose).
 On a weak network (two rigs registered from a few dozen clicks) the images cannot inform the calibration, and
 refining it anyway moved the narrow cameras further from the truth than holding it.
 
@@ -206,9 +208,10 @@ def _adjust_refined(mapped: pycolmap.Reconstruction, rigs: Sequence[RigCalibrati
                     held_rigs: Collection[str] | None = None) -> AdjustResult:
     """Every rig's calibration refined, then each rig's refinement tested (:func:`hold_or_refine`); the rigs whose
     refinement fails are held at rigs.yaml's values and the network adjusted again (every rig held in a network whose
-    shape the images fix: the result is ``--fixed-calibration``'s, its ``calibration`` FIXED, every track in). Before the
-    test, the tracks that pull the refined calibration go (:func:`_without_influential_tracks`). ``held_rigs`` given:
-    those held, no test and no tracks removed (the sampled band's draws repeat the estimate's choice)."""
+    shape the images fix: the result is ``--fixed-calibration``'s, its ``calibration`` FIXED, every track in). Where
+    the test refines every rig, the tracks that pull the refined calibration go first, round by round, each round
+    tested again (:func:`_without_influential_tracks`). ``held_rigs`` given: those held, no test and no tracks removed
+    (the sampled band's draws repeat the estimate's choice)."""
     result = _refine(mapped, rigs, scale_spec, options, priors, frozenset(held_rigs or ()))
     if held_rigs is None and result.scale_source != ScaleSource.NONE:
         result.covariance = joint_covariance(result)

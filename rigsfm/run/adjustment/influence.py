@@ -129,7 +129,7 @@ def track_influence(result: AdjustResult) -> dict[int, float]:
     return scores
 
 
-MIN_EIGENVALUE = 1e-9
+MIN_EIGENVALUE = 1e-9  # of a track's I - L: below it the track is all that fixes some direction (not scored)
 
 
 def _t(batch: np.ndarray) -> np.ndarray:

@@ -11,7 +11,7 @@ predicted covariance, and which observations carry the error (mrcal-style uncert
     truth-free per-track chi-square test; --keep-noise: the second adjustment weighted by the first's noise),
     --pixel-sigma S (the refined adjustment's weighting noise held), --drop-random N SEED, --drop-ids FILE,
     --influence [--influence-drop N | --influence-threshold T] [--influence-rounds K] [--influence-score S]
-    [--influence-out FILE] (each
+    [--influence-out FILE] [--with-rule] (each
     track's influence on the refined calibration from the adjustment's own linearisation, no truth, ranked against
     the truth's classes; the top N, or those above T, removed, the noise held),
     --first-frame-only, --loss TRIVIAL|CAUCHY|..., --inflation X
@@ -58,6 +58,7 @@ from scipy.spatial.transform import Rotation  # noqa: E402
 from rigsfm.core.names import name_of  # noqa: E402
 from rigsfm.run.adjustment.adjust import adjust  # noqa: E402
 from rigsfm.run.adjustment.covariance import joint_covariance  # noqa: E402
+from rigsfm.run.adjustment.influence import track_influence as product_influence  # noqa: E402
 from rigsfm.run.adjustment.model import sensor_from_rig_view  # noqa: E402
 from rigsfm.run.options import AdjustOptions, Calibration  # noqa: E402
 from rigsfm.run.pipeline import load_inputs  # noqa: E402
@@ -191,9 +192,9 @@ def track_influence(result, with_deltas: bool = False, robust: bool = False):
     projector off the point's 3 columns); deleting it moves the other parameters by
     ``d = H^-1 A^T (I - L)^-1 e`` (Woodbury downdate of the reduced normal matrix ``H``; ``L = A H^-1 A^T`` its
     leverage), scored as ``d_c^T Sigma_c^-1 d_c`` with ``Sigma_c = sigma^2 (H^-1)_cc`` (Cook's distance on the
-    calibration), and ``d^T H d / sigma^2`` on every parameter."""
-    import scipy.sparse as sp
-
+    calibration), and ``d^T H d / sigma^2`` on every parameter. ``robust``: ``cook_calibration`` is the product's
+    score (``rigsfm.run.adjustment.influence.track_influence``: the robust loss's weights in, the one the default
+    adjustment's rule uses); the other scores and the deltas stay the squared loss's."""
     from rigsfm.run.adjustment import covariance as cv
     from rigsfm.run.adjustment.problem import JointProblem
     from rigsfm.run.adjustment.result import Gauge, ScaleSource
@@ -229,19 +230,6 @@ def track_influence(result, with_deltas: bool = False, robust: bool = False):
     jac = cv._csr(problem.evaluate_jacobian(evaluate)).tocsr()
     res = np.asarray(problem.evaluate_residuals(evaluate), dtype=np.float64)
     row_point = cv._row_points(jac, num_a, len(point_ids))
-    if robust:  # the Cauchy loss's weights at the solution (IRLS): rows of an observation scaled by sqrt(rho')
-        if str(options.loss) != "CAUCHY":
-            raise RuntimeError(f"--influence-robust knows the Cauchy loss only, not {options.loss}")
-        weights = np.ones(len(res))
-        on_point = np.flatnonzero(row_point < len(point_ids))
-        if len(on_point) % 2 or np.any(row_point[on_point[0::2]] != row_point[on_point[1::2]]):
-            raise RuntimeError("the observations' residuals are not in pairs of rows")
-        squared = res[on_point[0::2]] ** 2 + res[on_point[1::2]] ** 2
-        w = np.sqrt(1.0 / (1.0 + squared / options.loss_scale_px**2))
-        weights[on_point[0::2]] = w
-        weights[on_point[1::2]] = w
-        jac = (sp.diags(weights) @ jac).tocsr()
-        res = res * weights
     calibration = np.zeros(num_a, dtype=bool)
     k = 0
     for key, _, dims in variable:
@@ -283,6 +271,10 @@ def track_influence(result, with_deltas: bool = False, robust: bool = False):
                     "cook_all": float(d @ h @ d / sigma2),
                     "leverage": float(np.trace(lev)), "observations": n // 2,
                     "residual_rms_px": float(np.sqrt(np.mean(e**2)))}
+    if robust:
+        scores = product_influence(result)
+        for pid in out:
+            out[pid]["cook_calibration"] = scores.get(pid, 0.0)
     logger.info("track influence: %d tracks, %d calibration parameters, sigma %.3f px", len(out), len(cal),
                 jp.weight_sigma)
     if with_deltas:
@@ -784,8 +776,12 @@ def main() -> None:
                         help="--influence: delete each of this many top tracks alone, re-adjust (noise held) and "
                              "compare the refined calibration's change with the downdate's prediction")
     parser.add_argument("--influence-robust", action="store_true",
-                        help="--influence: the Cauchy loss's weights at the solution in the Jacobian and residuals")
+                        help="--influence: cook_calibration with the robust loss's weights at the solution "
+                             "(rigsfm.run.adjustment.influence, the default adjustment's rule's score)")
     parser.add_argument("--influence-out", type=Path, default=None, help="--influence: the ranking (JSON)")
+    parser.add_argument("--with-rule", action="store_true",
+                        help="keep the default adjustment's own influential-track rule (adjust.MAX_TRACK_INFLUENCE); "
+                             "off otherwise, so that every row is the adjustment of the tracks the options leave")
     parser.add_argument("--static-only", action="store_true",
                         help="remove every track that is not on a static surface (classify) before adjusting")
     parser.add_argument("--drop-classes", default=None,
@@ -806,6 +802,12 @@ def main() -> None:
     parser.add_argument("--refine", action="store_true", help="bands: the default adjustment (REFINE), not FIXED")
     args = parser.parse_args()
     logging.basicConfig(level=logging.INFO, format="%(message)s")
+    if not args.with_rule:
+        import rigsfm.run.adjustment.adjust as adjust_module
+
+        adjust_module.MAX_TRACK_INFLUENCE = float("inf")
+    if args.influence_check and args.influence_robust:
+        parser.error("--influence-check compares the squared loss's downdate; drop --influence-robust")
     scene = args.network / "scene"
     options = scene_options(scene)
     truth = pycolmap.Reconstruction(str(scene / "ground_truth"))

@@ -279,6 +279,9 @@ class Summary:
     # per rig, its calibration refined or held at rigs.yaml's values and why (rigsfm.run.adjustment.decisions.hold_or_refine;
     # empty with --fixed-calibration)
     calibration_decisions: list[dict] = field(default_factory=list)
+    # the tracks removed because each alone pulled the refined calibration (rigsfm.run.adjustment.adjust's
+    # influential-track rule: removed, rounds, per_round, largest_kept, threshold, seconds); None: not scored
+    influential_tracks: dict | None = None
     pairs: PairsSummary | None = None
     cpu_s: dict[str, float] = field(default_factory=dict)  # CPU seconds per stage (all threads)
     narrow_observations: NarrowObservationsSummary | None = None  # --narrow (None: off)

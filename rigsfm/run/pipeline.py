@@ -213,6 +213,7 @@ def build_summary(inputs: Inputs, options: RunOptions, mapping: MappingResult, r
         registered=counts,
         unregistered=unregistered,
         calibration_decisions=[asdict(d) for d in result.decisions],
+        influential_tracks=asdict(result.influential) if result.influential is not None else None,
         num_points3D=reconstruction.num_points3D(),
         mean_reprojection_error_px=result.mean_reprojection_error_px,
         reprojection_error=reprojection_table(reconstruction),
@@ -382,6 +383,7 @@ def _run_locked(workspace: Workspace, inputs: Inputs, manual_pairs: dict, option
             with timings.stage("narrow_observations"):
                 first, (result, narrow) = result, second_pass(result, world, inputs, options, given_offsets,
                                                               uncertainty.bands)
+                result.influential = result.influential or first.influential  # the second starts from its model
                 metric = is_metric(result)
             if result is not first and narrow.bands_from == BANDS_WITH_NARROW:  # (not with heads: bands_from)
                 with timings.stage("uncertainty_final"):

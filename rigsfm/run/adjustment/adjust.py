@@ -16,6 +16,12 @@ Then the refinement is tested (:func:`hold_or_refine`: the images must inform so
 calibration more than rigs.yaml's sigmas do, and the network's change must be consistent with the information they
 give about it, else every rig is held); a rig they barely observe is held at rigs.yaml's values and the network
 adjusted again; with every rig held, and the network's shape fixed by the images, the adjustment is ``FIXED``'s.
+Where the test refines every rig, the tracks that alone pull the refined calibration by more than
+``MAX_TRACK_INFLUENCE`` (Cook's distance, ``rigsfm.run.adjustment.influence``: on a crowd, matches across walking
+bodies that fit after adjustment) are removed, the network adjusted again at the first pass's pixel noise and tested
+again, until no track is above it or the test holds a rig: the rule may hold what the test refined, never refine what
+it held (not with narrow observations, the mapping model's or the narrow second pass's: there a narrow track's pull
+on E^sl is its purpose).
 On a weak network (two rigs registered from a few dozen clicks) the images cannot inform the calibration, and
 refining it anyway moved the narrow cameras further from the truth than holding it.
 
@@ -51,6 +57,7 @@ from rigsfm.core.residuals import reprojection_errors
 from rigsfm.core.rig import RigCalibration
 from rigsfm.run.adjustment.covariance import joint_covariance, network_size_sigma
 from rigsfm.run.adjustment.decisions import hold_or_refine
+from rigsfm.run.adjustment.influence import track_influence
 from rigsfm.run.adjustment.model import (
     constrained_bundle_adjustment,
     estimate_pixel_sigma,
@@ -61,7 +68,7 @@ from rigsfm.run.adjustment.model import (
 )
 from rigsfm.run.adjustment.priors import CalibrationPriors, calibration_priors
 from rigsfm.run.adjustment.problem import JointProblem
-from rigsfm.run.adjustment.result import AdjustResult, Gauge, ScaleSource
+from rigsfm.run.adjustment.result import AdjustResult, Gauge, InfluentialTracks, ScaleSource
 from rigsfm.run.adjustment.scale import (
     ScaleEstimate,
     estimate_scale,
@@ -201,12 +208,22 @@ def _adjust_refined(mapped: pycolmap.Reconstruction, rigs: Sequence[RigCalibrati
                     held_rigs: Collection[str] | None = None) -> AdjustResult:
     """Every rig's calibration refined, then each rig's refinement tested (:func:`hold_or_refine`); the rigs whose
     refinement fails are held at rigs.yaml's values and the network adjusted again (every rig held in a network whose
-    shape the images fix: the result is ``--fixed-calibration``'s, its ``calibration`` FIXED). ``held_rigs`` given: those
-    held, no test (the sampled band's draws repeat the estimate's choice)."""
+    shape the images fix: the result is ``--fixed-calibration``'s, its ``calibration`` FIXED, every track in). Where
+    the test refines every rig, the tracks that pull the refined calibration go first, round by round, each round
+    tested again (:func:`_without_influential_tracks`). ``held_rigs`` given: those held, no test and no tracks removed
+    (the sampled band's draws repeat the estimate's choice)."""
     result = _refine(mapped, rigs, scale_spec, options, priors, frozenset(held_rigs or ()))
     if held_rigs is None and result.scale_source != ScaleSource.NONE:
         result.covariance = joint_covariance(result)
         result.decisions = hold_or_refine(result, result.covariance)
+        held_noise, influential = None, None
+        # Only where the test refines every rig, and again after each removal: the rule may hold what the test
+        # refined, never refine what it held (a refinement that passes only once the tracks that pull it are gone).
+        # With narrow observations, a narrow track's pull on E^sl is what it is there for.
+        if not any(d.held for d in result.decisions) and not has_narrow_observations(mapped):
+            result, influential = _without_influential_tracks(mapped, result, rigs, scale_spec, options, priors)
+            held_noise = result.pixel_sigma if influential.removed else None
+            result.influential = influential
         held = frozenset(d.rig for d in result.decisions if d.held)
         for decision in result.decisions:
             logger.info("Calibration of %s %s: %s", decision.rig, "held at rigs.yaml" if decision.held else "refined",
@@ -224,11 +241,11 @@ def _adjust_refined(mapped: pycolmap.Reconstruction, rigs: Sequence[RigCalibrati
             except ReconstructionError:
                 pass
             result.options = replace(options, calibration=Calibration.FIXED)  # the sampled band's draws: held too
-            result.decisions = decisions
+            result.decisions, result.influential = decisions, influential
             return result
         if held:  # from the first pass's network: a shape the measurements had to pull far is not pulled again
-            result = _refine(result.reconstruction, rigs, scale_spec, options, priors, held)
-            result.decisions = decisions
+            result = _refine(result.reconstruction, rigs, scale_spec, options, priors, held, held_noise)
+            result.decisions, result.influential = decisions, influential
             result.warnings = list(dict.fromkeys(warnings + result.warnings))
     if result.scale_source != ScaleSource.NONE and with_covariance:
         if result.covariance is None:
@@ -240,9 +257,69 @@ def _adjust_refined(mapped: pycolmap.Reconstruction, rigs: Sequence[RigCalibrati
     return result
 
 
+# A track whose deletion alone would move the refined calibration by more than this (Cook's distance: the change's
+# squared length in the calibration's posterior sigmas, the robust loss's weights in; module influence) is taken out
+# before the hold-or-refine test: on a crowd, a match across walking bodies survives as a two-view track that fits
+# after adjustment and pulls the intrinsics and E^sl by several sigma, while a static point's pull is a small share
+# of one. Chosen on the benchmark networks (benchmarks/README.md, "A track's influence on the refined calibration").
+MAX_TRACK_INFLUENCE = 0.5
+# At most this many scorings (one fewer removals and adjustments): once the largest pulls are gone the next ones show,
+# and each round costs an adjustment.
+MAX_INFLUENCE_ROUNDS = 4
+
+
+def _without_influential_tracks(mapped: pycolmap.Reconstruction, result: AdjustResult,
+                                rigs: Sequence[RigCalibration], scale_spec: ScaleSpec | None, options: AdjustOptions,
+                                priors: CalibrationPriors) -> tuple[AdjustResult, InfluentialTracks]:
+    """``result`` (the first refined pass of ``mapped``, its every rig refined by :func:`hold_or_refine`) again without
+    the tracks that pulled its calibration (``MAX_TRACK_INFLUENCE``), scored and removed until none is above it (at
+    most ``MAX_INFLUENCE_ROUNDS`` scorings) or the test holds a rig, every pass weighted by the first pass's pixel
+    noise (the removed tracks' residuals were part of it, and a noise re-estimated without them would move the test by
+    itself), each with its covariance and decisions; ``result`` itself when none is above. With what was removed."""
+    start = time.perf_counter()
+    pruned, per_round, rounds, largest_kept = None, [], 0, 0.0
+    for rounds in range(1, MAX_INFLUENCE_ROUNDS + 1):
+        scores = track_influence(result)
+        pulling = sorted(pid for pid, score in scores.items() if score > MAX_TRACK_INFLUENCE)
+        largest_kept = max((score for score in scores.values() if score <= MAX_TRACK_INFLUENCE), default=0.0)
+        if not pulling:
+            break
+        if rounds == MAX_INFLUENCE_ROUNDS:  # the cap: these stay (removing them would take a pass nobody scores)
+            logger.warning("Track influence: %d tracks still pull the refined calibration after %d rounds; kept",
+                           len(pulling), rounds)
+            break
+        logger.info("Track influence, round %d: %d tracks above %g (largest %.3g) removed, the network adjusted again "
+                    "at the pixel noise %.3f px", rounds, len(pulling), MAX_TRACK_INFLUENCE,
+                    max(scores[pid] for pid in pulling), result.pixel_sigma)
+        trial = pycolmap.Reconstruction(pruned or mapped)
+        for pid in pulling:
+            if trial.exists_point3D(pid):
+                trial.delete_point3D(pid)
+        emptied = frames_without_points(trial)
+        if emptied:  # the pulling tracks are all a frame has: they are its pose, kept (hold-or-refine judges)
+            logger.warning("Track influence: the %d tracks that pull the refined calibration are every point of %s; "
+                           "kept", len(pulling), ", ".join(emptied))
+            break
+        pruned = trial
+        per_round.append(len(pulling))
+        result = _refine(pruned, rigs, scale_spec, options, priors, frozenset(), result.pixel_sigma)
+        result.covariance = joint_covariance(result)
+        result.decisions = hold_or_refine(result, result.covariance)
+        if any(d.held for d in result.decisions):  # the test holds now: no more rounds
+            break
+    influential = InfluentialTracks(removed=sum(per_round), rounds=rounds, per_round=tuple(per_round),
+                                    largest_kept=largest_kept, threshold=MAX_TRACK_INFLUENCE,
+                                    seconds=time.perf_counter() - start)
+    logger.info("Track influence: %d tracks removed in %d scorings (largest kept %.3g; %.1f s)", influential.removed,
+                rounds, largest_kept, influential.seconds)
+    return result, influential
+
+
 def _refine(mapped: pycolmap.Reconstruction, rigs: Sequence[RigCalibration], scale_spec: ScaleSpec | None,
-            options: AdjustOptions, priors: CalibrationPriors, held: frozenset[str]) -> AdjustResult:
-    """The refined adjustment (without its covariance), the ``held`` rigs' calibration at rigs.yaml's values."""
+            options: AdjustOptions, priors: CalibrationPriors, held: frozenset[str],
+            held_noise: float | None = None) -> AdjustResult:
+    """The refined adjustment (without its covariance), the ``held`` rigs' calibration at rigs.yaml's values;
+    ``held_noise``: the images weighted by this pixel noise throughout, not estimated from the residuals."""
     rec = pycolmap.Reconstruction(mapped)
     if rec.num_reg_frames() < 2:
         raise ReconstructionError("fewer than two rigs were registered; nothing to calibrate")
@@ -253,7 +330,7 @@ def _refine(mapped: pycolmap.Reconstruction, rigs: Sequence[RigCalibration], sca
     restore_calibration(rec, rigs)
     delete_points_without_baseline(rec)  # the mapper's, before round 1's squared loss meets them
     try:
-        pixel_sigma = estimate_pixel_sigma(rec, options.max_reprojection_error_px)
+        pixel_sigma = held_noise or estimate_pixel_sigma(rec, options.max_reprojection_error_px)
     except ReconstructionError:  # a start far from the solution: most observations are beyond the threshold
         pixel_sigma = options.loss_scale_px
     problem, rounds, warnings = None, 0, []
@@ -282,7 +359,7 @@ def _refine(mapped: pycolmap.Reconstruction, rigs: Sequence[RigCalibration], sca
         observations = rec.compute_num_observations()
         removed = filter_outliers(rec, options.max_reprojection_error_px)
         try:
-            new_sigma = estimate_pixel_sigma(rec, options.max_reprojection_error_px)
+            new_sigma = held_noise or estimate_pixel_sigma(rec, options.max_reprojection_error_px)
         except ReconstructionError:  # fewer observations than unknowns (two rigs, a dozen matches): keep the last
             logger.warning("Too few observations to re-estimate the pixel noise: %.3f px kept", pixel_sigma)
             new_sigma = pixel_sigma

@@ -48,7 +48,21 @@ class AdjustResult:
     covariance: JointCovariance | None = None  # rigsfm.run.adjustment.covariance.joint_covariance, once computed
     held_rigs: frozenset[str] = frozenset()  # REFINE: rigs whose calibration was held at rigs.yaml's (hold_or_refine)
     decisions: list[CalibrationDecision] = field(default_factory=list)  # REFINE: per rig, held or refined and why
+    influential: InfluentialTracks | None = None  # REFINE: the tracks that pulled the calibration (None: not scored)
     warnings: list[str] = field(default_factory=list)  # for the run's summary
+
+
+@dataclass(frozen=True)
+class InfluentialTracks:
+    """The tracks removed before the hold-or-refine test because each alone pulled the refined calibration
+    (``rigsfm.run.adjustment.influence``; ``adjust.MAX_TRACK_INFLUENCE``)."""
+
+    removed: int = 0  # tracks, every round
+    rounds: int = 0  # scorings of the refined adjustment; the last found none above the threshold unless capped
+    per_round: tuple[int, ...] = ()  # tracks removed after each scoring
+    largest_kept: float = 0.0  # the largest score of a track kept, in the last scoring
+    threshold: float = 0.0
+    seconds: float = 0.0  # scoring and adjusting again
 
 
 @dataclass(frozen=True)

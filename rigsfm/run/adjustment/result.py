@@ -49,6 +49,9 @@ class AdjustResult:
     held_rigs: frozenset[str] = frozenset()  # REFINE: rigs whose calibration was held at rigs.yaml's (hold_or_refine)
     decisions: list[CalibrationDecision] = field(default_factory=list)  # REFINE: per rig, held or refined and why
     warnings: list[str] = field(default_factory=list)  # for the run's summary
+    # point3D_id -> its observations' own noise (px per coordinate; heads): weighed so in the adjustment and its
+    # covariance (rigsfm.run.adjustment.problem.JointProblem), the pooled pixel_sigma is the other observations'
+    point_sigmas: dict[int, float] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)

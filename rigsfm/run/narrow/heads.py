@@ -26,6 +26,11 @@ SIFT on flat-shaded, view-dependent silhouettes gives chance matches only. Heads
    not only the adjustment's confident ones: a wrong match costs the adjustment a biased track, but the check only
    one distance, which the association's band bounds (it admits a match only inside it); the confident persons
    alone leave many pairs of a crowd under ``MIN_HEAD_MATCHES``.
+6. **Noise**: a head centre errs far more than a SIFT keypoint (a Hough circle and a silhouette's fitted edge, not a
+   texture's corner), so its observations enter the second adjustment at their own noise
+   (:class:`rigsfm.run.adjustment.problem.JointProblem`'s ``point_sigmas``), not at the images' pooled one: estimated
+   from the confident persons themselves, their centres' residuals about the association's points with each view's
+   pose correction removed (:func:`head_sigma`; ``HEAD_PIXEL_SIGMA`` where too few).
 """
 
 from __future__ import annotations
@@ -56,7 +61,8 @@ HEAD_CENTRE_M = 1.6  # the plane where the expected radius is computed (heads' c
 RADIUS_RATIO = (0.7, 1.45)  # a circle's radius against the one expected at its centre
 HOUGH_PARAM1 = 50.0  # Canny's upper threshold of the Hough search
 HOUGH_PARAM2 = 0.6  # the circles' "perfectness" (HOUGH_GRADIENT_ALT)
-HEAD_PIXEL_SIGMA = 1.5  # a head centre's localisation noise per coordinate (px)
+HEAD_PIXEL_SIGMA = 1.5  # a head centre's localisation noise per coordinate (px): the association's, and the fallback
+MIN_SIGMA_DOF = 20  # residual degrees of freedom the heads' own noise estimate needs (step 6)
 MIN_GROUP_VIEWS = 3  # a person enters the adjustment when seen in this many views
 # ... and scoring above this (log-likelihood ratio against clutter): below it, on a dense crowd (275 heads per
 # view), most groups of three or four views join different persons' heads.
@@ -82,6 +88,17 @@ class HeadMatches:
     pairs: list[PairMatches] = field(default_factory=list)
     # The self-check's head matches per pair: every person in >= 2 views scoring above CHECK_MIN_SCORE (step 5).
     check_pairs: list[PairMatches] = field(default_factory=list)
+    # The confident persons' head centres' residuals (px, undistorted) about their association's points, each view's
+    # pose correction removed (step 6), and how many persons gave them.
+    residuals: list[np.ndarray] = field(default_factory=list)
+    residual_persons: int = 0
+
+    @property
+    def sigma_px(self) -> float | None:
+        """A head centre's noise per coordinate (px) from the confident persons' residuals (step 6); None where they
+        leave too few degrees of freedom."""
+        return head_sigma(np.concatenate(self.residuals) if self.residuals else np.zeros((0, 2)),
+                          self.residual_persons)
 
 
 def expected_radius(image: pycolmap.Image, xy: np.ndarray) -> np.ndarray:
@@ -182,6 +199,34 @@ def detect_heads(image: pycolmap.Image, gray: np.ndarray) -> np.ndarray:
     return np.c_[xy[keep], circles[keep, 2]]
 
 
+def head_sigma(residuals: np.ndarray, persons: int) -> float | None:
+    """A head centre's noise per coordinate (module docstring, step 6) from ``residuals`` (N x 2 px) of ``persons``
+    triangulated points: the median absolute coordinate as a normal's (a wrong member of a person does not pull
+    it), times ``sqrt(2 N / (2 N - 3 P))`` for what each person's triangulation absorbed; None below
+    ``MIN_SIGMA_DOF`` degrees of freedom."""
+    residuals = np.asarray(residuals, dtype=np.float64).reshape(-1, 2)
+    residuals = residuals[np.isfinite(residuals).all(axis=1)]
+    dof = 2 * len(residuals) - 3 * persons
+    if dof < MIN_SIGMA_DOF:
+        return None
+    return float(1.4826 * np.median(np.abs(residuals)) * math.sqrt(2 * len(residuals) / dof))
+
+
+def _residuals(views: list[View], result, groups: np.ndarray) -> np.ndarray:
+    """The head centres of ``groups`` (rows of ``result``) against their points' projections, per view its pose
+    correction (``result.shift_px``) removed as the association removed it: undistorted px, N x 2."""
+    out = [np.zeros((0, 2))]
+    for v, view in enumerate(views):
+        rows = groups[result.members[groups, v] >= 0]
+        if not len(rows):
+            continue
+        projected, depth = view.project(result.points[rows])
+        observed = undistort_pixels(view.camera, view.xy[result.members[rows, v]]) - result.shift_px.get(
+            view.name, np.zeros(2))[None]
+        out.append((observed - projected)[depth > 0])
+    return np.concatenate(out)
+
+
 def _association_options() -> AssociateOptions:
     return AssociateOptions(pixel_sigma=HEAD_PIXEL_SIGMA)
 
@@ -221,6 +266,8 @@ def match_heads(floor_model: pycolmap.Reconstruction, image_dir: Path, frames: d
         out.held_out_persons += int(held.sum())
         per_pair = _per_pair(views, result.members, confident, overlapping, held)
         out.persons += len(confident)
+        out.residuals.append(_residuals(views, result, confident))
+        out.residual_persons += len(confident)
         out.pairs.extend(_pair_matches(frame, per_pair))
         checked = np.flatnonzero((present.sum(axis=1) >= 2) & (result.scores > CHECK_MIN_SCORE))
         out.check_pairs.extend(_pair_matches(frame, _per_pair(views, result.members, checked, overlapping)))

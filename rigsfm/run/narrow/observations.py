@@ -138,6 +138,9 @@ class NarrowObservations:
     head_candidates: int | None = None
     head_verdicts: int = 0  # self-check pairs given a verdict by their head matches
     head_check_pairs: list[PairMatches] = field(default_factory=list, repr=False)  # the heads' self-check matches
+    head_sigma_px: float | None = None  # the heads' centres' noise per coordinate their observations are weighed at
+    # point3D_id -> that noise, per point the heads added (the second adjustment's point_sigmas)
+    point_sigmas: dict[int, float] = field(default_factory=dict, repr=False)
 
     @property
     def bands_from(self) -> str:
@@ -165,7 +168,8 @@ class NarrowObservations:
                    for p in self.pairs],
             held_out_check=[HeldOutCheckSummary(**c.to_dict()) for c in self.held_out_checks],
             bands=self.bands_from if self.used else None, matched_by=self.matched_by, head_persons=self.head_persons,
-            head_candidates=self.head_candidates, head_verdicts=self.head_verdicts)
+            head_candidates=self.head_candidates, head_verdicts=self.head_verdicts,
+            head_sigma_px=None if self.head_sigma_px is None else round(self.head_sigma_px, 3))
 
 
 def describe_record(record: NarrowObservationsSummary) -> str:

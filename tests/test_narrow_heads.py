@@ -43,6 +43,20 @@ def _right_matches(pairs, known: dict) -> int:
     return right
 
 
+def _centre_errors(pairs, known: dict) -> np.ndarray:
+    """Each head centre of ``pairs`` (each image's once) minus its nearest true head's, where within 6 px: N x 2."""
+    centres: dict[str, set] = {}
+    for pair in pairs:
+        for name, xy in ((pair.i, pair.xy_i), (pair.j, pair.xy_j)):
+            centres.setdefault(name, set()).update(map(tuple, np.round(xy, 6)))
+    errors = []
+    for name, xys in centres.items():
+        xy = np.array(sorted(xys))
+        distance, index = cKDTree(known[name][:, :2]).query(xy)
+        errors.append((xy - known[name][index, :2])[distance < 6])
+    return np.concatenate(errors)
+
+
 @pytest.mark.slow
 def test_heads_are_matched_across_views_and_turn_the_observations_on(rendered):
     dataset = rendered(PERSONS)
@@ -52,7 +66,7 @@ def test_heads_are_matched_across_views_and_turn_the_observations_on(rendered):
     heads = match_heads(truth, dataset.images, synchronised_frames(truth), bands)
     used, reason = decide_heads(heads)
     assert used, reason
-    assert heads.held_out_persons >= 1  # every fifth person kept out of the adjustment
+    assert not any(p.held_out.any() for p in heads.pairs)  # every confident person enters the adjustment
     # The matches are mostly the same person's head in both views (each centre within 6 px of a true head; 77 % when
     # written).
     known = _true_heads(Path(dataset.root))
@@ -66,6 +80,12 @@ def test_heads_are_matched_across_views_and_turn_the_observations_on(rendered):
     assert sum(checked.values()) >= 1.3 * sum(confident.values()), (sum(checked.values()), sum(confident.values()))
     right = _right_matches(heads.check_pairs, known)
     assert right >= 0.5 * sum(checked.values()), (right, sum(checked.values()))
+    # The heads' own noise (step 6), from their residuals alone, is their centres' true error: between the robust
+    # and the root-mean-square spread of the confident persons' centres about the true heads (1.45 px against
+    # 1.21 and 1.55 when written; the keypoints' pooled noise is under 0.3 px).
+    errors = _centre_errors(heads.pairs, known)
+    robust, rms = 1.4826 * float(np.median(np.abs(errors))), float(np.sqrt(np.mean(errors**2)))
+    assert heads.sigma_px is not None and 0.9 * robust <= heads.sigma_px <= 1.2 * rms, (heads.sigma_px, robust, rms)
 
 
 @pytest.mark.slow

@@ -146,8 +146,8 @@ class NarrowObservations:
     def bands_from(self) -> str:
         """The adjustment whose bands are delivered: the one with these observations where they are matches through
         the floor, whose noise is modelled per pair (rigsfm.run.adjustment.correlated); the first one where they are
-        heads, whose multi-view tracks have no noise model of their own (counted at the images' noise they narrowed
-        the band far below a 3D crowd's true errors: benchmarks/README.md)."""
+        heads: weighed at their own noise (rigsfm.run.narrow.heads, step 6) they hold the poses better, but their
+        adjustment's band still fell short of a 3D crowd's true errors (benchmarks/README.md)."""
         return BANDS_WITH_NARROW if self.used and self.matched_by != "heads" else BANDS_WIDE_ONLY
 
     def line(self) -> str:

@@ -89,16 +89,15 @@ class HeadMatches:
     # The self-check's head matches per pair: every person in >= 2 views scoring above CHECK_MIN_SCORE (step 5).
     check_pairs: list[PairMatches] = field(default_factory=list)
     # The confident persons' head centres' residuals (px, undistorted) about their association's points, each view's
-    # pose correction removed (step 6), and how many persons gave them.
+    # pose correction removed (step 6).
     residuals: list[np.ndarray] = field(default_factory=list)
-    residual_persons: int = 0
 
     @property
     def sigma_px(self) -> float | None:
         """A head centre's noise per coordinate (px) from the confident persons' residuals (step 6); None where they
         leave too few degrees of freedom."""
         return head_sigma(np.concatenate(self.residuals) if self.residuals else np.zeros((0, 2)),
-                          self.residual_persons)
+                          self.persons)
 
 
 def expected_radius(image: pycolmap.Image, xy: np.ndarray) -> np.ndarray:
@@ -263,7 +262,6 @@ def match_heads(floor_model: pycolmap.Reconstruction, image_dir: Path, frames: d
         per_pair = _per_pair(views, result.members, confident, overlapping)  # none held out (step 3)
         out.persons += len(confident)
         out.residuals.append(_residuals(views, result, confident))
-        out.residual_persons += len(confident)
         out.pairs.extend(_pair_matches(frame, per_pair))
         checked = np.flatnonzero((present.sum(axis=1) >= 2) & (result.scores > CHECK_MIN_SCORE))
         out.check_pairs.extend(_pair_matches(frame, _per_pair(views, result.members, checked, overlapping)))

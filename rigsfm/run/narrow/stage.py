@@ -138,7 +138,7 @@ def heads_instead(floor_model: pycolmap.Reconstruction, image_dir: Path, options
     record.head_sigma_px = HEAD_PIXEL_SIGMA if sigma is None else sigma
     logger.info("heads' centres weighed at %.2f px per coordinate (%s)", record.head_sigma_px,
                 "the fallback: too few residuals" if sigma is None else
-                f"from {heads.residual_persons} persons' residuals")
+                f"from {heads.persons} persons' residuals")
     record.reason = reason if enough else f"asked (--narrow on); {reason}"
     return True
 

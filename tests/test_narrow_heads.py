@@ -43,6 +43,20 @@ def _right_matches(pairs, known: dict) -> int:
     return right
 
 
+def _centre_errors(pairs, known: dict) -> np.ndarray:
+    """Each head centre of ``pairs`` (each image's once) minus its nearest true head's, where within 6 px: N x 2."""
+    centres: dict[str, set] = {}
+    for pair in pairs:
+        for name, xy in ((pair.i, pair.xy_i), (pair.j, pair.xy_j)):
+            centres.setdefault(name, set()).update(map(tuple, np.round(xy, 6)))
+    errors = []
+    for name, xys in centres.items():
+        xy = np.array(sorted(xys))
+        distance, index = cKDTree(known[name][:, :2]).query(xy)
+        errors.append((xy - known[name][index, :2])[distance < 6])
+    return np.concatenate(errors)
+
+
 @pytest.mark.slow
 def test_heads_are_matched_across_views_and_turn_the_observations_on(rendered):
     dataset = rendered(PERSONS)
@@ -52,20 +66,26 @@ def test_heads_are_matched_across_views_and_turn_the_observations_on(rendered):
     heads = match_heads(truth, dataset.images, synchronised_frames(truth), bands)
     used, reason = decide_heads(heads)
     assert used, reason
-    assert heads.held_out_persons >= 1  # every fifth person kept out of the adjustment
-    # The matches are mostly the same person's head in both views (each centre within 6 px of a true head; 77 % when
-    # written).
+    assert not any(p.held_out.any() for p in heads.pairs)  # every confident person enters the adjustment
+    # The matches are mostly the same person's head in both views (each centre within 6 px of a true head; 79 % when
+    # written, 77 % with the persons of three views scoring above 2).
     known = _true_heads(Path(dataset.root))
     right, total = _right_matches(heads.pairs, known), sum(p.matches for p in heads.pairs)
     assert total >= 40 and right >= 0.7 * total, (right, total)
-    # The self-check counts every person of two or more views scoring above 0: the confident persons' matches and
-    # more (1.48x when written), still mostly right.
+    # The self-check counts every person of two or more views scoring above 0: the confident persons' matches (of
+    # four views or more) and more (1.19x when written), still mostly right.
     confident = {(p.i, p.j): p.matches for p in heads.pairs}
     checked = {(p.i, p.j): p.matches for p in heads.check_pairs}
     assert all(checked[key] >= n for key, n in confident.items())
-    assert sum(checked.values()) >= 1.3 * sum(confident.values()), (sum(checked.values()), sum(confident.values()))
+    assert sum(checked.values()) >= 1.1 * sum(confident.values()), (sum(checked.values()), sum(confident.values()))
     right = _right_matches(heads.check_pairs, known)
     assert right >= 0.5 * sum(checked.values()), (right, sum(checked.values()))
+    # The heads' own noise (step 6), from their residuals alone, is their centres' true error: between the robust
+    # and the root-mean-square spread of the confident persons' centres about the true heads (1.35 px against
+    # 1.43 and 1.68 when written; the keypoints' pooled noise is under 0.3 px).
+    errors = _centre_errors(heads.pairs, known)
+    robust, rms = 1.4826 * float(np.median(np.abs(errors))), float(np.sqrt(np.mean(errors**2)))
+    assert heads.sigma_px is not None and 0.8 * robust <= heads.sigma_px <= 1.2 * rms, (heads.sigma_px, robust, rms)
 
 
 @pytest.mark.slow

@@ -63,6 +63,7 @@ def test_auto_uses_a_crowds_narrow_images_and_comes_closer_to_the_truth(crowd_ru
     record = runs[NarrowMode.AUTO].summary.narrow_observations
     assert record is not None and record.asked == "auto" and record.used, record
     assert record.observations_added > 200 and record.held_out_matches > 30
+    assert record.matched_by == "floor warp" and record.head_sigma_px is None  # every observation at the pooled noise
     # the held-out matches never entered the adjustment: they check it, and agree with its bands
     verdicts = [c.verdict for c in record.held_out_check]
     assert verdicts.count("ok") >= 0.75 * len(verdicts) > 0

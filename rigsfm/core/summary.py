@@ -229,6 +229,7 @@ class NarrowObservationsSummary:
     head_persons: int | None = None  # confident persons the heads' association found, where it ran
     head_candidates: int | None = None  # head candidates in the narrow images, where searched
     head_verdicts: int = 0  # self-check pairs whose verdict comes from their head matches
+    head_sigma_px: float | None = None  # the noise per coordinate the heads' observations were weighed at, where used
 
 
 @dataclass(kw_only=True)

@@ -117,16 +117,19 @@ def adjust(
     *,
     with_covariance: bool = True,
     held_rigs: Collection[str] | None = None,
+    point_sigmas: dict[int, float] | None = None,
 ) -> AdjustResult:
     """A metric reconstruction (a new object; ``mapped`` is not modified), its calibration refined with
     ``priors`` (default: ``calibration_priors(rigs)``, a good board's) or held (``options.calibration``).
     ``with_covariance``: a refined metric result carries its joint covariance (and the scale's sigma from it).
-    ``held_rigs``: refining, hold these rigs' calibration instead of testing each rig's (:func:`hold_or_refine`)."""
+    ``held_rigs``: refining, hold these rigs' calibration instead of testing each rig's (:func:`hold_or_refine`).
+    ``point_sigmas``: refining, point3D_id -> the noise of its observations (px per coordinate) where it is not the
+    images' pooled one (heads: :class:`JointProblem`); ``FIXED`` weighs every observation alike."""
     options = options or AdjustOptions()
     start = time.perf_counter()
     if options.calibration == Calibration.REFINE:
         result = _adjust_refined(mapped, rigs, scale_spec, options, priors or calibration_priors(rigs),
-                                 with_covariance, held_rigs)
+                                 with_covariance, held_rigs, point_sigmas or {})
     else:
         result = _adjust_fixed(mapped, rigs, scale_spec, options)
         result.priors, result.scale_spec, result.options = priors, scale_spec, options
@@ -205,14 +208,15 @@ NEGLIGIBLE_DROP = 1e-3
 
 def _adjust_refined(mapped: pycolmap.Reconstruction, rigs: Sequence[RigCalibration], scale_spec: ScaleSpec | None,
                     options: AdjustOptions, priors: CalibrationPriors, with_covariance: bool = True,
-                    held_rigs: Collection[str] | None = None) -> AdjustResult:
+                    held_rigs: Collection[str] | None = None, point_sigmas: dict[int, float] | None = None
+                    ) -> AdjustResult:
     """Every rig's calibration refined, then each rig's refinement tested (:func:`hold_or_refine`); the rigs whose
     refinement fails are held at rigs.yaml's values and the network adjusted again (every rig held in a network whose
     shape the images fix: the result is ``--fixed-calibration``'s, its ``calibration`` FIXED, every track in). Where
     the test refines every rig, the tracks that pull the refined calibration go first, round by round, each round
     tested again (:func:`_without_influential_tracks`). ``held_rigs`` given: those held, no test and no tracks removed
     (the sampled band's draws repeat the estimate's choice)."""
-    result = _refine(mapped, rigs, scale_spec, options, priors, frozenset(held_rigs or ()))
+    result = _refine(mapped, rigs, scale_spec, options, priors, frozenset(held_rigs or ()), point_sigmas or {})
     if held_rigs is None and result.scale_source != ScaleSource.NONE:
         result.covariance = joint_covariance(result)
         result.decisions = hold_or_refine(result, result.covariance)
@@ -244,7 +248,8 @@ def _adjust_refined(mapped: pycolmap.Reconstruction, rigs: Sequence[RigCalibrati
             result.decisions, result.influential = decisions, influential
             return result
         if held:  # from the first pass's network: a shape the measurements had to pull far is not pulled again
-            result = _refine(result.reconstruction, rigs, scale_spec, options, priors, held, held_noise)
+            result = _refine(result.reconstruction, rigs, scale_spec, options, priors, held, point_sigmas or {},
+                             held_noise)
             result.decisions, result.influential = decisions, influential
             result.warnings = list(dict.fromkeys(warnings + result.warnings))
     if result.scale_source != ScaleSource.NONE and with_covariance:
@@ -302,7 +307,7 @@ def _without_influential_tracks(mapped: pycolmap.Reconstruction, result: AdjustR
             break
         pruned = trial
         per_round.append(len(pulling))
-        result = _refine(pruned, rigs, scale_spec, options, priors, frozenset(), result.pixel_sigma)
+        result = _refine(pruned, rigs, scale_spec, options, priors, frozenset(), held_noise=result.pixel_sigma)
         result.covariance = joint_covariance(result)
         result.decisions = hold_or_refine(result, result.covariance)
         if any(d.held for d in result.decisions):  # the test holds now: no more rounds
@@ -317,9 +322,10 @@ def _without_influential_tracks(mapped: pycolmap.Reconstruction, result: AdjustR
 
 def _refine(mapped: pycolmap.Reconstruction, rigs: Sequence[RigCalibration], scale_spec: ScaleSpec | None,
             options: AdjustOptions, priors: CalibrationPriors, held: frozenset[str],
-            held_noise: float | None = None) -> AdjustResult:
+            point_sigmas: dict[int, float] | None = None, held_noise: float | None = None) -> AdjustResult:
     """The refined adjustment (without its covariance), the ``held`` rigs' calibration at rigs.yaml's values;
-    ``held_noise``: the images weighted by this pixel noise throughout, not estimated from the residuals."""
+    ``point_sigmas``: those points' observations weighed at their own noise (heads); ``held_noise``: the other
+    observations weighted by this pixel noise throughout, not estimated from the residuals."""
     rec = pycolmap.Reconstruction(mapped)
     if rec.num_reg_frames() < 2:
         raise ReconstructionError("fewer than two rigs were registered; nothing to calibrate")
@@ -330,7 +336,7 @@ def _refine(mapped: pycolmap.Reconstruction, rigs: Sequence[RigCalibration], sca
     restore_calibration(rec, rigs)
     delete_points_without_baseline(rec)  # the mapper's, before round 1's squared loss meets them
     try:
-        pixel_sigma = held_noise or estimate_pixel_sigma(rec, options.max_reprojection_error_px)
+        pixel_sigma = held_noise or estimate_pixel_sigma(rec, options.max_reprojection_error_px, point_sigmas or ())
     except ReconstructionError:  # a start far from the solution: most observations are beyond the threshold
         pixel_sigma = options.loss_scale_px
     problem, rounds, warnings = None, 0, []
@@ -339,7 +345,7 @@ def _refine(mapped: pycolmap.Reconstruction, rigs: Sequence[RigCalibration], sca
         # (a 4-rig circle), a robust loss lets the images give up instead of following.
         robust = rounds > 1 or options.max_rounds == 1  # a single round (from an adjusted model): robust
         problem = JointProblem(rec, rigs, priors, scale_spec, options, pixel_sigma, gauge=gauge, robust=robust,
-                               held_rigs=held)
+                               held_rigs=held, point_sigmas=point_sigmas)
         problem.stop_as(final=options.max_rounds == 1)
         summary = problem.solve_to_convergence()  # a long reshape: go on until Ceres converges, then judge outliers
         logger.debug("Adjustment round %d: %s", rounds, summary.BriefReport())
@@ -359,7 +365,7 @@ def _refine(mapped: pycolmap.Reconstruction, rigs: Sequence[RigCalibration], sca
         observations = rec.compute_num_observations()
         removed = filter_outliers(rec, options.max_reprojection_error_px)
         try:
-            new_sigma = held_noise or estimate_pixel_sigma(rec, options.max_reprojection_error_px)
+            new_sigma = held_noise or estimate_pixel_sigma(rec, options.max_reprojection_error_px, point_sigmas or ())
         except ReconstructionError:  # fewer observations than unknowns (two rigs, a dozen matches): keep the last
             logger.warning("Too few observations to re-estimate the pixel noise: %.3f px kept", pixel_sigma)
             new_sigma = pixel_sigma
@@ -375,7 +381,7 @@ def _refine(mapped: pycolmap.Reconstruction, rigs: Sequence[RigCalibration], sca
         # until less than FINAL_SETTLE_CHI2 is left to gain (SettledStop). A new problem: the last round's refers
         # to the observations and points filter_outliers may have deleted.
         problem = JointProblem(rec, rigs, priors, scale_spec, options, pixel_sigma, gauge=gauge, robust=True,
-                               held_rigs=held)
+                               held_rigs=held, point_sigmas=point_sigmas)
         problem.stop_as(final=True)
         problem.solve_to_convergence()
     scale = problem.scale_estimate()  # type: ignore[union-attr]  # the loop sets problem
@@ -384,5 +390,5 @@ def _refine(mapped: pycolmap.Reconstruction, rigs: Sequence[RigCalibration], sca
     result = AdjustResult(rec, source, scale, _metres_per_mapping_unit(mapped, rec),
                           float(rec.compute_mean_reprojection_error()), calibration=Calibration.REFINE, gauge=gauge,
                           rigs=tuple(rigs), priors=priors, scale_spec=scale_spec, options=options, pixel_sigma=pixel_sigma,
-                          rounds=rounds, warnings=warnings, held_rigs=held)
+                          rounds=rounds, warnings=warnings, held_rigs=held, point_sigmas=dict(point_sigmas or {}))
     return result

@@ -110,6 +110,8 @@ def _reduced_system(jp: JointProblem, max_error_px: float | None = None, inflati
     held_cameras = {c for c in narrow_cameras if calibration_held is None or jp.camera_names[c].rig in calibration_held}
     point_weights = correlated_point_weights(rec, narrow_cameras, point_ids, jp.weight_sigma, inflation, held_cameras)
     if point_weights is not None:  # a narrow pair's matches share a smooth error (module correlated)
+        # ... not the points weighed at their own noise already (heads: JointProblem.point_sigmas)
+        point_weights[[k for k, point_id in enumerate(point_ids) if point_id in jp.point_sigmas]] = 1.0
         jac = jac.tocsr()
         jac = sp.diags(np.r_[point_weights, 1.0][_row_points(jac, num_a, len(point_ids))]) @ jac
     jac = jac.tocsc()
@@ -198,12 +200,13 @@ def joint_covariance(result: AdjustResult, image_only: bool = False) -> JointCov
     rigs = result.rigs
     priors = result.priors or calibration_priors(rigs)
     options = result.options
-    pixel_sigma = result.pixel_sigma or estimate_pixel_sigma(rec, options.max_reprojection_error_px)
+    pixel_sigma = result.pixel_sigma or estimate_pixel_sigma(rec, options.max_reprojection_error_px,
+                                                             result.point_sigmas)
     gauge = Gauge.TWO_CAMS_FROM_WORLD if result.scale_source == ScaleSource.NONE else Gauge.RIGID
     refined = result.calibration == Calibration.REFINE and not image_only
     held = result.held_rigs if refined else frozenset()
     jp = JointProblem(rec, rigs, priors, result.scale_spec, options, pixel_sigma, gauge=gauge, robust=False,
-                      with_priors=refined, held_rigs=held, consider_held=True)
+                      with_priors=refined, held_rigs=held, consider_held=True, point_sigmas=result.point_sigmas)
     reduced = _reduced_system(jp, options.max_reprojection_error_px, options.pixel_sigma_inflation,
                               held if refined else None)
     if reduced is None:

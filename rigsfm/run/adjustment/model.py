@@ -4,7 +4,7 @@ calibration, the fixed-calibration bundle adjustment, outliers, the reprojection
 from __future__ import annotations
 
 from collections import Counter
-from collections.abc import Sequence
+from collections.abc import Collection, Sequence
 
 import numpy as np
 import pycolmap
@@ -108,9 +108,16 @@ def frames_without_points(reconstruction: pycolmap.Reconstruction) -> list[str]:
                   for frame_id, name in frames.items() if frame_id not in observed)
 
 
-def estimate_pixel_sigma(reconstruction: pycolmap.Reconstruction, max_error_px: float | None = None) -> float:
+def estimate_pixel_sigma(reconstruction: pycolmap.Reconstruction, max_error_px: float | None = None,
+                         without: Collection[int] = ()) -> float:
     """Reprojection noise per image coordinate: ``sqrt(sum e^2 / dof)``, ``dof = 2 N - 3 P - 6 (F - 1)``
-    (observations N, points P, frames F); observations above ``max_error_px`` are left out."""
+    (observations N, points P, frames F); observations above ``max_error_px`` are left out, and so are the points
+    ``without`` (point3D ids whose observations have a noise of their own: the pooled noise is the keypoints')."""
+    if without:
+        reconstruction = pycolmap.Reconstruction(reconstruction)
+        for point_id in without:
+            if reconstruction.exists_point3D(point_id):
+                reconstruction.delete_point3D(point_id)
     errors = np.concatenate(list(reprojection_errors(reconstruction).values()) or [np.zeros(0)])
     if max_error_px is not None:
         errors = errors[errors <= max_error_px]

@@ -3,7 +3,7 @@ the scale measurements as residuals, and when its solve stops."""
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -56,7 +56,8 @@ class JointProblem:
     def __init__(self, reconstruction: pycolmap.Reconstruction, rigs: Sequence[RigCalibration],
                  priors: CalibrationPriors, scale_spec: ScaleSpec | None, options: AdjustOptions,
                  pixel_sigma: float, *, gauge: Gauge, robust: bool, with_priors: bool = True,
-                 held_rigs: frozenset[str] = frozenset(), consider_held: bool = False):
+                 held_rigs: frozenset[str] = frozenset(), consider_held: bool = False,
+                 point_sigmas: Mapping[int, float] | None = None):
         self.reconstruction = reconstruction
         # held_rigs: their intrinsics and E^sl stay at rigs.yaml's values (constant blocks); with consider_held they
         # are variable but without prior, for the Jacobian of the covariance that considers their prior
@@ -99,6 +100,9 @@ class JointProblem:
             self.config.fix_gauge(pycolmap.BundleAdjustmentGauge.TWO_CAMS_FROM_WORLD)
         self.adjuster = pycolmap.create_default_ceres_bundle_adjuster(ba, self.config, reconstruction)
         self.problem: pyceres.Problem = self.adjuster.problem
+        # point3D_id -> its observations' own noise (px per coordinate), in place of the pooled one (heads)
+        self.point_sigmas = dict(point_sigmas or {})
+        self._weigh_points()
         self.subset_frame = self._two_cams_subset() if gauge == Gauge.TWO_CAMS_FROM_WORLD else None
         if not consider_held:
             self._hold_rigs()
@@ -154,6 +158,45 @@ class JointProblem:
                 self.fixed_frame_id = first.frame_id
                 return frame_id, dim
         return None
+
+    def _weigh_points(self) -> None:
+        """The observations of ``point_sigmas``' points weighed at their own noise: COLMAP's residuals of such a
+        point are removed with its block (Ceres removes a parameter block's residuals with it) and added again as
+        COLMAP's cost functions with 2D detection noise, ``(sigma / weight_sigma)^2`` (the problem's residuals are
+        in pixels at the images' weighting noise), under the same loss. A point's residuals then weigh
+        ``(weight_sigma / sigma)^2`` of a keypoint's, and the robust loss meets them at as many sigmas."""
+        rec = self.reconstruction
+        loss = self.ba_options.ceres.create_loss_function()
+        self._keep.append(loss)
+        for point_id in sorted(self.point_sigmas):
+            if not rec.exists_point3D(point_id):  # dropped as an outlier since
+                continue
+            point = rec.points3D[point_id]
+            if not self.problem.has_parameter_block(point.xyz):
+                continue
+            self.problem.remove_parameter_block(point.xyz)
+            point_cov = (float(self.point_sigmas[point_id]) / self.weight_sigma) ** 2 * np.eye(2)
+            for element in point.track.elements:
+                image = rec.image(element.image_id)
+                camera = rec.cameras[image.camera_id]
+                frame = rec.frame(image.frame_id)
+                xy = np.asarray(image.points2D[element.point2D_idx].xy, dtype=np.float64)
+                # registered frames have their poses
+                rig_block = frame.rig_from_world.params  # type: ignore[union-attr]
+                if image.is_ref_in_frame():
+                    cost = pycolmap.cost_functions.ReprojErrorCost(camera.model, point_cov, xy)
+                    blocks = [point.xyz, rig_block, camera.params]
+                else:
+                    sensor = sensor_from_rig_view(rec, frame.rig_id, camera.sensor_id)
+                    if self.problem.has_parameter_block(sensor.params):
+                        cost = pycolmap.cost_functions.RigReprojErrorCost(camera.model, point_cov, xy)
+                        blocks = [point.xyz, sensor.params, rig_block, camera.params]
+                    else:
+                        cost = pycolmap.cost_functions.RigReprojErrorCost(camera.model, point_cov, xy,
+                                                                          pycolmap.Rigid3d(sensor))  # type: ignore[call-overload]
+                        blocks = [point.xyz, rig_block, camera.params]
+                self.problem.add_residual_block(cost, loss, blocks)
+                self._keep.append(cost)
 
     # -- measurements ----------------------------------------------------------------------------------------
     def _centre_terms(self, camera: str, blocks: list[np.ndarray]) -> tuple[list[CentreTerm], np.ndarray]:

@@ -50,6 +50,9 @@ class AdjustResult:
     decisions: list[CalibrationDecision] = field(default_factory=list)  # REFINE: per rig, held or refined and why
     influential: InfluentialTracks | None = None  # REFINE: the tracks that pulled the calibration (None: not scored)
     warnings: list[str] = field(default_factory=list)  # for the run's summary
+    # point3D_id -> its observations' own noise (px per coordinate; heads): weighed so in the adjustment and its
+    # covariance (rigsfm.run.adjustment.problem.JointProblem), the pooled pixel_sigma is the other observations'
+    point_sigmas: dict[int, float] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)

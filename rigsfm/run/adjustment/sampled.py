@@ -77,7 +77,8 @@ def sampled_pair_bands(result: AdjustResult, plane: Plane | None, num_draws: int
     for _ in range(num_draws):
         try:
             draws.append(adjust(estimate, draw_calibration(result.rigs, priors, rng), result.scale_spec, options,
-                                result.priors, with_covariance=False, held_rigs=result.held_rigs).reconstruction)
+                                result.priors, with_covariance=False, held_rigs=result.held_rigs,
+                                point_sigmas=result.point_sigmas).reconstruction)
         except ReconstructionError as error:
             logger.info("A calibration draw failed to adjust: %s", error)
     images = {im.name: im for im in registered_narrow_images(estimate)}

@@ -12,11 +12,13 @@ SIFT on flat-shaded, view-dependent silhouettes gives chance matches only. Heads
    associate_views` (``rigsfm associate``'s library call: candidates inside each pair's band between two heights,
    triangulation, multi-view growth, a global set packing, and the crowd's own correction of each view's pose
    error), on the first adjustment's poses and bands. Only confident persons are kept: ``MIN_GROUP_VIEWS`` views
-   or more, a score above ``MIN_GROUP_SCORE``.
-3. **Observations**: each person is a track (its head centres); every ``HOLD_OUT_EVERY``-th person (in the
-   association's order: deterministic) is held out of the adjustment. Its pairs become
-   :class:`rigsfm.run.narrow.observations.PairMatches`, so the tracks, the second adjustment and the held-out
-   check are the floor matches' own.
+   or more, a score above ``MIN_GROUP_SCORE`` (four views agreeing on one head are rarely chance: weighed at their
+   own noise, these persons held the narrow rotation better than the fewer of three views scoring above 2).
+3. **Observations**: each person is a track (its head centres); none is held out of the adjustment (a person adds
+   one match to a pair, so a pair's held-out persons never reached the held-out check's minimum, and holding every
+   fifth out only cost observations: the self-check's head verdicts, step 5, check the heads). Its pairs become
+   :class:`rigsfm.run.narrow.observations.PairMatches`, so the tracks and the second adjustment are the floor
+   matches' own.
 4. **Decision** (``auto``): used when at least ``MIN_HEAD_GROUPS`` confident persons are found; a featureless view
    gives no circles at head size that three views agree on.
 5. **Self-check**: a pair whose SIFT self-check found too few matches gets a verdict from its head matches against
@@ -26,6 +28,11 @@ SIFT on flat-shaded, view-dependent silhouettes gives chance matches only. Heads
    not only the adjustment's confident ones: a wrong match costs the adjustment a biased track, but the check only
    one distance, which the association's band bounds (it admits a match only inside it); the confident persons
    alone leave many pairs of a crowd under ``MIN_HEAD_MATCHES``.
+6. **Noise**: a head centre errs far more than a SIFT keypoint (a Hough circle and a silhouette's fitted edge, not a
+   texture's corner), so its observations enter the second adjustment at their own noise
+   (:class:`rigsfm.run.adjustment.problem.JointProblem`'s ``point_sigmas``), not at the images' pooled one: estimated
+   from the confident persons themselves, their centres' residuals about the association's points with each view's
+   pose correction removed (:func:`head_sigma`; ``HEAD_PIXEL_SIGMA`` where too few).
 """
 
 from __future__ import annotations
@@ -47,7 +54,7 @@ from rigsfm.core.ground import undistort_pixels
 from rigsfm.core.image_files import read_image
 from rigsfm.core.opencv_threads import one_opencv_thread
 from rigsfm.run.checks.guided import overlapping_pairs
-from rigsfm.run.narrow.observations import HOLD_OUT_EVERY, PairMatches
+from rigsfm.run.narrow.observations import PairMatches
 
 logger = logging.getLogger(__name__)
 
@@ -56,11 +63,11 @@ HEAD_CENTRE_M = 1.6  # the plane where the expected radius is computed (heads' c
 RADIUS_RATIO = (0.7, 1.45)  # a circle's radius against the one expected at its centre
 HOUGH_PARAM1 = 50.0  # Canny's upper threshold of the Hough search
 HOUGH_PARAM2 = 0.6  # the circles' "perfectness" (HOUGH_GRADIENT_ALT)
-HEAD_PIXEL_SIGMA = 1.5  # a head centre's localisation noise per coordinate (px)
-MIN_GROUP_VIEWS = 3  # a person enters the adjustment when seen in this many views
-# ... and scoring above this (log-likelihood ratio against clutter): below it, on a dense crowd (275 heads per
-# view), most groups of three or four views join different persons' heads.
-MIN_GROUP_SCORE = 2.0
+HEAD_PIXEL_SIGMA = 1.5  # a head centre's localisation noise per coordinate (px): the association's, and the fallback
+MIN_SIGMA_DOF = 20  # residual degrees of freedom the heads' own noise estimate needs (step 6)
+MIN_GROUP_VIEWS = 4  # a person enters the adjustment when seen in this many views
+# ... and scoring above this (log-likelihood ratio against clutter: one person the likelier)
+MIN_GROUP_SCORE = 0.0
 # The self-check's persons: two views or more, scoring above this (the association's log-likelihood ratio of one
 # person against chance detections: above 0, one person is the likelier).
 CHECK_MIN_SCORE = 0.0
@@ -78,10 +85,19 @@ class HeadMatches:
 
     candidates: dict[str, int] = field(default_factory=dict)  # image -> head candidates
     persons: int = 0  # confident persons (>= MIN_GROUP_VIEWS views, score > MIN_GROUP_SCORE)
-    held_out_persons: int = 0
     pairs: list[PairMatches] = field(default_factory=list)
     # The self-check's head matches per pair: every person in >= 2 views scoring above CHECK_MIN_SCORE (step 5).
     check_pairs: list[PairMatches] = field(default_factory=list)
+    # The confident persons' head centres' residuals (px, undistorted) about their association's points, each view's
+    # pose correction removed (step 6).
+    residuals: list[np.ndarray] = field(default_factory=list)
+
+    @property
+    def sigma_px(self) -> float | None:
+        """A head centre's noise per coordinate (px) from the confident persons' residuals (step 6); None where they
+        leave too few degrees of freedom."""
+        return head_sigma(np.concatenate(self.residuals) if self.residuals else np.zeros((0, 2)),
+                          self.persons)
 
 
 def expected_radius(image: pycolmap.Image, xy: np.ndarray) -> np.ndarray:
@@ -182,6 +198,34 @@ def detect_heads(image: pycolmap.Image, gray: np.ndarray) -> np.ndarray:
     return np.c_[xy[keep], circles[keep, 2]]
 
 
+def head_sigma(residuals: np.ndarray, persons: int) -> float | None:
+    """A head centre's noise per coordinate (module docstring, step 6) from ``residuals`` (N x 2 px) of ``persons``
+    triangulated points: the median absolute coordinate as a normal's (a wrong member of a person does not pull
+    it), times ``sqrt(2 N / (2 N - 3 P))`` for what each person's triangulation absorbed; None below
+    ``MIN_SIGMA_DOF`` degrees of freedom."""
+    residuals = np.asarray(residuals, dtype=np.float64).reshape(-1, 2)
+    residuals = residuals[np.isfinite(residuals).all(axis=1)]
+    dof = 2 * len(residuals) - 3 * persons
+    if dof < MIN_SIGMA_DOF:
+        return None
+    return float(1.4826 * np.median(np.abs(residuals)) * math.sqrt(2 * len(residuals) / dof))
+
+
+def _residuals(views: list[View], result, groups: np.ndarray) -> np.ndarray:
+    """The head centres of ``groups`` (rows of ``result``) against their points' projections, per view its pose
+    correction (``result.shift_px``) removed as the association removed it: undistorted px, N x 2."""
+    out = [np.zeros((0, 2))]
+    for v, view in enumerate(views):
+        rows = groups[result.members[groups, v] >= 0]
+        if not len(rows):
+            continue
+        projected, depth = view.project(result.points[rows])
+        observed = undistort_pixels(view.camera, view.xy[result.members[rows, v]]) - result.shift_px.get(
+            view.name, np.zeros(2))[None]
+        out.append((observed - projected)[depth > 0])
+    return np.concatenate(out)
+
+
 def _association_options() -> AssociateOptions:
     return AssociateOptions(pixel_sigma=HEAD_PIXEL_SIGMA)
 
@@ -192,7 +236,6 @@ def match_heads(floor_model: pycolmap.Reconstruction, image_dir: Path, frames: d
     steps 1-3). ``floor_model``: the first adjustment in the floor frame; ``frames``: frame -> its narrow images
     (of ``floor_model``); ``bands``: (i, j) -> the pair's 95 % band (px) from the first adjustment's uncertainty."""
     out = HeadMatches()
-    person = 0
     for frame in list(frames)[:max(1, max_frames)]:
         images = frames[frame]
         overlapping = overlapping_pairs(floor_model, images, True)
@@ -216,11 +259,9 @@ def match_heads(floor_model: pycolmap.Reconstruction, image_dir: Path, frames: d
         result = associate_views(views, _association_options())
         present = result.members >= 0
         confident = np.flatnonzero((present.sum(axis=1) >= MIN_GROUP_VIEWS) & (result.scores > MIN_GROUP_SCORE))
-        held = (person + np.arange(len(confident))) % HOLD_OUT_EVERY == 0
-        person += len(confident)
-        out.held_out_persons += int(held.sum())
-        per_pair = _per_pair(views, result.members, confident, overlapping, held)
+        per_pair = _per_pair(views, result.members, confident, overlapping)  # none held out (step 3)
         out.persons += len(confident)
+        out.residuals.append(_residuals(views, result, confident))
         out.pairs.extend(_pair_matches(frame, per_pair))
         checked = np.flatnonzero((present.sum(axis=1) >= 2) & (result.scores > CHECK_MIN_SCORE))
         out.check_pairs.extend(_pair_matches(frame, _per_pair(views, result.members, checked, overlapping)))

@@ -138,13 +138,16 @@ class NarrowObservations:
     head_candidates: int | None = None
     head_verdicts: int = 0  # self-check pairs given a verdict by their head matches
     head_check_pairs: list[PairMatches] = field(default_factory=list, repr=False)  # the heads' self-check matches
+    head_sigma_px: float | None = None  # the heads' centres' noise per coordinate their observations are weighed at
+    # point3D_id -> that noise, per point the heads added (the second adjustment's point_sigmas)
+    point_sigmas: dict[int, float] = field(default_factory=dict, repr=False)
 
     @property
     def bands_from(self) -> str:
         """The adjustment whose bands are delivered: the one with these observations where they are matches through
         the floor, whose noise is modelled per pair (rigsfm.run.adjustment.correlated); the first one where they are
-        heads, whose multi-view tracks have no noise model of their own (counted at the images' noise they narrowed
-        the band far below a 3D crowd's true errors: benchmarks/README.md)."""
+        heads: weighed at their own noise (rigsfm.run.narrow.heads, step 6) they hold the poses better, but their
+        adjustment's band still fell short of a 3D crowd's true errors (benchmarks/README.md)."""
         return BANDS_WITH_NARROW if self.used and self.matched_by != "heads" else BANDS_WIDE_ONLY
 
     def line(self) -> str:
@@ -165,7 +168,8 @@ class NarrowObservations:
                    for p in self.pairs],
             held_out_check=[HeldOutCheckSummary(**c.to_dict()) for c in self.held_out_checks],
             bands=self.bands_from if self.used else None, matched_by=self.matched_by, head_persons=self.head_persons,
-            head_candidates=self.head_candidates, head_verdicts=self.head_verdicts)
+            head_candidates=self.head_candidates, head_verdicts=self.head_verdicts,
+            head_sigma_px=None if self.head_sigma_px is None else round(self.head_sigma_px, 3))
 
 
 def describe_record(record: NarrowObservationsSummary) -> str:

@@ -18,7 +18,7 @@ from rigsfm.run.checks.guided import KEYPOINT_NOISE_PX
 from rigsfm.run.checks.self_check import synchronised_frames
 from rigsfm.run.checks.sync import frames_by_time
 from rigsfm.run.deliver import fundamental_matrix
-from rigsfm.run.narrow.heads import decide_heads, match_heads
+from rigsfm.run.narrow.heads import HEAD_PIXEL_SIGMA, decide_heads, match_heads
 from rigsfm.run.narrow.observations import (
     MIN_HELD_OUT,
     HeldOutCheck,
@@ -101,6 +101,9 @@ def narrow_observations(result, world, image_dir: Path, asked: NarrowMode, optio
             p.in_adjustment = True
         model, record.points_added, record.observations_added = add_observations(result.reconstruction, chosen)
         record.held_out = int(sum(p.held_out.sum() for p in chosen))
+        if record.matched_by == "heads" and record.head_sigma_px is not None:  # their own noise (narrow.heads, 6)
+            record.point_sigmas = {point_id: record.head_sigma_px for point_id in model.points3D
+                                   if not result.reconstruction.exists_point3D(point_id)}
         if record.points_added == 0:
             record.used, record.reason, record.held_out = False, reason + "; no match triangulates", 0
             model = None
@@ -131,6 +134,11 @@ def heads_instead(floor_model: pycolmap.Reconstruction, image_dir: Path, options
         return False
     record.pairs, record.used, record.matched_by = heads.pairs, True, "heads"
     record.head_check_pairs = heads.check_pairs
+    sigma = heads.sigma_px
+    record.head_sigma_px = HEAD_PIXEL_SIGMA if sigma is None else sigma
+    logger.info("heads' centres weighed at %.2f px per coordinate (%s)", record.head_sigma_px,
+                "the fallback: too few residuals" if sigma is None else
+                f"from {heads.persons} persons' residuals")
     record.reason = reason if enough else f"asked (--narrow on); {reason}"
     return True
 
@@ -145,4 +153,5 @@ def second_pass(result, world, inputs, options, offsets: dict[str, int] | None =
                                         bands)
     if model is None:
         return result, record
-    return in_child(adjust, model, inputs.rigs, inputs.scale, options.adjust, inputs.priors), record
+    return in_child(adjust, model, inputs.rigs, inputs.scale, options.adjust, inputs.priors,
+                    point_sigmas=record.point_sigmas), record

@@ -36,6 +36,7 @@ class ImageDetections:
     text: list[tuple[str, str]] = field(default_factory=list)  # x, y exactly as given
     score: np.ndarray | None = None
     label: list[str] | None = None
+    radius: np.ndarray | None = None  # N: apparent head radius (px), where the file gives the radius column
 
     def __len__(self) -> int:
         return len(self.xy)
@@ -55,14 +56,17 @@ class Detections:
         return dict(sorted(out.items()))
 
 
-def from_arrays(points: dict[str, np.ndarray]) -> Detections:
-    """Detections from arrays per image name (N x 2 COLMAP pixels); rows count from 2 in the images' order."""
+def from_arrays(points: dict[str, np.ndarray], radii: dict[str, np.ndarray] | None = None) -> Detections:
+    """Detections from arrays per image name (N x 2 COLMAP pixels; ``radii``: N apparent head radii, px, per image);
+    rows count from 2 in the images' order."""
     images, row = {}, 2
     for name, xy in points.items():
         xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
         rows = np.arange(row, row + len(xy))
         row += max(len(xy), 1)
-        images[name] = ImageDetections(name, xy, rows, [(repr(float(a)), repr(float(b))) for a, b in xy])
+        radius = np.asarray(radii[name], dtype=np.float64).reshape(-1) if radii is not None else None
+        images[name] = ImageDetections(name, xy, rows, [(repr(float(a)), repr(float(b))) for a, b in xy],
+                                       radius=radius)
     return Detections(images, "arrays")
 
 

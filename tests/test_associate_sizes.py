@@ -63,3 +63,22 @@ def test_a_frame_without_a_radius_in_every_view_scores_as_before():
     after = _Frame(views, options).hypotheses()
     for a, b in zip(before, after):
         np.testing.assert_array_equal(a, b)
+
+
+def test_the_csv_radius_column_reads_back_exactly_frame_by_frame(tmp_path):
+    from rigsfm.associate import read_detections
+
+    sizes = {f"rig0{r}/narrow/f{k}.png": (640, 480) for r in (1, 2) for k in (0, 1)}
+    path = tmp_path / "heads.csv"
+    # frame f0 gives radii (rig02's image analysed, empty); frame f1 leaves them empty: its size cue is off
+    path.write_text("image,x,y,score,radius\nrig01/narrow/f0.png,10.5,20.25,0.9,12.125\nrig02/narrow/f0.png,,,,\n"
+                    "rig01/narrow/f0.png,100,200,,0.1\nrig01/narrow/f1.png,1,2,,\nrig02/narrow/f1.png,3,4,,\n")
+    detections = read_detections(path, sizes, set(sizes))
+    np.testing.assert_array_equal(detections.images["rig01/narrow/f0.png"].radius, [12.125, 0.1])
+    assert detections.images["rig01/narrow/f0.png"].rows.tolist() == [2, 4]
+    empty = detections.images["rig02/narrow/f0.png"].radius
+    assert empty is not None and empty.shape == (0,)
+    assert detections.images["rig01/narrow/f1.png"].radius is None
+    assert detections.images["rig02/narrow/f1.png"].radius is None
+    path.write_text("image,x,y\nrig01/narrow/f0.png,10.5,20.25\n")  # no column: no radii
+    assert read_detections(path, sizes, set(sizes)).images["rig01/narrow/f0.png"].radius is None

@@ -25,7 +25,14 @@ import numpy as np
 import pycolmap
 
 from rigsfm.associate import AssociateOptions, associate_frames, from_arrays, load_run
-from rigsfm.associate.evaluate import make_detections, score_groups, true_heads, truth_from_run, visible_heads
+from rigsfm.associate.evaluate import (
+    make_detections,
+    score_groups,
+    true_head_radii,
+    true_heads,
+    truth_from_run,
+    visible_heads,
+)
 from rigsfm.core.ground import undistort_pixels
 
 CHI2_3D_95 = 7.814727903251178
@@ -75,18 +82,24 @@ def fixed_threshold(model, points: dict[str, np.ndarray], threshold: float) -> l
     return [g for g in groups.values() if len(g) >= 2]
 
 
-def evaluate(dataset: Path, out: Path, seed: int, options: AssociateOptions, frames: int = 1) -> dict:
+def evaluate(dataset: Path, out: Path, seed: int, options: AssociateOptions, frames: int = 1,
+             size_noise: float | None = None, size_spread: float = 0.1) -> dict:
     """The association of the first ``frames`` frames, each scored against its truth; the shifts the crowd finds
-    carry from frame to frame (associate_frames), so the first frame self-calibrates and the rest reuse it."""
+    carry from frame to frame (associate_frames), so the first frame self-calibrates and the rest reuse it.
+    ``size_noise``: each detection also has an apparent head radius from the truth (persons' radii spread by
+    ``size_spread``), with this relative noise; None: no radii (the issue's protocol)."""
     model = load_run(out)
     sizes = {n: (im.camera.width, im.camera.height) for n, im in model.images.items()}
-    truths, points = [], {}
+    truths, points, radii = [], {}, {}
     for k in range(frames):
         heads = {n: v for n, v in visible_heads(dataset, f"frame{k:04d}").items() if n in sizes}
-        truth = make_detections(heads, sizes, sigma_px=1.5, missed=0.1, false=0.05, seed=seed + 1000 * k)
+        true_r = true_head_radii(dataset, heads, k, spread=size_spread, seed=seed) if size_noise is not None else None
+        truth = make_detections(heads, sizes, sigma_px=1.5, missed=0.1, false=0.05, seed=seed + 1000 * k,
+                                radii=true_r, size_noise=size_noise or 0.0)
         truths.append(truth)
         points.update(truth.points)
-    detections = from_arrays(points)
+        radii.update(truth.radius or {})
+    detections = from_arrays(points, radii if size_noise is not None else None)
     wall, cpu = time.perf_counter(), time.process_time()
     found = associate_frames(model, detections, options)
     wall, cpu = time.perf_counter() - wall, time.process_time() - cpu
@@ -114,7 +127,7 @@ def evaluate(dataset: Path, out: Path, seed: int, options: AssociateOptions, fra
             "error_p95_m": float(np.percentile(errors, 95)) if errors else None,
             "coverage_95": float(np.mean(inside)) if inside else None, "correct_persons": len(errors)})
     return {**per_frame[0], "frames": per_frame, "total_seconds": wall, "total_cpu_seconds": cpu,
-            "truth": truths[0], "model": model}
+            "truth": truths[0], "model": model, "found": found}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -131,7 +144,7 @@ def main(argv: list[str] | None = None) -> int:
     rows = []
     for seed in range(args.seeds):
         ours = evaluate(args.dataset, args.out, seed, options, args.frames)
-        row = {"seed": seed, "rigsfm": {k: v for k, v in ours.items() if k not in ("truth", "model")}}
+        row = {"seed": seed, "rigsfm": {k: v for k, v in ours.items() if k not in ("truth", "model", "found")}}
         best = None
         for threshold in (2, 4, 8, 16, 32):
             s = score_groups(fixed_threshold(ours["model"], ours["truth"].points, threshold), ours["truth"])
@@ -140,7 +153,7 @@ def main(argv: list[str] | None = None) -> int:
         row["fixed_threshold"] = {"threshold_px": best[0], "scores": vars(best[1])}
         if args.fixed is not None:
             fixed = evaluate(args.dataset, args.fixed, seed, options, args.frames)
-            row["fixed_calibration"] = {k: v for k, v in fixed.items() if k not in ("truth", "model")}
+            row["fixed_calibration"] = {k: v for k, v in fixed.items() if k not in ("truth", "model", "found")}
         rows.append(row)
         print(json.dumps(row), flush=True)
     if args.json:

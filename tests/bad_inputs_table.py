@@ -293,6 +293,7 @@ def with_pairs(count: int) -> str:
 
 
 DETECTIONS = "image,x,y\nrig01/narrow/f0.png,10.5,20.25\nrig02/narrow/f0.png,30,22\n"
+SIZED_DETECTIONS = "image,x,y,radius\nrig01/narrow/f0.png,10.5,20.25,5.5\nrig02/narrow/f0.png,30,22,6\n"
 
 
 def with_detections(text: str | bytes) -> Callable[[Path], list]:
@@ -462,6 +463,12 @@ CASES = [
          with_detections(DETECTIONS + "rig01/narrow/f0.png,10.5,20.25\n")),
     Case("detections in a frame the run did not register", "nothing is written",
          with_detections(DETECTIONS + "rig01/narrow/f1.png,10,20\n")),
+    Case("a detection radius of 0 px", "nothing is written",
+         with_detections(SIZED_DETECTIONS.replace(",22,6", ",22,0"))),
+    Case("a detection radius wider than half its image", "nothing is written",
+         with_detections(SIZED_DETECTIONS.replace(",22,6", ",22,5000"))),
+    Case("a detections CSV with a radius on some rows of a frame and not on others", "nothing is written",
+         with_detections(SIZED_DETECTIONS.replace(",22,6", ",22,"))),
     Case("`rigsfm associate` on a run without a floor frame", "nothing is written",
          with_detections(b"\xef\xbb\xbf" + DETECTIONS.encode())),
     # --- frame offsets

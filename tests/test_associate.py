@@ -205,6 +205,40 @@ def test_cli_writes_every_output_and_joins_back(crowd, tmp_path):
     assert again.exit_code == 1 and "--overwrite" in again.output
 
 
+def test_cli_radius_column_turns_the_size_cue_on_and_its_absence_changes_nothing(crowd, tmp_path):
+    from rigsfm.associate.evaluate import true_head_radii
+
+    dataset, out = crowd
+    model = load_run(out)
+    sizes = {n: (im.camera.width, im.camera.height) for n, im in model.images.items()}
+    heads = {n: v for n, v in visible_heads(dataset, "frame0000").items() if n in sizes}
+    truth = make_detections(heads, sizes, sigma_px=1.5, missed=0.1, false=0.05, seed=1,
+                            radii=true_head_radii(dataset, heads), size_noise=0.05)
+    assert truth.radius is not None
+    text = {n: [(f"{x:.3f}", f"{y:.3f}") for x, y in xy] for n, xy in truth.points.items()}
+    sized = tmp_path / "sized.csv"
+    sized.write_text("image,x,y,radius\n" + "".join(
+        f"{n},{x},{y},{r:.3f}\n" for n in text for (x, y), r in zip(text[n], truth.radius[n])))
+    plain = tmp_path / "plain.csv"
+    plain.write_text(truth.csv_text())
+
+    def persons(csv_path: Path, *extra: str) -> dict:
+        dest = tmp_path / csv_path.stem
+        result = CliRunner().invoke(app, ["associate", str(out), str(csv_path), "--out", str(dest),
+                                          "--pixel-sigma", "1.5", *extra])
+        assert result.exit_code == 0, result.output
+        return json.loads((dest / "frame0000" / "persons.json").read_text())
+
+    with_sizes, without = persons(sized, "--size-noise", "0.05"), persons(plain)
+    assert with_sizes["size_cue"]["used"] and 0.08 < with_sizes["size_cue"]["head_radius_m"] < 0.14
+    assert without["size_cue"] == {"used": False, "head_radius_m": None}
+    # without radii the persons are the library's on the same points, as before the column existed
+    points = {n: np.array([[float(x), float(y)] for x, y in rows]).reshape(-1, 2) for n, rows in text.items()}
+    library = associate_frames(model, from_arrays(points), AssociateOptions(pixel_sigma=1.5))[0].result
+    assert [p["position_m"] for p in without["persons"]] == [[round(float(c), 5) for c in p] for p in library.points]
+    assert [p["position_m"] for p in with_sizes["persons"]] != [p["position_m"] for p in without["persons"]]
+
+
 def test_empty_frame_gives_no_person(crowd, tmp_path):
     dataset, out = crowd
     model = load_run(out)

@@ -1,8 +1,12 @@
-"""The detections CSV: ``image, x, y[, score][, label]``, one row per point in a narrow image, COLMAP pixels.
+"""The detections CSV: ``image, x, y[, score][, label][, radius]``, one row per point in a narrow image, COLMAP
+pixels.
 
 Every problem is refused before anything is computed or written, with one line naming the row (its line in the
 file) and the fix. A row with an image and empty ``x`` and ``y`` declares an image that was analysed and holds no
-detection (an empty view, or with every image of a frame so, an empty frame).
+detection (an empty view, or with every image of a frame so, an empty frame). ``radius``: the detection's apparent
+head radius (px, e.g. half its head box's width), evidence of its depth; a frame's detections give it on every row or
+on none (then the size cue is off for that frame), since a cue on some detections only would score them unlike the
+others.
 """
 
 from __future__ import annotations
@@ -23,7 +27,7 @@ from rigsfm.core.names import ImageName
 logger = logging.getLogger(__name__)
 
 REQUIRED = ("image", "x", "y")
-OPTIONAL = ("score", "label")
+OPTIONAL = ("score", "label", "radius")
 
 
 @dataclass
@@ -36,6 +40,7 @@ class ImageDetections:
     text: list[tuple[str, str]] = field(default_factory=list)  # x, y exactly as given
     score: np.ndarray | None = None
     label: list[str] | None = None
+    radius: np.ndarray | None = None  # N: apparent head radius (px), where the file gives the radius column
 
     def __len__(self) -> int:
         return len(self.xy)
@@ -55,19 +60,38 @@ class Detections:
         return dict(sorted(out.items()))
 
 
-def from_arrays(points: dict[str, np.ndarray]) -> Detections:
-    """Detections from arrays per image name (N x 2 COLMAP pixels); rows count from 2 in the images' order."""
+def from_arrays(points: dict[str, np.ndarray], radii: dict[str, np.ndarray] | None = None) -> Detections:
+    """Detections from arrays per image name (N x 2 COLMAP pixels; ``radii``: N apparent head radii, px, per image);
+    rows count from 2 in the images' order."""
     images, row = {}, 2
     for name, xy in points.items():
         xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
         rows = np.arange(row, row + len(xy))
         row += max(len(xy), 1)
-        images[name] = ImageDetections(name, xy, rows, [(repr(float(a)), repr(float(b))) for a, b in xy])
+        radius = np.asarray(radii[name], dtype=np.float64).reshape(-1) if radii is not None else None
+        images[name] = ImageDetections(name, xy, rows, [(repr(float(a)), repr(float(b))) for a, b in xy],
+                                       radius=radius)
     return Detections(images, "arrays")
 
 
 def _fail(path: Path, line: int, what: str) -> InputError:
     return InputError(f"{path} line {line}: {what}")
+
+
+def _radius(path: Path, line: int, text: str, size: tuple[int, int]) -> float | None:
+    """A row's apparent head radius (px), None where it is empty; a head wider than half the image is no head."""
+    if not text:
+        return None
+    try:
+        radius = float(text)
+    except ValueError:
+        raise _fail(path, line, f"radius {text!r} is not a number; give the head's apparent radius in pixels "
+                                "(a decimal point, not a comma)") from None
+    limit = min(size) / 2
+    if not (math.isfinite(radius) and 0 < radius < limit):
+        raise _fail(path, line, f"radius {text} is not a head's apparent radius in this {size[0]} x {size[1]} px "
+                                f"image (0 < radius < {limit:g} px); give half the head box's width in pixels")
+    return radius
 
 
 def read_detections(path: Path, sizes: dict[str, tuple[int, int]], known: set[str]) -> Detections:
@@ -77,7 +101,7 @@ def read_detections(path: Path, sizes: dict[str, tuple[int, int]], known: set[st
     text = read_user_text(path, "detections")
     lines = text.splitlines()
     if not lines or not lines[0].strip():
-        raise InputError(f"{path} line 1: no header; the first line must be 'image,x,y' (optionally ',score,label')")
+        raise InputError(f"{path} line 1: no header; the first line must be 'image,x,y' (optionally ',score,label,radius')")
     header_line = lines[0]
     if ";" in header_line and "," not in header_line:
         raise InputError(f"{path} line 1: columns are separated by semicolons; save it comma-separated "
@@ -86,10 +110,11 @@ def read_detections(path: Path, sizes: dict[str, tuple[int, int]], known: set[st
     missing = [c for c in REQUIRED if c not in header]
     if missing:
         raise InputError(f"{path} line 1: missing column(s) {', '.join(missing)}; the header must name image, x, y "
-                         f"(optionally score, label), found {', '.join(header) or 'nothing'}")
+                         f"(optionally score, label, radius), found {', '.join(header) or 'nothing'}")
     col = {name: header.index(name) for name in (*REQUIRED, *OPTIONAL) if name in header}
     images: dict[str, dict] = {}
     seen: dict[tuple[str, str, str], int] = {}
+    sized: dict[str, dict[bool, int]] = {}  # per frame, the first line with and the first without a radius
     reader = csv.reader(io.StringIO("\n".join(lines[1:])))
     for offset, fields in enumerate(reader):
         line = offset + 2
@@ -115,7 +140,7 @@ def read_detections(path: Path, sizes: dict[str, tuple[int, int]], known: set[st
             raise _fail(path, line, f"image {name!r} is not an image of this run (rigs and frames in "
                                     "OUT/narrow_poses.json); check the name")
         xs, ys = fields[col["x"]].strip(), fields[col["y"]].strip()
-        entry = images.setdefault(name, {"xy": [], "rows": [], "text": [], "score": [], "label": []})
+        entry = images.setdefault(name, {"xy": [], "rows": [], "text": [], "score": [], "label": [], "radius": []})
         if not xs and not ys:
             continue  # an analysed image without detections
         try:
@@ -137,6 +162,8 @@ def read_detections(path: Path, sizes: dict[str, tuple[int, int]], known: set[st
                 raise _fail(path, line, f"score {fields[col['score']]!r} is not a number") from None
             if not math.isfinite(score):
                 raise _fail(path, line, f"score {fields[col['score']]} is not finite; give a number or leave it empty")
+        radius = _radius(path, line, fields[col["radius"]].strip(), sizes[name]) if "radius" in col else None
+        sized.setdefault(parsed.frame, {}).setdefault(radius is not None, line)
         key = (name, xs, ys)
         if key in seen:
             raise _fail(path, line, f"repeats line {seen[key]} ('{name}', {xs}, {ys}); remove the duplicate row")
@@ -146,12 +173,21 @@ def read_detections(path: Path, sizes: dict[str, tuple[int, int]], known: set[st
         entry["text"].append((xs, ys))
         entry["score"].append(score)
         entry["label"].append(fields[col["label"]].strip() if "label" in col else "")
+        entry["radius"].append(radius)
     if not images:
         raise InputError(f"{path}: no rows after the header; give one row per detection: image,x,y")
+    for frame, first in sized.items():
+        if len(first) == 2:
+            late, early = (first[False], first[True]) if first[False] > first[True] else (first[True], first[False])
+            has = ("the radius is empty", "gives one") if late == first[False] else ("a radius is given", "has none")
+            raise _fail(path, late, f"{has[0]}, but line {early} of the same frame ({frame}) {has[1]}: give every "
+                                    "detection of a frame its radius, or none (the size cue is then off for that frame)")
     out = {}
     for name, e in images.items():
+        with_radius = "radius" in col and sized.get(ImageName.parse(name).frame, {}).get(True) is not None
         out[name] = ImageDetections(
             name, np.asarray(e["xy"], dtype=np.float64).reshape(-1, 2), np.asarray(e["rows"], dtype=np.int64),
-            e["text"], np.asarray(e["score"], dtype=np.float64), e["label"] if "label" in col else None)
+            e["text"], np.asarray(e["score"], dtype=np.float64), e["label"] if "label" in col else None,
+            np.asarray(e["radius"], dtype=np.float64).reshape(-1) if with_radius else None)
     logger.info("read %d detections in %d images from %s", sum(len(d) for d in out.values()), len(out), path)
     return Detections(out, str(path))

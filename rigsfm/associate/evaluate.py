@@ -23,6 +23,7 @@ class SyntheticDetections:
 
     points: dict[str, np.ndarray]
     person: dict[str, np.ndarray]
+    radius: dict[str, np.ndarray] | None = None  # apparent head radii (px), where simulated
 
     def csv_text(self) -> str:
         lines = ["image,x,y"]
@@ -43,13 +44,42 @@ def visible_heads(dataset: Path, frame: str = "frame0000") -> dict[str, tuple[np
     return {k: (np.array([r[:2] for r in v]), np.array([r[2] for r in v])) for k, v in sorted(out.items())}
 
 
+def true_head_radii(dataset: Path, heads: dict[str, tuple[np.ndarray, np.ndarray]], frame: int = 0, *,
+                    spread: float = 0.1, seed: int = 0) -> dict[str, np.ndarray]:
+    """Per image of ``heads``, each visible head's apparent radius (px): f R / distance from the truth's camera
+    centre to the head centre, R the rendered head radius times a person's own factor (lognormal, ``spread``)."""
+    import json
+
+    import pycolmap
+
+    data = json.loads((Path(dataset) / "persons" / f"frame{frame:04d}.json").read_text())
+    centres3d = np.asarray(data["instants"][0]["heads"], dtype=np.float64)
+    factor = np.exp(spread * np.random.default_rng([seed, 71]).normal(size=len(centres3d)))
+    radius_m = float(data["head_radius_m"]) * factor
+    truth = pycolmap.Reconstruction(str(Path(dataset) / "ground_truth"))
+    images = {image.name: image for image in truth.images.values()}
+    out = {}
+    for name, (_, ids) in heads.items():
+        image = images[name]
+        centre = np.asarray(image.projection_center())
+        focal = float(np.sqrt(abs(image.camera.focal_length_x * image.camera.focal_length_y)))
+        dist = np.linalg.norm(centres3d[ids] - centre[None], axis=1)
+        out[name] = focal * radius_m[ids] / dist
+    return out
+
+
 def make_detections(heads: dict[str, tuple[np.ndarray, np.ndarray]], sizes: dict[str, tuple[int, int]], *,
                     sigma_px: float = 1.5, missed: float = 0.1, false: float = 0.05, seed: int = 0,
+                    radii: dict[str, np.ndarray] | None = None, size_noise: float = 0.1,
                     ) -> SyntheticDetections:
     """True visible heads plus normal noise, each missed with probability ``missed``, plus ``false`` x as many
-    false detections uniform in the image; images without a model (not in ``sizes``) are left out."""
+    false detections uniform in the image; images without a model (not in ``sizes``) are left out. ``radii``: the
+    visible heads' true apparent radii (px): each detection's is multiplied by lognormal noise (``size_noise``), a
+    false one's is a random visible head's of its image, with 20 % lognormal noise (the points are the same as
+    without radii)."""
     rng = np.random.default_rng(seed)
-    points, person = {}, {}
+    size_rng = np.random.default_rng([seed, 72])
+    points, person, radius = {}, {}, {}
     for name, (xy, ids) in heads.items():
         if name not in sizes:
             continue
@@ -61,7 +91,12 @@ def make_detections(heads: dict[str, tuple[np.ndarray, np.ndarray]], sizes: dict
         all_xy = np.clip(np.concatenate([noisy, fake]), [0, 0], [width, height])
         points[name] = all_xy
         person[name] = np.concatenate([ids[keep], -np.ones(n_false, dtype=np.int64)])
-    return SyntheticDetections(points, person)
+        if radii is not None:
+            true_r = radii[name][keep] * np.exp(size_noise * size_rng.normal(size=int(keep.sum())))
+            pool = radii[name] if len(radii[name]) else np.array([10.0])
+            fake_r = size_rng.choice(pool, n_false) * np.exp(0.2 * size_rng.normal(size=n_false))
+            radius[name] = np.concatenate([true_r, fake_r])
+    return SyntheticDetections(points, person, radius if radii is not None else None)
 
 
 @dataclass

@@ -17,6 +17,14 @@ class AssociateOptions:
     # Mean and sigma (m) of the points' heights, the score's prior over height inside ``heights``; None: estimated
     # from the frame's confident persons (uniform over ``heights`` until there are enough).
     height_prior: tuple[float, float] | None = None
+    # The detections' apparent head radii (px; the DETECTIONS' radius column) as evidence of depth, used where every
+    # detection of a frame has one: a radius is f R / distance, R the person's head radius. ``size_noise``: the
+    # detector's relative (log) error of a radius; ``head_radius_spread``: the persons' relative spread of R;
+    # ``head_radius_m``: the crowd's mean R, None: estimated from the frame's confident persons (starting at 0.1 m,
+    # 30 % uncertain).
+    size_noise: float = 0.1
+    head_radius_spread: float = 0.1
+    head_radius_m: float | None = None
     persons_per_m2: float = 2.0  # the prior density of persons on the floor (the score's price of a new person)
     clutter_radius_px: float = 40.0  # the local density of detections (chance matches) is counted within this
     gate_sigmas: float = 3.5  # candidate pairs: distance to i's ray segment in j within this many sigmas
@@ -53,6 +61,12 @@ class AssociateOptions:
             raise ValueError(f"detection probability must be in (0, 1), got {self.detection_probability}")
         if self.height_prior is not None and not self.height_prior[1] > 0:
             raise ValueError(f"the height prior's sigma must be > 0 m, got {self.height_prior[1]}")
+        if not (self.size_noise > 0 and self.head_radius_spread > 0 and math.isfinite(self.size_noise)
+                and math.isfinite(self.head_radius_spread)):
+            raise ValueError(f"size noise and head radius spread must be finite and > 0, got {self.size_noise}, "
+                             f"{self.head_radius_spread}")
+        if self.head_radius_m is not None and not (0 < self.head_radius_m < 1):
+            raise ValueError(f"the head radius must be in (0, 1) m, got {self.head_radius_m}")
         if self.seed_min_score is not None and not math.isfinite(self.seed_min_score):
             raise ValueError(f"the seeds' minimum score must be a finite number or None, got {self.seed_min_score}")
         if not (self.gate_sigmas > 0 and self.member_gate > 0 and self.cell_m > 0 and self.time_limit_s > 0

@@ -3,7 +3,8 @@
   DIR/<frame>/persons.csv   one row per (person, detection): person, x_m, y_m, z_m, sigma_x_m, sigma_y_m, sigma_z_m,
                             confidence, views, image, x, y (exactly as given), row (its line in DETECTIONS)
   DIR/<frame>/persons.json  per person: position (world metres), covariance (m^2), score (log-likelihood ratio
-                            against clutter), confidence, detections [{image, x, y, row}]; unassigned detections
+                            against clutter), confidence, detections [{image, x, y, row}]; unassigned detections;
+                            size_cue {used, head_radius_m}: whether the DETECTIONS' radii scored the frame
   DIR/<frame>/floor.png     top view: every narrow footprint on the floor, every person's 95 % ellipse
   DIR/<frame>/density.csv   persons per m^2 on a grid of ``cell_m`` cells (x_min_m, y_min_m, x_max_m, y_max_m,
                             persons, per_m2)
@@ -84,6 +85,10 @@ def persons_json(frame) -> dict:
             # sigma before it, as this frame's persons were found with them; a zero shift: the view kept the run's pose.
             "shift_px": {name: [round(float(c), 4) for c in shift] for name, shift in result.shift_px.items()},
             "band_sigma_px": {name: round(float(sigma), 4) for name, sigma in result.band_sigma_px.items()},
+            # The apparent head radii score only where every view of the frame has them; the crowd's mean head
+            # radius, as its persons gave it (null: the cue was off, or too few persons to estimate it from).
+            "size_cue": {"used": bool(views) and all(v.radius_px is not None for v in views),
+                         "head_radius_m": result.head_radius_m},
             "persons": persons, "unassigned": unassigned}
 
 

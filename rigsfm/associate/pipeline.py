@@ -129,6 +129,7 @@ def frame_views(model: RunModel, detections: Detections, frame: str, names: list
                        "are off: re-run `rigsfm run` until narrow_poses.json has epipolar_band_95_px", frame)
     sigmas = view_pose_sigmas([v.name for v in views], pairs)
     for view in views:
+        view.radius_px = detections.images[view.name].radius
         view.sigma_pose_px = sigmas[view.name]
         view.centre_sigma_m = model.centre_sigma_m.get(view.name, 0.0)
         view.centre_covariance_m2 = model.centre_covariance_m2.get(view.name)

@@ -75,6 +75,7 @@ class View:
     grey: np.ndarray | None = None  # the image's greys, where readable (the appearance cue)
     descriptor: np.ndarray | None = None  # N x D appearance of its detections (rigsfm.associate.appearance)
     head_px: float | None = None  # the apparent head radius its descriptors were sampled at (None: not described)
+    radius_px: np.ndarray | None = None  # N: the detector's apparent head radius of each detection (px), if given
 
     @classmethod
     def of(cls, image: pycolmap.Image, xy: np.ndarray) -> View:
@@ -249,6 +250,7 @@ class FrameResult:
     detection_probability: float | None = None  # the crowd's, as this frame's persons say it
     height_prior: tuple[float, float] | None = None  # mean and sigma (m) of the persons' heights, as they say it
     appearance: AppearanceModel | None = None  # the appearance cue's model, where the images gave one
+    head_radius_m: float | None = None  # the crowd's mean head radius, where the detections gave radii
     # Per view, the shift (undistorted px) and band sigma the persons were found with; a carried frame's views go on
     # to hold the shifts refined from its persons, for the next frame.
     shift_px: dict[str, np.ndarray] = field(default_factory=dict)
@@ -298,6 +300,7 @@ class _Frame:
         # Clutter density (detections per px^2) around each detection: crowds fill a band of the image (the heads'
         # heights), where a chance match is far likelier than the image's mean density says.
         self.clutter = self.clutter_among(np.ones(len(self.uv), dtype=bool))
+        self.log_radius, self.radius_chance = _radius_model(views)
         # what the groups depend on in each view, to tell a frame whose views were corrected since
         self._posed = [(v.shift_px.copy(), v.sigma_pose_px, v.xy) for v in views]
         self._seeds: np.ndarray | None = None  # pair_candidates, once
@@ -553,6 +556,8 @@ class _Frame:
         per_member = math.log(p_d) - np.log(clutter) - np.log(2 * math.pi * self.noise ** 2)[None] \
             - 0.5 * np.nan_to_num(d2, nan=0.0, posinf=1e6)
         total = prior + np.sum(np.where(present, per_member, 0.0), axis=1)
+        if self.log_radius is not None:
+            total += self.size_log_ratio(members, points, covariance)
         appearance = self.appearance.group_log_ratio(self.descriptors, members) \
             if self.appearance is not None and self.descriptors is not None else None
         kept = None
@@ -570,6 +575,40 @@ class _Frame:
         if kept is not None:
             total[~kept] = -np.inf
         return total
+
+    @_rowwise
+    def size_log_ratio(self, members: np.ndarray, points: np.ndarray, covariance: np.ndarray) -> np.ndarray:
+        """Each group's log-likelihood ratio of its members' apparent head radii: one head of radius R at the point
+        (log r = log f R - log distance, R shared by the members, the crowd's mean R and spread as its prior, each
+        radius with the detector's noise and its distance's own) against each radius drawn from its view's."""
+        assert self.log_radius is not None and self.radius_chance is not None
+        opts = self.options
+        mean = math.log(opts.head_radius_m if opts.head_radius_m is not None else START_HEAD_RADIUS_M)
+        shared = opts.head_radius_spread ** 2 + (0.0 if opts.head_radius_m is not None else START_HEAD_RADIUS_LOG_SIGMA ** 2)
+        present = members >= 0
+        idx = np.where(present, members, 0)
+        e = np.zeros(members.shape)
+        d = np.ones(members.shape)
+        for v in range(len(self.views)):
+            rows = np.flatnonzero(present[:, v])
+            if not len(rows):
+                continue
+            diff = points[rows] - self.centres[v][None]
+            dist = np.maximum(np.linalg.norm(diff, axis=1), 0.1)
+            u = diff / dist[:, None]
+            var_log_dist = np.einsum("ni,nij,nj->n", u, covariance[rows], u) / dist ** 2
+            e[rows, v] = self.log_radius[idx[rows, v]] + np.log(dist) - math.log(self.focals[v]) - mean
+            d[rows, v] = opts.size_noise ** 2 + np.maximum(var_log_dist, 0.0)
+        e, inv = np.where(present, e, 0.0), np.where(present, 1.0 / d, 0.0)
+        a, b = inv.sum(axis=1), (e * inv).sum(axis=1)
+        n = present.sum(axis=1)
+        # the members' residuals share the person's R: covariance diag(d) + shared * 1 1^T (Sherman-Morrison)
+        quad = (e * e * inv).sum(axis=1) - shared * b * b / (1.0 + shared * a)
+        logdet = np.where(present, np.log(d), 0.0).sum(axis=1) + np.log1p(shared * a)
+        person = -0.5 * (n * math.log(2 * math.pi) + logdet + quad)
+        m, var = self.radius_chance[:, 0][idx], self.radius_chance[:, 1][idx]
+        chance = -0.5 * (np.log(2 * math.pi * var) + (self.log_radius[idx] - m) ** 2 / var)
+        return person - np.where(present, chance, 0.0).sum(axis=1)
 
     def _add_misses(self, total: np.ndarray, points: np.ndarray, present: np.ndarray) -> None:
         """Add, in place, the cost of every view that sees a point inside its image and holds no member."""
@@ -664,6 +703,33 @@ class _Frame:
         inside = np.all(np.nan_to_num(d2, nan=0.0) <= self.options.member_gate ** 2, axis=1)
         ok = (points[:, 2] >= lo) & (points[:, 2] <= hi) & inside
         return members[ok], points[ok], covariance[ok]
+
+
+START_HEAD_RADIUS_M = 0.1  # the crowd's mean head radius assumed until its persons say otherwise
+START_HEAD_RADIUS_LOG_SIGMA = 0.3  # its uncertainty (relative) until then
+
+
+def _radius_model(views: list[View]) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """The stacked detections' log radii and, per detection, the mean and variance of a chance match's log radius
+    there: a line in the image row fitted to its view's (the crowd's heads stand at similar heights, so a head's row
+    already says much of its distance; a chance match's radius is another head's at that row); None where a view has
+    no radii (the cue is off)."""
+    if not views or any(v.radius_px is None for v in views):
+        return None, None
+    logs, chance = [], []
+    for v in views:
+        lr = np.log(np.asarray(v.radius_px, dtype=np.float64))
+        row = v.xy[:, 1] / max(v.height, 1)
+        if len(lr) >= 4:
+            a = np.c_[np.ones(len(lr)), row]
+            coef = np.linalg.lstsq(a, lr, rcond=None)[0]
+            mean = a @ coef
+            var = max(float(np.sum((lr - mean) ** 2)) / (len(lr) - 2), 0.03 ** 2)
+        else:
+            mean, var = np.full(len(lr), float(np.mean(lr)) if len(lr) else 0.0), 0.5 ** 2
+        logs.append(lr)
+        chance.append(np.c_[mean, np.full(len(lr), var)])
+    return np.concatenate(logs), np.concatenate(chance).reshape(-1, 2)
 
 
 def _pack(members: np.ndarray, scores: np.ndarray, total: int, time_limit: float) -> np.ndarray:
@@ -1043,6 +1109,8 @@ def associate_views(views: list[View], options: AssociateOptions, carried: bool 
                                   or START_DETECTION)
     if options.height_prior is None and earlier is not None:
         options = dataclasses.replace(options, height_prior=earlier.height_prior)
+    if options.head_radius_m is None and earlier is not None and earlier.head_radius_m is not None:
+        options = dataclasses.replace(options, head_radius_m=earlier.head_radius_m)
     model = _carried_appearance(views, options, earlier) if carried else None
     state = _solve(views, options, model)
     count = len(_confident(state[1], state[4], options))
@@ -1105,7 +1173,8 @@ def associate_views(views: list[View], options: AssociateOptions, carried: bool 
     if pending is not None:  # after the frame's own record, which keeps the shifts its persons were found with
         _apply_correction(views, pending, options)
     return FrameResult(names, points[order], covariance[order], scores[order], local[order],
-                       options.detection_probability, options.height_prior, model, used, bands)
+                       options.detection_probability, options.height_prior, model,
+                       options.head_radius_m if state[0].log_radius is not None else None, used, bands)
 
 
 START_DETECTION = 0.7  # the detection probability assumed until the frame's persons say otherwise
@@ -1128,6 +1197,13 @@ def _crowd_rates(state: tuple, options: AssociateOptions, given: AssociateOption
         own = float(np.median(covariance[confident, 2, 2]))  # the score adds each point's own on top
         sigma = math.sqrt(max(float(np.var(z)) - own, 0.02 ** 2))
         changes["height_prior"] = (round(float(np.mean(z)), 2), round(sigma, 2))
+    if given.head_radius_m is None and frame.log_radius is not None and confident.sum() >= MIN_RATE_GROUPS:
+        # each member's radius times its distance over the focal: the person's R (the median: robust to a wrong one)
+        rows, cols = np.nonzero(members[confident] >= 0)
+        det = members[confident][rows, cols]
+        dist = np.linalg.norm(points[confident][rows] - frame.centres[cols], axis=1)
+        log_r = frame.log_radius[det] + np.log(dist) - np.log(frame.focals[cols])
+        changes["head_radius_m"] = round(float(np.exp(np.median(log_r))), 3)
     if changes:
         logger.info("the crowd's rates: %s", changes)
     return dataclasses.replace(options, **changes)

@@ -15,7 +15,8 @@ from rigsfm.core.errors import InputError
 def associate_command(
     out: Annotated[Path, typer.Argument(metavar="OUT", help="workspace of a finished `rigsfm run`", show_default=False)],
     detections: Annotated[Path, typer.Argument(
-        metavar="DETECTIONS", help="CSV image,x,y[,score][,label]: points in narrow images (COLMAP pixels), one or many synchronised frames",
+        metavar="DETECTIONS", help="CSV image,x,y[,score][,label][,radius]: points in narrow images (COLMAP pixels), one or many "
+        "synchronised frames; radius: the head's apparent radius (px), evidence of its depth",
         show_default=False)],
     dest: Annotated[Path | None, typer.Option("--out", metavar="DIR", help="folder to write [default: OUT/associate]",
                                                  show_default=False)] = None,
@@ -27,6 +28,10 @@ def associate_command(
         "--detection-probability", min=0.01, max=0.99, metavar="P", help="a person is detected in a view that sees it (occlusion "
                                                             "included) [default: estimated from each frame's persons]",
         show_default=False)] = None,
+    size_noise: Annotated[float, typer.Option(
+        "--size-noise", min=0.001, max=2.0, metavar="REL",
+        help="the detector's relative error of a DETECTIONS radius (0.1: 10 %); used only where a frame's detections "
+             "give radii")] = 0.1,
     self_calibration_rounds: Annotated[int, typer.Option(
         "--self-calibration-rounds", min=0, metavar="N",
         help="correct each view's pose error from the crowd, re-associating up to this many times (0: the run's poses)")] = 4,
@@ -43,7 +48,7 @@ def associate_command(
 
     try:
         options = AssociateOptions(heights=parse_heights(heights), pixel_sigma=pixel_sigma,
-                                   detection_probability=detection_probability,
+                                   detection_probability=detection_probability, size_noise=size_noise,
                                    self_calibration_rounds=self_calibration_rounds, appearance=not no_appearance,
                                    out=dest, overwrite=overwrite)
     except ValueError as e:

@@ -14,7 +14,9 @@ fold's cameras and poses (DLT in the undistorted rays, then Gauss-Newton on the 
 errors taken. The prediction error of each choice: the sum over held-out observations of the squared error clipped
 at ``max_reprojection_error_px`` (a wrong click counts as one outlier under both), and of the robust loss (Cauchy at
 ``loss_scale_px``). The CV decision: hold every rig where the held calibration predicts the held-out tracks better
-(no threshold: two predictions compared), else today's. Scores against the exact truth as ``influence_rule.py``.
+(no threshold: two predictions compared), else today's. Scores against the exact truth as ``influence_rule.py``; on
+the ``hold_or_refine`` scenes also with the narrow intrinsics and E^sl of both results set to rigs_exact.yaml's
+(``*_exact_narrow``: the wide poses' share of the narrow error).
 """
 
 from __future__ import annotations
@@ -35,6 +37,8 @@ import pycolmap  # noqa: E402
 import rigsfm.run.adjustment.adjust as adjust_module  # noqa: E402
 from benchmarks.hold_or_refine import epipolar_p95  # noqa: E402
 from rigsfm.core.io import write_json_atomic  # noqa: E402
+from rigsfm.core.names import name_of  # noqa: E402
+from rigsfm.core.rig import load_rigs  # noqa: E402
 from rigsfm.run.adjustment.model import frames_without_points  # noqa: E402
 from rigsfm.run.options import AdjustOptions, Calibration  # noqa: E402
 from rigsfm.run.pipeline import load_inputs  # noqa: E402
@@ -147,12 +151,27 @@ def cross_validate(base: pycolmap.Reconstruction, inputs, options: AdjustOptions
     return {"today": sums["today"], "held": sums["held"], "per_fold": per_fold}
 
 
+def with_exact_narrow(rec: pycolmap.Reconstruction, exact) -> pycolmap.Reconstruction:
+    """A copy of ``rec`` with every narrow camera's intrinsics and E^sl at ``exact``'s (rigs_exact.yaml): what is left
+    of its narrow error is its wide poses' (and scale's)."""
+    rec = pycolmap.Reconstruction(rec)
+    by_name = {r.name: r for r in exact}
+    for image in rec.images.values():
+        name = name_of(image)
+        if name.is_narrow:
+            camera = rec.cameras[image.camera_id]
+            camera.params = by_name[name.rig].camera(name.sensor).params
+            rec.rig(rec.frame(image.frame_id).rig_id).set_sensor_from_rig(camera.sensor_id,
+                                                                           by_name[name.rig].narrow_from_wide)
+    return rec
+
+
 def scores(rec: pycolmap.Reconstruction, truth: pycolmap.Reconstruction) -> dict:
     rotation = compare_to_ground_truth(rec, truth, "narrow")["relative_rotation_deg"]
     return {"rotation_max_deg": rotation["max"], "epipolar_p95_px": epipolar_p95(rec, truth)}
 
 
-def measure(name: str, mapped, truth, inputs, folds: int) -> dict:
+def measure(name: str, mapped, truth, inputs, folds: int, exact=None) -> dict:
     calls: list = []
     original = adjust_module._refine
 
@@ -176,6 +195,9 @@ def measure(name: str, mapped, truth, inputs, folds: int) -> dict:
                  "held_today": len(held), "calibration_today": str(today.calibration),
                  "today": scores(today.reconstruction, truth), "fixed": scores(fixed.reconstruction, truth),
                  "seconds_today": seconds_today}
+    if exact is not None:
+        row["today_exact_narrow"] = scores(with_exact_narrow(today.reconstruction, exact), truth)
+        row["fixed_exact_narrow"] = scores(with_exact_narrow(fixed.reconstruction, exact), truth)
     if len(held) == len(today.decisions) or today.pixel_sigma is None or not calls:
         row["cv"] = None
         row["decision"] = "held (today)"
@@ -218,7 +240,8 @@ def main() -> int:
                     continue
                 dataset, inputs, mapped = mapped_model(args.hor / name, options, seed)
                 t = time.perf_counter()
-                rows.append(measure(label, mapped, dataset.load_ground_truth(), inputs, args.folds))
+                exact = load_rigs(args.hor / name / "scene" / "rigs_exact.yaml")
+                rows.append(measure(label, mapped, dataset.load_ground_truth(), inputs, args.folds, exact))
                 print(f"{label}: {time.perf_counter() - t:.0f} s {rows[-1]['decision']}", flush=True)
                 write_json_atomic(args.out, {"rows": rows}, overwrite=True)
     if args.bench is not None:

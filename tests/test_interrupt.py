@@ -221,18 +221,18 @@ def _without_times(value):
     return value
 
 
-def _differences(a, b, where: str = "") -> list[str]:
-    """Where ``a`` and ``b`` (JSON values) differ: structure, strings, or numbers beyond a relative 1e-9."""
+def _differences(a, b, where: str = "", rel_tol: float = 1e-9) -> list[str]:
+    """Where ``a`` and ``b`` (JSON values) differ: structure, strings, or numbers beyond a relative ``rel_tol``."""
     if isinstance(a, dict) and isinstance(b, dict):
         if a.keys() != b.keys():
             return [f"{where}: keys {sorted(a.keys() ^ b.keys())}"]
-        return [d for k in a for d in _differences(a[k], b[k], f"{where}/{k}")]
+        return [d for k in a for d in _differences(a[k], b[k], f"{where}/{k}", rel_tol)]
     if isinstance(a, (list, tuple)) and isinstance(b, (list, tuple)):
         if len(a) != len(b):
             return [f"{where}: {len(a)} != {len(b)} entries"]
-        return [d for k, (x, y) in enumerate(zip(a, b)) for d in _differences(x, y, f"{where}[{k}]")]
+        return [d for k, (x, y) in enumerate(zip(a, b)) for d in _differences(x, y, f"{where}[{k}]", rel_tol)]
     if isinstance(a, float) and isinstance(b, float):
-        return [] if math.isclose(a, b, rel_tol=1e-9, abs_tol=1e-12) else [f"{where}: {a!r} != {b!r}"]
+        return [] if math.isclose(a, b, rel_tol=rel_tol, abs_tol=1e-12) else [f"{where}: {a!r} != {b!r}"]
     return [] if a == b else [f"{where}: {a!r} != {b!r}"]
 
 
@@ -321,8 +321,10 @@ def test_stages_in_a_child_give_the_same_result_as_in_process(scene, reference, 
     with stages.in_process():
         run(scene.images, scene.rigs, tmp_path / "in_process", scene.scale)
     # Every number of summary.json and narrow_poses.json, to rounding: the floor fit differs in its last digits
-    # (rms 0.007947384508614944 against ...615355), as a floating-point sum does with another memory layout.
-    assert _differences(_results(reference), _results(tmp_path / "in_process")) == []
+    # (rms 0.007947384508614944 against ...615355), as a floating-point sum does with another memory layout, and the
+    # narrow observations' adjustment after it stops at the solver's tolerance, which carries such a difference a few
+    # digits further (a covariance's cross term to 2e-9 relative): 1e-8 still fails on any difference of substance.
+    assert _differences(_results(reference), _results(tmp_path / "in_process"), rel_tol=1e-8) == []
 
 
 # --- signals at any moment, every verb ---------------------------------------------------------------------------

@@ -50,15 +50,13 @@ def _csr(jacobian: pyceres.CRSMatrix) -> sp.csr_matrix:
                          shape=(jacobian.num_rows, jacobian.num_cols))
 
 
-def _reduced_system(jp: JointProblem, max_error_px: float | None = None, inflation: float = 1.0,
-                    calibration_held: frozenset[str] | None = None):
-    """Ceres' Jacobian of ``jp`` (tangent space) with the points eliminated (Schur complement, 3x3 blocks): the
-    reduced normal matrix over the other blocks, every entry ``(key, block or None, size, tangent dims)``, the
-    variable ones, and the prior-only covariances; None (with a warning) when a point carries no information.
-    ``calibration_held``: the rigs whose calibration the estimate held (None: every rig's, ``FIXED``), for the
-    narrow pairs' weights (module correlated)."""
-    rec, problem = jp.reconstruction, jp.problem
-    entries: list[tuple[tuple, Any, int, Any]] = []  # (key, block or None, size, dims or None)
+def parameter_entries(jp: JointProblem) -> tuple[list[tuple[tuple, Any, int, Any]], dict[tuple, np.ndarray]]:
+    """The parameters of ``jp`` other than the points, in the reduced system's order (frames, narrow
+    ``sensor_from_rig``, cameras): every entry ``(key, block or None, size, tangent dims or None)``, ``key`` one of
+    ``("frame", frame_id)``, ``("sensor_from_rig", camera_id)``, ``("camera", camera_id)``, the block None where it is
+    constant; and the prior covariance of each constant calibration block, by key."""
+    rec = jp.reconstruction
+    entries: list[tuple[tuple, Any, int, Any]] = []
     for frame_id in jp.frame_ids:
         block = jp.frame_block(frame_id)
         if not jp.has_variable(block):
@@ -87,6 +85,18 @@ def _reduced_system(jp: JointProblem, max_error_px: float | None = None, inflati
         else:
             prior_only[key] = np.diag(sigmas**2)
             entries.append((key, None, len(sigmas), None))
+    return entries, prior_only
+
+
+def _reduced_system(jp: JointProblem, max_error_px: float | None = None, inflation: float = 1.0,
+                    calibration_held: frozenset[str] | None = None):
+    """Ceres' Jacobian of ``jp`` (tangent space) with the points eliminated (Schur complement, 3x3 blocks): the
+    reduced normal matrix over the other blocks, every entry ``(key, block or None, size, tangent dims)``, the
+    variable ones, and the prior-only covariances; None (with a warning) when a point carries no information.
+    ``calibration_held``: the rigs whose calibration the estimate held (None: every rig's, ``FIXED``), for the
+    narrow pairs' weights (module correlated)."""
+    rec, problem = jp.reconstruction, jp.problem
+    entries, prior_only = parameter_entries(jp)
     variable = [entry for entry in entries if entry[1] is not None]
     end_points = [p for p in jp.end_points if jp.has_variable(p)]
     point_ids = [point_id for point_id, p in rec.points3D.items() if jp.has_variable(p.xyz)]

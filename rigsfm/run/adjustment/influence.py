@@ -26,8 +26,8 @@ import pyceres
 import pycolmap
 import scipy.sparse as sp
 
-from rigsfm.run.adjustment.covariance import DAMPING, _csr, _inverse, _row_points
-from rigsfm.run.adjustment.model import estimate_pixel_sigma, sensor_from_rig_view
+from rigsfm.run.adjustment.covariance import DAMPING, _csr, _inverse, _row_points, parameter_entries
+from rigsfm.run.adjustment.model import estimate_pixel_sigma
 from rigsfm.run.adjustment.priors import calibration_priors
 from rigsfm.run.adjustment.problem import JointProblem
 from rigsfm.run.adjustment.result import AdjustResult
@@ -56,22 +56,9 @@ def track_influence(result: AdjustResult) -> dict[int, float]:
     pixel_sigma = result.pixel_sigma or estimate_pixel_sigma(rec, options.max_reprojection_error_px)
     jp = JointProblem(rec, result.rigs, result.priors or calibration_priors(result.rigs), result.scale_spec, options,
                       pixel_sigma, gauge=result.gauge, robust=False, with_priors=True, held_rigs=result.held_rigs)
-    variable: list[tuple[bool, np.ndarray, list[int]]] = []  # (calibration?, block, tangent dims)
-    for frame_id in jp.frame_ids:
-        block = jp.frame_block(frame_id)
-        if jp.has_variable(block):
-            dims = list(range(6))
-            if jp.subset_frame is not None and jp.subset_frame[0] == frame_id:
-                dims.remove(3 + jp.subset_frame[1])
-            variable.append((False, block, dims))
-    for rig_id, sensor_id, _, _ in jp.narrow_sensors():
-        view = sensor_from_rig_view(rec, rig_id, sensor_id)
-        if jp.has_variable(view.params):
-            variable.append((True, view.params, list(range(6))))
-    for camera_id in sorted(rec.cameras):
-        if camera_id in jp.camera_names and jp.has_variable(rec.cameras[camera_id].params):
-            variable.append((True, rec.cameras[camera_id].params,
-                             np.flatnonzero(jp.camera_sigmas(camera_id) > 0).tolist()))
+    # (calibration?, block, tangent dims) of the variable blocks, in the covariance's order
+    variable = [(key[0] != "frame", block, dims) for key, block, _, dims in parameter_entries(jp)[0]
+                if block is not None]
     calibration = np.concatenate([np.full(len(dims), is_calibration) for is_calibration, _, dims in variable]
                                  + [np.zeros(0, dtype=bool)])
     if not calibration.any():

@@ -51,10 +51,10 @@ import numpy as np  # noqa: E402
 import pyceres  # noqa: E402
 import pycolmap  # noqa: E402
 import scipy.linalg  # noqa: E402
-import scipy.stats  # noqa: E402
 import yaml  # noqa: E402
 from scipy.spatial.transform import Rotation  # noqa: E402
 
+from benchmarks.metrics import roc_auc  # noqa: E402
 from rigsfm.core.names import name_of  # noqa: E402
 from rigsfm.run.adjustment.adjust import adjust  # noqa: E402
 from rigsfm.run.adjustment.covariance import joint_covariance  # noqa: E402
@@ -205,22 +205,7 @@ def track_influence(result, with_deltas: bool = False, robust: bool = False):
     jp = JointProblem(rec, result.rigs, result.priors, result.scale_spec, options, result.pixel_sigma, gauge=gauge,
                       robust=False, with_priors=True, held_rigs=result.held_rigs)
     problem = jp.problem
-    variable = []  # (key, block, dims) as covariance._reduced_system orders them
-    for frame_id in jp.frame_ids:
-        block = jp.frame_block(frame_id)
-        if jp.has_variable(block):
-            dims = list(range(6))
-            if jp.subset_frame is not None and jp.subset_frame[0] == frame_id:
-                dims.remove(3 + jp.subset_frame[1])
-            variable.append((("frame", frame_id), block, dims))
-    for rig_id, sensor_id, camera_id, _ in jp.narrow_sensors():
-        view = sensor_from_rig_view(rec, rig_id, sensor_id)
-        if jp.has_variable(view.params):
-            variable.append((("sensor_from_rig", camera_id), view.params, list(range(6))))
-    for camera_id in sorted(rec.cameras):
-        if camera_id in jp.camera_names and jp.has_variable(rec.cameras[camera_id].params):
-            sigmas = jp.camera_sigmas(camera_id)
-            variable.append((("camera", camera_id), rec.cameras[camera_id].params, np.flatnonzero(sigmas > 0).tolist()))
+    variable = [(key, block, dims) for key, block, _, dims in cv.parameter_entries(jp)[0] if block is not None]
     end_points = [p for p in jp.end_points if jp.has_variable(p)]
     point_ids = [pid for pid, p in rec.points3D.items() if jp.has_variable(p.xyz)]
     blocks = [b for _, b, _ in variable] + end_points + [rec.points3D[pid].xyz for pid in point_ids]
@@ -316,14 +301,7 @@ def influence_report(influence: dict, classes: dict, top: tuple[int, ...] = (25,
     report = {"tracks": len(ids), "targets": int(target.sum()), "scores": {}}
     for score in ("cook_calibration", "cook_all", "leverage", "residual_rms_px"):
         v = np.array([influence[p][score] for p in ids])
-        ranks = scipy.stats.rankdata(v)
-        pos = int(target.sum())
-        auc = float((ranks[target].sum() - pos * (pos + 1) / 2) / (pos * (len(v) - pos))) if 0 < pos < len(v) else None
-        ranks2 = scipy.stats.rankdata(v[two_view])
-        t2 = target[two_view]
-        p2 = int(t2.sum())
-        auc2 = (float((ranks2[t2].sum() - p2 * (p2 + 1) / 2) / (p2 * (len(t2) - p2)))
-                if 0 < p2 < len(t2) else None)
+        auc, auc2 = roc_auc(v, target), roc_auc(v[two_view], target[two_view])
         order = np.argsort(-v)
         row = {"auc": auc, "auc_two_view": auc2, "top": {}}
         for n in top:

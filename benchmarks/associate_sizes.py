@@ -21,26 +21,20 @@ import json
 import sys
 from pathlib import Path
 
-import numpy as np
+REPO = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(REPO))  # run as a script: the benchmarks package beside rigsfm
 
-from benchmarks.associate import evaluate
-from rigsfm.associate import AssociateOptions
-from rigsfm.associate.evaluate import score_groups
-from rigsfm.associate.solve import _Frame, _pack
+import numpy as np  # noqa: E402
+
+from benchmarks.associate import evaluate  # noqa: E402
+from benchmarks.metrics import roc_auc  # noqa: E402
+from rigsfm.associate import AssociateOptions  # noqa: E402
+from rigsfm.associate.evaluate import score_groups  # noqa: E402
+from rigsfm.associate.solve import _Frame, _pack  # noqa: E402
 
 
 def _auc(right: np.ndarray, wrong: np.ndarray) -> float | None:
-    if not len(right) or not len(wrong):
-        return None
-    values = np.concatenate([right, wrong])
-    order = np.argsort(values, kind="mergesort")
-    ranks = np.empty(len(values))
-    ranks[order] = np.arange(1, len(values) + 1)
-    # ties: the average rank
-    _, inverse, counts = np.unique(values, return_inverse=True, return_counts=True)
-    sums = np.bincount(inverse, ranks)
-    ranks = sums[inverse] / counts[inverse]
-    return float((ranks[:len(right)].sum() - len(right) * (len(right) + 1) / 2) / (len(right) * len(wrong)))
+    return roc_auc(np.concatenate([right, wrong]), np.r_[np.ones(len(right), bool), np.zeros(len(wrong), bool)])
 
 
 def separation(found, truth, options: AssociateOptions) -> dict:

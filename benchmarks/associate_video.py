@@ -34,14 +34,17 @@ import json
 import sys
 from pathlib import Path
 
-import numpy as np
-import scipy.stats
+REPO = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(REPO))  # run as a script: the benchmarks package beside rigsfm
 
-import rigsfm.associate.solve as solve
-from rigsfm.associate import AssociateOptions, associate_frames, from_arrays, load_run
-from rigsfm.associate.evaluate import make_detections, score_groups, visible_heads
-from rigsfm.associate.pipeline import RunModel
-from rigsfm.core.names import ImageName
+import numpy as np  # noqa: E402
+
+import rigsfm.associate.solve as solve  # noqa: E402
+from benchmarks.metrics import roc_auc  # noqa: E402
+from rigsfm.associate import AssociateOptions, associate_frames, from_arrays, load_run  # noqa: E402
+from rigsfm.associate.evaluate import make_detections, score_groups, visible_heads  # noqa: E402
+from rigsfm.associate.pipeline import RunModel  # noqa: E402
+from rigsfm.core.names import ImageName  # noqa: E402
 
 
 class _Posed:
@@ -80,12 +83,9 @@ def video_model(model: RunModel, dataset: Path, frames: int) -> RunModel:
 
 
 def auc(score: np.ndarray, label: np.ndarray) -> float:
-    """Area under the ROC curve (Mann-Whitney): the chance that a right group outscores a wrong one."""
-    pos, neg = int(label.sum()), int((~label).sum())
-    if not pos or not neg:
-        return float("nan")
-    ranks = scipy.stats.rankdata(score)
-    return float((ranks[label].sum() - pos * (pos + 1) / 2) / (pos * neg))
+    """Area under the ROC curve (``roc_auc``): the chance that a right group outscores a wrong one; NaN without both."""
+    value = roc_auc(score, label)
+    return float("nan") if value is None else value
 
 
 def link_truth(frame_a, frame_b, person_a: np.ndarray, person_b: np.ndarray) -> np.ndarray:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pycolmap
+import scipy.stats
 
 from rigsfm.synth.truth import compare_to_ground_truth
 
@@ -55,3 +56,14 @@ def ratios_to_oracle(narrow: dict, oracle_narrow: dict) -> dict:
             limit = (oracle_narrow.get(key) or {}).get(stat)
             ratios[f"{key}.{stat}"] = None if value is None or not limit else float(value / limit)
     return ratios
+
+
+def roc_auc(score: np.ndarray, right: np.ndarray) -> float | None:
+    """Area under the ROC curve (Mann-Whitney, ties at their average rank): the chance that a ``right`` item
+    outscores a wrong one; None without both."""
+    right = np.asarray(right, dtype=bool)
+    pos, neg = int(right.sum()), int((~right).sum())
+    if not pos or not neg:
+        return None
+    ranks = scipy.stats.rankdata(np.asarray(score, dtype=np.float64))
+    return float((ranks[right].sum() - pos * (pos + 1) / 2) / (pos * neg))

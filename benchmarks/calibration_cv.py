@@ -35,13 +35,13 @@ import numpy as np  # noqa: E402
 import pycolmap  # noqa: E402
 
 import rigsfm.run.adjustment.adjust as adjust_module  # noqa: E402
-from benchmarks.hold_or_refine import epipolar_p95  # noqa: E402
+from benchmarks.hold_or_refine import cached_mapping_models, epipolar_p95  # noqa: E402
+from benchmarks.networks import default_mapping_models  # noqa: E402
 from rigsfm.core.io import write_json_atomic  # noqa: E402
 from rigsfm.core.names import name_of  # noqa: E402
 from rigsfm.core.rig import load_rigs  # noqa: E402
 from rigsfm.run.adjustment.model import frames_without_points  # noqa: E402
 from rigsfm.run.options import AdjustOptions, Calibration  # noqa: E402
-from rigsfm.run.pipeline import load_inputs  # noqa: E402
 from rigsfm.synth.truth import compare_to_ground_truth  # noqa: E402
 
 logger = logging.getLogger("benchmarks.calibration_cv")
@@ -227,31 +227,15 @@ def main() -> int:
     rows = json.loads(args.out.read_text())["rows"] if args.out.exists() else []
     done = {r["network"] for r in rows}
     if args.hor is not None:
-        from benchmarks.hold_or_refine import mapped_model
-        from benchmarks.hold_or_refine import scenes as hor_scenes
-
-        chosen = hor_scenes(3)
-        for name in args.hor_scenes or list(chosen):
-            options, seeds = chosen[name]
-            for seed in seeds:
-                label = name if seed is None else f"{name} clicks{seed}"
-                run_dir = args.hor / name / ("run" if seed is None else f"run_clicks{seed}")
-                if label in done or not (run_dir / "mapping").is_dir() or not (args.hor / name / "scene").is_dir():
-                    continue
-                dataset, inputs, mapped = mapped_model(args.hor / name, options, seed)
-                t = time.perf_counter()
-                exact = load_rigs(args.hor / name / "scene" / "rigs_exact.yaml")
-                rows.append(measure(label, mapped, dataset.load_ground_truth(), inputs, args.folds, exact))
-                print(f"{label}: {time.perf_counter() - t:.0f} s {rows[-1]['decision']}", flush=True)
-                write_json_atomic(args.out, {"rows": rows}, overwrite=True)
+        for label, scene, dataset, inputs, mapped in cached_mapping_models(args.hor, args.hor_scenes, done):
+            t = time.perf_counter()
+            exact = load_rigs(scene / "scene" / "rigs_exact.yaml")
+            rows.append(measure(label, mapped, dataset.load_ground_truth(), inputs, args.folds, exact))
+            print(f"{label}: {time.perf_counter() - t:.0f} s {rows[-1]['decision']}", flush=True)
+            write_json_atomic(args.out, {"rows": rows}, overwrite=True)
     if args.bench is not None:
-        for name in args.networks or sorted(p.name for p in args.bench.iterdir() if (p / "default" / "mapping").is_dir()):
-            if name in done:
-                continue
-            net = args.bench / name
-            inputs = load_inputs(net / "scene" / "images", net / "scene" / "rigs.yaml", net / "scene" / "scale.yaml")
-            truth = pycolmap.Reconstruction(str(net / "scene" / "ground_truth"))
-            mapped = pycolmap.Reconstruction(str(net / "default" / "mapping"))
+        names = args.networks or sorted(p.name for p in args.bench.iterdir())
+        for name, inputs, truth, mapped in default_mapping_models(args.bench, names, done):
             t = time.perf_counter()
             rows.append(measure(name, mapped, truth, inputs, args.folds))
             print(f"{name}: {time.perf_counter() - t:.0f} s {rows[-1]['decision']}", flush=True)

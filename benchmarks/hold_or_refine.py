@@ -113,6 +113,21 @@ def mapped_model(root: Path, options: SceneOptions, click_seed: int | None, clic
     return dataset, inputs, pycolmap.Reconstruction(str(model_dir))
 
 
+def cached_mapping_models(work: Path, names: list[str] | None = None, skip: set[str] = frozenset()):
+    """The scenes of :func:`scenes` (3 click sets) already rendered and mapped under ``work``, in order: per mapping
+    model ``(label, scene folder, dataset, inputs, mapping model)``, ``label`` the scene's name (and ``clicksN``);
+    ``names``: only these scenes; ``skip``: labels left out before anything is read."""
+    chosen = scenes(3)
+    for name in names or list(chosen):
+        options, seeds = chosen[name]
+        for seed in seeds:
+            label = name if seed is None else f"{name} clicks{seed}"
+            run_dir = work / name / ("run" if seed is None else f"run_clicks{seed}")
+            if label in skip or not (run_dir / "mapping").is_dir() or not (work / name / "scene").is_dir():
+                continue
+            yield (label, work / name, *mapped_model(work / name, options, seed))
+
+
 def epipolar_p95(estimate: pycolmap.Reconstruction, truth: pycolmap.Reconstruction) -> float | None:
     """The worst narrow pair's 95th percentile of the true epipolar distance (px)."""
     from rigsfm.core.geometry import correspondence_check

@@ -30,11 +30,11 @@ sys.path.insert(0, str(REPO))
 import pycolmap  # noqa: E402
 
 import rigsfm.run.adjustment.adjust as adjust_module  # noqa: E402
-from benchmarks.hold_or_refine import epipolar_p95  # noqa: E402
+from benchmarks.hold_or_refine import cached_mapping_models, epipolar_p95  # noqa: E402
+from benchmarks.networks import default_mapping_models  # noqa: E402
 from rigsfm.core.io import write_json_atomic  # noqa: E402
 from rigsfm.run.adjustment.covariance import joint_covariance  # noqa: E402
 from rigsfm.run.options import AdjustOptions, Calibration  # noqa: E402
-from rigsfm.run.pipeline import load_inputs  # noqa: E402
 from rigsfm.synth.truth import compare_to_ground_truth  # noqa: E402
 
 logger = logging.getLogger("benchmarks.influence_rule")
@@ -102,13 +102,7 @@ def main() -> int:
     if args.bench is not None:
         names = args.networks or FIRST + sorted(p.name for p in args.bench.iterdir()
                                                if (p / "default" / "mapping").is_dir() and p.name not in FIRST)
-        for name in names:
-            if name in done:
-                continue
-            net = args.bench / name
-            inputs = load_inputs(net / "scene" / "images", net / "scene" / "rigs.yaml", net / "scene" / "scale.yaml")
-            truth = pycolmap.Reconstruction(str(net / "scene" / "ground_truth"))
-            mapped = pycolmap.Reconstruction(str(net / "default" / "mapping"))
+        for name, inputs, truth, mapped in default_mapping_models(args.bench, names, done):
             results = json.loads((args.bench / "results" / f"{name}.json").read_text())
             fixed = results.get("fixed") or {}
             fixed_run = {"rotation_max_deg": (fixed.get("rotation_deg") or {}).get("max"),
@@ -120,22 +114,11 @@ def main() -> int:
             print(f"{name}: {time.perf_counter() - t:.0f} s", flush=True)
             write_json_atomic(args.out, {"rows": rows}, overwrite=True)
     if args.hor is not None:
-        from benchmarks.hold_or_refine import mapped_model, scenes
-
-        chosen = scenes(3)
-        for name in args.hor_scenes or list(chosen):
-            options, seeds = chosen[name]
-            for seed in seeds:
-                label = name if seed is None else f"{name} clicks{seed}"
-                run_dir = args.hor / name / ("run" if seed is None else f"run_clicks{seed}")
-                if label in done or not (run_dir / "mapping").is_dir() or not (args.hor / name / "scene").is_dir():
-                    continue
-                dataset, inputs, mapped = mapped_model(args.hor / name, options, seed)
-                truth = dataset.load_ground_truth()
-                t = time.perf_counter()
-                rows.append(measure(label, mapped, truth, inputs, None, args.both, False))
-                print(f"{label}: {time.perf_counter() - t:.0f} s", flush=True)
-                write_json_atomic(args.out, {"rows": rows}, overwrite=True)
+        for label, _, dataset, inputs, mapped in cached_mapping_models(args.hor, args.hor_scenes, done):
+            t = time.perf_counter()
+            rows.append(measure(label, mapped, dataset.load_ground_truth(), inputs, None, args.both, False))
+            print(f"{label}: {time.perf_counter() - t:.0f} s", flush=True)
+            write_json_atomic(args.out, {"rows": rows}, overwrite=True)
     return 0
 
 

@@ -116,6 +116,21 @@ def dataset(network: Network, work: Path):
     return data
 
 
+def default_mapping_models(work: Path, names: list[str], skip: set[str] = frozenset()):
+    """Per network of ``names`` whose default run left its mapping model under ``work`` (and not in ``skip``):
+    ``(name, inputs, ground truth, the default run's mapping model)``, read only."""
+    from rigsfm.run.pipeline import load_inputs
+
+    for name in names:
+        net = work / name
+        if name in skip or not (net / "default" / "mapping").is_dir():
+            continue
+        scene = net / "scene"
+        yield (name, load_inputs(scene / "images", scene / "rigs.yaml", scene / "scale.yaml"),
+               pycolmap.Reconstruction(str(scene / "ground_truth")),
+               pycolmap.Reconstruction(str(net / "default" / "mapping")))
+
+
 def score(rec: pycolmap.Reconstruction, truth: pycolmap.Reconstruction, summary: dict) -> dict:
     """Narrow accuracy and the delivered bands against the truth."""
     from benchmarks.hold_or_refine import epipolar_p95

@@ -16,6 +16,35 @@ import pycolmap
 WIDTH, HEIGHT = 812, 617
 
 
+def add_hybrid_rig(rec: pycolmap.Reconstruction, rig_id: int, name: str, wide: pycolmap.Camera,
+                   narrow: pycolmap.Camera, narrow_from_wide: pycolmap.Rigid3d, rig_from_world: pycolmap.Rigid3d,
+                   points2D: dict[str, list[np.ndarray]]) -> list[pycolmap.Image]:
+    """Add to ``rec`` the two cameras, a rig ``rig_id`` (wide its reference sensor, narrow at ``narrow_from_wide``),
+    its frame ``rig_id`` at ``rig_from_world`` and the images ``NAME/<sensor>/frame0000.png`` (ids ``2 rig_id - 1``
+    wide, ``2 rig_id`` narrow) holding ``points2D[sensor]``; returns the two images, wide first."""
+    rec.add_camera(wide)
+    rec.add_camera(narrow)
+    sensors = {sensor: pycolmap.sensor_t(pycolmap.SensorType.CAMERA, cam.camera_id)
+               for sensor, cam in (("wide", wide), ("narrow", narrow))}
+    rig = pycolmap.Rig(rig_id=rig_id)
+    rig.add_ref_sensor(sensors["wide"])
+    rig.add_sensor(sensors["narrow"], narrow_from_wide)
+    rec.add_rig(rig)
+    frame = pycolmap.Frame(frame_id=rig_id, rig_id=rig_id, rig_from_world=rig_from_world)
+    images = []
+    for sensor in ("wide", "narrow"):
+        image = pycolmap.Image(image_id=2 * rig_id - (sensor == "wide"), name=f"{name}/{sensor}/frame0000.png",
+                               camera_id=sensors[sensor].id, frame_id=rig_id)
+        if points2D.get(sensor):
+            image.points2D = pycolmap.Point2DList([pycolmap.Point2D(xy) for xy in points2D[sensor]])
+        images.append(image)
+        frame.add_data_id(pycolmap.data_t(sensors[sensor], image.image_id))
+    rec.add_frame(frame)
+    for image in images:
+        rec.add_image(image)
+    return images
+
+
 def look_at(centre: np.ndarray, target: np.ndarray, roll_deg: float = 0.0) -> pycolmap.Rigid3d:
     """cam_from_world for a camera at ``centre`` looking at ``target`` with z up in the world."""
     forward = (target - centre) / np.linalg.norm(target - centre)
@@ -80,28 +109,11 @@ def ring(*, seed: int = 0, num_rigs: int = 8, radius: float = 15.0, floor_points
         narrow = pycolmap.Camera.create_from_model_name(2 * rig_id, narrow_model, 1.0, WIDTH, HEIGHT)
         narrow.params = {"OPENCV": [1800.0, 1800.0, 406.0, 308.5, -0.01, 0.0, 0.0, 0.0],
                          "PINHOLE": [1800.0, 1800.0, 406.0, 308.5]}[narrow_model]
-        rec.add_camera(wide)
-        rec.add_camera(narrow)
-        sensors = {name: pycolmap.sensor_t(pycolmap.SensorType.CAMERA, cam.camera_id)
-                   for name, cam in (("wide", wide), ("narrow", narrow))}
-        rig = pycolmap.Rig(rig_id=rig_id)
-        rig.add_ref_sensor(sensors["wide"])
-        rig.add_sensor(sensors["narrow"], narrow_from_wide)
-        rec.add_rig(rig)
-        frame = pycolmap.Frame(frame_id=rig_id, rig_id=rig_id, rig_from_world=wide_from_truth * model_from_truth.inverse())
-        images = []
-        for sensor in ("wide", "narrow"):
-            image_id = 2 * rig_id - (sensor == "wide")
-            name = f"rig{rig_id:02d}/{sensor}/frame0000.png"
-            image = pycolmap.Image(image_id=image_id, name=name, camera_id=sensors[sensor].id, frame_id=rig_id)
-            if rig_id == 1:  # the first rig's two images hold one observation of every point (tracks of length 2)
-                image.points2D = pycolmap.Point2DList([pycolmap.Point2D(np.zeros(2)) for _ in range(len(points))])
-            images.append(image)
-            frame.add_data_id(pycolmap.data_t(sensors[sensor], image_id))
-        rec.add_frame(frame)
-        for image in images:
-            rec.add_image(image)
-            image_ids.append(image.image_id)
+        # the first rig's two images hold one observation of every point (tracks of length 2)
+        observed = [np.zeros(2)] * len(points) if rig_id == 1 else []
+        images = add_hybrid_rig(rec, rig_id, f"rig{rig_id:02d}", wide, narrow, narrow_from_wide,
+                                wide_from_truth * model_from_truth.inverse(), {"wide": observed, "narrow": observed})
+        image_ids.extend(image.image_id for image in images)
         truth_heights[images[0].name] = float(centre[2])
         narrow_centre = (narrow_from_wide * wide_from_truth).inverse().translation
         truth_heights[images[1].name] = float(narrow_centre[2])

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 import pytest
-from synthetic_world import look_at
+from synthetic_world import add_hybrid_rig, look_at
 
 import rigsfm.run.adjustment.adjust as adjust_module
 from rigsfm.core.rig import RigCalibration
@@ -90,29 +90,11 @@ def _network(root: Path, wrong: int, shift_px: float = 2.0, seed: int = 0):
     for index, (rig, pose) in enumerate(zip(rigs, poses), start=1):
         wide = pycolmap.Camera(camera_id=2 * index - 1, model="OPENCV", width=WIDTH, height=HEIGHT, params=WIDE)
         narrow = pycolmap.Camera(camera_id=2 * index, model="OPENCV", width=WIDTH, height=HEIGHT, params=NARROW)
-        rec.add_camera(wide)
-        rec.add_camera(narrow)
-        sensors = {name: pycolmap.sensor_t(pycolmap.SensorType.CAMERA, cam.camera_id)
-                   for name, cam in (("wide", wide), ("narrow", narrow))}
-        rig_model = pycolmap.Rig(rig_id=index)
-        rig_model.add_ref_sensor(sensors["wide"])
-        rig_model.add_sensor(sensors["narrow"], rig.narrow_from_wide)
-        rec.add_rig(rig_model)
         moved = pycolmap.Rigid3d(pycolmap.Rotation3d(rng.normal(0.0, 1e-3, 3)) * pose.rotation,
                                  np.asarray(pose.translation) + rng.normal(0.0, 0.01, 3))
-        frame = pycolmap.Frame(frame_id=index, rig_id=index, rig_from_world=moved)
-        images = []
-        for sensor in ("wide", "narrow"):
-            image = pycolmap.Image(image_id=2 * index - (sensor == "wide"), name=f"{rig.name}/{sensor}/frame0000.png",
-                                   camera_id=sensors[sensor].id, frame_id=index)
-            if sensor == "wide":
-                image.points2D = pycolmap.Point2DList([pycolmap.Point2D(xy) for _, xy in observations[index]])
-                image_of[index] = image.image_id
-            images.append(image)
-            frame.add_data_id(pycolmap.data_t(sensors[sensor], image.image_id))
-        rec.add_frame(frame)
-        for image in images:
-            rec.add_image(image)
+        images = add_hybrid_rig(rec, index, rig.name, wide, narrow, rig.narrow_from_wide, moved,
+                                {"wide": [xy for _, xy in observations[index]]})
+        image_of[index] = images[0].image_id
     tracks: dict[int, pycolmap.Track] = {}
     for rig, rows in observations.items():
         for point2d, (k, _) in enumerate(rows):

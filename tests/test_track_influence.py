@@ -18,7 +18,7 @@ from rigsfm.run.adjustment.adjust import adjust
 from rigsfm.run.adjustment.influence import track_influence
 from rigsfm.run.adjustment.priors import BoardDefaults, calibration_priors
 from rigsfm.run.inputs.scale_file import CameraDistance, ScaleSpec
-from rigsfm.run.options import Calibration
+from rigsfm.run.options import AdjustOptions, Calibration
 
 WIDTH, HEIGHT = 1024, 768
 WIDE = [500.0, 500.0, 512.0, 384.0, -0.05, 0.01, 0.0, 0.0]
@@ -28,14 +28,14 @@ OUTER_PX = 330.0  # the wrong matches lie beyond it
 NOISE_PX = 0.1  # the static observations' noise: the weighting noise is small beside a wrong match's misfit
 
 
-def _network(root: Path, wrong: int, shift_px: float = 2.0, seed: int = 0):
-    """Rigs on a 60 deg arc, 15 m from a 16 x 16 x 4 m box of points, every point seen by the three wide images with
+def _network(root: Path, wrong: int, shift_px: float = 2.0, seed: int = 0, num_rigs: int = 3):
+    """``num_rigs`` (2 or 3) rigs on a 60 deg arc, 15 m from a 16 x 16 x 4 m box of points, every point seen by the three wide images with
     ``NOISE_PX`` noise, except that rig02 sees only its inner image; then ``wrong`` two-view tracks rig01-rig02 in rig02's
     outer image, rig02's keypoint moved ``shift_px`` across its epipolar line, outwards. Returns ``(rigs, model,
     scale spec, priors, the wrong tracks' point ids)``; the model starts at the truth's poses moved slightly."""
     rng = np.random.default_rng(seed)
     rigs, poses = [], []
-    for index, angle in enumerate(np.radians([-30.0, 0.0, 30.0]), start=1):
+    for index, angle in enumerate(np.radians([-30.0, 0.0, 30.0][:num_rigs]), start=1):
         centre = np.array([15.0 * np.cos(angle), 15.0 * np.sin(angle), 3.5])
         rigs.append(RigCalibration(f"rig{index:02d}", pycolmap.Camera(model="OPENCV", width=WIDTH, height=HEIGHT,
                                                                         params=WIDE),
@@ -53,7 +53,7 @@ def _network(root: Path, wrong: int, shift_px: float = 2.0, seed: int = 0):
         xy = np.asarray(camera.img_from_cam(local[None]))[0]
         return xy if 5 <= xy[0] <= WIDTH - 5 and 5 <= xy[1] <= HEIGHT - 5 else None
 
-    observations: dict[int, list] = {1: [], 2: [], 3: []}  # rig -> [(point index, xy)]
+    observations: dict[int, list] = {rig: [] for rig in range(1, num_rigs + 1)}  # rig -> [(point index, xy)]
     points: list[np.ndarray] = []
     wrong_ids: list[int] = []
     while len(points) < 600:  # static points: every rig's view, rig02's only in its inner image
@@ -100,9 +100,9 @@ def _network(root: Path, wrong: int, shift_px: float = 2.0, seed: int = 0):
         for point2d, (k, _) in enumerate(rows):
             tracks.setdefault(k, pycolmap.Track()).add_element(image_of[rig], point2d)
     point_id = {k: rec.add_point3D(points[k] + rng.normal(0.0, 0.01, 3), tracks[k], np.zeros(3, np.uint8))
-                for k in sorted(tracks)}
-    a, b = (f"{rigs[k].name}/wide/frame0000.png" for k in (0, 2))
-    metres = float(np.linalg.norm(poses[0].inverse().translation - poses[2].inverse().translation))
+                for k in sorted(tracks) if tracks[k].length() > 1}  # two rigs: rig02 sees only its inner image
+    a, b = (f"{rigs[k].name}/wide/frame0000.png" for k in (0, -1))
+    metres = float(np.linalg.norm(poses[0].inverse().translation - poses[-1].inverse().translation))
     spec = ScaleSpec(root / "scale.yaml", (CameraDistance(a, b, metres),), ())
     # A loose distortion prior, as from a board that did not reach the image corners: the images must inform it.
     priors = calibration_priors(rigs, defaults=BoardDefaults(radial=(0.02, 0.01, 0.001)))
@@ -180,3 +180,19 @@ def test_a_network_the_test_holds_is_not_scored(tmp_path):
     assert result.calibration == Calibration.FIXED and all(d.held for d in result.decisions)
     assert result.influential is None
     assert all(result.reconstruction.exists_point3D(pid) for pid in wrong)
+
+
+def test_a_two_rig_network_is_held_though_the_images_inform_it(tmp_path):
+    """Two rigs whose images inform their calibration (over nine-tenths of a direction's prior variance removed, and
+    a refinement the consistency test passes): the network is too small to be refined, so the adjustment is
+    --fixed-calibration's, pose for pose."""
+    rigs, mapped, spec, priors, _ = _network(tmp_path, wrong=0, num_rigs=2)
+    result = adjust(mapped, rigs, spec, priors=priors)
+    assert [d.held for d in result.decisions] == [True, True]
+    assert all("a network of 2 rigs" in d.reason for d in result.decisions)
+    assert max(d.largest_gain for d in result.decisions) > 0.9  # informed: the size alone holds them
+    fixed = adjust(mapped, rigs, spec, AdjustOptions(calibration=Calibration.FIXED), priors=priors)
+    assert result.calibration == Calibration.FIXED
+    for frame_id in fixed.reconstruction.reg_frame_ids():
+        np.testing.assert_allclose(result.reconstruction.frame(frame_id).rig_from_world.matrix(),
+                                   fixed.reconstruction.frame(frame_id).rig_from_world.matrix(), atol=1e-9)

@@ -23,7 +23,9 @@ again, until no track is above it or the test holds a rig: the rule may hold wha
 it held (not with narrow observations, the mapping model's or the narrow second pass's: there a narrow track's pull
 on E^sl is its purpose).
 On a weak network (two rigs registered from a few dozen clicks) the images cannot inform the calibration, and
-refining it anyway moved the narrow cameras further from the truth than holding it.
+refining it anyway moved the narrow cameras further from the truth than holding it; a network of two rigs is held
+however well the images inform it (``decisions.MIN_RIGS_TO_REFINE``: the tests cannot tell its losing refinements
+from its winning ones).
 
 A parameter no image observes (intrinsics and E^sl of a narrow camera without points) is not in COLMAP's problem:
 it stays at rigs.yaml's value, and its prior enters the covariance as an independent block. Residuals are whitened

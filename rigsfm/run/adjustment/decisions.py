@@ -17,6 +17,11 @@ from rigsfm.run.adjustment.result import AdjustResult, CalibrationDecision, Join
 # direction of gain g (0.4 at this floor), and a rig none of whose directions reaches it is barely observed.
 MIN_GAIN = 0.1
 HOLD_QUANTILE = 0.95  # of the consistency test
+# A network of fewer rigs is held: with two, every calibration change is seen through one pair's matches, whose own
+# errors (wrong clicks, a narrow overlap) it absorbs as readily as it corrects rigs.yaml, and the tests below do not
+# tell the refinements that lose to rigs.yaml from those that win (benchmarks/README.md, "Refine the calibration or
+# hold it").
+MIN_RIGS_TO_REFINE = 3
 
 
 @dataclass(frozen=True)
@@ -84,7 +89,7 @@ def hold_or_refine(result: AdjustResult, covariance: JointCovariance | None) -> 
 
     In the prior's whitened coordinates (``u = L^-1 (c - c_yaml)``, ``Sigma = L L^T``) the images remove a share
     ``g_k`` of the prior variance along each eigen-direction ``v_k`` of ``I - L^-1 P L^-T`` (``P`` the posterior
-    covariance). Three tests:
+    covariance). Four tests:
 
     - the network's observability: refine only if some direction of the whole calibration (over all rigs: the
       images inform combinations, such as two rigs' focal lengths against each other) has ``g_k >= 1/2``, i.e. the
@@ -92,6 +97,8 @@ def hold_or_refine(result: AdjustResult, covariance: JointCovariance | None) -> 
       is mostly whatever the images' unmodelled errors (wrong clicks, systematic feature offsets) pulled it to;
     - each rig's observability: ``g_k >= MIN_GAIN`` in some direction of its own calibration (its marginal); a rig
       below it is held (the images neither move nor contradict it);
+    - the network's size: at least ``MIN_RIGS_TO_REFINE`` registered rigs; a pair's calibration is held (the paper's
+      method: E^sl and the intrinsics from the board);
     - the network's consistency: were priors and images both right, the change would be distributed as ``N(0, I -
       Q)`` (the spread of the posterior mean), so ``sum_k (v_k . u)^2 / g_k`` over the network's directions with
       ``g_k >= MIN_GAIN`` is chi-square with that many degrees of freedom; above the ``HOLD_QUANTILE`` quantile the
@@ -130,6 +137,9 @@ def hold_or_refine(result: AdjustResult, covariance: JointCovariance | None) -> 
             held, reason = True, (f"the images inform no direction of the network's calibration more than rigs.yaml's "
                                   f"sigmas do (they remove at most {int(100 * max(network_gain, 0.0))} % of one's prior "
                                   "variance)")
+        elif len(rigs) < MIN_RIGS_TO_REFINE:
+            held, reason = True, (f"a network of {len(rigs)} rigs: one pair's matches cannot tell a change of the "
+                                  "calibration from their own errors, so rigs.yaml's is held")
         elif not dof:
             held, reason = True, (f"the images barely observe its calibration (at most {int(100 * max(largest, 0.0))} % "
                                   "of a direction's prior variance removed)")

@@ -102,3 +102,21 @@ def test_an_earlier_person_is_looked_for_in_the_cameras_it_was_seen_by():
     np.testing.assert_array_equal(seen_before(earlier, members, now), [[True, True, False], [True, False, False]])
     rows = np.array([[3, -1, 5, 7]])
     assert sorted(map(tuple, row_pairs(rows).tolist())) == [(-1, -1, 5, 7), (3, -1, -1, 7), (3, -1, 5, -1)]
+
+
+def test_the_second_pass_of_a_tracked_frame_checks_the_first_pass_groups_on_the_free_detections():
+    before, after = _walked(seed=7)
+    first = associate_views(_crowd(before, seed=8)[0], OPTIONS, carried=True)
+    views, _ = _crowd(after, seed=9)
+    earlier = (first.points, first.covariances, seen_before(first.views, first.members, [v.name for v in views]))
+    frame = _Frame(views, OPTIONS, earlier=earlier)
+    grown = frame.hypotheses()[0]
+    free = np.ones(int(frame.offsets[-1]), dtype=bool)
+    free[grown[0][grown[0] >= 0]] = False  # one person's detections taken
+    free[grown[-1][grown[-1] >= 0]] = False
+    again = frame.hypotheses(free)[0]
+    assert len(again) > 20
+    assert np.all((again < 0) | free[np.maximum(again, 0)])
+    # each within a first-pass group (its taken members, and any its check drops, left out): no pair grown again
+    within = (again[:, None, :] < 0) | (again[:, None, :] == grown[None, :, :])
+    assert np.all(np.any(np.all(within, axis=2), axis=1))

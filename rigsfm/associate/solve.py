@@ -655,8 +655,15 @@ class _Frame:
 
     def _grown_hypotheses(self, free: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The groups of ``hypotheses`` before their scores."""
-        if free is None and self.earlier is not None and self.options.walk_m is not None:
-            return self._tracked_hypotheses()
+        if self.earlier is not None and self.options.walk_m is not None:
+            if free is None:
+                return self._tracked_hypotheses()
+            if self._among is not None and None in self._grown:
+                # the second pass: the first pass's groups on the free detections, checked again (grown once: the
+                # tracked groups and the pairs among the rest already hold what the free pairs would grow into)
+                members = self._grown[None][0]
+                members = np.where((members >= 0) & ~free[np.maximum(members, 0)], -1, members)
+                return self._checked(_unique_rows(members)[0])
         return self._grown_from_pairs(free)
 
     def _tracked_hypotheses(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -739,7 +746,12 @@ class _Frame:
             # seeds of one person grow into the same group: grow each group once
             members, first = _unique_rows(members)
             points, covariance = points[first], covariance[first]
-        members = _unique_rows(np.concatenate(groups))[0]
+        return self._checked(_unique_rows(np.concatenate(groups))[0])
+
+    def _checked(self, members: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The distinct groups of two or more members (``members``: distinct rows) verified, between the heights,
+        every member inside its gate: members, points, covariances."""
+        lo, hi = self.options.heights
         members = members[np.sum(members >= 0, axis=1) >= 2]
         if not len(members):
             return members, np.zeros((0, 3)), np.zeros((0, 3, 3))

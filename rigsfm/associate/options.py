@@ -34,6 +34,10 @@ class AssociateOptions:
     # score, its misses left out, exceeds this (the chance pairs of a crowd's bands, most of the seeds, grow into
     # nothing the packing keeps); None: every seed grows. A first frame grows every seed.
     seed_min_score: float | None = -4.0
+    # A carried frame first looks for each of the frame before's persons around its point (a person walks this far
+    # per floor axis between two frames, 1 sigma: m), and searches the pairs only among the detections its confident
+    # persons leave; None: every pair searched, as in a first frame.
+    walk_m: float | None = 0.15
     # Associate again among the detections the packing left free, each hypothesis re-scored against the free
     # detections' density (persons seen in two views only).
     second_pass: bool = True
@@ -69,6 +73,8 @@ class AssociateOptions:
             raise ValueError(f"the head radius must be in (0, 1) m, got {self.head_radius_m}")
         if self.seed_min_score is not None and not math.isfinite(self.seed_min_score):
             raise ValueError(f"the seeds' minimum score must be a finite number or None, got {self.seed_min_score}")
+        if self.walk_m is not None and not (self.walk_m > 0 and math.isfinite(self.walk_m)):
+            raise ValueError(f"the walk between frames must be a finite number > 0 m or None, got {self.walk_m}")
         if not (self.gate_sigmas > 0 and self.member_gate > 0 and self.cell_m > 0 and self.time_limit_s > 0
                 and self.persons_per_m2 > 0):
             raise ValueError("gates, cell size and time limit must be > 0")

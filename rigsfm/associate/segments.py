@@ -79,13 +79,15 @@ def nearest_on_rays(centre_i: np.ndarray, rays_i: np.ndarray, centre_j: np.ndarr
 
 
 def pair_seeds(frame: _Frame, i: int, j: int, di: np.ndarray, p_lo: np.ndarray, p_hi: np.ndarray, gate: float,
-               ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+               among: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
     """View j's detections inside the band of the rays of view i's detections ``di`` between the heights (their
     points ``p_lo``, ``p_hi``), the band ``gate`` sigmas wide where each candidate would put the head: the rows of
     ``di`` and the stacked detections of j of every candidate near a segment, and which are inside (None: none near).
-    ``frame``: the frame's stacked detections."""
+    ``frame``: the frame's stacked detections; ``among``: only these of j's (stacked indices, a subset of its
+    tree's), None: all."""
     view_j = frame.views[j]
     tree = frame.trees[j]
+    candidates = frame.tree_index[j] if among is None else among
     start, end, ok = in_front(view_j, p_lo, p_hi)
     if tree is None or not ok.any():
         return None
@@ -114,11 +116,11 @@ def pair_seeds(frame: _Frame, i: int, j: int, di: np.ndarray, p_lo: np.ndarray, 
     widest = gate * np.sqrt(frame.noise[j] ** 2 + (frame.noise[i] * (frame.focals[j] * farthest_i)
                                                    / (frame.focals[i] * nearest_j)) ** 2)
     widest = widest * (1 + 1e-9) + 1e-9  # the band below is computed otherwise: room for its rounding
-    ra, cb = near_segments(frame.uv[frame.tree_index[j]], ((a + b) / 2)[rows], (length / 2 + reach)[rows],
+    ra, cb = near_segments(frame.uv[candidates], ((a + b) / 2)[rows], (length / 2 + reach)[rows],
                             a[rows], seg[rows], widest[rows])
     if not len(ra):
         return None
-    ra, cb = rows[ra], frame.tree_index[j][cb]
+    ra, cb = rows[ra], candidates[cb]
     p = frame.uv[cb]
     s = seg[ra]
     l2 = np.maximum(np.sum(s ** 2, axis=1), 1e-12)

@@ -44,6 +44,7 @@ from rigsfm.associate.occupancy import CountGrid
 from rigsfm.associate.options import AssociateOptions
 from rigsfm.associate.rates import truncated_binomial_p
 from rigsfm.associate.segments import near_segments, pair_seeds
+from rigsfm.associate.tracked import predicted_groups, row_pairs, seen_before
 from rigsfm.core.ground import undistort_pixels
 
 logger = logging.getLogger(__name__)
@@ -267,8 +268,12 @@ class FrameResult:
 class _Frame:
     """The stacked detections of one frame's views."""
 
-    def __init__(self, views: list[View], options: AssociateOptions, appearance: AppearanceModel | None = None):
+    def __init__(self, views: list[View], options: AssociateOptions, appearance: AppearanceModel | None = None,
+                 earlier: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None):
         self.views = views
+        # an earlier frame's persons (points, covariances, views seen in) of the same cameras: this frame's are near
+        self.earlier = earlier if earlier is not None and len(earlier[0]) else None
+        self._among: np.ndarray | None = None  # the detections the pair seeds are searched among (None: all)
         self.options = options
         self.appearance = appearance if views and all(v.descriptor is not None for v in views) else None
         self.descriptors = np.concatenate([v.descriptor for v in views]) if self.appearance is not None else None  # type: ignore[misc]
@@ -410,19 +415,21 @@ class _Frame:
 
     # --- hypotheses ------------------------------------------------------------------------------------------
 
-    def pair_candidates(self) -> np.ndarray:
-        """Seeds (S x V members): every pair (i, j) whose detection in j lies in the band of i's ray segment."""
+    def pair_candidates(self, among: np.ndarray | None = None) -> np.ndarray:
+        """Seeds (S x V members): every pair (i, j) whose detection in j lies in the band of i's ray segment;
+        ``among``: only pairs of these detections (a mask over the stacked ones), None: all."""
         lo, hi = self.options.heights
         gate = self.options.gate_sigmas
         seeds = []
         for i, _vi in enumerate(self.views):
             di = np.arange(self.offsets[i], self.offsets[i + 1])
-            di = di[self.valid[di]]
+            di = di[self.valid[di] if among is None else self.valid[di] & among[di]]
             if not len(di):
                 continue
             p_lo, p_hi = self.ray_points(di, lo), self.ray_points(di, hi)
             for j in range(i + 1, len(self.views)):
-                found = pair_seeds(self, i, j, di, p_lo, p_hi, gate)
+                dj = None if among is None else self.tree_index[j][among[self.tree_index[j]]]
+                found = pair_seeds(self, i, j, di, p_lo, p_hi, gate, dj)
                 if found is None:
                     continue
                 ra, cb, keep = found
@@ -648,28 +655,85 @@ class _Frame:
 
     def _grown_hypotheses(self, free: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The groups of ``hypotheses`` before their scores."""
+        if self.earlier is not None and self.options.walk_m is not None:
+            if free is None:
+                return self._tracked_hypotheses()
+            if self._among is not None and None in self._grown:
+                # the second pass: the first pass's groups on the free detections, checked again (grown once: the
+                # tracked groups and the pairs among the rest already hold what the free pairs would grow into)
+                members = self._grown[None][0]
+                members = np.where((members >= 0) & ~free[np.maximum(members, 0)], -1, members)
+                return self._checked(_unique_rows(members)[0])
+        return self._grown_from_pairs(free)
 
-        def only_free(m: np.ndarray) -> np.ndarray:
-            return m if free is None else np.where((m >= 0) & ~free[np.maximum(m, 0)], -1, m)
+    def _tracked_hypotheses(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The groups of a frame with an earlier frame's persons: grown from the detections nearest where each
+        earlier person was (``tracked.predicted_groups``, the row verified and every two of its members as a pair
+        seed), scored and packed; the detections of those packed are theirs, and the pairs are searched among the
+        others only (the pairs grow with the square of the detections they are searched among). Every group goes on
+        to the frame's own packing: the earlier frame says where to look, this frame's evidence what is kept."""
+        earlier, covariance, seen = self.earlier  # type: ignore[misc]  # the caller's test
+        rows = predicted_groups(self, earlier, covariance, seen, self.options.walk_m)  # type: ignore[arg-type]
+        total = int(self.offsets[-1])
+        if not len(rows):
+            return self._grown_from_pairs(None)
+        members, points, covariance = self.verify(rows)
+        keep = np.sum(members >= 0, axis=1) >= 2
+        pairs = self._gated(row_pairs(rows), None)
+        members = np.concatenate([members[keep], pairs[0]])
+        points, covariance = np.concatenate([points[keep], pairs[1]]), np.concatenate([covariance[keep], pairs[2]])
+        members, first = _unique_rows(members)
+        tracked = self._grown_from(members, points[first], covariance[first], None)
+        scores = self.score(*tracked, floor=self.options.min_score)
+        above = np.flatnonzero(scores > self.options.min_score)
+        chosen = above[_pack(tracked[0][above], scores[above] - self.options.min_score, total,
+                             self.options.time_limit_s)]
+        held = tracked[0][chosen]
+        self._among = np.ones(total, dtype=bool)
+        self._among[held[held >= 0]] = False
+        rest = self._grown_from_pairs(self._among)
+        logger.info("%d of %d earlier persons found again, holding %d of %d detections; %d pair seeds among the rest",
+                    len(chosen), len(earlier), int(total - self._among.sum()), total,
+                    len(self._seeds) if self._seeds is not None else 0)
+        members = np.concatenate([tracked[0], rest[0]])
+        members, first = _unique_rows(members)
+        return members, np.concatenate([tracked[1], rest[1]])[first], np.concatenate([tracked[2], rest[2]])[first]
 
+    def _grown_from_pairs(self, free: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The groups grown from the pair seeds among ``free`` (None: all detections)."""
         if self._seeds is None:
-            self._seeds = self.pair_candidates()
+            self._seeds = self.pair_candidates(self._among)
         seeds = self._seeds
         if free is not None:
             seeds = seeds[np.all((seeds < 0) | free[np.maximum(seeds, 0)], axis=1)]
         if not len(seeds):
             empty = np.zeros((0, len(self.views)), dtype=np.int64)
             return empty, np.zeros((0, 3)), np.zeros((0, 3, 3))
+        return self._grown_from(*self._gated(seeds, self.options.seed_min_score), free)
+
+    def _gated(self, seeds: np.ndarray, floor: float | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The seeds whose point lies between the heights with every member inside its gate (and, with a ``floor``,
+        whose own score, its misses left out, exceeds it): members, points, covariances."""
         points, covariance = self.triangulate(seeds)
         lo, hi = self.options.heights
         ok = (points[:, 2] >= lo) & (points[:, 2] <= hi) & np.all(
             np.nan_to_num(self.residuals(seeds, points), nan=0.0) <= self.options.member_gate ** 2, axis=1)
         members = seeds[ok]
         points, covariance = points[ok], covariance[ok]
-        floor = self.options.seed_min_score
         if floor is not None:
             strong = self.score(members, points, covariance, misses=False) > floor
             members, points, covariance = members[strong], points[strong], covariance[strong]
+        return members, points, covariance
+
+    def _grown_from(self, members: np.ndarray, points: np.ndarray, covariance: np.ndarray,
+                    free: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Groups grown from ``members`` (their points and covariances) into the other views' ``free`` detections
+        (None: all), twice, each verified; every distinct group met on the way, verified again."""
+
+        def only_free(m: np.ndarray) -> np.ndarray:
+            return m if free is None else np.where((m >= 0) & ~free[np.maximum(m, 0)], -1, m)
+
+        lo, hi = self.options.heights
         groups = [members]
         for _ in range(2):
             members = only_free(self.grow(members, points, covariance, single=True))
@@ -682,7 +746,12 @@ class _Frame:
             # seeds of one person grow into the same group: grow each group once
             members, first = _unique_rows(members)
             points, covariance = points[first], covariance[first]
-        members = _unique_rows(np.concatenate(groups))[0]
+        return self._checked(_unique_rows(np.concatenate(groups))[0])
+
+    def _checked(self, members: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The distinct groups of two or more members (``members``: distinct rows) verified, between the heights,
+        every member inside its gate: members, points, covariances."""
+        lo, hi = self.options.heights
         members = members[np.sum(members >= 0, axis=1) >= 2]
         if not len(members):
             return members, np.zeros((0, 3)), np.zeros((0, 3, 3))
@@ -765,12 +834,14 @@ def _pack(members: np.ndarray, scores: np.ndarray, total: int, time_limit: float
 
 
 def _solve(views: list[View], options: AssociateOptions, appearance: AppearanceModel | None = None,
-           frame: _Frame | None = None) -> tuple[_Frame, np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:
+           frame: _Frame | None = None, earlier: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
+           ) -> tuple[_Frame, np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:
     """One association of a frame: hypotheses, their scores (with the appearance term where given) and the global
     packing. ``frame``: an earlier association's frame of the same ``views`` (their shifts and bands unchanged),
-    whose grown groups are re-scored instead of grown again."""
+    whose grown groups are re-scored instead of grown again. ``earlier``: an earlier frame's persons (points,
+    covariances), looked for first (``_Frame._tracked_hypotheses``)."""
     reused = frame.rescored(views, options, appearance) if frame is not None else None
-    frame = _Frame(views, options, appearance) if reused is None else reused
+    frame = _Frame(views, options, appearance, earlier) if reused is None else reused
     total = int(frame.offsets[-1])
     members, points, covariance, scores = frame.hypotheses()
     positive = scores > options.min_score
@@ -1112,7 +1183,10 @@ def associate_views(views: list[View], options: AssociateOptions, carried: bool 
     if options.head_radius_m is None and earlier is not None and earlier.head_radius_m is not None:
         options = dataclasses.replace(options, head_radius_m=earlier.head_radius_m)
     model = _carried_appearance(views, options, earlier) if carried else None
-    state = _solve(views, options, model)
+    # a carried frame's persons are near the frame before's (the same cameras, a fraction of a second later)
+    before = (earlier.points, earlier.covariances, seen_before(earlier.views, earlier.members, names)) \
+        if carried and earlier is not None and options.walk_m is not None and len(earlier) else None
+    state = _solve(views, options, model, earlier=before)
     count = len(_confident(state[1], state[4], options))
     pending: ViewCorrection | None = None
     if carried:
@@ -1159,7 +1233,7 @@ def associate_views(views: list[View], options: AssociateOptions, carried: bool 
         # The crowd's own appearance model, from this association's confident groups: associated once more with it.
         model = appearance_model(state, views, options)
         if model is not None:
-            state = _solve(views, options, model, frame=state[0])
+            state = _solve(views, options, model, frame=state[0], earlier=before)
     frame, members, points, covariance, scores, positive = state
     total = int(frame.offsets[-1])
     covariance = covariance + _centre_term(views, members)

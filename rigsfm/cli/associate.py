@@ -35,6 +35,11 @@ def associate_command(
     self_calibration_rounds: Annotated[int, typer.Option(
         "--self-calibration-rounds", min=0, metavar="N",
         help="correct each view's pose error from the crowd, re-associating up to this many times (0: the run's poses)")] = 4,
+    walk: Annotated[float, typer.Option(
+        "--walk", min=0.0, max=10.0, metavar="M",
+        help="how far a person walks per floor axis between two frames (1 sigma, m): a later frame looks for each "
+             "person of the frame before within it first, and searches every pair only among the detections they "
+             "leave (0: every pair in every frame)")] = 0.15,
     no_appearance: Annotated[bool, flag("--no-appearance", help="geometry only: leave out the heads' and torsos' greys "
                                         "sampled from the run's narrow images")] = False,
     overwrite: Annotated[bool, flag("--overwrite", help="replace an earlier association in --out")] = False,
@@ -49,7 +54,8 @@ def associate_command(
     try:
         options = AssociateOptions(heights=parse_heights(heights), pixel_sigma=pixel_sigma,
                                    detection_probability=detection_probability, size_noise=size_noise,
-                                   self_calibration_rounds=self_calibration_rounds, appearance=not no_appearance,
+                                   self_calibration_rounds=self_calibration_rounds, walk_m=walk or None,
+                                   appearance=not no_appearance,
                                    out=dest, overwrite=overwrite)
     except ValueError as e:
         raise InputError(f"{e}; see rigsfm associate --help") from None

@@ -1,0 +1,122 @@
+"""A carried frame looks for the frame before's persons where they were (rigsfm.associate.tracked)."""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+import itertools
+
+import numpy as np
+from test_associate_segments import H, W, _view
+
+from rigsfm.associate import AssociateOptions
+from rigsfm.associate.solve import _Frame, associate_views
+from rigsfm.associate.tracked import row_pairs, seen_before
+
+OPTIONS = AssociateOptions(pixel_sigma=1.5, appearance=False, detection_probability=0.8)
+
+
+def _crowd(points: np.ndarray, seed: int) -> tuple[list, list[np.ndarray]]:
+    """Five cameras on a ring 18 m across aimed at the heads ``points``; each detects every head it sees with 1 px
+    of noise, misses 10 %, and adds a few false heads. Returns the views and, per view, each detection's head (-1:
+    false)."""
+    rng = np.random.default_rng(seed)
+    views, ids = [], []
+    for k, angle in enumerate(np.radians([0, 72, 144, 180, 252])):
+        centre = np.array([9 * np.cos(angle), 9 * np.sin(angle), 3.5])
+        view = _view(f"rig0{k}/narrow/frame.png", centre, np.array([0.0, 0.0, 1.7]), points)
+        inside = (view.xy[:, 0] >= 0) & (view.xy[:, 0] < W) & (view.xy[:, 1] >= 0) & (view.xy[:, 1] < H)
+        inside &= rng.random(len(points)) > 0.1
+        xy = view.xy[inside] + rng.normal(0, 1.0, (int(inside.sum()), 2))
+        view.xy = np.r_[xy, rng.uniform([0, 0], [W, H], (5, 2))]
+        views.append(view)
+        ids.append(np.r_[np.flatnonzero(inside), np.full(5, -1)])
+    return views, ids
+
+
+def _pair_precision_recall(members: np.ndarray, ids: list[np.ndarray]) -> tuple[float, float]:
+    found, right = set(), 0
+    for row in members:
+        dets = [(v, int(i)) for v, i in enumerate(row) if i >= 0]
+        for a, b in itertools.combinations(dets, 2):
+            found.add((a, b))
+            right += ids[a[0]][a[1]] >= 0 and ids[a[0]][a[1]] == ids[b[0]][b[1]]
+    true = {}
+    for v, per in enumerate(ids):
+        for i, p in enumerate(per):
+            if p >= 0:
+                true.setdefault(int(p), []).append((v, i))
+    pairs = sum(len(m) * (len(m) - 1) // 2 for m in true.values())
+    return right / max(len(found), 1), right / max(pairs, 1)
+
+
+def _walked(seed: int = 3, heads: int = 120) -> tuple[np.ndarray, np.ndarray]:
+    """A crowd of heads at 1.6-1.9 m and the same heads a tenth of a second later (each walked ~10 cm)."""
+    rng = np.random.default_rng(seed)
+    before = np.c_[rng.uniform(-4, 4, (heads, 2)), rng.uniform(1.6, 1.9, heads)]
+    heading = rng.uniform(0, 2 * np.pi, heads)
+    after = before + np.c_[0.1 * np.cos(heading), 0.1 * np.sin(heading), np.zeros(heads)]
+    return before, after
+
+
+def test_a_carried_frame_finds_the_walked_crowd_from_the_frame_before_with_fewer_pair_seeds():
+    before, after = _walked()
+    first_views, _ = _crowd(before, seed=1)
+    first = associate_views(first_views, OPTIONS, carried=True)
+    views, ids = _crowd(after, seed=2)
+    full_options = dataclasses.replace(OPTIONS, walk_m=None)
+    tracked = associate_views(copy.deepcopy(views), OPTIONS, carried=True, earlier=first)
+    full = associate_views(copy.deepcopy(views), full_options, carried=True, earlier=first)
+    assert len(full) > 60
+    # as right as the full search, against the truth
+    tp, tr = _pair_precision_recall(tracked.members, ids)
+    fp, fr = _pair_precision_recall(full.members, ids)
+    assert tp >= fp - 0.02 and tr >= fr - 0.02, (tp, tr, fp, fr)
+    # while searching the pairs among the detections the earlier persons leave only
+    earlier = (first.points, first.covariances, seen_before(first.views, first.members, [v.name for v in views]))
+    seeded = _Frame(copy.deepcopy(views), OPTIONS, earlier=earlier)
+    everything = _Frame(copy.deepcopy(views), OPTIONS)
+    seeded.hypotheses(), everything.hypotheses()
+    assert seeded._seeds is not None and everything._seeds is not None
+    assert len(seeded._seeds) < 0.5 * len(everything._seeds)
+
+
+def test_earlier_persons_nowhere_near_leave_the_full_search():
+    _, after = _walked(seed=5)
+    views, _ = _crowd(after, seed=6)
+    first = associate_views(copy.deepcopy(views), OPTIONS, carried=True)
+    away = dataclasses.replace(first, points=first.points + np.array([100.0, 0.0, 0.0]))
+    tracked = associate_views(copy.deepcopy(views), OPTIONS, carried=True, earlier=away)
+    full = associate_views(copy.deepcopy(views), dataclasses.replace(OPTIONS, walk_m=None), carried=True,
+                           earlier=away)
+    assert len(full) > 60
+    np.testing.assert_array_equal(tracked.members, full.members)
+    np.testing.assert_array_equal(tracked.points, full.points)
+
+
+def test_an_earlier_person_is_looked_for_in_the_cameras_it_was_seen_by():
+    earlier = ["rig01/narrow/frame0000.png", "rig02/narrow/frame0000.png", "rig03/narrow/frame0000.png"]
+    members = np.array([[0, -1, 4], [-1, 2, 3]])
+    # the next frame's images of the same cameras, one camera missing and in another order
+    now = ["rig03/narrow/frame0001.png", "rig01/narrow/frame0001.png", "rig04/narrow/frame0001.png"]
+    np.testing.assert_array_equal(seen_before(earlier, members, now), [[True, True, False], [True, False, False]])
+    rows = np.array([[3, -1, 5, 7]])
+    assert sorted(map(tuple, row_pairs(rows).tolist())) == [(-1, -1, 5, 7), (3, -1, -1, 7), (3, -1, 5, -1)]
+
+
+def test_the_second_pass_of_a_tracked_frame_checks_the_first_pass_groups_on_the_free_detections():
+    before, after = _walked(seed=7)
+    first = associate_views(_crowd(before, seed=8)[0], OPTIONS, carried=True)
+    views, _ = _crowd(after, seed=9)
+    earlier = (first.points, first.covariances, seen_before(first.views, first.members, [v.name for v in views]))
+    frame = _Frame(views, OPTIONS, earlier=earlier)
+    grown = frame.hypotheses()[0]
+    free = np.ones(int(frame.offsets[-1]), dtype=bool)
+    free[grown[0][grown[0] >= 0]] = False  # one person's detections taken
+    free[grown[-1][grown[-1] >= 0]] = False
+    again = frame.hypotheses(free)[0]
+    assert len(again) > 20
+    assert np.all((again < 0) | free[np.maximum(again, 0)])
+    # each within a first-pass group (its taken members, and any its check drops, left out): no pair grown again
+    within = (again[:, None, :] < 0) | (again[:, None, :] == grown[None, :, :])
+    assert np.all(np.any(np.all(within, axis=2), axis=1))

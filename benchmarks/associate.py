@@ -82,6 +82,21 @@ def fixed_threshold(model, points: dict[str, np.ndarray], threshold: float) -> l
     return [g for g in groups.values() if len(g) >= 2]
 
 
+def head_errors(groups: list, result, truth, heads3d: np.ndarray, r: np.ndarray, t: np.ndarray,
+                ) -> tuple[list[float], list[bool]]:
+    """Of the persons entirely right (every member one true head), the 3D head error (m, in the truth's frame:
+    ``r @ point + t``) and whether the 95 % ellipsoid of the person's covariance holds the true head."""
+    errors, inside = [], []
+    for group, point, covariance in zip(groups, result.points, result.covariances):
+        ids = {int(truth.person[a][b]) for a, b in group}
+        if len(ids) != 1 or -1 in ids:
+            continue
+        e = r @ point + t - heads3d[ids.pop()]
+        errors.append(float(np.linalg.norm(e)))
+        inside.append(float(e @ np.linalg.solve(r @ covariance @ r.T, e)) <= CHI2_3D_95)
+    return errors, inside
+
+
 def evaluate(dataset: Path, out: Path, seed: int, options: AssociateOptions, frames: int = 1,
              size_noise: float | None = None, size_spread: float = 0.1) -> dict:
     """The association of the first ``frames`` frames, each scored against its truth; the shifts the crowd finds
@@ -110,15 +125,7 @@ def evaluate(dataset: Path, out: Path, seed: int, options: AssociateOptions, fra
         result = frame.result
         groups = [[(frame.views[v].name, int(i)) for v, i in enumerate(m) if i >= 0] for m in result.members]
         scores = score_groups(groups, truth)
-        heads3d = true_heads(dataset, k)
-        errors, inside = [], []
-        for group, point, covariance in zip(groups, result.points, result.covariances):
-            ids = {int(truth.person[a][b]) for a, b in group}
-            if len(ids) != 1 or -1 in ids:
-                continue
-            e = r @ point + t - heads3d[ids.pop()]
-            errors.append(float(np.linalg.norm(e)))
-            inside.append(float(e @ np.linalg.solve(r @ covariance @ r.T, e)) <= CHI2_3D_95)
+        errors, inside = head_errors(groups, result, truth, true_heads(dataset, k), r, t)
         per_frame.append({
             "frame": frame.frame, "seconds": frame.seconds, "cpu_seconds": frame.cpu_seconds,
             "detections": int(sum(len(v) for v in truth.points.values())), "views": len(frame.views),

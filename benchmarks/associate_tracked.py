@@ -33,7 +33,7 @@ sys.path.insert(0, str(REPO))  # run as a script: the benchmarks package beside 
 import numpy as np  # noqa: E402
 import pycolmap  # noqa: E402
 
-from benchmarks.associate import CHI2_3D_95  # noqa: E402
+from benchmarks.associate import head_errors  # noqa: E402
 from benchmarks.associate_video import video_model  # noqa: E402
 from rigsfm.associate import AssociateOptions, from_arrays, load_run  # noqa: E402
 from rigsfm.associate.evaluate import (  # noqa: E402
@@ -50,14 +50,7 @@ from rigsfm.associate.solve import associate_views  # noqa: E402
 def accuracy(result, views, truth, heads3d: np.ndarray, r: np.ndarray, t: np.ndarray) -> dict:
     groups = [[(views[v].name, int(i)) for v, i in enumerate(m) if i >= 0] for m in result.members]
     scores = score_groups(groups, truth)
-    errors, inside = [], []
-    for group, point, covariance in zip(groups, result.points, result.covariances):
-        ids = {int(truth.person[a][b]) for a, b in group}
-        if len(ids) != 1 or -1 in ids:
-            continue
-        e = r @ point + t - heads3d[ids.pop()]
-        errors.append(float(np.linalg.norm(e)))
-        inside.append(float(e @ np.linalg.solve(r @ covariance @ r.T, e)) <= CHI2_3D_95)
+    errors, inside = head_errors(groups, result, truth, heads3d, r, t)
     return {"persons": len(result), "pair_f1": round(scores.pair_f1, 4), "person_f1": round(scores.person_f1, 4),
             "right": len(errors), "error_median_cm": round(100 * float(np.median(errors)), 2) if errors else None,
             "error_p95_cm": round(100 * float(np.percentile(errors, 95)), 2) if errors else None,

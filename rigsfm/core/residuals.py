@@ -2,12 +2,17 @@
 
 from __future__ import annotations
 
+from collections.abc import Collection
+
 import numpy as np
 import pycolmap
 
 
-def reprojection_errors(reconstruction: pycolmap.Reconstruction) -> dict[str, np.ndarray]:
-    """For every registered image name, the pixel distance between each observation and its projection."""
+def reprojection_errors(reconstruction: pycolmap.Reconstruction, without: Collection[int] = ()
+                        ) -> dict[str, np.ndarray]:
+    """For every registered image name, the pixel distance between each observation and its projection; the
+    observations of the points ``without`` (point3D ids) left out."""
+    skip = set(without)
     errors = {}
     # Every point's position read once (a lookup per observation through Reconstruction.point3D costs more).
     xyz_of = {point3D_id: point.xyz for point3D_id, point in reconstruction.points3D.items()}
@@ -15,6 +20,8 @@ def reprojection_errors(reconstruction: pycolmap.Reconstruction) -> dict[str, np
         if not image.has_pose:
             continue
         observed = image.get_observation_points2D()  # in index order, like image.points2D
+        if skip:
+            observed = [p for p in observed if p.point3D_id not in skip]
         if len(observed) == 0:
             errors[image.name] = np.zeros(0)
             continue

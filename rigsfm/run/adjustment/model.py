@@ -113,15 +113,12 @@ def estimate_pixel_sigma(reconstruction: pycolmap.Reconstruction, max_error_px: 
     """Reprojection noise per image coordinate: ``sqrt(sum e^2 / dof)``, ``dof = 2 N - 3 P - 6 (F - 1)``
     (observations N, points P, frames F); observations above ``max_error_px`` are left out, and so are the points
     ``without`` (point3D ids whose observations have a noise of their own: the pooled noise is the keypoints')."""
-    if without:
-        reconstruction = pycolmap.Reconstruction(reconstruction)
-        for point_id in without:
-            if reconstruction.exists_point3D(point_id):
-                reconstruction.delete_point3D(point_id)
-    errors = np.concatenate(list(reprojection_errors(reconstruction).values()) or [np.zeros(0)])
+    skip = {point_id for point_id in without if reconstruction.exists_point3D(point_id)}
+    errors = np.concatenate(list(reprojection_errors(reconstruction, skip).values()) or [np.zeros(0)])
     if max_error_px is not None:
         errors = errors[errors <= max_error_px]
-    dof = 2 * errors.size - 3 * reconstruction.num_points3D() - 6 * max(reconstruction.num_reg_frames() - 1, 0)
+    points = reconstruction.num_points3D() - len(skip)
+    dof = 2 * errors.size - 3 * points - 6 * max(reconstruction.num_reg_frames() - 1, 0)
     if dof <= 0:
         raise ReconstructionError("too few observations to estimate the reprojection noise; register more images")
     return float(np.sqrt(np.sum(errors**2) / dof))

@@ -392,6 +392,47 @@ def test_a_signal_at_any_moment_gives_one_line(tmp_path, signum):
         assert "re-run the same command" in lines[0]
 
 
+
+UNRAISABLE_SCRIPT = """
+import os, signal, sys, threading, time, weakref
+from rigsfm.cli import _signals
+
+def busy(seconds):
+    start = time.monotonic()
+    while time.monotonic() - start < seconds:
+        pass
+
+class Thing:
+    def __del__(self):
+        raise ValueError("a failure of its own")
+
+_signals.install()
+thing, target = Thing(), Thing()
+watcher = weakref.ref(target, lambda ref: busy(0.5))  # a callback like the import system's module locks
+threading.Timer(0.1, os.kill, (os.getpid(), signal.SIG{name})).start()
+try:
+    with _signals.raising():
+        del thing, target  # the signal lands in the callback, where an exception can only be printed
+        busy(2.0)
+    print("not stopped", file=sys.stderr)
+except (KeyboardInterrupt, _signals.Terminated) as stop:
+    print("stopped in the code that ran next:", type(stop).__name__, file=sys.stderr)
+"""
+
+
+@pytest.mark.parametrize("name, raised", [("INT", "KeyboardInterrupt"), ("TERM", "Terminated")])
+def test_a_signal_inside_a_callback_python_cannot_raise_from_is_not_lost(tmp_path, name, raised):
+    """A signal in a weakref callback or a ``__del__`` (CI caught one in the import system's lock callback): its
+    exception can only be printed there ("Exception ignored in ..."); the command was stopped with a traceback on
+    screen, or not at all. Other exceptions of that kind are still printed as Python prints them."""
+    script = tmp_path / "unraisable.py"
+    script.write_text(UNRAISABLE_SCRIPT.format(name=name))
+    done = subprocess.run([sys.executable, str(script)], env=_env(), text=True, capture_output=True, timeout=60)
+    lines = done.stderr.strip().splitlines()
+    assert lines[-1] == f"stopped in the code that ran next: {raised}", done.stderr
+    assert "ValueError: a failure of its own" in done.stderr  # the __del__'s own failure, shown as before
+    assert raised not in "\n".join(lines[:-1]), done.stderr  # no "Exception ignored" for the signal's exception
+
 def test_ctrl_c_ends_pick_with_where_the_pairs_are(tmp_path):
     sys.path.insert(0, str(ROOT / "tests"))
     import bad_inputs_table

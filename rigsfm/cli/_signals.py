@@ -4,7 +4,8 @@ Imported first by :mod:`rigsfm.cli` (standard library only, so it is in place wi
 command's body runs (:func:`raising`) a signal ends the process at once with rigsfm's one line: nothing has
 been written yet, and an exception raised inside a module's import is what native libraries turn into other
 errors ("Cannot import the C++ backend"). While a command runs, SIGINT raises ``KeyboardInterrupt`` and
-SIGTERM :class:`Terminated`, so its cleanup (killing stage processes) runs before the same line is printed.
+SIGTERM :class:`Terminated`, so its cleanup (killing stage processes) runs before the same line is printed; one
+that lands where Python can only print an exception (a weakref callback, ``__del__``) is sent again.
 
 pycolmap's import installs glog's failure handler over SIGTERM (a C stack trace, no message):
 :func:`import_native` imports it with both signals blocked and puts our handler back before unblocking, so a
@@ -13,10 +14,12 @@ signal sent meanwhile is handled here, a moment later.
 
 from __future__ import annotations
 
+import _thread
 import contextlib
 import os
 import signal
 import sys
+import time
 from collections.abc import Iterator
 
 EXIT_INTERRUPTED, EXIT_TERMINATED = 130, 143
@@ -61,6 +64,26 @@ def _handler(signum, frame) -> None:
     os._exit(exit_code(signum))
 
 
+def _unraisable(unraisable) -> None:
+    """A signal's exception raised where Python can only print it ("Exception ignored in": a weakref callback such
+    as the import system's module locks, a ``__del__``) is asked for again, so it is raised in the code that runs
+    next instead of being lost with a traceback."""
+    signum = _state["received"]
+    if signum is not None and isinstance(unraisable.exc_value, (KeyboardInterrupt, Terminated)):
+        # from another thread, a moment later: raised in this hook, the exception would be ignored again
+        _thread.start_new_thread(_send_again, (signum,))
+        return
+    _previous_unraisablehook(unraisable)
+
+
+def _send_again(signum: int) -> None:
+    time.sleep(0.01)
+    os.kill(os.getpid(), signum)
+
+
+_previous_unraisablehook = sys.unraisablehook
+
+
 def is_the_command() -> bool:
     """Whether this process is the ``rigsfm`` command (its script, or ``python -m rigsfm``), not a program that
     imported the CLI (a test calling ``app`` in process keeps its own handlers)."""
@@ -77,6 +100,7 @@ def install() -> None:
             _ignored.add(signum)
         signal.signal(signum, signal.SIG_IGN if signum in _ignored else _handler)
         _installed.add(signum)
+    sys.unraisablehook = _unraisable
     # a mask inherited from the parent (a process that had them blocked while it started us) would hold them forever
     signal.pthread_sigmask(signal.SIG_UNBLOCK, SIGNALS)
 

@@ -310,6 +310,9 @@ class _Frame:
         self._posed = [(v.shift_px.copy(), v.sigma_pose_px, v.xy) for v in views]
         self._seeds: np.ndarray | None = None  # pair_candidates, once
         self._grown: dict[bytes | None, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+        # every group verified so far and its ``_verify_steps`` (a function of the group's members alone): the
+        # growth's rounds and the final check meet most groups again
+        self._verified: list[tuple[np.ndarray, tuple[np.ndarray, ...]]] = []
 
     def rescored(self, views: list[View], options: AssociateOptions, appearance: AppearanceModel | None = None,
                  ) -> _Frame | None:
@@ -519,6 +522,35 @@ class _Frame:
     def verify(self, members: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Re-triangulate, drop members outside their band, re-triangulate: members, points, covariances."""
         return self._verify_steps(members)[:3]
+
+    def _verify_distinct(self, members: np.ndarray) -> tuple[np.ndarray, ...]:
+        """``_verify_steps`` of distinct member rows, each group computed once per frame: the rows this frame
+        verified before are taken from then (row by row the same arithmetic, so the same numbers)."""
+        known = self._verified
+        if not known or not len(members):
+            out = self._verify_steps(members)
+            if len(members):
+                known.append((members, out))
+            return out
+        table = np.concatenate([rows for rows, _ in known])
+        _, rank = _unique_inverse(np.concatenate([table, members]))
+        where = np.full(int(rank.max()) + 1, -1, dtype=np.int64)
+        where[rank[:len(table)]] = np.arange(len(table))
+        hit = where[rank[len(table):]]
+        new, old = np.flatnonzero(hit < 0), np.flatnonzero(hit >= 0)
+        fresh = self._verify_steps(members[new])
+        out = tuple(np.empty((len(members), *f.shape[1:]), dtype=f.dtype) for f in fresh)
+        for o, f in zip(out, fresh):
+            o[new] = f
+        starts = np.cumsum([0] + [len(rows) for rows, _ in known])
+        chunk = np.searchsorted(starts, hit[old], side="right") - 1
+        for c in np.unique(chunk).tolist():
+            at = old[chunk == c]
+            for o, f in zip(out, known[c][1]):
+                o[at] = f[hit[at] - starts[c]]
+        if len(new):
+            known.append((members[new], fresh))
+        return out
 
     @_rowwise
     def _verify_steps(self, members: np.ndarray) -> tuple[np.ndarray, ...]:
@@ -741,7 +773,7 @@ class _Frame:
             members = only_free(self.grow(members, points, covariance))
             # a group's verification depends on its members alone: each distinct group verified once
             distinct, which = _unique_inverse(members)
-            members, points, covariance = (a[which] for a in self.verify(distinct))
+            members, points, covariance = (a[which] for a in self._verify_distinct(distinct)[:3])
             groups.append(members)
             # seeds of one person grow into the same group: grow each group once
             members, first = _unique_rows(members)
@@ -755,7 +787,7 @@ class _Frame:
         members = members[np.sum(members >= 0, axis=1) >= 2]
         if not len(members):
             return members, np.zeros((0, 3)), np.zeros((0, 3, 3))
-        verified, _, _, once, once_covariance, once_d2 = self._verify_steps(members)
+        verified, _, _, once, once_covariance, once_d2 = self._verify_distinct(members)
         unchanged = np.all(verified == members, axis=1)
         keep = np.sum(verified >= 0, axis=1) >= 2
         members, first = _unique_rows(verified[keep])

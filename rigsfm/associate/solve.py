@@ -524,8 +524,9 @@ class _Frame:
         return self._verify_steps(members)[:3]
 
     def _verify_distinct(self, members: np.ndarray) -> tuple[np.ndarray, ...]:
-        """``_verify_steps`` of distinct member rows, each group computed once per frame: the rows this frame
-        verified before are taken from then (row by row the same arithmetic, so the same numbers)."""
+        """``_verify_steps`` of member rows, each group computed once per frame: the rows this frame verified
+        before are taken from then (row by row the same arithmetic, so the same numbers; rows repeated within
+        ``members`` are each computed, as callers mostly pass distinct ones)."""
         known = self._verified
         if not known or not len(members):
             out = self._verify_steps(members)
@@ -709,7 +710,7 @@ class _Frame:
         total = int(self.offsets[-1])
         if not len(rows):
             return self._grown_from_pairs(None)
-        members, points, covariance = self.verify(rows)
+        members, points, covariance = self._verify_distinct(rows)[:3]
         keep = np.sum(members >= 0, axis=1) >= 2
         pairs = self._gated(row_pairs(rows), None)
         members = np.concatenate([members[keep], pairs[0]])
@@ -885,6 +886,7 @@ def _solve(views: list[View], options: AssociateOptions, appearance: AppearanceM
         free = np.ones(total, dtype=bool)
         kept = members[chosen]
         free[kept[kept >= 0]] = False
+        everyone = frame.clutter  # every detection's (the frame's own): put back after
         frame.clutter = frame.clutter_among(free)
         rest_m, rest_p, rest_c, rest_s = frame.hypotheses(free)
         more = rest_s > options.min_score
@@ -895,9 +897,9 @@ def _solve(views: list[View], options: AssociateOptions, appearance: AppearanceM
             points = np.concatenate([points[chosen], rest_p[extra]])
             covariance = np.concatenate([covariance[chosen], rest_c[extra]])
             scores = np.concatenate([scores[chosen], rest_s[extra]])
-            frame.clutter = frame.clutter_among(np.ones(total, dtype=bool))
+            frame.clutter = everyone
             return frame, members, points, covariance, scores, int(positive.sum())
-        frame.clutter = frame.clutter_among(np.ones(total, dtype=bool))
+        frame.clutter = everyone
     return frame, members[chosen], points[chosen], covariance[chosen], scores[chosen], int(positive.sum())
 
 

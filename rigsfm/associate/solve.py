@@ -477,15 +477,16 @@ class _Frame:
             near_rows = np.flatnonzero(np.isfinite(dist[:, 0]))
             sxx, sxy, syy = sxx[near_rows], sxy[near_rows], syy[near_rows]
             det = sxx * syy - sxy ** 2
-            s_inv = np.stack([np.stack([syy, -sxy], axis=1), np.stack([-sxy, sxx], axis=1)], axis=1) / det[:, None, None]
+            inv_xx, inv_xy, inv_yy = syy / det, -sxy / det, sxx / det  # the inverse 2x2, entry by entry
             for q in range(k):
                 ok = np.flatnonzero(np.isfinite(dist[near_rows, q]))
                 if not len(ok):
                     break
                 at = near_rows[ok]
                 cand = self.tree_index[v][near[at, q]]
-                diff = self.uv[cand] - uv[at]
-                d2 = np.einsum("ni,nij,nj->n", diff, s_inv[ok], diff)
+                dx, dy = (self.uv[cand] - uv[at]).T
+                xy = inv_xy[ok]
+                d2 = dx * inv_xx[ok] * dx + dx * xy * dy + dy * xy * dx + dy * inv_yy[ok] * dy  # x^T S^-1 x, term by term
                 better = (d2 < best_d2[at]) & (d2 <= gate2)
                 best[at[better]], best_d2[at[better]] = cand[better], d2[better]
             if not single:

@@ -293,6 +293,7 @@ class _Frame:
             rays.append(d)
         self.uv = np.concatenate(undist) if undist else np.zeros((0, 2))
         self.rays = np.concatenate(rays) if rays else np.zeros((0, 3))
+        self._by_axis: tuple[np.ndarray, np.ndarray] | None = None  # rays_by_axis, and of which rays
         self.k_of = np.array([v.k for v in views]) if views else np.zeros((0, 3, 3))
         self.r_of = np.array([v.r for v in views]) if views else np.zeros((0, 3, 3))
         self.valid = np.all(np.isfinite(self.uv), axis=1)
@@ -351,6 +352,13 @@ class _Frame:
             out[rows] = np.maximum(np.maximum(near, 1) / (math.pi * radius ** 2), 1.0 / (view.width * view.height))
         return out
 
+    def rays_by_axis(self) -> np.ndarray:
+        """The rays coordinate-major (3 x N, contiguous: the triangulation gathers them so), of ``self.rays`` as it
+        is now (the shifts' estimate sets other rays for a while)."""
+        if self._by_axis is None or self._by_axis[0] is not self.rays:
+            self._by_axis = (self.rays, np.ascontiguousarray(self.rays.T))
+        return self._by_axis[1]
+
     def rays_of(self, uv: np.ndarray) -> np.ndarray:
         """Unit world directions of undistorted pixels (one per detection, in the stacked order)."""
         k, r = self.k_of[self.view_of], self.r_of[self.view_of]
@@ -382,7 +390,7 @@ class _Frame:
         g, nv = members.shape
         present = members >= 0
         # coordinate-major (3 x G x V): the sums over the views run on contiguous rows
-        d = np.ascontiguousarray(self.rays[np.where(present, members, 0)].transpose(2, 0, 1))
+        d = np.take(self.rays_by_axis(), np.where(present, members, 0), axis=1)
         dc = np.einsum("igv,vi->gv", d, self.centres)
         for _ in range(2 if points is None else 1):
             if points is None:

@@ -534,8 +534,9 @@ class _Frame:
 
     def _verify_distinct(self, members: np.ndarray) -> tuple[np.ndarray, ...]:
         """``_verify_steps`` of member rows, each group computed once per frame: the rows this frame verified
-        before are taken from then (row by row the same arithmetic, so the same numbers; rows repeated within
-        ``members`` are each computed, as callers mostly pass distinct ones)."""
+        before are taken from then (row by row the same arithmetic; a row's matrix product may round otherwise in
+        another batch of rows, as ``_rowwise``'s blocks and the final check's reuse already allow; rows repeated
+        within ``members`` are each computed, as callers mostly pass distinct ones)."""
         known = self._verified
         if not known or not len(members):
             out = self._verify_steps(members)

@@ -104,3 +104,20 @@ def test_a_carried_frame_takes_the_first_frame_s_appearance_model(crowd, tmp_pat
         assert view.head_px == before.head_px and view.descriptor is not None and len(view.descriptor) == len(view.xy)
     f1 = [_pair_f1(frame, truth) for frame, truth in zip(frames, truths)]
     assert f1[0] > 0.25 and f1[1] > 0.8 * f1[0], f1
+
+
+def test_the_median_grey_by_counts_is_numpy_s():
+    """An image's median grey from its counts is np.median's to the bit: odd and even pixel counts (the mean of the
+    two middle greys), one grey, a one-pixel image, stored bytes and their floats; greys that are not whole numbers
+    (a fraction, a NaN, a negative) go to np.median itself."""
+    from rigsfm.associate.appearance import median_grey
+
+    rng = np.random.default_rng(3)
+    images = [rng.integers(0, top, size).astype(np.float64) for top in (1, 2, 7, 256)
+              for size in ((61, 47), (60, 47), (1, 1), (2, 1), (3, 3))]
+    images += [images[3].astype(np.uint8), rng.integers(0, 60000, (30, 31)).astype(np.float64)]
+    odd = rng.integers(0, 256, (20, 21)).astype(np.float64)
+    images += [odd + 0.5, np.where(odd > 200, np.nan, odd), odd - 100.0]
+    for grey in images:
+        expected = float(np.median(grey))
+        assert median_grey(grey) == expected or (np.isnan(expected) and np.isnan(median_grey(grey))), grey.shape

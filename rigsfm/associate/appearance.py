@@ -31,12 +31,11 @@ MAX_PAIRS_RANDOM = 20000
 
 
 def read_grey(path: Path) -> np.ndarray | None:
-    """The image as float greys (its pixels as stored, as every reader of rigsfm's), or None where it cannot be read
-    (the cue is then left out)."""
+    """The image's greys (its pixels as stored, whole numbers, as every reader of rigsfm's), or None where it cannot
+    be read (the cue is then left out)."""
     import cv2
 
-    image = read_image(path, cv2.IMREAD_GRAYSCALE)
-    return None if image is None else image.astype(np.float64)
+    return read_image(path, cv2.IMREAD_GRAYSCALE)
 
 
 def _box_means(grey: np.ndarray, centres: np.ndarray, half: float) -> np.ndarray:
@@ -54,12 +53,32 @@ def _box_means(grey: np.ndarray, centres: np.ndarray, half: float) -> np.ndarray
     return total / ((x1 - x0) * (y1 - y0))
 
 
+def median_grey(grey: np.ndarray) -> float:
+    """``np.median`` of an image's greys: by their counts where they are whole numbers 0-65535 (an image file's,
+    as read_grey gives them), a fraction of a sort's or a partition's time over the whole frame; else np.median."""
+    flat = grey.ravel()
+    if flat.dtype in (np.uint8, np.uint16):
+        whole = flat
+    else:
+        with np.errstate(invalid="ignore"):  # a NaN or an out-of-range grey casts to anything: the test fails it
+            whole = flat.astype(np.uint16)
+        if not np.array_equal(whole, flat):  # anything else (a fraction, a NaN, out of range): no counts
+            return float(np.median(grey))
+    if not flat.size:
+        return float(np.median(grey))
+    below = np.cumsum(np.bincount(whole))  # below[g]: how many greys are at most g
+    n = len(flat)
+    low = int(np.searchsorted(below, (n - 1) // 2, side="right"))  # the middle one (n odd) or two (n even)
+    high = int(np.searchsorted(below, n // 2, side="right"))
+    return (low + high) / 2
+
+
 def describe(grey: np.ndarray, xy: np.ndarray, head_px: float) -> np.ndarray:
     """N x 2 descriptors (log head and torso grey over the image's median) of detections ``xy`` (raw pixels), the
     head's apparent radius being ``head_px``; the torso lies below the head in the image (upright cameras)."""
     if not len(xy):
         return np.zeros((0, 2))
-    median = max(float(np.median(grey)), 1.0)
+    median = max(median_grey(grey), 1.0)
     head = _box_means(grey, xy, max(0.5 * head_px, 1.0))
     below = xy + np.array([0.0, head_px * TORSO_BELOW_M / HEAD_RADIUS_M])
     torso = _box_means(grey, below, max(0.8 * head_px, 1.0))

@@ -293,6 +293,7 @@ class _Frame:
             rays.append(d)
         self.uv = np.concatenate(undist) if undist else np.zeros((0, 2))
         self.rays = np.concatenate(rays) if rays else np.zeros((0, 3))
+        self._by_axis: tuple[np.ndarray, np.ndarray] | None = None  # rays_by_axis, and of which rays
         self.k_of = np.array([v.k for v in views]) if views else np.zeros((0, 3, 3))
         self.r_of = np.array([v.r for v in views]) if views else np.zeros((0, 3, 3))
         self.valid = np.all(np.isfinite(self.uv), axis=1)
@@ -310,6 +311,9 @@ class _Frame:
         self._posed = [(v.shift_px.copy(), v.sigma_pose_px, v.xy) for v in views]
         self._seeds: np.ndarray | None = None  # pair_candidates, once
         self._grown: dict[bytes | None, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+        # every group verified so far and its ``_verify_steps`` (a function of the group's members alone): the
+        # growth's rounds and the final check meet most groups again
+        self._verified: list[tuple[np.ndarray, tuple[np.ndarray, ...]]] = []
 
     def rescored(self, views: list[View], options: AssociateOptions, appearance: AppearanceModel | None = None,
                  ) -> _Frame | None:
@@ -348,6 +352,13 @@ class _Frame:
             out[rows] = np.maximum(np.maximum(near, 1) / (math.pi * radius ** 2), 1.0 / (view.width * view.height))
         return out
 
+    def rays_by_axis(self) -> np.ndarray:
+        """The rays coordinate-major (3 x N, contiguous: the triangulation gathers them so), of ``self.rays`` as it
+        is now (the shifts' estimate sets other rays for a while)."""
+        if self._by_axis is None or self._by_axis[0] is not self.rays:
+            self._by_axis = (self.rays, np.ascontiguousarray(self.rays.T))
+        return self._by_axis[1]
+
     def rays_of(self, uv: np.ndarray) -> np.ndarray:
         """Unit world directions of undistorted pixels (one per detection, in the stacked order)."""
         k, r = self.k_of[self.view_of], self.r_of[self.view_of]
@@ -379,7 +390,7 @@ class _Frame:
         g, nv = members.shape
         present = members >= 0
         # coordinate-major (3 x G x V): the sums over the views run on contiguous rows
-        d = np.ascontiguousarray(self.rays[np.where(present, members, 0)].transpose(2, 0, 1))
+        d = np.take(self.rays_by_axis(), np.where(present, members, 0), axis=1)
         dc = np.einsum("igv,vi->gv", d, self.centres)
         for _ in range(2 if points is None else 1):
             if points is None:
@@ -474,15 +485,16 @@ class _Frame:
             near_rows = np.flatnonzero(np.isfinite(dist[:, 0]))
             sxx, sxy, syy = sxx[near_rows], sxy[near_rows], syy[near_rows]
             det = sxx * syy - sxy ** 2
-            s_inv = np.stack([np.stack([syy, -sxy], axis=1), np.stack([-sxy, sxx], axis=1)], axis=1) / det[:, None, None]
+            inv_xx, inv_xy, inv_yy = syy / det, -sxy / det, sxx / det  # the inverse 2x2, entry by entry
             for q in range(k):
                 ok = np.flatnonzero(np.isfinite(dist[near_rows, q]))
                 if not len(ok):
                     break
                 at = near_rows[ok]
                 cand = self.tree_index[v][near[at, q]]
-                diff = self.uv[cand] - uv[at]
-                d2 = np.einsum("ni,nij,nj->n", diff, s_inv[ok], diff)
+                dx, dy = (self.uv[cand] - uv[at]).T
+                xy = inv_xy[ok]
+                d2 = dx * inv_xx[ok] * dx + dx * xy * dy + dy * xy * dx + dy * inv_yy[ok] * dy  # x^T S^-1 x, term by term
                 better = (d2 < best_d2[at]) & (d2 <= gate2)
                 best[at[better]], best_d2[at[better]] = cand[better], d2[better]
             if not single:
@@ -519,6 +531,37 @@ class _Frame:
     def verify(self, members: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Re-triangulate, drop members outside their band, re-triangulate: members, points, covariances."""
         return self._verify_steps(members)[:3]
+
+    def _verify_distinct(self, members: np.ndarray) -> tuple[np.ndarray, ...]:
+        """``_verify_steps`` of member rows, each group computed once per frame: the rows this frame verified
+        before are taken from then (row by row the same arithmetic; a row's matrix product may round otherwise in
+        another batch of rows, as ``_rowwise``'s blocks and the final check's reuse already allow; rows repeated
+        within ``members`` are each computed, as callers mostly pass distinct ones)."""
+        known = self._verified
+        if not known or not len(members):
+            out = self._verify_steps(members)
+            if len(members):
+                known.append((members, out))
+            return out
+        table = np.concatenate([rows for rows, _ in known])
+        _, rank = _unique_inverse(np.concatenate([table, members]))
+        where = np.full(int(rank.max()) + 1, -1, dtype=np.int64)
+        where[rank[:len(table)]] = np.arange(len(table))
+        hit = where[rank[len(table):]]
+        new, old = np.flatnonzero(hit < 0), np.flatnonzero(hit >= 0)
+        fresh = self._verify_steps(members[new])
+        out = tuple(np.empty((len(members), *f.shape[1:]), dtype=f.dtype) for f in fresh)
+        for o, f in zip(out, fresh):
+            o[new] = f
+        starts = np.cumsum([0] + [len(rows) for rows, _ in known])
+        chunk = np.searchsorted(starts, hit[old], side="right") - 1
+        for c in np.unique(chunk).tolist():
+            at = old[chunk == c]
+            for o, f in zip(out, known[c][1]):
+                o[at] = f[hit[at] - starts[c]]
+        if len(new):
+            known.append((members[new], fresh))
+        return out
 
     @_rowwise
     def _verify_steps(self, members: np.ndarray) -> tuple[np.ndarray, ...]:
@@ -677,7 +720,7 @@ class _Frame:
         total = int(self.offsets[-1])
         if not len(rows):
             return self._grown_from_pairs(None)
-        members, points, covariance = self.verify(rows)
+        members, points, covariance = self._verify_distinct(rows)[:3]
         keep = np.sum(members >= 0, axis=1) >= 2
         pairs = self._gated(row_pairs(rows), None)
         members = np.concatenate([members[keep], pairs[0]])
@@ -741,7 +784,7 @@ class _Frame:
             members = only_free(self.grow(members, points, covariance))
             # a group's verification depends on its members alone: each distinct group verified once
             distinct, which = _unique_inverse(members)
-            members, points, covariance = (a[which] for a in self.verify(distinct))
+            members, points, covariance = (a[which] for a in self._verify_distinct(distinct)[:3])
             groups.append(members)
             # seeds of one person grow into the same group: grow each group once
             members, first = _unique_rows(members)
@@ -755,7 +798,7 @@ class _Frame:
         members = members[np.sum(members >= 0, axis=1) >= 2]
         if not len(members):
             return members, np.zeros((0, 3)), np.zeros((0, 3, 3))
-        verified, _, _, once, once_covariance, once_d2 = self._verify_steps(members)
+        verified, _, _, once, once_covariance, once_d2 = self._verify_distinct(members)
         unchanged = np.all(verified == members, axis=1)
         keep = np.sum(verified >= 0, axis=1) >= 2
         members, first = _unique_rows(verified[keep])
@@ -853,6 +896,7 @@ def _solve(views: list[View], options: AssociateOptions, appearance: AppearanceM
         free = np.ones(total, dtype=bool)
         kept = members[chosen]
         free[kept[kept >= 0]] = False
+        everyone = frame.clutter  # every detection's (the frame's own): put back after
         frame.clutter = frame.clutter_among(free)
         rest_m, rest_p, rest_c, rest_s = frame.hypotheses(free)
         more = rest_s > options.min_score
@@ -863,9 +907,9 @@ def _solve(views: list[View], options: AssociateOptions, appearance: AppearanceM
             points = np.concatenate([points[chosen], rest_p[extra]])
             covariance = np.concatenate([covariance[chosen], rest_c[extra]])
             scores = np.concatenate([scores[chosen], rest_s[extra]])
-            frame.clutter = frame.clutter_among(np.ones(total, dtype=bool))
+            frame.clutter = everyone
             return frame, members, points, covariance, scores, int(positive.sum())
-        frame.clutter = frame.clutter_among(np.ones(total, dtype=bool))
+        frame.clutter = everyone
     return frame, members[chosen], points[chosen], covariance[chosen], scores[chosen], int(positive.sum())
 
 

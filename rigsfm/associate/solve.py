@@ -1028,12 +1028,12 @@ def _epipolar_offsets(frame: _Frame, heights: bool = False) -> list[tuple]:
     return out
 
 
-ANNEAL = (4.0, 2.0, 1.0)  # the pairs' EM: its distances' variance, as a multiple of the pixels', stage by stage
+ANNEAL = (4.0, 2.0, 1.0)  # the pairs' EM with heights: its distances' variance, as a multiple of the pixels', by stage
 HEIGHT_BIN_M = 0.05  # the chance candidates' heights: their histogram's bin
 
 
-def pairwise_view_shifts(frame: _Frame, options: AssociateOptions, starts: int = 4,
-                         seed: int = 0) -> tuple[ViewCorrection, float]:
+def pairwise_view_shifts(frame: _Frame, options: AssociateOptions, starts: int | None = None, seed: int = 0,
+                         heights: bool = True) -> tuple[ViewCorrection, float]:
     """Per-view shifts from the pairs alone, before any association: every pair's candidates are a mixture of
     true correspondences and chance ones. A true one's distance from the epipolar segment is the two views' pixel
     noise once the views are shifted right, and its height (where its ray meets i's) is the crowd's, a normal whose
@@ -1043,11 +1043,12 @@ def pairwise_view_shifts(frame: _Frame, options: AssociateOptions, starts: int =
     prior, from the run's poses and from draws of that prior, each annealed (the distances' variance widened at
     first, so that a start far from the shifts does not stop in the nearest of the many optima the crowd's chance
     pairs leave); the best penalised likelihood wins. Returns the correction and its log-likelihood gain over no
-    shift."""
+    shift. ``heights`` False: the distances alone, not annealed (``starts``: 20 then, else 4)."""
     views = frame.views
     nv = len(views)
     prior = np.array([max(v.band_sigma_px if v.band_sigma_px is not None else v.sigma_pose_px, 1e-3)
                       for v in views])
+    starts = starts if starts is not None else 4 if heights else 20
     pairs = _epipolar_offsets(frame, heights=True)
     if not pairs:
         return ViewCorrection(np.zeros((nv, 2)), prior, np.full(nv, np.nan), np.zeros(nv, dtype=int)), 0.0
@@ -1111,10 +1112,15 @@ def pairwise_view_shifts(frame: _Frame, options: AssociateOptions, starts: int =
     def loglik(x, share, mean, spread, var=pixel_var, value=True):
         r = residual(x)
         shares = np.repeat(share, sizes)  # share[pair_of]
-        height_var = spread ** 2 + per_px ** 2 * var
-        rh = moved(height, grad_h_t, x) - mean
-        inlier = shares * np.exp(-0.5 * (r ** 2 / var + rh ** 2 / height_var)) / (2 * math.pi * np.sqrt(var * height_var))
-        mix = inlier + (1 - shares) * chance
+        if heights:
+            height_var = spread ** 2 + per_px ** 2 * var
+            rh = moved(height, grad_h_t, x) - mean
+            inlier = shares * np.exp(-0.5 * (r ** 2 / var + rh ** 2 / height_var)) / (2 * math.pi
+                                                                                      * np.sqrt(var * height_var))
+            mix = inlier + (1 - shares) * chance
+        else:
+            inlier = shares * np.exp(-0.5 * r ** 2 / var) / math.sqrt(2 * math.pi * var)
+            mix = inlier + (1 - shares) * uniform
         if not value:  # the EM's steps need the weights only
             return None, inlier / mix
         return float(np.sum(np.log(mix)) - 0.5 * np.sum(precision * x ** 2)), inlier / mix
@@ -1126,7 +1132,7 @@ def pairwise_view_shifts(frame: _Frame, options: AssociateOptions, starts: int =
         x = np.zeros(2 * nv) if start == 0 else rng.normal(0.0, np.repeat(prior, 2))
         share = np.full(len(pairs), 0.1)
         mean, spread = start_height
-        for factor in ANNEAL:
+        for factor in ANNEAL if heights else (1.0,):
             var = factor * pixel_var
             for _ in range(50):
                 _, w = loglik(x, share, mean, spread, var, value=False)
@@ -1134,7 +1140,7 @@ def pairwise_view_shifts(frame: _Frame, options: AssociateOptions, starts: int =
                 # r = d + J x, rh = h + J_h x - mean: the weighted least squares with the prior, then the heights'
                 # mean and spread (their excess over what the pixels' noise gives) under the new shifts
                 wh = w / (spread ** 2 + per_px ** 2 * var)
-                lhs, rhs = normal_equations(w, var, wh, mean)
+                lhs, rhs = normal_equations(w, var, wh if heights else None, mean)
                 new = np.linalg.solve(lhs, -rhs)
                 h = moved(height, grad_h_t, new)
                 mean = float(np.sum(wh * h) / max(np.sum(wh), 1e-12))
@@ -1150,7 +1156,7 @@ def pairwise_view_shifts(frame: _Frame, options: AssociateOptions, starts: int =
     assert best is not None  # the loop above runs at least once
     value, x, w, share, mean, spread = best
     zero = loglik(np.zeros(2 * nv), share, mean, spread)[0]
-    lhs, _ = normal_equations(w, pixel_var, w / (spread ** 2 + per_px ** 2 * pixel_var), mean)
+    lhs, _ = normal_equations(w, pixel_var, w / (spread ** 2 + per_px ** 2 * pixel_var) if heights else None, mean)
     cov = np.linalg.inv(lhs)
     sigma = np.sqrt(np.maximum(cov[0::2, 0::2].diagonal(), cov[1::2, 1::2].diagonal()))
     r = residual(x)
@@ -1266,12 +1272,20 @@ def associate_views(views: list[View], options: AssociateOptions, carried: bool 
         if options.self_calibration_rounds > 0 and len(confident) >= options.self_calibration_min_members:
             pending = estimate_view_shifts(state[0], confident, options, pooled=True)
     elif options.self_calibration_rounds > 0 and len(views) >= 3:
-        correction, gain = pairwise_view_shifts(state[0], options)
-        trial = _corrected(views, correction, options)
-        tried = _solve(trial, options)
-        tried_count = len(_confident(tried[1], tried[4], options))
-        logger.info("pairwise shifts (log-likelihood gain %.1f): %d confident groups against %d on the run's poses",
-                    gain, tried_count, count)
+        # Two starts, each associated once and the one with more confident groups taken: the pairs' distances alone,
+        # and with the candidates' heights (neither finds the shifts on every crowd)
+        best: tuple | None = None
+        for heights in (False, True):
+            correction, gain = pairwise_view_shifts(state[0], options, heights=heights)
+            trial = _corrected(views, correction, options)
+            tried = _solve(trial, options)
+            tried_count = len(_confident(tried[1], tried[4], options))
+            logger.info("pairwise shifts (%s, log-likelihood gain %.1f): %d confident groups against %d on the run's "
+                        "poses", "with the heights" if heights else "distances", gain, tried_count, count)
+            if best is None or tried_count > best[2]:
+                best = (trial, tried, tried_count)
+        assert best is not None  # the loop above runs twice
+        trial, tried, tried_count = best
         # Kept only when the shifted views hold enough confident groups to re-estimate the shifts from: a handful
         # more than none is chance, not evidence.
         if tried_count > count and tried_count >= options.self_calibration_min_members:

@@ -20,8 +20,9 @@ Per frame:
 5. Self-calibration: a view's pose error moves all its detections alike, by more than the heads' spacing allows a
    band to absorb. Per view a shift of its undistorted pixels (a small rotation) is estimated, first from the pairs
    (pairwise_view_shifts), then from the confident groups (estimate_view_shifts), each under the run's pose sigma as
-   its prior; the frame is associated again with the shifted views and the bands the shift leaves. A correction is
-   kept only where it leaves more confident groups than before.
+   its prior (the pairs' from their distances alone and with where the candidates' rays meet, the crowd's heights:
+   whichever associates into more confident groups); the frame is associated again with the shifted views and the
+   bands the shift leaves. A correction is kept only where it leaves more confident groups than before.
 """
 
 from __future__ import annotations
@@ -1227,7 +1228,8 @@ def associate_views(views: list[View], options: AssociateOptions, carried: bool 
     """Persons seen by the detections of one frame's views (each view: pose, camera and raw detections).
 
     Every view's pose error is shared by all the persons it sees. With ``options.self_calibration_rounds`` > 0 the
-    views are first shifted by the pairs' own evidence (pairwise_view_shifts), then, each round, by the confident
+    views are first shifted by the pairs' own evidence (pairwise_view_shifts: the distances alone and with the
+    candidates' heights, the one whose association holds more confident groups), then, each round, by the confident
     groups of the last association (estimate_view_shifts), and the frame associated again with the shifted views
     and their tightened bands. A correction is kept only where it leaves more confident groups than before, and the
     pairs' one only where those are enough to re-estimate the shifts from (the crowd's own test of it: wrong shifts

@@ -977,7 +977,7 @@ def _epipolar_offsets(frame: _Frame, heights: bool = False) -> list[tuple]:
     a shift of i's pixels (finite differences) and of j's (the segment's normal): (i, j, d, dd/ds_i, dd/ds_j, gate).
     ``heights``: each tuple goes on with the height (m) where the candidate's ray meets i's, how it moves with the
     four shift coordinates (n x 4, finite differences) and with a pixel along the segment (m per px, its size)."""
-    out = []
+    out: list[tuple] = []
     for i in range(len(frame.views)):
         di = np.arange(frame.offsets[i], frame.offsets[i + 1])
         di = di[frame.valid[di]]

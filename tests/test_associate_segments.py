@@ -142,6 +142,57 @@ def test_the_pairs_em_candidates_are_the_ball_searches_within_the_gate():
     assert total > 500
 
 
+
+def test_the_pairs_em_heights_are_where_the_rays_meet():
+    """Each candidate's height in the pairs' EM is where its ray meets i's: a true pair's is its head's height (exact
+    detections), and the finite-difference gradient predicts the height under a shift of either view."""
+    from rigsfm.associate.solve import _epipolar_offsets
+
+    views, points = _crowd_views(seed=1, noise_px=0.0)
+    options = AssociateOptions(pixel_sigma=1.5)
+    pairs = _epipolar_offsets(_Frame(views, options), heights=True)
+    d = np.concatenate([p[2] for p in pairs])
+    height = np.concatenate([p[6] for p in pairs])
+    true = np.abs(d) < 1e-6  # exact detections: a true pair lies on its segment, a chance one almost never
+    assert true.sum() > 300 and (~true).sum() > 300
+    gap = np.min(np.abs(height[true][:, None] - points[None, :, 2]), axis=1)
+    assert np.max(gap) < 1e-6, np.max(gap)
+    # chance candidates' rays meet i's anywhere along the segment
+    assert np.mean((height[~true] < 1.55) | (height[~true] > 1.95)) > 0.3
+    # the heights under a shift of view 3 (i in its pairs with 4, j in the others'), against the linearised ones
+    step = np.array([0.6, -0.4])
+    views[3].shift_px = step
+    shifted = {(p[0], p[1]): p for p in _epipolar_offsets(_Frame(views, options), heights=True)}
+    checked, close = 0, 0
+    for i, j, d0, grad_i, grad_j, _gate, h0, grad_h, _per_px in pairs:
+        if 3 not in (i, j) or (i, j) not in shifted:
+            continue
+        x = np.r_[step, 0.0, 0.0] if i == 3 else np.r_[0.0, 0.0, step]
+        # the shift moves some candidates out of the band and others in: each predicted one against the nearest
+        # after the shift (distance in px, height in cm)
+        after = shifted[(i, j)]
+        predicted = np.c_[d0 + np.c_[grad_i, grad_j] @ x, 100 * (h0 + grad_h @ x)]
+        gap = np.min(np.linalg.norm(predicted[:, None] - np.c_[after[2], 100 * after[6]][None], axis=2), axis=1)
+        checked += len(gap)
+        close += int(np.sum(gap < 0.2))
+    assert checked > 200 and close > 0.95 * checked, (close, checked)
+
+
+def test_the_pairs_em_with_heights_finds_shifts_put_into_the_views():
+    """Each view's detections moved by a few pixels: the pairs' EM with the candidates' heights, annealed from the
+    run's poses and three draws, finds the shifts (the heights fix the common shift the distances leave free)."""
+    from rigsfm.associate.solve import pairwise_view_shifts
+
+    views, _ = _crowd_views(seed=2, heads=300)
+    put = np.random.default_rng(12).normal(0.0, 4.0, (len(views), 2))
+    for view, shift in zip(views, put):
+        view.xy = view.xy + shift
+        view.sigma_pose_px = 3.5
+    options = AssociateOptions(pixel_sigma=1.5)
+    correction, gain = pairwise_view_shifts(_Frame(views, options), options, heights=True)
+    assert gain > 0
+    assert np.max(np.linalg.norm(correction.shift_px - put, axis=1)) < 1.5, correction.shift_px
+
 def test_no_segment_or_no_detection_gives_no_candidate():
     from rigsfm.associate.segments import near_segments
 

@@ -20,8 +20,9 @@ Per frame:
 5. Self-calibration: a view's pose error moves all its detections alike, by more than the heads' spacing allows a
    band to absorb. Per view a shift of its undistorted pixels (a small rotation) is estimated, first from the pairs
    (pairwise_view_shifts), then from the confident groups (estimate_view_shifts), each under the run's pose sigma as
-   its prior; the frame is associated again with the shifted views and the bands the shift leaves. A correction is
-   kept only where it leaves more confident groups than before.
+   its prior (the pairs' from their distances alone and with where the candidates' rays meet, the crowd's heights:
+   whichever associates into more confident groups); the frame is associated again with the shifted views and the
+   bands the shift leaves. A correction is kept only where it leaves more confident groups than before.
 """
 
 from __future__ import annotations
@@ -1007,10 +1008,20 @@ def _signed_distance(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> tuple[np.nd
     return np.sum((p - a) * normal, axis=1), np.sum((p - a) * s, axis=1) / length ** 2, normal
 
 
-def _epipolar_offsets(frame: _Frame) -> list[tuple[int, int, np.ndarray, np.ndarray, np.ndarray, float]]:
+def _ray_height(ci: np.ndarray, di: np.ndarray, cj: np.ndarray, dj: np.ndarray) -> np.ndarray:
+    """The height (z) of the point of ray i (centre, unit direction; rows) nearest to ray j: where i's ray meets j's."""
+    w = ci - cj
+    b = np.sum(di * dj, axis=1)
+    t = (b * np.sum(dj * w, axis=1) - np.sum(di * w, axis=1)) / np.maximum(1.0 - b * b, 1e-12)
+    return ci[:, 2] + t * di[:, 2]
+
+
+def _epipolar_offsets(frame: _Frame, heights: bool = False) -> list[tuple]:
     """Per pair (i, j): every candidate's signed distance (px) from i's ray segment in j, and how it moves with
-    a shift of i's pixels (finite differences) and of j's (the segment's normal): (i, j, d, dd/ds_i, dd/ds_j, gate)."""
-    out = []
+    a shift of i's pixels (finite differences) and of j's (the segment's normal): (i, j, d, dd/ds_i, dd/ds_j, gate).
+    ``heights``: each tuple goes on with the height (m) where the candidate's ray meets i's, how it moves with the
+    four shift coordinates (n x 4, finite differences) and with a pixel along the segment (m per px, its size)."""
+    out: list[tuple] = []
     for i in range(len(frame.views)):
         di = np.arange(frame.offsets[i], frame.offsets[i + 1])
         di = di[frame.valid[di]]
@@ -1042,63 +1053,119 @@ def _epipolar_offsets(frame: _Frame) -> list[tuple[int, int, np.ndarray, np.ndar
                 a1, b1, _ = _segment_in(frame, i, j, frame.uv[di] - step)  # as a shift of +1 moves the pixels
                 grad_i[:, axis] = _signed_distance(p, a1[ra], b1[ra])[0] - d
             # A shift s_j moves j's pixels by -s_j: the distance by -normal . s_j.
-            out.append((i, j, d[keep], grad_i[keep], -normal[keep], gate))
+            if not heights:
+                out.append((i, j, d[keep], grad_i[keep], -normal[keep], gate))
+                continue
+            ra, p = ra[keep], p[keep]
+            ci, cj = np.broadcast_to(frame.centres[i], (len(p), 3)), np.broadcast_to(frame.centres[j], (len(p), 3))
+            ui = frame.uv[di[ra]]
+            ray_i, ray_j = frame.rays_of_view(ui, i), frame.rays_of_view(p, j)
+            h = _ray_height(ci, ray_i, cj, ray_j)
+            grad_h = np.zeros((len(p), 4))
+            for axis in range(2):
+                step = np.zeros(2)
+                step[axis] = 1.0
+                grad_h[:, axis] = _ray_height(ci, frame.rays_of_view(ui - step, i), cj, ray_j) - h
+                grad_h[:, 2 + axis] = _ray_height(ci, ray_i, cj, frame.rays_of_view(p - step, j)) - h
+            along = (b - a)[ra] / length[ra, None]
+            per_px = np.abs(np.sum(grad_h[:, 2:] * along, axis=1))
+            out.append((i, j, d[keep], grad_i[keep], -normal[keep], gate, h, grad_h, per_px))
     return out
 
 
-def pairwise_view_shifts(frame: _Frame, options: AssociateOptions, starts: int = 20,
-                         seed: int = 0) -> tuple[ViewCorrection, float]:
+ANNEAL = (4.0, 2.0, 1.0)  # the pairs' EM with heights: its distances' variance, as a multiple of the pixels', by stage
+HEIGHT_BIN_M = 0.05  # the chance candidates' heights: their histogram's bin
+
+
+def pairwise_view_shifts(frame: _Frame, options: AssociateOptions, starts: int | None = None, seed: int = 0,
+                         heights: bool = True) -> tuple[ViewCorrection, float]:
     """Per-view shifts from the pairs alone, before any association: every pair's candidates are a mixture of
-    true correspondences (their distance from the epipolar segment is the two views' pixel noise once the views
-    are shifted right) and chance ones (uniform across the band). EM over that mixture, each view's shift with the
-    run's pose sigma as its prior, from the run's poses and from draws of that prior; the best penalised
-    likelihood wins. Returns the correction and its log-likelihood gain over no shift."""
+    true correspondences and chance ones. A true one's distance from the epipolar segment is the two views' pixel
+    noise once the views are shifted right, and its height (where its ray meets i's) is the crowd's, a normal whose
+    mean and spread the EM estimates (from ``options.height_prior`` where given, else the height range's middle); a
+    chance one is uniform across the band, its height as all candidates' heights are spread (their histogram: the
+    chance ones are nearly all of them). EM over that mixture, each view's shift with the run's pose sigma as its
+    prior, from the run's poses and from draws of that prior, each annealed (the distances' variance widened at
+    first, so that a start far from the shifts does not stop in the nearest of the many optima the crowd's chance
+    pairs leave); the best penalised likelihood wins. Returns the correction and its log-likelihood gain over no
+    shift. ``heights`` False: the distances alone, not annealed (``starts``: 20 then, else 4)."""
     views = frame.views
     nv = len(views)
     prior = np.array([max(v.band_sigma_px if v.band_sigma_px is not None else v.sigma_pose_px, 1e-3)
                       for v in views])
-    pairs = _epipolar_offsets(frame)
+    starts = starts if starts is not None else 4 if heights else 20
+    pairs = _epipolar_offsets(frame, heights=True)
     if not pairs:
         return ViewCorrection(np.zeros((nv, 2)), prior, np.full(nv, np.nan), np.zeros(nv, dtype=int)), 0.0
     d = np.concatenate([p[2] for p in pairs])
-    # Each candidate's distance moves with four of the 2V shift coordinates (i's and j's): kept compact, the
-    # normal equations are per-pair 4x4 blocks summed from precomputed outer products.
+    height = np.concatenate([p[6] for p in pairs])
+    per_px = np.concatenate([p[8] for p in pairs])
+    # Each candidate's distance and height move with four of the 2V shift coordinates (i's and j's): kept compact,
+    # the normal equations are per-pair 4x4 blocks summed from precomputed outer products.
     grad = np.concatenate([np.c_[p[3], p[4]] for p in pairs])  # n x 4
+    grad_h = np.concatenate([p[7] for p in pairs])  # n x 4
     cols = np.array([[2 * i, 2 * i + 1, 2 * j, 2 * j + 1] for i, j, *_rest in pairs])  # pairs x 4
     sizes = np.array([len(p[2]) for p in pairs])
     pair_of = np.repeat(np.arange(len(pairs)), sizes)
     indptr, indices = np.concatenate([[0], np.cumsum(sizes)]), np.arange(len(d))
-    # the outer products' ten distinct entries (symmetric) and grad * d, summed per pair in one sparse product
+    # the outer products' ten distinct entries (symmetric) and grad * value (and the heights' grad alone, for their
+    # mean), summed per pair in one sparse product
     upper = [(r_, c_) for r_ in range(4) for c_ in range(r_, 4)]
     full = np.array([upper.index((min(r_, c_), max(r_, c_))) for r_ in range(4) for c_ in range(4)])
     sums_of = np.c_[np.stack([grad[:, r_] * grad[:, c_] for r_, c_ in upper], axis=1), grad * d[:, None]]
+    sums_h_of = np.c_[np.stack([grad_h[:, r_] * grad_h[:, c_] for r_, c_ in upper], axis=1),
+                      grad_h * height[:, None], grad_h]
     block_rows = np.repeat(cols, 4, axis=1).ravel()
     block_cols = np.tile(cols, (1, 4)).ravel()
     uniform = np.repeat([1.0 / (2 * p[5]) for p in pairs], sizes)
-    var = 2.0 * options.pixel_sigma ** 2
+    lo, hi = options.heights
+    edges = np.arange(lo - HEIGHT_BIN_M, hi + 2 * HEIGHT_BIN_M, HEIGHT_BIN_M)
+    histogram, _ = np.histogram(np.clip(height, edges[0], edges[-1]), bins=edges, density=True)
+    chance = uniform * np.maximum(histogram[np.clip(np.searchsorted(edges, height) - 1, 0, len(histogram) - 1)],
+                                  1e-3 / (hi - lo))
+    pixel_var = 2.0 * options.pixel_sigma ** 2
     precision = np.repeat(1.0 / prior ** 2, 2)
+    least_spread = HEIGHT_BIN_M
+    start_height = options.height_prior or ((lo + hi) / 2, (hi - lo) / 4)
 
     grad_t = np.ascontiguousarray(grad.T)
+    grad_h_t = np.ascontiguousarray(grad_h.T)
 
-    def residual(x):
-        # d + grad . x, the dot summed in np.sum's order; each candidate's four shift coordinates are its pair's
+    def moved(base, gt, x):
+        # base + grad . x, the dot summed in np.sum's order; each candidate's four shift coordinates are its pair's
         # (repeated per pair, not gathered per candidate)
         xs = [np.repeat(x[cols[:, c_]], sizes) for c_ in range(4)]
-        return d + (((grad_t[0] * xs[0] + grad_t[1] * xs[1]) + grad_t[2] * xs[2]) + grad_t[3] * xs[3])
+        return base + (((gt[0] * xs[0] + gt[1] * xs[1]) + gt[2] * xs[2]) + gt[3] * xs[3])
 
-    def normal_equations(w):
-        sums = sp.csr_matrix((w, indices, indptr), shape=(len(pairs), len(d))) @ sums_of
+    def residual(x):
+        return moved(d, grad_t, x)
+
+    def blocks(w, sums_from, lhs):
+        sums = sp.csr_matrix((w, indices, indptr), shape=(len(pairs), len(d))) @ sums_from
+        np.add.at(lhs, (block_rows, block_cols), sums[:, full].ravel())
+        return sums[:, 10:]
+
+    def normal_equations(w, var, wh=None, mean=0.0):
         lhs = np.zeros((2 * nv, 2 * nv))
-        np.add.at(lhs, (block_rows, block_cols), sums[:, full].ravel() / var)
         rhs = np.zeros(2 * nv)
-        np.add.at(rhs, cols.ravel(), sums[:, 10:].ravel() / var)
+        np.add.at(rhs, cols.ravel(), blocks(w / var, sums_of, lhs).ravel())
+        if wh is not None:
+            sums = blocks(wh, sums_h_of, lhs)
+            np.add.at(rhs, cols.ravel(), (sums[:, :4] - mean * sums[:, 4:]).ravel())
         return lhs + np.diag(precision), rhs
 
-    def loglik(x, share, value=True):
+    def loglik(x, share, mean, spread, var=pixel_var, value=True):
         r = residual(x)
         shares = np.repeat(share, sizes)  # share[pair_of]
-        inlier = shares * np.exp(-0.5 * r ** 2 / var) / math.sqrt(2 * math.pi * var)
-        mix = inlier + (1 - shares) * uniform
+        if heights:
+            height_var = spread ** 2 + per_px ** 2 * var
+            rh = moved(height, grad_h_t, x) - mean
+            inlier = shares * np.exp(-0.5 * (r ** 2 / var + rh ** 2 / height_var)) / (2 * math.pi
+                                                                                      * np.sqrt(var * height_var))
+            mix = inlier + (1 - shares) * chance
+        else:
+            inlier = shares * np.exp(-0.5 * r ** 2 / var) / math.sqrt(2 * math.pi * var)
+            mix = inlier + (1 - shares) * uniform
         if not value:  # the EM's steps need the weights only
             return None, inlier / mix
         return float(np.sum(np.log(mix)) - 0.5 * np.sum(precision * x ** 2)), inlier / mix
@@ -1109,23 +1176,32 @@ def pairwise_view_shifts(frame: _Frame, options: AssociateOptions, starts: int =
     for start in range(starts):
         x = np.zeros(2 * nv) if start == 0 else rng.normal(0.0, np.repeat(prior, 2))
         share = np.full(len(pairs), 0.1)
-        for _ in range(50):
-            _, w = loglik(x, share, value=False)
-            share = np.clip(np.bincount(pair_of, w, len(pairs)) / counts, 1e-3, 0.999)
-            # r = d + J x: the weighted least squares with the prior
-            lhs, rhs = normal_equations(w)
-            new = np.linalg.solve(lhs, -rhs)
-            done = np.max(np.abs(new - x)) < 0.01
-            x = new
-            if done:
-                break
-        value, w = loglik(x, share)
+        mean, spread = start_height
+        for factor in ANNEAL if heights else (1.0,):
+            var = factor * pixel_var
+            for _ in range(50):
+                _, w = loglik(x, share, mean, spread, var, value=False)
+                share = np.clip(np.bincount(pair_of, w, len(pairs)) / counts, 1e-3, 0.999)
+                # r = d + J x, rh = h + J_h x - mean: the weighted least squares with the prior, then the heights'
+                # mean and spread (their excess over what the pixels' noise gives) under the new shifts
+                wh = w / (spread ** 2 + per_px ** 2 * var)
+                lhs, rhs = normal_equations(w, var, wh if heights else None, mean)
+                new = np.linalg.solve(lhs, -rhs)
+                h = moved(height, grad_h_t, new)
+                mean = float(np.sum(wh * h) / max(np.sum(wh), 1e-12))
+                excess = float(np.sum(w * ((h - mean) ** 2 - per_px ** 2 * var)) / max(np.sum(w), 1e-12))
+                spread = min(max(math.sqrt(max(excess, 0.0)), least_spread), (hi - lo) / 2)
+                done = np.max(np.abs(new - x)) < 0.01
+                x = new
+                if done:
+                    break
+        value, w = loglik(x, share, mean, spread)
         if best is None or value > best[0]:
-            best = (value, x, w, share)
+            best = (value, x, w, share, mean, spread)
     assert best is not None  # the loop above runs at least once
-    value, x, w, share = best
-    zero = loglik(np.zeros(2 * nv), share)[0]
-    lhs, _ = normal_equations(w)
+    value, x, w, share, mean, spread = best
+    zero = loglik(np.zeros(2 * nv), share, mean, spread)[0]
+    lhs, _ = normal_equations(w, pixel_var, w / (spread ** 2 + per_px ** 2 * pixel_var) if heights else None, mean)
     cov = np.linalg.inv(lhs)
     sigma = np.sqrt(np.maximum(cov[0::2, 0::2].diagonal(), cov[1::2, 1::2].diagonal()))
     r = residual(x)
@@ -1134,6 +1210,7 @@ def pairwise_view_shifts(frame: _Frame, options: AssociateOptions, starts: int =
     for k, (i, j, *_rest) in enumerate(pairs):
         count[i] += per_pair[k]
         count[j] += per_pair[k]
+    logger.debug("pairs' EM: the crowd's heights %.2f +- %.2f m", mean, spread)
     # A pair's distance carries both views' noise: per view and coordinate, half its variance.
     scatter = np.full(nv, math.sqrt(float(np.sum(w * r ** 2) / max(w.sum(), 1e-9)) / 2.0))
     return ViewCorrection(x.reshape(nv, 2), sigma, scatter, count.astype(int)), value - zero
@@ -1195,7 +1272,8 @@ def associate_views(views: list[View], options: AssociateOptions, carried: bool 
     """Persons seen by the detections of one frame's views (each view: pose, camera and raw detections).
 
     Every view's pose error is shared by all the persons it sees. With ``options.self_calibration_rounds`` > 0 the
-    views are first shifted by the pairs' own evidence (pairwise_view_shifts), then, each round, by the confident
+    views are first shifted by the pairs' own evidence (pairwise_view_shifts: the distances alone and with the
+    candidates' heights, the one whose association holds more confident groups), then, each round, by the confident
     groups of the last association (estimate_view_shifts), and the frame associated again with the shifted views
     and their tightened bands. A correction is kept only where it leaves more confident groups than before, and the
     pairs' one only where those are enough to re-estimate the shifts from (the crowd's own test of it: wrong shifts
@@ -1240,12 +1318,20 @@ def associate_views(views: list[View], options: AssociateOptions, carried: bool 
         if options.self_calibration_rounds > 0 and len(confident) >= options.self_calibration_min_members:
             pending = estimate_view_shifts(state[0], confident, options, pooled=True)
     elif options.self_calibration_rounds > 0 and len(views) >= 3:
-        correction, gain = pairwise_view_shifts(state[0], options)
-        trial = _corrected(views, correction, options)
-        tried = _solve(trial, options)
-        tried_count = len(_confident(tried[1], tried[4], options))
-        logger.info("pairwise shifts (log-likelihood gain %.1f): %d confident groups against %d on the run's poses",
-                    gain, tried_count, count)
+        # Two starts, each associated once and the one with more confident groups taken: the pairs' distances alone,
+        # and with the candidates' heights (neither finds the shifts on every crowd)
+        best: tuple | None = None
+        for heights in (False, True):
+            correction, gain = pairwise_view_shifts(state[0], options, heights=heights)
+            trial = _corrected(views, correction, options)
+            tried = _solve(trial, options)
+            tried_count = len(_confident(tried[1], tried[4], options))
+            logger.info("pairwise shifts (%s, log-likelihood gain %.1f): %d confident groups against %d on the run's "
+                        "poses", "with the heights" if heights else "distances", gain, tried_count, count)
+            if best is None or tried_count > best[2]:
+                best = (trial, tried, tried_count)
+        assert best is not None  # the loop above runs twice
+        trial, tried, tried_count = best
         # Kept only when the shifted views hold enough confident groups to re-estimate the shifts from: a handful
         # more than none is chance, not evidence.
         if tried_count > count and tried_count >= options.self_calibration_min_members:

@@ -127,6 +127,15 @@ def test_sigma_keys_round_trip_and_are_checked():
     bad["narrow_from_wide"]["covariance"][0][0] = -1e-8
     with pytest.raises(InputError, match="positive semi-definite"):
         sigmas_from_entry(bad, "rigs.yaml: rig 'rig01'")
+    # a large negative variance (the fuzz test's find): scaled by its clipped root it overflowed into numpy's
+    # "Eigenvalues did not converge"
+    bad["narrow_from_wide"]["covariance"][1][1] = -179769314.0
+    with pytest.raises(InputError, match="positive semi-definite"):
+        sigmas_from_entry(bad, "rigs.yaml: rig 'rig01'")
+    bad = yaml.safe_load(text)["rigs"][0]
+    bad["narrow_from_wide"]["covariance"][0][0] = 0.0  # no variance, yet a covariance with the others
+    with pytest.raises(InputError, match="positive semi-definite"):
+        sigmas_from_entry(bad, "rigs.yaml: rig 'rig01'")
 
 
 @pytest.mark.slow

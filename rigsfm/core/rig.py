@@ -357,7 +357,10 @@ def sigmas_from_entry(entry: dict, where: str, cameras: dict[str, pycolmap.Camer
         if cov.shape != (6, 6) or not np.isfinite(cov).all():
             raise InputError(f"{what}: expected a finite 6x6 matrix, got shape {cov.shape}")
         scale = np.sqrt(np.clip(np.diag(cov), 1e-300, None))
-        if not (np.abs(cov - cov.T) <= 1e-6 * np.abs(cov.T)).all() or np.linalg.eigvalsh(cov / np.outer(scale, scale)).min() < -1e-6:
+        with np.errstate(over="ignore", invalid="ignore"):  # a variance of nothing under a large covariance: inf
+            scaled = cov / np.outer(scale, scale)
+        if ((np.diag(cov) < 0).any() or not (np.abs(cov - cov.T) <= 1e-6 * np.abs(cov.T)).all()
+                or not np.isfinite(scaled).all() or np.linalg.eigvalsh(scaled).min() < -1e-6):
             raise InputError(f"{what}: must be symmetric positive semi-definite ([w (rad), t (m)])")
         if np.degrees(np.sqrt(np.diag(cov)[:3])).max() > MAX_SIGMA_ROTATION_DEG:
             raise InputError(f"{what}: a rotation variance above ({MAX_SIGMA_ROTATION_DEG:g} deg)^2; the rotation "

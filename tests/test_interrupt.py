@@ -427,7 +427,8 @@ def test_a_signal_inside_a_callback_python_cannot_raise_from_is_not_lost(tmp_pat
     screen, or not at all. Other exceptions of that kind are still printed as Python prints them."""
     script = tmp_path / "unraisable.py"
     script.write_text(UNRAISABLE_SCRIPT.format(name=name))
-    done = subprocess.run([sys.executable, str(script)], env=_env(), text=True, capture_output=True, timeout=60)
+    done = subprocess.run([sys.executable, str(script)], env=_env(), text=True, capture_output=True, timeout=60,
+                          preexec_fn=as_from_a_terminal)  # a suite run as a background job has SIGINT ignored
     lines = done.stderr.strip().splitlines()
     assert lines[-1] == f"stopped in the code that ran next: {raised}", done.stderr
     assert "ValueError: a failure of its own" in done.stderr  # the __del__'s own failure, shown as before

@@ -124,7 +124,7 @@ def test_the_pairs_em_candidates_are_the_ball_searches_within_the_gate():
 
     views, _ = _crowd_views(seed=3)
     frame = _Frame(views, AssociateOptions(pixel_sigma=1.5))
-    found = {(i, j): (d, gi) for i, j, d, gi, _gj, _gate in _epipolar_offsets(frame)}
+    found = {(i, j): (d, gi) for i, j, d, gi, *_rest in _epipolar_offsets(frame)}
     total = 0
     for i in range(len(views)):
         di = np.arange(frame.offsets[i], frame.offsets[i + 1])
@@ -149,7 +149,7 @@ def test_the_pairs_em_heights_are_where_the_rays_meet():
 
     views, points = _crowd_views(seed=1, noise_px=0.0)
     options = AssociateOptions(pixel_sigma=1.5)
-    pairs = _epipolar_offsets(_Frame(views, options), heights=True)
+    pairs = _epipolar_offsets(_Frame(views, options))
     d = np.concatenate([p[2] for p in pairs])
     height = np.concatenate([p[6] for p in pairs])
     true = np.abs(d) < 1e-6  # exact detections: a true pair lies on its segment, a chance one almost never
@@ -161,7 +161,7 @@ def test_the_pairs_em_heights_are_where_the_rays_meet():
     # the heights under a shift of view 3 (i in its pairs with 4, j in the others'), against the linearised ones
     step = np.array([0.6, -0.4])
     views[3].shift_px = step
-    shifted = {(p[0], p[1]): p for p in _epipolar_offsets(_Frame(views, options), heights=True)}
+    shifted = {(p[0], p[1]): p for p in _epipolar_offsets(_Frame(views, options))}
     checked, close = 0, 0
     for i, j, d0, grad_i, grad_j, _gate, h0, grad_h, _per_px in pairs:
         if 3 not in (i, j) or (i, j) not in shifted:

@@ -1016,11 +1016,11 @@ def _ray_height(ci: np.ndarray, di: np.ndarray, cj: np.ndarray, dj: np.ndarray) 
     return ci[:, 2] + t * di[:, 2]
 
 
-def _epipolar_offsets(frame: _Frame, heights: bool = False) -> list[tuple]:
+def _epipolar_offsets(frame: _Frame) -> list[tuple]:
     """Per pair (i, j): every candidate's signed distance (px) from i's ray segment in j, and how it moves with
-    a shift of i's pixels (finite differences) and of j's (the segment's normal): (i, j, d, dd/ds_i, dd/ds_j, gate).
-    ``heights``: each tuple goes on with the height (m) where the candidate's ray meets i's, how it moves with the
-    four shift coordinates (n x 4, finite differences) and with a pixel along the segment (m per px, its size)."""
+    a shift of i's pixels (finite differences) and of j's (the segment's normal); then the height (m) where the
+    candidate's ray meets i's, how it moves with the four shift coordinates (n x 4, finite differences) and with a
+    pixel along the segment (m per px, its size): (i, j, d, dd/ds_i, dd/ds_j, gate, h, dh/ds, dh/dpx)."""
     out: list[tuple] = []
     for i in range(len(frame.views)):
         di = np.arange(frame.offsets[i], frame.offsets[i + 1])
@@ -1053,9 +1053,6 @@ def _epipolar_offsets(frame: _Frame, heights: bool = False) -> list[tuple]:
                 a1, b1, _ = _segment_in(frame, i, j, frame.uv[di] - step)  # as a shift of +1 moves the pixels
                 grad_i[:, axis] = _signed_distance(p, a1[ra], b1[ra])[0] - d
             # A shift s_j moves j's pixels by -s_j: the distance by -normal . s_j.
-            if not heights:
-                out.append((i, j, d[keep], grad_i[keep], -normal[keep], gate))
-                continue
             ra, p = ra[keep], p[keep]
             ci, cj = np.broadcast_to(frame.centres[i], (len(p), 3)), np.broadcast_to(frame.centres[j], (len(p), 3))
             ui = frame.uv[di[ra]]
@@ -1078,7 +1075,7 @@ HEIGHT_BIN_M = 0.05  # the chance candidates' heights: their histogram's bin
 
 
 def pairwise_view_shifts(frame: _Frame, options: AssociateOptions, starts: int | None = None, seed: int = 0,
-                         heights: bool = True) -> tuple[ViewCorrection, float]:
+                         heights: bool = True, offsets: list[tuple] | None = None) -> tuple[ViewCorrection, float]:
     """Per-view shifts from the pairs alone, before any association: every pair's candidates are a mixture of
     true correspondences and chance ones. A true one's distance from the epipolar segment is the two views' pixel
     noise once the views are shifted right, and its height (where its ray meets i's) is the crowd's, a normal whose
@@ -1088,13 +1085,14 @@ def pairwise_view_shifts(frame: _Frame, options: AssociateOptions, starts: int |
     prior, from the run's poses and from draws of that prior, each annealed (the distances' variance widened at
     first, so that a start far from the shifts does not stop in the nearest of the many optima the crowd's chance
     pairs leave); the best penalised likelihood wins. Returns the correction and its log-likelihood gain over no
-    shift. ``heights`` False: the distances alone, not annealed (``starts``: 20 then, else 4)."""
+    shift. ``heights`` False: the distances alone, not annealed (``starts``: 20 then, else 4). ``offsets``: the
+    frame's ``_epipolar_offsets``, where the caller has them already."""
     views = frame.views
     nv = len(views)
     prior = np.array([max(v.band_sigma_px if v.band_sigma_px is not None else v.sigma_pose_px, 1e-3)
                       for v in views])
     starts = starts if starts is not None else 4 if heights else 20
-    pairs = _epipolar_offsets(frame, heights=True)
+    pairs = offsets if offsets is not None else _epipolar_offsets(frame)
     if not pairs:
         return ViewCorrection(np.zeros((nv, 2)), prior, np.full(nv, np.nan), np.zeros(nv, dtype=int)), 0.0
     d = np.concatenate([p[2] for p in pairs])
@@ -1321,8 +1319,9 @@ def associate_views(views: list[View], options: AssociateOptions, carried: bool 
         # Two starts, each associated once and the one with more confident groups taken: the pairs' distances alone,
         # and with the candidates' heights (neither finds the shifts on every crowd)
         best: tuple | None = None
+        offsets = _epipolar_offsets(state[0])  # the same candidates for both
         for heights in (False, True):
-            correction, gain = pairwise_view_shifts(state[0], options, heights=heights)
+            correction, gain = pairwise_view_shifts(state[0], options, heights=heights, offsets=offsets)
             trial = _corrected(views, correction, options)
             tried = _solve(trial, options)
             tried_count = len(_confident(tried[1], tried[4], options))

@@ -4,9 +4,11 @@ SIFT on flat-shaded, view-dependent silhouettes gives chance matches only. Heads
 
 1. **Head candidates** per narrow image, without a detector's input: heads are round blobs of a known size. In the
    floor frame a pixel's ray meets the head-centre plane (``HEAD_CENTRE_M``) at a distance that gives the radius a
-   head of ``HEAD_RADIUS_M`` would have there; OpenCV's Hough circles search the image's range of those radii (on
-   one thread: deterministic), each circle is kept when its radius is within ``RADIUS_RATIO`` of the one expected at
-   its centre, and its centre is refined to sub-pixel by a circle fitted to the strongest radial edge along 64 rays
+   head of ``HEAD_RADIUS_M`` would have there. OpenCV's Hough circles (on one thread: deterministic) search the
+   image in horizontal bands whose expected radii lie within ``BAND_RATIO`` of each other, each band its own range
+   of radii (one search over a whole narrow view's range of radii costs far more and gives more false circles);
+   each circle is kept when its radius is within ``RADIUS_RATIO`` of the one
+   expected at its centre, and its centre is refined to sub-pixel by a circle fitted to the strongest radial edge along 64 rays
    (trimmed: occluded arcs drop out), kept only where the fit moved it little.
 2. **Association** of the candidates across the synchronised narrow views: :func:`rigsfm.associate.solve.
    associate_views` (``rigsfm associate``'s library call: candidates inside each pair's band between two heights,
@@ -77,6 +79,8 @@ HEAD_NOISE_PX = 2.0 * 1.96 * HEAD_PIXEL_SIGMA / math.sqrt(2.0)  # allowed on top
 REFINE_RAYS = 64
 REMAP_CIRCLES = 256  # circles per remap of the circle fit
 MIN_SEARCH_RADIUS_PX = 12.0  # heads expected smaller than this are searched on the image enlarged
+BAND_RATIO = 1.2  # a search band's largest expected head radius against its smallest
+BAND_ROWS = 32  # the strips an image's expected radii are sampled in
 
 
 @dataclass
@@ -167,18 +171,59 @@ def _refine(gray: np.ndarray, circles: np.ndarray) -> np.ndarray:
     return out
 
 
+def search_bands(image: pycolmap.Image, height: int, width: int) -> list[tuple[int, int, float, float]]:
+    """The image's horizontal bands of similar expected head radius (module docstring, step 1): (first row, row after
+    the last, smallest, largest expected radius) in OpenCV pixel rows. The image is cut in ``BAND_ROWS`` strips, the
+    radius sampled along each strip's middle row, and neighbouring strips joined while their radii stay within
+    ``BAND_RATIO`` of each other; strips whose rays do not reach the heads' plane are left out."""
+    edges = np.linspace(0.0, float(height), BAND_ROWS + 1)
+    middles = 0.5 * (edges[:-1] + edges[1:])
+    grid = np.array([[x, y] for y in middles for x in np.linspace(0.0, float(width), 9)], dtype=np.float64)
+    expected = expected_radius(image, grid).reshape(BAND_ROWS, -1)
+    expected = np.where(np.isfinite(expected) & (expected > 0), expected, np.nan)
+    known = np.isfinite(expected).any(axis=1)
+    low, high = np.full(BAND_ROWS, np.nan), np.full(BAND_ROWS, np.nan)
+    low[known], high[known] = np.nanmin(expected[known], axis=1), np.nanmax(expected[known], axis=1)
+    bands = []
+    start = 0
+    while start < BAND_ROWS:
+        if not known[start]:
+            start += 1
+            continue
+        lo, hi, end = low[start], high[start], start + 1  # strips start..end-1
+        while end < BAND_ROWS and known[end] and max(hi, high[end]) <= BAND_RATIO * min(lo, low[end]):
+            lo, hi, end = min(lo, low[end]), max(hi, high[end]), end + 1
+        bands.append((int(round(edges[start])), int(round(edges[end])), float(lo), float(hi)))
+        start = end
+    return bands
+
+
 def detect_heads(image: pycolmap.Image, gray: np.ndarray) -> np.ndarray:
     """Head candidates of one narrow image (module docstring, step 1): N x 3, raw COLMAP pixels x, y and the radius
     (px). ``image``: its pose in the floor frame (metres, z up); ``gray``: its pixels."""
     height, width = gray.shape
-    grid = np.array([[x, y] for x in np.linspace(0, width, 5) for y in np.linspace(0, height, 5)], dtype=np.float64)
-    expected = expected_radius(image, grid)
-    expected = expected[np.isfinite(expected) & (expected > 0)]
-    if len(expected) == 0:
-        return np.zeros((0, 3))
-    low, high = RADIUS_RATIO[0] * float(expected.min()), RADIUS_RATIO[1] * float(expected.max())
-    if high < 4.0 or low > 0.5 * min(width, height):
-        return np.zeros((0, 3))
+    found = [np.zeros((0, 3))]
+    for top, bottom, lo, hi in search_bands(image, height, width):
+        low, high = RADIUS_RATIO[0] * lo, RADIUS_RATIO[1] * hi
+        if high < 4.0 or low > 0.5 * min(width, height):
+            continue
+        # The band's rows and a head's radius around them: its circles whose centres lie in the band are whole.
+        pad = int(math.ceil(high)) + 2
+        first, last = max(0, top - pad), min(height, bottom + pad)
+        circles = _hough(gray[first:last], low, high)
+        circles[:, 1] += first
+        found.append(circles[(circles[:, 1] >= top - 0.5) & (circles[:, 1] < bottom - 0.5)])
+    circles = np.concatenate(found)
+    xy = colmap_from_opencv_pixels(circles[:, :2])
+    with np.errstate(invalid="ignore"):
+        ratio = circles[:, 2] / expected_radius(image, xy)
+    keep = (ratio >= RADIUS_RATIO[0]) & (ratio <= RADIUS_RATIO[1])
+    return np.c_[xy[keep], circles[keep, 2]]
+
+
+def _hough(gray: np.ndarray, low: float, high: float) -> np.ndarray:
+    """Circles of radius ``low``-``high`` px in ``gray``, refined (:func:`_refine`): N x 3, its OpenCV pixels x, y
+    and the radius."""
     # Small heads are searched on the image enlarged twice: the Hough gradient misses most circles below ~12 px.
     factor = 2 if low < MIN_SEARCH_RADIUS_PX else 1
     search = gray if factor == 1 else cv2.resize(gray, None, fx=factor, fy=factor, interpolation=cv2.INTER_LINEAR)
@@ -191,11 +236,7 @@ def detect_heads(image: pycolmap.Image, gray: np.ndarray) -> np.ndarray:
     circles = _refine(search, np.asarray(found[0], dtype=np.float64).reshape(-1, 3))
     circles[:, :2] = (circles[:, :2] + 0.5) / factor - 0.5  # the image's OpenCV pixels
     circles[:, 2] /= factor
-    xy = colmap_from_opencv_pixels(circles[:, :2])
-    with np.errstate(invalid="ignore"):
-        ratio = circles[:, 2] / expected_radius(image, xy)
-    keep = (ratio >= RADIUS_RATIO[0]) & (ratio <= RADIUS_RATIO[1])
-    return np.c_[xy[keep], circles[keep, 2]]
+    return circles
 
 
 def head_sigma(residuals: np.ndarray, persons: int) -> float | None:

@@ -63,9 +63,14 @@ def test_heads_are_matched_across_views_and_turn_the_observations_on(rendered):
     truth = dataset.load_ground_truth()  # the floor frame, exact poses
     names = [im.name for im in truth.images.values() if "/narrow/" in im.name]
     bands = {(a, b): BAND_PX for a in names for b in names if a != b}
-    heads = match_heads(truth, dataset.images, synchronised_frames(truth), bands)
+    calls: list[tuple[int, int]] = []
+    heads = match_heads(truth, dataset.images, synchronised_frames(truth), bands, threads=2,
+                        progress=lambda *call: calls.append(call))
     used, reason = decide_heads(heads)
     assert used, reason
+    # The bar counts the frame's images as they are searched, then its association.
+    searched = len(heads.candidates)
+    assert calls == [(k, searched + 1) for k in range(1, searched + 2)], calls
     assert not any(p.held_out.any() for p in heads.pairs)  # every confident person enters the adjustment
     # The matches are mostly the same person's head in both views (each centre within 6 px of a true head; 79 % when
     # written, 77 % with the persons of three views scoring above 2).

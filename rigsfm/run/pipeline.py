@@ -382,7 +382,7 @@ def _run_locked(workspace: Workspace, inputs: Inputs, manual_pairs: dict, option
         if options.narrow != NarrowMode.OFF:  # narrow observations: a second adjustment where they are used
             with timings.stage("narrow_observations"):
                 first, (result, narrow) = result, second_pass(result, world, inputs, options, given_offsets,
-                                                              uncertainty.bands)
+                                                              uncertainty.bands, report("narrow"))
                 result.influential = result.influential or first.influential  # the second starts from its model
                 metric = is_metric(result)
             if result is not first and narrow.bands_from == BANDS_WITH_NARROW:  # (not with heads: bands_from)

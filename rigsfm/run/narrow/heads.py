@@ -41,6 +41,8 @@ from __future__ import annotations
 
 import logging
 import math
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -272,10 +274,13 @@ def _association_options() -> AssociateOptions:
 
 
 def match_heads(floor_model: pycolmap.Reconstruction, image_dir: Path, frames: dict[str, list[pycolmap.Image]],
-                bands: dict[tuple[str, str], float], max_frames: int = 1) -> HeadMatches:
+                bands: dict[tuple[str, str], float], max_frames: int = 1, threads: int = 1,
+                progress: Callable[[int, int], None] | None = None) -> HeadMatches:
     """Heads matched across the synchronised narrow views of the first ``max_frames`` frames (module docstring,
     steps 1-3). ``floor_model``: the first adjustment in the floor frame; ``frames``: frame -> its narrow images
-    (of ``floor_model``); ``bands``: (i, j) -> the pair's 95 % band (px) from the first adjustment's uncertainty."""
+    (of ``floor_model``); ``bands``: (i, j) -> the pair's 95 % band (px) from the first adjustment's uncertainty;
+    ``threads``: images searched at once; ``progress(done, total)``: per frame, its images searched and then its
+    association."""
     out = HeadMatches()
     for frame in list(frames)[:max(1, max_frames)]:
         images = frames[frame]
@@ -283,13 +288,20 @@ def match_heads(floor_model: pycolmap.Reconstruction, image_dir: Path, frames: d
         names = sorted({n for p in overlapping for n in p})
         if len(names) < 2:
             continue
+        images_of = [floor_model.find_image_with_name(name) for name in names]
+
+        def candidates(image: pycolmap.Image) -> np.ndarray:
+            gray = read_image(Path(image_dir) / image.name, cv2.IMREAD_GRAYSCALE)
+            return np.zeros((0, 3)) if gray is None else detect_heads(image, gray)
+
         views = []
-        for name in names:
-            image = floor_model.find_image_with_name(name)
-            gray = read_image(Path(image_dir) / name, cv2.IMREAD_GRAYSCALE)
-            heads = np.zeros((0, 3)) if gray is None else detect_heads(image, gray)
-            out.candidates[name] = len(heads)
-            views.append(View.of(image, heads[:, :2]))
+        # The images side by side (OpenCV's Hough frees the GIL), each search on one thread: the same circles.
+        with one_opencv_thread(), ThreadPoolExecutor(max(1, min(threads, len(names)))) as pool:
+            for image, heads in zip(images_of, pool.map(candidates, images_of)):
+                out.candidates[image.name] = len(heads)
+                views.append(View.of(image, heads[:, :2]))
+                if progress:
+                    progress(len(views), len(names) + 1)
         if sum(len(v.xy) for v in views) == 0:
             continue
         pair_bands = {key: float(b) for key, b in bands.items() if key[0] in names and key[1] in names
@@ -298,6 +310,8 @@ def match_heads(floor_model: pycolmap.Reconstruction, image_dir: Path, frames: d
         for view in views:
             view.sigma_pose_px = sigmas[view.name]
         result = associate_views(views, _association_options())
+        if progress:
+            progress(len(names) + 1, len(names) + 1)
         present = result.members >= 0
         confident = np.flatnonzero((present.sum(axis=1) >= MIN_GROUP_VIEWS) & (result.scores > MIN_GROUP_SCORE))
         per_pair = _per_pair(views, result.members, confident, overlapping)  # none held out (step 3)

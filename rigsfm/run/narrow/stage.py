@@ -4,7 +4,9 @@ matches are found): the second adjustment with them, the check of the held-out m
 from __future__ import annotations
 
 import logging
+import os
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -69,12 +71,14 @@ def held_out_check(model: pycolmap.Reconstruction, pairs: list[PairMatches], ban
 
 
 def narrow_observations(result, world, image_dir: Path, asked: NarrowMode, options: SelfCheckOptions | None = None,
-                        offsets: dict[str, int] | None = None, bands: dict | None = None
+                        offsets: dict[str, int] | None = None, bands: dict | None = None, threads: int = 1,
+                        progress: Callable[[int, int], None] | None = None
                         ) -> tuple[pycolmap.Reconstruction | None, NarrowObservations]:
     """Match (in the floor frame; without a floor, along the whole epipolar lines), decide, and return the adjusted
     model with the narrow observations added (None when they are not used) with the record. ``result``: the first
     AdjustResult; ``world``: its WorldResult; ``bands``: the first adjustment's (i, j) -> PairBand or px, which the
-    heads' association searches (rigsfm.run.narrow.heads: where the floor matching finds no texture)."""
+    heads' association searches (rigsfm.run.narrow.heads: where the floor matching finds no texture); ``threads``:
+    the heads' images searched at once; ``progress(done, total)``: the heads' (match_heads)."""
     start = time.perf_counter()
     if asked == NarrowMode.OFF:
         return None, NarrowObservations(str(asked), False, "not asked (--narrow off)")
@@ -90,7 +94,7 @@ def narrow_observations(result, world, image_dir: Path, asked: NarrowMode, optio
     record = NarrowObservations(str(asked), used, reason, pairs, features=features)
     if floor_frame and not any(p.textured for p in pairs):
         # No texture through the floor warp: heads, off the floor, are the features of a crowd of 3D persons.
-        heads = heads_instead(floor_model, image_dir, options, offsets, bands, record)
+        heads = heads_instead(floor_model, image_dir, options, offsets, bands, record, threads, progress)
         if heads:
             pairs, used = record.pairs, record.used
     model: pycolmap.Reconstruction | None = None
@@ -115,7 +119,8 @@ def narrow_observations(result, world, image_dir: Path, asked: NarrowMode, optio
 
 
 def heads_instead(floor_model: pycolmap.Reconstruction, image_dir: Path, options: SelfCheckOptions | None,
-                  offsets: dict[str, int] | None, bands: dict | None, record: NarrowObservations) -> bool:
+                  offsets: dict[str, int] | None, bands: dict | None, record: NarrowObservations, threads: int = 1,
+                  progress: Callable[[int, int], None] | None = None) -> bool:
     """Match heads (rigsfm.run.narrow.heads); where they decide on (``auto``: enough confident persons; ``on``:
     any), ``record`` takes their pairs and decision. Returns whether it did."""
     opt = options or SelfCheckOptions()
@@ -126,7 +131,7 @@ def heads_instead(floor_model: pycolmap.Reconstruction, image_dir: Path, options
         value = getattr(band, "band_px", band)
         if value is not None:
             floats[key] = floats[(key[1], key[0])] = float(value)
-    heads = match_heads(floor_model, image_dir, frames, floats, opt.max_frames)
+    heads = match_heads(floor_model, image_dir, frames, floats, opt.max_frames, threads, progress)
     enough, reason = decide_heads(heads)
     record.head_persons, record.head_candidates = heads.persons, sum(heads.candidates.values())
     if not (enough or (record.asked == str(NarrowMode.ON) and heads.persons > 0)):
@@ -143,14 +148,16 @@ def heads_instead(floor_model: pycolmap.Reconstruction, image_dir: Path, options
     return True
 
 
-def second_pass(result, world, inputs, options, offsets: dict[str, int] | None = None, bands: dict | None = None):
+def second_pass(result, world, inputs, options, offsets: dict[str, int] | None = None, bands: dict | None = None,
+                progress: Callable[[int, int], None] | None = None):
     """The pipeline's hook after the world stage: ``(result, record)``, the result adjusted again with the narrow
     observations when they are used, else the one given (unchanged). The world stage's floor is kept: the second
     adjustment starts from the first's model with the same gauge (one frame held), so the floor moves by the
     adjustment's change alone, and fitting it again would cost more than the whole second pass. ``offsets``: the
-    --frame-offsets FILE's (narrow frames paired by time)."""
+    --frame-offsets FILE's (narrow frames paired by time); ``progress(done, total)``: the heads' (match_heads)."""
+    threads = options.num_threads if options.num_threads > 0 else os.cpu_count() or 1
     model, record = narrow_observations(result, world, inputs.image_dir, options.narrow, options.self_check, offsets,
-                                        bands)
+                                        bands, threads, progress)
     if model is None:
         return result, record
     return in_child(adjust, model, inputs.rigs, inputs.scale, options.adjust, inputs.priors,

@@ -61,6 +61,9 @@ from rigsfm.run.world.floor_model import (
 
 logger = logging.getLogger(__name__)
 
+LOWEST_POINTS = "lowest sparse points and the cameras' up"  # guess_floor's guess from the sparse points' heights
+LOWER_STEPS = (0.1, 0.2, 0.3, 0.4)  # that guess lowered by these fractions of the camera height above it
+
 
 def apply_floor_frame(reconstruction: pycolmap.Reconstruction, fit: FloorFit) -> None:
     """Move ``reconstruction`` into the floor frame in place (scale 1: ``sensor_from_rig`` is unchanged)."""
@@ -103,7 +106,7 @@ def guess_floor(reconstruction: pycolmap.Reconstruction, markers: np.ndarray | N
     heights = np.array([p.xyz for p in reconstruction.points3D.values()]).reshape(-1, 3) @ up
     heights = heights[heights < lowest]
     if len(heights) >= (options or FloorOptions()).min_points:
-        return up, -float(np.percentile(heights, 2.0)), "lowest sparse points and the cameras' up"
+        return up, -float(np.percentile(heights, 2.0)), LOWEST_POINTS
     point = axes_convergence(reconstruction)
     if point is not None and point @ up < lowest:
         return up, -float(point @ up), "convergence of the optical axes and the cameras' up"
@@ -154,7 +157,9 @@ def estimate_floor(reconstruction: pycolmap.Reconstruction, image_dir=None, mark
     (:mod:`rigsfm.run.world.floor_matching`), fit the floor to the sparse, matched and marker points, and match
     again through the fitted plane while it moved by more than 0.05 deg or 0.5 % of the camera height from
     the plane the matching used (at most ``max_rounds`` matchings: a guess 14 cm off gave 530 matches, 262 on
-    the floor; the second round through the fit 679 and 391)."""
+    the floor; the second round through the fit 679 and 391). Where the guess came from the lowest sparse points
+    and no floor fits, the guess is lowered by each of ``LOWER_STEPS`` and the rounds start again from the step
+    that matched the most points with a floor fitted to them."""
     import time
 
     from rigsfm.run.world.floor_matching import load_floor_images, match_floor_points
@@ -177,21 +182,46 @@ def estimate_floor(reconstruction: pycolmap.Reconstruction, image_dir=None, mark
     logger.info("floor guess from the %s", how)
     centres = np.array([im.projection_center() for im in posed_images(reconstruction)])
     images = load_floor_images(reconstruction, image_dir, match_options, up=normal)
-    fit: FloorFit | NoFloor = NoFloor("no matching round ran")
-    rounds = pairs = found = 0
-    for _ in range(max(1, max_rounds)):
-        matches = match_floor_points(reconstruction, image_dir, normal, offset, match_options, images=images)
-        rounds, pairs, found = rounds + 1, pairs + len(matches.pairs), len(matches)
-        fit = fit_floor(reconstruction, markers, opt, extra_points=matches.points, x_towards=x_towards, quiet=True)
-        if not fit or sparse_floor_shortfall(fit, reconstruction, opt) is None:
-            break  # no floor, or precise enough
-        # NoFloor is falsy: a FloorFit here
-        moved_deg = float(np.degrees(np.arccos(np.clip(fit.normal @ normal, -1.0, 1.0))))  # type: ignore[union-attr]
-        moved = float(np.max(np.abs(fit.height(centres) - (centres @ normal + offset))))  # type: ignore[union-attr]
-        if moved_deg <= 0.05 and moved <= 0.005 * float(np.median(fit.height(centres))):  # type: ignore[union-attr]
-            break
-        logger.info("floor moved by %.3f deg / %.3g at the cameras from the matching plane", moved_deg, moved)
-        normal, offset = fit.normal, fit.offset  # type: ignore[union-attr]  # NoFloor is falsy: a FloorFit here
+
+    def rounds_from(normal: np.ndarray, offset: float) -> tuple[FloorFit | NoFloor, int, int, int]:
+        """Match, fit, and match again through the fit while it moved (fit, rounds, image pairs, matches)."""
+        fit: FloorFit | NoFloor = NoFloor("no matching round ran")
+        rounds = pairs = found = 0
+        for _ in range(max(1, max_rounds)):
+            matches = match_floor_points(reconstruction, image_dir, normal, offset, match_options, images=images)
+            rounds, pairs, found = rounds + 1, pairs + len(matches.pairs), len(matches)
+            fit = fit_floor(reconstruction, markers, opt, extra_points=matches.points, x_towards=x_towards,
+                            quiet=True)
+            if not fit or sparse_floor_shortfall(fit, reconstruction, opt) is None:
+                break  # no floor, or precise enough
+            # NoFloor is falsy: a FloorFit here
+            moved_deg = float(np.degrees(np.arccos(np.clip(fit.normal @ normal, -1.0, 1.0))))  # type: ignore[union-attr]
+            moved = float(np.max(np.abs(fit.height(centres) - (centres @ normal + offset))))  # type: ignore[union-attr]
+            if moved_deg <= 0.05 and moved <= 0.005 * float(np.median(fit.height(centres))):  # type: ignore[union-attr]
+                break
+            logger.info("floor moved by %.3f deg / %.3g at the cameras from the matching plane", moved_deg, moved)
+            normal, offset = fit.normal, fit.offset  # type: ignore[union-attr]  # NoFloor is falsy: a FloorFit here
+        return fit, rounds, pairs, found
+
+    fit, rounds, pairs, found = rounds_from(normal, offset)
+    if not fit and how == LOWEST_POINTS:
+        # A crowd (or any clutter) covering the floor leaves its lowest sparse points on bodies and boxes above it,
+        # and a warp through a plane that high matches little: the plane lowered step by step, the one matching
+        # the most floor points (with a floor fitted to them) is where the rounds start again.
+        height = float(np.median(centres @ normal + offset))
+        best: tuple[int, float] | None = None
+        for step in LOWER_STEPS:
+            lowered = offset + step * height
+            matches = match_floor_points(reconstruction, image_dir, normal, lowered, match_options, images=images)
+            pairs += len(matches.pairs)
+            if fit_floor(reconstruction, markers, opt, extra_points=matches.points, quiet=True) \
+                    and (best is None or len(matches) > best[0]):
+                best = (len(matches), lowered)
+        logger.info("floor guess lowered: %s", "no step fits a floor" if best is None else
+                    f"{(best[1] - offset) / height:.0%} of the camera height matched the most ({best[0]} points)")
+        if best is not None:
+            lowered_fit, more_rounds, more_pairs, found = rounds_from(normal, best[1])
+            fit, rounds, pairs = lowered_fit, rounds + len(LOWER_STEPS) + more_rounds, pairs + more_pairs
     if not fit and sparse:
         fit = sparse  # the matches did not help: keep the sparse floor
     for warning in fit.warnings if fit else ():  # type: ignore[union-attr]  # NoFloor is falsy: a FloorFit here

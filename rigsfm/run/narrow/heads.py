@@ -7,9 +7,9 @@ SIFT on flat-shaded, view-dependent silhouettes gives chance matches only. Heads
    head of ``HEAD_RADIUS_M`` would have there. OpenCV's Hough circles (on one thread: deterministic) search the
    image in horizontal bands whose expected radii lie within ``BAND_RATIO`` of each other, each band its own range
    of radii (one search over a whole narrow view's range of radii costs far more and gives more false circles);
-   each circle is kept when its radius is within ``RADIUS_RATIO`` of the one
-   expected at its centre, and its centre is refined to sub-pixel by a circle fitted to the strongest radial edge along 64 rays
-   (trimmed: occluded arcs drop out), kept only where the fit moved it little.
+   each circle is kept when its radius is within ``RADIUS_RATIO`` of the one expected at its centre, and its centre
+   is refined to sub-pixel by a circle fitted to the strongest radial edge along 64 rays (trimmed: occluded arcs
+   drop out), kept only where the fit moved it little.
 2. **Association** of the candidates across the synchronised narrow views: :func:`rigsfm.associate.solve.
    associate_views` (``rigsfm associate``'s library call: candidates inside each pair's band between two heights,
    triangulation, multi-view growth, a global set packing, and the crowd's own correction of each view's pose

@@ -12,7 +12,7 @@ from scipy.spatial import cKDTree
 
 from rigsfm.core.image_files import read_image
 from rigsfm.run.checks.self_check import synchronised_frames
-from rigsfm.run.narrow.heads import HeadMatches, decide_heads, detect_heads, match_heads
+from rigsfm.run.narrow.heads import HeadMatches, confident_members, decide_heads, detect_heads, match_heads
 from rigsfm.synth.scene import SceneOptions
 
 # 3D persons (heads at 1.5-1.9 m, occluding flat-shaded bodies, 4 per m2) round which the narrow cameras, aimed at
@@ -140,3 +140,30 @@ def test_auto_needs_enough_confident_persons():
     assert decide_heads(HeadMatches(candidates={"a": 40, "b": 40}, persons=3))[0] is False
     used, reason = decide_heads(HeadMatches(candidates={"a": 40, "b": 40}, persons=30))
     assert used and reason.startswith("heads usable: 30 persons")
+
+
+def test_a_view_in_too_few_persons_gives_none_of_its_heads():
+    """A view the association could not correct (fewer persons than a view's pose correction needs) gives none of
+    its head matches; a person left in fewer than four views is dropped, and that can take another view below the
+    minimum in turn."""
+    rng = np.random.default_rng(0)
+    views = 6
+    members = np.full((40, views), -1)
+    members[:30, :4] = rng.permutation(90 * 4).reshape(90, 4)[:30]  # 30 persons in views 0-3
+    members[:12, 4] = np.arange(12)  # view 4 in 12 of them
+    members[30:35, [0, 1, 2, 5]] = np.arange(20).reshape(5, 4)  # view 5 in 5 persons only
+    scores = np.ones(len(members))
+    scores[29] = -1.0  # not confident
+    out = confident_members(members, scores)
+    assert (out[:, 5] == -1).all()  # view 5: 5 persons, under MIN_VIEW_PERSONS
+    assert (out[30:35] == -1).all()  # its persons are left in three views
+    assert (out[:12, 4] == members[:12, 4]).all()  # view 4 keeps its 12
+    assert (out[29] == -1).all() and (out[:29, :4] == members[:29, :4]).all()
+    # View 4 in 10 persons, two of them seen by views 0, 1, 4 and 5 only: without view 5 they are in three views
+    # and dropped, which leaves view 4 in 8 persons: it goes in turn.
+    members[:12, 4] = -1
+    members[:8, 4] = np.arange(8)
+    members[33:35, 2] = -1
+    members[33:35, 4] = [20, 21]
+    out = confident_members(members, scores)
+    assert (out[:, 4] == -1).all() and (out[:, 5] == -1).all()

@@ -16,7 +16,10 @@ SIFT on flat-shaded, view-dependent silhouettes gives chance matches only. Heads
    error), on the first adjustment's poses and bands. Only confident persons are kept: ``MIN_GROUP_VIEWS`` views
    or more, a score above ``MIN_GROUP_SCORE`` (four views agreeing on one head are rarely chance: weighed at their
    own noise, these persons held the narrow rotation better than the fewer of three views scoring above 2).
-3. **Observations**: each person is a track (its head centres); none is held out of the adjustment (a person adds
+3. **Observations**: each person is a track (its head centres), without the views seen in fewer than
+   ``MIN_VIEW_PERSONS`` confident persons (the association corrects a view's pose from that many only: a view below
+   it was searched at a pose whose error may exceed its band, and its few matches are chance as often as not; a
+   person left in fewer than ``MIN_GROUP_VIEWS`` views is dropped); none is held out of the adjustment (a person adds
    one match to a pair, so a pair's held-out persons never reached the held-out check's minimum, and holding every
    fifth out only cost observations: the self-check's head verdicts, step 5, check the heads). Its pairs become
    :class:`rigsfm.run.narrow.observations.PairMatches`, so the tracks and the second adjustment are the floor
@@ -39,6 +42,7 @@ SIFT on flat-shaded, view-dependent silhouettes gives chance matches only. Heads
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 from collections.abc import Callable
@@ -70,6 +74,7 @@ HOUGH_PARAM2 = 0.6  # the circles' "perfectness" (HOUGH_GRADIENT_ALT)
 HEAD_PIXEL_SIGMA = 1.5  # a head centre's localisation noise per coordinate (px): the association's, and the fallback
 MIN_SIGMA_DOF = 20  # residual degrees of freedom the heads' own noise estimate needs (step 6)
 MIN_GROUP_VIEWS = 4  # a person enters the adjustment when seen in this many views
+MIN_VIEW_PERSONS = AssociateOptions().self_calibration_min_members  # a view's heads enter from this many persons
 # ... and scoring above this (log-likelihood ratio against clutter: one person the likelier)
 MIN_GROUP_SCORE = 0.0
 # The self-check's persons: two views or more, scoring above this (the association's log-likelihood ratio of one
@@ -312,16 +317,35 @@ def match_heads(floor_model: pycolmap.Reconstruction, image_dir: Path, frames: d
         result = associate_views(views, _association_options())
         if progress:
             progress(len(names) + 1, len(names) + 1)
-        present = result.members >= 0
-        confident = np.flatnonzero((present.sum(axis=1) >= MIN_GROUP_VIEWS) & (result.scores > MIN_GROUP_SCORE))
-        per_pair = _per_pair(views, result.members, confident, overlapping)  # none held out (step 3)
+        members = confident_members(result.members, result.scores)
+        present = members >= 0
+        confident = np.flatnonzero(present.sum(axis=1) >= MIN_GROUP_VIEWS)
+        per_pair = _per_pair(views, members, confident, overlapping)  # none held out (step 3)
         out.persons += len(confident)
-        out.residuals.append(_residuals(views, result, confident))
+        out.residuals.append(_residuals(views, dataclasses.replace(result, members=members), confident))
+        present = result.members >= 0
         out.pairs.extend(_pair_matches(frame, per_pair))
         checked = np.flatnonzero((present.sum(axis=1) >= 2) & (result.scores > CHECK_MIN_SCORE))
         out.check_pairs.extend(_pair_matches(frame, _per_pair(views, result.members, checked, overlapping)))
         logger.info("narrow observations from heads, %s: %s candidates per image, %d confident persons of %d",
                     frame, [len(v.xy) for v in views], len(confident), len(result))
+    return out
+
+
+def confident_members(members: np.ndarray, scores: np.ndarray) -> np.ndarray:
+    """``members`` (persons x views, -1 where unseen) of the confident persons (``MIN_GROUP_VIEWS`` views or more,
+    score above ``MIN_GROUP_SCORE``), -1 elsewhere, and without the views in fewer than ``MIN_VIEW_PERSONS`` of
+    them (module docstring, step 3): the association corrects a view's pose only from that many persons, so a
+    view below it was searched at its first pose, whose error may exceed the band, and its few matches are chance
+    as often as not; a person left in fewer than ``MIN_GROUP_VIEWS`` views is dropped."""
+    out = np.where(((members >= 0).sum(axis=1, keepdims=True) >= MIN_GROUP_VIEWS)
+                   & (scores[:, None] > MIN_GROUP_SCORE), members, -1)
+    for _ in range(members.shape[1]):  # dropping a view's persons can take another view below the minimum
+        few = (out >= 0).sum(axis=0) < MIN_VIEW_PERSONS
+        out[:, few] = -1
+        out[(out >= 0).sum(axis=1) < MIN_GROUP_VIEWS] = -1
+        if not ((out >= 0).sum(axis=0)[~few] < MIN_VIEW_PERSONS).any():
+            break
     return out
 
 

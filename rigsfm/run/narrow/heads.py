@@ -318,14 +318,12 @@ def match_heads(floor_model: pycolmap.Reconstruction, image_dir: Path, frames: d
         if progress:
             progress(len(names) + 1, len(names) + 1)
         members = confident_members(result.members, result.scores)
-        present = members >= 0
-        confident = np.flatnonzero(present.sum(axis=1) >= MIN_GROUP_VIEWS)
+        confident = np.flatnonzero((members >= 0).sum(axis=1) >= MIN_GROUP_VIEWS)
         per_pair = _per_pair(views, members, confident, overlapping)  # none held out (step 3)
         out.persons += len(confident)
         out.residuals.append(_residuals(views, dataclasses.replace(result, members=members), confident))
-        present = result.members >= 0
         out.pairs.extend(_pair_matches(frame, per_pair))
-        checked = np.flatnonzero((present.sum(axis=1) >= 2) & (result.scores > CHECK_MIN_SCORE))
+        checked = np.flatnonzero(((result.members >= 0).sum(axis=1) >= 2) & (result.scores > CHECK_MIN_SCORE))
         out.check_pairs.extend(_pair_matches(frame, _per_pair(views, result.members, checked, overlapping)))
         logger.info("narrow observations from heads, %s: %s candidates per image, %d confident persons of %d",
                     frame, [len(v.xy) for v in views], len(confident), len(result))

@@ -183,13 +183,18 @@ def estimate_floor(reconstruction: pycolmap.Reconstruction, image_dir=None, mark
     centres = np.array([im.projection_center() for im in posed_images(reconstruction)])
     images = load_floor_images(reconstruction, image_dir, match_options, up=normal)
 
-    def rounds_from(normal: np.ndarray, offset: float) -> tuple[FloorFit | NoFloor, int, int, int]:
-        """Match, fit, and match again through the fit while it moved (fit, rounds, image pairs, matches)."""
+    def rounds_from(normal: np.ndarray, offset: float, matched=None) -> tuple[FloorFit | NoFloor, int, int, int]:
+        """Match, fit, and match again through the fit while it moved (fit, rounds, image pairs, matches);
+        ``matched``: the first round's matches where they were made already (not counted again)."""
         fit: FloorFit | NoFloor = NoFloor("no matching round ran")
         rounds = pairs = found = 0
         for _ in range(max(1, max_rounds)):
-            matches = match_floor_points(reconstruction, image_dir, normal, offset, match_options, images=images)
-            rounds, pairs, found = rounds + 1, pairs + len(matches.pairs), len(matches)
+            if matched is not None:
+                matches, matched = matched, None
+            else:
+                matches = match_floor_points(reconstruction, image_dir, normal, offset, match_options, images=images)
+                rounds, pairs = rounds + 1, pairs + len(matches.pairs)
+            found = len(matches)
             fit = fit_floor(reconstruction, markers, opt, extra_points=matches.points, x_towards=x_towards,
                             quiet=True)
             if not fit or sparse_floor_shortfall(fit, reconstruction, opt) is None:
@@ -209,18 +214,18 @@ def estimate_floor(reconstruction: pycolmap.Reconstruction, image_dir=None, mark
         # and a warp through a plane that high matches little: the plane lowered step by step, the one matching
         # the most floor points (with a floor fitted to them) is where the rounds start again.
         height = float(np.median(centres @ normal + offset))
-        best: tuple[int, float] | None = None
+        best = None  # (its matches, the lowered offset)
         for step in LOWER_STEPS:
             lowered = offset + step * height
             matches = match_floor_points(reconstruction, image_dir, normal, lowered, match_options, images=images)
             pairs += len(matches.pairs)
             if fit_floor(reconstruction, markers, opt, extra_points=matches.points, quiet=True) \
-                    and (best is None or len(matches) > best[0]):
-                best = (len(matches), lowered)
+                    and (best is None or len(matches) > len(best[0])):
+                best = (matches, lowered)
         logger.info("floor guess lowered: %s", "no step fits a floor" if best is None else
-                    f"{(best[1] - offset) / height:.0%} of the camera height matched the most ({best[0]} points)")
-        if best is not None:
-            lowered_fit, more_rounds, more_pairs, found = rounds_from(normal, best[1])
+                    f"{(best[1] - offset) / height:.0%} of the camera height matched the most ({len(best[0])} points)")
+        if best is not None:  # its matches are the rounds' first: matched once
+            lowered_fit, more_rounds, more_pairs, found = rounds_from(normal, best[1], best[0])
             fit, rounds, pairs = lowered_fit, rounds + len(LOWER_STEPS) + more_rounds, pairs + more_pairs
     if not fit and sparse:
         fit = sparse  # the matches did not help: keep the sparse floor

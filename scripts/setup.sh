@@ -109,6 +109,19 @@ else
 fi
 if $apt_only; then say "system packages ready"; exit 0; fi
 
+# A fresh install takes about 3 GiB (Open3D, OpenCV, pycolmap and their wheels while pip unpacks them): say so
+# before pip fails half-way with "No space left on device". RIGSFM_SETUP_NEED_MB replaces the need (tests).
+need_mb=${RIGSFM_SETUP_NEED_MB:-4096}
+if [ ! -x .venv/bin/rigsfm ]; then
+  for folder in . "${TMPDIR:-/tmp}"; do
+    free_mb=$(df -Pm "$folder" 2>/dev/null | awk 'NR == 2 { print $4 }')
+    if [ -n "$free_mb" ] && [ "$free_mb" -lt "$need_mb" ]; then
+      say "only ${free_mb} MiB free on $(cd "$folder" && pwd) (the file system of $( [ "$folder" = . ] && echo the project || echo TMPDIR)); the install needs about ${need_mb} MiB: free some space and run setup again"
+      exit 1
+    fi
+  done
+fi
+
 python=/usr/bin/python3
 [ -x "$python" ] || python=$(command -v python3)
 if [ ! -x .venv/bin/python ]; then

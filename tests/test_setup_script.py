@@ -94,3 +94,14 @@ def test_setup_gives_up_after_the_bound_with_one_line(setup_copy):
     assert last.startswith("setup: gave up after 2 s: ") and f"held by process {holder.pid}" in last, done.stderr
     assert "run setup again" in last
     assert log.read_text() == ""  # apt-get never ran
+
+
+def test_setup_says_when_the_disk_is_too_full_before_installing(setup_copy):
+    script, _, _, env = setup_copy
+    done = subprocess.run(["bash", str(script)], env={**env, "RIGSFM_SETUP_NEED_MB": str(10**12)},
+                          capture_output=True, text=True, timeout=120)
+    assert done.returncode == 1
+    last = done.stderr.splitlines()[-1]
+    assert last.startswith("setup: only ") and "MiB free on " + str(script.parents[1]) in last, done.stderr
+    assert "free some space and run setup again" in last
+    assert not (script.parents[1] / ".venv").exists()  # nothing half-installed

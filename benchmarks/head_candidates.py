@@ -26,7 +26,7 @@ import pycolmap  # noqa: E402
 from scipy.spatial import cKDTree  # noqa: E402
 
 from rigsfm.core.image_files import read_image  # noqa: E402
-from rigsfm.run.narrow.heads import detect_heads  # noqa: E402
+from rigsfm.run.narrow.heads import detect_heads, scene_footprint  # noqa: E402
 
 
 def true_heads(dataset: Path, visible: float) -> dict[str, np.ndarray]:
@@ -49,6 +49,7 @@ def main() -> None:
     args = parser.parse_args()
     model = pycolmap.Reconstruction(str(args.run / "sparse"))
     truth = true_heads(args.dataset, args.visible)
+    footprint = scene_footprint(model)  # as match_heads gives it
     totals = np.zeros(4)  # CPU s, true heads found, true heads, candidates near a true head
     count = 0
     print("| image | CPU (s) | candidates | recall | precision |")
@@ -58,7 +59,7 @@ def main() -> None:
             continue
         gray = read_image(args.dataset / "images" / image.name, cv2.IMREAD_GRAYSCALE)
         start = time.process_time()
-        found = detect_heads(image, gray)
+        found = detect_heads(image, gray, footprint)
         cpu = time.process_time() - start
         known = truth.get(image.name, np.zeros((0, 2)))
         recalled = near = 0

@@ -7,12 +7,23 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+import pycolmap
 import pytest
 from scipy.spatial import cKDTree
 
 from rigsfm.core.image_files import read_image
 from rigsfm.run.checks.self_check import synchronised_frames
-from rigsfm.run.narrow.heads import HeadMatches, confident_members, decide_heads, detect_heads, match_heads
+from rigsfm.run.narrow.heads import (
+    FOOTPRINT_MARGIN,
+    HeadMatches,
+    confident_members,
+    decide_heads,
+    detect_heads,
+    expected_radius,
+    match_heads,
+    scene_footprint,
+    search_bands,
+)
 from rigsfm.synth.scene import SceneOptions
 
 # 3D persons (heads at 1.5-1.9 m, occluding flat-shaded bodies, 4 per m2) round which the narrow cameras, aimed at
@@ -134,6 +145,39 @@ def test_the_candidates_are_mostly_true_heads_and_find_most_visible_ones(rendere
         seen += len(visible[image.name])
     assert candidates > 600 and on_head >= 0.7 * candidates, (on_head, candidates)
     assert found >= 0.45 * seen, (found, seen)
+
+
+@pytest.mark.slow
+def test_heads_are_searched_only_where_the_scene_has_room_for_them(rendered):
+    """The sparse points outline the scene: here the arena's wall, which a run's model sees, and two stray points
+    far off. The rows whose rays meet the heads' plane beyond it (towards the horizon, where a head would be a few
+    pixels across and every circle is false) are not searched, and no true head lies there."""
+    dataset = rendered(PERSONS)
+    model = dataset.load_ground_truth()  # the exact poses, without points
+    assert scene_footprint(model) is None  # nothing outlines the scene: heads are searched everywhere
+    wall = dataset.options.wall_radius
+    rng = np.random.default_rng(0)
+    for angle, z in zip(rng.uniform(0.0, 2.0 * np.pi, 300), rng.uniform(0.0, 16.0, 300)):
+        model.add_point3D(np.array([wall * np.cos(angle), wall * np.sin(angle), z]), pycolmap.Track(),
+                          np.zeros(3, np.uint8))
+    for x in (-140.0, 140.0):
+        model.add_point3D(np.array([x, 5.0, 3.0]), pycolmap.Track(), np.zeros(3, np.uint8))
+    footprint = scene_footprint(model)
+    reach = np.hypot(footprint[:, 0], footprint[:, 1])
+    assert wall < reach.min() and reach.max() < FOOTPRINT_MARGIN * wall + 1.0  # the stray points left out
+    known = _true_heads(Path(dataset.root))
+    for image in model.images.values():
+        if "/narrow/" not in image.name:
+            continue
+        everywhere, inside = (search_bands(image, image.camera.height, image.camera.width, f) for f in (None, footprint))
+        assert inside[0][0] > everywhere[0][0] and inside[-1][1] == everywhere[-1][1], (everywhere, inside)
+        assert np.isfinite(expected_radius(image, known[image.name][:, :2], footprint)).all()  # no head outside
+    # Fewer candidates, the same true heads found.
+    image = model.find_image_with_name("rig01/narrow/frame0000.png")
+    gray = read_image(Path(dataset.images) / image.name, cv2.IMREAD_GRAYSCALE)
+    every, kept = detect_heads(image, gray), detect_heads(image, gray, footprint)
+    found = [int(np.sum(cKDTree(heads[:, :2]).query(known[image.name][:, :2])[0] < 3)) for heads in (every, kept)]
+    assert len(kept) < len(every) and found[1] >= found[0] - 1, (len(every), len(kept), found)
 
 
 def test_auto_needs_enough_confident_persons():

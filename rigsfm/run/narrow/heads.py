@@ -4,12 +4,13 @@ SIFT on flat-shaded, view-dependent silhouettes gives chance matches only. Heads
 
 1. **Head candidates** per narrow image, without a detector's input: heads are round blobs of a known size. In the
    floor frame a pixel's ray meets the head-centre plane (``HEAD_CENTRE_M``) at a distance that gives the radius a
-   head of ``HEAD_RADIUS_M`` would have there. OpenCV's Hough circles (on one thread: deterministic) search the
-   image in horizontal bands whose expected radii lie within ``BAND_RATIO`` of each other, each band its own range
-   of radii (one search over a whole narrow view's range of radii costs far more and gives more false circles);
-   each circle is kept when its radius is within ``RADIUS_RATIO`` of the one expected at its centre, and its centre
-   is refined to sub-pixel by a circle fitted to the strongest radial edge along 64 rays (trimmed: occluded arcs
-   drop out), kept only where the fit moved it little.
+   head of ``HEAD_RADIUS_M`` would have there, where that point lies inside the scene's footprint (the sparse points'
+   outline: no head stands behind the farthest structure). OpenCV's Hough circles (on one thread: deterministic)
+   search the image in horizontal bands whose expected radii lie within ``BAND_RATIO`` of each other, each band its
+   own range of radii (one search over a whole narrow view's range of radii costs far more and gives more false
+   circles); each circle is kept when its radius is within ``RADIUS_RATIO`` of the one expected at its centre,
+   and its centre is refined to sub-pixel by a circle fitted to the strongest radial edge along 64 rays (trimmed:
+   occluded arcs drop out), kept only where the fit moved it little.
 2. **Association** of the candidates across the synchronised narrow views: :func:`rigsfm.associate.solve.
    associate_views` (``rigsfm associate``'s library call: candidates inside each pair's band between two heights,
    triangulation, multi-view growth, a global set packing, and the crowd's own correction of each view's pose
@@ -88,6 +89,8 @@ REMAP_CIRCLES = 256  # circles per remap of the circle fit
 MIN_SEARCH_RADIUS_PX = 12.0  # heads expected smaller than this are searched on the image enlarged
 BAND_RATIO = 1.2  # a search band's largest expected head radius against its smallest
 BAND_ROWS = 32  # the strips an image's expected radii are sampled in
+FOOTPRINT_QUANTILE = 0.99  # the sparse points nearest the scene's centre that outline where heads can be
+FOOTPRINT_MARGIN = 1.1  # that outline enlarged about its centre
 
 
 @dataclass
@@ -111,9 +114,38 @@ class HeadMatches:
                           self.persons)
 
 
-def expected_radius(image: pycolmap.Image, xy: np.ndarray) -> np.ndarray:
+def scene_footprint(model: pycolmap.Reconstruction) -> np.ndarray | None:
+    """Where on the floor a head can stand (module docstring, step 1): the convex hull (floor-frame x, y, counter-
+    clockwise) of the camera centres and the sparse points but the farthest from their median (stray points), enlarged
+    by ``FOOTPRINT_MARGIN`` about its centre; None with too few points. A head beyond every structure the images saw
+    in its direction would stand behind it: the rows that look there (the far side of the scene, towards the horizon,
+    where the expected radius is a few pixels) hold no head, only the search's most costly and false circles."""
+    points = np.array([p.xyz for p in model.points3D.values()], dtype=np.float64).reshape(-1, 3)[:, :2]
+    if len(points) < 3:
+        return None
+    distance = np.linalg.norm(points - np.median(points, axis=0), axis=1)
+    points = points[distance <= np.quantile(distance, FOOTPRINT_QUANTILE)]
+    centres = np.array([im.projection_center() for im in model.images.values() if im.has_pose],
+                       dtype=np.float64).reshape(-1, 3)[:, :2]
+    hull = cv2.convexHull(np.r_[points, centres].astype(np.float32), clockwise=False)
+    if hull is None or len(hull) < 3:
+        return None
+    hull = hull.reshape(-1, 2).astype(np.float64)
+    centre = hull.mean(axis=0)
+    return centre + FOOTPRINT_MARGIN * (hull - centre)
+
+
+def _inside(polygon: np.ndarray, xy: np.ndarray) -> np.ndarray:
+    """Whether each point of ``xy`` (N x 2) lies inside the convex, counter-clockwise ``polygon`` (edges included)."""
+    edges = np.roll(polygon, -1, axis=0) - polygon
+    relative = xy[:, None, :] - polygon[None, :, :]
+    return np.all(edges[None, :, 0] * relative[:, :, 1] - edges[None, :, 1] * relative[:, :, 0] >= 0.0, axis=1)
+
+
+def expected_radius(image: pycolmap.Image, xy: np.ndarray, footprint: np.ndarray | None = None) -> np.ndarray:
     """The radius (px) of a head centred at ``HEAD_CENTRE_M`` seen at raw COLMAP pixels ``xy`` (floor frame);
-    NaN where the ray does not reach that plane in front of the camera."""
+    NaN where the ray does not reach that plane in front of the camera, or meets it outside ``footprint``
+    (:func:`scene_footprint`)."""
     camera = image.camera
     normalised = np.asarray(camera.cam_from_img(np.asarray(xy, dtype=np.float64).reshape(-1, 2)),  # type: ignore[union-attr]
                             dtype=np.float64)
@@ -122,6 +154,9 @@ def expected_radius(image: pycolmap.Image, xy: np.ndarray) -> np.ndarray:
     with np.errstate(divide="ignore", invalid="ignore"):
         t = (HEAD_CENTRE_M - centre[2]) / rays[:, 2]
         distance = np.where(t > 0, t * np.linalg.norm(rays, axis=1), np.nan)
+        if footprint is not None:
+            where = centre[None, :2] + np.where(t > 0, t, 0.0)[:, None] * rays[:, :2]
+            distance = np.where(_inside(footprint, where), distance, np.nan)
         return HEAD_RADIUS_M * float(camera.focal_length_x) / distance  # type: ignore[union-attr]
 
 
@@ -178,15 +213,16 @@ def _refine(gray: np.ndarray, circles: np.ndarray) -> np.ndarray:
     return out
 
 
-def search_bands(image: pycolmap.Image, height: int, width: int) -> list[tuple[int, int, float, float]]:
+def search_bands(image: pycolmap.Image, height: int, width: int, footprint: np.ndarray | None = None
+                 ) -> list[tuple[int, int, float, float]]:
     """The image's horizontal bands of similar expected head radius (module docstring, step 1): (first row, row after
     the last, smallest, largest expected radius) in OpenCV pixel rows. The image is cut in ``BAND_ROWS`` strips, the
     radius sampled along each strip's middle row, and neighbouring strips joined while their radii stay within
-    ``BAND_RATIO`` of each other; strips whose rays do not reach the heads' plane are left out."""
+    ``BAND_RATIO`` of each other; strips whose rays do not reach the heads' plane inside ``footprint`` are left out."""
     edges = np.linspace(0.0, float(height), BAND_ROWS + 1)
     middles = 0.5 * (edges[:-1] + edges[1:])
     grid = np.array([[x, y] for y in middles for x in np.linspace(0.0, float(width), 9)], dtype=np.float64)
-    expected = expected_radius(image, grid).reshape(BAND_ROWS, -1)
+    expected = expected_radius(image, grid, footprint).reshape(BAND_ROWS, -1)
     expected = np.where(np.isfinite(expected) & (expected > 0), expected, np.nan)
     known = np.isfinite(expected).any(axis=1)
     low, high = np.full(BAND_ROWS, np.nan), np.full(BAND_ROWS, np.nan)
@@ -205,12 +241,13 @@ def search_bands(image: pycolmap.Image, height: int, width: int) -> list[tuple[i
     return bands
 
 
-def detect_heads(image: pycolmap.Image, gray: np.ndarray) -> np.ndarray:
+def detect_heads(image: pycolmap.Image, gray: np.ndarray, footprint: np.ndarray | None = None) -> np.ndarray:
     """Head candidates of one narrow image (module docstring, step 1): N x 3, raw COLMAP pixels x, y and the radius
-    (px). ``image``: its pose in the floor frame (metres, z up); ``gray``: its pixels."""
+    (px). ``image``: its pose in the floor frame (metres, z up); ``gray``: its pixels; ``footprint``: where heads
+    can stand (:func:`scene_footprint`; None: anywhere)."""
     height, width = gray.shape
     found = [np.zeros((0, 3))]
-    for top, bottom, lo, hi in search_bands(image, height, width):
+    for top, bottom, lo, hi in search_bands(image, height, width, footprint):
         low, high = RADIUS_RATIO[0] * lo, RADIUS_RATIO[1] * hi
         if high < 4.0 or low > 0.5 * min(width, height):
             continue
@@ -223,7 +260,7 @@ def detect_heads(image: pycolmap.Image, gray: np.ndarray) -> np.ndarray:
     circles = np.concatenate(found)
     xy = colmap_from_opencv_pixels(circles[:, :2])
     with np.errstate(invalid="ignore"):
-        ratio = circles[:, 2] / expected_radius(image, xy)
+        ratio = circles[:, 2] / expected_radius(image, xy, footprint)
     keep = (ratio >= RADIUS_RATIO[0]) & (ratio <= RADIUS_RATIO[1])
     return np.c_[xy[keep], circles[keep, 2]]
 
@@ -287,6 +324,7 @@ def match_heads(floor_model: pycolmap.Reconstruction, image_dir: Path, frames: d
     ``threads``: images searched at once; ``progress(done, total)``: per frame, its images searched and then its
     association."""
     out = HeadMatches()
+    footprint = scene_footprint(floor_model)
     for frame in list(frames)[:max(1, max_frames)]:
         images = frames[frame]
         overlapping = overlapping_pairs(floor_model, images, True)
@@ -297,7 +335,7 @@ def match_heads(floor_model: pycolmap.Reconstruction, image_dir: Path, frames: d
 
         def candidates(image: pycolmap.Image) -> np.ndarray:
             gray = read_image(Path(image_dir) / image.name, cv2.IMREAD_GRAYSCALE)
-            return np.zeros((0, 3)) if gray is None else detect_heads(image, gray)
+            return np.zeros((0, 3)) if gray is None else detect_heads(image, gray, footprint)
 
         views = []
         # The images side by side (OpenCV's Hough frees the GIL), each search on one thread: the same circles.

@@ -25,6 +25,10 @@ class CountGrid:
         np.add.at(counts, (iy, ix), 1)
         self.table = np.zeros((self.shape[0] + 1, self.shape[1] + 1), dtype=np.int64)
         self.table[1:, 1:] = counts.cumsum(axis=0).cumsum(axis=1)
+        # the points cell by cell, rows of cells first: a row of a box's cells is one run of them
+        self.points = np.asarray(points, dtype=np.float64)
+        self.order = np.argsort(iy * self.shape[1] + ix, kind="stable")
+        self.starts = np.concatenate([[0], np.cumsum(counts.ravel())])
 
     def _cells(self, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The (clipped) cell column and row of each point (monotone in its coordinates)."""
@@ -44,3 +48,23 @@ class CountGrid:
         t = self.table
         count = t[y1 + 1, x1 + 1] - t[y0, x1 + 1] - t[y1 + 1, x0] + t[y0, x0]
         return count > 0
+
+    def pairs_within(self, xy: np.ndarray, radius: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Every point within ``radius`` of each of ``xy`` (N x 2, finite; N radii): the queries' rows, the points'
+        indices and their squared distances, query by query (a query's points in no particular order)."""
+        r = (radius * (1 + 1e-9) + 1e-6)[:, None]  # as any_within: the box holds every point of the disc
+        x0, y0 = self._cells(xy - r)
+        x1, y1 = self._cells(xy + r)
+        # one run of points per query and row of cells of its box
+        spans = y1 - y0 + 1
+        query = np.repeat(np.arange(len(xy)), spans)
+        row = y0[query] + np.arange(len(query)) - np.repeat(np.cumsum(spans) - spans, spans)
+        first = self.starts[row * self.shape[1] + x0[query]]
+        length = self.starts[row * self.shape[1] + x1[query] + 1] - first
+        query = np.repeat(query, length)
+        at = np.repeat(first - (np.cumsum(length) - length), length) + np.arange(len(query))
+        point = self.order[at]
+        d = self.points[point] - xy[query]
+        d2 = d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1]
+        inside = d2 <= radius[query] ** 2
+        return query[inside], point[inside], d2[inside]

@@ -478,26 +478,7 @@ class _Frame:
             # 2x2 symmetric: the largest eigenvalue and the inverse in closed form
             largest = (sxx + syy) / 2 + np.sqrt(((sxx - syy) / 2) ** 2 + sxy ** 2)
             reach = np.sqrt(largest) * self.options.member_gate
-            k = min(4, len(self.tree_index[v]))
-            dist, near = self._nearest(v, uv, reach + 1.0, k)
-            best = np.full(len(rows), -1, dtype=np.int64)
-            best_d2 = np.full(len(rows), np.inf)
-            # only the rows with a detection within reach (most have none, or one: the neighbours come nearest first)
-            near_rows = np.flatnonzero(np.isfinite(dist[:, 0]))
-            sxx, sxy, syy = sxx[near_rows], sxy[near_rows], syy[near_rows]
-            det = sxx * syy - sxy ** 2
-            inv_xx, inv_xy, inv_yy = syy / det, -sxy / det, sxx / det  # the inverse 2x2, entry by entry
-            for q in range(k):
-                ok = np.flatnonzero(np.isfinite(dist[near_rows, q]))
-                if not len(ok):
-                    break
-                at = near_rows[ok]
-                cand = self.tree_index[v][near[at, q]]
-                dx, dy = (self.uv[cand] - uv[at]).T
-                xy = inv_xy[ok]
-                d2 = dx * inv_xx[ok] * dx + dx * xy * dy + dy * xy * dx + dy * inv_yy[ok] * dy  # x^T S^-1 x, term by term
-                better = (d2 < best_d2[at]) & (d2 <= gate2)
-                best[at[better]], best_d2[at[better]] = cand[better], d2[better]
+            best, best_d2 = self._nearest_member(v, uv, reach + 1.0, sxx, sxy, syy, gate2)
             if not single:
                 members[rows, v] = best
                 continue
@@ -508,26 +489,43 @@ class _Frame:
             members[rows, one_view[rows]] = one_det[rows]
         return members
 
-    def _nearest(self, v: int, uv: np.ndarray, bound: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
-        """The ``k`` detections of view v nearest each of ``uv`` (into its tree; inf / n where none) among those
-        within the row's ``bound``, or beyond it (those a caller's gate rejects anyway): rows whose bound box misses
-        every detection, or whose disc's grid cells hold none (most rows), are not searched, and the others are
-        searched in groups of similar bound, each under its largest (a tight bound prunes the tree's search)."""
-        tree = self.trees[v]
-        assert tree is not None  # views with detections have trees
-        dist = np.full((len(uv), k), np.inf)
-        near = np.full((len(uv), k), tree.n, dtype=np.int64)
-        lo, hi = tree.mins, tree.maxes
-        meets = np.all((uv >= lo - bound[:, None]) & (uv <= hi + bound[:, None]), axis=1)
+    def _nearest_member(self, v: int, uv: np.ndarray, bound: np.ndarray, sxx: np.ndarray, sxy: np.ndarray,
+                        syy: np.ndarray, gate2: float, k: int = 4) -> tuple[np.ndarray, np.ndarray]:
+        """Per point ``uv`` of view v (its projected covariance ``sxx``, ``sxy``, ``syy``), the detection nearest it
+        by the covariance (-1 where none) and its squared distance (inf), among the ``k`` nearest in pixels within
+        ``bound`` (those farther than the reach the gate rejects anyway), inside the gate: one pass over the grid's
+        cells of every searched point's box instead of a KD-tree's search per point."""
         grid = self.grids[v]
-        assert grid is not None  # built with the tree
-        meets[meets] = grid.any_within(uv[meets], bound[meets])
-        rows = np.flatnonzero(meets)
-        rows = rows[np.argsort(bound[rows], kind="stable")]
-        for part in np.array_split(rows, min(4, len(rows))) if len(rows) else []:
-            d, n = tree.query(uv[part], k=k, distance_upper_bound=float(bound[part[-1]]))
-            dist[part], near[part] = d.reshape(len(part), k), n.reshape(len(part), k)
-        return dist, near
+        assert grid is not None  # views with detections have grids
+        best = np.full(len(uv), -1, dtype=np.int64)
+        best_d2 = np.full(len(uv), np.inf)
+        searched = np.flatnonzero(np.isfinite(bound))
+        searched = searched[grid.any_within(uv[searched], bound[searched])]  # most discs hold none
+        query, point, euclid = grid.pairs_within(uv[searched], bound[searched])
+        query = searched[query]
+        if not len(query):
+            return best, best_d2
+        counts = np.bincount(query, minlength=len(uv))
+        crowded = np.flatnonzero(counts[query] > k)
+        if len(crowded):
+            # more than k near: the k nearest only, as the tree's query returns them
+            ranked = crowded[np.lexsort((euclid[crowded], query[crowded]))]
+            order = np.arange(len(ranked)) - np.searchsorted(query[ranked], query[ranked])
+            keep = np.ones(len(query), dtype=bool)
+            keep[ranked[order >= k]] = False
+            query, point = query[keep], point[keep]
+        det = sxx * syy - sxy ** 2
+        inv_xx, inv_xy, inv_yy = syy / det, -sxy / det, sxx / det  # the inverse 2x2, entry by entry
+        cand = self.tree_index[v][point]
+        dx, dy = (self.uv[cand] - uv[query]).T
+        xy = inv_xy[query]
+        d2 = dx * inv_xx[query] * dx + dx * xy * dy + dy * xy * dx + dy * inv_yy[query] * dy  # x^T S^-1 x
+        inside = d2 <= gate2
+        query, cand, d2 = query[inside], cand[inside], d2[inside]
+        np.minimum.at(best_d2, query, d2)
+        won = d2 == best_d2[query]
+        best[query[won]] = cand[won]
+        return best, best_d2
 
     def verify(self, members: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Re-triangulate, drop members outside their band, re-triangulate: members, points, covariances."""

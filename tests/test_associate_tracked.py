@@ -120,3 +120,14 @@ def test_the_second_pass_of_a_tracked_frame_checks_the_first_pass_groups_on_the_
     # each within a first-pass group (its taken members, and any its check drops, left out): no pair grown again
     within = (again[:, None, :] < 0) | (again[:, None, :] == grown[None, :, :])
     assert np.all(np.any(np.all(within, axis=2), axis=1))
+
+
+def test_a_tracked_frame_s_groups_keep_the_scores_they_took_before_the_pairs():
+    before, after = _walked(seed=7)
+    first = associate_views(_crowd(before, seed=8)[0], OPTIONS, carried=True)
+    views, _ = _crowd(after, seed=9)
+    earlier = (first.points, first.covariances, seen_before(first.views, first.members, [v.name for v in views]))
+    frame = _Frame(views, OPTIONS, earlier=earlier)
+    members, points, covariance, scores = frame.hypotheses()
+    assert frame._scored is not None and np.isfinite(frame._scored[0]).sum() > 50  # the tracked groups' own
+    np.testing.assert_array_equal(scores, frame.score(members, points, covariance, floor=OPTIONS.min_score))

@@ -315,6 +315,9 @@ class _Frame:
         # every group verified so far and its ``_verify_steps`` (a function of the group's members alone): the
         # growth's rounds and the final check meet most groups again
         self._verified: list[tuple[np.ndarray, tuple[np.ndarray, ...]]] = []
+        # the scores a carried frame's tracked groups took (NaN: not one), and the options, appearance and clutter
+        # they were scored under
+        self._scored: tuple[np.ndarray, AssociateOptions, AppearanceModel | None, np.ndarray] | None = None
 
     def rescored(self, views: list[View], options: AssociateOptions, appearance: AppearanceModel | None = None,
                  ) -> _Frame | None:
@@ -500,7 +503,6 @@ class _Frame:
         best = np.full(len(uv), -1, dtype=np.int64)
         best_d2 = np.full(len(uv), np.inf)
         searched = np.flatnonzero(np.isfinite(bound))
-        searched = searched[grid.any_within(uv[searched], bound[searched])]  # most discs hold none
         query, point, euclid = grid.pairs_within(uv[searched], bound[searched])
         query = searched[query]
         if not len(query):
@@ -693,7 +695,15 @@ class _Frame:
             self._grown[key] = grown
         members, points, covariance = grown
         # those at or below the minimum score are left out by every caller: -inf, their misses not counted
-        return members, points, covariance, self.score(members, points, covariance, floor=self.options.min_score)
+        known = self._scored[0] if key is None and self._scored is not None and all(
+            a is b for a, b in zip(self._scored[1:], (self.options, self.appearance, self.clutter))) else None
+        if known is None:
+            return members, points, covariance, self.score(members, points, covariance, floor=self.options.min_score)
+        # the tracked groups were scored so already (a row's score is a function of the row alone)
+        scores = known.copy()
+        rows = np.flatnonzero(np.isnan(known))
+        scores[rows] = self.score(members[rows], points[rows], covariance[rows], floor=self.options.min_score)
+        return members, points, covariance, scores
 
     def _grown_hypotheses(self, free: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The groups of ``hypotheses`` before their scores."""
@@ -739,6 +749,10 @@ class _Frame:
                     len(self._seeds) if self._seeds is not None else 0)
         members = np.concatenate([tracked[0], rest[0]])
         members, first = _unique_rows(members)
+        known = np.full(len(members), np.nan)
+        mine = first < len(tracked[0])
+        known[mine] = scores[first[mine]]
+        self._scored = (known, self.options, self.appearance, self.clutter)
         return members, np.concatenate([tracked[1], rest[1]])[first], np.concatenate([tracked[2], rest[2]])[first]
 
     def _grown_from_pairs(self, free: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -852,12 +866,14 @@ def _pack(members: np.ndarray, scores: np.ndarray, total: int, time_limit: float
     cols = np.repeat(np.arange(n), np.sum(members >= 0, axis=1))
     order = np.argsort(-scores)
     greedy = np.zeros(n, dtype=bool)
-    used = np.zeros(total, dtype=bool)
-    for g in order:
-        m = members[g][members[g] >= 0]
-        if not used[m].any():
+    used = bytearray(total)
+    # row by row in Python's own lists: a numpy call per row costs more than the row's few members
+    for g, row in zip(order.tolist(), members[order].tolist()):
+        m = [d for d in row if d >= 0]
+        if not any(used[d] for d in m):
             greedy[g] = True
-            used[m] = True
+            for d in m:
+                used[d] = 1
     # Only detections claimed by two or more hypotheses constrain anything.
     a = sp.csr_matrix((np.ones(len(rows)), (rows, cols)), shape=(total, n))
     shared = np.asarray(a.sum(axis=1)).ravel() > 1

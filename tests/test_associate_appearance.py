@@ -116,6 +116,8 @@ def test_the_median_grey_by_counts_is_numpy_s():
     images = [rng.integers(0, top, size).astype(np.float64) for top in (1, 2, 7, 256)
               for size in ((61, 47), (60, 47), (1, 1), (2, 1), (3, 3))]
     images += [images[3].astype(np.uint8), rng.integers(0, 60000, (30, 31)).astype(np.float64)]
+    # stored bytes, odd and even counts (counted two bytes at a time, the odd one out on its own)
+    images += [rng.integers(lo, 256, size).astype(np.uint8) for lo in (0, 250) for size in ((61, 47), (60, 47), (1, 1), (2, 1), (3, 3))]
     odd = rng.integers(0, 256, (20, 21)).astype(np.float64)
     images += [odd + 0.5, np.where(odd > 200, np.nan, odd), odd - 100.0]
     for grey in images:

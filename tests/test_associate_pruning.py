@@ -28,6 +28,50 @@ def test_a_grid_box_never_misses_a_point_within_the_radius():
     assert (~found[~within]).mean() > 0.3  # and it rules most empty discs out (its use)
 
 
+def test_a_grid_pairs_every_point_within_the_radius_as_a_kd_tree_does():
+    from scipy.spatial import cKDTree
+
+    rng = np.random.default_rng(3)
+    points = np.r_[rng.uniform(0, 400, (300, 2)), np.arange(0, 400, 8.0)[:, None].repeat(2, axis=1)]  # on cell edges
+    grid = CountGrid(points)
+    queries = np.r_[rng.uniform(-60, 460, (3000, 2)), points + 4.0]
+    radius = np.r_[rng.uniform(0.5, 40, 3000), np.full(len(points), 4.0 * np.sqrt(2))]  # the last: exactly reached
+    query, point, d2 = grid.pairs_within(queries, radius)
+    assert np.all(np.diff(query) >= 0)  # query by query
+    np.testing.assert_allclose(d2, np.sum((points[point] - queries[query]) ** 2, axis=1))
+    balls = cKDTree(points).query_ball_point(queries, radius)
+    assert sum(map(len, balls)) > 3000
+    assert set(zip(query.tolist(), point.tolist())) == {(q, p) for q, ball in enumerate(balls) for p in ball}
+
+
+def test_the_growth_s_member_is_the_gated_nearest_of_the_four_nearest_pixels():
+    views, _ = _crowd_views(seed=4)
+    frame = _Frame(views, AssociateOptions(pixel_sigma=1.5))
+    rng = np.random.default_rng(4)
+    v = 1
+    mine = frame.uv[frame.tree_index[v]]
+    uv = mine[rng.integers(0, len(mine), 4000)] + rng.normal(0, 6.0, (4000, 2))
+    sxx, syy = rng.uniform(1, 40, 4000) ** 2, rng.uniform(1, 40, 4000) ** 2  # long ellipses: many within
+    sxy = rng.uniform(-0.99, 0.99, 4000) * np.sqrt(sxx * syy)
+    bound = 3.5 * np.sqrt(np.maximum(sxx, syy) + np.abs(sxy)) + 1.0
+    best, best_d2 = frame._nearest_member(v, uv, bound, sxx, sxy, syy, 3.5 ** 2)
+    # brute force: the four nearest in pixels within the bound, the nearest of them by the covariance in the gate
+    distance = np.linalg.norm(uv[:, None] - mine[None], axis=2)
+    nearest = np.argsort(distance, axis=1, kind="stable")[:, :4]
+    dx, dy = np.moveaxis(mine[nearest] - uv[:, None], 2, 0)
+    det = sxx * syy - sxy ** 2
+    d2 = (dx * dx * syy[:, None] - 2 * dx * dy * sxy[:, None] + dy * dy * sxx[:, None]) / det[:, None]
+    ok = (np.take_along_axis(distance, nearest, axis=1) <= bound[:, None]) & (d2 <= 3.5 ** 2)
+    d2 = np.where(ok, d2, np.inf)
+    pick = np.argmin(d2, axis=1)
+    want = np.where(np.isfinite(d2.min(axis=1)), frame.tree_index[v][nearest[np.arange(4000), pick]], -1)
+    assert (want >= 0).sum() > 1000
+    np.testing.assert_array_equal(best, want)
+    # the four nearest's cut matters: without it another detection wins in some rows
+    assert np.sum(frame._nearest_member(v, uv, bound, sxx, sxy, syy, 3.5 ** 2, k=len(mine))[0] != want) > 5
+    np.testing.assert_allclose(best_d2[want >= 0], d2.min(axis=1)[want >= 0], rtol=1e-9)
+
+
 def test_the_score_s_floor_leaves_every_hypothesis_above_it_as_it_was():
     views, _ = _crowd_views(seed=1)
     rng = np.random.default_rng(1)

@@ -120,3 +120,48 @@ def test_the_second_pass_of_a_tracked_frame_checks_the_first_pass_groups_on_the_
     # each within a first-pass group (its taken members, and any its check drops, left out): no pair grown again
     within = (again[:, None, :] < 0) | (again[:, None, :] == grown[None, :, :])
     assert np.all(np.any(np.all(within, axis=2), axis=1))
+
+
+def test_a_tracked_frame_s_groups_keep_the_scores_they_took_before_the_pairs():
+    before, after = _walked(seed=7)
+    first = associate_views(_crowd(before, seed=8)[0], OPTIONS, carried=True)
+    views, _ = _crowd(after, seed=9)
+    earlier = (first.points, first.covariances, seen_before(first.views, first.members, [v.name for v in views]))
+    frame = _Frame(views, OPTIONS, earlier=earlier)
+    members, points, covariance, scores = frame.hypotheses()
+    assert frame._scored is not None and np.isfinite(frame._scored[0]).sum() > 50  # the tracked groups' own
+    np.testing.assert_array_equal(scores, frame.score(members, points, covariance, floor=OPTIONS.min_score))
+
+
+def test_a_tracked_frame_grows_once_and_finds_the_persons_two_rounds_find(monkeypatch):
+    before, after = _walked(seed=11)
+    first = associate_views(_crowd(before, seed=12)[0], OPTIONS, carried=True)
+    views, _ = _crowd(after, seed=13)
+    grown = {}
+
+    def associate(rounds: int | None):
+        original, growth = _Frame._grown_from, _Frame.grow
+        rows = []
+
+        def grown_from(self, *args, **kwargs):
+            if rounds is not None:
+                kwargs["rounds"] = rounds
+            return original(self, *args, **kwargs)
+
+        def grow(self, members, *args, **kwargs):
+            rows.append(len(members))
+            return growth(self, members, *args, **kwargs)
+
+        with monkeypatch.context() as patch:
+            patch.setattr(_Frame, "_grown_from", grown_from)
+            patch.setattr(_Frame, "grow", grow)
+            result = associate_views(copy.deepcopy(views), OPTIONS, carried=True, earlier=first)
+        grown[rounds] = sum(rows)
+        return result
+
+    once, twice = associate(None), associate(2)
+    assert len(twice) > 60
+    np.testing.assert_array_equal(once.members, twice.members)
+    np.testing.assert_array_equal(once.points, twice.points)
+    np.testing.assert_array_equal(once.scores, twice.scores)
+    assert grown[None] < 0.8 * grown[2]  # the growth's second round is what it saves

@@ -66,11 +66,24 @@ def median_grey(grey: np.ndarray) -> float:
             return float(np.median(grey))
     if not flat.size:
         return float(np.median(grey))
-    below = np.cumsum(np.bincount(whole))  # below[g]: how many greys are at most g
+    below = np.cumsum(_counts(whole))  # below[g]: how many greys are at most g
     n = len(flat)
     low = int(np.searchsorted(below, (n - 1) // 2, side="right"))  # the middle one (n odd) or two (n even)
     high = int(np.searchsorted(below, n // 2, side="right"))
     return (low + high) / 2
+
+
+def _counts(whole: np.ndarray) -> np.ndarray:
+    """``np.bincount`` of whole-number greys; 8-bit ones two at a time (each two neighbouring bytes read as one
+    16-bit number, then their counts summed over either byte): half the values to widen to bincount's integers."""
+    if whole.dtype != np.uint8 or len(whole) < 2 or not whole.flags.c_contiguous:
+        return np.bincount(whole)
+    even = len(whole) - len(whole) % 2
+    pairs = np.bincount(whole[:even].view(np.uint16), minlength=65536).reshape(256, 256)
+    counts = pairs.sum(axis=0) + pairs.sum(axis=1)
+    if even < len(whole):
+        counts[whole[-1]] += 1
+    return counts
 
 
 def describe(grey: np.ndarray, xy: np.ndarray, head_px: float) -> np.ndarray:

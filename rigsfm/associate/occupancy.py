@@ -25,6 +25,10 @@ class CountGrid:
         np.add.at(counts, (iy, ix), 1)
         self.table = np.zeros((self.shape[0] + 1, self.shape[1] + 1), dtype=np.int64)
         self.table[1:, 1:] = counts.cumsum(axis=0).cumsum(axis=1)
+        # the points cell by cell, rows of cells first: a row of a box's cells is one run of them
+        self.points = np.asarray(points, dtype=np.float64)
+        self.order = np.argsort(iy * self.shape[1] + ix, kind="stable")
+        self.starts = np.concatenate([[0], np.cumsum(counts.ravel())])
 
     def _cells(self, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The (clipped) cell column and row of each point (monotone in its coordinates)."""
@@ -33,9 +37,8 @@ class CountGrid:
         iy = np.clip(cell[:, 1], 0, self.shape[0] - 1).astype(np.int64)
         return ix, iy
 
-    def any_within(self, xy: np.ndarray, radius: np.ndarray) -> np.ndarray:
-        """Whether any point may lie within ``radius`` of each of ``xy`` (N x 2, finite): False only where the cells
-        of the box around the disc hold none."""
+    def _boxes(self, xy: np.ndarray, radius: np.ndarray) -> tuple[np.ndarray, ...]:
+        """The first and last cell column and row of the box around each disc, and how many points its cells hold."""
         # a hair wider than the disc: the points' own cells come from the same monotone arithmetic, so rounding
         # cannot move a point inside the disc out of the box
         r = (radius * (1 + 1e-9) + 1e-6)[:, None]
@@ -43,4 +46,30 @@ class CountGrid:
         x1, y1 = self._cells(xy + r)
         t = self.table
         count = t[y1 + 1, x1 + 1] - t[y0, x1 + 1] - t[y1 + 1, x0] + t[y0, x0]
-        return count > 0
+        return x0, y0, x1, y1, count
+
+    def any_within(self, xy: np.ndarray, radius: np.ndarray) -> np.ndarray:
+        """Whether any point may lie within ``radius`` of each of ``xy`` (N x 2, finite): False only where the cells
+        of the box around the disc hold none."""
+        return self._boxes(xy, radius)[4] > 0
+
+    def pairs_within(self, xy: np.ndarray, radius: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Every point within ``radius`` of each of ``xy`` (N x 2, finite; N radii): the queries' rows, the points'
+        indices and their squared distances, query by query (a query's points in no particular order)."""
+        x0, y0, x1, y1, count = self._boxes(xy, radius)
+        searched = np.flatnonzero(count > 0)  # most boxes hold none
+        x0, y0, x1, y1 = x0[searched], y0[searched], x1[searched], y1[searched]
+        # one run of points per query and row of cells of its box
+        spans = y1 - y0 + 1
+        query = np.repeat(np.arange(len(searched)), spans)
+        row = y0[query] + np.arange(len(query)) - np.repeat(np.cumsum(spans) - spans, spans)
+        first = self.starts[row * self.shape[1] + x0[query]]
+        length = self.starts[row * self.shape[1] + x1[query] + 1] - first
+        query = np.repeat(query, length)
+        at = np.repeat(first - (np.cumsum(length) - length), length) + np.arange(len(query))
+        point = self.order[at]
+        query = searched[query]
+        d = self.points[point] - xy[query]
+        d2 = d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1]
+        inside = d2 <= radius[query] ** 2
+        return query[inside], point[inside], d2[inside]

@@ -315,6 +315,9 @@ class _Frame:
         # every group verified so far and its ``_verify_steps`` (a function of the group's members alone): the
         # growth's rounds and the final check meet most groups again
         self._verified: list[tuple[np.ndarray, tuple[np.ndarray, ...]]] = []
+        # the scores a carried frame's tracked groups took (NaN: not one), and the options, appearance and clutter
+        # they were scored under
+        self._scored: tuple[np.ndarray, AssociateOptions, AppearanceModel | None, np.ndarray] | None = None
 
     def rescored(self, views: list[View], options: AssociateOptions, appearance: AppearanceModel | None = None,
                  ) -> _Frame | None:
@@ -478,26 +481,7 @@ class _Frame:
             # 2x2 symmetric: the largest eigenvalue and the inverse in closed form
             largest = (sxx + syy) / 2 + np.sqrt(((sxx - syy) / 2) ** 2 + sxy ** 2)
             reach = np.sqrt(largest) * self.options.member_gate
-            k = min(4, len(self.tree_index[v]))
-            dist, near = self._nearest(v, uv, reach + 1.0, k)
-            best = np.full(len(rows), -1, dtype=np.int64)
-            best_d2 = np.full(len(rows), np.inf)
-            # only the rows with a detection within reach (most have none, or one: the neighbours come nearest first)
-            near_rows = np.flatnonzero(np.isfinite(dist[:, 0]))
-            sxx, sxy, syy = sxx[near_rows], sxy[near_rows], syy[near_rows]
-            det = sxx * syy - sxy ** 2
-            inv_xx, inv_xy, inv_yy = syy / det, -sxy / det, sxx / det  # the inverse 2x2, entry by entry
-            for q in range(k):
-                ok = np.flatnonzero(np.isfinite(dist[near_rows, q]))
-                if not len(ok):
-                    break
-                at = near_rows[ok]
-                cand = self.tree_index[v][near[at, q]]
-                dx, dy = (self.uv[cand] - uv[at]).T
-                xy = inv_xy[ok]
-                d2 = dx * inv_xx[ok] * dx + dx * xy * dy + dy * xy * dx + dy * inv_yy[ok] * dy  # x^T S^-1 x, term by term
-                better = (d2 < best_d2[at]) & (d2 <= gate2)
-                best[at[better]], best_d2[at[better]] = cand[better], d2[better]
+            best, best_d2 = self._nearest_member(v, uv, reach + 1.0, sxx, sxy, syy, gate2)
             if not single:
                 members[rows, v] = best
                 continue
@@ -508,26 +492,42 @@ class _Frame:
             members[rows, one_view[rows]] = one_det[rows]
         return members
 
-    def _nearest(self, v: int, uv: np.ndarray, bound: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
-        """The ``k`` detections of view v nearest each of ``uv`` (into its tree; inf / n where none) among those
-        within the row's ``bound``, or beyond it (those a caller's gate rejects anyway): rows whose bound box misses
-        every detection, or whose disc's grid cells hold none (most rows), are not searched, and the others are
-        searched in groups of similar bound, each under its largest (a tight bound prunes the tree's search)."""
-        tree = self.trees[v]
-        assert tree is not None  # views with detections have trees
-        dist = np.full((len(uv), k), np.inf)
-        near = np.full((len(uv), k), tree.n, dtype=np.int64)
-        lo, hi = tree.mins, tree.maxes
-        meets = np.all((uv >= lo - bound[:, None]) & (uv <= hi + bound[:, None]), axis=1)
+    def _nearest_member(self, v: int, uv: np.ndarray, bound: np.ndarray, sxx: np.ndarray, sxy: np.ndarray,
+                        syy: np.ndarray, gate2: float, k: int = 4) -> tuple[np.ndarray, np.ndarray]:
+        """Per point ``uv`` of view v (its projected covariance ``sxx``, ``sxy``, ``syy``), the detection nearest it
+        by the covariance (-1 where none) and its squared distance (inf), among the ``k`` nearest in pixels within
+        ``bound`` (those farther than the reach the gate rejects anyway), inside the gate: one pass over the grid's
+        cells of every searched point's box instead of a KD-tree's search per point."""
         grid = self.grids[v]
-        assert grid is not None  # built with the tree
-        meets[meets] = grid.any_within(uv[meets], bound[meets])
-        rows = np.flatnonzero(meets)
-        rows = rows[np.argsort(bound[rows], kind="stable")]
-        for part in np.array_split(rows, min(4, len(rows))) if len(rows) else []:
-            d, n = tree.query(uv[part], k=k, distance_upper_bound=float(bound[part[-1]]))
-            dist[part], near[part] = d.reshape(len(part), k), n.reshape(len(part), k)
-        return dist, near
+        assert grid is not None  # views with detections have grids
+        best = np.full(len(uv), -1, dtype=np.int64)
+        best_d2 = np.full(len(uv), np.inf)
+        searched = np.flatnonzero(np.isfinite(bound))
+        query, point, euclid = grid.pairs_within(uv[searched], bound[searched])
+        query = searched[query]
+        if not len(query):
+            return best, best_d2
+        counts = np.bincount(query, minlength=len(uv))
+        crowded = np.flatnonzero(counts[query] > k)
+        if len(crowded):
+            # more than k near: the k nearest only, as the tree's query returns them
+            ranked = crowded[np.lexsort((euclid[crowded], query[crowded]))]
+            order = np.arange(len(ranked)) - np.searchsorted(query[ranked], query[ranked])
+            keep = np.ones(len(query), dtype=bool)
+            keep[ranked[order >= k]] = False
+            query, point = query[keep], point[keep]
+        det = sxx * syy - sxy ** 2
+        inv_xx, inv_xy, inv_yy = syy / det, -sxy / det, sxx / det  # the inverse 2x2, entry by entry
+        cand = self.tree_index[v][point]
+        dx, dy = (self.uv[cand] - uv[query]).T
+        xy = inv_xy[query]
+        d2 = dx * inv_xx[query] * dx + dx * xy * dy + dy * xy * dx + dy * inv_yy[query] * dy  # x^T S^-1 x
+        inside = d2 <= gate2
+        query, cand, d2 = query[inside], cand[inside], d2[inside]
+        np.minimum.at(best_d2, query, d2)
+        won = d2 == best_d2[query]
+        best[query[won]] = cand[won]
+        return best, best_d2
 
     def verify(self, members: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Re-triangulate, drop members outside their band, re-triangulate: members, points, covariances."""
@@ -695,7 +695,15 @@ class _Frame:
             self._grown[key] = grown
         members, points, covariance = grown
         # those at or below the minimum score are left out by every caller: -inf, their misses not counted
-        return members, points, covariance, self.score(members, points, covariance, floor=self.options.min_score)
+        known = self._scored[0] if key is None and self._scored is not None and all(
+            a is b for a, b in zip(self._scored[1:], (self.options, self.appearance, self.clutter))) else None
+        if known is None:
+            return members, points, covariance, self.score(members, points, covariance, floor=self.options.min_score)
+        # the tracked groups were scored so already (a row's score is a function of the row alone)
+        scores = known.copy()
+        rows = np.flatnonzero(np.isnan(known))
+        scores[rows] = self.score(members[rows], points[rows], covariance[rows], floor=self.options.min_score)
+        return members, points, covariance, scores
 
     def _grown_hypotheses(self, free: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The groups of ``hypotheses`` before their scores."""
@@ -727,7 +735,8 @@ class _Frame:
         members = np.concatenate([members[keep], pairs[0]])
         points, covariance = np.concatenate([points[keep], pairs[1]]), np.concatenate([covariance[keep], pairs[2]])
         members, first = _unique_rows(members)
-        tracked = self._grown_from(members, points[first], covariance[first], None)
+        # one round of growth: the rows are whole persons already, and their pairs grow back into them
+        tracked = self._grown_from(members, points[first], covariance[first], None, rounds=1)
         scores = self.score(*tracked, floor=self.options.min_score)
         above = np.flatnonzero(scores > self.options.min_score)
         chosen = above[_pack(tracked[0][above], scores[above] - self.options.min_score, total,
@@ -741,6 +750,10 @@ class _Frame:
                     len(self._seeds) if self._seeds is not None else 0)
         members = np.concatenate([tracked[0], rest[0]])
         members, first = _unique_rows(members)
+        known = np.full(len(members), np.nan)
+        mine = first < len(tracked[0])
+        known[mine] = scores[first[mine]]
+        self._scored = (known, self.options, self.appearance, self.clutter)
         return members, np.concatenate([tracked[1], rest[1]])[first], np.concatenate([tracked[2], rest[2]])[first]
 
     def _grown_from_pairs(self, free: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -753,7 +766,10 @@ class _Frame:
         if not len(seeds):
             empty = np.zeros((0, len(self.views)), dtype=np.int64)
             return empty, np.zeros((0, 3)), np.zeros((0, 3, 3))
-        return self._grown_from(*self._gated(seeds, self.options.seed_min_score), free)
+        # among what the tracked persons leave, one round: a second round's groups are alternatives to the first's
+        # that the packing does not keep there (benchmarks/README.md, fourteenth pass)
+        return self._grown_from(*self._gated(seeds, self.options.seed_min_score), free,
+                                rounds=1 if self._among is not None else 2)
 
     def _gated(self, seeds: np.ndarray, floor: float | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The seeds whose point lies between the heights with every member inside its gate (and, with a ``floor``,
@@ -770,16 +786,16 @@ class _Frame:
         return members, points, covariance
 
     def _grown_from(self, members: np.ndarray, points: np.ndarray, covariance: np.ndarray,
-                    free: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                    free: np.ndarray | None, rounds: int = 2) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Groups grown from ``members`` (their points and covariances) into the other views' ``free`` detections
-        (None: all), twice, each verified; every distinct group met on the way, verified again."""
+        (None: all), ``rounds`` times, each verified; every distinct group met on the way, verified again."""
 
         def only_free(m: np.ndarray) -> np.ndarray:
             return m if free is None else np.where((m >= 0) & ~free[np.maximum(m, 0)], -1, m)
 
         lo, hi = self.options.heights
         groups = [members]
-        for _ in range(2):
+        for _ in range(rounds):
             members = only_free(self.grow(members, points, covariance, single=True))
             points, covariance = self.triangulate(members, points)
             members = only_free(self.grow(members, points, covariance))
@@ -854,12 +870,14 @@ def _pack(members: np.ndarray, scores: np.ndarray, total: int, time_limit: float
     cols = np.repeat(np.arange(n), np.sum(members >= 0, axis=1))
     order = np.argsort(-scores)
     greedy = np.zeros(n, dtype=bool)
-    used = np.zeros(total, dtype=bool)
-    for g in order:
-        m = members[g][members[g] >= 0]
-        if not used[m].any():
+    used = bytearray(total)
+    # row by row in Python's own lists: a numpy call per row costs more than the row's few members
+    for g, row in zip(order.tolist(), members[order].tolist()):
+        m = [d for d in row if d >= 0]
+        if not any(used[d] for d in m):
             greedy[g] = True
-            used[m] = True
+            for d in m:
+                used[d] = 1
     # Only detections claimed by two or more hypotheses constrain anything.
     a = sp.csr_matrix((np.ones(len(rows)), (rows, cols)), shape=(total, n))
     shared = np.asarray(a.sum(axis=1)).ravel() > 1

@@ -49,9 +49,9 @@ def predicted_groups(frame: _Frame, points: np.ndarray, covariance: np.ndarray, 
     """Per earlier person (its point and covariance, P x 3 and P x 3 x 3, and the views it was ``seen`` in, P x V),
     the detection of each of those views nearest where it would be (Mahalanobis: its covariance, a walk's and the
     view's noise, within the member gate): member rows (G x V) of those with two or more."""
-    nv = len(frame.views)
     loose = covariance + walk_covariance(walk_m)[None]
-    members = frame.grow(np.full((len(points), nv), -1, dtype=np.int64), points, loose)
+    # searched only in the views it was seen in: the growth fills each view without a member on its own
+    members = frame.grow(np.where(seen, -1, 0).astype(np.int64), points, loose)
     members = np.where(seen, members, -1)
     return members[np.sum(members >= 0, axis=1) >= 2]
 

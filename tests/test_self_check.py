@@ -15,8 +15,8 @@ from test_floor_matching import HALF, render
 
 from rigsfm.core.geometry import correspondence_check
 from rigsfm.core.ground import image_to_plane
-from rigsfm.run.checks.guided import NarrowFeatures, band_candidates, epipolar_segments, guided_matches
-from rigsfm.run.checks.self_check import epipolar_self_check, synchronised_frames
+from rigsfm.run.checks.guided import NarrowFeatures, PairCheck, band_candidates, epipolar_segments, guided_matches
+from rigsfm.run.checks.self_check import SelfCheck, epipolar_self_check, synchronised_frames
 from rigsfm.run.deliver import narrow_poses
 from rigsfm.run.options import SelfCheckOptions, WorldOptions
 from rigsfm.run.world.frame import place_in_world
@@ -160,3 +160,24 @@ def test_pairs_are_from_different_rigs():
     rec = ring(seed=44, num_rigs=3).reconstruction
     names = [im.name for im in synchronised_frames(rec)["frame0000.png"]]
     assert all(a.split("/")[0] != b.split("/")[0] for a, b in itertools.combinations(names, 2))
+
+
+def _verdicts(rigs: int, verdict_of) -> SelfCheck:
+    names = [f"rig{k:02d}/narrow/frame0000.png" for k in range(1, rigs + 1)]
+    pairs = [PairCheck("frame0000.png", a, b, 10.0, verdict=verdict_of(a.split("/")[0], b.split("/")[0]))
+             for a, b in itertools.combinations(names, 2)]
+    return SelfCheck(pairs, ["frame0000.png"], "epipolar band", 0.0)
+
+
+def test_a_rig_none_of_whose_pairs_could_be_checked_while_the_others_were_is_pointed_out():
+    """Seed 4's rig02 (benchmarks/README.md): its 7 pairs without a verdict, the 21 others ok."""
+    check = _verdicts(8, lambda a, b: "too few matches" if "rig02" in (a, b) else "ok")
+    (warning,) = check.warnings
+    assert warning.startswith("UNCHECKED NARROW VIEW: none of rig02's 7 narrow pairs") and "21 of the other 21" in warning
+    # A featureless frame (nothing checked anywhere) and a rig with one checked pair say nothing.
+    assert _verdicts(8, lambda a, b: "too few matches").warnings == []
+    assert _verdicts(8, lambda a, b: "ok" if (a, b) == ("rig01", "rig02") or "rig02" not in (a, b)
+                     else "too few matches").warnings == []
+    # Too few checked pairs among the others (under half of them) say nothing either.
+    assert _verdicts(8, lambda a, b: "ok" if (a, b) in (("rig01", "rig03"), ("rig04", "rig05"))
+                     else "too few matches").warnings == []

@@ -38,6 +38,9 @@ from rigsfm.run.options import SelfCheckOptions
 
 logger = logging.getLogger(__name__)
 
+CHECKED = ("ok", "failed", "not synchronised")  # the verdicts of a pair that had enough matches to measure
+MIN_CHECKED_OTHERS = 3  # checked pairs among the others before a rig without any is pointed out
+
 
 @dataclass
 class SelfCheck:
@@ -58,15 +61,34 @@ class SelfCheck:
 
     @property
     def warnings(self) -> list[str]:
+        out = [self.sync_warning] if self.sync_warning else []
         failed = [p for p in self.pairs if p.verdict == "failed"]
-        if not failed:
-            return [self.sync_warning] if self.sync_warning else []
-        # failed pairs have their numbers
-        worst = max(failed, key=lambda p: p.p95_px / max(p.band_px, 1e-9))  # type: ignore[operator,type-var]
-        return ([self.sync_warning] if self.sync_warning else []) + [f"EPIPOLAR CHECK FAILED: {len(failed)} of {sum(p.verdict != 'too few matches' for p in self.pairs)} "
-                f"narrow pairs match synchronised images farther from the epipolar lines than the 95 % band "
-                f"(worst {worst.i} -> {worst.j}: 95th percentile {worst.p95_px:.2f} px, band {worst.band_px:.2f} px): "
-                "the poses moved since the calibration, or rigs.yaml is off"]
+        if failed:
+            # failed pairs have their numbers
+            worst = max(failed, key=lambda p: p.p95_px / max(p.band_px, 1e-9))  # type: ignore[operator,type-var]
+            out.append(f"EPIPOLAR CHECK FAILED: {len(failed)} of {sum(p.verdict != 'too few matches' for p in self.pairs)} "
+                       f"narrow pairs match synchronised images farther from the epipolar lines than the 95 % band "
+                       f"(worst {worst.i} -> {worst.j}: 95th percentile {worst.p95_px:.2f} px, band "
+                       f"{worst.band_px:.2f} px): the poses moved since the calibration, or rigs.yaml is off")
+        return out + self.unchecked_rigs()
+
+    def unchecked_rigs(self) -> list[str]:
+        """A warning per rig none of whose pairs could be checked while at least half of the other pairs (three or
+        more) were: the others show that the frame held something to match, so that rig's narrow view or pose
+        differs from theirs (a pose off by more than its band, a view turned away), and its bands are unverified."""
+        rigs = sorted({name_of_str(name) for p in self.pairs for name in (p.i, p.j)})
+        out = []
+        for rig in rigs:
+            own = [p for p in self.pairs if rig in (name_of_str(p.i), name_of_str(p.j))]
+            others = [p for p in self.pairs if rig not in (name_of_str(p.i), name_of_str(p.j))]
+            checked = sum(p.verdict in CHECKED for p in others)
+            if len(own) >= 2 and all(p.verdict == "too few matches" for p in own) and checked >= max(
+                    MIN_CHECKED_OTHERS, len(others) / 2):
+                out.append(f"UNCHECKED NARROW VIEW: none of {rig}'s {len(own)} narrow pairs found enough matches to "
+                           f"check while {checked} of the other {len(others)} pairs were checked: its narrow pose and "
+                           f"its pairs' epipolar bands are unverified; look at its pairs in report.html before "
+                           f"relying on them")
+        return out
 
     def summary(self) -> SelfCheckSummary:
         """summary.json's ``epipolar_self_check``."""

@@ -15,7 +15,13 @@ from test_floor_matching import HALF, render
 
 from rigsfm.core.geometry import correspondence_check
 from rigsfm.core.ground import image_to_plane
-from rigsfm.run.checks.guided import NarrowFeatures, PairCheck, band_candidates, epipolar_segments, guided_matches
+from rigsfm.run.checks.guided import (
+    NarrowFeatures,
+    PairCheck,
+    band_candidates,
+    epipolar_segments,
+    guided_matches,
+)
 from rigsfm.run.checks.self_check import SelfCheck, epipolar_self_check, synchronised_frames
 from rigsfm.run.deliver import narrow_poses
 from rigsfm.run.options import SelfCheckOptions, WorldOptions

@@ -104,12 +104,17 @@ def test_an_earlier_person_is_looked_for_in_the_cameras_it_was_seen_by():
     assert sorted(map(tuple, row_pairs(rows).tolist())) == [(-1, -1, 5, 7), (3, -1, -1, 7), (3, -1, 5, -1)]
 
 
-def test_the_second_pass_of_a_tracked_frame_checks_the_first_pass_groups_on_the_free_detections():
-    before, after = _walked(seed=7)
-    first = associate_views(_crowd(before, seed=8)[0], OPTIONS, carried=True)
-    views, _ = _crowd(after, seed=9)
+def _tracked_frame(seed: int) -> _Frame:
+    """A carried frame of a walking crowd, seeded by the frame before's persons."""
+    before, after = _walked(seed=seed)
+    first = associate_views(_crowd(before, seed=seed + 1)[0], OPTIONS, carried=True)
+    views, _ = _crowd(after, seed=seed + 2)
     earlier = (first.points, first.covariances, seen_before(first.views, first.members, [v.name for v in views]))
-    frame = _Frame(views, OPTIONS, earlier=earlier)
+    return _Frame(views, OPTIONS, earlier=earlier)
+
+
+def test_the_second_pass_of_a_tracked_frame_checks_the_first_pass_groups_on_the_free_detections():
+    frame = _tracked_frame(seed=7)
     grown = frame.hypotheses()[0]
     free = np.ones(int(frame.offsets[-1]), dtype=bool)
     free[grown[0][grown[0] >= 0]] = False  # one person's detections taken
@@ -123,11 +128,7 @@ def test_the_second_pass_of_a_tracked_frame_checks_the_first_pass_groups_on_the_
 
 
 def test_a_tracked_frame_s_groups_keep_the_scores_they_took_before_the_pairs():
-    before, after = _walked(seed=7)
-    first = associate_views(_crowd(before, seed=8)[0], OPTIONS, carried=True)
-    views, _ = _crowd(after, seed=9)
-    earlier = (first.points, first.covariances, seen_before(first.views, first.members, [v.name for v in views]))
-    frame = _Frame(views, OPTIONS, earlier=earlier)
+    frame = _tracked_frame(seed=7)
     members, points, covariance, scores = frame.hypotheses()
     assert frame._scored is not None and np.isfinite(frame._scored[0]).sum() > 50  # the tracked groups' own
     np.testing.assert_array_equal(scores, frame.score(members, points, covariance, floor=OPTIONS.min_score))

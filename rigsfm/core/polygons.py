@@ -124,7 +124,7 @@ def intersect_polygons(a: np.ndarray, b: np.ndarray) -> list[np.ndarray]:
     return [piece for piece in pieces if len(piece) >= 3 and polygon_area(piece) > 0]
 
 
-def _point_in_polygon(points: np.ndarray, polygon: np.ndarray) -> np.ndarray:
+def point_in_polygon(points: np.ndarray, polygon: np.ndarray) -> np.ndarray:
     """Even-odd rule, vectorised over points (N x 2) and edges."""
     a, b = polygon, np.roll(polygon, -1, axis=0)
     px, py = points[:, 0:1], points[:, 1:2]
@@ -178,7 +178,7 @@ def _boundary_inside(a: np.ndarray, b: np.ndarray) -> float | None:
     finish = np.concatenate([np.ones(len(plain)), at, np.ones(int(last.sum()))])
     start_points = p[edge] + begin[:, None] * d1[edge]
     end_points = p[edge] + finish[:, None] * d1[edge]
-    inside = _point_in_polygon((start_points + end_points) / 2, b)
+    inside = point_in_polygon((start_points + end_points) / 2, b)
     x1, y1, x2, y2 = start_points[:, 0], start_points[:, 1], end_points[:, 0], end_points[:, 1]
     return 0.5 * float(np.sum((x1 * y2 - x2 * y1)[inside]))
 

@@ -62,6 +62,7 @@ from rigsfm.core.geometry import pixel_line_distances
 from rigsfm.core.ground import undistort_pixels
 from rigsfm.core.image_files import read_image
 from rigsfm.core.opencv_threads import one_opencv_thread
+from rigsfm.core.polygons import point_in_polygon
 from rigsfm.run.checks.guided import overlapping_pairs
 from rigsfm.run.narrow.observations import PairMatches
 
@@ -115,9 +116,9 @@ class HeadMatches:
 
 
 def scene_footprint(model: pycolmap.Reconstruction) -> np.ndarray | None:
-    """Where on the floor a head can stand (module docstring, step 1): the convex hull (floor-frame x, y, counter-
-    clockwise) of the camera centres and the sparse points but the farthest from their median (stray points), enlarged
-    by ``FOOTPRINT_MARGIN`` about its centre; None with too few points. A head beyond every structure the images saw
+    """Where on the floor a head can stand (module docstring, step 1): the convex hull (floor-frame x, y) of the
+    camera centres and the sparse points but the farthest from their median (stray points), enlarged by
+    ``FOOTPRINT_MARGIN`` about its centre; None with too few points. A head beyond every structure the images saw
     in its direction would stand behind it: the rows that look there (the far side of the scene, towards the horizon,
     where the expected radius is a few pixels) hold no head, only the search's most costly and false circles."""
     points = np.array([p.xyz for p in model.points3D.values()], dtype=np.float64).reshape(-1, 3)[:, :2]
@@ -135,13 +136,6 @@ def scene_footprint(model: pycolmap.Reconstruction) -> np.ndarray | None:
     return centre + FOOTPRINT_MARGIN * (hull - centre)
 
 
-def _inside(polygon: np.ndarray, xy: np.ndarray) -> np.ndarray:
-    """Whether each point of ``xy`` (N x 2) lies inside the convex, counter-clockwise ``polygon`` (edges included)."""
-    edges = np.roll(polygon, -1, axis=0) - polygon
-    relative = xy[:, None, :] - polygon[None, :, :]
-    return np.all(edges[None, :, 0] * relative[:, :, 1] - edges[None, :, 1] * relative[:, :, 0] >= 0.0, axis=1)
-
-
 def expected_radius(image: pycolmap.Image, xy: np.ndarray, footprint: np.ndarray | None = None) -> np.ndarray:
     """The radius (px) of a head centred at ``HEAD_CENTRE_M`` seen at raw COLMAP pixels ``xy`` (floor frame);
     NaN where the ray does not reach that plane in front of the camera, or meets it outside ``footprint``
@@ -156,7 +150,7 @@ def expected_radius(image: pycolmap.Image, xy: np.ndarray, footprint: np.ndarray
         distance = np.where(t > 0, t * np.linalg.norm(rays, axis=1), np.nan)
         if footprint is not None:
             where = centre[None, :2] + np.where(t > 0, t, 0.0)[:, None] * rays[:, :2]
-            distance = np.where(_inside(footprint, where), distance, np.nan)
+            distance = np.where(point_in_polygon(where, footprint), distance, np.nan)
         return HEAD_RADIUS_M * float(camera.focal_length_x) / distance  # type: ignore[union-attr]
 
 

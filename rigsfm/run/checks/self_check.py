@@ -76,11 +76,11 @@ class SelfCheck:
         """A warning per rig none of whose pairs could be checked while at least half of the other pairs (three or
         more) were: the others show that the frame held something to match, so that rig's narrow view or pose
         differs from theirs (a pose off by more than its band, a view turned away), and its bands are unverified."""
-        rigs = sorted({name_of_str(name) for p in self.pairs for name in (p.i, p.j)})
+        rigs_of = [{name_of_str(p.i), name_of_str(p.j)} for p in self.pairs]  # each name parsed once
         out = []
-        for rig in rigs:
-            own = [p for p in self.pairs if rig in (name_of_str(p.i), name_of_str(p.j))]
-            others = [p for p in self.pairs if rig not in (name_of_str(p.i), name_of_str(p.j))]
+        for rig in sorted(set().union(*rigs_of)):
+            own = [p for p, rigs in zip(self.pairs, rigs_of) if rig in rigs]
+            others = [p for p, rigs in zip(self.pairs, rigs_of) if rig not in rigs]
             checked = sum(p.verdict in CHECKED for p in others)
             if len(own) >= 2 and all(p.verdict == "too few matches" for p in own) and checked >= max(
                     MIN_CHECKED_OTHERS, len(others) / 2):

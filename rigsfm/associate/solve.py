@@ -469,7 +469,7 @@ class _Frame:
         one_d2 = np.full(len(members), np.inf)
         for v, view in enumerate(self.views):
             rows = np.flatnonzero(members[:, v] < 0)
-            if not len(rows) or self.trees[v] is None:
+            if not len(rows) or self.grids[v] is None:  # the search below is the grid's
                 continue
             uv, z = view.project(points[rows])
             front = (z > 0) & np.all(np.isfinite(uv), axis=1)

@@ -1144,20 +1144,23 @@ def pairwise_view_shifts(frame: _Frame, options: AssociateOptions, starts: int |
     least_spread = HEIGHT_BIN_M
     start_height = options.height_prior or ((lo + hi) / 2, (hi - lo) / 4)
 
-    grad_t = np.ascontiguousarray(grad.T)
-    grad_h_t = np.ascontiguousarray(grad_h.T)
+    # Each candidate's row of the Jacobian holds its pair's four shift coordinates in order: a sparse product sums
+    # grad . x in the order the terms are written, one pass over the candidates.
+    jac_indices = cols[pair_of].ravel()
+    jac_indptr = np.arange(0, 4 * len(d) + 1, 4)
+    jac = sp.csr_matrix((grad.ravel(), jac_indices, jac_indptr), shape=(len(d), 2 * nv))
+    jac_h = sp.csr_matrix((grad_h.ravel(), jac_indices, jac_indptr), shape=(len(d), 2 * nv))
+    pair_sums = sp.csr_matrix((np.ones(len(d)), indices, indptr), shape=(len(pairs), len(d)))
 
-    def moved(base, gt, x):
-        # base + grad . x, the dot summed in np.sum's order; each candidate's four shift coordinates are its pair's
-        # (repeated per pair, not gathered per candidate)
-        xs = [np.repeat(x[cols[:, c_]], sizes) for c_ in range(4)]
-        return base + (((gt[0] * xs[0] + gt[1] * xs[1]) + gt[2] * xs[2]) + gt[3] * xs[3])
+    def moved(base, jacobian, x):
+        return base + jacobian @ x
 
     def residual(x):
-        return moved(d, grad_t, x)
+        return moved(d, jac, x)
 
     def blocks(w, sums_from, lhs):
-        sums = sp.csr_matrix((w, indices, indptr), shape=(len(pairs), len(d))) @ sums_from
+        pair_sums.data = w  # the weights summed per pair: the same sparsity every step
+        sums = pair_sums @ sums_from
         np.add.at(lhs, (block_rows, block_cols), sums[:, full].ravel())
         return sums[:, 10:]
 
@@ -1170,12 +1173,15 @@ def pairwise_view_shifts(frame: _Frame, options: AssociateOptions, starts: int |
             np.add.at(rhs, cols.ravel(), (sums[:, :4] - mean * sums[:, 4:]).ravel())
         return lhs + np.diag(precision), rhs
 
-    def loglik(x, share, mean, spread, var=pixel_var, value=True):
+    per_px2 = per_px ** 2
+
+    def loglik(x, share, mean, spread, var=pixel_var, value=True, h=None):
+        # h: the heights at x where the step before computed them
         r = residual(x)
         shares = np.repeat(share, sizes)  # share[pair_of]
         if heights:
-            height_var = spread ** 2 + per_px ** 2 * var
-            rh = moved(height, grad_h_t, x) - mean
+            height_var = spread ** 2 + per_px2 * var
+            rh = (moved(height, jac_h, x) if h is None else h) - mean
             inlier = shares * np.exp(-0.5 * (r ** 2 / var + rh ** 2 / height_var)) / (2 * math.pi
                                                                                       * np.sqrt(var * height_var))
             mix = inlier + (1 - shares) * chance
@@ -1193,20 +1199,22 @@ def pairwise_view_shifts(frame: _Frame, options: AssociateOptions, starts: int |
         x = np.zeros(2 * nv) if start == 0 else rng.normal(0.0, np.repeat(prior, 2))
         share = np.full(len(pairs), 0.1)
         mean, spread = start_height
+        h = None
         for factor in ANNEAL if heights else (1.0,):
             var = factor * pixel_var
             for _ in range(50):
-                _, w = loglik(x, share, mean, spread, var, value=False)
+                _, w = loglik(x, share, mean, spread, var, value=False, h=h)
                 share = np.clip(np.bincount(pair_of, w, len(pairs)) / counts, 1e-3, 0.999)
                 # r = d + J x, rh = h + J_h x - mean: the weighted least squares with the prior, then the heights'
                 # mean and spread (their excess over what the pixels' noise gives) under the new shifts
-                wh = w / (spread ** 2 + per_px ** 2 * var)
-                lhs, rhs = normal_equations(w, var, wh if heights else None, mean)
+                wh = w / (spread ** 2 + per_px2 * var) if heights else None
+                lhs, rhs = normal_equations(w, var, wh, mean)
                 new = np.linalg.solve(lhs, -rhs)
-                h = moved(height, grad_h_t, new)
-                mean = float(np.sum(wh * h) / max(np.sum(wh), 1e-12))
-                excess = float(np.sum(w * ((h - mean) ** 2 - per_px ** 2 * var)) / max(np.sum(w), 1e-12))
-                spread = min(max(math.sqrt(max(excess, 0.0)), least_spread), (hi - lo) / 2)
+                if wh is not None:  # the distances alone (no heights) leave their mean and spread unused
+                    h = moved(height, jac_h, new)
+                    mean = float(np.sum(wh * h) / max(np.sum(wh), 1e-12))
+                    excess = float(np.sum(w * ((h - mean) ** 2 - per_px2 * var)) / max(np.sum(w), 1e-12))
+                    spread = min(max(math.sqrt(max(excess, 0.0)), least_spread), (hi - lo) / 2)
                 done = np.max(np.abs(new - x)) < 0.01
                 x = new
                 if done:
@@ -1226,7 +1234,8 @@ def pairwise_view_shifts(frame: _Frame, options: AssociateOptions, starts: int |
     for k, (i, j, *_rest) in enumerate(pairs):
         count[i] += per_pair[k]
         count[j] += per_pair[k]
-    logger.debug("pairs' EM: the crowd's heights %.2f +- %.2f m", mean, spread)
+    if heights:
+        logger.debug("pairs' EM: the crowd's heights %.2f +- %.2f m", mean, spread)
     # A pair's distance carries both views' noise: per view and coordinate, half its variance.
     scatter = np.full(nv, math.sqrt(float(np.sum(w * r ** 2) / max(w.sum(), 1e-9)) / 2.0))
     return ViewCorrection(x.reshape(nv, 2), sigma, scatter, count.astype(int)), value - zero

@@ -74,9 +74,11 @@ NO_COVARIANCE = ("NO BANDS: the joint covariance of rig poses and calibration co
                  "'No joint covariance' line says why): narrow_poses.json holds no epipolar bands and no pose sigmas, and "
                  "every rig's calibration stays at rigs.yaml's; the poses are usable, but search correspondences without a "
                  "band (or with the self-check's measured spread) and report the run with its colmap.log and database.db")
-# The heavy stages run in a child process (rigsfm.core.processes: Ctrl-C and SIGTERM stop them at once).
+# The heavy stages run in a child process (rigsfm.core.processes: Ctrl-C and SIGTERM stop them at once). scipy.stats
+# too: every adjustment's hold-or-refine test needs it, imported there lazily to keep the command line's start fast.
 STAGE_MODULES = ("rigsfm.run.matching.extract", "rigsfm.run.matching.pairs", "rigsfm.run.matching.match",
-                 "rigsfm.run.mapping.mapper", "rigsfm.run.adjustment.adjust", "rigsfm.run.adjustment.uncertainty")
+                 "rigsfm.run.mapping.mapper", "rigsfm.run.adjustment.adjust", "rigsfm.run.adjustment.uncertainty",
+                 "scipy.stats")
 
 
 @dataclass(frozen=True)

@@ -26,7 +26,7 @@ def points_without_baseline(reconstruction: pycolmap.Reconstruction, min_baselin
     rows, centres, depths = [], [], []
     for image_id in reconstruction.reg_image_ids():
         image = reconstruction.image(image_id)
-        row = np.searchsorted(all_ids, [p.point3D_id for p in image.points2D if p.has_point3D()])
+        row = np.searchsorted(all_ids, [p.point3D_id for p in image.get_observation_points2D()])
         if not len(row):
             continue
         cam_from_world = image.cam_from_world()

@@ -141,3 +141,25 @@ def test_groups_verified_once_per_frame_are_the_groups_verified_anew(monkeypatch
         np.testing.assert_allclose(a, b, rtol=1e-9, atol=1e-12)
     assert np.sum(kept[3] > options.min_score) > 50
     assert recorded < 0.8 * sum(rows), (recorded, sum(rows))
+
+
+def test_the_growth_skips_only_points_without_a_detection_within_their_reach():
+    views, _ = _crowd_views(seed=4)
+    frame = _Frame(views, AssociateOptions(pixel_sigma=1.5))
+    members, points, covariance = frame._gated(frame.pair_candidates(), None)
+    skipped = []
+    may_reach = frame._may_reach
+
+    def counted(v, uv, z, spread):
+        near = may_reach(v, uv, z, spread)
+        skipped.append((len(uv), int(np.sum(~near))))
+        return near
+
+    frame._may_reach = counted  # type: ignore[method-assign]
+    for single in (True, False):
+        grown = frame.grow(members, points, covariance, single=single)
+        frame._may_reach = lambda *args: None  # type: ignore[method-assign]  # every point searched by its reach
+        np.testing.assert_array_equal(grown, frame.grow(members, points, covariance, single=single))
+        frame._may_reach = counted  # type: ignore[method-assign]
+    searched, left = np.sum(skipped, axis=0)
+    assert len(members) > 1000 and left > 0.3 * searched  # most projections are far from every detection

@@ -297,6 +297,7 @@ class _Frame:
         self._by_axis: tuple[np.ndarray, np.ndarray] | None = None  # rays_by_axis, and of which rays
         self.k_of = np.array([v.k for v in views]) if views else np.zeros((0, 3, 3))
         self.r_of = np.array([v.r for v in views]) if views else np.zeros((0, 3, 3))
+        self._gram = self.r_of @ np.transpose(self.r_of, (0, 2, 1))  # each rotation's rows' dot products
         self.valid = np.all(np.isfinite(self.uv), axis=1)
         self.centres = np.array([v.centre for v in views])
         self.focals = np.array([v.focal for v in views])
@@ -467,16 +468,28 @@ class _Frame:
         one_view = np.full(len(members), -1, dtype=np.int64)
         one_det = np.full(len(members), -1, dtype=np.int64)
         one_d2 = np.full(len(members), np.inf)
+        spread = None  # each row's covariance's Frobenius norm (>= its largest eigenvalue), once all views need it
         for v, view in enumerate(self.views):
             rows = np.flatnonzero(members[:, v] < 0)
             if not len(rows) or self.grids[v] is None:  # the search below is the grid's
                 continue
-            uv, z = view.project(points[rows])
-            front = (z > 0) & np.all(np.isfinite(uv), axis=1)
-            rows, uv = rows[front], uv[front]
+            at = points[rows]
+            uv, z = view.project(at)
+            front = (z > 0) & np.isfinite(uv[:, 0]) & np.isfinite(uv[:, 1])
+            if not front.all():
+                rows, uv, z, at = rows[front], uv[front], z[front], at[front]
             if not len(rows):
                 continue
-            sxx, sxy, syy = view.projected_covariance(points[rows], covariance[rows])
+            if spread is None:
+                spread = np.sqrt(np.einsum("nij,nij->n", covariance, covariance))
+            # most points have no detection within any reach their covariance allows: their covariance's projection
+            # is not needed (a box of a larger radius holds every cell of a smaller one's)
+            near = self._may_reach(v, uv, z, spread[rows])
+            if near is not None:
+                rows, uv, at = rows[near], uv[near], at[near]
+                if not len(rows):
+                    continue
+            sxx, sxy, syy = view.projected_covariance(at, covariance[rows])
             sxx, syy = sxx + self.noise[v] ** 2, syy + self.noise[v] ** 2
             # 2x2 symmetric: the largest eigenvalue and the inverse in closed form
             largest = (sxx + syy) / 2 + np.sqrt(((sxx - syy) / 2) ** 2 + sxy ** 2)
@@ -492,6 +505,30 @@ class _Frame:
             members[rows, one_view[rows]] = one_det[rows]
         return members
 
+    def _may_reach(self, v: int, uv: np.ndarray, z: np.ndarray, spread: np.ndarray) -> np.ndarray | None:
+        """Which points ``uv`` of view v (depths ``z`` > 0; ``spread``: a bound of their covariance's largest
+        eigenvalue) may have a detection within the growth's reach: an upper bound of the reach (the Jacobian's
+        closed form, times the spread, with room for rounding) whose box holds one; None: every point (a view whose
+        calibration matrix the bound does not know)."""
+        k, gram = self.k_of[v], self._gram[v]
+        if k[1, 0] != 0 or k[2, 0] != 0 or k[2, 1] != 0 or k[2, 2] != 1:
+            return None
+        fx, fy = k[0, 0], k[1, 1]
+        y = (uv[:, 1] - k[1, 2]) / fy
+        x = (uv[:, 0] - k[0, 2] - k[0, 1] * y) / fx
+        inv = 1.0 / np.maximum(z, 1e-9)
+        # J J^T of the projection's Jacobian rows fx / z (r0 - x r2) and fy / z (r1 - y r2)
+        jxx = (fx * inv) ** 2 * (gram[0, 0] - 2 * x * gram[0, 2] + x * x * gram[2, 2])
+        jyy = (fy * inv) ** 2 * (gram[1, 1] - 2 * y * gram[1, 2] + y * y * gram[2, 2])
+        jxy = fx * fy * inv * inv * (gram[0, 1] - y * gram[0, 2] - x * gram[1, 2] + x * y * gram[2, 2])
+        jacobian = (jxx + jyy) / 2 + np.sqrt(((jxx - jyy) / 2) ** 2 + jxy ** 2)
+        largest = (np.abs(jacobian) * spread + self.noise[v] ** 2) * (1 + 1e-6) + 1e-12
+        reach = np.sqrt(largest) * self.options.member_gate * (1 + 1e-6) + (1.0 + 1e-6)
+        near = ~np.isfinite(reach)  # searched exactly (the exact reach decides)
+        finite = np.flatnonzero(~near)
+        near[finite] = self.grids[v].any_within(uv[finite], reach[finite])  # type: ignore[union-attr]
+        return near
+
     def _nearest_member(self, v: int, uv: np.ndarray, bound: np.ndarray, sxx: np.ndarray, sxy: np.ndarray,
                         syy: np.ndarray, gate2: float, k: int = 4) -> tuple[np.ndarray, np.ndarray]:
         """Per point ``uv`` of view v (its projected covariance ``sxx``, ``sxy``, ``syy``), the detection nearest it
@@ -503,7 +540,7 @@ class _Frame:
         best = np.full(len(uv), -1, dtype=np.int64)
         best_d2 = np.full(len(uv), np.inf)
         searched = np.flatnonzero(np.isfinite(bound))
-        query, point, euclid = grid.pairs_within(uv[searched], bound[searched])
+        query, point, euclid, dx, dy = grid.offsets_within(uv[searched], bound[searched])
         query = searched[query]
         if not len(query):
             return best, best_d2
@@ -515,11 +552,10 @@ class _Frame:
             order = np.arange(len(ranked)) - np.searchsorted(query[ranked], query[ranked])
             keep = np.ones(len(query), dtype=bool)
             keep[ranked[order >= k]] = False
-            query, point = query[keep], point[keep]
+            query, point, dx, dy = query[keep], point[keep], dx[keep], dy[keep]
         det = sxx * syy - sxy ** 2
         inv_xx, inv_xy, inv_yy = syy / det, -sxy / det, sxx / det  # the inverse 2x2, entry by entry
         cand = self.tree_index[v][point]
-        dx, dy = (self.uv[cand] - uv[query]).T
         xy = inv_xy[query]
         d2 = dx * inv_xx[query] * dx + dx * xy * dy + dy * xy * dx + dy * inv_yy[query] * dy  # x^T S^-1 x
         inside = d2 <= gate2

@@ -163,3 +163,45 @@ def test_the_growth_skips_only_points_without_a_detection_within_their_reach():
         frame._may_reach = counted  # type: ignore[method-assign]
     searched, left = np.sum(skipped, axis=0)
     assert len(members) > 1000 and left > 0.3 * searched  # most projections are far from every detection
+
+
+def _stacked_triangulation(frame, members, points=None):
+    """The triangulation as 3 x 3 stacks (the arithmetic ``_Frame.triangulate`` keeps, entry by entry)."""
+    from rigsfm.associate.solve import _inverse3
+
+    g, nv = members.shape
+    present = members >= 0
+    d = np.take(frame.rays_by_axis(), np.where(present, members, 0), axis=1)
+    dc = np.einsum("igv,vi->gv", d, frame.centres)
+    for _ in range(2 if points is None else 1):
+        if points is None:
+            depth = np.ones((g, nv))
+        else:
+            diff = points.T[:, :, None] - frame.centres.T[:, None, :]
+            depth = np.maximum(np.sqrt(np.einsum("igv,igv->gv", diff, diff)), 0.1)
+        w = np.where(present, (frame.focals[None] / (depth * frame.noise[None])) ** 2, 0.0)
+        wd = w[None] * d
+        a = np.empty((g, 3, 3))
+        for r_, c_ in ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2)):
+            a[:, r_, c_] = a[:, c_, r_] = -np.einsum("gv,gv->g", wd[r_], d[c_])
+        a += w.sum(axis=1)[:, None, None] * np.eye(3)[None]
+        b = w @ frame.centres - np.einsum("igv,gv->gi", wd, dc)
+        a += np.eye(3)[None] * 1e-9 * np.trace(a, axis1=1, axis2=2)[:, None, None]
+        covariance = _inverse3(a)
+        points = np.einsum("gij,gj->gi", covariance, b)
+    return points, covariance
+
+
+def test_the_triangulation_entry_by_entry_is_the_stacked_one_to_the_bit():
+    views, _ = _crowd_views(seed=2)
+    frame = _Frame(views, AssociateOptions(pixel_sigma=1.5))
+    seeds = frame.pair_candidates()
+    grown = frame.grow(seeds, *frame.triangulate(seeds))
+    assert len(seeds) > 1000 and np.sum(grown >= 0) > 2.5 * len(grown)
+    for members in (seeds, grown):
+        points, covariance = frame.triangulate(members)
+        want = _stacked_triangulation(frame, members)
+        assert points.tobytes() == want[0].tobytes() and covariance.tobytes() == want[1].tobytes()
+        again = frame.triangulate(members, points + 0.01)
+        want = _stacked_triangulation(frame, members, points + 0.01)
+        assert again[0].tobytes() == want[0].tobytes() and again[1].tobytes() == want[1].tobytes()

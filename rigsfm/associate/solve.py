@@ -171,6 +171,23 @@ def _inverse3(a: np.ndarray) -> np.ndarray:
     return c / det[:, None, None]
 
 
+def _inverse3_symmetric(a00: np.ndarray, a01: np.ndarray, a02: np.ndarray, a11: np.ndarray, a12: np.ndarray,
+                        a22: np.ndarray) -> np.ndarray:
+    """``_inverse3`` of symmetric matrices given by their six entries (N each; the same arithmetic, entry by entry,
+    without the strided reads of an N x 3 x 3 stack)."""
+    c00, c11, c22 = a11 * a22 - a12 * a12, a00 * a22 - a02 * a02, a00 * a11 - a01 * a01
+    c01 = a02 * a12 - a01 * a22
+    c02 = a01 * a12 - a02 * a11
+    c12 = a02 * a01 - a00 * a12
+    det = a00 * c00 + a01 * c01 + a02 * c02
+    out = np.empty((len(a00), 3, 3))
+    out[:, 0, 0], out[:, 1, 1], out[:, 2, 2] = c00 / det, c11 / det, c22 / det
+    out[:, 0, 1] = out[:, 1, 0] = c01 / det
+    out[:, 0, 2] = out[:, 2, 0] = c02 / det
+    out[:, 1, 2] = out[:, 2, 1] = c12 / det
+    return out
+
+
 ROWS_PER_BLOCK = 4096  # hypotheses per block of the row-wise algebra: its temporaries stay in the CPU's cache
 
 
@@ -295,6 +312,7 @@ class _Frame:
         self.uv = np.concatenate(undist) if undist else np.zeros((0, 2))
         self.rays = np.concatenate(rays) if rays else np.zeros((0, 3))
         self._by_axis: tuple[np.ndarray, np.ndarray] | None = None  # rays_by_axis, and of which rays
+        self._rows: tuple[np.ndarray, ...] | None = None  # _per_row's arrays, and of which noises
         self.k_of = np.array([v.k for v in views]) if views else np.zeros((0, 3, 3))
         self.r_of = np.array([v.r for v in views]) if views else np.zeros((0, 3, 3))
         self._gram = self.r_of @ np.transpose(self.r_of, (0, 2, 1))  # each rotation's rows' dot products
@@ -364,6 +382,18 @@ class _Frame:
             self._by_axis = (self.rays, np.ascontiguousarray(self.rays.T))
         return self._by_axis[1]
 
+    def _per_row(self, g: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The views' centres (g V x 3), focals and noises (g x V each) repeated for g rows, of ``self.noise`` as
+        it is now: arrays of the rows' shape (a row of V broadcast runs inner loops of V elements)."""
+        held = self._rows
+        if held is None or held[0] is not self.noise or len(held[2]) < g:
+            n = max(g, len(held[2]) if held is not None else 0)
+            nv = len(self.views)
+            held = self._rows = (self.noise, np.tile(self.centres, (n, 1)),
+                                 np.ascontiguousarray(np.broadcast_to(self.focals[None], (n, nv))),
+                                 np.ascontiguousarray(np.broadcast_to(self.noise[None], (n, nv))))
+        return held[1][:g * len(self.views)], held[2][:g], held[3][:g]
+
     def rays_of(self, uv: np.ndarray) -> np.ndarray:
         """Unit world directions of undistorted pixels (one per detection, in the stacked order)."""
         k, r = self.k_of[self.view_of], self.r_of[self.view_of]
@@ -397,22 +427,31 @@ class _Frame:
         # coordinate-major (3 x G x V): the sums over the views run on contiguous rows
         d = np.take(self.rays_by_axis(), np.where(present, members, 0), axis=1)
         dc = np.einsum("igv,vi->gv", d, self.centres)
+        centres, focals, noise = self._per_row(g)
         for _ in range(2 if points is None else 1):
             if points is None:
                 depth = np.ones((g, nv))
             else:
-                diff = points.T[:, :, None] - self.centres.T[:, None, :]  # 3 x G x V
+                # 3 x G x V, laid out as the broadcast of points.T and centres.T leaves it (the sum below adds in
+                # the order its layout sets), from one flat subtraction
+                diff = (np.repeat(points, nv, axis=0) - centres).reshape(g, nv, 3).transpose(2, 0, 1)
                 depth = np.maximum(np.sqrt(np.einsum("igv,igv->gv", diff, diff)), 0.1)
             # A ray's lateral sigma (m) at the point: its angular noise times the distance.
-            w = np.where(present, (self.focals[None] / (depth * self.noise[None])) ** 2, 0.0)
+            w = np.where(present, (focals / (depth * noise)) ** 2, 0.0)
             wd = w[None] * d
-            a = np.empty((g, 3, 3))
-            for r_, c_ in ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2)):  # symmetric: six sums over the views
-                a[:, r_, c_] = a[:, c_, r_] = -np.einsum("gv,gv->g", wd[r_], d[c_])
-            a += w.sum(axis=1)[:, None, None] * np.eye(3)[None]
+            # the normal matrix entry by entry (symmetric: six sums over the views), each with the arithmetic of
+            # adding the weights' sum times the identity and then 1e-9 of the trace times it to the whole matrix
+            s = w.sum(axis=1)
+            y = {(r_, c_): np.einsum("gv,gv->g", wd[r_], d[c_])
+                 for r_, c_ in ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))}
+            a00, a11, a22 = -y[0, 0] + s, -y[1, 1] + s, -y[2, 2] + s
+            trace = a00 + a11 + a22
+            zero, ridge = s * 0.0, 1e-9 * trace
+            a01, a02, a12 = ((-y[0, 1] + zero) + 0.0 * trace, (-y[0, 2] + zero) + 0.0 * trace,
+                             (-y[1, 2] + zero) + 0.0 * trace)
+            a00, a11, a22 = a00 + ridge, a11 + ridge, a22 + ridge
             b = w @ self.centres - np.einsum("igv,gv->gi", wd, dc)
-            a += np.eye(3)[None] * 1e-9 * np.trace(a, axis1=1, axis2=2)[:, None, None]
-            covariance = _inverse3(a)
+            covariance = _inverse3_symmetric(a00, a01, a02, a11, a12, a22)
             points = np.einsum("gij,gj->gi", covariance, b)
         return points, covariance  # type: ignore[return-value]  # the loop sets points
 

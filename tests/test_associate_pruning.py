@@ -205,3 +205,22 @@ def test_the_triangulation_entry_by_entry_is_the_stacked_one_to_the_bit():
         again = frame.triangulate(members, points + 0.01)
         want = _stacked_triangulation(frame, members, points + 0.01)
         assert again[0].tobytes() == want[0].tobytes() and again[1].tobytes() == want[1].tobytes()
+
+
+def test_the_record_of_verified_groups_finds_the_last_equal_row_even_where_hashes_collide(monkeypatch):
+    from rigsfm.associate import solve
+
+    rng = np.random.default_rng(6)
+    rows = np.where(rng.random((3000, 6)) < 0.5, rng.integers(0, 40, (3000, 6)), -1)
+    chunks = [rows[:1000], rows[1000:1800], rows[1800:]]  # repeated rows within and across chunks
+    members = np.r_[rows[rng.integers(0, 3000, 500)], np.c_[np.full(500, 99), rows[:500, 1:]]]  # the last: none
+    last = {r.tobytes(): i for i, r in enumerate(rows)}  # the last of equal rows
+    want = np.array([last.get(m.tobytes(), -1) for m in members])
+    assert (want >= 0).sum() == 500 and len(last) < 2900
+    for hashes in (solve._row_hashes, lambda m: np.zeros(len(m), dtype=np.uint64)):  # the second: all collide
+        monkeypatch.setattr(solve, "_row_hashes", hashes)
+        record = solve._Verified()
+        for chunk in chunks:
+            record.add(chunk, (chunk[:, 0].astype(float),))
+        starts = np.cumsum([0] + [len(c) for c in chunks])
+        np.testing.assert_array_equal(record.find(members, starts), want)

@@ -108,7 +108,9 @@ class View:
         z = cam[:, 2]
         with np.errstate(divide="ignore", invalid="ignore"):
             h = cam @ self.k.T
-            uv = h[:, :2] / z[:, None]
+            uv = np.empty((len(h), 2))
+            np.divide(h[:, 0], z, out=uv[:, 0])  # column by column: an N x 2 by N x 1 broadcast runs loops of two
+            np.divide(h[:, 1], z, out=uv[:, 1])
         return uv, z
 
     def projected_covariance(self, points: np.ndarray, covariance: np.ndarray,
@@ -257,6 +259,56 @@ def _unique_inverse(members: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return members[order[~repeated]], rank
 
 
+def _row_hashes(members: np.ndarray) -> np.ndarray:
+    """A 64-bit hash of each member row (-1 or a detection per column): a sum of the columns times odd constants,
+    wrapping; equal rows hash alike (a hash only says which rows to compare)."""
+    factors = np.asarray(np.random.default_rng(members.shape[1]).integers(0, 2 ** 63, members.shape[1], dtype=np.uint64))
+    factors = factors * np.uint64(2) + np.uint64(1)
+    hashes = np.zeros(len(members), dtype=np.uint64)
+    for c in range(members.shape[1]):
+        hashes += (members[:, c] + 1).astype(np.uint64) * factors[c]
+    return hashes
+
+
+class _Verified:
+    """The groups a frame verified (chunks of member rows and their ``_verify_steps``), with their hashes sorted for
+    lookups (shared by the frame's re-scored copies, as the list was)."""
+
+    def __init__(self) -> None:
+        self.chunks: list[tuple[np.ndarray, tuple[np.ndarray, ...]]] = []
+        self.hashes = np.zeros(0, dtype=np.uint64)  # sorted, equal ones by their position
+        self.positions = np.zeros(0, dtype=np.int64)  # each one's row in the chunks, stacked
+
+    def add(self, rows: np.ndarray, out: tuple[np.ndarray, ...]) -> None:
+        held = sum(len(r) for r, _ in self.chunks)
+        self.chunks.append((rows, out))
+        hashes = np.concatenate([self.hashes, _row_hashes(rows)])
+        positions = np.concatenate([self.positions, held + np.arange(len(rows))])
+        order = np.argsort(hashes, kind="stable")
+        self.hashes, self.positions = hashes[order], positions[order]
+
+    def find(self, members: np.ndarray, starts: np.ndarray) -> np.ndarray:
+        """Per row of ``members``, its row in the stacked chunks (the last of equal rows there), -1 where none."""
+        hashes = _row_hashes(members)
+        last = np.maximum(np.searchsorted(self.hashes, hashes, side="right") - 1, 0)
+        hit = np.where(self.hashes[last] == hashes, self.positions[last], -1) if len(self.hashes) \
+            else np.full(len(members), -1, dtype=np.int64)
+        found = np.flatnonzero(hit >= 0)
+        chunk = np.searchsorted(starts, hit[found], side="right") - 1
+        for c in np.unique(chunk).tolist():
+            at = found[chunk == c]
+            if not np.array_equal(self.chunks[c][0][hit[at] - starts[c]], members[at]):
+                return self._sorted_find(members)  # two rows share a hash: the rows themselves decide
+        return hit
+
+    def _sorted_find(self, members: np.ndarray) -> np.ndarray:
+        table = np.concatenate([rows for rows, _ in self.chunks])
+        _, rank = _unique_inverse(np.concatenate([table, members]))
+        where = np.full(int(rank.max()) + 1, -1, dtype=np.int64)
+        where[rank[:len(table)]] = np.arange(len(table))
+        return where[rank[len(table):]]
+
+
 @dataclass
 class FrameResult:
     """The persons of one frame: per person its point, covariance, score, confidence and member detections."""
@@ -333,7 +385,7 @@ class _Frame:
         self._grown: dict[bytes | None, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
         # every group verified so far and its ``_verify_steps`` (a function of the group's members alone): the
         # growth's rounds and the final check meet most groups again
-        self._verified: list[tuple[np.ndarray, tuple[np.ndarray, ...]]] = []
+        self._verified = _Verified()
         # the scores a carried frame's tracked groups took (NaN: not one), and the options, appearance and clutter
         # they were scored under
         self._scored: tuple[np.ndarray, AssociateOptions, AppearanceModel | None, np.ndarray] | None = None
@@ -613,30 +665,27 @@ class _Frame:
         before are taken from then (row by row the same arithmetic; a row's matrix product may round otherwise in
         another batch of rows, as ``_rowwise``'s blocks and the final check's reuse already allow; rows repeated
         within ``members`` are each computed, as callers mostly pass distinct ones)."""
-        known = self._verified
-        if not known or not len(members):
+        record = self._verified
+        if not record.chunks or not len(members):
             out = self._verify_steps(members)
             if len(members):
-                known.append((members, out))
+                record.add(members, out)
             return out
-        table = np.concatenate([rows for rows, _ in known])
-        _, rank = _unique_inverse(np.concatenate([table, members]))
-        where = np.full(int(rank.max()) + 1, -1, dtype=np.int64)
-        where[rank[:len(table)]] = np.arange(len(table))
-        hit = where[rank[len(table):]]
+        known = record.chunks
+        starts = np.cumsum([0] + [len(rows) for rows, _ in known])
+        hit = record.find(members, starts)
         new, old = np.flatnonzero(hit < 0), np.flatnonzero(hit >= 0)
         fresh = self._verify_steps(members[new])
         out = tuple(np.empty((len(members), *f.shape[1:]), dtype=f.dtype) for f in fresh)
         for o, f in zip(out, fresh):
             o[new] = f
-        starts = np.cumsum([0] + [len(rows) for rows, _ in known])
         chunk = np.searchsorted(starts, hit[old], side="right") - 1
         for c in np.unique(chunk).tolist():
             at = old[chunk == c]
             for o, f in zip(out, known[c][1]):
                 o[at] = f[hit[at] - starts[c]]
         if len(new):
-            known.append((members[new], fresh))
+            record.add(members[new], fresh)
         return out
 
     @_rowwise

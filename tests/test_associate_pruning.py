@@ -224,3 +224,19 @@ def test_the_record_of_verified_groups_finds_the_last_equal_row_even_where_hashe
             record.add(chunk, (chunk[:, 0].astype(float),))
         starts = np.cumsum([0] + [len(c) for c in chunks])
         np.testing.assert_array_equal(record.find(members, starts), want)
+
+
+def test_distinct_member_rows_are_numpy_s_unique_rows_first_occurrences_and_inverse():
+    from rigsfm.associate.solve import _unique_inverse, _unique_rows
+
+    rng = np.random.default_rng(7)
+    for top in (3, 200, 70_000, 2 ** 40):  # keys of one 16-bit digit to several 64-bit keys of four digits each
+        rows = np.where(rng.random((4000, 9)) < 0.4, rng.integers(0, top, (4000, 9)), -1)
+        rows = np.r_[rows, rows[rng.integers(0, 4000, 3000)]]  # repeated rows: their first occurrence
+        want, first, inverse = np.unique(rows, axis=0, return_index=True, return_inverse=True)
+        got, at = _unique_rows(rows)
+        np.testing.assert_array_equal(got, want)
+        np.testing.assert_array_equal(at, first)
+        distinct, rank = _unique_inverse(rows)
+        np.testing.assert_array_equal(distinct, want)
+        np.testing.assert_array_equal(rank, inverse.ravel())

@@ -220,23 +220,38 @@ def _sorted_rows(members: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The order that sorts member rows (-1 or a detection) as ``np.unique(axis=0)`` does, stable, and where in it a
     row repeats the one before: the columns packed into a few integer keys sort far faster than rows compared as
     records."""
-    shifted = members + 1  # >= 0
-    bases = shifted.max(axis=0) + 1
+    columns = np.ascontiguousarray(members.T) + 1  # >= 0; column by column, each contiguous
+    bases = columns.max(axis=1) + 1
     keys, key, room = [], np.zeros(len(members), dtype=np.int64), 1
     for c in range(members.shape[1]):
         if room * int(bases[c]) >= 2 ** 62:
             keys.append(key)
             key, room = np.zeros(len(members), dtype=np.int64), 1
-        key = key * bases[c] + shifted[:, c]
+        key = key * bases[c] + columns[c]
         room *= int(bases[c])
     keys.append(key)
-    order = np.lexsort(keys[::-1])  # stable: the first of equal rows first; the first column decides first
+    order = _stable_order(keys)  # stable: the first of equal rows first; the first column decides first
     repeated = np.zeros(len(order), dtype=bool)
     repeated[1:] = True
     for key in keys:
         ranked = key[order]
         repeated[1:] &= ranked[1:] == ranked[:-1]
     return order, repeated
+
+
+def _stable_order(keys: list[np.ndarray]) -> np.ndarray:
+    """``np.lexsort(keys[::-1])`` of non-negative integer keys (the first decides first), as a radix sort: stable
+    sorts of their 16-bit digits, least significant first (a stable sort of 16-bit integers is numpy's radix sort,
+    far faster than its merge sorts of 64-bit keys)."""
+    order = None
+    for key in keys[::-1]:
+        top, shift = int(key.max()) if len(key) else 0, 0
+        while shift == 0 or top >> shift:
+            digit = ((key if order is None else key[order]) >> shift).astype(np.uint16)  # the low 16 bits
+            step = np.argsort(digit, kind="stable")
+            order = step if order is None else order[step]
+            shift += 16
+    return order if order is not None else np.zeros(0, dtype=np.int64)
 
 
 def _unique_rows(members: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -516,8 +531,9 @@ class _Frame:
             if not len(rows):
                 continue
             uv, z = view.project(points[rows])
-            d2 = np.sum((uv - self.uv[members[rows, v]]) ** 2, axis=1) / self.noise[v] ** 2
-            out[rows, v] = np.where(z > 0, d2, np.inf)
+            seen = self.uv[members[rows, v]]
+            dx, dy = uv[:, 0] - seen[:, 0], uv[:, 1] - seen[:, 1]  # the sum over an axis of two, column by column
+            out[rows, v] = np.where(z > 0, (dx * dx + dy * dy) / self.noise[v] ** 2, np.inf)
         return out
 
     # --- hypotheses ------------------------------------------------------------------------------------------

@@ -240,3 +240,17 @@ def test_distinct_member_rows_are_numpy_s_unique_rows_first_occurrences_and_inve
         distinct, rank = _unique_inverse(rows)
         np.testing.assert_array_equal(distinct, want)
         np.testing.assert_array_equal(rank, inverse.ravel())
+
+
+def test_a_disc_past_the_grid_s_edge_holds_none_of_the_edge_s_points():
+    rng = np.random.default_rng(8)
+    points = rng.uniform(0, 400, (300, 2))
+    grid = CountGrid(points)
+    # beyond each side by more than the radius: clipped, their boxes would be the edge cells, which hold points
+    far = np.r_[np.c_[rng.uniform(420, 900, 200), rng.uniform(0, 400, 200)],
+                np.c_[rng.uniform(0, 400, 200), rng.uniform(-500, -20, 200)]]
+    radius = np.full(len(far), 15.0)
+    assert not grid.any_within(far, radius).any()
+    assert not len(grid.pairs_within(far, radius)[0])
+    near = np.clip(far, -10.0, 410.0)  # just past the edge: within reach of its points
+    assert grid.any_within(near, np.full(len(near), 40.0)).mean() > 0.5

@@ -44,12 +44,14 @@ class CountGrid:
         r = radius * (1 + 1e-9) + 1e-6
         # column by column (1D arrays: an N x 2 array's broadcasts run inner loops of two elements)
         ends = []
+        beyond = np.zeros(len(xy), dtype=bool)  # a disc past the grid's last cell (clipped, its box would be the edge's)
         for c, size in ((0, self.shape[1]), (1, self.shape[0])):
             p = xy[:, c]
-            for edge in (p - r, p + r):  # _cells' arithmetic, in place
+            for first, edge in ((True, p - r), (False, p + r)):  # _cells' arithmetic, in place
                 edge -= self.origin[c]
                 edge /= self.cell
                 np.floor(edge, out=edge)
+                beyond |= edge > size - 1 if first else edge < 0
                 np.clip(edge, 0, size - 1, out=edge)
                 ends.append(edge.astype(np.int64))
         x0, x1, y0, y1 = ends
@@ -57,6 +59,7 @@ class CountGrid:
         t = self.table.ravel()
         top, bottom = y0 * width, (y1 + 1) * width
         count = t[bottom + x1 + 1] - t[top + x1 + 1] - t[bottom + x0] + t[top + x0]
+        count[beyond] = 0
         return x0, y0, x1, y1, count
 
     def any_within(self, xy: np.ndarray, radius: np.ndarray) -> np.ndarray:

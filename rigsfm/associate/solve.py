@@ -584,6 +584,7 @@ class _Frame:
             uv, z = view.project(at)
             front = (z > 0) & np.isfinite(uv[:, 0]) & np.isfinite(uv[:, 1])
             if not front.all():
+                front = np.flatnonzero(front)  # indices: a mask's gathers of 2D rows are slower
                 rows, uv, z, at = rows[front], uv[front], z[front], at[front]
             if not len(rows):
                 continue
@@ -593,6 +594,7 @@ class _Frame:
             # is not needed (a box of a larger radius holds every cell of a smaller one's)
             near = self._may_reach(v, uv, z, spread[rows])
             if near is not None:
+                near = np.flatnonzero(near)
                 rows, uv, at = rows[near], uv[near], at[near]
                 if not len(rows):
                     continue
@@ -665,7 +667,7 @@ class _Frame:
         cand = self.tree_index[v][point]
         xy = inv_xy[query]
         d2 = dx * inv_xx[query] * dx + dx * xy * dy + dy * xy * dx + dy * inv_yy[query] * dy  # x^T S^-1 x
-        inside = d2 <= gate2
+        inside = np.flatnonzero(d2 <= gate2)
         query, cand, d2 = query[inside], cand[inside], d2[inside]
         np.minimum.at(best_d2, query, d2)
         won = d2 == best_d2[query]

@@ -274,11 +274,16 @@ def _unique_inverse(members: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return members[order[~repeated]], rank
 
 
+_HASH_FACTORS: dict[int, np.ndarray] = {}  # per number of columns, _row_hashes' odd constants
+
+
 def _row_hashes(members: np.ndarray) -> np.ndarray:
     """A 64-bit hash of each member row (-1 or a detection per column): a sum of the columns times odd constants,
     wrapping; equal rows hash alike (a hash only says which rows to compare)."""
-    factors = np.asarray(np.random.default_rng(members.shape[1]).integers(0, 2 ** 63, members.shape[1], dtype=np.uint64))
-    factors = factors * np.uint64(2) + np.uint64(1)
+    factors = _HASH_FACTORS.get(members.shape[1])
+    if factors is None:
+        drawn = np.random.default_rng(members.shape[1]).integers(0, 2 ** 63, members.shape[1], dtype=np.uint64)
+        factors = _HASH_FACTORS[members.shape[1]] = np.asarray(drawn) * np.uint64(2) + np.uint64(1)
     hashes = np.zeros(len(members), dtype=np.uint64)
     for c in range(members.shape[1]):
         hashes += (members[:, c] + 1).astype(np.uint64) * factors[c]
@@ -678,23 +683,24 @@ class _Frame:
         """Re-triangulate, drop members outside their band, re-triangulate: members, points, covariances."""
         return self._verify_steps(members)[:3]
 
-    def _verify_distinct(self, members: np.ndarray) -> tuple[np.ndarray, ...]:
+    def _verify_distinct(self, members: np.ndarray, count: int = 6) -> tuple[np.ndarray, ...]:
         """``_verify_steps`` of member rows, each group computed once per frame: the rows this frame verified
         before are taken from then (row by row the same arithmetic; a row's matrix product may round otherwise in
         another batch of rows, as ``_rowwise``'s blocks and the final check's reuse already allow; rows repeated
-        within ``members`` are each computed, as callers mostly pass distinct ones)."""
+        within ``members`` are each computed, as callers mostly pass distinct ones); the first ``count`` of them
+        (those the caller reads)."""
         record = self._verified
         if not record.chunks or not len(members):
             out = self._verify_steps(members)
             if len(members):
                 record.add(members, out)
-            return out
+            return out[:count]
         known = record.chunks
         starts = np.cumsum([0] + [len(rows) for rows, _ in known])
         hit = record.find(members, starts)
         new, old = np.flatnonzero(hit < 0), np.flatnonzero(hit >= 0)
         fresh = self._verify_steps(members[new])
-        out = tuple(np.empty((len(members), *f.shape[1:]), dtype=f.dtype) for f in fresh)
+        out = tuple(np.empty((len(members), *f.shape[1:]), dtype=f.dtype) for f in fresh[:count])
         for o, f in zip(out, fresh):
             o[new] = f
         chunk = np.searchsorted(starts, hit[old], side="right") - 1
@@ -871,7 +877,7 @@ class _Frame:
         total = int(self.offsets[-1])
         if not len(rows):
             return self._grown_from_pairs(None)
-        members, points, covariance = self._verify_distinct(rows)[:3]
+        members, points, covariance = self._verify_distinct(rows, 3)
         keep = np.sum(members >= 0, axis=1) >= 2
         pairs = self._gated(row_pairs(rows), None)
         members = np.concatenate([members[keep], pairs[0]])
@@ -943,7 +949,7 @@ class _Frame:
             members = only_free(self.grow(members, points, covariance))
             # a group's verification depends on its members alone: each distinct group verified once
             distinct, which = _unique_inverse(members)
-            members, points, covariance = (a[which] for a in self._verify_distinct(distinct)[:3])
+            members, points, covariance = (a[which] for a in self._verify_distinct(distinct, 3))
             groups.append(members)
             # seeds of one person grow into the same group: grow each group once
             members, first = _unique_rows(members)

@@ -254,3 +254,20 @@ def test_a_disc_past_the_grid_s_edge_holds_none_of_the_edge_s_points():
     assert not len(grid.pairs_within(far, radius)[0])
     near = np.clip(far, -10.0, 410.0)  # just past the edge: within reach of its points
     assert grid.any_within(near, np.full(len(near), 40.0)).mean() > 0.5
+
+
+def test_the_projected_covariance_column_by_column_is_the_broadcast_one_to_the_bit():
+    views, _ = _crowd_views(seed=3)
+    view = views[0]
+    rng = np.random.default_rng(3)
+    points = view.centre + rng.normal(0, 3.0, (2000, 3)) + 12.0 * view.r[2]
+    root = rng.normal(0, 0.2, (2000, 3, 3))
+    covariance = root @ np.transpose(root, (0, 2, 1))
+    cam = points @ view.r.T + view.t
+    z = np.where(np.abs(cam[:, 2]) > 1e-9, cam[:, 2], 1e-9)
+    a = (view.k[0, 0] / z)[:, None] * (view.r[0][None] - (cam[:, 0] / z)[:, None] * view.r[2][None])
+    b = (view.k[1, 1] / z)[:, None] * (view.r[1][None] - (cam[:, 1] / z)[:, None] * view.r[2][None])
+    ca, cb = np.einsum("nij,nj->ni", covariance, a), np.einsum("nij,nj->ni", covariance, b)
+    want = np.einsum("ni,ni->n", a, ca), np.einsum("ni,ni->n", b, ca), np.einsum("ni,ni->n", b, cb)
+    got = view.projected_covariance(points, covariance)
+    assert all(g.tobytes() == w.tobytes() for g, w in zip(got, want))

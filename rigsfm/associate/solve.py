@@ -119,8 +119,11 @@ class View:
         Jacobian row in closed form (a camera's row minus its depth row), no stacked matrix products."""
         cam = points @ self.r.T + self.t
         z = np.where(np.abs(cam[:, 2]) > 1e-9, cam[:, 2], 1e-9)
-        a = (self.k[0, 0] / z)[:, None] * (self.r[0][None] - (cam[:, 0] / z)[:, None] * self.r[2][None])
-        b = (self.k[1, 1] / z)[:, None] * (self.r[1][None] - (cam[:, 1] / z)[:, None] * self.r[2][None])
+        a, b = np.empty((len(cam), 3)), np.empty((len(cam), 3))
+        for jacobian, row, f in ((a, 0, self.k[0, 0]), (b, 1, self.k[1, 1])):
+            scale, ratio = f / z, cam[:, row] / z
+            for i in range(3):  # column by column: an N x 1 by 1 x 3 broadcast runs loops of three
+                jacobian[:, i] = scale * (self.r[row, i] - ratio * self.r[2, i])
         ca = np.einsum("nij,nj->ni", covariance, a)
         cb = np.einsum("nij,nj->ni", covariance, b)
         return np.einsum("ni,ni->n", a, ca), np.einsum("ni,ni->n", b, ca), np.einsum("ni,ni->n", b, cb)

@@ -134,10 +134,140 @@ def test_groups_verified_once_per_frame_are_the_groups_verified_anew(monkeypatch
     monkeypatch.setattr(_Frame, "_verify_steps", counted)
     kept = _Frame(views, options).hypotheses()
     recorded, rows[:] = sum(rows), []
-    monkeypatch.setattr(_Frame, "_verify_distinct", lambda self, members: self._verify_steps(members))
+    monkeypatch.setattr(_Frame, "_verify_distinct", lambda self, members, count=6: self._verify_steps(members)[:count])
     anew = _Frame(views, options).hypotheses()
     np.testing.assert_array_equal(kept[0], anew[0])
     for a, b in zip(kept[1:], anew[1:]):
         np.testing.assert_allclose(a, b, rtol=1e-9, atol=1e-12)
     assert np.sum(kept[3] > options.min_score) > 50
     assert recorded < 0.8 * sum(rows), (recorded, sum(rows))
+
+
+def test_the_growth_skips_only_points_without_a_detection_within_their_reach():
+    views, _ = _crowd_views(seed=4)
+    frame = _Frame(views, AssociateOptions(pixel_sigma=1.5))
+    members, points, covariance = frame._gated(frame.pair_candidates(), None)
+    skipped = []
+    may_reach = frame._may_reach
+
+    def counted(v, uv, z, spread):
+        near = may_reach(v, uv, z, spread)
+        skipped.append((len(uv), int(np.sum(~near))))
+        return near
+
+    frame._may_reach = counted  # type: ignore[method-assign]
+    for single in (True, False):
+        grown = frame.grow(members, points, covariance, single=single)
+        frame._may_reach = lambda *args: None  # type: ignore[method-assign]  # every point searched by its reach
+        np.testing.assert_array_equal(grown, frame.grow(members, points, covariance, single=single))
+        frame._may_reach = counted  # type: ignore[method-assign]
+    searched, left = np.sum(skipped, axis=0)
+    assert len(members) > 1000 and left > 0.3 * searched  # most projections are far from every detection
+
+
+def _stacked_triangulation(frame, members, points=None):
+    """The triangulation as 3 x 3 stacks (the arithmetic ``_Frame.triangulate`` keeps, entry by entry)."""
+    from rigsfm.associate.solve import _inverse3
+
+    g, nv = members.shape
+    present = members >= 0
+    d = np.take(frame.rays_by_axis(), np.where(present, members, 0), axis=1)
+    dc = np.einsum("igv,vi->gv", d, frame.centres)
+    for _ in range(2 if points is None else 1):
+        if points is None:
+            depth = np.ones((g, nv))
+        else:
+            diff = points.T[:, :, None] - frame.centres.T[:, None, :]
+            depth = np.maximum(np.sqrt(np.einsum("igv,igv->gv", diff, diff)), 0.1)
+        w = np.where(present, (frame.focals[None] / (depth * frame.noise[None])) ** 2, 0.0)
+        wd = w[None] * d
+        a = np.empty((g, 3, 3))
+        for r_, c_ in ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2)):
+            a[:, r_, c_] = a[:, c_, r_] = -np.einsum("gv,gv->g", wd[r_], d[c_])
+        a += w.sum(axis=1)[:, None, None] * np.eye(3)[None]
+        b = w @ frame.centres - np.einsum("igv,gv->gi", wd, dc)
+        a += np.eye(3)[None] * 1e-9 * np.trace(a, axis1=1, axis2=2)[:, None, None]
+        covariance = _inverse3(a)
+        points = np.einsum("gij,gj->gi", covariance, b)
+    return points, covariance
+
+
+def test_the_triangulation_entry_by_entry_is_the_stacked_one_to_the_bit():
+    views, _ = _crowd_views(seed=2)
+    frame = _Frame(views, AssociateOptions(pixel_sigma=1.5))
+    seeds = frame.pair_candidates()
+    grown = frame.grow(seeds, *frame.triangulate(seeds))
+    assert len(seeds) > 1000 and np.sum(grown >= 0) > 2.5 * len(grown)
+    for members in (seeds, grown):
+        points, covariance = frame.triangulate(members)
+        want = _stacked_triangulation(frame, members)
+        assert points.tobytes() == want[0].tobytes() and covariance.tobytes() == want[1].tobytes()
+        again = frame.triangulate(members, points + 0.01)
+        want = _stacked_triangulation(frame, members, points + 0.01)
+        assert again[0].tobytes() == want[0].tobytes() and again[1].tobytes() == want[1].tobytes()
+
+
+def test_the_record_of_verified_groups_finds_the_last_equal_row_even_where_hashes_collide(monkeypatch):
+    from rigsfm.associate import solve
+
+    rng = np.random.default_rng(6)
+    rows = np.where(rng.random((3000, 6)) < 0.5, rng.integers(0, 40, (3000, 6)), -1)
+    chunks = [rows[:1000], rows[1000:1800], rows[1800:]]  # repeated rows within and across chunks
+    members = np.r_[rows[rng.integers(0, 3000, 500)], np.c_[np.full(500, 99), rows[:500, 1:]]]  # the last: none
+    last = {r.tobytes(): i for i, r in enumerate(rows)}  # the last of equal rows
+    want = np.array([last.get(m.tobytes(), -1) for m in members])
+    assert (want >= 0).sum() == 500 and len(last) < 2900
+    for hashes in (solve._row_hashes, lambda m: np.zeros(len(m), dtype=np.uint64)):  # the second: all collide
+        monkeypatch.setattr(solve, "_row_hashes", hashes)
+        record = solve._Verified()
+        for chunk in chunks:
+            record.add(chunk, (chunk[:, 0].astype(float),))
+        starts = np.cumsum([0] + [len(c) for c in chunks])
+        np.testing.assert_array_equal(record.find(members, starts), want)
+
+
+def test_distinct_member_rows_are_numpy_s_unique_rows_first_occurrences_and_inverse():
+    from rigsfm.associate.solve import _unique_inverse, _unique_rows
+
+    rng = np.random.default_rng(7)
+    for top in (3, 200, 70_000, 2 ** 40):  # keys of one 16-bit digit to several 64-bit keys of four digits each
+        rows = np.where(rng.random((4000, 9)) < 0.4, rng.integers(0, top, (4000, 9)), -1)
+        rows = np.r_[rows, rows[rng.integers(0, 4000, 3000)]]  # repeated rows: their first occurrence
+        want, first, inverse = np.unique(rows, axis=0, return_index=True, return_inverse=True)
+        got, at = _unique_rows(rows)
+        np.testing.assert_array_equal(got, want)
+        np.testing.assert_array_equal(at, first)
+        distinct, rank = _unique_inverse(rows)
+        np.testing.assert_array_equal(distinct, want)
+        np.testing.assert_array_equal(rank, inverse.ravel())
+
+
+def test_a_disc_past_the_grid_s_edge_holds_none_of_the_edge_s_points():
+    rng = np.random.default_rng(8)
+    points = rng.uniform(0, 400, (300, 2))
+    grid = CountGrid(points)
+    # beyond each side by more than the radius: clipped, their boxes would be the edge cells, which hold points
+    far = np.r_[np.c_[rng.uniform(420, 900, 200), rng.uniform(0, 400, 200)],
+                np.c_[rng.uniform(0, 400, 200), rng.uniform(-500, -20, 200)]]
+    radius = np.full(len(far), 15.0)
+    assert not grid.any_within(far, radius).any()
+    assert not len(grid.pairs_within(far, radius)[0])
+    near = np.clip(far, -10.0, 410.0)  # just past the edge: within reach of its points
+    assert grid.any_within(near, np.full(len(near), 40.0)).mean() > 0.5
+
+
+def test_the_projected_covariance_column_by_column_is_the_broadcast_one_to_the_bit():
+    views, _ = _crowd_views(seed=3)
+    view = views[0]
+    rng = np.random.default_rng(3)
+    points = view.centre + rng.normal(0, 3.0, (2000, 3)) + 12.0 * view.r[2]
+    root = rng.normal(0, 0.2, (2000, 3, 3))
+    covariance = root @ np.transpose(root, (0, 2, 1))
+    cam = points @ view.r.T + view.t
+    z = np.where(np.abs(cam[:, 2]) > 1e-9, cam[:, 2], 1e-9)
+    a = (view.k[0, 0] / z)[:, None] * (view.r[0][None] - (cam[:, 0] / z)[:, None] * view.r[2][None])
+    b = (view.k[1, 1] / z)[:, None] * (view.r[1][None] - (cam[:, 1] / z)[:, None] * view.r[2][None])
+    ca, cb = np.einsum("nij,nj->ni", covariance, a), np.einsum("nij,nj->ni", covariance, b)
+    want = np.einsum("ni,ni->n", a, ca), np.einsum("ni,ni->n", b, ca), np.einsum("ni,ni->n", b, cb)
+    got = view.projected_covariance(points, covariance)
+    assert all(g.tobytes() == w.tobytes() for g, w in zip(got, want))

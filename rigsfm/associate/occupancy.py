@@ -41,11 +41,25 @@ class CountGrid:
         """The first and last cell column and row of the box around each disc, and how many points its cells hold."""
         # a hair wider than the disc: the points' own cells come from the same monotone arithmetic, so rounding
         # cannot move a point inside the disc out of the box
-        r = (radius * (1 + 1e-9) + 1e-6)[:, None]
-        x0, y0 = self._cells(xy - r)
-        x1, y1 = self._cells(xy + r)
-        t = self.table
-        count = t[y1 + 1, x1 + 1] - t[y0, x1 + 1] - t[y1 + 1, x0] + t[y0, x0]
+        r = radius * (1 + 1e-9) + 1e-6
+        # column by column (1D arrays: an N x 2 array's broadcasts run inner loops of two elements)
+        ends = []
+        beyond = np.zeros(len(xy), dtype=bool)  # a disc past the grid's last cell (clipped, its box would be the edge's)
+        for c, size in ((0, self.shape[1]), (1, self.shape[0])):
+            p = xy[:, c]
+            for first, edge in ((True, p - r), (False, p + r)):  # _cells' arithmetic, in place
+                edge -= self.origin[c]
+                edge /= self.cell
+                np.floor(edge, out=edge)
+                beyond |= edge > size - 1 if first else edge < 0
+                np.clip(edge, 0, size - 1, out=edge)
+                ends.append(edge.astype(np.int64))
+        x0, x1, y0, y1 = ends
+        width = self.shape[1] + 1
+        t = self.table.ravel()
+        top, bottom = y0 * width, (y1 + 1) * width
+        count = t[bottom + x1 + 1] - t[top + x1 + 1] - t[bottom + x0] + t[top + x0]
+        count[beyond] = 0
         return x0, y0, x1, y1, count
 
     def any_within(self, xy: np.ndarray, radius: np.ndarray) -> np.ndarray:
@@ -56,20 +70,29 @@ class CountGrid:
     def pairs_within(self, xy: np.ndarray, radius: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Every point within ``radius`` of each of ``xy`` (N x 2, finite; N radii): the queries' rows, the points'
         indices and their squared distances, query by query (a query's points in no particular order)."""
+        query, point, d2, _, _ = self.offsets_within(xy, radius)
+        return query, point, d2
+
+    def offsets_within(self, xy: np.ndarray, radius: np.ndarray,
+                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """``pairs_within``'s pairs, and each point's offset from its query (x, then y)."""
         x0, y0, x1, y1, count = self._boxes(xy, radius)
         searched = np.flatnonzero(count > 0)  # most boxes hold none
         x0, y0, x1, y1 = x0[searched], y0[searched], x1[searched], y1[searched]
-        # one run of points per query and row of cells of its box
+        # one run of points per query and row of cells of its box: the cell a run starts at, and how many cells
         spans = y1 - y0 + 1
+        width = self.shape[1]
+        skipped = np.cumsum(spans) - spans
         query = np.repeat(np.arange(len(searched)), spans)
-        row = y0[query] + np.arange(len(query)) - np.repeat(np.cumsum(spans) - spans, spans)
-        first = self.starts[row * self.shape[1] + x0[query]]
-        length = self.starts[row * self.shape[1] + x1[query] + 1] - first
+        cell = np.repeat((y0 - skipped) * width + x0, spans) + np.arange(len(query)) * width
+        first = self.starts[cell]
+        length = self.starts[cell + np.repeat(x1 - x0 + 1, spans)] - first
         query = np.repeat(query, length)
         at = np.repeat(first - (np.cumsum(length) - length), length) + np.arange(len(query))
         point = self.order[at]
         query = searched[query]
-        d = self.points[point] - xy[query]
-        d2 = d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1]
-        inside = d2 <= radius[query] ** 2
-        return query[inside], point[inside], d2[inside]
+        dx = self.points[:, 0][point] - xy[:, 0][query]
+        dy = self.points[:, 1][point] - xy[:, 1][query]
+        d2 = dx * dx + dy * dy
+        inside = np.flatnonzero(d2 <= radius[query] ** 2)
+        return query[inside], point[inside], d2[inside], dx[inside], dy[inside]

@@ -149,7 +149,8 @@ def near_segments(points: np.ndarray, centre: np.ndarray, radius: np.ndarray, st
     for k in range(0, len(centre), block):
         s, a = step[k:k + block], start[k:k + block]
         cross = (points[None, :, 0] - a[:, 0, None]) * s[:, 1, None] - (points[None, :, 1] - a[:, 1, None]) * s[:, 0, None]
-        r, q = np.nonzero(cross ** 2 <= line[k:k + block, None])
+        # row-major, as np.nonzero gives them (its 2D path is ten times slower than the flat one)
+        r, q = np.divmod(np.flatnonzero(cross ** 2 <= line[k:k + block, None]), len(points))
         out_rows.append(r + k)
         out_points.append(q)
     rows, near = np.concatenate(out_rows), np.concatenate(out_points)

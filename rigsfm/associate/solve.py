@@ -108,7 +108,9 @@ class View:
         z = cam[:, 2]
         with np.errstate(divide="ignore", invalid="ignore"):
             h = cam @ self.k.T
-            uv = h[:, :2] / z[:, None]
+            uv = np.empty((len(h), 2))
+            np.divide(h[:, 0], z, out=uv[:, 0])  # column by column: an N x 2 by N x 1 broadcast runs loops of two
+            np.divide(h[:, 1], z, out=uv[:, 1])
         return uv, z
 
     def projected_covariance(self, points: np.ndarray, covariance: np.ndarray,
@@ -117,8 +119,11 @@ class View:
         Jacobian row in closed form (a camera's row minus its depth row), no stacked matrix products."""
         cam = points @ self.r.T + self.t
         z = np.where(np.abs(cam[:, 2]) > 1e-9, cam[:, 2], 1e-9)
-        a = (self.k[0, 0] / z)[:, None] * (self.r[0][None] - (cam[:, 0] / z)[:, None] * self.r[2][None])
-        b = (self.k[1, 1] / z)[:, None] * (self.r[1][None] - (cam[:, 1] / z)[:, None] * self.r[2][None])
+        a, b = np.empty((len(cam), 3)), np.empty((len(cam), 3))
+        for jacobian, row, f in ((a, 0, self.k[0, 0]), (b, 1, self.k[1, 1])):
+            scale, ratio = f / z, cam[:, row] / z
+            for i in range(3):  # column by column: an N x 1 by 1 x 3 broadcast runs loops of three
+                jacobian[:, i] = scale * (self.r[row, i] - ratio * self.r[2, i])
         ca = np.einsum("nij,nj->ni", covariance, a)
         cb = np.einsum("nij,nj->ni", covariance, b)
         return np.einsum("ni,ni->n", a, ca), np.einsum("ni,ni->n", b, ca), np.einsum("ni,ni->n", b, cb)
@@ -171,6 +176,23 @@ def _inverse3(a: np.ndarray) -> np.ndarray:
     return c / det[:, None, None]
 
 
+def _inverse3_symmetric(a00: np.ndarray, a01: np.ndarray, a02: np.ndarray, a11: np.ndarray, a12: np.ndarray,
+                        a22: np.ndarray) -> np.ndarray:
+    """``_inverse3`` of symmetric matrices given by their six entries (N each; the same arithmetic, entry by entry,
+    without the strided reads of an N x 3 x 3 stack)."""
+    c00, c11, c22 = a11 * a22 - a12 * a12, a00 * a22 - a02 * a02, a00 * a11 - a01 * a01
+    c01 = a02 * a12 - a01 * a22
+    c02 = a01 * a12 - a02 * a11
+    c12 = a02 * a01 - a00 * a12
+    det = a00 * c00 + a01 * c01 + a02 * c02
+    out = np.empty((len(a00), 3, 3))
+    out[:, 0, 0], out[:, 1, 1], out[:, 2, 2] = c00 / det, c11 / det, c22 / det
+    out[:, 0, 1] = out[:, 1, 0] = c01 / det
+    out[:, 0, 2] = out[:, 2, 0] = c02 / det
+    out[:, 1, 2] = out[:, 2, 1] = c12 / det
+    return out
+
+
 ROWS_PER_BLOCK = 4096  # hypotheses per block of the row-wise algebra: its temporaries stay in the CPU's cache
 
 
@@ -201,23 +223,38 @@ def _sorted_rows(members: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The order that sorts member rows (-1 or a detection) as ``np.unique(axis=0)`` does, stable, and where in it a
     row repeats the one before: the columns packed into a few integer keys sort far faster than rows compared as
     records."""
-    shifted = members + 1  # >= 0
-    bases = shifted.max(axis=0) + 1
+    columns = np.ascontiguousarray(members.T) + 1  # >= 0; column by column, each contiguous
+    bases = columns.max(axis=1) + 1
     keys, key, room = [], np.zeros(len(members), dtype=np.int64), 1
     for c in range(members.shape[1]):
         if room * int(bases[c]) >= 2 ** 62:
             keys.append(key)
             key, room = np.zeros(len(members), dtype=np.int64), 1
-        key = key * bases[c] + shifted[:, c]
+        key = key * bases[c] + columns[c]
         room *= int(bases[c])
     keys.append(key)
-    order = np.lexsort(keys[::-1])  # stable: the first of equal rows first; the first column decides first
+    order = _stable_order(keys)  # stable: the first of equal rows first; the first column decides first
     repeated = np.zeros(len(order), dtype=bool)
     repeated[1:] = True
     for key in keys:
         ranked = key[order]
         repeated[1:] &= ranked[1:] == ranked[:-1]
     return order, repeated
+
+
+def _stable_order(keys: list[np.ndarray]) -> np.ndarray:
+    """``np.lexsort(keys[::-1])`` of non-negative integer keys (the first decides first), as a radix sort: stable
+    sorts of their 16-bit digits, least significant first (a stable sort of 16-bit integers is numpy's radix sort,
+    far faster than its merge sorts of 64-bit keys)."""
+    order = None
+    for key in keys[::-1]:
+        top, shift = int(key.max()) if len(key) else 0, 0
+        while shift == 0 or top >> shift:
+            digit = ((key if order is None else key[order]) >> shift).astype(np.uint16)  # the low 16 bits
+            step = np.argsort(digit, kind="stable")
+            order = step if order is None else order[step]
+            shift += 16
+    return order if order is not None else np.zeros(0, dtype=np.int64)
 
 
 def _unique_rows(members: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -238,6 +275,61 @@ def _unique_inverse(members: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     rank = np.empty(len(members), dtype=np.int64)
     rank[order] = np.cumsum(~repeated) - 1
     return members[order[~repeated]], rank
+
+
+_HASH_FACTORS: dict[int, np.ndarray] = {}  # per number of columns, _row_hashes' odd constants
+
+
+def _row_hashes(members: np.ndarray) -> np.ndarray:
+    """A 64-bit hash of each member row (-1 or a detection per column): a sum of the columns times odd constants,
+    wrapping; equal rows hash alike (a hash only says which rows to compare)."""
+    factors = _HASH_FACTORS.get(members.shape[1])
+    if factors is None:
+        drawn = np.random.default_rng(members.shape[1]).integers(0, 2 ** 63, members.shape[1], dtype=np.uint64)
+        factors = _HASH_FACTORS[members.shape[1]] = np.asarray(drawn) * np.uint64(2) + np.uint64(1)
+    hashes = np.zeros(len(members), dtype=np.uint64)
+    for c in range(members.shape[1]):
+        hashes += (members[:, c] + 1).astype(np.uint64) * factors[c]
+    return hashes
+
+
+class _Verified:
+    """The groups a frame verified (chunks of member rows and their ``_verify_steps``), with their hashes sorted for
+    lookups (shared by the frame's re-scored copies, as the list was)."""
+
+    def __init__(self) -> None:
+        self.chunks: list[tuple[np.ndarray, tuple[np.ndarray, ...]]] = []
+        self.hashes = np.zeros(0, dtype=np.uint64)  # sorted, equal ones by their position
+        self.positions = np.zeros(0, dtype=np.int64)  # each one's row in the chunks, stacked
+
+    def add(self, rows: np.ndarray, out: tuple[np.ndarray, ...]) -> None:
+        held = sum(len(r) for r, _ in self.chunks)
+        self.chunks.append((rows, out))
+        hashes = np.concatenate([self.hashes, _row_hashes(rows)])
+        positions = np.concatenate([self.positions, held + np.arange(len(rows))])
+        order = np.argsort(hashes, kind="stable")
+        self.hashes, self.positions = hashes[order], positions[order]
+
+    def find(self, members: np.ndarray, starts: np.ndarray) -> np.ndarray:
+        """Per row of ``members``, its row in the stacked chunks (the last of equal rows there), -1 where none."""
+        hashes = _row_hashes(members)
+        last = np.maximum(np.searchsorted(self.hashes, hashes, side="right") - 1, 0)
+        hit = np.where(self.hashes[last] == hashes, self.positions[last], -1) if len(self.hashes) \
+            else np.full(len(members), -1, dtype=np.int64)
+        found = np.flatnonzero(hit >= 0)
+        chunk = np.searchsorted(starts, hit[found], side="right") - 1
+        for c in np.unique(chunk).tolist():
+            at = found[chunk == c]
+            if not np.array_equal(self.chunks[c][0][hit[at] - starts[c]], members[at]):
+                return self._sorted_find(members)  # two rows share a hash: the rows themselves decide
+        return hit
+
+    def _sorted_find(self, members: np.ndarray) -> np.ndarray:
+        table = np.concatenate([rows for rows, _ in self.chunks])
+        _, rank = _unique_inverse(np.concatenate([table, members]))
+        where = np.full(int(rank.max()) + 1, -1, dtype=np.int64)
+        where[rank[:len(table)]] = np.arange(len(table))
+        return where[rank[len(table):]]
 
 
 @dataclass
@@ -295,8 +387,10 @@ class _Frame:
         self.uv = np.concatenate(undist) if undist else np.zeros((0, 2))
         self.rays = np.concatenate(rays) if rays else np.zeros((0, 3))
         self._by_axis: tuple[np.ndarray, np.ndarray] | None = None  # rays_by_axis, and of which rays
+        self._rows: tuple[np.ndarray, ...] | None = None  # _per_row's arrays, and of which noises
         self.k_of = np.array([v.k for v in views]) if views else np.zeros((0, 3, 3))
         self.r_of = np.array([v.r for v in views]) if views else np.zeros((0, 3, 3))
+        self._gram = self.r_of @ np.transpose(self.r_of, (0, 2, 1))  # each rotation's rows' dot products
         self.valid = np.all(np.isfinite(self.uv), axis=1)
         self.centres = np.array([v.centre for v in views])
         self.focals = np.array([v.focal for v in views])
@@ -314,7 +408,7 @@ class _Frame:
         self._grown: dict[bytes | None, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
         # every group verified so far and its ``_verify_steps`` (a function of the group's members alone): the
         # growth's rounds and the final check meet most groups again
-        self._verified: list[tuple[np.ndarray, tuple[np.ndarray, ...]]] = []
+        self._verified = _Verified()
         # the scores a carried frame's tracked groups took (NaN: not one), and the options, appearance and clutter
         # they were scored under
         self._scored: tuple[np.ndarray, AssociateOptions, AppearanceModel | None, np.ndarray] | None = None
@@ -363,6 +457,18 @@ class _Frame:
             self._by_axis = (self.rays, np.ascontiguousarray(self.rays.T))
         return self._by_axis[1]
 
+    def _per_row(self, g: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The views' centres (g V x 3), focals and noises (g x V each) repeated for g rows, of ``self.noise`` as
+        it is now: arrays of the rows' shape (a row of V broadcast runs inner loops of V elements)."""
+        held = self._rows
+        if held is None or held[0] is not self.noise or len(held[2]) < g:
+            n = max(g, len(held[2]) if held is not None else 0)
+            nv = len(self.views)
+            held = self._rows = (self.noise, np.tile(self.centres, (n, 1)),
+                                 np.ascontiguousarray(np.broadcast_to(self.focals[None], (n, nv))),
+                                 np.ascontiguousarray(np.broadcast_to(self.noise[None], (n, nv))))
+        return held[1][:g * len(self.views)], held[2][:g], held[3][:g]
+
     def rays_of(self, uv: np.ndarray) -> np.ndarray:
         """Unit world directions of undistorted pixels (one per detection, in the stacked order)."""
         k, r = self.k_of[self.view_of], self.r_of[self.view_of]
@@ -396,22 +502,31 @@ class _Frame:
         # coordinate-major (3 x G x V): the sums over the views run on contiguous rows
         d = np.take(self.rays_by_axis(), np.where(present, members, 0), axis=1)
         dc = np.einsum("igv,vi->gv", d, self.centres)
+        centres, focals, noise = self._per_row(g)
         for _ in range(2 if points is None else 1):
             if points is None:
                 depth = np.ones((g, nv))
             else:
-                diff = points.T[:, :, None] - self.centres.T[:, None, :]  # 3 x G x V
+                # 3 x G x V, laid out as the broadcast of points.T and centres.T leaves it (the sum below adds in
+                # the order its layout sets), from one flat subtraction
+                diff = (np.repeat(points, nv, axis=0) - centres).reshape(g, nv, 3).transpose(2, 0, 1)
                 depth = np.maximum(np.sqrt(np.einsum("igv,igv->gv", diff, diff)), 0.1)
             # A ray's lateral sigma (m) at the point: its angular noise times the distance.
-            w = np.where(present, (self.focals[None] / (depth * self.noise[None])) ** 2, 0.0)
+            w = np.where(present, (focals / (depth * noise)) ** 2, 0.0)
             wd = w[None] * d
-            a = np.empty((g, 3, 3))
-            for r_, c_ in ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2)):  # symmetric: six sums over the views
-                a[:, r_, c_] = a[:, c_, r_] = -np.einsum("gv,gv->g", wd[r_], d[c_])
-            a += w.sum(axis=1)[:, None, None] * np.eye(3)[None]
+            # the normal matrix entry by entry (symmetric: six sums over the views), each with the arithmetic of
+            # adding the weights' sum times the identity and then 1e-9 of the trace times it to the whole matrix
+            s = w.sum(axis=1)
+            y = {(r_, c_): np.einsum("gv,gv->g", wd[r_], d[c_])
+                 for r_, c_ in ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))}
+            a00, a11, a22 = -y[0, 0] + s, -y[1, 1] + s, -y[2, 2] + s
+            trace = a00 + a11 + a22
+            zero, ridge = s * 0.0, 1e-9 * trace
+            a01, a02, a12 = ((-y[0, 1] + zero) + 0.0 * trace, (-y[0, 2] + zero) + 0.0 * trace,
+                             (-y[1, 2] + zero) + 0.0 * trace)
+            a00, a11, a22 = a00 + ridge, a11 + ridge, a22 + ridge
             b = w @ self.centres - np.einsum("igv,gv->gi", wd, dc)
-            a += np.eye(3)[None] * 1e-9 * np.trace(a, axis1=1, axis2=2)[:, None, None]
-            covariance = _inverse3(a)
+            covariance = _inverse3_symmetric(a00, a01, a02, a11, a12, a22)
             points = np.einsum("gij,gj->gi", covariance, b)
         return points, covariance  # type: ignore[return-value]  # the loop sets points
 
@@ -424,8 +539,9 @@ class _Frame:
             if not len(rows):
                 continue
             uv, z = view.project(points[rows])
-            d2 = np.sum((uv - self.uv[members[rows, v]]) ** 2, axis=1) / self.noise[v] ** 2
-            out[rows, v] = np.where(z > 0, d2, np.inf)
+            seen = self.uv[members[rows, v]]
+            dx, dy = uv[:, 0] - seen[:, 0], uv[:, 1] - seen[:, 1]  # the sum over an axis of two, column by column
+            out[rows, v] = np.where(z > 0, (dx * dx + dy * dy) / self.noise[v] ** 2, np.inf)
         return out
 
     # --- hypotheses ------------------------------------------------------------------------------------------
@@ -467,16 +583,30 @@ class _Frame:
         one_view = np.full(len(members), -1, dtype=np.int64)
         one_det = np.full(len(members), -1, dtype=np.int64)
         one_d2 = np.full(len(members), np.inf)
+        spread = None  # each row's covariance's Frobenius norm (>= its largest eigenvalue), once all views need it
         for v, view in enumerate(self.views):
             rows = np.flatnonzero(members[:, v] < 0)
             if not len(rows) or self.grids[v] is None:  # the search below is the grid's
                 continue
-            uv, z = view.project(points[rows])
-            front = (z > 0) & np.all(np.isfinite(uv), axis=1)
-            rows, uv = rows[front], uv[front]
+            at = points[rows]
+            uv, z = view.project(at)
+            front = (z > 0) & np.isfinite(uv[:, 0]) & np.isfinite(uv[:, 1])
+            if not front.all():
+                front = np.flatnonzero(front)  # indices: a mask's gathers of 2D rows are slower
+                rows, uv, z, at = rows[front], uv[front], z[front], at[front]
             if not len(rows):
                 continue
-            sxx, sxy, syy = view.projected_covariance(points[rows], covariance[rows])
+            if spread is None:
+                spread = np.sqrt(np.einsum("nij,nij->n", covariance, covariance))
+            # most points have no detection within any reach their covariance allows: their covariance's projection
+            # is not needed (a box of a larger radius holds every cell of a smaller one's)
+            near = self._may_reach(v, uv, z, spread[rows])
+            if near is not None:
+                near = np.flatnonzero(near)
+                rows, uv, at = rows[near], uv[near], at[near]
+                if not len(rows):
+                    continue
+            sxx, sxy, syy = view.projected_covariance(at, covariance[rows])
             sxx, syy = sxx + self.noise[v] ** 2, syy + self.noise[v] ** 2
             # 2x2 symmetric: the largest eigenvalue and the inverse in closed form
             largest = (sxx + syy) / 2 + np.sqrt(((sxx - syy) / 2) ** 2 + sxy ** 2)
@@ -492,6 +622,30 @@ class _Frame:
             members[rows, one_view[rows]] = one_det[rows]
         return members
 
+    def _may_reach(self, v: int, uv: np.ndarray, z: np.ndarray, spread: np.ndarray) -> np.ndarray | None:
+        """Which points ``uv`` of view v (depths ``z`` > 0; ``spread``: a bound of their covariance's largest
+        eigenvalue) may have a detection within the growth's reach: an upper bound of the reach (the Jacobian's
+        closed form, times the spread, with room for rounding) whose box holds one; None: every point (a view whose
+        calibration matrix the bound does not know)."""
+        k, gram = self.k_of[v], self._gram[v]
+        if k[1, 0] != 0 or k[2, 0] != 0 or k[2, 1] != 0 or k[2, 2] != 1:
+            return None
+        fx, fy = k[0, 0], k[1, 1]
+        y = (uv[:, 1] - k[1, 2]) / fy
+        x = (uv[:, 0] - k[0, 2] - k[0, 1] * y) / fx
+        inv = 1.0 / np.maximum(z, 1e-9)
+        # J J^T of the projection's Jacobian rows fx / z (r0 - x r2) and fy / z (r1 - y r2)
+        jxx = (fx * inv) ** 2 * (gram[0, 0] - 2 * x * gram[0, 2] + x * x * gram[2, 2])
+        jyy = (fy * inv) ** 2 * (gram[1, 1] - 2 * y * gram[1, 2] + y * y * gram[2, 2])
+        jxy = fx * fy * inv * inv * (gram[0, 1] - y * gram[0, 2] - x * gram[1, 2] + x * y * gram[2, 2])
+        jacobian = (jxx + jyy) / 2 + np.sqrt(((jxx - jyy) / 2) ** 2 + jxy ** 2)
+        largest = (np.abs(jacobian) * spread + self.noise[v] ** 2) * (1 + 1e-6) + 1e-12
+        reach = np.sqrt(largest) * self.options.member_gate * (1 + 1e-6) + (1.0 + 1e-6)
+        near = ~np.isfinite(reach)  # searched exactly (the exact reach decides)
+        finite = np.flatnonzero(~near)
+        near[finite] = self.grids[v].any_within(uv[finite], reach[finite])  # type: ignore[union-attr]
+        return near
+
     def _nearest_member(self, v: int, uv: np.ndarray, bound: np.ndarray, sxx: np.ndarray, sxy: np.ndarray,
                         syy: np.ndarray, gate2: float, k: int = 4) -> tuple[np.ndarray, np.ndarray]:
         """Per point ``uv`` of view v (its projected covariance ``sxx``, ``sxy``, ``syy``), the detection nearest it
@@ -503,7 +657,7 @@ class _Frame:
         best = np.full(len(uv), -1, dtype=np.int64)
         best_d2 = np.full(len(uv), np.inf)
         searched = np.flatnonzero(np.isfinite(bound))
-        query, point, euclid = grid.pairs_within(uv[searched], bound[searched])
+        query, point, euclid, dx, dy = grid.offsets_within(uv[searched], bound[searched])
         query = searched[query]
         if not len(query):
             return best, best_d2
@@ -515,14 +669,13 @@ class _Frame:
             order = np.arange(len(ranked)) - np.searchsorted(query[ranked], query[ranked])
             keep = np.ones(len(query), dtype=bool)
             keep[ranked[order >= k]] = False
-            query, point = query[keep], point[keep]
+            query, point, dx, dy = query[keep], point[keep], dx[keep], dy[keep]
         det = sxx * syy - sxy ** 2
         inv_xx, inv_xy, inv_yy = syy / det, -sxy / det, sxx / det  # the inverse 2x2, entry by entry
         cand = self.tree_index[v][point]
-        dx, dy = (self.uv[cand] - uv[query]).T
         xy = inv_xy[query]
         d2 = dx * inv_xx[query] * dx + dx * xy * dy + dy * xy * dx + dy * inv_yy[query] * dy  # x^T S^-1 x
-        inside = d2 <= gate2
+        inside = np.flatnonzero(d2 <= gate2)
         query, cand, d2 = query[inside], cand[inside], d2[inside]
         np.minimum.at(best_d2, query, d2)
         won = d2 == best_d2[query]
@@ -533,35 +686,33 @@ class _Frame:
         """Re-triangulate, drop members outside their band, re-triangulate: members, points, covariances."""
         return self._verify_steps(members)[:3]
 
-    def _verify_distinct(self, members: np.ndarray) -> tuple[np.ndarray, ...]:
+    def _verify_distinct(self, members: np.ndarray, count: int = 6) -> tuple[np.ndarray, ...]:
         """``_verify_steps`` of member rows, each group computed once per frame: the rows this frame verified
         before are taken from then (row by row the same arithmetic; a row's matrix product may round otherwise in
         another batch of rows, as ``_rowwise``'s blocks and the final check's reuse already allow; rows repeated
-        within ``members`` are each computed, as callers mostly pass distinct ones)."""
-        known = self._verified
-        if not known or not len(members):
+        within ``members`` are each computed, as callers mostly pass distinct ones); the first ``count`` of them
+        (those the caller reads)."""
+        record = self._verified
+        if not record.chunks or not len(members):
             out = self._verify_steps(members)
             if len(members):
-                known.append((members, out))
-            return out
-        table = np.concatenate([rows for rows, _ in known])
-        _, rank = _unique_inverse(np.concatenate([table, members]))
-        where = np.full(int(rank.max()) + 1, -1, dtype=np.int64)
-        where[rank[:len(table)]] = np.arange(len(table))
-        hit = where[rank[len(table):]]
+                record.add(members, out)
+            return out[:count]
+        known = record.chunks
+        starts = np.cumsum([0] + [len(rows) for rows, _ in known])
+        hit = record.find(members, starts)
         new, old = np.flatnonzero(hit < 0), np.flatnonzero(hit >= 0)
         fresh = self._verify_steps(members[new])
-        out = tuple(np.empty((len(members), *f.shape[1:]), dtype=f.dtype) for f in fresh)
+        out = tuple(np.empty((len(members), *f.shape[1:]), dtype=f.dtype) for f in fresh[:count])
         for o, f in zip(out, fresh):
             o[new] = f
-        starts = np.cumsum([0] + [len(rows) for rows, _ in known])
         chunk = np.searchsorted(starts, hit[old], side="right") - 1
         for c in np.unique(chunk).tolist():
             at = old[chunk == c]
             for o, f in zip(out, known[c][1]):
                 o[at] = f[hit[at] - starts[c]]
         if len(new):
-            known.append((members[new], fresh))
+            record.add(members[new], fresh)
         return out
 
     @_rowwise
@@ -729,7 +880,7 @@ class _Frame:
         total = int(self.offsets[-1])
         if not len(rows):
             return self._grown_from_pairs(None)
-        members, points, covariance = self._verify_distinct(rows)[:3]
+        members, points, covariance = self._verify_distinct(rows, 3)
         keep = np.sum(members >= 0, axis=1) >= 2
         pairs = self._gated(row_pairs(rows), None)
         members = np.concatenate([members[keep], pairs[0]])
@@ -801,7 +952,7 @@ class _Frame:
             members = only_free(self.grow(members, points, covariance))
             # a group's verification depends on its members alone: each distinct group verified once
             distinct, which = _unique_inverse(members)
-            members, points, covariance = (a[which] for a in self._verify_distinct(distinct)[:3])
+            members, points, covariance = (a[which] for a in self._verify_distinct(distinct, 3))
             groups.append(members)
             # seeds of one person grow into the same group: grow each group once
             members, first = _unique_rows(members)

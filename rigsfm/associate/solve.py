@@ -514,17 +514,15 @@ class _Frame:
             # A ray's lateral sigma (m) at the point: its angular noise times the distance.
             w = np.where(present, (focals / (depth * noise)) ** 2, 0.0)
             wd = w[None] * d
-            # the normal matrix entry by entry (symmetric: six sums over the views), each with the arithmetic of
-            # adding the weights' sum times the identity and then 1e-9 of the trace times it to the whole matrix
+            # the normal matrix entry by entry (symmetric: six sums over the views): the weights' sum on the
+            # diagonal, and a ridge of 1e-9 of the trace there
             s = w.sum(axis=1)
             y = {(r_, c_): np.einsum("gv,gv->g", wd[r_], d[c_])
                  for r_, c_ in ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))}
             a00, a11, a22 = -y[0, 0] + s, -y[1, 1] + s, -y[2, 2] + s
-            trace = a00 + a11 + a22
-            zero, ridge = s * 0.0, 1e-9 * trace
-            a01, a02, a12 = ((-y[0, 1] + zero) + 0.0 * trace, (-y[0, 2] + zero) + 0.0 * trace,
-                             (-y[1, 2] + zero) + 0.0 * trace)
+            ridge = 1e-9 * (a00 + a11 + a22)
             a00, a11, a22 = a00 + ridge, a11 + ridge, a22 + ridge
+            a01, a02, a12 = -y[0, 1], -y[0, 2], -y[1, 2]
             b = w @ self.centres - np.einsum("igv,gv->gi", wd, dc)
             covariance = _inverse3_symmetric(a00, a01, a02, a11, a12, a22)
             points = np.einsum("gij,gj->gi", covariance, b)

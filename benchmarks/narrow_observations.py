@@ -18,6 +18,7 @@ matches added and the held-out check's verdicts. benchmarks/README.md ("Narrow o
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import logging
 import shutil
@@ -29,6 +30,7 @@ REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
 
 import numpy as np  # noqa: E402
+import yaml  # noqa: E402
 
 from rigsfm.run.options import NarrowMode, RunOptions  # noqa: E402
 from rigsfm.synth.scene import SceneOptions  # noqa: E402
@@ -51,6 +53,14 @@ def dataset(work: Path, name: str, image_scale: float, seed: int):
     options = SceneOptions(image_scale=image_scale, seed=seed, **SCENES[name])  # type: ignore[arg-type]
     root = work / name
     if (root / "scene.yaml").exists():
+        # A scene rendered before is reused only with its own options: floor_scale and the truth read them.
+        recorded = yaml.safe_load((root / "scene.yaml").read_text(encoding="utf-8"))["options"]
+        wanted = yaml.safe_load(yaml.safe_dump(dataclasses.asdict(options)))
+        differ = [f"{key} {recorded.get(key)!r} (asked {value!r})" for key, value in wanted.items()
+                  if recorded.get(key) != value]
+        if differ:
+            raise SystemExit(f"{root} was rendered with other options: {', '.join(differ)}; pass those "
+                             "(--seed, --image-scale) or another WORK")
         return SyntheticDataset(root, root / "images", root / "rigs.yaml", root / "rigs_exact.yaml",
                                 root / "scale.yaml", root / "ground_truth", options, ())
     return render_dataset(root, options)

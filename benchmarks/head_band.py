@@ -28,6 +28,7 @@ sys.path.insert(0, str(REPO))
 
 import numpy as np  # noqa: E402
 import pycolmap  # noqa: E402
+import yaml  # noqa: E402
 
 logger = logging.getLogger("head_band")
 
@@ -47,7 +48,9 @@ def run_and_keep(scene: Path, out: Path) -> None:
             (out / "second.pkl").write_bytes(pickle.dumps({"result": second, "floor": floor, "source": source}))
         return second, record
 
-    data = dataset(scene.parent, scene.name, 1.0, 0)  # a rendered scene: reused
+    # a rendered scene, reused with its own seed and scale (floor_scale writes that seed's bar and rangefinder)
+    options = yaml.safe_load((scene / "scene.yaml").read_text(encoding="utf-8"))["options"]
+    data = dataset(scene.parent, scene.name, float(options["image_scale"]), int(options["seed"]))
     pipeline.second_pass = keeping  # type: ignore[assignment]
     try:
         import shutil

@@ -5,6 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+import pycolmap
 import pytest
 
 from rigsfm.run.adjustment.adjust import adjust
@@ -92,3 +93,63 @@ def test_points_at_their_own_noise_leave_the_pooled_noise_to_the_keypoints(netwo
     for image_id, image in pooled.reconstruction.images.items():
         assert np.array_equal(image.cam_from_world().matrix(),
                               empty.reconstruction.image(image_id).cam_from_world().matrix())
+
+
+def _sensor_rotations(model, camera_ids) -> list[np.ndarray]:
+    out = []
+    for camera_id in camera_ids:
+        image = next(im for im in model.images.values() if im.camera_id == camera_id)
+        rig = model.rigs[model.frames[image.frame_id].rig_id]
+        out.append(rig.sensor_from_rig(pycolmap.sensor_t(pycolmap.SensorType.CAMERA, camera_id)).rotation.matrix())
+    return out
+
+
+def test_a_views_shared_head_error_widens_the_covariance_by_the_estimates_response(network_with_heads):
+    """With ``point_shared_sigma`` (one offset per view and image coordinate shared by its heads,
+    rigsfm.run.adjustment.heads_error) the narrow E^sl's covariance grows by the spread of the adjustment's own
+    response to those offsets: every view's heads shifted by 1 px, one coordinate at a time, and the problem solved
+    again (squared loss, as the covariance). Without it the covariance is the heads-as-independent one."""
+    from rigsfm.run.adjustment.covariance import joint_covariance
+
+    net, model, head_ids, spec = network_with_heads
+    sigmas = dict.fromkeys(head_ids, HEAD_NOISE_PX)
+    result = adjust(model, net.rigs, spec, point_sigmas=sigmas)
+    result.covariance = None
+    independent = joint_covariance(result)
+    shared_px = 5.0  # the synthetic narrow cameras' keypoints hold E^sl far better than a crowd's heads do
+    result.point_shared_sigma = shared_px
+    shared = joint_covariance(result)
+    assert independent is not None and shared is not None
+
+    def solved(start: pycolmap.Reconstruction) -> pycolmap.Reconstruction:
+        problem = JointProblem(start, result.rigs, result.priors, result.scale_spec, result.options,
+                               result.pixel_sigma, gauge=Gauge.RIGID, robust=False, held_rigs=result.held_rigs,
+                               point_sigmas=sigmas)
+        problem.solve_to_convergence()
+        return start
+
+    base = solved(pycolmap.Reconstruction(result.reconstruction))
+    narrow = sorted({im.camera_id for im in base.images.values() if "/narrow/" in im.name})
+    before = _sensor_rotations(base, narrow)
+    viewers = sorted({e.image_id for point_id in head_ids for e in base.points3D[point_id].track.elements})
+    responses = []
+    for image_id in viewers:
+        for coordinate in range(2):
+            shifted = pycolmap.Reconstruction(base)
+            for point_id in head_ids:
+                for element in shifted.points3D[point_id].track.elements:
+                    if element.image_id == image_id:
+                        point2D = shifted.image(image_id).points2D[element.point2D_idx]
+                        xy = np.asarray(point2D.xy).copy()
+                        xy[coordinate] += 1.0
+                        point2D.xy = xy
+            response = []
+            for r0, r1 in zip(before, _sensor_rotations(solved(shifted), narrow)):
+                d = r1 @ r0.T  # R' = Exp(w) R
+                response += [(d[2, 1] - d[1, 2]) / 2, (d[0, 2] - d[2, 0]) / 2, (d[1, 0] - d[0, 1]) / 2]
+            responses.append(np.array(response))
+    spread = shared_px**2 * sum(np.outer(r, r) for r in responses)
+    index = np.concatenate([independent.index([("sensor_from_rig", c)])[:3] for c in narrow])  # rotations
+    added = shared.covariance[np.ix_(index, index)] - independent.covariance[np.ix_(index, index)]
+    assert np.all(np.diag(spread) > 0.01 * np.diag(independent.covariance[np.ix_(index, index)]))
+    assert np.linalg.norm(added - spread) < 0.03 * np.linalg.norm(spread), (np.diag(added), np.diag(spread))

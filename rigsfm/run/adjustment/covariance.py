@@ -15,7 +15,8 @@ Tangents: ``("frame", frame_id)``: ``rig_from_world``, ``("sensor_from_rig", cam
 E^sl, both ``[w, dt]`` with ``R' = Exp(w) R``, ``t' = t + dt`` (rad, m); ``("camera", camera_id)``: the params.
 A parameter no image observes keeps its prior, independent of the rest (``prior_only``). A camera's repeated views of
 a point (a static rig's frames) are weighed as correlated observations (``rigsfm.run.adjustment.repeated``), and so are
-a narrow pair's matches (``rigsfm.run.adjustment.correlated``)."""
+a narrow pair's matches (``rigsfm.run.adjustment.correlated``); an error shared by one view's heads, where given,
+widens it as the estimator's own covariance (``rigsfm.run.adjustment.heads_error``)."""
 
 from __future__ import annotations
 
@@ -31,6 +32,7 @@ import scipy.sparse as sp
 
 from rigsfm.core.geometry import skew
 from rigsfm.run.adjustment.correlated import correlated_point_weights
+from rigsfm.run.adjustment.heads_error import shared_view_information
 from rigsfm.run.adjustment.model import estimate_pixel_sigma, sensor_from_rig_view
 from rigsfm.run.adjustment.priors import calibration_priors
 from rigsfm.run.adjustment.problem import JointProblem
@@ -89,12 +91,15 @@ def parameter_entries(jp: JointProblem) -> tuple[list[tuple[tuple, Any, int, Any
 
 
 def _reduced_system(jp: JointProblem, max_error_px: float | None = None, inflation: float = 1.0,
-                    calibration_held: frozenset[str] | None = None):
+                    calibration_held: frozenset[str] | None = None, shared_sigma: float = 0.0,
+                    shared_slope_sigma: float = 0.0):
     """Ceres' Jacobian of ``jp`` (tangent space) with the points eliminated (Schur complement, 3x3 blocks): the
     reduced normal matrix over the other blocks, every entry ``(key, block or None, size, tangent dims)``, the
-    variable ones, and the prior-only covariances; None (with a warning) when a point carries no information.
+    variable ones, the prior-only covariances, and the heads' shared error's term beside the matrix (module
+    heads_error; None without one); None (with a warning) when a point carries no information.
     ``calibration_held``: the rigs whose calibration the estimate held (None: every rig's, ``FIXED``), for the
-    narrow pairs' weights (module correlated)."""
+    narrow pairs' weights (module correlated); ``shared_sigma``, ``shared_slope_sigma``: the heads' shared error
+    per view (``AdjustResult.point_shared_sigma``)."""
     rec, problem = jp.reconstruction, jp.problem
     entries, prior_only = parameter_entries(jp)
     variable = [entry for entry in entries if entry[1] is not None]
@@ -140,8 +145,11 @@ def _reduced_system(jp: JointProblem, max_error_px: float | None = None, inflati
         h_ap = (j_a.T @ j_p).tocsr()
         schur = h_aa - (h_ap @ h_pp_inv @ h_ap.T).toarray()
     else:
+        h_pp_inv = h_ap = None
         schur = h_aa
-    return 0.5 * (schur + schur.T), entries, variable, prior_only
+    shared = shared_view_information(jp.problem, jp.point_sigma_blocks, blocks, num_a, h_pp_inv, h_ap, shared_sigma,
+                                     shared_slope_sigma)
+    return 0.5 * (schur + schur.T), entries, variable, prior_only, shared
 
 
 def _row_points(jacobian: sp.csr_matrix, num_a: int, num_points: int) -> np.ndarray:
@@ -218,15 +226,15 @@ def joint_covariance(result: AdjustResult, image_only: bool = False) -> JointCov
     jp = JointProblem(rec, rigs, priors, result.scale_spec, options, pixel_sigma, gauge=gauge, robust=False,
                       with_priors=refined, held_rigs=held, consider_held=True, point_sigmas=result.point_sigmas)
     reduced = _reduced_system(jp, options.max_reprojection_error_px, options.pixel_sigma_inflation,
-                              held if refined else None)
+                              held if refined else None, result.point_shared_sigma, result.point_shared_slope_sigma)
     if reduced is None:
         return None
-    schur, entries, variable, prior_only = reduced
+    schur, entries, variable, prior_only, shared = reduced
     factors = _tangent_factors(variable)
     num_end = schur.shape[0] - len(factors)
     factors = np.r_[factors, np.ones(num_end)]
     if refined and held:  # the refined rigs' posterior, the held rigs' calibration considered
-        cov = _consider(jp, schur, variable, factors, consider_rigs=held)
+        cov = _consider(jp, schur, variable, factors, consider_rigs=held, shared=shared)
         if cov is None:
             return None
         kind = "posterior"
@@ -234,10 +242,12 @@ def joint_covariance(result: AdjustResult, image_only: bool = False) -> JointCov
         inverse = _inverse(schur)
         if inverse is None:
             return None
+        if shared is not None:  # the estimator's covariance under the heads' shared error (module heads_error)
+            inverse = inverse + inverse @ shared @ inverse
         cov = inverse * jp.weight_sigma**2 * np.outer(factors, factors)
         kind = "posterior"
     else:
-        cov = _consider(jp, schur, variable, factors, 0.0 if image_only else 1.0)
+        cov = _consider(jp, schur, variable, factors, 0.0 if image_only else 1.0, shared=shared)
         if cov is None:
             return None
         kind = "image" if image_only else "consider"
@@ -249,10 +259,12 @@ def joint_covariance(result: AdjustResult, image_only: bool = False) -> JointCov
 
 
 def _consider(jp: JointProblem, schur: np.ndarray, variable, factors: np.ndarray,
-              prior_weight: float = 1.0, consider_rigs: frozenset[str] | None = None) -> np.ndarray | None:
+              prior_weight: float = 1.0, consider_rigs: frozenset[str] | None = None,
+              shared: np.ndarray | None = None) -> np.ndarray | None:
     """The consider covariance (our tangents) over the variable dimensions, end points last. ``consider_rigs``:
     only these rigs' calibration is considered, the others' is estimated with the poses (their priors in
-    ``schur``); None: every rig's is considered."""
+    ``schur``); None: every rig's is considered. ``shared``: the heads' shared error's term beside ``schur``
+    (module heads_error), or None."""
     pose_index: list[int] = []
     calibration_index: list[int] = []
     prior_blocks: list = []
@@ -276,6 +288,8 @@ def _consider(jp: JointProblem, schur: np.ndarray, variable, factors: np.ndarray
     a_inv = _inverse(a)
     if a_inv is None:
         return None
+    if shared is not None:  # the estimator's covariance under the heads' shared error (module heads_error)
+        a_inv = a_inv + a_inv @ (shared / np.outer(factors, factors))[np.ix_(pose_index, pose_index)] @ a_inv
     prior = np.zeros((len(calibration_index), len(calibration_index)))
     at = 0
     for block in prior_blocks:

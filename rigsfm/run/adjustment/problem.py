@@ -102,6 +102,9 @@ class JointProblem:
         self.problem: pyceres.Problem = self.adjuster.problem
         # point3D_id -> its observations' own noise (px per coordinate), in place of the pooled one (heads)
         self.point_sigmas = dict(point_sigmas or {})
+        # image_id -> the residual blocks of its observations of those points (the heads' shared error per view:
+        # rigsfm.run.adjustment.heads_error)
+        self.point_sigma_blocks: dict[int, list] = {}
         self._weigh_points()
         self.subset_frame = self._two_cams_subset() if gauge == Gauge.TWO_CAMS_FROM_WORLD else None
         if not consider_held:
@@ -195,7 +198,9 @@ class JointProblem:
                         cost = pycolmap.cost_functions.RigReprojErrorCost(camera.model, point_cov, xy,
                                                                           pycolmap.Rigid3d(sensor))  # type: ignore[call-overload]
                         blocks = [point.xyz, rig_block, camera.params]
-                self.problem.add_residual_block(cost, loss, blocks)
+                block = self.problem.add_residual_block(cost, loss, blocks)
+                self.point_sigma_blocks.setdefault(int(element.image_id), []).append(
+                    (block, float(self.point_sigmas[point_id]), xy))
                 self._keep.append(cost)
 
     # -- measurements ----------------------------------------------------------------------------------------

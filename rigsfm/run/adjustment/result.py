@@ -53,6 +53,11 @@ class AdjustResult:
     # point3D_id -> its observations' own noise (px per coordinate; heads): weighed so in the adjustment and its
     # covariance (rigsfm.run.adjustment.problem.JointProblem), the pooled pixel_sigma is the other observations'
     point_sigmas: dict[int, float] = field(default_factory=dict)
+    # px per image coordinate: the error one view's point_sigmas observations share (heads; the covariance's
+    # rigsfm.run.adjustment.heads_error), beside their own noise: an offset, and a tilt reaching this at the edges of
+    # the view's heads. Zero in a run (benchmarks/head_band.py measures them; benchmarks/README.md says why).
+    point_shared_sigma: float = 0.0
+    point_shared_slope_sigma: float = 0.0
 
 
 @dataclass(frozen=True)

@@ -99,8 +99,9 @@ def measure(data, out: Path, mode: NarrowMode) -> dict:
     from rigsfm.synth.truth import compare_to_ground_truth
 
     shutil.rmtree(out, ignore_errors=True)
+    scale = floor_scale(data)  # builds the arena (seconds): not the run's time
     start = time.perf_counter()
-    result = run(data.images, data.rigs, out, floor_scale(data), RunOptions(narrow=mode))
+    result = run(data.images, data.rigs, out, scale, RunOptions(narrow=mode))
     seconds = time.perf_counter() - start
     truth = pycolmap.Reconstruction(str(data.ground_truth))
     narrow = compare_to_ground_truth(result.reconstruction, truth, "narrow")

@@ -165,10 +165,24 @@ def test_the_growth_skips_only_points_without_a_detection_within_their_reach():
     assert len(members) > 1000 and left > 0.3 * searched  # most projections are far from every detection
 
 
+def _inverse3(a):
+    """Inverses of stacked 3x3 matrices by their adjugates (the stacked form ``_inverse3_symmetric`` writes out)."""
+    c = np.empty_like(a)
+    c[:, 0, 0] = a[:, 1, 1] * a[:, 2, 2] - a[:, 1, 2] * a[:, 2, 1]
+    c[:, 0, 1] = a[:, 0, 2] * a[:, 2, 1] - a[:, 0, 1] * a[:, 2, 2]
+    c[:, 0, 2] = a[:, 0, 1] * a[:, 1, 2] - a[:, 0, 2] * a[:, 1, 1]
+    c[:, 1, 0] = a[:, 1, 2] * a[:, 2, 0] - a[:, 1, 0] * a[:, 2, 2]
+    c[:, 1, 1] = a[:, 0, 0] * a[:, 2, 2] - a[:, 0, 2] * a[:, 2, 0]
+    c[:, 1, 2] = a[:, 0, 2] * a[:, 1, 0] - a[:, 0, 0] * a[:, 1, 2]
+    c[:, 2, 0] = a[:, 1, 0] * a[:, 2, 1] - a[:, 1, 1] * a[:, 2, 0]
+    c[:, 2, 1] = a[:, 0, 1] * a[:, 2, 0] - a[:, 0, 0] * a[:, 2, 1]
+    c[:, 2, 2] = a[:, 0, 0] * a[:, 1, 1] - a[:, 0, 1] * a[:, 1, 0]
+    det = a[:, 0, 0] * c[:, 0, 0] + a[:, 0, 1] * c[:, 1, 0] + a[:, 0, 2] * c[:, 2, 0]
+    return c / det[:, None, None]
+
+
 def _stacked_triangulation(frame, members, points=None):
     """The triangulation as 3 x 3 stacks (the arithmetic ``_Frame.triangulate`` keeps, entry by entry)."""
-    from rigsfm.associate.solve import _inverse3
-
     g, nv = members.shape
     present = members >= 0
     d = np.take(frame.rays_by_axis(), np.where(present, members, 0), axis=1)
@@ -222,8 +236,8 @@ def test_the_record_of_verified_groups_finds_the_last_equal_row_even_where_hashe
         record = solve._Verified()
         for chunk in chunks:
             record.add(chunk, (chunk[:, 0].astype(float),))
-        starts = np.cumsum([0] + [len(c) for c in chunks])
-        np.testing.assert_array_equal(record.find(members, starts), want)
+        np.testing.assert_array_equal(record.starts, np.cumsum([0] + [len(c) for c in chunks]))
+        np.testing.assert_array_equal(record.find(members), want)
 
 
 def test_distinct_member_rows_are_numpy_s_unique_rows_first_occurrences_and_inverse():

@@ -160,26 +160,10 @@ def view_pose_sigmas(names: list[str], bands: dict[tuple[str, str], float]) -> d
     return {name: float(math.sqrt(variance[i] if seen[i] else fallback)) for name, i in index.items()}
 
 
-def _inverse3(a: np.ndarray) -> np.ndarray:
-    """Inverses of stacked 3x3 matrices by their adjugates (stacks of many small matrices: faster than LAPACK)."""
-    c = np.empty_like(a)
-    c[:, 0, 0] = a[:, 1, 1] * a[:, 2, 2] - a[:, 1, 2] * a[:, 2, 1]
-    c[:, 0, 1] = a[:, 0, 2] * a[:, 2, 1] - a[:, 0, 1] * a[:, 2, 2]
-    c[:, 0, 2] = a[:, 0, 1] * a[:, 1, 2] - a[:, 0, 2] * a[:, 1, 1]
-    c[:, 1, 0] = a[:, 1, 2] * a[:, 2, 0] - a[:, 1, 0] * a[:, 2, 2]
-    c[:, 1, 1] = a[:, 0, 0] * a[:, 2, 2] - a[:, 0, 2] * a[:, 2, 0]
-    c[:, 1, 2] = a[:, 0, 2] * a[:, 1, 0] - a[:, 0, 0] * a[:, 1, 2]
-    c[:, 2, 0] = a[:, 1, 0] * a[:, 2, 1] - a[:, 1, 1] * a[:, 2, 0]
-    c[:, 2, 1] = a[:, 0, 1] * a[:, 2, 0] - a[:, 0, 0] * a[:, 2, 1]
-    c[:, 2, 2] = a[:, 0, 0] * a[:, 1, 1] - a[:, 0, 1] * a[:, 1, 0]
-    det = a[:, 0, 0] * c[:, 0, 0] + a[:, 0, 1] * c[:, 1, 0] + a[:, 0, 2] * c[:, 2, 0]
-    return c / det[:, None, None]
-
-
 def _inverse3_symmetric(a00: np.ndarray, a01: np.ndarray, a02: np.ndarray, a11: np.ndarray, a12: np.ndarray,
                         a22: np.ndarray) -> np.ndarray:
-    """``_inverse3`` of symmetric matrices given by their six entries (N each; the same arithmetic, entry by entry,
-    without the strided reads of an N x 3 x 3 stack)."""
+    """Inverses (N x 3 x 3) of symmetric 3x3 matrices given by their six entries (N each), by their adjugates (many
+    small matrices: faster than LAPACK; entry by entry, without the strided reads of an N x 3 x 3 stack)."""
     c00, c11, c22 = a11 * a22 - a12 * a12, a00 * a22 - a02 * a02, a00 * a11 - a01 * a01
     c01 = a02 * a12 - a01 * a22
     c02 = a01 * a12 - a02 * a11
@@ -299,19 +283,22 @@ class _Verified:
 
     def __init__(self) -> None:
         self.chunks: list[tuple[np.ndarray, tuple[np.ndarray, ...]]] = []
+        self.starts = np.zeros(1, dtype=np.int64)  # each chunk's first row in the chunks stacked, and their total
         self.hashes = np.zeros(0, dtype=np.uint64)  # sorted, equal ones by their position
         self.positions = np.zeros(0, dtype=np.int64)  # each one's row in the chunks, stacked
 
     def add(self, rows: np.ndarray, out: tuple[np.ndarray, ...]) -> None:
-        held = sum(len(r) for r, _ in self.chunks)
+        held = int(self.starts[-1])
         self.chunks.append((rows, out))
+        self.starts = np.append(self.starts, held + len(rows))
         hashes = np.concatenate([self.hashes, _row_hashes(rows)])
         positions = np.concatenate([self.positions, held + np.arange(len(rows))])
         order = np.argsort(hashes, kind="stable")
         self.hashes, self.positions = hashes[order], positions[order]
 
-    def find(self, members: np.ndarray, starts: np.ndarray) -> np.ndarray:
+    def find(self, members: np.ndarray) -> np.ndarray:
         """Per row of ``members``, its row in the stacked chunks (the last of equal rows there), -1 where none."""
+        starts = self.starts
         hashes = _row_hashes(members)
         last = np.maximum(np.searchsorted(self.hashes, hashes, side="right") - 1, 0)
         hit = np.where(self.hashes[last] == hashes, self.positions[last], -1) if len(self.hashes) \
@@ -696,9 +683,8 @@ class _Frame:
             if len(members):
                 record.add(members, out)
             return out[:count]
-        known = record.chunks
-        starts = np.cumsum([0] + [len(rows) for rows, _ in known])
-        hit = record.find(members, starts)
+        known, starts = record.chunks, record.starts
+        hit = record.find(members)
         new, old = np.flatnonzero(hit < 0), np.flatnonzero(hit >= 0)
         fresh = self._verify_steps(members[new])
         out = tuple(np.empty((len(members), *f.shape[1:]), dtype=f.dtype) for f in fresh[:count])

@@ -35,7 +35,7 @@ from rigsfm.run.adjustment.correlated import correlated_point_weights
 from rigsfm.run.adjustment.heads_error import shared_view_information
 from rigsfm.run.adjustment.model import estimate_pixel_sigma, sensor_from_rig_view
 from rigsfm.run.adjustment.priors import calibration_priors
-from rigsfm.run.adjustment.problem import JointProblem
+from rigsfm.run.adjustment.problem import JointProblem, jacobian_csr
 from rigsfm.run.adjustment.repeated import repeated_view_correlation, repeated_view_weights
 from rigsfm.run.adjustment.result import AdjustResult, Gauge, JointCovariance, ScaleSource
 from rigsfm.run.options import Calibration
@@ -45,11 +45,6 @@ logger = logging.getLogger(__name__)
 
 DAMPING = 1e-8  # added to each point's 3x3 block in the Schur complement
 RANK_TOLERANCE = 1e-10  # smallest / largest eigenvalue of the Jacobi-scaled reduced normal matrix
-
-
-def _csr(jacobian: pyceres.CRSMatrix) -> sp.csr_matrix:
-    return sp.csr_matrix((np.asarray(jacobian.values), np.asarray(jacobian.cols), np.asarray(jacobian.rows)),
-                         shape=(jacobian.num_rows, jacobian.num_cols))
 
 
 def parameter_entries(jp: JointProblem) -> tuple[list[tuple[tuple, Any, int, Any]], dict[tuple, np.ndarray]]:
@@ -113,7 +108,7 @@ def _reduced_system(jp: JointProblem, max_error_px: float | None = None, inflati
     evaluate = pyceres.EvaluateOptions()
     evaluate.set_parameter_blocks(blocks)
     num_a = sum(len(dims) for _, _, _, dims in variable) + 3 * len(end_points)
-    jac = _csr(problem.evaluate_jacobian(evaluate))
+    jac = jacobian_csr(problem.evaluate_jacobian(evaluate))
     rho = repeated_view_correlation(rec, inflation, max_error_px)
     if rho:  # a static rig's repeated views are not independent observations (module repeated)
         camera_of_column = np.concatenate([np.full(len(dims), key[1] if key[0] == "camera" else -1)

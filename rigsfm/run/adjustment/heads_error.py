@@ -23,10 +23,7 @@ import numpy as np
 import pyceres
 import scipy.sparse as sp
 
-
-def _csr(jacobian: pyceres.CRSMatrix) -> sp.csr_matrix:
-    return sp.csr_matrix((np.asarray(jacobian.values), np.asarray(jacobian.cols), np.asarray(jacobian.rows)),
-                         shape=(jacobian.num_rows, jacobian.num_cols))
+from rigsfm.run.adjustment.problem import jacobian_csr
 
 
 def shared_view_information(problem: pyceres.Problem, view_blocks: dict[int, list[tuple[object, float, np.ndarray]]],
@@ -43,7 +40,7 @@ def shared_view_information(problem: pyceres.Problem, view_blocks: dict[int, lis
     evaluate = pyceres.EvaluateOptions()
     evaluate.set_parameter_blocks(parameter_blocks)
     evaluate.set_residual_blocks([block for block, _ in blocks])
-    jac = _csr(problem.evaluate_jacobian(evaluate))
+    jac = jacobian_csr(problem.evaluate_jacobian(evaluate))
     if jac.shape[0] != 2 * len(blocks):
         raise RuntimeError("a head's residual block without two residuals")
     rows, groups, weights = [], [], []

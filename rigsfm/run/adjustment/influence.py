@@ -26,10 +26,10 @@ import pyceres
 import pycolmap
 import scipy.sparse as sp
 
-from rigsfm.run.adjustment.covariance import DAMPING, _csr, _inverse, _row_points, parameter_entries
+from rigsfm.run.adjustment.covariance import DAMPING, _inverse, _row_points, parameter_entries
 from rigsfm.run.adjustment.model import estimate_pixel_sigma
 from rigsfm.run.adjustment.priors import calibration_priors
-from rigsfm.run.adjustment.problem import JointProblem
+from rigsfm.run.adjustment.problem import JointProblem, jacobian_csr
 from rigsfm.run.adjustment.result import AdjustResult
 from rigsfm.run.options import Loss
 
@@ -69,7 +69,7 @@ def track_influence(result: AdjustResult) -> dict[int, float]:
     evaluate.set_parameter_blocks([b for _, b, _ in variable] + end_points + [rec.points3D[p].xyz for p in point_ids])
     num_a = len(calibration) + 3 * len(end_points)
     calibration = np.r_[calibration, np.zeros(3 * len(end_points), dtype=bool)]
-    jac = _csr(jp.problem.evaluate_jacobian(evaluate)).tocsr()
+    jac = jacobian_csr(jp.problem.evaluate_jacobian(evaluate)).tocsr()
     residuals = np.asarray(jp.problem.evaluate_residuals(evaluate), dtype=np.float64)
     row_point = _row_points(jac, num_a, len(point_ids))
 

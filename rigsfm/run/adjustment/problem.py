@@ -10,6 +10,7 @@ import numpy as np
 import pyceres
 import pycolmap
 import pycolmap.cost_functions  # not imported by ``import pycolmap``
+import scipy.sparse as sp
 
 from rigsfm.core.errors import ReconstructionError
 from rigsfm.core.geometry import skew
@@ -45,6 +46,12 @@ class _Measurement:
     meters: float
     sigma: float  # of the measurement, plus what constant (unobserved) E^sl adds to it (metres)
     length: Callable[..., float]  # () -> metres in the current model
+
+
+def jacobian_csr(jacobian: pyceres.CRSMatrix) -> sp.csr_matrix:
+    """A Ceres Jacobian (``Problem.evaluate_jacobian``) as scipy's CSR matrix."""
+    return sp.csr_matrix((np.asarray(jacobian.values), np.asarray(jacobian.cols), np.asarray(jacobian.rows)),
+                         shape=(jacobian.num_rows, jacobian.num_cols))
 
 
 class JointProblem:

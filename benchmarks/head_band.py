@@ -16,7 +16,6 @@ observed (its draws); and per narrow view its head observations' mean error agai
 from __future__ import annotations
 
 import argparse
-import csv
 import json
 import logging
 import pickle
@@ -29,6 +28,8 @@ sys.path.insert(0, str(REPO))
 import numpy as np  # noqa: E402
 import pycolmap  # noqa: E402
 import yaml  # noqa: E402
+
+from benchmarks.head_candidates import true_heads  # noqa: E402
 
 logger = logging.getLogger("head_band")
 
@@ -85,14 +86,6 @@ def _model_p(bands, rows, n) -> float | None:
     return float(np.mean(per_draw <= sum(r["coverage"] * r["num_true_points"] for r in rows) / n))
 
 
-def _true_heads(heads_csv: Path) -> dict[str, np.ndarray]:
-    truth: dict[str, list] = {}
-    with heads_csv.open() as f:
-        for row in csv.DictReader(f):
-            truth.setdefault(row["image"], []).append((float(row["x"]), float(row["y"])))
-    return {name: np.array(rows) for name, rows in truth.items()}
-
-
 def _head_keypoints(rec: pycolmap.Reconstruction, point_ids, truth: dict[str, np.ndarray]):
     """Per head observation: (image, point2D index, keypoint, nearest true head centre or None beyond 8 px)."""
     for point_id in point_ids:
@@ -106,7 +99,7 @@ def _head_keypoints(rec: pycolmap.Reconstruction, point_ids, truth: dict[str, np
             yield image, element.point2D_idx, xy, (xy + d[k] if np.hypot(*d[k]) < 8.0 else None)
 
 
-def replaced(result, heads_csv: Path, how: str, noise_px: float, seed: int):
+def replaced(result, scene: Path, how: str, noise_px: float, seed: int):
     """The second adjustment done again from its own model with its heads' keypoints replaced (a diagnostic:
     which part of the heads' error the band misses): ``true`` = the true centres plus independent normal noise of
     ``noise_px``; ``no-offset`` = the real keypoints less their view's mean error; ``no-tilt`` = less their view's
@@ -114,7 +107,7 @@ def replaced(result, heads_csv: Path, how: str, noise_px: float, seed: int):
     from rigsfm.run.adjustment.adjust import adjust
 
     rec = pycolmap.Reconstruction(result.reconstruction)
-    truth = _true_heads(heads_csv)
+    truth = true_heads(scene, 0.0)
     rng = np.random.default_rng(seed)
     found = [(image.name, index, xy, true) for image, index, xy, true in _head_keypoints(rec, result.point_sigmas,
                                                                                            truth) if true is not None]
@@ -134,11 +127,11 @@ def replaced(result, heads_csv: Path, how: str, noise_px: float, seed: int):
                   point_sigmas=result.point_sigmas)
 
 
-def head_errors(rec: pycolmap.Reconstruction, point_ids, heads_csv: Path) -> dict:
+def head_errors(rec: pycolmap.Reconstruction, point_ids, scene: Path) -> dict:
     """Per narrow image: its head observations' keypoints against the nearest true head centre (heads.csv, COLMAP
     pixels; within 8 px), mean and spread (px)."""
     errors: dict[str, list] = {}
-    for image, _, xy, true in _head_keypoints(rec, point_ids, _true_heads(heads_csv)):
+    for image, _, xy, true in _head_keypoints(rec, point_ids, true_heads(scene, 0.0)):
         if true is not None:
             errors.setdefault(image.name, []).append(xy - true)
     out = {}
@@ -179,12 +172,12 @@ def main() -> None:
                  for p in summary["uncertainty"]["pairs"] if p.get("band_px") is not None}
     if args.replace:
         sigma = args.noise or summary["narrow_observations"]["head_sigma_px"]
-        result = replaced(result, args.scene / "persons" / "heads.csv", args.replace, sigma, args.seed)
+        result = replaced(result, args.scene, args.replace, sigma, args.seed)
     rec = result.reconstruction
     narrow = compare_to_ground_truth(rec, truth, "narrow")["relative_rotation_deg"]
     report: dict = {"scene": str(args.scene), "rotation_deg": [narrow["median"], narrow["max"]],
                     "delivered": band_rows(pycolmap.Reconstruction(str(out / "sparse")), truth, delivered)}
-    errors = head_errors(rec, result.point_sigmas, args.scene / "persons" / "heads.csv")
+    errors = head_errors(rec, result.point_sigmas, args.scene)
     report["head_errors"] = errors
     means = np.array([e["mean"] for e in errors.values() if e["n"] >= 5])
     report["head_bias_rms_px"] = float(np.sqrt(np.mean(means**2))) if len(means) else None

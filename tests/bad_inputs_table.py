@@ -305,6 +305,14 @@ def with_detections(text: str | bytes) -> Callable[[Path], list]:
     return prepare
 
 
+def users_association_folder(root: Path) -> list:
+    """``rigsfm associate --overwrite`` into a folder holding the user's notes."""
+    args = with_detections(DETECTIONS)(root)
+    (root / "persons").mkdir()
+    (root / "persons" / "notes.txt").write_text("x")
+    return [*args, "--overwrite"]
+
+
 def rotate(data: dict, key: str, value) -> None:
     data["rigs"][1]["narrow_from_wide"][key] = value
 
@@ -512,6 +520,8 @@ CASES = [
     Case("`export --dest` a folder with other files", "the folder is untouched",
          on_workspace(lambda out: (out.parent / "notes").mkdir() or (out.parent / "notes" / "a.txt").write_text("x"),
                       ["export", "out", "--format", "json", "--dest", "notes", "--overwrite"])),
+    Case("`associate --overwrite` into a folder with other files", "the folder is untouched",
+         users_association_folder),
     Case("`rigsfm export` given a demo's folder instead of its run/", "nothing is written",
          on_workspace(lambda out: (out.parent / "demo").mkdir() or out.rename(out.parent / "demo" / "run"),
                       ["export", "demo", "--format", "json"])),

@@ -14,6 +14,7 @@ from typer.testing import CliRunner
 
 from rigsfm.associate import AssociateOptions, associate_frames, from_arrays, load_run
 from rigsfm.associate.evaluate import make_detections, score_groups, true_heads, truth_from_run, visible_heads
+from rigsfm.associate.output import FRAME_FILES, LEGACY_MARKER, MANIFEST, check_destination
 from rigsfm.cli import app
 
 sys.path.insert(0, str(Path(__file__).parent))
@@ -203,6 +204,23 @@ def test_cli_writes_every_output_and_joins_back(crowd, tmp_path):
     assert density[:, 4].sum() == len(data["persons"])
     again = CliRunner().invoke(app, ["associate", str(out), str(csv_path), "--out", str(dest)])
     assert again.exit_code == 1 and "--overwrite" in again.output
+    # --overwrite replaces the association's own files (one folder per frame), never the user's
+    (folder / "notes.txt").write_text("mine")
+    args = ["associate", str(out), str(csv_path), "--out", str(dest), "--pixel-sigma", "1.5", "--overwrite"]
+    refused = CliRunner().invoke(app, args)
+    assert refused.exit_code == 1 and "did not write (frame0000/notes.txt)" in refused.output, refused.output
+    assert (folder / "notes.txt").read_text() == "mine"
+    (folder / "notes.txt").unlink()
+    replaced = CliRunner().invoke(app, args)
+    assert replaced.exit_code == 0, replaced.output
+    assert json.loads((folder / "persons.json").read_text()) == data
+    manifest = json.loads((dest / MANIFEST).read_text())
+    assert "frame0000/persons.json" in manifest["files"]
+    # an earlier version's output (a marker, no manifest) is recognised by its layout
+    (dest / MANIFEST).unlink()
+    (dest / LEGACY_MARKER).write_text("written by rigsfm associate\n")
+    assert sorted(check_destination(dest, True).ours) == sorted(
+        [LEGACY_MARKER, *(f"frame0000/{name}" for name in FRAME_FILES)])
 
 
 def test_cli_radius_column_turns_the_size_cue_on_and_its_absence_changes_nothing(crowd, tmp_path):

@@ -9,6 +9,8 @@
   DIR/<frame>/density.csv   persons per m^2 on a grid of ``cell_m`` cells (x_min_m, y_min_m, x_max_m, y_max_m,
                             persons, per_m2)
   DIR/<frame>/density.png   the same grid as an image
+  DIR/.rigsfm-associate.json  the files written and their SHA-256: what a later ``--overwrite`` may replace
+                            (rigsfm.core.owned; the user's own files in DIR are never removed)
 """
 
 from __future__ import annotations
@@ -17,28 +19,36 @@ import csv
 import io
 import json
 import math
+import shutil
+import tempfile
 from pathlib import Path
 
 import cv2
 import numpy as np
 
 from rigsfm.core import charts
-from rigsfm.core.errors import WorkspaceError
 from rigsfm.core.ground import footprint
-from rigsfm.core.io import atomic_directory
+from rigsfm.core.owned import Previous, commit, previous_files
 
 CHI2_2D_95 = 5.991464547107979  # 95 % of a 2-D normal lies within this squared Mahalanobis distance
-MANIFEST = ".rigsfm-associate"
+MANIFEST = ".rigsfm-associate.json"  # the files rigsfm wrote into DIR and their SHA-256: all --overwrite may remove
+LEGACY_MARKER = ".rigsfm-associate"  # what earlier versions wrote instead of a manifest
+FRAME_FILES = ("persons.csv", "persons.json", "floor.png", "density.csv", "density.png")
 
 
-def check_destination(dest: Path, overwrite: bool) -> None:
-    dest = Path(dest)
-    if dest.exists() and any(dest.iterdir()):
-        if not overwrite:
-            raise WorkspaceError(f"{dest} is not empty: pass --overwrite to replace an earlier association, or "
-                                 "choose another --out")
-        if not (dest / MANIFEST).is_file():
-            raise WorkspaceError(f"{dest} holds files rigsfm associate did not write; choose another --out")
+def _legacy_files(dest: Path, present: list[str]) -> list[str]:
+    """An earlier version's output (its marker, no manifest): the marker and the files of its layout."""
+    if LEGACY_MARKER not in present:
+        return []
+    return [name for name in present if name == LEGACY_MARKER
+            or (len(parts := name.split("/")) == 2 and parts[1] in FRAME_FILES)]
+
+
+def check_destination(dest: Path, overwrite: bool) -> Previous:
+    """What an association into ``dest`` may replace (:func:`rigsfm.core.owned.previous_files`): an earlier
+    association's own files, unchanged since."""
+    return previous_files(Path(dest), MANIFEST, overwrite=overwrite, option="--out", what="association",
+                          legacy=_legacy_files)
 
 
 def _stem(frame: str) -> str:
@@ -166,9 +176,13 @@ def _png(path: Path, image: np.ndarray) -> None:
     path.write_bytes(data.tobytes())
 
 
-def write_results(dest: Path, model, frames: list, options) -> Path:
-    with atomic_directory(Path(dest), overwrite=True) as tmp:
-        (tmp / MANIFEST).write_text("written by rigsfm associate\n")
+def write_results(dest: Path, model, frames: list, options, previous: Previous | None = None) -> Path:
+    """Write every frame's files into a temporary folder beside ``dest``, then move them in (``previous``: what
+    :func:`check_destination` allowed to replace)."""
+    dest = Path(dest)
+    dest.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{dest.name}.", suffix=".tmp", dir=dest.parent))
+    try:
         for frame in frames:
             folder = tmp / _stem(frame.frame)
             folder.mkdir()
@@ -190,4 +204,9 @@ def write_results(dest: Path, model, frames: list, options) -> Path:
                                                      rows))
             _png(folder / "density.png", density_image(counts, options.cell_m))
             _png(folder / "floor.png", floor_map(frame, prints, bounds))
-    return Path(dest)
+        previous = check_destination(dest, True) if previous is None else previous
+        commit(dest, tmp, previous, MANIFEST, {"written_by": "rigsfm associate"},
+               option="--out", what="association")
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)  # the temporary folder made above: only rigsfm's files
+    return dest

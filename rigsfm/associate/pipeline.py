@@ -168,7 +168,7 @@ def associate(out: Path, detections_csv: Path, options: AssociateOptions | None 
 
     options = options or AssociateOptions()
     dest = Path(options.out) if options.out is not None else Workspace(Path(out)).associate
-    check_destination(dest, options.overwrite)
+    previous = check_destination(dest, options.overwrite)
     model = load_run(Path(out))
     # a model's images have cameras
     sizes = {name: (image.camera.width, image.camera.height)  # type: ignore[union-attr]
@@ -176,4 +176,4 @@ def associate(out: Path, detections_csv: Path, options: AssociateOptions | None 
     detections = read_detections(Path(detections_csv), sizes, model.known)
     require_floor(model, Path(out))
     frames = associate_frames(model, detections, options)
-    return write_results(dest, model, frames, options)
+    return write_results(dest, model, frames, options, previous)

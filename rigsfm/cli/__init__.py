@@ -52,7 +52,7 @@ def main() -> None:
     """rigsfm: metric calibration of hybrid (wide + narrow) stereo-rig networks.
 
     calibrate (board images -> rigs.yaml), run (image folders -> metric narrow poses, E_ji, F_ji), report /
-    view / export (look at a result, hand it to other tools), pick (hand-picked correspondences), explore (check a result on people you
-    recognise, label them), track
-    (rig poses over time), demo (a rendered example with exact ground truth).
+    view / export (look at a result, hand it to other tools), pick (hand-picked correspondences), explore (check
+    a result on people you recognise, label them), associate (detections -> the same person in every narrow
+    view, positions on the floor), track (rig poses over time), demo (a rendered example with exact ground truth).
     """

@@ -22,14 +22,10 @@
 
 from __future__ import annotations
 
-import contextlib
 import json
 import logging
-import os
 import shutil
-import stat
 import tempfile
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -37,8 +33,9 @@ import pycolmap
 
 from rigsfm.core.conventions import CONVENTIONS, opengl_c2w_from_cam_from_world
 from rigsfm.core.errors import InputError, WorkspaceError
-from rigsfm.core.io import sha256_file, write_json_atomic
+from rigsfm.core.io import write_json_atomic
 from rigsfm.core.names import name_of
+from rigsfm.core.owned import Previous, commit, previous_files
 from rigsfm.core.serialise import camera_to_dict, pose_to_dict
 from rigsfm.core.summary import Summary
 from rigsfm.core.workspace import Workspace
@@ -158,61 +155,6 @@ def world_metadata(workspace: Workspace) -> dict[str, str]:
     return {"world": "the mapper's frame (no floor frame)"} if world else {}
 
 
-@dataclass(frozen=True)
-class Previous:
-    """An earlier export in DEST, by its manifest: ``ours`` are files still as rigsfm wrote them (their checksum
-    matches), ``changed`` listed files that are not (edited, replaced, no checksum, not a plain file), ``invalid``
-    entries that name no file of DEST (absolute, ``..``, a sub-folder): only ``ours`` are ever removed."""
-
-    ours: tuple[str, ...] = ()
-    changed: tuple[str, ...] = ()
-    invalid: tuple[str, ...] = ()
-
-
-def _is_plain_name(name: object) -> bool:
-    """A file inside DEST: a relative POSIX path without ``.`` or ``..`` parts, not the manifest itself."""
-    return (isinstance(name, str) and name != MANIFEST and "\\" not in name and "\0" not in name
-            and not name.startswith("/") and all(part not in ("", ".", "..") for part in name.split("/")))
-
-
-def _files_under(folder: Path) -> list[str]:
-    """Every file (and link) below ``folder`` as a relative POSIX path; folders are not entries."""
-    names = []
-    for here, dirs, files in os.walk(folder):
-        for name in [*files, *(d for d in dirs if os.path.islink(os.path.join(here, d)))]:
-            names.append(Path(here, name).relative_to(folder).as_posix())
-    return sorted(names)
-
-
-def read_manifest(dest: Path) -> tuple[list[str], dict[str, str], list[str]]:
-    """(listed plain names, their recorded SHA-256, entries that are not plain names) of DEST's manifest; nothing
-    for a manifest that is missing, a link, or not one rigsfm writes."""
-    manifest = dest / MANIFEST
-    if manifest.is_symlink() or not manifest.is_file():
-        return [], {}, []
-    try:
-        data = json.loads(manifest.read_text(encoding="utf-8"))
-    except (OSError, ValueError):
-        return [], {}, []
-    files = data.get("files") if isinstance(data, dict) else None
-    if not isinstance(files, list):
-        return [], {}, []
-    sums = data.get("sha256") if isinstance(data.get("sha256"), dict) else {}
-    listed = [name for name in files if _is_plain_name(name)]
-    invalid = [str(name) for name in files if not _is_plain_name(name)]
-    return listed, {name: sums[name] for name in listed if isinstance(sums.get(name), str)}, invalid
-
-
-def _still_ours(path: Path, checksum: str | None) -> bool:
-    """Whether ``path`` is a plain file (not a link) whose content is what rigsfm recorded writing."""
-    try:
-        if checksum is None or not stat.S_ISREG(os.lstat(path).st_mode):
-            return False
-        return sha256_file(path) == checksum
-    except OSError:
-        return False
-
-
 def check_destination(dest: Path, workspace: Workspace, *, overwrite: bool) -> Previous:
     """What an export into ``dest`` may replace: the files of an earlier export listed in its manifest and still
     as rigsfm wrote them.
@@ -226,46 +168,7 @@ def check_destination(dest: Path, workspace: Workspace, *, overwrite: bool) -> P
     if resolved.is_relative_to(root) and not resolved.is_relative_to(root / "export"):
         raise WorkspaceError(f"--dest '{dest}' is inside the workspace's own files; use {root / 'export'}/... or a folder "
                              "outside the workspace")
-    if not dest.exists():
-        return Previous()
-    if not dest.is_dir():
-        raise WorkspaceError(f"--dest {dest} exists and is not a folder; choose a new or empty folder")
-    present = _files_under(dest)
-    if not present:
-        return Previous()
-    listed, sums, invalid = read_manifest(dest)
-    foreign = [name for name in present if name != MANIFEST and name not in listed]
-    if foreign:
-        raise WorkspaceError(f"--dest '{dest}' holds files rigsfm did not write ({', '.join(foreign[:3])}"
-                             f"{', ...' if len(foreign) > 3 else ''}); choose a new or empty folder (nothing was "
-                             "written or removed)")
-    if not overwrite:
-        raise WorkspaceError(f"{dest} already holds an export: pass --overwrite to replace it")
-    there = [name for name in listed if os.path.lexists(dest / name)]
-    ours = tuple(name for name in there if _still_ours(dest / name, sums.get(name)))
-    return Previous(ours, tuple(name for name in there if name not in ours), tuple(invalid))
-
-
-def _replace_previous(dest: Path, previous: Previous, written: list[str]) -> None:
-    """Refuse to write over a listed file that is no longer rigsfm's; remove the earlier export's own files that
-    this one does not write again (those it does are replaced by the rename); keep the others with a warning."""
-    collide = [name for name in previous.changed if name in written]
-    if collide:
-        raise WorkspaceError(f"'{dest / collide[0]}' is not what an earlier export wrote there (edited or replaced "
-                             "since); move it away or choose another --dest (nothing was written or removed)")
-    for name in previous.changed:
-        logger.warning("Kept %s: its content is not what rigsfm wrote there (edited or replaced since), so it is no "
-                       "longer part of the export", dest / name)
-    for name in previous.invalid:
-        logger.warning("Ignored %r in %s: not a file of %s, so nothing was removed for it", name, dest / MANIFEST, dest)
-    for name in previous.ours:
-        if name not in written:
-            (dest / name).unlink(missing_ok=True)
-            folder = (dest / name).parent
-            while folder != dest:  # the export's own sub-folders, once they are empty
-                with contextlib.suppress(OSError):
-                    folder.rmdir()
-                folder = folder.parent
+    return previous_files(dest, MANIFEST, overwrite=overwrite, option="--dest", what="export")
 
 
 def export(out: Path, options: ExportOptions) -> Path:
@@ -299,15 +202,8 @@ def export(out: Path, options: ExportOptions) -> Path:
             write_wildtrack(reconstruction, tmp, images_dir if options.images else None)
         else:
             write_json_poses(reconstruction, tmp)
-        written = _files_under(tmp)
-        write_json_atomic(tmp / MANIFEST, {"format": str(fmt), "workspace": str(workspace.root.resolve()),
-                                            "files": written,
-                                            "sha256": {name: sha256_file(tmp / name) for name in written}})
-        dest.mkdir(exist_ok=True)
-        _replace_previous(dest, previous, written)
-        for name in [*written, MANIFEST]:
-            (dest / name).parent.mkdir(parents=True, exist_ok=True)
-            os.replace(tmp / name, dest / name)
+        commit(dest, tmp, previous, MANIFEST, {"format": str(fmt), "workspace": str(workspace.root.resolve())},
+               option="--dest", what="export")
     finally:
         shutil.rmtree(tmp, ignore_errors=True)  # the temporary folder made above: only rigsfm's files
     logger.info("Exported %s to %s", fmt, dest)

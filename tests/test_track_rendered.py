@@ -176,3 +176,29 @@ def test_wrong_image_size_is_an_input_error_and_the_rest_is_kept(tracked, tmp_pa
         track(out, tmp_path / "images", TrackOptions(workers=1))
     kept = json.loads((out / "track" / "poses.json").read_text())
     assert [f["frame"] for f in kept["rigs"]["rig01"]["frames"]] == [f"frame{i:04d}.png" for i in range(NUM_FRAMES)]
+
+
+def test_a_run_with_narrow_observations_is_tracked_from_its_database_keypoints(three_rig_run, tmp_path):
+    """The narrow stage (`--narrow auto`: guided matches or heads) appends 2D points without descriptors to the
+    narrow images: the reference map and each rig's baseline take the database's keypoints only, the same as
+    without them (tracking a default crowd run stopped at 'has no descriptors of rig01/narrow/...')."""
+    dataset, shared, _ = three_rig_run
+    plain, narrow = copy_run(shared, tmp_path / "plain"), copy_run(shared, tmp_path / "narrow")
+    model = pycolmap.Reconstruction(narrow / "sparse")
+    images = {im.name: im for im in model.images.values()}
+    first, second = images["rig01/narrow/frame0000.png"], images["rig02/narrow/frame0000.png"]
+    wide = images["rig01/wide/frame0000.png"]
+    xyz = model.points3D[wide.points2D[wide.get_observation_point2D_idxs()[0]].point3D_id].xyz
+    track = pycolmap.Track()
+    for image in (first, second):  # one head seen in both narrow views, as narrow.observations.add_observations
+        xy = image.project_point(xyz)
+        track.add_element(image.image_id, image.num_points2D())
+        image.points2D = pycolmap.Point2DList([*image.points2D, pycolmap.Point2D(np.asarray(xy, dtype=np.float64))])
+    model.add_point3D(xyz, track)
+    model.write(narrow / "sparse")
+    before, after = load_reference(plain), load_reference(narrow)
+    assert [b.image for b in after.blocks] == [b.image for b in before.blocks]
+    for name, rig in before.rigs.items():
+        assert after.rigs[name].narrow_observes_map == rig.narrow_observes_map
+        np.testing.assert_array_equal(after.rigs[name].baseline_wide_from_world.matrix(),
+                                      rig.baseline_wide_from_world.matrix())

@@ -1,7 +1,9 @@
 """The reference a rig is tracked against: its calibration and pose in OUT/sparse, and the map.
 
 The map is the SIFT descriptors (from OUT/database.db) of every reference-image keypoint that has a
-3D point in OUT/sparse, grouped per reference image ("blocks"). Changes are measured from each rig's
+3D point in OUT/sparse, grouped per reference image ("blocks"); the points the narrow stage appended to the
+narrow images (``rigsfm run --narrow``: guided matches, heads) have no descriptor and are left out, of the
+baseline too, as a new frame has none. Changes are measured from each rig's
 *baseline*: its reference wide image (and narrow image, if it observes map points) registered with the
 same estimator from its own observations in the model. Bundle adjustment compromises a little between
 all images, so the model's pose and the estimator's pose of the very same image differ by up to a few mm;
@@ -123,12 +125,17 @@ def _covisible(rec: pycolmap.Reconstruction, names: list[str]) -> np.ndarray:
     return counts
 
 
-def _observations(rec: pycolmap.Reconstruction, frame_id: int) -> dict[str, tuple[np.ndarray, np.ndarray]]:
-    """Per sensor of one reference frame: the 2D observations of 3D points and the points."""
+def _observations(rec: pycolmap.Reconstruction, frame_id: int,
+                  keypoints: dict[str, int]) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """Per sensor of one reference frame: the 2D observations of 3D points and the points, of the database's
+    keypoints only (``keypoints``: image name -> their count), as a new frame is registered."""
     found: dict[str, tuple[np.ndarray, np.ndarray]] = {}
     for image in rec.images.values():
         if image.frame_id == frame_id and image.num_points3D > 0:
-            points = [image.points2D[i] for i in image.get_observation_point2D_idxs()]
+            points = [image.points2D[i] for i in image.get_observation_point2D_idxs()
+                      if i < keypoints.get(image.name, 0)]
+            if not points:
+                continue
             found[name_of(image).sensor] = (np.array([p.xy for p in points], np.float64).reshape(-1, 2),
                                                np.array([rec.points3D[p.point3D_id].xyz for p in points]))
     return found
@@ -167,17 +174,27 @@ def load_reference(out: Path, neighbours: int = DEFAULT_NEIGHBOURS,
     if not with_points:
         raise WorkspaceError(f"'{workspace.sparse}' has no 3D points to register new images against")
     blocks = []
+    keypoints: dict[str, int] = {}  # per image: its first points2D are the database's keypoints
     with pycolmap.Database.open(workspace.database) as database:
         for image in with_points:
             db_image = database.read_image_with_name(image.name)
             if db_image is None or not database.exists_descriptors(db_image.image_id):
+                if name_of(image).sensor == "narrow":
+                    # the narrow stage's observations (guided matches, heads): appended, without descriptors
+                    logger.info("%s: no descriptors (its observations are the narrow stage's), not in the map",
+                                image.name)
+                    continue
                 raise WorkspaceError(f"{workspace.database} has no descriptors of {image.name} of the reference "
                                      "model; the database and sparse/ come from different runs")
             descriptors = np.asarray(database.read_descriptors(db_image.image_id).data)
-            idxs = np.asarray(image.get_observation_point2D_idxs(), dtype=np.int64)
-            if descriptors.shape[0] != image.num_points2D():
+            count = descriptors.shape[0]
+            stored = np.asarray(database.read_keypoints(db_image.image_id), dtype=np.float64).reshape(count, -1)
+            if count > image.num_points2D() or not np.allclose(
+                    stored[:, :2], [image.points2D[i].xy for i in range(count)], atol=1e-3):
                 raise WorkspaceError(f"{workspace.database}: descriptors of {image.name} do not match the model's "
                                      "keypoints; the database and sparse/ come from different runs")
+            keypoints[image.name] = count
+            idxs = np.asarray([i for i in image.get_observation_point2D_idxs() if i < count], dtype=np.int64)
             ids = np.array([image.points2D[i].point3D_id for i in idxs], dtype=np.int64)
             xyz = np.array([rec.points3D[i].xyz for i in ids], dtype=np.float64).reshape(-1, 3)
             blocks.append(MapBlock(image.name, np.ascontiguousarray(descriptors[idxs]), xyz, ids))
@@ -191,7 +208,7 @@ def load_reference(out: Path, neighbours: int = DEFAULT_NEIGHBOURS,
         own = [i for i, n in enumerate(names) if ImageName.parse(n).rig == name]
         shared = covisible[own].sum(axis=0) if own else np.zeros(len(names))
         others = [i for i in np.argsort(-shared, kind="stable") if i not in own and shared[i] > 0]
-        observations = _observations(rec, entry["frame_id"])
+        observations = _observations(rec, entry["frame_id"], keypoints)
         rig = ReferenceRig(
             name=name,
             wide=entry["wide"],

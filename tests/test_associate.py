@@ -191,6 +191,8 @@ def test_cli_writes_every_output_and_joins_back(crowd, tmp_path):
     result = CliRunner().invoke(app, ["associate", str(out), str(csv_path), "--out", str(dest), "--pixel-sigma", "1.5"])
     assert result.exit_code == 0, result.output
     folder = dest / "frame0000"
+    persons = len(json.loads((folder / "persons.json").read_text())["persons"])
+    assert f"frame0000.png: {persons} persons from " in result.output, result.output
     for name in ("persons.csv", "persons.json", "floor.png", "density.csv", "density.png"):
         assert (folder / name).stat().st_size > 0, name
     data = json.loads((folder / "persons.json").read_text())
@@ -216,6 +218,10 @@ def test_cli_writes_every_output_and_joins_back(crowd, tmp_path):
     assert json.loads((folder / "persons.json").read_text()) == data
     manifest = json.loads((dest / MANIFEST).read_text())
     assert "frame0000/persons.json" in manifest["files"]
+    (folder / "persons.csv").write_text("edited")  # refused before the association, not after it
+    edited = CliRunner().invoke(app, args)
+    assert edited.exit_code == 1 and "is not what an earlier association wrote there" in edited.output
+    assert (folder / "persons.csv").read_text() == "edited"
     # an earlier version's output (a marker, no manifest) is recognised by its layout
     (dest / MANIFEST).unlink()
     (dest / LEGACY_MARKER).write_text("written by rigsfm associate\n")

@@ -21,6 +21,7 @@ import json
 import math
 import shutil
 import tempfile
+from collections.abc import Iterable
 from pathlib import Path
 
 import cv2
@@ -28,7 +29,7 @@ import numpy as np
 
 from rigsfm.core import charts
 from rigsfm.core.ground import footprint
-from rigsfm.core.owned import Previous, commit, previous_files
+from rigsfm.core.owned import Previous, commit, previous_files, refuse_changed
 
 CHI2_2D_95 = 5.991464547107979  # 95 % of a 2-D normal lies within this squared Mahalanobis distance
 MANIFEST = ".rigsfm-associate.json"  # the files rigsfm wrote into DIR and their SHA-256: all --overwrite may remove
@@ -53,6 +54,12 @@ def check_destination(dest: Path, overwrite: bool) -> Previous:
 
 def _stem(frame: str) -> str:
     return Path(frame).stem or frame
+
+
+def refuse_edited(dest: Path, previous: Previous, frames: Iterable[str]) -> None:
+    """Before the work: refuse where an earlier association's file that these frames write again was edited."""
+    names = {f"{_stem(frame)}/{name}" for frame in frames for name in FRAME_FILES}
+    refuse_changed(Path(dest), previous, names, "--out", "association")
 
 
 def persons_rows(frame) -> list[list]:

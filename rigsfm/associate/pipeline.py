@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import logging
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -138,15 +139,18 @@ def frame_views(model: RunModel, detections: Detections, frame: str, names: list
     return views
 
 
-def associate_frames(model: RunModel, detections: Detections, options: AssociateOptions) -> list[FramePersons]:
-    """The persons of every frame of ``detections`` (library entry; nothing written).
+def associate_frames(model: RunModel, detections: Detections, options: AssociateOptions,
+                     progress: Callable[[int, int], None] | None = None) -> list[FramePersons]:
+    """The persons of every frame of ``detections`` (library entry; nothing written); ``progress(done, total)``
+    after each frame.
 
     A narrow camera's pose error is the same in every frame, so the shifts the crowd finds in one frame carry to the
     next frame's images of the same cameras (pooled with each frame's own groups); a frame whose cameras all carry
     one is associated once instead of self-calibrating from scratch."""
     out: list[FramePersons] = []
     carried: dict[str, View] = {}  # per camera (<rig>/narrow), its view in the latest frame
-    for frame, names in detections.frames().items():
+    frames = detections.frames()
+    for frame, names in frames.items():
         views = frame_views(model, detections, frame, names)
         cameras = [ImageName.parse(v.name).camera for v in views]
         known = bool(views) and all(c in carried for c in cameras)
@@ -159,12 +163,16 @@ def associate_frames(model: RunModel, detections: Detections, options: Associate
         logger.info("%s: %d persons in %.2f s (%.2f s CPU)", frame, len(result), wall, cpu)
         carried.update((camera, view) for camera, view in zip(cameras, views) if view.band_sigma_px is not None)
         out.append(FramePersons(frame, result, detections, views, wall, cpu))
+        if progress:
+            progress(len(out), len(frames))
     return out
 
 
-def associate(out: Path, detections_csv: Path, options: AssociateOptions | None = None) -> Path:
-    """Read OUT (a finished run) and DETECTIONS, associate every frame, write DIR (default OUT/associate)."""
-    from rigsfm.associate.output import check_destination, write_results
+def associate(out: Path, detections_csv: Path, options: AssociateOptions | None = None,
+              progress: Callable[[int, int], None] | None = None) -> Path:
+    """Read OUT (a finished run) and DETECTIONS, associate every frame, write DIR (default OUT/associate);
+    ``progress(done, total)`` after each frame."""
+    from rigsfm.associate.output import check_destination, refuse_edited, write_results
 
     options = options or AssociateOptions()
     dest = Path(options.out) if options.out is not None else Workspace(Path(out)).associate
@@ -175,5 +183,6 @@ def associate(out: Path, detections_csv: Path, options: AssociateOptions | None 
              for name, image in model.images.items()}
     detections = read_detections(Path(detections_csv), sizes, model.known)
     require_floor(model, Path(out))
-    frames = associate_frames(model, detections, options)
+    refuse_edited(dest, previous, detections.frames())
+    frames = associate_frames(model, detections, options, progress)
     return write_results(dest, model, frames, options, previous)

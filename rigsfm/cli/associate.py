@@ -7,7 +7,7 @@ from typing import Annotated
 
 import typer
 
-from rigsfm.cli.common import configure_logging, console, fail_cleanly, flag
+from rigsfm.cli.common import configure_logging, console, fail_cleanly, flag, progress_bars
 from rigsfm.core.errors import InputError
 
 
@@ -59,4 +59,29 @@ def associate_command(
                                    out=dest, overwrite=overwrite)
     except ValueError as e:
         raise InputError(f"{e}; see rigsfm associate --help") from None
-    console.print(f"persons: {associate(out, detections, options)}")
+    with progress_bars() as progress:
+        task = progress.add_task("associate", total=None)
+        dest = associate(out, detections, options,
+                         progress=lambda done, total: progress.update(task, completed=done, total=total))
+    for line in frame_lines(dest):
+        console.print(line)
+    console.print(f"persons: {dest} (persons.csv / persons.json, floor.png, density per frame)")
+
+
+def frame_lines(dest: Path, shown: int = 3) -> list[str]:
+    """Persons and unassigned detections of the first ``shown`` frames written into ``dest``, then the rest in
+    one line."""
+    import json
+
+    counts = []
+    for path in sorted(Path(dest).glob("*/persons.json")):
+        data = json.loads(path.read_text(encoding="utf-8"))
+        persons, unassigned = len(data["persons"]), len(data["unassigned"])
+        assigned = sum(len(p["detections"]) for p in data["persons"])
+        counts.append((data["frame"], persons, assigned, assigned + unassigned))
+    lines = [f"{frame}: {persons} persons from {assigned} of {total} detections"
+             for frame, persons, assigned, total in counts[:shown]]
+    if len(counts) > shown:
+        rest = sorted(c[1] for c in counts[shown:])
+        lines.append(f"... {len(rest)} more frames: {rest[len(rest) // 2]} persons (median), {rest[0]}-{rest[-1]}")
+    return lines

@@ -16,7 +16,7 @@ import json
 import logging
 import os
 import stat
-from collections.abc import Callable
+from collections.abc import Callable, Collection
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -113,14 +113,21 @@ def previous_files(dest: Path, manifest: str, *, overwrite: bool, option: str, w
     return Previous(ours, tuple(name for name in there if name not in ours), tuple(invalid))
 
 
+def refuse_changed(dest: Path, previous: Previous, names: Collection[str], option: str, what: str) -> None:
+    """Refuse to write ``names`` where one of them is a listed file no longer as rigsfm wrote it (callable before
+    the work, where the names are known then)."""
+    collide = [name for name in previous.changed if name in names]
+    if collide:
+        raise WorkspaceError(f"'{dest / collide[0]}' is not what an earlier {what} wrote there (edited "
+                             f"or replaced since); move it away or choose another {option} (nothing was written or "
+                             "removed)")
+
+
 def _replace_previous(dest: Path, previous: Previous, written: list[str], manifest: str, option: str,
                       what: str) -> None:
     """Refuse to write over a listed file that is no longer rigsfm's; remove the earlier output's own files that
     this one does not write again (those it does are replaced by the rename); keep the others with a warning."""
-    collide = [name for name in previous.changed if name in written]
-    if collide:
-        raise WorkspaceError(f"'{dest / collide[0]}' is not what an earlier {what} wrote there (edited "
-                             f"or replaced since); move it away or choose another {option} (nothing was written or removed)")
+    refuse_changed(dest, previous, written, option, what)
     for name in previous.changed:
         logger.warning("Kept %s: its content is not what rigsfm wrote there (edited or replaced since), so it is no "
                        "longer part of the %s", dest / name, what)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import shutil
 import sys
 from pathlib import Path
 
@@ -14,8 +15,10 @@ from typer.testing import CliRunner
 
 from rigsfm.associate import AssociateOptions, associate_frames, from_arrays, load_run
 from rigsfm.associate.evaluate import make_detections, score_groups, true_heads, truth_from_run, visible_heads
-from rigsfm.associate.output import FRAME_FILES, LEGACY_MARKER, MANIFEST, check_destination
+from rigsfm.associate.output import FRAME_FILES, LEGACY_MARKER, MANIFEST, cells_seen, check_destination
+from rigsfm.associate.report import associate_report_section
 from rigsfm.cli import app
+from rigsfm.core.ground import footprint
 
 sys.path.insert(0, str(Path(__file__).parent))
 from bad_inputs_table import CASES, run_case
@@ -204,8 +207,26 @@ def test_cli_writes_every_output_and_joins_back(crowd, tmp_path):
             assert (image, x, y) == (d["image"], d["x_text"], d["y_text"])
     density = np.loadtxt(folder / "density.csv", delimiter=",", skiprows=1)
     assert density[:, 4].sum() == len(data["persons"])
+    # the grid: whole cells from the origin, over where two views can place a person; nan where fewer see
+    assert np.allclose(density[:, :4], np.round(density[:, :4])) and (density[:, 6] >= 2).any()
+    assert np.array_equal(np.isnan(density[:, 5]), density[:, 6] < 2)
+    assert density[density[:, 6] >= 2, 4].sum() >= 0.9 * len(data["persons"])  # edge cells: a view sees part
+    used = (density[:, 6] >= 2) | (density[:, 4] > 0)  # tight: every edge row and column holds such a cell
+    for column, end in ((0, np.min), (2, np.max), (1, np.min), (3, np.max)):
+        assert used[density[:, column] == end(density[:, column])].any()
+    model = load_run(out)  # and it loses none of the cells two views see within the footprints' extent
+    narrow = [model.images[n] for n in model.images if "narrow" in n]
+    union = np.concatenate([footprint(image, 1.55).polygon for image in narrow])
+    lo, hi = np.floor(union.min(axis=0)), np.ceil(union.max(axis=0))
+    assert (cells_seen(narrow, (*lo, *hi), 1.0, 1.55) >= 2).sum() == (density[:, 6] >= 2).sum()
     again = CliRunner().invoke(app, ["associate", str(out), str(csv_path), "--out", str(dest)])
     assert again.exit_code == 1 and "--overwrite" in again.output
+    # report.html's section, where the association is in the workspace's default folder
+    shutil.copytree(dest, tmp_path / "workspace" / "associate")
+    section = associate_report_section(tmp_path / "workspace")
+    confident = sum(p["confidence"] >= 0.5 for p in data["persons"])
+    assert f"<td>frame0000.png</td><td>{len(data['persons'])}</td><td>{confident}</td>" in section
+    assert section.count("data:image/png;base64,") == 2
     # --overwrite replaces the association's own files (one folder per frame), never the user's
     (folder / "notes.txt").write_text("mine")
     args = ["associate", str(out), str(csv_path), "--out", str(dest), "--pixel-sigma", "1.5", "--overwrite"]

@@ -5,10 +5,13 @@
   DIR/<frame>/persons.json  per person: position (world metres), covariance (m^2), score (log-likelihood ratio
                             against clutter), confidence, detections [{image, x, y, row}]; unassigned detections;
                             size_cue {used, head_radius_m}: whether the DETECTIONS' radii scored the frame
-  DIR/<frame>/floor.png     top view: every narrow footprint on the floor, every person's 95 % ellipse
-  DIR/<frame>/density.csv   persons per m^2 on a grid of ``cell_m`` cells (x_min_m, y_min_m, x_max_m, y_max_m,
-                            persons, per_m2)
-  DIR/<frame>/density.png   the same grid as an image
+  DIR/<frame>/floor.png     top view of the grid below: every narrow footprint at head height (the middle of
+                            ``heights``), every person's 95 % ellipse
+  DIR/<frame>/density.csv   persons per m^2 on a grid of ``cell_m`` cells from the world origin, over the cells two
+                            or more narrow views see at head height and every person found (x_min_m, y_min_m,
+                            x_max_m, y_max_m, persons, per_m2, views: how many narrow views see the cell's centre;
+                            per_m2 is nan below two, where nobody could be placed)
+  DIR/<frame>/density.png   the same grid as an image (grey: fewer than two views)
   DIR/.rigsfm-associate.json  the files written and their SHA-256: what a later ``--overwrite`` may replace
                             (rigsfm.core.owned; the user's own files in DIR are never removed)
 """
@@ -26,8 +29,10 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+import pycolmap
 
 from rigsfm.core import charts
+from rigsfm.core.geometry import project_world
 from rigsfm.core.ground import footprint
 from rigsfm.core.owned import Previous, commit, previous_files, refuse_changed
 
@@ -109,17 +114,58 @@ def persons_json(frame) -> dict:
             "persons": persons, "unassigned": unassigned}
 
 
-def density_grid(points: np.ndarray, bounds: tuple[float, float, float, float], cell: float) -> tuple[np.ndarray, list]:
+def cells_seen(images: list[pycolmap.Image], bounds: tuple[float, float, float, float], cell: float,
+               height: float) -> np.ndarray:
+    """Per cell of the grid over ``bounds`` (rows from y0, columns from x0): how many of the narrow ``images``
+    see its centre at ``height`` above the floor (inside the image, in front, where the lens model maps back)."""
     x0, y0, x1, y1 = bounds
-    nx, ny = max(1, math.ceil((x1 - x0) / cell)), max(1, math.ceil((y1 - y0) / cell))
+    nx, ny = max(1, round((x1 - x0) / cell)), max(1, round((y1 - y0) / cell))
+    gx, gy = np.meshgrid(x0 + (np.arange(nx) + 0.5) * cell, y0 + (np.arange(ny) + 0.5) * cell)
+    centres = np.c_[gx.ravel(), gy.ravel(), np.full(gx.size, height)]
+    seen = np.zeros(len(centres), dtype=np.int64)
+    for image in images:
+        seen += project_world(image.camera, image.cam_from_world(), centres)[1]  # type: ignore[arg-type]
+    return seen.reshape(ny, nx)
+
+
+def grid_bounds(images: list[pycolmap.Image], points: np.ndarray, cell: float, height: float
+                ) -> tuple[float, float, float, float]:
+    """The density grid's extent: the cells whose centres two or more narrow views see at ``height`` (where a
+    person can be placed) and every person found, on whole cells from the world origin (the same cells in every
+    frame of the same cameras)."""
+    prints = [fp.polygon for fp in (footprint(image, height) for image in images)
+              if fp is not None and len(fp.polygon)]
+    corners = np.concatenate([np.asarray(p)[:, :2] for p in prints] + [points[:, :2]]) if prints or len(points) \
+        else np.zeros((1, 2))
+    lo, hi = np.floor(corners.min(axis=0) / cell) * cell, np.ceil(corners.max(axis=0) / cell) * cell
+    bounds = (float(lo[0]), float(lo[1]), float(max(hi[0], lo[0] + cell)), float(max(hi[1], lo[1] + cell)))
+    twice = np.argwhere(cells_seen(images, bounds, cell, height) >= 2)
+    if not len(twice):
+        return bounds
+    (j0, i0), (j1, i1) = twice.min(axis=0), twice.max(axis=0)
+    seen_lo, seen_hi = lo + np.array([i0, j0]) * cell, lo + np.array([i1 + 1, j1 + 1]) * cell
+    if len(points):  # a person at the region's edge keeps its cell
+        seen_lo = np.minimum(seen_lo, np.floor(points[:, :2].min(axis=0) / cell) * cell)
+        seen_hi = np.maximum(seen_hi, np.ceil(points[:, :2].max(axis=0) / cell) * cell)
+    return float(seen_lo[0]), float(seen_lo[1]), float(seen_hi[0]), float(seen_hi[1])
+
+
+def density_grid(points: np.ndarray, bounds: tuple[float, float, float, float], cell: float,
+                 seen: np.ndarray | None = None) -> tuple[np.ndarray, list]:
+    """Persons per cell over ``bounds`` and the CSV rows; ``seen``: the views seeing each cell
+    (:func:`cells_seen`): a cell fewer than two see has no density (nan: nobody could be placed there)."""
+    x0, y0, x1, y1 = bounds
+    nx, ny = max(1, round((x1 - x0) / cell)), max(1, round((y1 - y0) / cell))
     counts = np.zeros((ny, nx), dtype=np.int64)
     if len(points):
         ix = np.floor((points[:, 0] - x0) / cell).astype(int)
         iy = np.floor((points[:, 1] - y0) / cell).astype(int)
         ok = (ix >= 0) & (ix < nx) & (iy >= 0) & (iy < ny)
         np.add.at(counts, (iy[ok], ix[ok]), 1)
+    seen = np.full((ny, nx), 2, dtype=np.int64) if seen is None else seen
     rows = [[f"{x0 + i * cell:.3f}", f"{y0 + j * cell:.3f}", f"{x0 + (i + 1) * cell:.3f}", f"{y0 + (j + 1) * cell:.3f}",
-             int(counts[j, i]), f"{counts[j, i] / cell ** 2:.3f}"] for j in range(ny) for i in range(nx)]
+             int(counts[j, i]), f"{counts[j, i] / cell ** 2:.3f}" if seen[j, i] >= 2 else "nan", int(seen[j, i])]
+            for j in range(ny) for i in range(nx)]
     return counts, rows
 
 
@@ -131,7 +177,9 @@ def _csv(header: list[str], rows: list[list]) -> str:
     return buffer.getvalue()
 
 
-def floor_map(frame, prints: list[np.ndarray], bounds, size: int = 900) -> np.ndarray:
+def floor_map(frame, prints: list[np.ndarray], bounds, plane_m: float, size: int = 900) -> np.ndarray:
+    """Top view over ``bounds``: the narrow footprints ``prints`` on the plane ``plane_m`` above the floor and
+    every person's 95 % ellipse."""
     x0, y0, x1, y1 = bounds
     scale = (size - 60) / max(x1 - x0, y1 - y0)
     width, height = int((x1 - x0) * scale) + 60, int((y1 - y0) * scale) + 60
@@ -149,6 +197,8 @@ def floor_map(frame, prints: list[np.ndarray], bounds, size: int = 900) -> np.nd
         cv2.line(image, (int(a[0]), int(a[1])), (int(b[0]), int(b[1])), charts.bgr("grid"), 1)
     for polygon in prints:
         cv2.polylines(image, [np.round(px(polygon)).astype(np.int32)], True, charts.bgr("narrow"), 1, cv2.LINE_AA)
+    blank = charts.canvas(width, height)  # footprints reach far beyond the grid: cut them at its edge
+    image[:30], image[-30:], image[:, :30], image[:, -30:] = blank[:30], blank[-30:], blank[:, :30], blank[:, -30:]
     result = frame.result
     for p in range(len(result)):
         cov = result.covariances[p][:2, :2]
@@ -160,19 +210,22 @@ def floor_map(frame, prints: list[np.ndarray], bounds, size: int = 900) -> np.nd
                     (max(1, int(round(axes[1]))), max(1, int(round(axes[0])))), angle, 0, 360, charts.bgr("wide"), 1,
                     cv2.LINE_AA)
         cv2.circle(image, (int(round(centre[0])), int(round(centre[1]))), 1, charts.bgr("ink"), -1)
-    charts.text(image, f"{frame.frame}: {len(result)} persons; narrow footprints (orange), 95 % ellipses (blue), "
-                       "1 m grid", (10, 18))
+    charts.text(image, f"{frame.frame}: {len(result)} persons; narrow footprints at {plane_m:.2f} m (orange), "
+                       "95 % ellipses (blue), 1 m grid", (10, 18))
     return image
 
 
-def density_image(counts: np.ndarray, cell: float, pixels: int = 24) -> np.ndarray:
+def density_image(counts: np.ndarray, cell: float, seen: np.ndarray, pixels: int = 24) -> np.ndarray:
     density = counts / cell ** 2
     top = max(float(density.max()), 1e-9)
     grey = np.uint8(np.clip(density / top * 255, 0, 255))
     image = cv2.applyColorMap(grey[::-1], cv2.COLORMAP_VIRIDIS)  # type: ignore[index]  # np.uint8(array) is an array
+    image[seen[::-1] < 2] = charts.bgr("grid")
     image = cv2.resize(image, (image.shape[1] * pixels, image.shape[0] * pixels), interpolation=cv2.INTER_NEAREST)
-    band = charts.canvas(image.shape[1], 24)
-    charts.text(band, f"persons per m2, max {top:.1f}", (4, 16), size=0.4)
+    band = charts.canvas(max(image.shape[1], 320), 24)
+    charts.text(band, f"persons per m2, max {top:.1f}; grey: fewer than 2 narrow views", (4, 16), size=0.4)
+    if band.shape[1] > image.shape[1]:
+        image = np.hstack([image, charts.canvas(band.shape[1] - image.shape[1], image.shape[0])])
     return np.vstack([band, image])
 
 
@@ -193,24 +246,21 @@ def write_results(dest: Path, model, frames: list, options, previous: Previous |
         for frame in frames:
             folder = tmp / _stem(frame.frame)
             folder.mkdir()
-            prints = []
-            for view in frame.views:
-                fp = footprint(model.images[view.name], 0.0)
-                if fp is not None and len(fp.polygon):
-                    prints.append(np.asarray(fp.polygon))
-            corners = np.concatenate(prints + [frame.result.points[:, :2]]) if prints or len(frame.result) else \
-                np.zeros((1, 2))
-            lo, hi = np.floor(corners.min(axis=0)) - 1, np.ceil(corners.max(axis=0)) + 1
-            bounds = (float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1]))
+            height = (options.heights[0] + options.heights[1]) / 2
+            placed = [model.images[view.name] for view in frame.views]
+            prints = [np.asarray(fp.polygon) for fp in (footprint(image, height) for image in placed)
+                      if fp is not None and len(fp.polygon)]
+            bounds = grid_bounds(placed, frame.result.points, options.cell_m, height)
+            seen = cells_seen(placed, bounds, options.cell_m, height)
             (folder / "persons.csv").write_text(_csv(
                 ["person", "x_m", "y_m", "z_m", "sigma_x_m", "sigma_y_m", "sigma_z_m", "confidence", "views",
                  "image", "x", "y", "row"], persons_rows(frame)))
             (folder / "persons.json").write_text(json.dumps(persons_json(frame), indent=1) + "\n")
-            counts, rows = density_grid(frame.result.points, bounds, options.cell_m)
-            (folder / "density.csv").write_text(_csv(["x_min_m", "y_min_m", "x_max_m", "y_max_m", "persons", "per_m2"],
-                                                     rows))
-            _png(folder / "density.png", density_image(counts, options.cell_m))
-            _png(folder / "floor.png", floor_map(frame, prints, bounds))
+            counts, rows = density_grid(frame.result.points, bounds, options.cell_m, seen)
+            (folder / "density.csv").write_text(_csv(["x_min_m", "y_min_m", "x_max_m", "y_max_m", "persons", "per_m2",
+                                                      "views"], rows))
+            _png(folder / "density.png", density_image(counts, options.cell_m, seen))
+            _png(folder / "floor.png", floor_map(frame, prints, bounds, height))
         previous = check_destination(dest, True) if previous is None else previous
         commit(dest, tmp, previous, MANIFEST, {"written_by": "rigsfm associate"},
                option="--out", what="association")

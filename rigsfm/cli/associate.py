@@ -9,6 +9,7 @@ import typer
 
 from rigsfm.cli.common import configure_logging, console, fail_cleanly, flag, progress_bars
 from rigsfm.core.errors import InputError
+from rigsfm.core.workspace import Workspace
 
 
 @fail_cleanly
@@ -66,6 +67,8 @@ def associate_command(
     for line in frame_lines(dest):
         console.print(line)
     console.print(f"persons: {dest} (persons.csv / persons.json, floor.png, density per frame)")
+    if Path(dest).resolve() == Workspace(out).associate.resolve():
+        console.print(f"`rigsfm report {out}` adds them to its report.html")
 
 
 def frame_lines(dest: Path, shown: int = 3) -> list[str]:

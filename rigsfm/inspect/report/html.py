@@ -367,5 +367,9 @@ def render_page(out: Path, summary: Summary | None, reconstruction: pycolmap.Rec
         from rigsfm.track import track_report_section
 
         body.append(track_report_section(out))
+    if any(Workspace(out).associate.glob("*/persons.json")):  # `rigsfm associate`'s persons in its default folder
+        from rigsfm.associate.report import associate_report_section
+
+        body.append(associate_report_section(out))
     return ('<!DOCTYPE html><html lang="en"><head><meta charset="utf-8">'
             f"<title>{esc(title)}</title><style>{CSS}</style></head><body>{''.join(body)}</body></html>\n")

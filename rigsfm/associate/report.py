@@ -1,0 +1,63 @@
+"""``associate_report_section(out)``: the persons of ``rigsfm associate``'s default folder (OUT/associate) as a
+section of report.html: per frame the persons, the detections they hold, their views and position sigmas, and the
+first frame's floor map and density grid."""
+
+from __future__ import annotations
+
+import base64
+import html
+import json
+from pathlib import Path
+
+import numpy as np
+
+from rigsfm.core.workspace import Workspace
+
+SHOWN_FRAMES = 20  # table rows; the frames after them are summed up in one line
+
+
+def _frame_row(path: Path) -> list[str]:
+    data = json.loads(path.read_text(encoding="utf-8"))
+    persons = data["persons"]
+    assigned = sum(len(p["detections"]) for p in persons)
+    views = np.array([len(p["detections"]) for p in persons])
+    sigma = np.array([np.sqrt(np.linalg.eigvalsh(np.asarray(p["covariance_m2"])[:2, :2]).max()) for p in persons])
+    confident = sum(p["confidence"] >= 0.5 for p in persons)
+    return [html.escape(str(data["frame"])), str(len(persons)), str(confident), str((views >= 3).sum()),
+            f"{assigned} of {assigned + len(data['unassigned'])}",
+            f"{np.median(sigma) * 100:.1f}" if len(sigma) else "&ndash;"]
+
+
+def _figure(path: Path, caption: str) -> str:
+    if not path.is_file():
+        return ""
+    data = base64.b64encode(path.read_bytes()).decode("ascii")
+    return (f'<figure><img alt="{html.escape(caption)}" style="max-width:100%" src="data:image/png;base64,{data}">'
+            f"<figcaption>{html.escape(caption)}</figcaption></figure>")
+
+
+def associate_report_section(out: Path) -> str:
+    """HTML (a <section>) of OUT/associate, or a short note where `rigsfm associate` has not written there."""
+    folder = Workspace(Path(out)).associate
+    frames = sorted(folder.glob("*/persons.json"))
+    if not frames:
+        return ('<section id="persons"><h2>Persons across the narrow views</h2><p>No association (run <code>rigsfm '
+                "associate OUT DETECTIONS</code>).</p></section>")
+    parts = ['<section id="persons">', "<h2>Persons across the narrow views</h2>",
+             f"<p>{len(frames)} frame(s) associated by <code>rigsfm associate</code> in {html.escape(str(folder))}: "
+             "each person's detections (at most one per view), its position in the world frame and its "
+             "covariance (persons.csv / persons.json per frame). Confident: likelier one person than chance "
+             "(confidence &ge; 0.5); sigma: the largest horizontal standard deviation of a position.</p>",
+             "<table><thead><tr><th>frame</th><th>persons</th><th>confident</th><th>in &ge; 3 views</th>"
+             "<th>detections assigned</th><th>sigma median (cm)</th></tr></thead><tbody>"]
+    parts += ["<tr>" + "".join(f"<td>{cell}</td>" for cell in _frame_row(path)) + "</tr>"
+              for path in frames[:SHOWN_FRAMES]]
+    parts.append("</tbody></table>")
+    if len(frames) > SHOWN_FRAMES:
+        parts.append(f"<p>... and {len(frames) - SHOWN_FRAMES} more frames.</p>")
+    first = frames[0].parent
+    parts.append(_figure(first / "floor.png", f"{first.name}: persons' 95 % ellipses and the narrow footprints"))
+    parts.append(_figure(first / "density.png", f"{first.name}: persons per m2 (grey: seen by fewer than two "
+                                                "narrow views)"))
+    parts.append("</section>")
+    return "\n".join(parts)

@@ -1,12 +1,14 @@
 """``--narrow auto|on|off`` (narrow observations after a first adjustment) against the truth, scene by scene.
 
     python benchmarks/narrow_observations.py WORK [--scenes flat8 persons8 plain8] [--image-scale 0.5]
-        [--modes off auto] [--out results.json]
+        [--modes off auto] [--out results.json] [--frames-per-rig 2 --frame-period-s 0.1 --frame-offsets rig03=1]
 
 Scenes (rendered into ``WORK/<scene>``, reused when there; realistic calibration error in rigs.yaml, one frame):
 ``flat8``: 8 rigs round a crowd texture painted on the floor (``--textured-centre``); ``persons8``: 8 rigs round
 3D persons (4 per m2, heads at 1.5-1.9 m, occluding bodies; rigsfm.synth.persons); ``plain8``: 8 rigs round the
 homogeneous centre (featureless narrow views); ``flat4`` / ``persons4``: the same with 4 rigs on a 135 deg arc.
+``--frames-per-rig``, ``--frame-period-s``, ``--frame-offsets``: a recording instead of one frame, its rigs
+shifted in time by the offsets (the persons walk meanwhile; rigsfm.synth's options).
 
 Each mode runs ``rigsfm.run.pipeline.run`` into ``WORK/<scene>_<mode>`` (fresh). Per run: wall time, CPU seconds (all stages; steadier than the wall time on a shared machine), narrow
 relative-rotation error median / max (deg, every narrow pair against the exact ground truth), the worst pair's
@@ -47,10 +49,12 @@ SCENES = {
 }
 
 
-def dataset(work: Path, name: str, image_scale: float, seed: int):
+def dataset(work: Path, name: str, image_scale: float, seed: int, recording: dict | None = None):
+    """``recording``: SceneOptions' frames_per_rig, frame_period_s and frame_offsets (an unsynchronised recording)."""
     from rigsfm.synth.dataset import SyntheticDataset, render_dataset
 
-    options = SceneOptions(image_scale=image_scale, seed=seed, **SCENES[name])  # type: ignore[arg-type]
+    options = SceneOptions(image_scale=image_scale, seed=seed, **SCENES[name],  # type: ignore[arg-type]
+                           **(recording or {}))
     root = work / name
     if (root / "scene.yaml").exists():
         # A scene rendered before is reused only with its own options: floor_scale and the truth read them.
@@ -60,7 +64,7 @@ def dataset(work: Path, name: str, image_scale: float, seed: int):
                   if recorded.get(key) != value]
         if differ:
             raise SystemExit(f"{root} was rendered with other options: {', '.join(differ)}; pass those "
-                             "(--seed, --image-scale) or another WORK")
+                             "(--seed, --image-scale, the recording's) or another WORK")
         return SyntheticDataset(root, root / "images", root / "rigs.yaml", root / "rigs_exact.yaml",
                                 root / "scale.yaml", root / "ground_truth", options, ())
     return render_dataset(root, options)
@@ -131,11 +135,17 @@ def main() -> None:
     parser.add_argument("--image-scale", type=float, default=0.5)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", type=Path, default=None)
+    parser.add_argument("--frames-per-rig", type=int, default=1)
+    parser.add_argument("--frame-period-s", type=float, default=0.5)
+    parser.add_argument("--frame-offsets", default="", help="rig03=1,rig05=-0.5: unsynchronised rigs (frames)")
     args = parser.parse_args()
+    offsets = tuple((rig, float(value)) for rig, value in
+                    (item.split("=") for item in args.frame_offsets.split(",") if item))
+    recording = dict(frames_per_rig=args.frames_per_rig, frame_period_s=args.frame_period_s, frame_offsets=offsets)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
     rows = []
     for name in args.scenes:
-        data = dataset(args.work, name, args.image_scale, args.seed)
+        data = dataset(args.work, name, args.image_scale, args.seed, recording)
         for mode in args.modes:
             row = {"scene": name, **measure(data, args.work / f"{name}_{mode}", NarrowMode(mode))}
             print(json.dumps(row), flush=True)

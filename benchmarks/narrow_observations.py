@@ -71,21 +71,10 @@ def dataset(work: Path, name: str, image_scale: float, seed: int, recording: dic
 
 
 def floor_scale(data) -> Path:
-    """The scene's scale.yaml, or where the crowd left no room for the renderer's bar (a camera distance only, so no
-    floor frame), one with the bar's exact end points in two wide images as a surveyor's marks would give."""
-    from rigsfm.synth.cameras import make_rigs
-    from rigsfm.synth.dataset import _scale_yaml, choose_bar
-    from rigsfm.synth.scene import build_arena
+    """The scene's scale.yaml, or one with the floor bar's end points (rigsfm.synth.dataset.scale_with_floor_bar)."""
+    from rigsfm.synth.dataset import scale_with_floor_bar
 
-    if "known_length" in Path(data.scale).read_text(encoding="utf-8") or not data.options.persons_per_m2:
-        return data.scale
-    rigs = make_rigs(data.options)
-    bar = choose_bar(build_arena(data.options), rigs[0], rigs[1])
-    if bar is None:
-        return data.scale
-    path = Path(data.root) / "scale_floor_bar.yaml"
-    path.write_text(_scale_yaml(rigs, bar, rigs[0], rigs[1]))
-    return path
+    return scale_with_floor_bar(data, Path(data.root) / "scale_floor_bar.yaml")
 
 
 def verdicts(pairs: list[dict]) -> dict:

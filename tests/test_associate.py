@@ -32,35 +32,19 @@ SCENE = dict(num_rigs=4, arc_deg=120.0, image_scale=0.5, seed=1, persons_per_m2=
 @pytest.fixture(scope="module")
 def crowd(tmp_path_factory):
     """(dataset, out): the crowd rendered and run once per session."""
-    from rigsfm.synth.dataset import render_dataset
+    from rigsfm.synth.dataset import render_dataset, scale_with_floor_bar
     from rigsfm.synth.scene import SceneOptions
 
     def make(root: Path):
         dataset = render_dataset(root / "scene", SceneOptions(**SCENE), overwrite=True)
         out = root / "out"
-        scale = _scale_with_floor_bar(dataset.root, root / "scale.yaml")
+        scale = scale_with_floor_bar(dataset, root / "scale.yaml")  # a floor frame: heights above the floor
         result = CliRunner().invoke(app, ["run", str(dataset.images), "--rigs", str(dataset.rigs), "--scale",
                                           str(scale), "--out", str(out)])
         assert result.exit_code == 0, result.output
         return dataset.root, out
 
     return _once(_shared_root(tmp_path_factory), "associate_crowd", make)
-
-
-def _scale_with_floor_bar(scene: Path, path: Path) -> Path:
-    """scale.yaml with a 2 m bar on the floor, its end points' exact pixels in two wide images: the crowd leaves no
-    room for a bar visible in both (the renderer then gives a camera distance only), and association needs the floor
-    frame, which the bar's end points give (as a surveyor's marks would)."""
-    from rigsfm.synth.cameras import make_rigs
-    from rigsfm.synth.dataset import _scale_yaml, choose_bar
-    from rigsfm.synth.scene import SceneOptions, build_arena
-
-    options = SceneOptions(**SCENE)
-    rigs = make_rigs(options)
-    bar = choose_bar(build_arena(options), rigs[0], rigs[1])  # where the crowd may hide it
-    assert bar is not None
-    path.write_text(_scale_yaml(rigs, bar, rigs[0], rigs[1]))
-    return path
 
 
 def _detections(dataset: Path, out: Path, seed: int = 0):

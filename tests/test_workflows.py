@@ -93,3 +93,14 @@ def test_own_folders(run_workflow, tmp_path, rendered):
     a, b = (truth.find_image_with_name(f"rig0{i}/narrow/frame0000.png").projection_center() for i in (1, 2))
     true_distance = float(((a - b) ** 2).sum() ** 0.5)
     assert poses["pairs"][0]["distance_m"] == pytest.approx(true_distance, rel=0.005)
+
+
+def test_crowd(run_workflow, tmp_path):
+    """8 rigs round 3D persons: the run, the association of noisy true heads, their rows joined back, the report."""
+    out = run_workflow("crowd.py", tmp_path)
+    assert "narrow relative rotation error: median 0.0" in out  # under a tenth of a degree
+    found = int(out.split("persons: ")[1].split(" found")[0])
+    precision = float(out.split("precision ")[1].split(",")[0])
+    recall = float(out.split("recall ")[1].split()[0])
+    assert found > 400 and precision > 0.8 and recall > 0.8, out
+    assert 'id="persons"' in (tmp_path / "run" / "report.html").read_text()

@@ -169,6 +169,20 @@ def _scale_yaml(rigs: list[RigTruth], bar: Bar | None, first: RigTruth, second: 
     return yaml.safe_dump(data, sort_keys=False, default_flow_style=None, width=120)
 
 
+def scale_with_floor_bar(dataset: SyntheticDataset, path: Path) -> Path:
+    """The dataset's scale.yaml where it holds a known length; else (its crowd left no room for the bar in both
+    first rigs' wide images: a camera distance only, so a run finds no floor) one written to ``path`` with the
+    bar's exact end points in those two images, where the crowd may hide it, as a surveyor's marks would give."""
+    if "known_length" in Path(dataset.scale).read_text(encoding="utf-8") or not dataset.options.persons_per_m2:
+        return dataset.scale
+    rigs = make_rigs(dataset.options)
+    bar = choose_bar(build_arena(dataset.options), rigs[0], rigs[1])
+    if bar is None:
+        return dataset.scale
+    Path(path).write_text(_scale_yaml(rigs, bar, rigs[0], rigs[1], image_suffix(dataset.options)), encoding="utf-8")
+    return Path(path)
+
+
 def rigs_yaml_with_sigmas(calibrations: list[RigCalibration]) -> str:
     """rigs.yaml with the sigmas of the synthetic calibration error (``cameras.calibration_error_sigmas``), as
     ``rigsfm calibrate`` writes its own: the run then weighs rigs.yaml by its real uncertainty."""

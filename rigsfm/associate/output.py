@@ -151,7 +151,7 @@ def grid_bounds(images: list[pycolmap.Image], points: np.ndarray, cell: float, h
 
 
 def density_grid(points: np.ndarray, bounds: tuple[float, float, float, float], cell: float,
-                 seen: np.ndarray | None = None) -> tuple[np.ndarray, list]:
+                 seen: np.ndarray) -> tuple[np.ndarray, list]:
     """Persons per cell over ``bounds`` and the CSV rows; ``seen``: the views seeing each cell
     (:func:`cells_seen`): a cell fewer than two see has no density (nan: nobody could be placed there)."""
     x0, y0, x1, y1 = bounds
@@ -162,7 +162,6 @@ def density_grid(points: np.ndarray, bounds: tuple[float, float, float, float], 
         iy = np.floor((points[:, 1] - y0) / cell).astype(int)
         ok = (ix >= 0) & (ix < nx) & (iy >= 0) & (iy < ny)
         np.add.at(counts, (iy[ok], ix[ok]), 1)
-    seen = np.full((ny, nx), 2, dtype=np.int64) if seen is None else seen
     rows = [[f"{x0 + i * cell:.3f}", f"{y0 + j * cell:.3f}", f"{x0 + (i + 1) * cell:.3f}", f"{y0 + (j + 1) * cell:.3f}",
              int(counts[j, i]), f"{counts[j, i] / cell ** 2:.3f}" if seen[j, i] >= 2 else "nan", int(seen[j, i])]
             for j in range(ny) for i in range(nx)]

@@ -285,3 +285,25 @@ def test_the_projected_covariance_column_by_column_is_the_broadcast_one_to_the_b
     want = np.einsum("ni,ni->n", a, ca), np.einsum("ni,ni->n", b, ca), np.einsum("ni,ni->n", b, cb)
     got = view.projected_covariance(points, covariance)
     assert all(g.tobytes() == w.tobytes() for g, w in zip(got, want))
+
+
+def test_a_shift_the_frame_rejects_raises_no_warning_and_one_it_keeps_does(caplog):
+    """The pairs' starts and the rounds try corrections on copies of the views; only what the frame keeps says the
+    run's pose is worse than its band (a rejected start warned: a false alarm on a view the truth had right)."""
+    import logging
+
+    from rigsfm.associate.solve import ViewCorrection, _corrected, _warn_beyond_band
+
+    views, _ = _crowd_views()
+    for view in views:
+        view.sigma_pose_px = 1.0
+    far = ViewCorrection(np.array([[12.0, 0.0]] + [[0.0, 0.0]] * (len(views) - 1)), np.full(len(views), 0.1),
+                         np.full(len(views), 1.0), np.full(len(views), 50))
+    with caplog.at_level(logging.WARNING, logger="rigsfm.associate.solve"):
+        trial = _corrected(views, far, AssociateOptions(pixel_sigma=1.0))
+        assert not caplog.records  # a trial: nothing said yet
+        _warn_beyond_band(views)  # the views the frame kept: unshifted
+        assert not caplog.records
+        _warn_beyond_band(trial)  # had the frame kept the trial
+    assert [r.getMessage().split(":")[0] for r in caplog.records] == [views[0].name]
+    assert "moves its pixels by 12.0 px, beyond its pose sigma of 1.0 px" in caplog.records[0].getMessage()

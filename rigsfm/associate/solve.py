@@ -1390,13 +1390,19 @@ def _apply_correction(views: list[View], correction: ViewCorrection, options: As
         view.shift_px = correction.shift_px[v].copy()
         view.shift_sigma_px = float(correction.shift_sigma_px[v])
         view.sigma_pose_px = float(min(band, math.sqrt(correction.shift_sigma_px[v] ** 2 + excess)))
-        moved = float(np.linalg.norm(view.shift_px))
-        if band > 0 and moved > 3.03 * band:  # outside the 99 % circle of a 2D normal with the band's sigma
-            logger.warning("%s: the crowd moves its pixels by %.1f px, beyond its pose sigma of %.1f px; the run's "
-                           "pose of this image is worse than its band says", view.name, moved, band)
         logger.info("%s: shift (%.2f, %.2f) px +- %.2f from %d members, scatter %.2f px, sigma %.2f -> %.2f px",
                     view.name, *view.shift_px, correction.shift_sigma_px[v], correction.members[v], scatter, band,
                     view.sigma_pose_px)
+
+
+def _warn_beyond_band(views: list[View]) -> None:
+    """Say where the shifts a frame keeps move a view beyond its run's band (a start or round the frame rejects
+    says nothing about the run's pose)."""
+    for view in views:
+        band, moved = view.band_sigma_px, float(np.linalg.norm(view.shift_px))
+        if band is not None and band > 0 and moved > 3.03 * band:  # outside the 99 % circle of the band's 2D normal
+            logger.warning("%s: the crowd moves its pixels by %.1f px, beyond its pose sigma of %.1f px; the run's "
+                           "pose of this image is worse than its band says", view.name, moved, band)
 
 
 def _confident(members: np.ndarray, scores: np.ndarray, options: AssociateOptions) -> np.ndarray:
@@ -1514,6 +1520,7 @@ def associate_views(views: list[View], options: AssociateOptions, carried: bool 
         if not grew:
             break  # converged: the crowd holds no more confident groups to learn from
     if not carried:
+        _warn_beyond_band(views)
         # The crowd's own detection probability and heights, once, from the persons of the corrected views:
         # associated once more where they differ from what the association assumed.
         estimated = _crowd_rates(state, options, given)

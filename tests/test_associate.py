@@ -282,13 +282,20 @@ def test_empty_frame_gives_no_person(crowd, tmp_path):
     assert data["persons"] == [] and len(data["views"]) == len(names)
 
 
-@pytest.mark.parametrize("case", [c for c in CASES if "etection" in c.did or "associate" in c.did],
-                         ids=lambda c: c.did)
+@pytest.mark.parametrize("case", [c for c in CASES if ("etection" in c.did or "associate" in c.did)
+                                  and c.kept == "nothing is written"], ids=lambda c: c.did)
 def test_bad_detections_are_refused_naming_the_row(case, tmp_path):
     code, line = run_case(case, tmp_path / "case")
     assert code == 1 and line.startswith("error: ")
     assert "line" in line or "floor" in line
     assert not (tmp_path / "case" / "persons").exists()
+
+
+def test_a_folder_with_the_user_s_files_is_refused_untouched(tmp_path):
+    case = next(c for c in CASES if c.did == "`associate --overwrite` into a folder with other files")
+    code, line = run_case(case, tmp_path / "case")
+    assert code == 1 and "holds files rigsfm did not write (notes.txt)" in line
+    assert [p.name for p in (tmp_path / "case" / "persons").iterdir()] == ["notes.txt"]
 
 
 def test_wildtrack_export_reads_and_projects_like_mvdet(crowd, tmp_path):

@@ -168,6 +168,21 @@ def density_grid(points: np.ndarray, bounds: tuple[float, float, float, float], 
     return counts, rows
 
 
+def _json_text(data: dict) -> str:
+    """JSON with a line per top-level key and per element of its lists: readable, and written by json's C encoder
+    (an indented dump costs more than a carried frame's association)."""
+    def one(value) -> str:
+        return json.dumps(value, separators=(", ", ": "))
+
+    lines = []
+    for key, value in data.items():
+        if isinstance(value, list) and value:
+            lines.append(f"{one(key)}: [\n  " + ",\n  ".join(one(item) for item in value) + "\n ]")
+        else:
+            lines.append(f"{one(key)}: {one(value)}")
+    return "{\n " + ",\n ".join(lines) + "\n}\n"
+
+
 def _csv(header: list[str], rows: list[list]) -> str:
     buffer = io.StringIO()
     writer = csv.writer(buffer, lineterminator="\n")
@@ -199,16 +214,14 @@ def floor_map(frame, prints: list[np.ndarray], bounds, plane_m: float, size: int
     blank = charts.canvas(width, height)  # footprints reach far beyond the grid: cut them at its edge
     image[:30], image[-30:], image[:, :30], image[:, -30:] = blank[:30], blank[-30:], blank[:, :30], blank[:, -30:]
     result = frame.result
-    for p in range(len(result)):
-        cov = result.covariances[p][:2, :2]
-        values, vectors = np.linalg.eigh(cov)
-        axes = np.sqrt(np.maximum(values, 0) * CHI2_2D_95) * scale
-        angle = -math.degrees(math.atan2(vectors[1, 1], vectors[0, 1]))
-        centre = px(result.points[p][:2])[0]
-        cv2.ellipse(image, (int(round(centre[0])), int(round(centre[1]))),
-                    (max(1, int(round(axes[1]))), max(1, int(round(axes[0])))), angle, 0, 360, charts.bgr("wide"), 1,
-                    cv2.LINE_AA)
-        cv2.circle(image, (int(round(centre[0])), int(round(centre[1]))), 1, charts.bgr("ink"), -1)
+    if len(result):  # every person's ellipse at once: a recording writes a map per frame
+        values, vectors = np.linalg.eigh(result.covariances[:, :2, :2])
+        axes = np.maximum(1, np.round(np.sqrt(np.maximum(values, 0) * CHI2_2D_95) * scale)).astype(int)
+        angles = -np.degrees(np.arctan2(vectors[:, 1, 1], vectors[:, 0, 1]))
+        centres = np.round(px(result.points[:, :2])).astype(int)
+        for (cx, cy), (minor, major), angle in zip(centres.tolist(), axes.tolist(), angles.tolist()):
+            cv2.ellipse(image, (cx, cy), (major, minor), angle, 0, 360, charts.bgr("wide"), 1, cv2.LINE_AA)
+            cv2.circle(image, (cx, cy), 1, charts.bgr("ink"), -1)
     charts.text(image, f"{frame.frame}: {len(result)} persons; narrow footprints at {plane_m:.2f} m (orange), "
                        "95 % ellipses (blue), 1 m grid", (10, 18))
     return image
@@ -254,7 +267,7 @@ def write_results(dest: Path, model, frames: list, options, previous: Previous |
             (folder / "persons.csv").write_text(_csv(
                 ["person", "x_m", "y_m", "z_m", "sigma_x_m", "sigma_y_m", "sigma_z_m", "confidence", "views",
                  "image", "x", "y", "row"], persons_rows(frame)))
-            (folder / "persons.json").write_text(json.dumps(persons_json(frame), indent=1) + "\n")
+            (folder / "persons.json").write_text(_json_text(persons_json(frame)))
             counts, rows = density_grid(frame.result.points, bounds, options.cell_m, seen)
             (folder / "density.csv").write_text(_csv(["x_min_m", "y_min_m", "x_max_m", "y_max_m", "persons", "per_m2",
                                                       "views"], rows))

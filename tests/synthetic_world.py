@@ -18,9 +18,9 @@ WIDTH, HEIGHT = 812, 617
 
 def add_hybrid_rig(rec: pycolmap.Reconstruction, rig_id: int, name: str, wide: pycolmap.Camera,
                    narrow: pycolmap.Camera, narrow_from_wide: pycolmap.Rigid3d, rig_from_world: pycolmap.Rigid3d,
-                   points2D: dict[str, list[np.ndarray]]) -> list[pycolmap.Image]:
+                   points2D: dict[str, list[np.ndarray]], frame_file: str = "frame0000.png") -> list[pycolmap.Image]:
     """Add to ``rec`` the two cameras, a rig ``rig_id`` (wide its reference sensor, narrow at ``narrow_from_wide``),
-    its frame ``rig_id`` at ``rig_from_world`` and the images ``NAME/<sensor>/frame0000.png`` (ids ``2 rig_id - 1``
+    its frame ``rig_id`` at ``rig_from_world`` and the images ``NAME/<sensor>/FRAME_FILE`` (ids ``2 rig_id - 1``
     wide, ``2 rig_id`` narrow) holding ``points2D[sensor]``; returns the two images, wide first."""
     rec.add_camera(wide)
     rec.add_camera(narrow)
@@ -33,7 +33,7 @@ def add_hybrid_rig(rec: pycolmap.Reconstruction, rig_id: int, name: str, wide: p
     frame = pycolmap.Frame(frame_id=rig_id, rig_id=rig_id, rig_from_world=rig_from_world)
     images = []
     for sensor in ("wide", "narrow"):
-        image = pycolmap.Image(image_id=2 * rig_id - (sensor == "wide"), name=f"{name}/{sensor}/frame0000.png",
+        image = pycolmap.Image(image_id=2 * rig_id - (sensor == "wide"), name=f"{name}/{sensor}/{frame_file}",
                                camera_id=sensors[sensor].id, frame_id=rig_id)
         if points2D.get(sensor):
             image.points2D = pycolmap.Point2DList([pycolmap.Point2D(xy) for xy in points2D[sensor]])

@@ -147,3 +147,43 @@ def test_a_floor_of_few_points_among_many_is_found_every_time():
     pose changes of 1e-5 deg). Drawing triples until 99.9 % confident finds it in all 20."""
     found = [bool(fit_floor(ring(seed=seed, floor_points=40).reconstruction)) for seed in range(20)]
     assert all(found), found
+
+
+def test_a_track_joining_two_instants_is_no_floor_point(monkeypatch):
+    """A walking person matched between frames of two rigs triangulates anywhere, under the floor too: only points
+    two images of one frame saw count for the floor (43 such tracks of a crowd recording made 'points lie well
+    below the floor' appear)."""
+    from synthetic_world import add_hybrid_rig
+
+    import rigsfm.run.world.floor_fit as floor_fit
+
+    world = ring(seed=0)
+    rec = world.reconstruction
+    before = fit_floor(rec)
+    assert before and not before.warnings
+    rng = np.random.default_rng(3)
+    below = [world.model_from_truth * np.array([x, y, z])  # a third as many as on the floor, 0.5-2.5 m under it
+             for x, y, z in rng.uniform([-8, -8, -2.5], [8, 8, -0.5], (before.num_points // 3, 3))]
+    seen = {"wide": [np.zeros(2)] * len(below)}
+
+    def camera(like: pycolmap.Camera, camera_id: int) -> pycolmap.Camera:
+        new = pycolmap.Camera.create_from_model_name(camera_id, like.model.name, 1.0, like.width, like.height)
+        new.params = like.params
+        return new
+
+    images = []
+    for k, rig in enumerate(("rig01", "rig02")):  # each rig again in a later frame of its own
+        image, rig_id = rec.find_image_with_name(f"{rig}/wide/frame0000.png"), 97 + k
+        images.append(add_hybrid_rig(rec, rig_id, rig, camera(rec.cameras[image.camera_id], 2 * rig_id - 1),
+                                     camera(rec.cameras[image.camera_id + 1], 2 * rig_id), world.narrow_from_wide,
+                                     image.cam_from_world(), seen, frame_file=f"frame000{k + 1}.png")[0])
+    for k, point in enumerate(below):  # rig01 at one instant, rig02 at the next
+        track = pycolmap.Track()
+        for image in images:
+            track.add_element(image.image_id, k)
+        rec.add_point3D(point, track, np.zeros(3, np.uint8))
+    after = fit_floor(rec)
+    assert after and not after.warnings and after.num_points == before.num_points
+    np.testing.assert_allclose(after.normal, before.normal)
+    monkeypatch.setattr(floor_fit, "_simultaneous", lambda track, frame_of: True)  # every track, as before
+    assert any("below the floor" in warning for warning in fit_floor(rec).warnings)

@@ -158,6 +158,13 @@ def _floor_frame(normal: np.ndarray, offset: float, reconstruction: pycolmap.Rec
     return floor_from_model, name
 
 
+def _simultaneous(track: pycolmap.Track, frame_of: dict[int, str]) -> bool:
+    """Whether two images of one frame saw the point: a track that joins only different frames may be a walking
+    person seen at two instants, triangulated anywhere (under the floor too)."""
+    frames = [frame_of.get(element.image_id, "") for element in track.elements]
+    return len(set(frames)) < len(frames)
+
+
 def fit_floor(reconstruction: pycolmap.Reconstruction, markers: np.ndarray | None = None,
               options: FloorOptions | None = None, *, extra_points: np.ndarray | None = None,
               x_towards: str | None = None, quiet: bool = False) -> FloorFit | NoFloor:
@@ -175,8 +182,10 @@ def fit_floor(reconstruction: pycolmap.Reconstruction, markers: np.ndarray | Non
     lowest = float((centres @ up).min())
 
     ids, xyz = [], []
+    frame_of = {image.image_id: name_of(image).frame for image in images}
     for point_id, point in reconstruction.points3D.items():
-        if point.track.length() >= opt.min_track_length and point.error <= opt.max_reprojection_error:
+        if point.track.length() >= opt.min_track_length and point.error <= opt.max_reprojection_error \
+                and _simultaneous(point.track, frame_of):
             ids.append(point_id)
             xyz.append(point.xyz)
     ids = np.asarray(ids, dtype=np.int64)  # type: ignore[assignment]  # here an array

@@ -128,26 +128,29 @@ def cells_seen(images: list[pycolmap.Image], bounds: tuple[float, float, float, 
     return seen.reshape(ny, nx)
 
 
-def grid_bounds(images: list[pycolmap.Image], points: np.ndarray, cell: float, height: float
-                ) -> tuple[float, float, float, float]:
-    """The density grid's extent: the cells whose centres two or more narrow views see at ``height`` (where a
-    person can be placed) and every person found, on whole cells from the world origin (the same cells in every
-    frame of the same cameras)."""
-    prints = [fp.polygon for fp in (footprint(image, height) for image in images)
+def grid_cells(images: list[pycolmap.Image], points: np.ndarray, cell: float, height: float
+               ) -> tuple[tuple[float, float, float, float], np.ndarray, list[np.ndarray]]:
+    """The density grid: its extent (the cells whose centres two or more narrow views see at ``height``, where a
+    person can be placed, and every person found, on whole cells from the world origin: the same cells in every
+    frame of the same cameras), each cell's views (:func:`cells_seen`) and the views' footprints at ``height``."""
+    prints = [np.asarray(fp.polygon) for fp in (footprint(image, height) for image in images)
               if fp is not None and len(fp.polygon)]
-    corners = np.concatenate([np.asarray(p)[:, :2] for p in prints] + [points[:, :2]]) if prints or len(points) \
+    corners = np.concatenate([p[:, :2] for p in prints] + [points[:, :2]]) if prints or len(points) \
         else np.zeros((1, 2))
     lo, hi = np.floor(corners.min(axis=0) / cell) * cell, np.ceil(corners.max(axis=0) / cell) * cell
     bounds = (float(lo[0]), float(lo[1]), float(max(hi[0], lo[0] + cell)), float(max(hi[1], lo[1] + cell)))
-    twice = np.argwhere(cells_seen(images, bounds, cell, height) >= 2)
+    seen = cells_seen(images, bounds, cell, height)
+    twice = np.argwhere(seen >= 2)
     if not len(twice):
-        return bounds
+        return bounds, seen, prints
     (j0, i0), (j1, i1) = twice.min(axis=0), twice.max(axis=0)
-    seen_lo, seen_hi = lo + np.array([i0, j0]) * cell, lo + np.array([i1 + 1, j1 + 1]) * cell
     if len(points):  # a person at the region's edge keeps its cell
-        seen_lo = np.minimum(seen_lo, np.floor(points[:, :2].min(axis=0) / cell) * cell)
-        seen_hi = np.maximum(seen_hi, np.ceil(points[:, :2].max(axis=0) / cell) * cell)
-    return float(seen_lo[0]), float(seen_lo[1]), float(seen_hi[0]), float(seen_hi[1])
+        first = np.round((np.floor(points[:, :2].min(axis=0) / cell) * cell - lo) / cell).astype(int)
+        last = np.round((np.ceil(points[:, :2].max(axis=0) / cell) * cell - lo) / cell).astype(int) - 1
+        i0, j0, i1, j1 = min(i0, first[0]), min(j0, first[1]), max(i1, last[0]), max(j1, last[1])
+    x0, y0 = lo + np.array([i0, j0]) * cell
+    x1, y1 = lo + np.array([i1 + 1, j1 + 1]) * cell
+    return (float(x0), float(y0), float(x1), float(y1)), seen[j0:j1 + 1, i0:i1 + 1], prints
 
 
 def density_grid(points: np.ndarray, bounds: tuple[float, float, float, float], cell: float,
@@ -260,10 +263,7 @@ def write_results(dest: Path, model, frames: list, options, previous: Previous |
             folder.mkdir()
             height = (options.heights[0] + options.heights[1]) / 2
             placed = [model.images[view.name] for view in frame.views]
-            prints = [np.asarray(fp.polygon) for fp in (footprint(image, height) for image in placed)
-                      if fp is not None and len(fp.polygon)]
-            bounds = grid_bounds(placed, frame.result.points, options.cell_m, height)
-            seen = cells_seen(placed, bounds, options.cell_m, height)
+            bounds, seen, prints = grid_cells(placed, frame.result.points, options.cell_m, height)
             (folder / "persons.csv").write_text(_csv(
                 ["person", "x_m", "y_m", "z_m", "sigma_x_m", "sigma_y_m", "sigma_z_m", "confidence", "views",
                  "image", "x", "y", "row"], persons_rows(frame)))

@@ -16,15 +16,21 @@ from rigsfm.core.workspace import Workspace
 SHOWN_FRAMES = 20  # table rows; the frames after them are summed up in one line
 
 
-def _frame_row(path: Path) -> list[str]:
+def frame_counts(path: Path) -> tuple[dict, int, int]:
+    """A frame's persons.json, the detections its persons hold and all its detections."""
     data = json.loads(path.read_text(encoding="utf-8"))
+    assigned = sum(len(p["detections"]) for p in data["persons"])
+    return data, assigned, assigned + len(data["unassigned"])
+
+
+def _frame_row(path: Path) -> list[str]:
+    data, assigned, total = frame_counts(path)
     persons = data["persons"]
-    assigned = sum(len(p["detections"]) for p in persons)
     views = np.array([len(p["detections"]) for p in persons])
     sigma = np.array([np.sqrt(np.linalg.eigvalsh(np.asarray(p["covariance_m2"])[:2, :2]).max()) for p in persons])
     confident = sum(p["confidence"] >= 0.5 for p in persons)
     return [html.escape(str(data["frame"])), str(len(persons)), str(confident), str((views >= 3).sum()),
-            f"{assigned} of {assigned + len(data['unassigned'])}",
+            f"{assigned} of {total}",
             f"{np.median(sigma) * 100:.1f}" if len(sigma) else "&ndash;"]
 
 

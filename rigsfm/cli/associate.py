@@ -72,16 +72,14 @@ def associate_command(
 
 
 def frame_lines(dest: Path, shown: int = 3) -> list[str]:
-    """Persons and unassigned detections of the first ``shown`` frames written into ``dest``, then the rest in
-    one line."""
-    import json
+    """The first ``shown`` frames written into ``dest``, each its persons and the detections they hold; the rest
+    in one line."""
+    from rigsfm.associate.report import frame_counts
 
     counts = []
     for path in sorted(Path(dest).glob("*/persons.json")):
-        data = json.loads(path.read_text(encoding="utf-8"))
-        persons, unassigned = len(data["persons"]), len(data["unassigned"])
-        assigned = sum(len(p["detections"]) for p in data["persons"])
-        counts.append((data["frame"], persons, assigned, assigned + unassigned))
+        data, assigned, total = frame_counts(path)
+        counts.append((data["frame"], len(data["persons"]), assigned, total))
     lines = [f"{frame}: {persons} persons from {assigned} of {total} detections"
              for frame, persons, assigned, total in counts[:shown]]
     if len(counts) > shown:

@@ -118,6 +118,17 @@ def test_the_valid_files_are_valid(tmp_path):
     assert load_scale(scale, IMAGES, loaded).known_lengths[0].meters == 2.0
 
 
+def test_an_image_side_beyond_a_float_is_an_input_error(tmp_path):
+    """An integer side too large for a float (hypothesis drew a height of ~10^400) is refused as out of range, not
+    with an OverflowError's traceback."""
+    document = copy.deepcopy(RIGS)
+    document["rigs"][0]["sensors"]["narrow"]["height"] = 10 ** 400
+    path = tmp_path / "rigs.yaml"
+    path.write_text(dump(document))
+    with pytest.raises(InputError, match="height must be a whole number of pixels"):
+        load_rigs(path)
+
+
 @FUZZ_YAML
 @given(text=documents(RIGS))
 def test_rigs_yaml_gives_rigs_or_an_input_error(tmp_path, text):

@@ -151,8 +151,9 @@ def parse_camera(spec, where: str) -> pycolmap.Camera:
         )
     for key in ("width", "height"):
         value = spec[key]
-        if isinstance(value, bool) or not isinstance(value, numbers.Real) or not float(value).is_integer() \
-                or not 0 < value <= MAX_IMAGE_SIDE:  # type: ignore[operator]  # typeshed: numbers.Real has no <
+        # the range first: float() of an integer beyond a float's range raises OverflowError
+        if isinstance(value, bool) or not isinstance(value, numbers.Real) \
+                or not 0 < value <= MAX_IMAGE_SIDE or not float(value).is_integer():  # type: ignore[operator]  # typeshed: numbers.Real has no <
             raise InputError(f"{where}: {key} must be a whole number of pixels, 1 to {MAX_IMAGE_SIDE}, got "
                              f"{_short(value)}")
     width, height = int(spec["width"]), int(spec["height"])

@@ -102,6 +102,8 @@ def test_a_carried_frame_takes_the_first_frame_s_appearance_model(crowd, tmp_pat
     assert frames[1].result.appearance is frames[0].result.appearance
     for before, view in zip(frames[0].views, frames[1].views):
         assert view.head_px == before.head_px and view.descriptor is not None and len(view.descriptor) == len(view.xy)
+    # each frame's images are read for its own association only: a recording's frames do not keep them all
+    assert all(view.grey is None for frame in frames for view in frame.views)
     f1 = [_pair_f1(frame, truth) for frame, truth in zip(frames, truths)]
     assert f1[0] > 0.25 and f1[1] > 0.8 * f1[0], f1
 

@@ -162,6 +162,8 @@ def associate_frames(model: RunModel, detections: Detections, options: Associate
         wall, cpu = time.perf_counter() - wall, time.process_time() - cpu
         logger.info("%s: %d persons in %.2f s (%.2f s CPU)", frame, len(result), wall, cpu)
         carried.update((camera, view) for camera, view in zip(cameras, views) if view.band_sigma_px is not None)
+        for view in views:
+            view.grey = None  # read for this frame's appearance only; kept, a recording would hold every image
         out.append(FramePersons(frame, result, detections, views, wall, cpu))
         if progress:
             progress(len(out), len(frames))

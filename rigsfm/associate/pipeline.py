@@ -6,6 +6,7 @@ import json
 import logging
 import time
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -118,7 +119,7 @@ class FramePersons:
     detections: Detections
     views: list[View]
     seconds: float = 0.0  # wall time of this frame's association
-    cpu_seconds: float = 0.0  # this process's CPU time for it
+    cpu_seconds: float = 0.0  # this process's CPU time for it (the next frame's images, read meanwhile, included)
 
 
 def frame_views(model: RunModel, detections: Detections, frame: str, names: list[str]) -> list[View]:
@@ -149,25 +150,36 @@ def associate_frames(model: RunModel, detections: Detections, options: Associate
     one is associated once instead of self-calibrating from scratch."""
     out: list[FramePersons] = []
     carried: dict[str, View] = {}  # per camera (<rig>/narrow), its view in the latest frame
-    frames = detections.frames()
-    for frame, names in frames.items():
-        views = frame_views(model, detections, frame, names)
-        cameras = [ImageName.parse(v.name).camera for v in views]
-        known = bool(views) and all(c in carried for c in cameras)
-        if known:
-            for view, camera in zip(views, cameras):
-                view.carry(carried[camera])
-        wall, cpu = time.perf_counter(), time.process_time()
-        result = associate_views(views, options, carried=known, earlier=out[-1].result if out else None)
-        wall, cpu = time.perf_counter() - wall, time.process_time() - cpu
-        logger.info("%s: %d persons in %.2f s (%.2f s CPU)", frame, len(result), wall, cpu)
-        carried.update((camera, view) for camera, view in zip(cameras, views) if view.band_sigma_px is not None)
-        for view in views:
-            view.grey = None  # read for this frame's appearance only; kept, a recording would hold every image
-        out.append(FramePersons(frame, result, detections, views, wall, cpu))
-        if progress:
-            progress(len(out), len(frames))
+    frames = list(detections.frames().items())
+    with ThreadPoolExecutor(max_workers=1, thread_name_prefix="rigsfm-frame-views") as reader:
+        # the next frame's images are read and decoded while this one is associated (OpenCV's decoder releases the
+        # GIL; the association holds it)
+        pending = reader.submit(frame_views, model, detections, *frames[0]) if frames else None
+        for k, (frame, _) in enumerate(frames):
+            views = pending.result()  # type: ignore[union-attr]  # one per frame
+            pending = reader.submit(frame_views, model, detections, *frames[k + 1]) if k + 1 < len(frames) else None
+            out.append(_associate_frame(frame, views, detections, options, carried, out[-1] if out else None))
+            if progress:
+                progress(len(out), len(frames))
     return out
+
+
+def _associate_frame(frame: str, views: list[View], detections: Detections, options: AssociateOptions,
+                     carried: dict[str, View], before: FramePersons | None) -> FramePersons:
+    """One frame of :func:`associate_frames`; ``carried`` (per camera, its latest view) is updated."""
+    cameras = [ImageName.parse(v.name).camera for v in views]
+    known = bool(views) and all(c in carried for c in cameras)
+    if known:
+        for view, camera in zip(views, cameras):
+            view.carry(carried[camera])
+    wall, cpu = time.perf_counter(), time.process_time()
+    result = associate_views(views, options, carried=known, earlier=before.result if before else None)
+    wall, cpu = time.perf_counter() - wall, time.process_time() - cpu
+    logger.info("%s: %d persons in %.2f s (%.2f s CPU)", frame, len(result), wall, cpu)
+    carried.update((camera, view) for camera, view in zip(cameras, views) if view.band_sigma_px is not None)
+    for view in views:
+        view.grey = None  # read for this frame's appearance only; kept, a recording would hold every image
+    return FramePersons(frame, result, detections, views, wall, cpu)
 
 
 def associate(out: Path, detections_csv: Path, options: AssociateOptions | None = None,

@@ -495,3 +495,24 @@ def test_a_run_without_bands_is_named(crowd, caplog):
         bare = RunModel(model.images, {}, model.known, model.world, model.centre_sigma_m)
         frame_views(bare, detections, name, images)
     assert "no epipolar band" in caplog.text and "re-run `rigsfm run`" in caplog.text
+
+
+def test_the_terminal_names_each_frame_or_summarises_the_rest(tmp_path):
+    """`rigsfm associate`'s lines: every frame where at most one more than the shown would be summarised (a
+    'summary' of one frame said '1 more frames: 498 persons (median), 498-498'), the rest in one line beyond."""
+    from rigsfm.cli.associate import frame_lines
+
+    def write(count: int) -> Path:
+        dest = tmp_path / f"dest{count}"
+        for k in range(count):
+            folder = dest / f"frame{k:04d}"
+            folder.mkdir(parents=True)
+            persons = [{"detections": [{"image": "rig01/narrow/a.png"}]} for _ in range(10 + k)]
+            (folder / "persons.json").write_text(json.dumps(
+                {"frame": f"frame{k:04d}.png", "persons": persons, "unassigned": [{"image": "x"}] * 2}))
+        return dest
+
+    assert frame_lines(write(4)) == [f"frame{k:04d}.png: {10 + k} persons from {10 + k} of {12 + k} detections"
+                                     for k in range(4)]
+    lines = frame_lines(write(6))
+    assert len(lines) == 4 and lines[-1] == "... 3 more frames: 14 persons (median), 13-15", lines

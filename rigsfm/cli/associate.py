@@ -80,6 +80,7 @@ def frame_lines(dest: Path, shown: int = 3) -> list[str]:
     for path in sorted(Path(dest).glob("*/persons.json")):
         data, assigned, total = frame_counts(path)
         counts.append((data["frame"], len(data["persons"]), assigned, total))
+    shown = len(counts) if len(counts) <= shown + 1 else shown  # a line of its own, not a summary of one frame
     lines = [f"{frame}: {persons} persons from {assigned} of {total} detections"
              for frame, persons, assigned, total in counts[:shown]]
     if len(counts) > shown:

@@ -1,6 +1,6 @@
 """Multi-view association of heads on rendered crowds of 3D persons, against the exact visible heads.
 
-    python benchmarks/associate.py DATASET OUT [--fixed OUT_FIXED] [--seeds 3] [--frames 1] [--json results.json]
+    python benchmarks/associate.py DATASET OUT [--fixed OUT_FIXED] [--seeds 3] [--frames 1] [--poses-from FRAME] [--json results.json]
 
 DATASET: rendered with persons (rigsfm.synth, persons/heads.csv); OUT: ``rigsfm run`` on it; OUT_FIXED: the same
 with ``--fixed-calibration`` (baseline b). Detections = the true visible heads of each narrow image of the first
@@ -33,7 +33,9 @@ from rigsfm.associate.evaluate import (
     truth_from_run,
     visible_heads,
 )
+from rigsfm.associate.pipeline import with_stand_ins
 from rigsfm.core.ground import undistort_pixels
+from rigsfm.core.names import ImageName
 
 CHI2_3D_95 = 7.814727903251178
 
@@ -97,6 +99,15 @@ def head_errors(groups: list, result, truth, heads3d: np.ndarray, r: np.ndarray,
     return errors, inside
 
 
+def lend_poses(model, dataset: Path, frames: int, frame: str):
+    """``model`` (a run of fewer frames than DATASET) with its ``frame``'s narrow poses lent to the narrow images of
+    DATASET's first ``frames`` frames it lacks (``rigsfm associate --poses-from``)."""
+    cameras = {ImageName.parse(n).camera for n in model.images if ImageName.parse(n).frame == frame}
+    names = [n for k in range(frames) for n in visible_heads(dataset, f"frame{k:04d}")
+             if ImageName.parse(n).camera in cameras]
+    return with_stand_ins(model, names, frame)
+
+
 def evaluate(dataset: Path, out: Path, seed: int, options: AssociateOptions, frames: int = 1,
              size_noise: float | None = None, size_spread: float = 0.1) -> dict:
     """The association of the first ``frames`` frames, each scored against its truth; the shifts the crowd finds
@@ -104,6 +115,8 @@ def evaluate(dataset: Path, out: Path, seed: int, options: AssociateOptions, fra
     ``size_noise``: each detection also has an apparent head radius from the truth (persons' radii spread by
     ``size_spread``), with this relative noise; None: no radii (the issue's protocol)."""
     model = load_run(out)
+    if options.poses_from is not None:
+        model = lend_poses(model, dataset, frames, options.poses_from)
     sizes = {n: (im.camera.width, im.camera.height) for n, im in model.images.items()}
     truths, points, radii = [], {}, {}
     for k in range(frames):
@@ -145,9 +158,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seeds", type=int, default=3)
     parser.add_argument("--pixel-sigma", type=float, default=1.5)
     parser.add_argument("--frames", type=int, default=1, help="frames to associate (the shifts carry between them)")
+    parser.add_argument("--poses-from", default=None, metavar="FRAME",
+                        help="OUT is a run of fewer frames: its FRAME's poses stand in for the frames it lacks")
     parser.add_argument("--json", type=Path, default=None)
     args = parser.parse_args(argv)
-    options = AssociateOptions(pixel_sigma=args.pixel_sigma)
+    options = AssociateOptions(pixel_sigma=args.pixel_sigma, poses_from=args.poses_from)
     rows = []
     for seed in range(args.seeds):
         ours = evaluate(args.dataset, args.out, seed, options, args.frames)

@@ -287,7 +287,7 @@ def test_empty_frame_gives_no_person(crowd, tmp_path):
 def test_bad_detections_are_refused_naming_the_row(case, tmp_path):
     code, line = run_case(case, tmp_path / "case")
     assert code == 1 and line.startswith("error: ")
-    assert "line" in line or "floor" in line
+    assert "line" in line or "floor" in line or "--poses-from" in line  # the row, or the run / option at fault
     assert not (tmp_path / "case" / "persons").exists()
 
 
@@ -500,7 +500,7 @@ def test_a_run_without_bands_is_named(crowd, caplog):
 def test_the_terminal_names_each_frame_or_summarises_the_rest(tmp_path):
     """`rigsfm associate`'s lines: every frame where at most one more than the shown would be summarised (a
     'summary' of one frame said '1 more frames: 498 persons (median), 498-498'), the rest in one line beyond."""
-    from rigsfm.cli.associate import frame_lines
+    from rigsfm.cli.associate import frame_lines, written_frames
 
     def write(count: int) -> Path:
         dest = tmp_path / f"dest{count}"
@@ -512,7 +512,57 @@ def test_the_terminal_names_each_frame_or_summarises_the_rest(tmp_path):
                 {"frame": f"frame{k:04d}.png", "persons": persons, "unassigned": [{"image": "x"}] * 2}))
         return dest
 
-    assert frame_lines(write(4)) == [f"frame{k:04d}.png: {10 + k} persons from {10 + k} of {12 + k} detections"
+    assert frame_lines(written_frames(write(4))) == [f"frame{k:04d}.png: {10 + k} persons from {10 + k} of {12 + k} detections"
                                      for k in range(4)]
-    lines = frame_lines(write(6))
+    lines = frame_lines(written_frames(write(6)))
     assert len(lines) == 4 and lines[-1] == "... 3 more frames: 14 persons (median), 13-15", lines
+
+
+def test_frames_the_run_was_not_given_take_the_poses_of_one_of_its_frames(crowd, tmp_path):
+    """A recording calibrated once: ``--poses-from FRAME`` lends that frame's narrow poses and bands to frames the
+    run was not given (static rigs), and such a frame's persons are those the same detections give in the run's own
+    frame. Without it such a frame is refused with the option named; a FRAME the run lacks is refused with its
+    frames; nothing is written either time."""
+    from rigsfm.associate import associate
+
+    dataset, out = crowd
+    _, truth = _detections(dataset, out)
+    rows = "image,x,y\n" + "".join(f"{name},{x},{y}\n" for name, xy in truth.points.items() for x, y in xy)
+    (tmp_path / "own.csv").write_text(rows)
+    (tmp_path / "later.csv").write_text(rows.replace("frame0000", "frame0007"))
+    runner = CliRunner()
+    refused = runner.invoke(app, ["associate", str(out), str(tmp_path / "later.csv"), "--out", str(tmp_path / "no")])
+    assert refused.exit_code == 1 and "was not given this frame" in refused.output \
+        and "--poses-from" in refused.output, refused.output
+    unknown = runner.invoke(app, ["associate", str(out), str(tmp_path / "later.csv"), "--out", str(tmp_path / "no"),
+                                  "--poses-from", "frame0003.png"])
+    assert unknown.exit_code == 1 and "its frames: 'frame0000.png'" in unknown.output, unknown.output
+    assert not (tmp_path / "no").exists()
+    geometry = dict(pixel_sigma=1.5, appearance=False)  # the later frame's images are not beside the run's
+    own = associate(out, tmp_path / "own.csv", AssociateOptions(out=tmp_path / "own", **geometry))
+    lent = associate(out, tmp_path / "later.csv",
+                     AssociateOptions(out=tmp_path / "lent", poses_from="frame0000.png", **geometry))
+    first = json.loads((own / "frame0000" / "persons.json").read_text())
+    later = json.loads((lent / "frame0007" / "persons.json").read_text())
+    assert first["poses_from"] is None and later["poses_from"] == "frame0000.png"
+    assert len(first["persons"]) > 100
+    assert json.dumps(later["persons"]).replace("frame0007", "frame0000") == json.dumps(first["persons"])
+
+
+def test_a_frame_the_run_was_given_and_did_not_register_is_refused_even_with_poses_lent(tmp_path):
+    """The run tried such a frame and found no pose for it (a rig moved? images that do not match?): lending another
+    frame's poses would hide that, so ``--poses-from`` lends only to frames the run was never given."""
+    from rigsfm.associate.detections import read_detections
+    from rigsfm.core.errors import InputError
+
+    path = tmp_path / "heads.csv"
+    path.write_text("image,x,y\nrig01/narrow/f0.png,10,20\nrig01/narrow/f1.png,10,20\nrig01/narrow/f2.png,10,20\n")
+    sizes, known = {"rig01/narrow/f0.png": (64, 48)}, {"rig01/narrow/f0.png", "rig01/narrow/f1.png"}
+    with pytest.raises(InputError, match=r"line 3: image 'rig01/narrow/f1.png': the run registered no model"):
+        read_detections(path, sizes, known, {"rig01/narrow": (64, 48)})
+    path.write_text("image,x,y\nrig01/narrow/f0.png,10,20\nrig01/narrow/f2.png,10,20\nrig01/narrow/f3.png,70,20\n")
+    with pytest.raises(InputError, match=r"line 4: \(70, 20\) lies outside 'rig01/narrow/f3.png' \(64 x 48 px"):
+        read_detections(path, sizes, known, {"rig01/narrow": (64, 48)})  # checked against the lent camera's size
+    path.write_text("image,x,y\nrig01/narrow/f0.png,10,20\nrig01/narrow/f2.png,10,20\n")
+    assert sorted(read_detections(path, sizes, known, {"rig01/narrow": (64, 48)}).images) == [
+        "rig01/narrow/f0.png", "rig01/narrow/f2.png"]

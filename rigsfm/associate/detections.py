@@ -15,6 +15,7 @@ import csv
 import io
 import logging
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -94,9 +95,12 @@ def _radius(path: Path, line: int, text: str, size: tuple[int, int]) -> float | 
     return radius
 
 
-def read_detections(path: Path, sizes: dict[str, tuple[int, int]], known: set[str]) -> Detections:
+def read_detections(path: Path, sizes: dict[str, tuple[int, int]], known: set[str],
+                    stand_in: Mapping[str, tuple[int, int]] | None = None) -> Detections:
     """Parse and check ``path``. ``sizes``: width, height of every registered narrow image; ``known``: every image
-    name the run was given (registered or not), to tell an unknown image from a frame the run did not register."""
+    name the run was given (registered or not), to tell an unknown image from a frame the run did not register;
+    ``stand_in``: per camera (``<rig>/narrow``), the image size of the run's frame whose pose stands in for frames the
+    run was not given (``--poses-from``); None: such frames are refused."""
     path = Path(path)
     text = read_user_text(path, "detections")
     lines = text.splitlines()
@@ -133,10 +137,17 @@ def read_detections(path: Path, sizes: dict[str, tuple[int, int]], known: set[st
                                     "names of the run's images (OUT/narrow_poses.json)") from None
         if not parsed.is_narrow:
             raise _fail(path, line, f"image {name!r} is a wide image: give detections in the narrow images")
-        if name not in sizes:
-            if name in known or any(k.startswith(parsed.rig + "/") for k in known):
+        size = sizes.get(name)
+        if size is None and stand_in is not None and name not in known:
+            size = stand_in.get(parsed.camera)
+        if size is None:
+            if name in known:
                 raise _fail(path, line, f"image {name!r}: the run registered no model for this frame (no pose); "
                                         "drop its rows, or re-run `rigsfm run` with images that register it")
+            if any(k.startswith(parsed.rig + "/") for k in known) and stand_in is None:
+                raise _fail(path, line, f"image {name!r}: the run was not given this frame, so it has no pose for it; "
+                                        "re-run `rigsfm run` with its images, or, where the rigs have not moved "
+                                        "since, pass --poses-from FRAME (a frame of the run) to use its poses")
             raise _fail(path, line, f"image {name!r} is not an image of this run (rigs and frames in "
                                     "OUT/narrow_poses.json); check the name")
         xs, ys = fields[col["x"]].strip(), fields[col["y"]].strip()
@@ -150,7 +161,7 @@ def read_detections(path: Path, sizes: dict[str, tuple[int, int]], known: set[st
                                     "(a decimal point, not a comma)") from None
         if not (math.isfinite(x) and math.isfinite(y)):
             raise _fail(path, line, f"x, y = {xs}, {ys} are not finite; drop the row or give the point")
-        width, height = sizes[name]
+        width, height = size
         if not (0.0 <= x <= width and 0.0 <= y <= height):
             raise _fail(path, line, f"({xs}, {ys}) lies outside '{name}' ({width} x {height} px, COLMAP pixels: "
                                     "0..width, 0..height); check the image and the units")
@@ -162,7 +173,7 @@ def read_detections(path: Path, sizes: dict[str, tuple[int, int]], known: set[st
                 raise _fail(path, line, f"score {fields[col['score']]!r} is not a number") from None
             if not math.isfinite(score):
                 raise _fail(path, line, f"score {fields[col['score']]} is not finite; give a number or leave it empty")
-        radius = _radius(path, line, fields[col["radius"]].strip(), sizes[name]) if "radius" in col else None
+        radius = _radius(path, line, fields[col["radius"]].strip(), size) if "radius" in col else None
         sized.setdefault(parsed.frame, {}).setdefault(radius is not None, line)
         key = (name, xs, ys)
         if key in seen:

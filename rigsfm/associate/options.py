@@ -52,6 +52,9 @@ class AssociateOptions:
     appearance: bool = True
     time_limit_s: float = 20.0  # per frame, for the global set packing (then the best solution found)
     cell_m: float = 1.0  # density grid cell (m)
+    # A frame of the run whose narrow cameras' poses (and bands) stand in for frames the run was not given: static
+    # rigs, associated frame after frame of a recording calibrated once. None: every frame must be one of the run's.
+    poses_from: str | None = None
     out: Path | None = None  # DIR; None: OUT/associate
     overwrite: bool = False
 

@@ -102,6 +102,8 @@ def persons_json(frame) -> dict:
                   for v in range(len(views)) for i in range(len(det.images[views[v].name])) if (v, i) not in used]
     return {"frame": frame.frame, "frame_units": "world metres (the run's world frame)",
             "views": [v.name for v in views],
+            # the run's frame whose poses and bands stood in for this frame's (--poses-from); null: the run's own
+            "poses_from": frame.poses_from,
             "sigma_pose_px": {v.name: round(v.sigma_pose_px, 4) for v in views},
             # The crowd's correction of each view (undistorted px, subtracted from its detections) and the band's
             # sigma before it, as this frame's persons were found with them; a zero shift: the view kept the run's pose.

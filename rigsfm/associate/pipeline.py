@@ -2,10 +2,13 @@
 
 from __future__ import annotations
 
+import copy
+import dataclasses
+import itertools
 import json
 import logging
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -19,7 +22,7 @@ from rigsfm.associate.options import AssociateOptions
 from rigsfm.associate.solve import FrameResult, View, associate_views, view_pose_sigmas
 from rigsfm.core.errors import InputError
 from rigsfm.core.io import file_sha256
-from rigsfm.core.names import ImageName
+from rigsfm.core.names import ImageName, quoted
 from rigsfm.core.workspace import Workspace
 from rigsfm.run.matching.reuse import recorded_contents
 
@@ -39,6 +42,8 @@ class RunModel:
     centre_covariance_m2: dict[str, np.ndarray] = field(default_factory=dict)
     images_root: Path | None = None  # where the run read its images (the appearance cue), None: unknown
     image_sha256: dict[str, str] = field(default_factory=dict)  # the content the run was made from (images.json)
+    # an image the run was not given -> the run's image whose pose and bands it takes (``--poses-from``)
+    stand_ins: dict[str, str] = field(default_factory=dict)
 
 
 def load_run(out: Path) -> RunModel:
@@ -83,11 +88,57 @@ def load_run(out: Path) -> RunModel:
                     recorded_contents(workspace.image_contents))
 
 
+def frame_sizes(model: RunModel, frame: str) -> dict[str, tuple[int, int]]:
+    """Per camera (``<rig>/narrow``), the image size of the run's registered narrow image of ``frame``: the poses
+    ``--poses-from`` lends to frames the run was not given."""
+    sizes = {}
+    for name, image in model.images.items():
+        parsed = ImageName.parse(name)
+        if parsed.frame == frame:
+            sizes[parsed.camera] = (image.camera.width, image.camera.height)  # type: ignore[union-attr]
+    if not sizes:
+        frames = sorted({ImageName.parse(name).frame for name in model.images})
+        raise InputError(f"--poses-from {frame!r} is not a frame of this run with a registered narrow image; its "
+                         f"frames: {quoted(frames[:8])}{' ...' if len(frames) > 8 else ''}")
+    return sizes
+
+
+def with_stand_ins(model: RunModel, names: Iterable[str], frame: str) -> RunModel:
+    """``model`` with an image for each of ``names`` the run does not hold: its camera's image of the run's ``frame``
+    under the new name (the same pose, camera, bands and centre uncertainty: static rigs)."""
+    images, bands = dict(model.images), dict(model.bands)
+    centres, covariances = dict(model.centre_sigma_m), dict(model.centre_covariance_m2)
+    reference = {ImageName.parse(n).camera: n for n in model.images if ImageName.parse(n).frame == frame}
+    stand_ins = dict(model.stand_ins)
+    for name in names:
+        if name not in images:
+            ref = reference[ImageName.parse(name).camera]  # read_detections admitted only these cameras
+            image = copy.copy(model.images[ref])
+            image.name = name
+            images[name], stand_ins[name] = image, ref
+            if ref in centres:
+                centres[name] = centres[ref]
+            if ref in covariances:
+                covariances[name] = covariances[ref]
+    by_frame: dict[str, list[str]] = {}
+    for name in stand_ins:
+        by_frame.setdefault(ImageName.parse(name).frame, []).append(name)
+    for group in by_frame.values():
+        for a, b in itertools.permutations(group, 2):
+            band = model.bands.get((stand_ins[a], stand_ins[b]))
+            if band is not None:
+                bands[(a, b)] = band
+    return dataclasses.replace(model, images=images, bands=bands, centre_sigma_m=centres,
+                               centre_covariance_m2=covariances, stand_ins=stand_ins)
+
+
 def _run_image_grey(model: RunModel, name: str) -> np.ndarray | None:
     """The narrow image the run was made from, as greys; None (and why, logged) where it is unreadable or its file
     now holds other pixels (a new recording under the same names must not lend its appearance to the run's)."""
     assert model.images_root is not None
     path = model.images_root / name
+    if name in model.stand_ins and not path.is_file():
+        return None  # a frame the run was not given: said once for all (associate)
     recorded = model.image_sha256.get(name)
     try:
         changed = recorded is not None and file_sha256(path) != recorded
@@ -120,6 +171,7 @@ class FramePersons:
     views: list[View]
     seconds: float = 0.0  # wall time of this frame's association
     cpu_seconds: float = 0.0  # this process's CPU time for it (the next frame's images, read meanwhile, included)
+    poses_from: str | None = None  # the run's frame whose poses its views took (a frame the run was not given)
 
 
 def frame_views(model: RunModel, detections: Detections, frame: str, names: list[str]) -> list[View]:
@@ -159,6 +211,8 @@ def associate_frames(model: RunModel, detections: Detections, options: Associate
             views = pending.result()  # type: ignore[union-attr]  # one per frame
             pending = reader.submit(frame_views, model, detections, *frames[k + 1]) if k + 1 < len(frames) else None
             out.append(_associate_frame(frame, views, detections, options, carried, out[-1] if out else None))
+            lent = {ImageName.parse(model.stand_ins[v.name]).frame for v in views if v.name in model.stand_ins}
+            out[-1].poses_from = min(lent) if lent else None
             if progress:
                 progress(len(out), len(frames))
     return out
@@ -195,7 +249,17 @@ def associate(out: Path, detections_csv: Path, options: AssociateOptions | None 
     # a model's images have cameras
     sizes = {name: (image.camera.width, image.camera.height)  # type: ignore[union-attr]
              for name, image in model.images.items()}
-    detections = read_detections(Path(detections_csv), sizes, model.known)
+    stand_in = frame_sizes(model, options.poses_from) if options.poses_from is not None else None
+    detections = read_detections(Path(detections_csv), sizes, model.known, stand_in)
+    if options.poses_from is not None:
+        model = with_stand_ins(model, detections.images, options.poses_from)
+        root = model.images_root
+        missing = [n for n in model.stand_ins if root is None or not (root / n).is_file()]
+        if missing and options.appearance:
+            logger.warning("%d narrow image(s) of the frames the run was not given are not beside its images in %s "
+                           "(%s): their views are associated by geometry only; put them there (<rig>/narrow/<frame "
+                           "file>) for the heads' and torsos' greys", len(missing), root or "(unknown)",
+                           quoted(missing[:3]) + (" ..." if len(missing) > 3 else ""))
     require_floor(model, Path(out))
     refuse_edited(dest, previous, detections.frames())
     frames = associate_frames(model, detections, options, progress)

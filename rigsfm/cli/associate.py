@@ -41,6 +41,10 @@ def associate_command(
         help="how far a person walks per floor axis between two frames (1 sigma, m): a later frame looks for each "
              "person of the frame before within it first, and searches every pair only among the detections they "
              "leave (0: every pair in every frame)")] = 0.15,
+    poses_from: Annotated[str | None, typer.Option(
+        "--poses-from", metavar="FRAME",
+        help="associate frames the run was not given with the narrow poses of its frame FRAME (e.g. frame0000.png): "
+             "static rigs calibrated once; `rigsfm track` checks they have not moved", show_default=False)] = None,
     no_appearance: Annotated[bool, flag("--no-appearance", help="geometry only: leave out the heads' and torsos' greys "
                                         "sampled from the run's narrow images")] = False,
     overwrite: Annotated[bool, flag("--overwrite", help="replace an earlier association in --out")] = False,
@@ -56,7 +60,7 @@ def associate_command(
         options = AssociateOptions(heights=parse_heights(heights), pixel_sigma=pixel_sigma,
                                    detection_probability=detection_probability, size_noise=size_noise,
                                    self_calibration_rounds=self_calibration_rounds, walk_m=walk or None,
-                                   appearance=not no_appearance,
+                                   appearance=not no_appearance, poses_from=poses_from,
                                    out=dest, overwrite=overwrite)
     except ValueError as e:
         raise InputError(f"{e}; see rigsfm associate --help") from None
@@ -64,26 +68,37 @@ def associate_command(
         task = progress.add_task("associate", total=None)
         dest = associate(out, detections, options,
                          progress=lambda done, total: progress.update(task, completed=done, total=total))
-    for line in frame_lines(dest):
+    frames = written_frames(dest)
+    for line in frame_lines(frames):
         console.print(line)
+    lent = sum(poses is not None for *_, poses in frames)
+    if lent:
+        console.print(f"{lent} frame(s) the run was not given: associated with the narrow poses of its frame "
+                      f"{poses_from} (static rigs; `rigsfm track {out} IMAGES` tells whether a rig moved)")
     console.print(f"persons: {dest} (persons.csv / persons.json, floor.png, density per frame)")
     if Path(dest).resolve() == Workspace(out).associate.resolve():
         console.print(f"`rigsfm report {out}` adds them to its report.html")
 
 
-def frame_lines(dest: Path, shown: int = 3) -> list[str]:
-    """The first ``shown`` frames written into ``dest``, each its persons and the detections they hold; the rest
-    in one line."""
+def written_frames(dest: Path) -> list[tuple[str, int, int, int, str | None]]:
+    """Per frame written into ``dest``: its name, persons, the detections they hold, all its detections, and the
+    run's frame whose poses it took (None: its own)."""
     from rigsfm.associate.report import frame_counts
 
-    counts = []
+    frames = []
     for path in sorted(Path(dest).glob("*/persons.json")):
         data, assigned, total = frame_counts(path)
-        counts.append((data["frame"], len(data["persons"]), assigned, total))
-    shown = len(counts) if len(counts) <= shown + 1 else shown  # a line of its own, not a summary of one frame
+        frames.append((data["frame"], len(data["persons"]), assigned, total, data.get("poses_from")))
+    return frames
+
+
+def frame_lines(frames: list[tuple[str, int, int, int, str | None]], shown: int = 3) -> list[str]:
+    """The first ``shown`` of :func:`written_frames`, each its persons and the detections they hold; the rest in one
+    line."""
+    shown = len(frames) if len(frames) <= shown + 1 else shown  # a line of its own, not a summary of one frame
     lines = [f"{frame}: {persons} persons from {assigned} of {total} detections"
-             for frame, persons, assigned, total in counts[:shown]]
-    if len(counts) > shown:
-        rest = sorted(c[1] for c in counts[shown:])
+             for frame, persons, assigned, total, _ in frames[:shown]]
+    if len(frames) > shown:
+        rest = sorted(c[1] for c in frames[shown:])
         lines.append(f"... {len(rest)} more frames: {rest[len(rest) // 2]} persons (median), {rest[0]}-{rest[-1]}")
     return lines

@@ -37,6 +37,8 @@ MAX_IFD_ENTRIES = 4096  # more is not an EXIF block: give up rather than read a 
 
 def read_image(path: Path | str, flags: int = cv2.IMREAD_COLOR) -> np.ndarray | None:
     """``cv2.imread`` of the pixels as stored (never turned by an EXIF tag), or None if the file cannot be read."""
+    if not Path(path).is_file():
+        return None  # said here, not by OpenCV's own warning on stderr
     return cv2.imread(str(path), flags | cv2.IMREAD_IGNORE_ORIENTATION)
 
 

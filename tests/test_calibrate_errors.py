@@ -101,3 +101,10 @@ def test_board_spec_validation(tmp_path):
         board_spec_from_dict({**CHARUCO, "dictionary": "DICT_9X9_1"})
     with pytest.raises(RigsfmError, match="does not exist"):
         run(tmp_path, tmp_path / "nowhere", CHESS)
+
+
+def test_board_images_given_as_a_file(tmp_path):
+    """A file where the folder goes (rigs.yaml by mistake) is named as a file, not as missing."""
+    (tmp_path / "rigs.yaml").write_text("units: meters\n")
+    with pytest.raises(InputError, match=r"rigs\.yaml is a file, not a folder"):
+        run(tmp_path, tmp_path / "rigs.yaml", CHESS)

@@ -68,6 +68,13 @@ def test_chessboard_counted_squares_not_inner_corners(tmp_path):
         run(tmp_path, real_board(tmp_path, FRAMES, FRAMES), {**CHESS, "inner_corners": [10, 7]})
 
 
+def test_chessboard_part_of_a_larger_board(tmp_path):
+    """inner_corners [8, 6] on the 9x6 board: OpenCV finds an 8x6 part of it (which part varies by image and can
+    differ between the two cameras), so the calibration is refused with the larger grid named."""
+    with pytest.raises(InputError, match=r"inner_corners \[9, 6\], more than board.yaml's \[8, 6\]"):
+        run(tmp_path, real_board(tmp_path, FRAMES, FRAMES), {**CHESS, "inner_corners": [8, 6]})
+
+
 def charuco_board_dir(root: Path, spec: dict, n: int = 3) -> Path:
     camera = SynthCamera(np.array([[500.0, 0, 319.5], [0, 500, 239.5], [0, 0, 1]]), np.zeros(5), (640, 480))
     plane = board_plane(board_spec_from_dict(spec), px_per_square=60)

@@ -29,6 +29,7 @@ from rigsfm.calibrate.board import (
     diagnose_no_detection,
     load_board_spec,
     read_gray,
+    refuse_part_of_a_larger_chessboard,
 )
 from rigsfm.calibrate.dataset import RigFrames, discover_rigs
 from rigsfm.calibrate.intrinsics import CameraCalibration, calibrate_camera, colmap_camera
@@ -111,6 +112,9 @@ def calibrate_rig(frames: RigFrames, board: BoardSpec, *, distortion: Distortion
         logger.info("%s: board found in %d of %d images", where, found, len(paths))
         if found == 0:
             raise diagnose_no_detection(board, [paths[n] for n in sorted(paths)], where)
+        if board.type == "chessboard":
+            refuse_part_of_a_larger_chessboard(
+                board, [paths[n] for n, d in sorted(detections[sensor].items()) if d is not None], where)
     obj = board.object_points()
     wide = calibrate_camera("wide", detections["wide"], obj, sizes["wide"], distortion, f"rig {frames.name} wide")
     narrow = calibrate_camera("narrow", detections["narrow"], obj, sizes["narrow"], distortion, f"rig {frames.name} narrow")

@@ -240,6 +240,28 @@ def test_refusals(run, tmp_path):
     assert result.exit_code != 0 and "holds no result" in result.output and "Traceback" not in result.output
 
 
+def test_a_save_that_cannot_be_written_names_the_csv(run, tmp_path):
+    """A labels CSV under a file (or on a full disk) is the server's failure, named by the CSV, not a bad request
+    naming the temporary file rigsfm writes first."""
+    _, out = run
+    (tmp_path / "a-file").write_text("")
+    csv = tmp_path / "a-file" / "labels.csv"
+    server = start_explorer(out, ExploreOptions(labels=csv))
+    try:
+        host, port = server.httpd.server_address
+        names = [v["name"] for v in server.session.state()["views"]]
+        body = {"frame": server.session.frame, "labels": [{"image": names[0], "x": 10.0, "y": 10.0, "person": "p1"}]}
+        connection = http.client.HTTPConnection(host, port, timeout=30)
+        connection.request("PUT", "/api/labels", json.dumps(body).encode(), {"Content-Type": "application/json"})
+        answer = connection.getresponse()
+        error = json.loads(answer.read())["error"]
+        assert answer.status == 500, error
+        assert error.startswith(f"cannot save to {csv}: a part of the path is a file, not a folder"), error
+        assert ".tmp" not in error and server.session.labels == []
+    finally:
+        server.close()
+
+
 @slow
 def test_check_measures_the_bands_coverage_on_true_correspondences(run, tmp_path):
     """Every true correspondence of 300 points (floor to 2.2 m) labelled exactly: the share inside the band is what

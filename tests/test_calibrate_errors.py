@@ -115,3 +115,12 @@ def test_board_images_given_as_a_file(tmp_path):
     (tmp_path / "rigs.yaml").write_text("units: meters\n")
     with pytest.raises(InputError, match=r"rigs\.yaml is a file, not a folder"):
         run(tmp_path, tmp_path / "rigs.yaml", CHESS)
+
+
+def test_baseline_in_millimetres_is_refused(tmp_path):
+    """--baseline 83 (mm meant) wrote an 83 m baseline into rigs.yaml, which `rigsfm run` then refuses."""
+    board = tmp_path / "board.yaml"
+    board.write_text(yaml.safe_dump(CHESS))
+    with pytest.raises(InputError, match=r"--baseline 83 m is outside 1 mm - 5 m \(in millimetres\? 83 mm is 0.083 m\)"):
+        calibrate(tmp_path / "nowhere", tmp_path / "out" / "rigs.yaml", CalibrateOptions(board=board, baseline=83.0))
+    assert not (tmp_path / "out").exists()

@@ -68,6 +68,13 @@ def test_chessboard_counted_squares_not_inner_corners(tmp_path):
         run(tmp_path, real_board(tmp_path, FRAMES, FRAMES), {**CHESS, "inner_corners": [10, 7]})
 
 
+def test_chessboard_part_of_a_larger_board(tmp_path):
+    """inner_corners [8, 6] on the 9x6 board: OpenCV finds an 8x6 part of it (which part varies by image and can
+    differ between the two cameras), so the calibration is refused with the larger grid named."""
+    with pytest.raises(InputError, match=r"inner_corners \[9, 6\], more than board.yaml's \[8, 6\]"):
+        run(tmp_path, real_board(tmp_path, FRAMES, FRAMES), {**CHESS, "inner_corners": [8, 6]})
+
+
 def charuco_board_dir(root: Path, spec: dict, n: int = 3) -> Path:
     camera = SynthCamera(np.array([[500.0, 0, 319.5], [0, 500, 239.5], [0, 0, 1]]), np.zeros(5), (640, 480))
     plane = board_plane(board_spec_from_dict(spec), px_per_square=60)
@@ -101,3 +108,19 @@ def test_board_spec_validation(tmp_path):
         board_spec_from_dict({**CHARUCO, "dictionary": "DICT_9X9_1"})
     with pytest.raises(RigsfmError, match="does not exist"):
         run(tmp_path, tmp_path / "nowhere", CHESS)
+
+
+def test_board_images_given_as_a_file(tmp_path):
+    """A file where the folder goes (rigs.yaml by mistake) is named as a file, not as missing."""
+    (tmp_path / "rigs.yaml").write_text("units: meters\n")
+    with pytest.raises(InputError, match=r"rigs\.yaml is a file, not a folder"):
+        run(tmp_path, tmp_path / "rigs.yaml", CHESS)
+
+
+def test_baseline_in_millimetres_is_refused(tmp_path):
+    """--baseline 83 (mm meant) wrote an 83 m baseline into rigs.yaml, which `rigsfm run` then refuses."""
+    board = tmp_path / "board.yaml"
+    board.write_text(yaml.safe_dump(CHESS))
+    with pytest.raises(InputError, match=r"--baseline 83 m is outside 1 mm - 5 m \(in millimetres\? 83 mm is 0.083 m\)"):
+        calibrate(tmp_path / "nowhere", tmp_path / "out" / "rigs.yaml", CalibrateOptions(board=board, baseline=83.0))
+    assert not (tmp_path / "out").exists()

@@ -268,3 +268,28 @@ def test_wildtrack_calibration_reads_and_projects_floor_points_like_mvdet(tmp_pa
         ours = rigsfm_floor_pixels(image, floor_m)
         seen = ours[:, 1] > -1e4
         assert np.max(np.abs(mvdet[seen] - ours[seen])) < 0.05  # float32, as the loader reads them
+
+
+def test_wildtrack_export_says_when_the_world_is_not_metric_on_the_floor(tmp_path, caplog):
+    """The XML files carry no units or frame: a loader takes them for centimetres with the floor at z = 0, so an
+    export of another world is named in a warning; --images with another format is refused, not ignored."""
+    import json
+    import logging
+
+    from rigsfm.inspect.export import export
+    from rigsfm.inspect.options import ExportFormat, ExportOptions
+
+    finished_workspace(tmp_path / "out")
+    with caplog.at_level(logging.WARNING, logger="rigsfm.inspect.export"):
+        export(tmp_path / "out", ExportOptions(format=ExportFormat.WILDTRACK))
+    assert not [r for r in caplog.records if "WILDTRACK" in r.getMessage()]
+    poses_path = tmp_path / "out" / "narrow_poses.json"
+    poses = json.loads(poses_path.read_text())
+    poses_path.write_text(json.dumps({**poses, "metric": False, "world": {"frame": "mapping"}}))
+    with caplog.at_level(logging.WARNING, logger="rigsfm.inspect.export"):
+        export(tmp_path / "out", ExportOptions(format=ExportFormat.WILDTRACK, overwrite=True))
+    warned = [r.getMessage() for r in caplog.records if "WILDTRACK" in r.getMessage()]
+    assert len(warned) == 1 and "not metric" in warned[0] and "not in the floor frame" in warned[0]
+    with pytest.raises(InputError, match="--format wildtrack only"):
+        export(tmp_path / "out", ExportOptions(format=ExportFormat.JSON, images=True))
+    assert not (tmp_path / "out" / "export" / "json").exists()

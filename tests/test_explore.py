@@ -240,6 +240,35 @@ def test_refusals(run, tmp_path):
     assert result.exit_code != 0 and "holds no result" in result.output and "Traceback" not in result.output
 
 
+def test_images_option_that_is_no_folder_is_named_as_the_option(run, tmp_path):
+    """--images given and wrong is the option's error, not "the run's IMAGES folder ... (moved?)"."""
+    _, out = run
+    with pytest.raises(InputError, match=r"^--images .*nowhere is not a folder; give the run's IMAGES folder$"):
+        ExploreResult(out, tmp_path / "nowhere")
+
+
+def test_a_save_that_cannot_be_written_names_the_csv(run, tmp_path):
+    """A labels CSV under a file (or on a full disk) is the server's failure, named by the CSV, not a bad request
+    naming the temporary file rigsfm writes first."""
+    _, out = run
+    (tmp_path / "a-file").write_text("")
+    csv = tmp_path / "a-file" / "labels.csv"
+    server = start_explorer(out, ExploreOptions(labels=csv))
+    try:
+        host, port = server.httpd.server_address
+        names = [v["name"] for v in server.session.state()["views"]]
+        body = {"frame": server.session.frame, "labels": [{"image": names[0], "x": 10.0, "y": 10.0, "person": "p1"}]}
+        connection = http.client.HTTPConnection(host, port, timeout=30)
+        connection.request("PUT", "/api/labels", json.dumps(body).encode(), {"Content-Type": "application/json"})
+        answer = connection.getresponse()
+        error = json.loads(answer.read())["error"]
+        assert answer.status == 500, error
+        assert error.startswith(f"cannot save to {csv}: a part of the path is a file, not a folder"), error
+        assert ".tmp" not in error and server.session.labels == []
+    finally:
+        server.close()
+
+
 @slow
 def test_check_measures_the_bands_coverage_on_true_correspondences(run, tmp_path):
     """Every true correspondence of 300 points (floor to 2.2 m) labelled exactly: the share inside the band is what
@@ -293,6 +322,9 @@ def test_heights_labels_and_backups(tmp_path):
     assert parse_heights("0-2.2") == (0.0, 2.2) and parse_heights("-0.5,2") == (-0.5, 2.0)
     for bad in ("2-1", "x", "0-nan", "1"):
         with pytest.raises(InputError, match="--heights"):
+            parse_heights(bad)
+    for bad in ("0-1e400", "nan-2"):  # not numbers to order: named as such, not as "the first must be below"
+        with pytest.raises(InputError, match="give two finite heights"):
             parse_heights(bad)
     assert person_problem("p1") is None
     assert "a number" in person_problem("7") and "empty" in person_problem(" ") and "comma" in person_problem("a,b")

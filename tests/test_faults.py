@@ -416,3 +416,14 @@ def test_picker_put_that_empties_the_csv_keeps_a_backup(tmp_path):
         assert len(read_manual_matches(answer["backup"])) == 10
     finally:
         server.close()
+
+
+def test_picker_out_that_is_a_folder_is_refused_at_the_start(tmp_path):
+    """--out naming a folder started a picker whose every save failed; it is refused before the page opens."""
+    from rigsfm.pick.session import PickerSession, picker_image
+    from rigsfm.run.matching.manual_matches import ManualMatchError
+
+    paths = picker_images(tmp_path)
+    (tmp_path / "picks").mkdir()
+    with pytest.raises(ManualMatchError, match=r"'.*picks' is a folder, not a regular file"):
+        PickerSession(picker_image(paths[0], None), picker_image(paths[1], None), tmp_path / "picks")

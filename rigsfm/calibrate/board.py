@@ -206,6 +206,21 @@ def _probe_images(paths: list[Path], count: int = 4) -> list[np.ndarray]:
     return [read_gray(p) for p in paths[::step][:count]]
 
 
+def refuse_part_of_a_larger_chessboard(spec: BoardSpec, detected: list[Path], where: str, probes: int = 2) -> None:
+    """Raise where the images show a chessboard with more inner corners than ``spec``: OpenCV then finds a part of
+    it, and which part can differ between images and between a rig's two cameras (E^sl off by whole squares).
+    ``detected``: images in which ``spec`` was found; a few of them, spread out, are searched one corner larger."""
+    cols, rows = spec.inner_corners  # type: ignore[misc]  # the board type's fields are set (parse_board)
+    for path in detected[::max(1, len(detected) // probes)][:probes]:
+        gray = read_gray(path)
+        for grid in ((cols + 1, rows), (cols, rows + 1)):
+            if find_chessboard(gray, grid, fast=True) is not None:
+                raise InputError(f"{where}: {path.name} shows a chessboard with at least inner_corners [{grid[0]}, "
+                                 f"{grid[1]}], more than board.yaml's [{cols}, {rows}]: only a part of the board "
+                                 "would be used, and which part can differ between images and cameras; fix "
+                                 "'inner_corners' in board.yaml (count inner corners = squares - 1)")
+
+
 def diagnose_no_detection(spec: BoardSpec, paths: list[Path], where: str) -> InputError:
     """An error explaining why ``spec`` was found in none of ``paths``, with a corrected spec if one fits."""
     images = _probe_images(paths)

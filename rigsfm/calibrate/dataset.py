@@ -64,6 +64,9 @@ def _rig(folder: Path, name: str, what: str) -> RigFrames:
 
 def discover_rigs(root: Path, what: str = "board images") -> list[RigFrames]:
     root = Path(root)
+    if root.exists() and not root.is_dir():
+        raise InputError(f"{what}: {root} is a file, not a folder; give the folder that holds <rig>/wide and "
+                         "<rig>/narrow")
     if not root.is_dir():
         raise InputError(f"{what} folder {root} does not exist")
     if (root / "wide").is_dir() or (root / "narrow").is_dir():

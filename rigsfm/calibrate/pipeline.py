@@ -29,6 +29,7 @@ from rigsfm.calibrate.board import (
     diagnose_no_detection,
     load_board_spec,
     read_gray,
+    refuse_part_of_a_larger_chessboard,
 )
 from rigsfm.calibrate.dataset import RigFrames, discover_rigs
 from rigsfm.calibrate.intrinsics import CameraCalibration, calibrate_camera, colmap_camera
@@ -39,7 +40,7 @@ from rigsfm.calibrate.uncertainty import RigSigmas, rig_sigmas
 from rigsfm.core.conventions import rotation_angle_deg
 from rigsfm.core.errors import InputError
 from rigsfm.core.opencv_threads import one_opencv_thread
-from rigsfm.core.rig import RigCalibration
+from rigsfm.core.rig import BASELINE_RANGE_M, RigCalibration
 
 logger = logging.getLogger(__name__)
 
@@ -111,6 +112,9 @@ def calibrate_rig(frames: RigFrames, board: BoardSpec, *, distortion: Distortion
         logger.info("%s: board found in %d of %d images", where, found, len(paths))
         if found == 0:
             raise diagnose_no_detection(board, [paths[n] for n in sorted(paths)], where)
+        if board.type == "chessboard":
+            refuse_part_of_a_larger_chessboard(
+                board, [paths[n] for n, d in sorted(detections[sensor].items()) if d is not None], where)
     obj = board.object_points()
     wide = calibrate_camera("wide", detections["wide"], obj, sizes["wide"], distortion, f"rig {frames.name} wide")
     narrow = calibrate_camera("narrow", detections["narrow"], obj, sizes["narrow"], distortion, f"rig {frames.name} narrow")
@@ -137,11 +141,23 @@ def calibrate_rig(frames: RigFrames, board: BoardSpec, *, distortion: Distortion
     return result
 
 
+def check_baseline_option(baseline: float | None) -> None:
+    """--baseline is a length in metres within the range `rigsfm run` accepts for E^sl in rigs.yaml."""
+    if baseline is None:
+        return
+    if not (np.isfinite(baseline) and baseline > 0):
+        raise InputError(f"--baseline must be a positive length in metres, got {baseline}")
+    low, high = BASELINE_RANGE_M
+    if not low <= baseline <= high:
+        hint = f" (in millimetres? {baseline:g} mm is {baseline / 1000:g} m)" if baseline > high else ""
+        raise InputError(f"--baseline {baseline:g} m is outside {low * 1000:g} mm - {high:g} m{hint}; give the "
+                         "measured distance between the two cameras in metres")
+
+
 def calibrate_rigs(board_dir: Path, board: BoardSpec, *, distortion: Distortion = Distortion.AUTO, scene_dir: Path | None = None,
                    baseline: float | None = None, rig_names: list[str] | None = None) -> CalibrationResult:
     """Calibrate every rig under ``board_dir`` (``<rig>/wide``, ``<rig>/narrow``)."""
-    if baseline is not None and not (np.isfinite(baseline) and baseline > 0):
-        raise InputError(f"--baseline must be a positive length in metres, got {baseline}")
+    check_baseline_option(baseline)
     rigs = discover_rigs(Path(board_dir), "board images")
     if rig_names is not None:
         rigs = [r for r in rigs if r.name in rig_names]
@@ -178,6 +194,7 @@ def calibrate(board_images: Path, out: Path, options: CalibrateOptions) -> tuple
     from rigsfm.calibrate.report import check_report_dir
 
     spec = load_board_spec(options.board)
+    check_baseline_option(options.baseline)
     names = [r.name for r in discover_rigs(board_images, "board images")]
     check_output(out, names, merge=options.merge, overwrite=options.overwrite)
     check_report_dir(options.report_dir if options.report_dir is not None else default_report_dir(Path(out)), names)

@@ -285,6 +285,8 @@ def parse_heights(text: str) -> tuple[float, float]:
     except (TypeError, ValueError):
         raise InputError(f"--heights {text!r}: give two heights in metres above the floor, e.g. 0-2.2 or "
                          "-0.5,2.2") from None
-    if not (math.isfinite(low) and math.isfinite(high) and low < high):
+    if not (math.isfinite(low) and math.isfinite(high)):
+        raise InputError(f"--heights {text!r}: give two finite heights in metres above the floor, e.g. 0-2.2")
+    if not low < high:
         raise InputError(f"--heights {text!r}: the first height must be below the second (e.g. 0-2.2)")
     return low, high

@@ -17,6 +17,7 @@ from urllib.parse import parse_qs, urlparse
 
 from rigsfm.core.errors import RigsfmError
 from rigsfm.core.local_server import SHARED_FILES, LocalHandler, LocalServer, image_bytes
+from rigsfm.core.workspace import os_error_text
 from rigsfm.explore.session import ExploreOptions, ExploreSession
 
 logger = logging.getLogger(__name__)
@@ -70,7 +71,13 @@ class _Handler(LocalHandler):
             if not isinstance(body, dict) or "labels" not in body or not isinstance(body.get("frame"), str):
                 raise ValueError('expected {"frame": NAME, "labels": [{"image", "x", "y", "person"}, ...]}')
             self._json(self.session.set_frame_labels(body["frame"], body["labels"]))
-        except (RigsfmError, ValueError, RecursionError, OSError) as error:
+        except OSError as error:  # the request was fine, the CSV could not be written: name it, not a temporary file
+            csv = self.session.csv_path
+            blocked = any(folder.exists() and not folder.is_dir() for folder in csv.parents)  # mkdir says EEXIST
+            cause = "a part of the path is a file, not a folder" if blocked else os_error_text(error)
+            self._json({"error": f"cannot save to {csv}: {cause}; nothing was saved: fix the folder (or restart "
+                                 "with another --labels) and click again"}, HTTPStatus.INTERNAL_SERVER_ERROR)
+        except (RigsfmError, ValueError, RecursionError) as error:
             self._json({"error": str(error) or type(error).__name__}, HTTPStatus.BAD_REQUEST)
 
 

@@ -94,6 +94,8 @@ class ExploreResult:
         if folder is None:
             raise InputError(f"{self.workspace.summary} names no IMAGES folder to read the narrow images from; pass "
                              "--images IMAGES (the run's)")
+        if not Path(folder).is_dir() and images is not None:
+            raise InputError(f"--images {folder} is not a folder; give the run's IMAGES folder")
         if not Path(folder).is_dir():
             raise InputError(f"the narrow images are read from the run's IMAGES folder {folder}, which is not a "
                              "folder here (moved?); pass --images IMAGES")

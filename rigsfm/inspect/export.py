@@ -155,6 +155,23 @@ def world_metadata(workspace: Workspace) -> dict[str, str]:
     return {"world": "the mapper's frame (no floor frame)"} if world else {}
 
 
+def warn_wildtrack_world(workspace: Workspace) -> None:
+    """WILDTRACK's loaders take the extrinsics in centimetres with the floor at z = 0: say where the run's world
+    is neither (the files carry no units or frame to tell them)."""
+    try:
+        poses = json.loads(workspace.narrow_poses.read_text(encoding="utf-8"))
+    except (OSError, json.JSONDecodeError, UnicodeDecodeError):
+        return
+    problems = []
+    if poses.get("metric") is not True:
+        problems.append("not metric (its units are arbitrary, written as if metres x 100)")
+    if (poses.get("world") or {}).get("frame") != "floor":
+        problems.append("not in the floor frame (z = 0 is not the floor that WILDTRACK/MVDet project onto)")
+    if problems:
+        logger.warning("WILDTRACK export of a result %s: a loader will take it for centimetres on the floor",
+                       " and ".join(problems))
+
+
 def check_destination(dest: Path, workspace: Workspace, *, overwrite: bool) -> Previous:
     """What an export into ``dest`` may replace: the files of an earlier export listed in its manifest and still
     as rigsfm wrote them.
@@ -178,6 +195,9 @@ def export(out: Path, options: ExportOptions) -> Path:
     workspace = Workspace(Path(out))
     workspace.require_result()
     fmt = ExportFormat(options.format)
+    if options.images and fmt != ExportFormat.WILDTRACK:  # refused rather than ignored: the user asked for images
+        raise InputError(f"--images writes the undistorted narrow images of --format wildtrack only; export "
+                         f"{fmt} without it")
     dest = Path(options.dest) if options.dest is not None else workspace.export(fmt)
     previous = check_destination(dest, workspace, overwrite=options.overwrite)
     reconstruction = workspace.read_sparse()
@@ -197,6 +217,7 @@ def export(out: Path, options: ExportOptions) -> Path:
         elif fmt == ExportFormat.TOML:
             write_toml(reconstruction, tmp, metadata=world_metadata(workspace))
         elif fmt == ExportFormat.WILDTRACK:
+            warn_wildtrack_world(workspace)
             if options.images and images_dir is None:
                 raise InputError(f"{workspace.summary} names no image folder; export without --images")
             write_wildtrack(reconstruction, tmp, images_dir if options.images else None)

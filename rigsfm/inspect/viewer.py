@@ -11,6 +11,8 @@ and the fallback is logged.
 
 from __future__ import annotations
 
+import ctypes
+import ctypes.util
 import logging
 import os
 from dataclasses import dataclass
@@ -22,7 +24,7 @@ import open3d as o3d
 import pycolmap
 
 from rigsfm.core.conventions import opencv_from_colmap_pixels
-from rigsfm.core.errors import WorkspaceError
+from rigsfm.core.errors import InputError, WorkspaceError
 from rigsfm.core.names import name_of
 from rigsfm.core.workspace import Workspace
 
@@ -125,7 +127,7 @@ def linear_from_srgb(colour) -> np.ndarray:
     return np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)
 
 
-def render_offscreen(scene: Scene, path: Path, width: int, height: int) -> None:
+def render_offscreen(scene: Scene, width: int, height: int) -> np.ndarray:
     rendering = o3d.visualization.rendering
     renderer = rendering.OffscreenRenderer(width, height)
     renderer.scene.set_background([*BACKGROUND_RGB, 1.0])
@@ -144,10 +146,10 @@ def render_offscreen(scene: Scene, path: Path, width: int, height: int) -> None:
     eye, target = view_eye(scene)
     renderer.setup_camera(50.0, target, eye, scene.up)
     image = np.asarray(renderer.render_to_image())
-    cv2.imwrite(str(path), cv2.cvtColor(image, cv2.COLOR_RGB2BGR))
+    return cv2.cvtColor(image, cv2.COLOR_RGB2BGR)
 
 
-def render_raster(scene: Scene, path: Path, width: int, height: int) -> None:
+def render_raster(scene: Scene, width: int, height: int) -> np.ndarray:
     """The same view drawn with OpenCV: a pinhole camera at ``view_eye``, lines and points only."""
     eye, target = view_eye(scene)
     forward = (target - eye) / np.linalg.norm(target - eye)
@@ -177,19 +179,29 @@ def render_raster(scene: Scene, path: Path, width: int, height: int) -> None:
                 colour = tuple(int(255 * v) for v in colours[k][::-1])
                 cv2.line(canvas, tuple(np.round(xy[a]).astype(int)), tuple(np.round(xy[b]).astype(int)), colour, 2,
                          cv2.LINE_AA)
-    cv2.imwrite(str(path), canvas)
+    return canvas
 
 
 def screenshot(out: Path, path: Path, width: int = 1280, height: int = 800) -> Path:
     """Render the network view headless into ``path`` (PNG); returns it."""
-    scene = build_scene(load_model(out))
     path = Path(path)
+    if not cv2.haveImageWriter(str(path)):  # checked before the work: OpenCV picks the format by the suffix
+        raise InputError(f"--screenshot '{path}': no image format for the name's ending "
+                         f"'{path.suffix}'; give a file name ending in .png (or .jpg)")
+    scene = build_scene(load_model(out))
     path.parent.mkdir(parents=True, exist_ok=True)
     try:
-        render_offscreen(scene, path, width, height)
+        image = render_offscreen(scene, width, height)
     except Exception as error:  # no GPU / Vulkan / EGL: draw the same geometry ourselves
         logger.warning("Open3D offscreen rendering unavailable (%s); using the OpenCV rasteriser", error)
-        render_raster(scene, path, width, height)
+        image = render_raster(scene, width, height)
+    try:
+        written = cv2.imwrite(str(path), image)
+    except cv2.error:
+        written = False
+    if not written:  # imwrite says False (a folder of that name, no write permission, a full disk) but raises nothing
+        raise WorkspaceError(f"cannot write the screenshot {path}: check that its folder is writable and that it is "
+                             "not a folder itself")
     return path
 
 
@@ -199,17 +211,48 @@ def load_model(out: Path) -> pycolmap.Reconstruction:
     return workspace.read_sparse()
 
 
+def _x11_display_opens(display: str) -> bool:
+    """Whether libX11 connects to ``display``; True where libX11 is missing (then the window is simply tried)."""
+    name = ctypes.util.find_library("X11")
+    if name is None:
+        return True
+    try:
+        x11 = ctypes.CDLL(name)
+    except OSError:
+        return True
+    x11.XOpenDisplay.restype = ctypes.c_void_p
+    x11.XOpenDisplay.argtypes = [ctypes.c_char_p]
+    x11.XCloseDisplay.argtypes = [ctypes.c_void_p]
+    connection = x11.XOpenDisplay(display.encode())
+    if not connection:
+        return False
+    x11.XCloseDisplay(connection)
+    return True
+
+
+def _wayland_socket_exists(display: str) -> bool:
+    runtime = os.environ.get("XDG_RUNTIME_DIR")
+    path = Path(display) if display.startswith("/") else Path(runtime or "/nonexistent", display)
+    return path.is_socket()
+
+
 def has_display() -> bool:
-    """Whether a window can open here (an X11 or Wayland display is set)."""
-    return bool(os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))
+    """Whether a window can open here: an X11 display that accepts a connection or a Wayland socket. A DISPLAY
+    that names no reachable server is not one: Open3D would then draw into an invisible offscreen window and wait
+    on it for ever, deaf to Ctrl-C."""
+    wayland, x11 = os.environ.get("WAYLAND_DISPLAY"), os.environ.get("DISPLAY")
+    return bool((wayland and _wayland_socket_exists(wayland)) or (x11 and _x11_display_opens(x11)))
 
 
 def show(out: Path) -> None:
     """Open an Open3D window on the network: points, wide (blue) and narrow (orange) frustums, rig links (green),
     world axes (red x, green y, blue z)."""
     if not has_display():
-        raise WorkspaceError("no display here (DISPLAY and WAYLAND_DISPLAY are unset): `rigsfm view` opens a window; "
-                             "use `rigsfm view OUT --screenshot view.png` to render the view into a file instead")
+        which = ", ".join(f"{k}={os.environ[k]!r}" for k in ("DISPLAY", "WAYLAND_DISPLAY") if os.environ.get(k))
+        why = (f"{which} names no display that accepts a connection" if which
+               else "DISPLAY and WAYLAND_DISPLAY are unset")
+        raise WorkspaceError(f"no display here ({why}): `rigsfm view` opens a window; use `rigsfm view OUT "
+                             "--screenshot view.png` to render the view into a file instead")
     scene = build_scene(load_model(out))
     geometries = ([scene.points] if len(scene.points.points) else []) + list(scene.lines.values())
     try:

@@ -131,7 +131,8 @@ class PickerSession:
 
     def _read(self) -> tuple[list[list[float]], list[Correspondence]]:
         """This pair's rows and the others, as the CSV on disk holds them now."""
-        rows = read_manual_matches(self.csv_path) if self.csv_path.is_file() else []
+        # a folder or FIFO at the CSV's path is refused by the reader, not taken for "no CSV yet": no save could land
+        rows = read_manual_matches(self.csv_path) if self.csv_path.exists() else []
         a, b = (image.name for image in self.images)
         pairs, others = [], []
         for row in rows:

@@ -1,0 +1,71 @@
+"""`rigsfm view` where no window can open and `--screenshot` where the file cannot be written: one line, exit 1.
+
+A DISPLAY naming no X server made Open3D fall back to an invisible offscreen window and wait on it for ever, deaf to
+Ctrl-C; a --screenshot name without an image suffix was an internal error, and one that could not be written was
+reported as written.
+"""
+
+from __future__ import annotations
+
+import json
+import socket
+
+import numpy as np
+import pycolmap
+from typer.testing import CliRunner
+
+from rigsfm.cli import app
+from rigsfm.inspect.viewer import has_display
+
+
+def tiny_result(out):
+    """A finished-looking OUT: two posed images of one rig's wide camera, no points."""
+    rec = pycolmap.Reconstruction()
+    camera = pycolmap.Camera.create_from_model_name(1, "PINHOLE", 400.0, 320, 240)
+    rec.add_camera_with_trivial_rig(camera)
+    for image_id, x in ((1, 0.0), (2, 1.0)):
+        image = pycolmap.Image(image_id=image_id, name=f"rig0{image_id}/wide/f0.png", camera_id=1)
+        rec.add_image_with_trivial_frame(image, pycolmap.Rigid3d(pycolmap.Rotation3d(), np.array([x, 0.0, 0.0])))
+    (out / "sparse").mkdir(parents=True)
+    rec.write_binary(str(out / "sparse"))
+    (out / "narrow_poses.json").write_text(json.dumps({}))
+    return out
+
+
+def test_a_display_no_server_answers_is_no_display(monkeypatch, tmp_path):
+    monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
+    monkeypatch.setenv("DISPLAY", ":4711")  # no X server listens there
+    assert not has_display()
+    result = CliRunner().invoke(app, ["view", str(tmp_path / "out")])
+    assert result.exit_code == 1, result.output
+    assert "DISPLAY=':4711' names no display that accepts a connection" in result.output
+    assert "--screenshot view.png" in result.output and "Traceback" not in result.output
+
+
+def test_a_wayland_display_is_its_socket(monkeypatch, tmp_path):
+    monkeypatch.delenv("DISPLAY", raising=False)
+    monkeypatch.setenv("XDG_RUNTIME_DIR", str(tmp_path))
+    monkeypatch.setenv("WAYLAND_DISPLAY", "wl-test")
+    assert not has_display()
+    monkeypatch.chdir(tmp_path)  # a relative name keeps the socket's path short
+    with socket.socket(socket.AF_UNIX) as server:
+        server.bind("wl-test")
+        assert has_display()
+
+
+def test_screenshot_name_without_an_image_format_is_refused_first(tmp_path):
+    result = CliRunner().invoke(app, ["view", str(tmp_path / "no-result"), "--screenshot", str(tmp_path / "v.txt")])
+    assert result.exit_code == 1, result.output
+    assert "no image format for the name's ending '.txt'" in result.output
+    assert not (tmp_path / "v.txt").exists()
+
+
+def test_screenshot_that_cannot_be_written_is_an_error(tmp_path):
+    out = tiny_result(tmp_path / "out")
+    (tmp_path / "taken.png").mkdir()  # a folder where the file should go: OpenCV's imwrite returns False
+    result = CliRunner().invoke(app, ["view", str(out), "--screenshot", str(tmp_path / "taken.png")])
+    assert result.exit_code == 1, result.output
+    assert "cannot write the screenshot" in result.output and "screenshot: " not in result.output
+    written = CliRunner().invoke(app, ["view", str(out), "--screenshot", str(tmp_path / "v.png")])
+    assert written.exit_code == 0, written.output
+    assert (tmp_path / "v.png").stat().st_size > 0

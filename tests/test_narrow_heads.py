@@ -68,6 +68,27 @@ def _centre_errors(pairs, known: dict) -> np.ndarray:
     return np.concatenate(errors)
 
 
+
+@pytest.mark.slow
+def test_the_bar_finishes_a_frame_without_a_head_candidate(rendered, tmp_path):
+    """Narrow views with nothing round in them (a featureless centre): the frame's bar still ends full (it stopped
+    at 8 of 9 on the demo's)."""
+    dataset = rendered(PERSONS)
+    truth = dataset.load_ground_truth()
+    names = [im.name for im in truth.images.values() if "/narrow/" in im.name]
+    for name in names:
+        blank = tmp_path / name
+        blank.parent.mkdir(parents=True, exist_ok=True)
+        grey = read_image(Path(dataset.images) / name, cv2.IMREAD_GRAYSCALE)
+        assert grey is not None
+        cv2.imwrite(str(blank), np.full_like(grey, 128))
+    calls: list[tuple[int, int]] = []
+    bands = {(a, b): BAND_PX for a in names for b in names if a != b}
+    heads = match_heads(truth, tmp_path, synchronised_frames(truth), bands, progress=lambda *call: calls.append(call))
+    searched = len(heads.candidates)
+    assert searched >= 2 and sum(heads.candidates.values()) == 0 and not heads.pairs
+    assert calls[-1] == (searched + 1, searched + 1), calls
+
 @pytest.mark.slow
 def test_heads_are_matched_across_views_and_turn_the_observations_on(rendered):
     dataset = rendered(PERSONS)

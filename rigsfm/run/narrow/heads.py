@@ -340,6 +340,8 @@ def match_heads(floor_model: pycolmap.Reconstruction, image_dir: Path, frames: d
                 if progress:
                     progress(len(views), len(names) + 1)
         if sum(len(v.xy) for v in views) == 0:
+            if progress:  # nothing to associate: the frame is done
+                progress(len(names) + 1, len(names) + 1)
             continue
         pair_bands = {key: float(b) for key, b in bands.items() if key[0] in names and key[1] in names
                       and b is not None and math.isfinite(float(b))}

@@ -443,6 +443,7 @@ def test_ctrl_c_ends_pick_with_where_the_pairs_are(tmp_path):
     code, lines, stdout = _stop(args, tmp_path, signal.SIGINT, 0.0, ready="Ctrl-C to stop")  # how it stops
     assert (code, lines) == (0, []), lines
     assert stdout.splitlines()[-1] == "stopped: 0 pairs in m.csv (for `rigsfm run ... --manual-matches m.csv`)"
+    assert "without --rigs the epipolar lines ignore the lenses' distortion" in stdout, stdout  # said at the start
     code, lines, _ = _stop(args, tmp_path, signal.SIGTERM, 0.0, ready="Ctrl-C to stop")
     assert code == 143 and len(lines) == 1 and lines[0].startswith("terminated (SIGTERM): "), lines
     # started with both signals blocked (a parent's mask: a test runner's worker had it so), Ctrl-C still ends it

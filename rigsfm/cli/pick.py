@@ -31,6 +31,9 @@ def pick_command(
 
     server = start_picker(image_a, image_b, out, rigs, port, flag_px)
     try:
+        if rigs is None:  # a wide lens bends its lines: true pairs far from the image centre are flagged
+            console.print(f"without --rigs the epipolar lines ignore the lenses' distortion, so pairs near the edges "
+                          f"may be flagged (> {flag_px:g} px) though right; pass --rigs rigs.yaml for curves")
         console.print(f"picker for {server.session.images[0].name} <-> {server.session.images[1].name}: "
                       f"open {server.url} (saves to {out} on every change); Ctrl-C to stop")
         threading.Event().wait()

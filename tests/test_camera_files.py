@@ -182,21 +182,32 @@ def test_repeated_names_after_sanitising_are_refused(tmp_path):
         write_toml(rec, tmp_path)
 
 
-def test_several_frames_export_their_mean_pose(tmp_path):
+def test_several_frames_export_their_mean_pose(tmp_path, caplog):
+    """A camera of several frames is exported as their mean; where frames differ, one warning for all cameras (a
+    recording's every camera said it on a line of its own)."""
+    import logging
+
     rec = pycolmap.Reconstruction()
-    camera = pycolmap.Camera.create_from_model_name(1, "OPENCV", 1.0, 812, 617)
-    camera.params = MODELS["OPENCV"]
-    rec.add_camera_with_trivial_rig(camera)
     base = random_pose(np.random.default_rng(4))
-    tweak = pycolmap.Rigid3d(pycolmap.Rotation3d(np.array([1e-4, 0, 0, 1.0]) / np.linalg.norm([1e-4, 0, 0, 1.0])),
+    tweak = pycolmap.Rigid3d(pycolmap.Rotation3d(np.array([4e-4, 0, 0, 1.0]) / np.linalg.norm([4e-4, 0, 0, 1.0])),
                              np.array([2e-4, 0, 0]))
-    rec.add_image_with_trivial_frame(pycolmap.Image(image_id=1, name="rig01/wide/f0.png", camera_id=1), base)
-    rec.add_image_with_trivial_frame(pycolmap.Image(image_id=2, name="rig01/wide/f1.png", camera_id=1), tweak * base)
-    group = CameraGroup.load(str(write_toml(rec, tmp_path)[0]))
-    assert len(group.cameras) == 1
+    for rig in (1, 2, 3):
+        camera = pycolmap.Camera.create_from_model_name(rig, "OPENCV", 1.0, 812, 617)
+        camera.params = MODELS["OPENCV"]
+        rec.add_camera_with_trivial_rig(camera)
+        moved = tweak * tweak * base if rig == 2 else tweak * base
+        for frame, pose in enumerate((base, moved)):
+            rec.add_image_with_trivial_frame(pycolmap.Image(image_id=2 * rig + frame, name=f"rig0{rig}/wide/f{frame}.png",
+                                                            camera_id=rig), pose)
+    with caplog.at_level(logging.WARNING, logger="rigsfm.inspect.camera_files"):
+        group = CameraGroup.load(str(write_toml(rec, tmp_path)[0]))
+    assert len(group.cameras) == 3
     centre = -cv2.Rodrigues(group.cameras[0].get_rotation())[0].T @ group.cameras[0].get_translation()
-    expected = (rec.images[1].projection_center() + rec.images[2].projection_center()) / 2
+    expected = (rec.images[2].projection_center() + rec.images[3].projection_center()) / 2
     np.testing.assert_allclose(centre, expected, atol=1e-9)
+    warnings = [r.getMessage() for r in caplog.records]
+    assert len(warnings) == 1 and warnings[0].startswith("3 camera(s) have several frames") \
+        and "rig02_wide, 2 frames" in warnings[0], warnings
 
 
 def finished_workspace(root):

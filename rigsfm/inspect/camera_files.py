@@ -102,9 +102,11 @@ def opencv_intrinsics(camera: pycolmap.Camera, where: str = "") -> tuple[np.ndar
     return k, np.asarray(distortion, dtype=np.float64), fisheye
 
 
-def _mean_pose(poses: Sequence[pycolmap.Rigid3d], name: str) -> pycolmap.Rigid3d:
+def _mean_pose(poses: Sequence[pycolmap.Rigid3d]) -> tuple[pycolmap.Rigid3d, float, float]:
+    """The mean of a camera's frames' poses, and how far the frames' centres (model units) and rotations (deg)
+    stray from it."""
     if len(poses) == 1:
-        return poses[0]
+        return poses[0], 0.0, 0.0
     quats = np.array([p.rotation.quat for p in poses])  # [x, y, z, w]
     quats *= np.sign(quats @ quats[0])[:, None]
     _, vectors = np.linalg.eigh(quats.T @ quats)
@@ -113,11 +115,8 @@ def _mean_pose(poses: Sequence[pycolmap.Rigid3d], name: str) -> pycolmap.Rigid3d
     centre = centres.mean(axis=0)
     spread_m = float(np.linalg.norm(centres - centre, axis=1).max())
     spread_deg = max(float(np.degrees((mean_rotation.inverse() * p.rotation).angle())) for p in poses)
-    if spread_m > 1e-3 or spread_deg > 0.01:
-        logger.warning("%s: its %d frames' poses differ by up to %.3g (units) and %.3g deg; exporting their mean",
-                       name, len(poses), spread_m, spread_deg)
     rotation = mean_rotation.matrix()
-    return pycolmap.Rigid3d(mean_rotation, -rotation @ centre)
+    return pycolmap.Rigid3d(mean_rotation, -rotation @ centre), spread_m, spread_deg
 
 
 def _parsed(image_name: str) -> ImageName | None:
@@ -142,7 +141,7 @@ def opencv_cameras(reconstruction: pycolmap.Reconstruction, sensors: Sequence[st
         parsed = _parsed(image.name)
         if image.has_pose and (parsed is None or str(parsed.sensor) in sensors):
             by_camera.setdefault(image.camera_id, []).append(image)
-    cameras = []
+    cameras, strays = [], []
     for camera_id, images in by_camera.items():
         images.sort(key=lambda im: im.name)
         name = camera_name(images[0].name, camera_id)
@@ -152,11 +151,19 @@ def opencv_cameras(reconstruction: pycolmap.Reconstruction, sensors: Sequence[st
             raise InputError(f"{name}: {camera.model.name} is a fisheye model, which EasyMocap's intri.yml cannot "
                              "express (its reader always uses the pinhole model); export --format toml "
                              "(aniposelib reads fisheye cameras) or calibrate with OPENCV/FULL_OPENCV")
-        pose = _mean_pose([im.cam_from_world() for im in images], name)
+        pose, spread, spread_deg = _mean_pose([im.cam_from_world() for im in images])
+        if spread > 1e-3 or spread_deg > 0.01:
+            strays.append((spread, spread_deg, name, len(images)))
         rotation = pose.rotation.matrix()
         rvec, _ = cv2.Rodrigues(rotation)
         cameras.append(OpenCVCamera(name, int(camera.width), int(camera.height), k, distortion, fisheye,
                                     rvec.reshape(3), np.asarray(pose.translation, dtype=np.float64), rotation))
+    if strays:  # one line for a recording's every camera: each frame is registered on its own
+        largest = max(strays)
+        logger.warning("%d camera(s) have several frames whose poses differ (up to %.3g in the model's units, metres "
+                       "where the run is metric, and %.3g deg: %s, %d frames); each is exported as the mean of its "
+                       "frames: where a rig moved, `rigsfm track` says when", len(strays), largest[0],
+                       max(s[1] for s in strays), largest[2], largest[3])
     cameras.sort(key=lambda c: c.name)
     names = [c.name for c in cameras]
     repeated = sorted({n for n in names if names.count(n) > 1})

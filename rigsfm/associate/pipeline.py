@@ -210,16 +210,16 @@ def associate_frames(model: RunModel, detections: Detections, options: Associate
         for k, (frame, _) in enumerate(frames):
             views = pending.result()  # type: ignore[union-attr]  # one per frame
             pending = reader.submit(frame_views, model, detections, *frames[k + 1]) if k + 1 < len(frames) else None
-            out.append(_associate_frame(frame, views, detections, options, carried, out[-1] if out else None))
             lent = {ImageName.parse(model.stand_ins[v.name]).frame for v in views if v.name in model.stand_ins}
-            out[-1].poses_from = min(lent) if lent else None
+            out.append(_associate_frame(frame, views, detections, options, carried, out[-1] if out else None,
+                                        min(lent) if lent else None))
             if progress:
                 progress(len(out), len(frames))
     return out
 
 
 def _associate_frame(frame: str, views: list[View], detections: Detections, options: AssociateOptions,
-                     carried: dict[str, View], before: FramePersons | None) -> FramePersons:
+                     carried: dict[str, View], before: FramePersons | None, poses_from: str | None) -> FramePersons:
     """One frame of :func:`associate_frames`; ``carried`` (per camera, its latest view) is updated."""
     cameras = [ImageName.parse(v.name).camera for v in views]
     known = bool(views) and all(c in carried for c in cameras)
@@ -233,7 +233,7 @@ def _associate_frame(frame: str, views: list[View], detections: Detections, opti
     carried.update((camera, view) for camera, view in zip(cameras, views) if view.band_sigma_px is not None)
     for view in views:
         view.grey = None  # read for this frame's appearance only; kept, a recording would hold every image
-    return FramePersons(frame, result, detections, views, wall, cpu)
+    return FramePersons(frame, result, detections, views, wall, cpu, poses_from)
 
 
 def associate(out: Path, detections_csv: Path, options: AssociateOptions | None = None,

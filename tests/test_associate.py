@@ -545,6 +545,12 @@ def test_frames_the_run_was_not_given_take_the_poses_of_one_of_its_frames(crowd,
     first = json.loads((own / "frame0000" / "persons.json").read_text())
     later = json.loads((lent / "frame0007" / "persons.json").read_text())
     assert first["poses_from"] is None and later["poses_from"] == "frame0000.png"
+    workspace = tmp_path / "workspace"  # report.html's table says which frame's poses each frame took
+    workspace.mkdir()
+    shutil.copytree(lent, workspace / "associate")
+    assert "<td>lent by frame0000.png</td></tr>" in associate_report_section(workspace)
+    shutil.copytree(own, workspace / "associate", dirs_exist_ok=True)
+    assert "<td>its own</td></tr>" in associate_report_section(workspace)
     assert len(first["persons"]) > 100
     assert json.dumps(later["persons"]).replace("frame0007", "frame0000") == json.dumps(first["persons"])
 

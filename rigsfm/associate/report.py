@@ -31,7 +31,8 @@ def _frame_row(path: Path) -> list[str]:
     confident = sum(p["confidence"] >= 0.5 for p in persons)
     return [html.escape(str(data["frame"])), str(len(persons)), str(confident), str((views >= 3).sum()),
             f"{assigned} of {total}",
-            f"{np.median(sigma) * 100:.1f}" if len(sigma) else "&ndash;"]
+            f"{np.median(sigma) * 100:.1f}" if len(sigma) else "&ndash;",
+            html.escape(f"lent by {data['poses_from']}") if data.get("poses_from") else "its own"]
 
 
 def _figure(path: Path, caption: str) -> str:
@@ -53,9 +54,11 @@ def associate_report_section(out: Path) -> str:
              f"<p>{len(frames)} frame(s) associated by <code>rigsfm associate</code> in {html.escape(str(folder))}: "
              "each person's detections (at most one per view), its position in the world frame and its "
              "covariance (persons.csv / persons.json per frame). Confident: likelier one person than chance "
-             "(confidence &ge; 0.5); sigma: the largest horizontal standard deviation of a position.</p>",
+             "(confidence &ge; 0.5); sigma: the largest horizontal standard deviation of a position; poses: the "
+             "run's own for the frame, or those of a frame of the run lent to a frame it was not given "
+             "(<code>--poses-from</code>: static rigs).</p>",
              "<table><thead><tr><th>frame</th><th>persons</th><th>confident</th><th>in &ge; 3 views</th>"
-             "<th>detections assigned</th><th>sigma median (cm)</th></tr></thead><tbody>"]
+             "<th>detections assigned</th><th>sigma median (cm)</th><th>narrow poses</th></tr></thead><tbody>"]
     parts += ["<tr>" + "".join(f"<td>{cell}</td>" for cell in _frame_row(path)) + "</tr>"
               for path in frames[:SHOWN_FRAMES]]
     parts.append("</tbody></table>")

@@ -188,6 +188,25 @@ def test_offsets_file_is_checked(tmp_path):
             read_frame_offsets(path, ["rig01", "rig03"], {"rig01": 3, "rig03": 3})
 
 
+def test_an_offsets_file_of_another_form_is_refused_with_the_form_it_takes(tmp_path):
+    """An empty file, or the synth's 'rig03=1', or 'rig03:1' (YAML text without the space), said only "expected a
+    mapping"; a rig without narrow images said "offsets 1..-1"; 1.0 was refused as not a whole number."""
+    path = tmp_path / "offsets.yaml"
+    form = r"; write one line per rig that is off, '<rig>: <whole frames>' with a space after the colon"
+    for text, message in (("", r"offsets.yaml: the frame offsets file is empty" + form),
+                          ("# rig03 is fine\n", r"offsets.yaml: the frame offsets file is empty" + form),
+                          ("rig03=1\n", r"found the text 'rig03=1'" + form),
+                          ("rig03:1\n", r"found the text 'rig03:1'" + form),
+                          ("- rig03: 1\n", r"found a list" + form),
+                          ("rig02: 1\n", r"rig 'rig02' has no narrow images, so no offset applies to it; remove the "
+                                         r"line$")):
+        path.write_text(text)
+        with pytest.raises(InputError, match=message):
+            read_frame_offsets(path, ["rig01", "rig02", "rig03"], {"rig01": 3, "rig03": 3})
+    path.write_text("rig03: 1.0\nrig02: 0\n")
+    assert read_frame_offsets(path, ["rig01", "rig02", "rig03"], {"rig01": 3, "rig03": 3}) == {"rig03": 1, "rig02": 0}
+
+
 @pytest.mark.parametrize("asked", [None, "auto"])
 def test_run_names_the_rig_or_applies_the_estimate(world, tmp_path, asked):
     """The run's self-check stage (rigsfm.run.pipeline._self_check), given narrow_poses.json's record: without

@@ -399,8 +399,9 @@ def yaml_error_parts(error: yaml.YAMLError) -> tuple[str, str]:
     return f" line {mark.line + 1}, column {mark.column + 1}", cause
 
 
-def load_yaml_or_json(path: Path, what: str, *, max_bytes: int | None = None) -> Any:
-    """Parse a YAML (or JSON, a subset of YAML) file, with an error that names the file, the line and the cause."""
+def load_yaml_or_json(path: Path, what: str, *, max_bytes: int | None = None, form: str | None = None) -> Any:
+    """Parse a YAML (or JSON, a subset of YAML) file, with an error that names the file, the line and the cause;
+    ``form`` (how the file is written) ends the error of a file that is empty or not a mapping."""
     path = Path(path)
     text = read_user_text(path, what, max_bytes=max_bytes)
     try:
@@ -414,5 +415,14 @@ def load_yaml_or_json(path: Path, what: str, *, max_bytes: int | None = None) ->
         where, cause = yaml_error_parts(e)
         raise InputError(f"{path}{where}: not valid YAML/JSON ({cause}); fix the syntax") from None
     if not isinstance(data, dict):
-        raise InputError(f"{path}: expected a mapping at the top level of the {what} file")
+        if form is None:
+            raise InputError(f"{path}: expected a mapping at the top level of the {what} file")
+        if data is None:
+            raise InputError(f"{path}: the {what} file is empty; {form}")
+        found = f"the text {_shortened(data)!r}" if isinstance(data, str) else f"a {type(data).__name__}"
+        raise InputError(f"{path}: expected a mapping at the top level of the {what} file, found {found}; {form}")
     return data
+
+
+def _shortened(text: str, limit: int = 40) -> str:
+    return text if len(text) <= limit else text[:limit] + "..."

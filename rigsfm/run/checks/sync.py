@@ -377,17 +377,22 @@ def read_frame_offsets(path: Path, rigs: list[str], frames_per_rig: dict[str, in
     """A frame-offsets file (``rig03: 1``, one rig a line, integer frames; unnamed rigs are at 0), checked against
     the rigs and the recording's length; an ``InputError`` naming the rig and the fix otherwise."""
     path = Path(path)
-    data = load_yaml_or_json(path, "frame offsets")
+    data = load_yaml_or_json(path, "frame offsets", form="write one line per rig that is off, '<rig>: <whole "
+                             "frames>' with a space after the colon (e.g. 'rig03: 1')")
     offsets = {}
     for rig, value in data.items():
         rig = str(rig)
         if rig not in rigs:
             raise InputError(f"{path}: rig {rig!r} is not in rigs.yaml ({quoted(rigs)}); fix its name or remove "
                              "the line")
+        if isinstance(value, float) and value.is_integer():  # '1.0' is a whole number of frames
+            value = int(value)
         if isinstance(value, bool) or not isinstance(value, int):
             raise InputError(f"{path}: the offset of rig '{rig}' must be a whole number of frames (e.g. '{rig}: 1'), got "
                              f"{value!r}")
         frames = frames_per_rig.get(rig, 0)
+        if value and not frames:
+            raise InputError(f"{path}: rig '{rig}' has no narrow images, so no offset applies to it; remove the line")
         if abs(value) >= max(frames, 1):
             raise InputError(f"{path}: the offset {value:+d} of rig '{rig}' is beyond the recording ({frames} narrow "
                              f"frame(s) of '{rig}': offsets {-(frames - 1)}..{frames - 1}); fix the offset")

@@ -152,6 +152,16 @@ def test_self_check_blames_time_and_passes_with_the_offsets_applied(world, tmp_p
     assert any("rig03/" in p.i + p.j for p in measured) and all(p.verdict == "ok" for p in measured)
 
 
+def test_the_default_self_check_includes_a_rig_a_frame_later(world, tmp_path):
+    """With one frame checked (the default), rig03 at +1 has no frame at the first instant: the check took that
+    instant and left rig03's pairs out, saying '... ok, 0 failed' as if every rig were checked."""
+    poses = rendered(world, tmp_path, {"rig03": 1})
+    check = epipolar_self_check(world[0], tmp_path, poses, SelfCheckOptions(), {"rig03": 1})
+    assert check.frames == ["frame0001.png"]
+    measured = [p for p in check.pairs if p.verdict in ("ok", "failed")]
+    assert any("rig03/" in p.i + p.j for p in measured) and all(p.verdict == "ok" for p in measured)
+
+
 def test_frames_are_paired_by_time(world):
     grouped = frames_by_time(world[0], {"rig03": 1})
     first = grouped["frame0001.png"]

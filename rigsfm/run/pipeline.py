@@ -327,7 +327,7 @@ def _run_locked(workspace: Workspace, inputs: Inputs, manual_pairs: dict, option
     num_wide = sum(e.sensor == "wide" for e in inputs.images)
     with colmap_log_to(workspace.colmap_log):
         with timings.stage("database"):
-            create_database(workspace.database, inputs.rigs, inputs.images)
+            create_database(workspace.database, inputs.rigs, inputs.images, overwrite=options.overwrite)
         with timings.stage("features"):
             features_progress = report("features")
             drop_stale_work(workspace.database, workspace.feature_settings, options.matching,

@@ -162,6 +162,40 @@ def test_the_default_self_check_includes_a_rig_a_frame_later(world, tmp_path):
     assert any("rig03/" in p.i + p.j for p in measured) and all(p.verdict == "ok" for p in measured)
 
 
+def without(rec: pycolmap.Reconstruction, name: str) -> pycolmap.Reconstruction:
+    """``rec`` without the image ``name`` (a narrow image missing from the image folder)."""
+    out = pycolmap.Reconstruction()
+    for camera in rec.cameras.values():
+        out.add_camera(camera)
+    for rig in rec.rigs.values():
+        out.add_rig(rig)
+    drop = rec.find_image_with_name(name).image_id
+    for frame in rec.frames.values():
+        new = pycolmap.Frame(frame_id=frame.frame_id, rig_id=frame.rig_id, rig_from_world=frame.rig_from_world)
+        for data in frame.data_ids:
+            if data.id != drop:
+                new.add_data_id(data)
+        out.add_frame(new)
+    for image in rec.images.values():
+        if image.image_id != drop:
+            out.add_image(pycolmap.Image(image_id=image.image_id, name=image.name, camera_id=image.camera_id,
+                                         frame_id=image.frame_id))
+    return out
+
+
+def test_a_missing_narrow_image_does_not_move_the_rigs_later_frames(world, tmp_path):
+    """rig02's narrow frame0001 missing: its frame0002 was taken as its second frame, paired with the others'
+    frame0001 (and, rendered, rig02 was estimated a frame off where only rig03 is)."""
+    rec = without(world[0], "rig02/narrow/frame0001.png")
+    grouped = frames_by_time(rec, {"rig03": 1})
+    assert "rig02/narrow/frame0002.png" in [im.name for im in grouped["frame0002.png"]]
+    assert "rig02/narrow/frame0002.png" not in [im.name for im in grouped["frame0001.png"]]
+    poses = rendered(world, tmp_path, {"rig03": 1})
+    poses["pairs"] = [p for p in poses["pairs"] if "rig02/narrow/frame0001.png" not in (p["i"], p["j"])]
+    estimate = estimate_frame_offsets(rec, tmp_path, poses)
+    assert estimate.offsets == {"rig01": 0, "rig02": 0, "rig03": 1, "rig04": 0, "rig05": 0}
+
+
 def test_frames_are_paired_by_time(world):
     grouped = frames_by_time(world[0], {"rig03": 1})
     first = grouped["frame0001.png"]

@@ -321,6 +321,7 @@ def test_a_still_crowd_tells_no_fraction(world, tmp_path):
     poses = rendered_at((rec, texture), tmp_path, {}, still=True)
     estimate = estimate_frame_offsets(rec, tmp_path, poses)
     assert estimate.named == {} and estimate.warning is None
+    assert estimate.offsets == dict.fromkeys(estimate.offsets)  # none told: 'all rigs at 0' was said of a still crowd
     assert all(v is None for v in estimate.subframe.offsets.values())
     assert all("too little motion" in p.reason for p in estimate.subframe.pairs)
 

@@ -347,8 +347,12 @@ def estimate_frame_offsets(reconstruction: pycolmap.Reconstruction, image_dir: P
     clear = {}
     for rig in rigs:
         moved = dict(offsets, **{rig: 0})
+        # a rig at 0 is told only where a pair is not consistent a frame away (too few matches or off the lines):
+        # in a still crowd every pairing is, and 0 (the solver's tie) was told, 'all rigs at 0', whatever the truth
+        shifted = [dict(offsets, **{rig: s}) for s in (-1, 1)]
         clear[rig] = any((p.score(offsets[p.a] - offsets[p.b]) or 0.0) >= CONSISTENT
-                         and (offsets[rig] == 0 or (p.score(moved[p.a] - moved[p.b]) or 0.0) < CONSISTENT)
+                         and ((p.score(moved[p.a] - moved[p.b]) or 0.0) < CONSISTENT if offsets[rig] else
+                              any((p.score(o[p.a] - o[p.b]) or 0.0) < CONSISTENT for o in shifted))
                          for p in pairs if rig in (p.a, p.b))
     fractions, refining = [], time.perf_counter()
     for a, b in sorted(overlapping):

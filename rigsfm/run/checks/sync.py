@@ -352,7 +352,7 @@ def estimate_frame_offsets(reconstruction: pycolmap.Reconstruction, image_dir: P
         shifted = [dict(offsets, **{rig: s}) for s in (-1, 1)]
         clear[rig] = any((p.score(offsets[p.a] - offsets[p.b]) or 0.0) >= CONSISTENT
                          and ((p.score(moved[p.a] - moved[p.b]) or 0.0) < CONSISTENT if offsets[rig] else
-                              any((p.score(o[p.a] - o[p.b]) or 0.0) < CONSISTENT for o in shifted))
+                              any(_measured_unlike(p, o[p.a] - o[p.b]) for o in shifted))
                          for p in pairs if rig in (p.a, p.b))
     fractions, refining = [], time.perf_counter()
     for a, b in sorted(overlapping):
@@ -393,6 +393,12 @@ def estimate_frame_offsets(reconstruction: pycolmap.Reconstruction, image_dir: P
     logger.info("frame offsets: %s, with fractions %s (%.1f s)", estimate.offsets,
                 estimate.subframe and estimate.subframe.offsets, estimate.seconds)
     return estimate
+
+
+def _measured_unlike(pair: PairSync, d: int) -> bool:
+    """The pair was matched at ``d`` (within the offsets tried) and is not consistent there (too few matches, or
+    matches off the lines)."""
+    return any(s.d == d and (s.consistent or 0.0) < CONSISTENT for s in pair.scores)
 
 
 def read_frame_offsets(path: Path, rigs: list[str], frames_per_rig: dict[str, int]) -> dict[str, int]:

@@ -381,6 +381,28 @@ def test_a_database_removed_during_matching_is_named_then_made_again(scene, tmp_
     assert json.loads((copy / "summary.json").read_text())["registered"]["narrow"]["registered"] == 3
 
 
+def test_an_overwrite_stopped_after_the_new_model_is_written_is_not_taken_for_the_old_result(scene, tmp_path,
+                                                                                            monkeypatch):
+    """`run --overwrite` over a finished OUT, stopped by Ctrl-C in the self-check (after sparse/ and
+    narrow_poses.json are rewritten, before summary.json): the old summary.json stayed beside the new model, so the
+    OUT read as finished (report.html, a re-run refused without --overwrite) with the old run's numbers."""
+    import rigsfm.run.pipeline
+    from rigsfm.core.workspace import Workspace
+    from rigsfm.run.options import RunOptions
+
+    dataset, out = scene
+    copy = copy_workspace(out, tmp_path)
+
+    def stopped(*_, **__):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(rigsfm.run.pipeline, "_self_check", stopped)
+    with pytest.raises(KeyboardInterrupt):
+        rigsfm.run.pipeline.run(dataset.images, dataset.rigs, copy, dataset.scale, RunOptions(overwrite=True))
+    assert (copy / "narrow_poses.json").is_file() and not (copy / "summary.json").exists()
+    Workspace(copy).prepare(overwrite=False)  # unfinished: the same command without --overwrite finishes it
+
+
 # --- picker: a save that drops the saved pairs keeps a backup ---------------------------------------------------------
 
 def test_picker_put_that_empties_the_csv_keeps_a_backup(tmp_path):

@@ -152,6 +152,50 @@ def test_self_check_blames_time_and_passes_with_the_offsets_applied(world, tmp_p
     assert any("rig03/" in p.i + p.j for p in measured) and all(p.verdict == "ok" for p in measured)
 
 
+def test_the_default_self_check_includes_a_rig_a_frame_later(world, tmp_path):
+    """With one frame checked (the default), rig03 at +1 has no frame at the first instant: the check took that
+    instant and left rig03's pairs out, saying '... ok, 0 failed' as if every rig were checked."""
+    poses = rendered(world, tmp_path, {"rig03": 1})
+    check = epipolar_self_check(world[0], tmp_path, poses, SelfCheckOptions(), {"rig03": 1})
+    assert check.frames == ["frame0001.png"]
+    measured = [p for p in check.pairs if p.verdict in ("ok", "failed")]
+    assert any("rig03/" in p.i + p.j for p in measured) and all(p.verdict == "ok" for p in measured)
+
+
+def without(rec: pycolmap.Reconstruction, name: str) -> pycolmap.Reconstruction:
+    """``rec`` without the image ``name`` (a narrow image missing from the image folder)."""
+    out = pycolmap.Reconstruction()
+    for camera in rec.cameras.values():
+        out.add_camera(camera)
+    for rig in rec.rigs.values():
+        out.add_rig(rig)
+    drop = rec.find_image_with_name(name).image_id
+    for frame in rec.frames.values():
+        new = pycolmap.Frame(frame_id=frame.frame_id, rig_id=frame.rig_id, rig_from_world=frame.rig_from_world)
+        for data in frame.data_ids:
+            if data.id != drop:
+                new.add_data_id(data)
+        out.add_frame(new)
+    for image in rec.images.values():
+        if image.image_id != drop:
+            out.add_image(pycolmap.Image(image_id=image.image_id, name=image.name, camera_id=image.camera_id,
+                                         frame_id=image.frame_id))
+    return out
+
+
+def test_a_missing_narrow_image_does_not_move_the_rigs_later_frames(world, tmp_path):
+    """rig02's narrow frame0001 missing: its frame0002 was taken as its second frame, paired with the others'
+    frame0001 (and, rendered, rig02 was estimated a frame off where only rig03 is)."""
+    rec = without(world[0], "rig02/narrow/frame0001.png")
+    grouped = frames_by_time(rec, {"rig03": 1})
+    assert "rig02/narrow/frame0002.png" in [im.name for im in grouped["frame0002.png"]]
+    assert "rig02/narrow/frame0002.png" not in [im.name for im in grouped["frame0001.png"]]
+    poses = rendered(world, tmp_path, {"rig03": 1})
+    poses["pairs"] = [p for p in poses["pairs"] if "rig02/narrow/frame0001.png" not in (p["i"], p["j"])]
+    estimate = estimate_frame_offsets(rec, tmp_path, poses)
+    assert estimate.offsets == {"rig01": 0, "rig02": 0, "rig03": 1, "rig04": 0, "rig05": 0}
+
+
 def test_frames_are_paired_by_time(world):
     grouped = frames_by_time(world[0], {"rig03": 1})
     first = grouped["frame0001.png"]
@@ -186,6 +230,25 @@ def test_offsets_file_is_checked(tmp_path):
         path.write_text(text)
         with pytest.raises(InputError, match=message):
             read_frame_offsets(path, ["rig01", "rig03"], {"rig01": 3, "rig03": 3})
+
+
+def test_an_offsets_file_of_another_form_is_refused_with_the_form_it_takes(tmp_path):
+    """An empty file, or the synth's 'rig03=1', or 'rig03:1' (YAML text without the space), said only "expected a
+    mapping"; a rig without narrow images said "offsets 1..-1"; 1.0 was refused as not a whole number."""
+    path = tmp_path / "offsets.yaml"
+    form = r"; write one line per rig that is off, '<rig>: <whole frames>' with a space after the colon"
+    for text, message in (("", r"offsets.yaml: the frame offsets file is empty" + form),
+                          ("# rig03 is fine\n", r"offsets.yaml: the frame offsets file is empty" + form),
+                          ("rig03=1\n", r"found the text 'rig03=1'" + form),
+                          ("rig03:1\n", r"found the text 'rig03:1'" + form),
+                          ("- rig03: 1\n", r"found a list" + form),
+                          ("rig02: 1\n", r"rig 'rig02' has no narrow images, so no offset applies to it; remove the "
+                                         r"line$")):
+        path.write_text(text)
+        with pytest.raises(InputError, match=message):
+            read_frame_offsets(path, ["rig01", "rig02", "rig03"], {"rig01": 3, "rig03": 3})
+    path.write_text("rig03: 1.0\nrig02: 0\n")
+    assert read_frame_offsets(path, ["rig01", "rig02", "rig03"], {"rig01": 3, "rig03": 3}) == {"rig03": 1, "rig02": 0}
 
 
 @pytest.mark.parametrize("asked", [None, "auto"])
@@ -258,6 +321,7 @@ def test_a_still_crowd_tells_no_fraction(world, tmp_path):
     poses = rendered_at((rec, texture), tmp_path, {}, still=True)
     estimate = estimate_frame_offsets(rec, tmp_path, poses)
     assert estimate.named == {} and estimate.warning is None
+    assert estimate.offsets == dict.fromkeys(estimate.offsets)  # none told: 'all rigs at 0' was said of a still crowd
     assert all(v is None for v in estimate.subframe.offsets.values())
     assert all("too little motion" in p.reason for p in estimate.subframe.pairs)
 

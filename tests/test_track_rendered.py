@@ -178,6 +178,20 @@ def test_wrong_image_size_is_an_input_error_and_the_rest_is_kept(tracked, tmp_pa
     assert [f["frame"] for f in kept["rigs"]["rig01"]["frames"]] == [f"frame{i:04d}.png" for i in range(NUM_FRAMES)]
 
 
+def test_frames_that_do_not_register_are_named(three_rig_run, tmp_path, caplog):
+    """Images of another scene register nowhere: the command said only the verdict table ('stable', no data)."""
+    _, shared, _ = three_rig_run
+    out = copy_run(shared, tmp_path / "out")
+    other = tmp_path / "images" / "rig01" / "wide" / "frame0000.png"
+    other.parent.mkdir(parents=True)
+    cv2.imwrite(str(other), np.random.default_rng(0).integers(0, 256, (617, 812), dtype=np.uint8))
+    with caplog.at_level("WARNING"):
+        track(out, tmp_path / "images", TrackOptions(workers=1))
+    assert re.search(r"FRAMES NOT REGISTERED: 1 of 1 new frame\(s\) did not register against the reference "
+                     r"\(rig01/frame0000.png: .+\); they are in poses.csv without a pose; none did: are these images "
+                     r"of the scene of '.*out'\?", caplog.text), caplog.text
+
+
 def test_a_run_with_narrow_observations_is_tracked_from_its_database_keypoints(three_rig_run, tmp_path):
     """The narrow stage (`--narrow auto`: guided matches or heads) appends 2D points without descriptors to the
     narrow images: the reference map and each rig's baseline take the database's keypoints only, the same as

@@ -56,6 +56,16 @@ def test_bump_is_a_step_at_the_right_frame(at):
     assert v.flagged == [i >= at for i in range(12)]
 
 
+@pytest.mark.parametrize("at", [1, 2])
+def test_a_bump_after_the_first_frames_is_a_step_against_the_baseline(at):
+    """A rig bumped at frame 2 of 5 (rendered: 0.3 deg, 20 mm, three frames flagged) was 'shaking', with no step:
+    a step needed three frames before it, though one before the first frame needs none (the baseline)."""
+    changes = series(6, np.random.default_rng(at))
+    changes[at:] += np.r_[np.array([0.0, 0.2, 0.1]) * DEG, np.array([10.0, 0.0, -5.0]) * MM]
+    v = verdict(changes)
+    assert v.verdict == "moved" and [s.index for s in v.steps] == [at]
+
+
 def test_moved_before_tracking_started_is_a_step_at_the_first_frame():
     changes = series(8, np.random.default_rng(3)) + np.r_[np.array([0.0, 0.0, 0.3]) * DEG, np.zeros(3)]
     v = verdict(changes)

@@ -415,6 +415,9 @@ def test_a_key_given_twice_is_refused_at_any_depth_outermost_first():
     (lambda p: p.write_text("rigs:\n  - name: rig01\n\tsensors: {}\n"),
      r"rigs.yaml line 3, column 1: not valid YAML/JSON \(found a tab character that violates indentation while "
      r"scanning a plain scalar\); fix the syntax"),
+    # beyond Python's 4300-digit limit on converting text to int, which PyYAML's int() raised as a traceback
+    (lambda p: _set_text(p, "width: 64", "width: " + "9" * 5000),
+     r"rigs.yaml line \d+, column \d+: a whole number of 5000 digits is beyond any value here; give the number"),
 ])
 def test_yaml_mistakes_say_their_line_and_cause(tmp_path, edit, words):
     images, rigs_path, _ = make_inputs(tmp_path)

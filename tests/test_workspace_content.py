@@ -129,6 +129,39 @@ def test_a_damaged_or_emptied_database_is_made_again(tmp_path, caplog, damage, w
         assert database.num_rigs() == 2
 
 
+def test_a_database_of_other_inputs_is_made_again_with_overwrite_and_named_without(tmp_path, caplog):
+    """Images added to the image folder, or rigs.yaml edited, then `run --overwrite`: the run stopped with 'holds
+    other images than the image folder (e.g. <the added image>)' and told the user to delete database.db."""
+    import dataclasses
+
+    scene = _small(tmp_path)
+    db = tmp_path / "out" / "database.db"
+    db.parent.mkdir()
+    create_database(db, scene.rigs, scene.images[:-1])
+    added = scene.images[-1].name
+    with pytest.raises(WorkspaceError, match=rf"database.db' was made from other images \({added} is in the image "
+                                             r"folder but not in it\): pass --overwrite to start again from these "
+                                             r"inputs, re-run with the inputs of the interrupted run to resume it"):
+        create_database(db, scene.rigs, scene.images)
+    caplog.set_level(logging.WARNING, logger="rigsfm.run.inputs.database")
+    create_database(db, scene.rigs, scene.images, overwrite=True)
+    assert "was made from other images" in caplog.text and "it is made again" in caplog.text
+    with pycolmap.Database.open(db) as database:
+        assert sorted(image.name for image in database.read_all_images()) == sorted(e.name for e in scene.images)
+    rig = scene.rigs[0]
+    wide = pycolmap.Camera(model=rig.wide.model, width=rig.wide.width, height=rig.wide.height,
+                           params=rig.wide.params * 1.01)
+    edited = [dataclasses.replace(rig, wide=wide), *scene.rigs[1:]]
+    with pytest.raises(WorkspaceError, match=rf"was made with another calibration for {rig.name}/wide \(rigs.yaml "
+                                             r"changed\): pass --overwrite"):
+        create_database(db, edited, scene.images)
+    create_database(db, edited, scene.images, overwrite=True)
+    with pycolmap.Database.open(db) as database:
+        cameras = {c.camera_id: c for c in database.read_all_cameras()}
+        image = next(im for im in database.read_all_images() if im.name.startswith(f"{rig.name}/wide/"))
+        assert np.allclose(cameras[image.camera_id].params, wide.params)
+
+
 def test_a_database_rigsfm_did_not_write_is_refused_and_kept(tmp_path):
     scene = _small(tmp_path)
     db = tmp_path / "database.db"

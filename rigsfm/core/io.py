@@ -236,6 +236,10 @@ class DuplicateKeyError(yaml.constructor.ConstructorError):
     """A mapping gives one key twice (YAML and JSON parsers otherwise keep the last silently)."""
 
 
+class NumberTooLongError(yaml.constructor.ConstructorError):
+    """A whole number of more digits than Python converts (4300 by default), which no rigsfm value needs."""
+
+
 class _UniqueKeyLoader(_SAFE_LOADER):  # type: ignore[valid-type,misc]  # a base chosen at import
     def __init__(self, stream: str) -> None:
         super().__init__(stream)
@@ -257,6 +261,14 @@ class _UniqueKeyLoader(_SAFE_LOADER):  # type: ignore[valid-type,misc]  # a base
 
     def ascend_resolver(self):
         pass
+
+    def construct_yaml_int(self, node):
+        try:
+            return super().construct_yaml_int(node)
+        except ValueError:  # Python's limit on the digits it converts, which PyYAML does not expect
+            digits = sum(c.isdigit() for c in node.value)
+            raise NumberTooLongError(None, None, f"a whole number of {digits} digits is beyond any value here; give "
+                                     "the number it stands for", node.start_mark) from None
 
     def construct_mapping(self, node, deep=False):
         if isinstance(node, yaml.MappingNode):
@@ -382,24 +394,35 @@ def yaml_error_parts(error: yaml.YAMLError) -> tuple[str, str]:
     if mark is None or problem is None:
         return "", str(error).splitlines()[0] if str(error) else type(error).__name__
     context = getattr(error, "context", None)
-    cause = f"{problem} {context}" if context and not isinstance(error, DuplicateKeyError) else problem
+    cause = f"{problem} {context}" if context and not isinstance(error, (DuplicateKeyError, NumberTooLongError)) \
+        else problem
     return f" line {mark.line + 1}, column {mark.column + 1}", cause
 
 
-def load_yaml_or_json(path: Path, what: str, *, max_bytes: int | None = None) -> Any:
-    """Parse a YAML (or JSON, a subset of YAML) file, with an error that names the file, the line and the cause."""
+def load_yaml_or_json(path: Path, what: str, *, max_bytes: int | None = None, form: str | None = None) -> Any:
+    """Parse a YAML (or JSON, a subset of YAML) file, with an error that names the file, the line and the cause;
+    ``form`` (how the file is written) ends the error of a file that is empty or not a mapping."""
     path = Path(path)
     text = read_user_text(path, what, max_bytes=max_bytes)
     try:
         data = parse_yaml(text)
     except RecursionError:
         raise InputError(f"{path}: nested too deeply to be a {what} file; fix the syntax") from None
-    except DuplicateKeyError as e:
+    except (DuplicateKeyError, NumberTooLongError) as e:
         where, cause = yaml_error_parts(e)
         raise InputError(f"{path}{where}: {cause}") from None
     except yaml.YAMLError as e:
         where, cause = yaml_error_parts(e)
         raise InputError(f"{path}{where}: not valid YAML/JSON ({cause}); fix the syntax") from None
     if not isinstance(data, dict):
-        raise InputError(f"{path}: expected a mapping at the top level of the {what} file")
+        if form is None:
+            raise InputError(f"{path}: expected a mapping at the top level of the {what} file")
+        if data is None:
+            raise InputError(f"{path}: the {what} file is empty; {form}")
+        found = f"the text {_shortened(data)!r}" if isinstance(data, str) else f"a {type(data).__name__}"
+        raise InputError(f"{path}: expected a mapping at the top level of the {what} file, found {found}; {form}")
     return data
+
+
+def _shortened(text: str, limit: int = 40) -> str:
+    return text if len(text) <= limit else text[:limit] + "..."

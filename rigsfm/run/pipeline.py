@@ -327,7 +327,7 @@ def _run_locked(workspace: Workspace, inputs: Inputs, manual_pairs: dict, option
     num_wide = sum(e.sensor == "wide" for e in inputs.images)
     with colmap_log_to(workspace.colmap_log):
         with timings.stage("database"):
-            create_database(workspace.database, inputs.rigs, inputs.images)
+            create_database(workspace.database, inputs.rigs, inputs.images, overwrite=options.overwrite)
         with timings.stage("features"):
             features_progress = report("features")
             drop_stale_work(workspace.database, workspace.feature_settings, options.matching,
@@ -396,6 +396,9 @@ def _run_locked(workspace: Workspace, inputs: Inputs, manual_pairs: dict, option
         with timings.stage("deliver"):
             world.apply(result.reconstruction)  # a rigid move: the bands and sigmas above are unchanged by it
             ground = ground_maps(result.reconstruction, world.plane_heights) if world.plane_heights else None
+            # an --overwrite run's files replace the old result's from here: without its summary.json the workspace
+            # reads as unfinished until this run writes its own, not as the old summary over the new model
+            workspace.summary.unlink(missing_ok=True)
             write_model(result.reconstruction, workspace.sparse, overwrite=True)
             poses = narrow_poses(result.reconstruction, metric=metric, bands=uncertainty.bands, world=world.to_dict(),
                                  ground=ground)

@@ -129,6 +129,7 @@ def track(out: Path, new_images: Path, options: TrackOptions | None = None, *,
         logger.info("%d new frames to register, %d already tracked", len(todo), len(tasks) - len(todo))
         files = {(t.rig, t.frame): task_fingerprints(t) for t in todo}
         bad: list[str] = []
+        failed: list[str] = []
         done: list = [0, time.monotonic()]
 
         def on_result(record: dict) -> None:
@@ -136,6 +137,8 @@ def track(out: Path, new_images: Path, options: TrackOptions | None = None, *,
             if record["status"] == "bad_input":
                 bad.append(record["reason"])
             else:
+                if record["status"] != "registered":
+                    failed.append(f"{record['rig']}/{record['frame']}: {record.get('reason') or record['status']}")
                 key = (record["rig"], record["frame"])
                 frames[key] = {**derive(record, reference.rigs[record["rig"]]), "files": files[key]}
             done[0] += 1
@@ -154,6 +157,12 @@ def track(out: Path, new_images: Path, options: TrackOptions | None = None, *,
             poses = assemble(frames, reference, thresholds)
             if frames or options.overwrite:
                 _save(paths, poses, plots=True)
+    if failed:  # else a scene's wrong images, none registered, left only the verdict table, all 'stable'
+        logger.warning("FRAMES NOT REGISTERED: %d of %d new frame(s) did not register against the reference (%s%s); "
+                       "they are in poses.csv without a pose%s", len(failed), len(todo), "; ".join(failed[:2]),
+                       "; ..." if len(failed) > 2 else "",
+                       f"; none did: are these images of the scene of '{workspace.root}'?" if len(failed) == len(todo)
+                       else "")
     if bad:
         raise InputError(f"{len(bad)} frame(s) could not be used (the others are saved): {bad[0]}"
                          + (f" (and {len(bad) - 1} more)" if len(bad) > 1 else ""))

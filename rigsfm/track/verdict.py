@@ -14,8 +14,9 @@ covariance > ``significance_chi2``.
   wise median after the split differs from the level before it (the median of the frames before, or the
   baseline for a step at the first frame: moved before tracking started) by more than the threshold,
   significantly, by ``step_to_spread`` times the frames' median spread about their levels (so zero-mean
-  shake is not a step), and persists: ``min_persist_frames`` frames on each side (the baseline stands for
-  the frames before the first), ``persist_fraction`` of them closer to their own level than to the other.
+  shake is not a step), and persists: ``min_persist_frames`` frames after it and, before it, as many or the
+  baseline's level (a step after the first frames of the series, all within the thresholds of the baseline),
+  ``persist_fraction`` of them closer to their own level than to the other.
 - Verdict: ``moved`` if there is a step, else ``shaking`` if any frame is flagged (zero-mean jitter),
   else ``stable``; ``no data`` without registered frames.
 """
@@ -91,6 +92,11 @@ def _distance(values: np.ndarray, level: np.ndarray, p: int) -> np.ndarray:
     return SCALES[p] * np.linalg.norm(values[:, PARTS[p]] - level[PARTS[p]], axis=1)
 
 
+def _at_level(changes: np.ndarray, level: np.ndarray, thresholds: Thresholds) -> bool:
+    """Every change within the rotation and shift thresholds of ``level``."""
+    return all(bool(np.all(_distance(changes, level, p) <= limit)) for p, limit in enumerate(_limits(thresholds)))
+
+
 def _step_score(changes, lo, k, hi, pre, pre_cov, post, post_cov, thresholds) -> float | None:
     """Normalised size of the step at ``k`` if it is a valid step (see the module docstring), else None."""
     step = post - pre
@@ -116,11 +122,14 @@ def _segment(changes, covariances, lo, hi, level, level_cov, thresholds, frames)
     m = thresholds.min_persist_frames
     best = None
     for k in range(lo, hi - m + 1):
-        if k == lo and level is None or 0 < k - lo < m:
+        # the baseline's known level (the reference map) stands for frames the series lacks before a split whose
+        # frames before all lie within the thresholds of it: a bump after one or two still frames is a step
+        if k == lo and level is None or 0 < k - lo < m and (level is None or not _at_level(changes[lo:k], level,
+                                                                                               thresholds)):
             continue
         post = np.median(changes[k:hi], axis=0)
         post_cov = np.pi / 2 * covariances[k:hi].mean(axis=0) / (hi - k)
-        if k == lo:
+        if k == lo or k - lo < m:  # the frames before are at the baseline's level (checked above)
             pre, pre_cov = level, level_cov
         else:
             pre = np.median(changes[lo:k], axis=0)

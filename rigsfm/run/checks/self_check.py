@@ -116,7 +116,7 @@ def synchronised_frames(reconstruction: pycolmap.Reconstruction) -> dict[str, li
 def epipolar_self_check(reconstruction: pycolmap.Reconstruction, image_dir: Path, narrow_poses: dict,
                         options: SelfCheckOptions | None = None, offsets: dict[str, int] | None = None,
                         cached: dict[tuple[str, str], tuple[NarrowFeatures, NarrowFeatures]] | None = None) -> SelfCheck:
-    """The self-check (module docstring) of the first ``options.max_frames`` synchronised frames, with the
+    """The self-check (module docstring) of the ``options.max_frames`` synchronised frames of most rigs, with the
     ``F_ji`` and ``epipolar_band_95_px`` of ``narrow_poses`` (the narrow_poses.json of this model); with
     ``offsets`` (rig -> frames, rigsfm.run.checks.sync) rig r's k-th frame is paired with the others' (k + offset)-th;
     ``cached``: (i, j) -> the pair's features from an earlier pass (:func:`check_pair`): images whose pairs all
@@ -134,7 +134,10 @@ def epipolar_self_check(reconstruction: pycolmap.Reconstruction, image_dir: Path
     if not frames:
         return SelfCheck([], [], guided_by, time.perf_counter() - start,
                          "no frame name shared by narrow images of two or more rigs", offsets)
-    chosen = list(frames)[:max(1, opt.max_frames)]
+    # the frames most rigs share, earliest first among equals: the first frame may lack a rig (one a frame later in
+    # time, or an image missing), whose pairs would then go unchecked without a word
+    ranked = sorted(frames, key=lambda f: -len({name_of(im).rig for im in frames[f]}))[:max(1, opt.max_frames)]
+    chosen = [f for f in frames if f in ranked]
     by_pair = {(p["i"], p["j"]): p for p in narrow_poses.get("pairs", [])}
     checks = []
     for frame in chosen:

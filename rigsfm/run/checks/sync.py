@@ -192,22 +192,30 @@ def _frames(offset: float) -> str:
     return f"{text} frame{'s' if abs(offset) >= 1.05 or abs(whole) > 1 else ''}"
 
 
-def rig_frames(reconstruction: pycolmap.Reconstruction) -> dict[str, list[pycolmap.Image]]:
-    """Rig -> its registered narrow images in frame-name order: a rig's frame index is the position here."""
-    frames: dict[str, list[pycolmap.Image]] = {}
+def rig_frames(reconstruction: pycolmap.Reconstruction) -> dict[str, list[pycolmap.Image | None]]:
+    """Rig -> its registered narrow images by frame: a rig's frame index is the position of the frame's name among
+    the names of all its images (wide or narrow, in frame-name order), None where the frame has no registered
+    narrow image, so that a narrow image missing or not registered does not move the rig's later frames."""
+    names: dict[str, set[str]] = {}
+    for image in reconstruction.images.values():
+        parsed = name_of(image)
+        names.setdefault(parsed.rig, set()).add(parsed.frame)
+    narrow: dict[str, dict[str, pycolmap.Image]] = {}
     for image in registered_narrow_images(reconstruction):
-        frames.setdefault(name_of(image).rig, []).append(image)
-    return dict(sorted(frames.items()))
+        parsed = name_of(image)
+        narrow.setdefault(parsed.rig, {})[parsed.frame] = image
+    return {rig: [images.get(frame) for frame in sorted(names[rig])] for rig, images in sorted(narrow.items())}
 
 
 def frames_by_time(reconstruction: pycolmap.Reconstruction,
                    offsets: dict[str, int]) -> dict[str, list[pycolmap.Image]]:
-    """Like ``synchronised_frames`` but grouping rig r's k-th narrow frame at time ``k + offsets[r]``: label ->
+    """Like ``synchronised_frames`` but grouping rig r's k-th frame's narrow image at time ``k + offsets[r]``: label ->
     images of that instant (two or more rigs). The label is the frame name of a rig at offset 0 where one has it."""
     by_time: dict[int, list[pycolmap.Image]] = {}
-    for rig, images in rig_frames(reconstruction).items():
-        for k, image in enumerate(images):
-            by_time.setdefault(k + int(offsets.get(rig, 0)), []).append(image)
+    for rig, frames in rig_frames(reconstruction).items():
+        for k, image in enumerate(frames):
+            if image is not None:
+                by_time.setdefault(k + int(offsets.get(rig, 0)), []).append(image)
     grouped = {}
     for t, images in sorted(by_time.items()):
         if len({name_of(im).rig for im in images}) < 2:
@@ -290,13 +298,23 @@ def estimate_frame_offsets(reconstruction: pycolmap.Reconstruction, image_dir: P
                             "needs narrow images of two or more rigs with two or more frames each")
     max_offset = max(0, min(max_offset, min(counts.values()) - 1))
     by_pair = {(p["i"], p["j"]): p for p in narrow_poses.get("pairs", [])}
-    first_frames = [images[0] for images in per_rig.values()]
+    first_frames = [next(im for im in images if im is not None) for images in per_rig.values()]
     overlapping = {tuple(sorted((name_of(reconstruction.find_image_with_name(i)).rig,
                                  name_of(reconstruction.find_image_with_name(j)).rig)))
                    for i, j in overlapping_pairs(reconstruction, first_frames, floor_frame)}
     cache: dict[str, object] = {}
 
-    def loaded(image: pycolmap.Image):
+    def both(a: str, b: str, k: int, d: int) -> bool:
+        return per_rig[a][k] is not None and per_rig[b][k + d] is not None
+
+    def name(rig: str, k: int) -> str:  # of a frame that has its narrow image (``both``)
+        image = per_rig[rig][k]
+        assert image is not None
+        return image.name
+
+    def loaded(image: pycolmap.Image | None):
+        if image is None:
+            return None
         if image.name not in cache:
             cache[image.name] = load_narrow(image, Path(image_dir), warp_height_m if floor_frame else None, sift_size)
         return cache[image.name]
@@ -305,11 +323,11 @@ def estimate_frame_offsets(reconstruction: pycolmap.Reconstruction, image_dir: P
     for a, b in sorted(overlapping):
         pair = PairSync(a, b)
         for d in range(-max_offset, max_offset + 1):
-            ks = [k for k in range(counts[a]) if 0 <= k + d < counts[b]][:max(1, frames_per_offset)]
+            ks = [k for k in range(counts[a]) if 0 <= k + d < counts[b] and both(a, b, k, d)][:max(1, frames_per_offset)]
             pooled = []
             for k in ks:
                 image_i, image_j = per_rig[a][k], per_rig[b][k + d]
-                entry = by_pair.get((image_i.name, image_j.name))
+                entry = by_pair.get((name(a, k), name(b, k + d)))
                 band = None if entry is None else entry.get("epipolar_band_95_px")
                 if band is None or not math.isfinite(band):
                     continue
@@ -329,17 +347,21 @@ def estimate_frame_offsets(reconstruction: pycolmap.Reconstruction, image_dir: P
     clear = {}
     for rig in rigs:
         moved = dict(offsets, **{rig: 0})
+        # a rig at 0 is told only where a pair is not consistent a frame away (too few matches or off the lines):
+        # in a still crowd every pairing is, and 0 (the solver's tie) was told, 'all rigs at 0', whatever the truth
+        shifted = [dict(offsets, **{rig: s}) for s in (-1, 1)]
         clear[rig] = any((p.score(offsets[p.a] - offsets[p.b]) or 0.0) >= CONSISTENT
-                         and (offsets[rig] == 0 or (p.score(moved[p.a] - moved[p.b]) or 0.0) < CONSISTENT)
+                         and ((p.score(moved[p.a] - moved[p.b]) or 0.0) < CONSISTENT if offsets[rig] else
+                              any(_measured_unlike(p, o[p.a] - o[p.b]) for o in shifted))
                          for p in pairs if rig in (p.a, p.b))
     fractions, refining = [], time.perf_counter()
     for a, b in sorted(overlapping):
         d = offsets[a] - offsets[b]
-        ks = [k for k in range(counts[a]) if 0 <= k + d < counts[b]][:max(1, frames_per_offset)]
+        ks = [k for k in range(counts[a]) if 0 <= k + d < counts[b] and both(a, b, k, d)][:max(1, frames_per_offset)]
         if not ks:
             fractions.append(PairFraction(a, b, d, None, None, 0, 0, "no frames of both rigs at that pairing"))
             continue
-        entry = by_pair.get((per_rig[a][ks[0]].name, per_rig[b][ks[0] + d].name))
+        entry = by_pair.get((name(a, ks[0]), name(b, ks[0] + d)))
         band = None if entry is None else entry.get("epipolar_band_95_px")
         if band is None or not math.isfinite(band):
             fractions.append(PairFraction(a, b, d, None, None, 0, 0, "no band"))
@@ -351,7 +373,7 @@ def estimate_frame_offsets(reconstruction: pycolmap.Reconstruction, image_dir: P
             first = loaded(per_rig[a][k])
             if first is None or frames[1] is None:
                 continue
-            f_ji = np.asarray(by_pair[(per_rig[a][k].name, per_rig[b][j].name)]["F_ji"], dtype=np.float64)
+            f_ji = np.asarray(by_pair[(name(a, k), name(b, j))]["F_ji"], dtype=np.float64)
             signed, motion, n = measure_pair(first, frames, pair_features, f_ji, band, floor_frame)
             s.append(signed)
             g.append(motion)
@@ -373,21 +395,32 @@ def estimate_frame_offsets(reconstruction: pycolmap.Reconstruction, image_dir: P
     return estimate
 
 
+def _measured_unlike(pair: PairSync, d: int) -> bool:
+    """The pair was matched at ``d`` (within the offsets tried) and is not consistent there (too few matches, or
+    matches off the lines)."""
+    return any(s.d == d and (s.consistent or 0.0) < CONSISTENT for s in pair.scores)
+
+
 def read_frame_offsets(path: Path, rigs: list[str], frames_per_rig: dict[str, int]) -> dict[str, int]:
     """A frame-offsets file (``rig03: 1``, one rig a line, integer frames; unnamed rigs are at 0), checked against
     the rigs and the recording's length; an ``InputError`` naming the rig and the fix otherwise."""
     path = Path(path)
-    data = load_yaml_or_json(path, "frame offsets")
+    data = load_yaml_or_json(path, "frame offsets", form="write one line per rig that is off, '<rig>: <whole "
+                             "frames>' with a space after the colon (e.g. 'rig03: 1')")
     offsets = {}
     for rig, value in data.items():
         rig = str(rig)
         if rig not in rigs:
             raise InputError(f"{path}: rig {rig!r} is not in rigs.yaml ({quoted(rigs)}); fix its name or remove "
                              "the line")
+        if isinstance(value, float) and value.is_integer():  # '1.0' is a whole number of frames
+            value = int(value)
         if isinstance(value, bool) or not isinstance(value, int):
             raise InputError(f"{path}: the offset of rig '{rig}' must be a whole number of frames (e.g. '{rig}: 1'), got "
                              f"{value!r}")
         frames = frames_per_rig.get(rig, 0)
+        if value and not frames:
+            raise InputError(f"{path}: rig '{rig}' has no narrow images, so no offset applies to it; remove the line")
         if abs(value) >= max(frames, 1):
             raise InputError(f"{path}: the offset {value:+d} of rig '{rig}' is beyond the recording ({frames} narrow "
                              f"frame(s) of '{rig}': offsets {-(frames - 1)}..{frames - 1}); fix the offset")

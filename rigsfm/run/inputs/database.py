@@ -65,26 +65,25 @@ def _same_camera(a: pycolmap.Camera, b: pycolmap.Camera) -> bool:
     )
 
 
-def _check_existing(database: pycolmap.Database, database_path: Path, rigs: Sequence[RigCalibration],
-                    images: Sequence[ImageEntry]) -> None:
-    """An existing database must hold exactly these images and cameras to be resumed."""
+def _other_inputs(database: pycolmap.Database, rigs: Sequence[RigCalibration], images: Sequence[ImageEntry]
+                  ) -> str | None:
+    """How an existing database differs from these images and cameras (it must hold exactly them to be resumed),
+    or None."""
     db_images = {image.name: image for image in database.read_all_images()}
     wanted = {entry.name for entry in images}
     if set(db_images) != wanted:
-        diff = sorted(set(db_images) ^ wanted)
-        raise WorkspaceError(
-            f"the workspace database {database_path} holds other images than the image folder (e.g. {diff[0]}); "
-            f"use another --out or delete {database_path}"
-        )
+        added, gone = sorted(wanted - set(db_images)), sorted(set(db_images) - wanted)
+        which = (f"{added[0]} is in the image folder but not in it" if added
+                 else f"{gone[0]} is in it but no longer in the image folder")
+        more = len(added) + len(gone) - 1
+        return f"was made from other images ({which}{f', and {more} more' if more else ''})"
     cameras = {camera.camera_id: camera for camera in database.read_all_cameras()}
     by_name = {rig.name: rig for rig in rigs}
     for entry in images:
         camera = cameras[db_images[entry.name].camera_id]
         if not _same_camera(camera, by_name[entry.rig].camera(entry.sensor)):
-            raise WorkspaceError(
-                f"the workspace database {database_path} was made with another calibration for "
-                f"{entry.rig}/{entry.sensor}; use another --out or delete {database_path}"
-            )
+            return f"was made with another calibration for {entry.rig}/{entry.sensor} (rigs.yaml changed)"
+    return None
 
 
 _NEVER_CLOSED: list = []
@@ -148,9 +147,10 @@ def check_database_kept(database_path: Path, images: Sequence[ImageEntry]) -> No
 
 
 def create_database(
-    database_path: Path, rigs: Sequence[RigCalibration], images: Sequence[ImageEntry]
+    database_path: Path, rigs: Sequence[RigCalibration], images: Sequence[ImageEntry], *, overwrite: bool = False
 ) -> Path:
-    """Create the database (or check that an existing one matches these inputs) and return its path."""
+    """Create the database (or check that an existing one matches these inputs) and return its path; one made from
+    other images or calibration is made again with ``overwrite`` (the run replaces its result), else refused."""
     database_path = Path(database_path)
     if database_path.exists():
         problem = damage(database_path)
@@ -159,7 +159,11 @@ def create_database(
                 if database.num_images() == 0:
                     problem = "holds no images (removed or replaced while a run wrote it?)"
                 else:
-                    _check_existing(database, database_path, rigs, images)
+                    problem = _other_inputs(database, rigs, images)
+                    if problem and not overwrite:  # an unfinished run's: a finished one's is refused earlier
+                        raise WorkspaceError(
+                            f"'{database_path}' {problem}: pass --overwrite to start again from these inputs, re-run "
+                            "with the inputs of the interrupted run to resume it, or choose another --out")
         if problem is None:
             logger.info("Reusing database %s", database_path)
             return database_path

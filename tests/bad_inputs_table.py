@@ -484,6 +484,7 @@ CASES = [
     # --- frame offsets
     Case("`--frame-offsets` naming a rig that is not in rigs.yaml", "nothing is written",
          with_offsets("rig09: 1\n")),
+    Case("`--frame-offsets` written `rig02=1`", "nothing is written", with_offsets("rig02=1\n")),
     Case("`--frame-offsets` with half a frame (`rig02: 0.5`)", "nothing is written", with_offsets("rig02: 0.5\n")),
     Case("`--frame-offsets` beyond the recording (3 frames off, one frame recorded)", "nothing is written",
          with_offsets("rig02: 3\n")),

@@ -67,3 +67,22 @@ def test_a_weak_network_is_never_worse_than_holding_the_calibration(tmp_path):
     np.testing.assert_allclose(errors["default"], errors["fixed"], rtol=1e-6)
     assert [d.held for d in result.decisions] == [True, True]
     assert all("inform no direction" in d.reason for d in result.decisions)
+
+
+def test_images_that_contradict_rigs_yaml_far_beyond_its_sigmas_are_said():
+    """Every rig is held where the network's consistency test fails (95 %), and built on rigs.yaml's values; far
+    beyond (99.9 %: a focal length 1 % off on one rig of four gave chi-square 80.2 on 15 dof, this rig's 37.3 against
+    7.8) those values are what the images contradict, so the run says so, naming the rig that disagrees most."""
+    from rigsfm.run.adjustment.decisions import contradiction
+    from rigsfm.run.adjustment.result import CalibrationDecision
+
+    def decisions(network: float) -> list[CalibrationDecision]:
+        return [CalibrationDecision(rig, True, "held", 0.9, chi2, dof, limit, network, 15)
+                for rig, chi2, dof, limit in (("rig01", 37.3, 3, 7.81), ("rig02", 16.1, 4, 9.49),
+                                              ("rig03", 14.0, 4, 9.49), ("rig04", 8.9, 4, 9.49))]
+
+    warning = contradiction(decisions(80.2))
+    assert warning is not None and warning.startswith("CALIBRATION CONTRADICTED: ") and "(chi-square 80.2 > 37.7" in warning
+    assert "most rig01: 37.3 against 7.8" in warning and "check rig01's entry in rigs.yaml" in warning
+    assert contradiction(decisions(30.0)) is None  # held (above 25.0, the 95 % quantile), not contradicted
+    assert contradiction([CalibrationDecision("rig01", True, "no image observes its calibration")]) is None

@@ -58,7 +58,7 @@ from rigsfm.core.errors import ReconstructionError
 from rigsfm.core.residuals import reprojection_errors
 from rigsfm.core.rig import RigCalibration
 from rigsfm.run.adjustment.covariance import joint_covariance, network_size_sigma
-from rigsfm.run.adjustment.decisions import hold_or_refine
+from rigsfm.run.adjustment.decisions import contradiction, hold_or_refine
 from rigsfm.run.adjustment.influence import track_influence
 from rigsfm.run.adjustment.model import (
     constrained_bundle_adjustment,
@@ -235,6 +235,10 @@ def _adjust_refined(mapped: pycolmap.Reconstruction, rigs: Sequence[RigCalibrati
             logger.info("Calibration of %s %s: %s", decision.rig, "held at rigs.yaml" if decision.held else "refined",
                         decision.reason)
         decisions, warnings = result.decisions, result.warnings  # the refined pass's warnings stay true of the input
+        contradicted = contradiction(decisions)
+        if contradicted:
+            logger.warning(contradicted)
+            warnings.append(contradicted)
         # Every rig held, in a network whose shape the images fix: --fixed-calibration's adjustment (one similarity
         # scale). Where they leave it open (rigs not tied to the rest through three-rig points) the measurements
         # must shape it inside the adjustment, which the refined path does with the calibration held.

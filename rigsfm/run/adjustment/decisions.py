@@ -17,6 +17,7 @@ from rigsfm.run.adjustment.result import AdjustResult, CalibrationDecision, Join
 # direction of gain g (0.4 at this floor), and a rig none of whose directions reaches it is barely observed.
 MIN_GAIN = 0.1
 HOLD_QUANTILE = 0.95  # of the consistency test
+CONTRADICTED_QUANTILE = 0.999  # of the same test: beyond it, say so (chance alone crosses it once in a thousand)
 # A network of fewer rigs is held: with two, every calibration change is seen through one pair's matches, whose own
 # errors (wrong clicks, a narrow overlap) it absorbs as readily as it corrects rigs.yaml, and the tests below do not
 # tell the refinements that lose to rigs.yaml from those that win (benchmarks/README.md, "Refine the calibration or
@@ -152,5 +153,26 @@ def hold_or_refine(result: AdjustResult, covariance: JointCovariance | None) -> 
                                    f"removed) and the network's refinement agrees with rigs.yaml (chi-square "
                                    f"{network_chi2:.1f} <= {network_limit:.1f}, {network_dof} dof; this rig's "
                                    f"{chi2:.1f} against {limit:.1f})")
-        decisions.append(CalibrationDecision(rig, held, reason, largest, chi2, dof, limit))
+        decisions.append(CalibrationDecision(rig, held, reason, largest, chi2, dof, limit, network_chi2, network_dof))
     return decisions
+
+
+def contradiction(decisions: list[CalibrationDecision]) -> str | None:
+    """A warning where the images contradict rigs.yaml far beyond its sigmas (the network's consistency test above
+    its ``CONTRADICTED_QUANTILE``): every rig is then held at values the images say are off, and the result is
+    built on them (a focal length 1 % off on one rig of four put the floor at twice its depth, with no other sign)."""
+    from scipy.stats import chi2 as chi2_distribution
+
+    tested = [d for d in decisions if d.network_dof]
+    if not tested:
+        return None
+    network_chi2, dof = tested[0].network_chi2, tested[0].network_dof
+    limit = float(chi2_distribution.ppf(CONTRADICTED_QUANTILE, dof))
+    if network_chi2 <= limit:
+        return None
+    worst = max(tested, key=lambda d: d.chi2 / d.limit if d.limit else 0.0)
+    return (f"CALIBRATION CONTRADICTED: the images disagree with rigs.yaml far beyond its sigmas (chi-square "
+            f"{network_chi2:.1f} > {limit:.1f}, the {100 * CONTRADICTED_QUANTILE:g} % quantile of {dof} dof; most "
+            f"{worst.rig}: {worst.chi2:.1f} against {worst.limit:.1f}), and the result holds rigs.yaml's values: "
+            f"check {worst.rig}'s entry in rigs.yaml (this resolution? a lens, zoom or focus touched since the "
+            "board?) and recalibrate it; its poses, floor and bands may be far off")

@@ -84,6 +84,8 @@ class CalibrationDecision:
     chi2: float = 0.0  # the refinement's change against the spread the images explain (consistency test)
     dof: int = 0
     limit: float = 0.0  # the chi-square's HOLD_QUANTILE quantile
+    network_chi2: float = 0.0  # the same test over the whole network's calibration (every rig's decision)
+    network_dof: int = 0
 
 
 @dataclass(frozen=True)

@@ -44,7 +44,8 @@ def associate_command(
     poses_from: Annotated[str | None, typer.Option(
         "--poses-from", metavar="FRAME",
         help="associate frames the run was not given with the narrow poses of its frame FRAME (e.g. frame0000.png): "
-             "static rigs calibrated once; `rigsfm track` checks they have not moved", show_default=False)] = None,
+             "static rigs calibrated once; `rigsfm track` checks they have not moved  [default: none: such frames "
+             "are refused]", show_default=False)] = None,
     no_appearance: Annotated[bool, flag("--no-appearance", help="geometry only: leave out the heads' and torsos' greys "
                                         "sampled from the run's narrow images")] = False,
     overwrite: Annotated[bool, flag("--overwrite", help="replace an earlier association in --out")] = False,

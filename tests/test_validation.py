@@ -776,3 +776,20 @@ def test_manual_matches_name_a_decomposed_rig_folder_in_composed_form(tmp_path):
     inputs = load_inputs(images, rigs_path)
     pairs = validate_manual_matches(path, read_manual_matches(path), inputs.images, inputs.rigs)
     assert [set(pair) for pair in pairs] == [{f"{decomposed}/wide/f0.png", "rig02/wide/f0.png"}]
+
+
+@pytest.mark.parametrize("text", ["", "# only a comment\n", "- rig01\n- rig02\n", "rigs\n"])
+def test_an_empty_or_shapeless_input_file_says_how_it_is_written(tmp_path, text):
+    """rigs.yaml, scale.yaml and board.yaml that are empty, a list or a word said only 'expected a mapping'."""
+    from rigsfm.calibrate.board import load_board_spec
+    from rigsfm.core.rig import load_rigs
+    from rigsfm.run.inputs.scale_file import load_scale
+
+    for load, name, words in ((load_rigs, "rigs.yaml", "it starts 'units: meters' and 'rigs:'"),
+                              (lambda path: load_scale(path, []), "scale.yaml", "'camera_distance:' and/or 'known_length:'"),
+                              (load_board_spec, "board.yaml", "it gives 'type:'")):
+        path = tmp_path / name
+        path.write_text(text)
+        with pytest.raises(InputError, match=r"(is empty|found (the text|a list))") as error:
+            load(path)
+        assert words in str(error.value), str(error.value)

@@ -127,7 +127,8 @@ def board_spec_from_dict(data: dict, where: str = "board spec") -> BoardSpec:
 
 
 def load_board_spec(path: Path) -> BoardSpec:
-    return board_spec_from_dict(load_yaml_or_json(Path(path), "board"), str(path))
+    return board_spec_from_dict(load_yaml_or_json(Path(path), "board", form="it gives 'type:' and the board's size "
+                                                   "(docs/inputs.md, Calibrating the rigs)"), str(path))
 
 
 @dataclass

@@ -396,7 +396,8 @@ def add_sigmas(entry: dict, sigmas: RigSigmas) -> dict:
 def load_rigs(path: Path) -> list[RigCalibration]:
     """Read and validate rigs.yaml (or the same structure as JSON)."""
     path = Path(path)
-    data = load_yaml_or_json(path, "rig calibration", max_bytes=MAX_RIGS_FILE_BYTES)
+    data = load_yaml_or_json(path, "rig calibration", max_bytes=MAX_RIGS_FILE_BYTES,
+                             form="it starts 'units: meters' and 'rigs:', one entry per rig (README.md, Inputs)")
     check_keys(data, TOP_KEYS, str(path))
     units = data.get("units", "meters")
     if units not in ("meters", "metres", "m"):

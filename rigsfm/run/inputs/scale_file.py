@@ -158,7 +158,8 @@ def load_scale(path: Path, images: Sequence[ImageEntry], rigs: Sequence[RigCalib
     path = Path(path)
     by_rig = None if rigs is None else {rig.name: rig for rig in rigs}
     entries = {entry.name: entry for entry in images}
-    data = load_yaml_or_json(path, "scale")
+    data = load_yaml_or_json(path, "scale", form="it holds 'camera_distance:' and/or 'known_length:' lists "
+                                                  "(docs/inputs.md, Metric scale)")
     check_keys(data, ("camera_distance", "known_length", "pixel_sigma"), str(path))
     pixel_sigma = _positive(data.get("pixel_sigma", DEFAULT_PIXEL_SIGMA), f"{path}: pixel_sigma", *PIXEL_SIGMA_RANGE,
                             "px", "a clicked point's 1-sigma error in pixels")

@@ -129,6 +129,21 @@ def test_missing_narrow_folder_is_a_warning_not_an_error(tmp_path, caplog):
                for r in caplog.records), caplog.text
 
 
+def test_a_frame_without_its_narrow_image_is_a_warning(tmp_path, caplog):
+    """A narrow file forgotten in one frame: the run goes on (that frame's narrow camera gets no pose) and says so;
+    it finished without a word."""
+    import shutil
+
+    images, rigs_path, _ = make_inputs(tmp_path)
+    shutil.copy(images / "rig01" / "wide" / "f0.png", images / "rig01" / "wide" / "f1.png")
+    with caplog.at_level(logging.WARNING):
+        inputs = load_inputs(images, rigs_path)
+    assert "rig01/wide/f1.png" in [e.name for e in inputs.images]
+    assert inputs.without_narrow == ("rig 'rig01' has none in 1 of its 2 frames ('f1.png'): its narrow camera gets "
+                                     "no pose in them",), inputs.without_narrow
+    assert "NO NARROW IMAGES: rig 'rig01' has none in 1 of its 2 frames" in caplog.text
+
+
 # --- rigs.yaml: the calibration uncertainties ---------------------------------------------------------------
 
 def test_sigmas_are_read_onto_the_rig_calibration_and_written_back(tmp_path):

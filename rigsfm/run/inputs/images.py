@@ -192,12 +192,25 @@ def scan_images(image_dir: Path, rigs: Sequence[RigCalibration], *, check_pixels
 
 
 def rigs_without_narrow(image_dir: Path, images: Sequence[ImageEntry], rigs: Sequence[RigCalibration]) -> list[str]:
-    """One line per rig with no narrow image (allowed: its wide images still register, its narrow camera gets no
-    pose); for a warning, since a misnamed or forgotten narrow folder otherwise goes unnoticed."""
-    with_narrow = {e.rig for e in images if e.sensor == "narrow"}
-    return [f"rig '{rig.name}' has no narrow images ('{Path(image_dir) / rig.name / 'narrow'}' "
-            f"{'is empty' if (Path(image_dir) / rig.name / 'narrow').is_dir() else 'does not exist'}): its narrow "
-            "camera gets no pose" for rig in rigs if rig.name not in with_narrow]
+    """One line per rig with no narrow image, or without one in some of its frames (allowed: its wide images still
+    register, its narrow camera gets no pose there); for a warning, since a misnamed or forgotten narrow folder or
+    file otherwise goes unnoticed."""
+    frames: dict[tuple[str, str], set[str]] = {}
+    for e in images:
+        frames.setdefault((e.rig, e.sensor), set()).add(e.frame)
+    lines = []
+    for rig in rigs:
+        narrow, wide = frames.get((rig.name, "narrow"), set()), frames.get((rig.name, "wide"), set())
+        if not narrow:
+            folder = Path(image_dir) / rig.name / "narrow"
+            lines.append(f"rig '{rig.name}' has no narrow images ('{folder}' "
+                         f"{'is empty' if folder.is_dir() else 'does not exist'}): its narrow camera gets no pose")
+        elif wide - narrow:
+            missing = sorted(wide - narrow)
+            lines.append(f"rig '{rig.name}' has none in {len(missing)} of its {len(wide)} frames "
+                         f"({quoted(missing[:3])}{' ...' if len(missing) > 3 else ''}): its narrow camera gets no pose "
+                         "in them")
+    return lines
 
 
 def check_image(entry: ImageEntry, camera) -> None:

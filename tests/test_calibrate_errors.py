@@ -124,3 +124,18 @@ def test_baseline_in_millimetres_is_refused(tmp_path):
     with pytest.raises(InputError, match=r"--baseline 83 m is outside 1 mm - 5 m \(in millimetres\? 83 mm is 0.083 m\)"):
         calibrate(tmp_path / "nowhere", tmp_path / "out" / "rigs.yaml", CalibrateOptions(board=board, baseline=83.0))
     assert not (tmp_path / "out").exists()
+
+
+def test_a_board_found_in_too_few_images_is_counted_in_words():
+    """'detected in only 1 images' read as a slip; one image is one image."""
+    import numpy as np
+
+    from rigsfm.calibrate.board import Detection
+    from rigsfm.calibrate.intrinsics import calibrate_camera
+    from rigsfm.core.errors import InputError
+
+    corners = Detection(np.arange(12), np.random.default_rng(0).uniform(0, 100, (12, 2)))
+    for found, words in ((1, "in only 1 image (need"), (2, "in only 2 images (need")):
+        with pytest.raises(InputError, match=words.replace("(", r"\(")):
+            calibrate_camera("wide", {f"f{k}.png": corners for k in range(found)} | {"f9.png": None},
+                             np.zeros((12, 3)), (640, 480), where="rig01 wide")

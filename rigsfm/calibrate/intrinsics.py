@@ -131,7 +131,7 @@ def calibrate_camera(sensor: str, detections: dict[str, Detection | None], objec
         if d is not None and len(d) < MIN_CORNERS:
             views[n].reason = f"only {len(d)} corners (need {MIN_CORNERS})"
     if len(active) < MIN_VIEWS:
-        raise InputError(f"{where}: the board was detected in only {len(active)} images (need at least "
+        raise InputError(f"{where}: the board was detected in only {len(active)} image{'' if len(active) == 1 else 's'} (need at least "
                          f"{MIN_VIEWS}, better 10+); capture more views with the whole board or more of it visible")
     # active: detected
     pairs = {n: correspondences(detections[n], object_points) for n in active}  # type: ignore[arg-type]

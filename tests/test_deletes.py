@@ -156,6 +156,19 @@ def test_a_forged_manifest_deletes_nothing_outside_the_export(out, tmp_path):
     assert result.exit_code == 1 and "holds files rigsfm did not write (IMG_0001.jpg)" in one_error_line(result)
 
 
+def test_an_export_into_the_folder_of_earlier_exports_says_so(out, tmp_path):
+    """``--dest OUT/export`` (the folder holding the default OUT/export/FORMAT folders) holds rigsfm's own earlier
+    exports: refused as such, not as 'files rigsfm did not write'; a user's file beside them is still the user's."""
+    assert invoke("export", out, "--format", "json").exit_code == 0
+    assert invoke("export", out, "--format", "colmap-txt").exit_code == 0
+    result = export_json(out, out / "export", "--overwrite")
+    line = one_error_line(result)
+    assert result.exit_code == 1 and "holds earlier exports in folders of their own (colmap-txt/, json/)" in line, line
+    (out / "export" / "notes.txt").write_text("mine")
+    line = one_error_line(export_json(out, out / "export", "--overwrite"))
+    assert "holds files rigsfm did not write (notes.txt)" in line, line
+
+
 def test_an_edited_export_file_is_kept_and_named(out, tmp_path):
     dest = tmp_path / "dest"
     assert invoke("export", out, "--format", "colmap-bin", "--dest", dest).exit_code == 0

@@ -102,6 +102,13 @@ def previous_files(dest: Path, manifest: str, *, overwrite: bool, option: str, w
         listed = legacy(dest, present)
         sums = {name: sha256_file(dest / name) for name in listed if not (dest / name).is_symlink()}
     foreign = [name for name in present if name != manifest and name not in listed]
+    nested = sorted({name.split("/")[0] for name in foreign if (dest / name.split("/")[0] / manifest).is_file()})
+    if nested:  # rigsfm's, but earlier outputs in folders of their own: name the user's files, if any
+        foreign = [name for name in foreign if name.split("/")[0] not in nested]
+        if not foreign:
+            raise WorkspaceError(f"{option} '{dest}' holds earlier {what}s in folders of their own "
+                                 f"({', '.join(n + '/' for n in nested[:3])}{', ...' if len(nested) > 3 else ''}); "
+                                 f"give this {what} a folder of its own (nothing was written or removed)")
     if foreign:
         raise WorkspaceError(f"{option} '{dest}' holds files rigsfm did not write ({', '.join(foreign[:3])}"
                              f"{', ...' if len(foreign) > 3 else ''}); choose a new or empty folder (nothing was "

@@ -162,6 +162,17 @@ def test_the_default_self_check_includes_a_rig_a_frame_later(world, tmp_path):
     assert any("rig03/" in p.i + p.j for p in measured) and all(p.verdict == "ok" for p in measured)
 
 
+def test_the_narrow_observations_take_the_frame_a_late_rig_shares(world, tmp_path):
+    """The narrow stage's first instant lacked rig03 at +1 (`--frame-offsets FILE`), so rig03 gave no narrow
+    observations (a user's run: 180 held-out matches became 90); it takes the self-check's frame now."""
+    from rigsfm.run.narrow.observations import find_matches
+
+    rendered(world, tmp_path, {"rig03": 1})
+    pairs = find_matches(world[0], tmp_path, SelfCheckOptions(), offsets={"rig03": 1})
+    assert {p.frame for p in pairs} == {"frame0001.png"}
+    assert any("rig03/" in p.i + p.j and p.matches >= 20 for p in pairs), [(p.i, p.j, p.matches) for p in pairs]
+
+
 def without(rec: pycolmap.Reconstruction, name: str) -> pycolmap.Reconstruction:
     """``rec`` without the image ``name`` (a narrow image missing from the image folder)."""
     out = pycolmap.Reconstruction()

@@ -113,6 +113,14 @@ def synchronised_frames(reconstruction: pycolmap.Reconstruction) -> dict[str, li
     return {f: images for f, images in sorted(frames.items()) if len({name_of(im).rig for im in images}) >= 2}
 
 
+def frames_most_rigs_share(frames: dict[str, list[pycolmap.Image]], count: int) -> list[str]:
+    """The ``count`` (at least one) frames of ``frames`` (label -> narrow images) that the most rigs share, earliest
+    first among equals, in their order: the first frame may lack a rig (one a frame later in time, or an image
+    missing), whose pairs would then go unchecked, or unused, without a word."""
+    ranked = sorted(frames, key=lambda f: -len({name_of(im).rig for im in frames[f]}))[:max(1, count)]
+    return [f for f in frames if f in ranked]
+
+
 def epipolar_self_check(reconstruction: pycolmap.Reconstruction, image_dir: Path, narrow_poses: dict,
                         options: SelfCheckOptions | None = None, offsets: dict[str, int] | None = None,
                         cached: dict[tuple[str, str], tuple[NarrowFeatures, NarrowFeatures]] | None = None) -> SelfCheck:
@@ -134,10 +142,7 @@ def epipolar_self_check(reconstruction: pycolmap.Reconstruction, image_dir: Path
     if not frames:
         return SelfCheck([], [], guided_by, time.perf_counter() - start,
                          "no frame name shared by narrow images of two or more rigs", offsets)
-    # the frames most rigs share, earliest first among equals: the first frame may lack a rig (one a frame later in
-    # time, or an image missing), whose pairs would then go unchecked without a word
-    ranked = sorted(frames, key=lambda f: -len({name_of(im).rig for im in frames[f]}))[:max(1, opt.max_frames)]
-    chosen = [f for f in frames if f in ranked]
+    chosen = frames_most_rigs_share(frames, opt.max_frames)
     by_pair = {(p["i"], p["j"]): p for p in narrow_poses.get("pairs", [])}
     checks = []
     for frame in chosen:

@@ -56,7 +56,7 @@ from rigsfm.run.checks.guided import (
     overlapping_pairs,
     pair_features,
 )
-from rigsfm.run.checks.self_check import synchronised_frames
+from rigsfm.run.checks.self_check import frames_most_rigs_share, synchronised_frames
 from rigsfm.run.checks.sync import frames_by_time
 from rigsfm.run.deliver import fundamental_matrix
 from rigsfm.run.options import NarrowMode, SelfCheckOptions
@@ -206,7 +206,7 @@ def find_matches(floor_model: pycolmap.Reconstruction, image_dir: Path, options:
     else:
         frames = synchronised_frames(floor_model)
     found = []
-    for frame in list(frames)[:max(1, opt.max_frames)]:
+    for frame in frames_most_rigs_share(frames, opt.max_frames):  # the self-check's frames: its features reused
         images = frames[frame]
         pairs = overlapping_pairs(floor_model, images, floor_frame)
         loaded = {name: load_narrow(floor_model.find_image_with_name(name), Path(image_dir),

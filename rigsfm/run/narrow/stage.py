@@ -17,7 +17,7 @@ from rigsfm.core.ground import undistort_pixels
 from rigsfm.core.processes import in_child
 from rigsfm.run.adjustment.adjust import adjust
 from rigsfm.run.checks.guided import KEYPOINT_NOISE_PX
-from rigsfm.run.checks.self_check import synchronised_frames
+from rigsfm.run.checks.self_check import frames_most_rigs_share, synchronised_frames
 from rigsfm.run.checks.sync import frames_by_time
 from rigsfm.run.deliver import fundamental_matrix
 from rigsfm.run.narrow.heads import HEAD_PIXEL_SIGMA, decide_heads, match_heads
@@ -126,6 +126,7 @@ def heads_instead(floor_model: pycolmap.Reconstruction, image_dir: Path, options
     opt = options or SelfCheckOptions()
     offsets = {r: int(o) for r, o in (offsets or {}).items() if o}
     frames = frames_by_time(floor_model, offsets) if offsets else synchronised_frames(floor_model)
+    frames = {f: frames[f] for f in frames_most_rigs_share(frames, opt.max_frames)}
     floats = {}
     for key, band in (bands or {}).items():
         value = getattr(band, "band_px", band)

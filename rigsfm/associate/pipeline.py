@@ -88,14 +88,17 @@ def load_run(out: Path) -> RunModel:
                     recorded_contents(workspace.image_contents))
 
 
+def _frame_images(model: RunModel, frame: str) -> dict[str, str]:
+    """Per camera (``<rig>/narrow``), the name of the run's registered narrow image of ``frame``."""
+    return {ImageName.parse(n).camera: n for n in model.images if ImageName.parse(n).frame == frame}
+
+
 def frame_sizes(model: RunModel, frame: str) -> dict[str, tuple[int, int]]:
     """Per camera (``<rig>/narrow``), the image size of the run's registered narrow image of ``frame``: the poses
     ``--poses-from`` lends to frames the run was not given."""
-    sizes = {}
-    for name, image in model.images.items():
-        parsed = ImageName.parse(name)
-        if parsed.frame == frame:
-            sizes[parsed.camera] = (image.camera.width, image.camera.height)  # type: ignore[union-attr]
+    # a model's images have cameras
+    sizes = {camera: (model.images[name].camera.width, model.images[name].camera.height)  # type: ignore[union-attr]
+             for camera, name in _frame_images(model, frame).items()}
     if not sizes:
         frames = sorted({ImageName.parse(name).frame for name in model.images})
         raise InputError(f"--poses-from {frame!r} is not a frame of this run with a registered narrow image; its "
@@ -108,7 +111,7 @@ def with_stand_ins(model: RunModel, names: Iterable[str], frame: str) -> RunMode
     under the new name (the same pose, camera, bands and centre uncertainty: static rigs)."""
     images, bands = dict(model.images), dict(model.bands)
     centres, covariances = dict(model.centre_sigma_m), dict(model.centre_covariance_m2)
-    reference = {ImageName.parse(n).camera: n for n in model.images if ImageName.parse(n).frame == frame}
+    reference = _frame_images(model, frame)
     stand_ins = dict(model.stand_ins)
     for name in names:
         if name not in images:

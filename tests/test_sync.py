@@ -37,13 +37,19 @@ FRAMES = 3
 STEP_TEXELS = 25  # the texture moves 25 cm along x and y per frame (a walker's 0.35 m)
 
 
-def recording(base: pycolmap.Reconstruction, frames: int) -> pycolmap.Reconstruction:
-    """``base`` (one frame per rig) with ``frames`` frames per rig at the same pose, frameNNNN.png."""
+def cameras_and_rigs(base: pycolmap.Reconstruction) -> pycolmap.Reconstruction:
+    """A reconstruction holding ``base``'s cameras and rigs, no frame or image yet."""
     rec = pycolmap.Reconstruction()
     for camera in base.cameras.values():
         rec.add_camera(camera)
     for rig in base.rigs.values():
         rec.add_rig(rig)
+    return rec
+
+
+def recording(base: pycolmap.Reconstruction, frames: int) -> pycolmap.Reconstruction:
+    """``base`` (one frame per rig) with ``frames`` frames per rig at the same pose, frameNNNN.png."""
+    rec = cameras_and_rigs(base)
     frame_id = image_id = 0
     for frame in base.frames.values():
         images = [base.images[d.id] for d in frame.data_ids]
@@ -175,11 +181,7 @@ def test_the_narrow_observations_take_the_frame_a_late_rig_shares(world, tmp_pat
 
 def without(rec: pycolmap.Reconstruction, name: str) -> pycolmap.Reconstruction:
     """``rec`` without the image ``name`` (a narrow image missing from the image folder)."""
-    out = pycolmap.Reconstruction()
-    for camera in rec.cameras.values():
-        out.add_camera(camera)
-    for rig in rec.rigs.values():
-        out.add_rig(rig)
+    out = cameras_and_rigs(rec)
     drop = rec.find_image_with_name(name).image_id
     for frame in rec.frames.values():
         new = pycolmap.Frame(frame_id=frame.frame_id, rig_id=frame.rig_id, rig_from_world=frame.rig_from_world)

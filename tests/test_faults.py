@@ -329,6 +329,12 @@ def test_a_reused_frame_name_with_new_content_is_refused_until_overwrite(scene, 
     assert kept["wide"]["rotation_change_deg"] < 0.02
     assert len(json.loads((copy / "track" / "poses.json").read_text())["rigs"]["rig02"]["frames"]) == 1
 
+    (new / "rig01" / "narrow").mkdir()  # the same recording's narrow image, added since: no other images, tracked again
+    shutil.copy(dataset.images / "rig01" / "narrow" / "frame0000.png", new / "rig01" / "narrow" / "frame0000.png")
+    grown = track(copy, new, options)
+    assert (grown.processed, grown.skipped) == (1, 1)
+    assert sorted(grown.poses["rigs"]["rig01"]["frames"][0]["files"]) == ["narrow", "wide"]
+
 
 # --- run: a new recording copied over the old file names; database.db removed under a run ---------------------------
 

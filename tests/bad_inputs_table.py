@@ -109,6 +109,12 @@ def with_images(edit: Callable[[Path], None], extra: tuple = ()) -> Callable[[Pa
     return prepare
 
 
+def one_rig(root: Path) -> list:
+    inputs(root, lambda data: data["rigs"].pop())
+    shutil.rmtree(root / "images" / "rig02")
+    return RUN
+
+
 def tagged_jpegs(images: Path) -> None:
     """Every image as a JPEG of the same pixels tagged EXIF Orientation=6, as a camera mounted on its side writes
     them."""
@@ -399,6 +405,7 @@ CASES = [
          with_images(lambda images: shutil.copytree(images / "rig02", images / "rig03"))),
     Case("a rig of rigs.yaml without its folder", "nothing is written",
          with_images(lambda images: shutil.rmtree(images / "rig02"))),
+    Case("`rigsfm run` on one rig (its board images, say)", "nothing is written", one_rig),
     Case("an image at another resolution than calibrated", "nothing is written",
          with_images(lambda images: cv2.imwrite(str(images / "rig02" / "wide" / "f0.png"),
                                                 np.zeros((H * 2, W * 2), np.uint8)))),

@@ -73,6 +73,20 @@ def test_folder_without_rig(tmp_path):
     expect(tmp_path, r"folder\(s\) 'rig02' have no rig in the calibration file", images, rigs_path)
 
 
+def test_one_rig_is_refused_before_any_work(tmp_path):
+    """One rig (its board images, run by mistake) gave no pair, band or scale, and exited 0 with warnings."""
+    images, rigs_path, _ = make_inputs(tmp_path, rigs=("rig01",))
+    expect(tmp_path, r"images: one rig \('rig01'\); rigsfm calibrates a network of two or more rigs whose wide "
+                     r"views overlap .*: add the other rigs' folders, and their calibration to rigs.yaml", images,
+           rigs_path)
+    out = tmp_path / "out"
+    result = CliRunner().invoke(app, ["run", str(images), "--rigs", str(rigs_path), "--out", str(out)])
+    assert result.exit_code == 1, result.output
+    lines = [line for line in result.output.splitlines() if line.strip()]
+    assert len(lines) == 1 and lines[0].startswith("error: "), result.output  # no warning before it
+    assert not out.exists()
+
+
 def test_rig_folder_without_wide_images(tmp_path):
     images, rigs_path, _ = make_inputs(tmp_path)
     cv2.imwrite(str(images / "rig02" / "narrow" / "f1.png"), np.zeros((H, W), np.uint8))

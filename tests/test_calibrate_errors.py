@@ -75,6 +75,33 @@ def test_chessboard_part_of_a_larger_board(tmp_path):
         run(tmp_path, real_board(tmp_path, FRAMES, FRAMES), {**CHESS, "inner_corners": [8, 6]})
 
 
+@pytest.mark.parametrize("told", [[7, 4], [5, 3]])
+def test_chessboard_miscounted_by_several_corners_is_named_with_its_count(tmp_path, told):
+    """[7, 4] on the 9x6 board was answered with [7, 5] (one corner more), [5, 3] with an internal error (OpenCV
+    refused a 4x2 grid tried as a neighbour): the board's own count is named."""
+    with pytest.raises(InputError, match=r"inner_corners \[9, 6\] was found: fix 'inner_corners'"):
+        run(tmp_path, real_board(tmp_path, FRAMES, FRAMES), {**CHESS, "inner_corners": told})
+
+
+def test_a_part_of_the_board_found_names_the_whole_board(tmp_path):
+    """[7, 5] on the 9x6 board: OpenCV finds 7x5 parts of it; the error named [8, 5], one corner more."""
+    with pytest.raises(InputError, match=r"shows a chessboard with inner_corners \[9, 6\], more than board.yaml's "
+                                         r"\[7, 5\]"):
+        run(tmp_path, real_board(tmp_path, FRAMES, FRAMES), {**CHESS, "inner_corners": [7, 5]})
+
+
+def test_a_rendered_chessboard_is_counted_whatever_board_yaml_says(tmp_path):
+    """A 10x7 chessboard rendered in three views: told [7, 4] or [9, 7] (found in none), the error names [10, 7]; told [3, 12] (longer side as rows) it is named [7, 10]; [2, 6] is refused as a spec."""
+    board_dir = charuco_board_dir(tmp_path / "BOARD", {"type": "chessboard", "inner_corners": [10, 7], "square": 0.06})
+    for told, words in (([7, 4], r"but a chessboard with inner_corners \[10, 7\] was found"),
+                        ([9, 7], r"chessboard with inner_corners \[10, 7\]"),
+                        ([3, 12], r"but a chessboard with inner_corners \[7, 10\] was found")):
+        with pytest.raises(InputError, match=words):
+            run(tmp_path, board_dir, {**CHESS, "inner_corners": told})
+    with pytest.raises(InputError, match=r"'inner_corners' must be integers >= 3, got \[2, 6\]"):
+        board_spec_from_dict({**CHESS, "inner_corners": [2, 6]})
+
+
 def charuco_board_dir(root: Path, spec: dict, n: int = 3) -> Path:
     camera = SynthCamera(np.array([[500.0, 0, 319.5], [0, 500, 239.5], [0, 0, 1]]), np.zeros(5), (640, 480))
     plane = board_plane(board_spec_from_dict(spec), px_per_square=60)

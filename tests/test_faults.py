@@ -4,7 +4,6 @@ address nothing listens on, new recordings reusing old file names, a picker save
 
 import hashlib
 import json
-import logging
 import os
 import shutil
 import socket
@@ -284,7 +283,10 @@ def test_ray_address_nobody_listens_on_is_refused_at_once(scene, tmp_path):
         check_reachable("head")
 
 
-def test_a_reused_frame_name_with_new_content_is_registered_again(scene, tmp_path, caplog):
+def test_a_reused_frame_name_with_new_content_is_refused_until_overwrite(scene, tmp_path):
+    """A second recording (or another scene's images) under tracked frame names would replace the earlier results,
+    which nothing else keeps: refused, naming the frame and the fix; --overwrite starts the series anew."""
+    from rigsfm.core.errors import WorkspaceError
     from rigsfm.track import TrackOptions, track
 
     dataset, out = scene
@@ -306,16 +308,32 @@ def test_a_reused_frame_name_with_new_content_is_registered_again(scene, tmp_pat
     assert (unchanged.processed, unchanged.skipped) == (0, 2)
     image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     cv2.imwrite(str(path), np.roll(image, 12, axis=1))  # the camera turned by ~12 px: a new recording, same name
-    with caplog.at_level(logging.WARNING):
-        again = track(copy, new, options)
-    assert (again.processed, again.skipped) == (1, 1)
-    assert "1 frame(s) reuse the name of a tracked frame with other content (rig02/frame0000.png)" in caplog.text
+    saved = {p.name: p.read_bytes() for p in (copy / "track").iterdir() if p.is_file()}
+    result = invoke_wide("track", copy, new, "--workers", "1")
+    assert result.exit_code == 1, result.output
+    assert one_error_line(result).startswith(
+        f"error: '{copy / 'track' / 'poses.json'}' holds results of 1 frame(s) of the same name tracked from other "
+        "images ('rig02/frame0000.png'; a new recording that reuses their file names?): name the new frames so that "
+        "they differ from the tracked ones")
+    assert "pass --overwrite to start the series anew" in result.output
+    assert {p.name: p.read_bytes() for p in (copy / "track").iterdir() if p.is_file()} == saved  # nothing replaced
+    with pytest.raises(WorkspaceError, match="rig02/frame0000.png"):
+        track(copy, new, options)
+
+    again = track(copy, new, TrackOptions(workers=1, overwrite=True))
+    assert (again.processed, again.skipped) == (2, 0)
     moved = again.poses["rigs"]["rig02"]["frames"][0]
     assert moved["files"]["wide"]["sha256"] == hashlib.sha256(path.read_bytes()).hexdigest()
     assert moved["wide"]["rotation_change_deg"] > 0.2  # the new content's pose, not the old one's
-    saved = json.loads((copy / "track" / "poses.json").read_text())
-    assert saved["rigs"]["rig02"]["frames"][0]["files"] == moved["files"]
-    assert len(saved["rigs"]["rig02"]["frames"]) == 1
+    kept = again.poses["rigs"]["rig01"]["frames"][0]
+    assert kept["wide"]["rotation_change_deg"] < 0.02
+    assert len(json.loads((copy / "track" / "poses.json").read_text())["rigs"]["rig02"]["frames"]) == 1
+
+    (new / "rig01" / "narrow").mkdir()  # the same recording's narrow image, added since: no other images, tracked again
+    shutil.copy(dataset.images / "rig01" / "narrow" / "frame0000.png", new / "rig01" / "narrow" / "frame0000.png")
+    grown = track(copy, new, options)
+    assert (grown.processed, grown.skipped) == (1, 1)
+    assert sorted(grown.poses["rigs"]["rig01"]["frames"][0]["files"]) == ["narrow", "wide"]
 
 
 # --- run: a new recording copied over the old file names; database.db removed under a run ---------------------------

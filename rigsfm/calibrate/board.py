@@ -103,7 +103,8 @@ def board_spec_from_dict(data: dict, where: str = "board spec") -> BoardSpec:
     if kind == "chessboard":
         if "inner_corners" not in data:
             raise InputError(f"{where}: a chessboard needs 'inner_corners: [cols, rows]' (squares minus one)")
-        return BoardSpec(type=kind, square=square, inner_corners=_pair(data["inner_corners"], "inner_corners", where, 2))
+        corners = _pair(data["inner_corners"], "inner_corners", where, 3)  # OpenCV finds 3x3 or more (else raises)
+        return BoardSpec(type=kind, square=square, inner_corners=corners)
     for key in ("squares", "marker", "dictionary"):
         if key not in data:
             raise InputError(f"{where}: a charuco board needs 'squares', 'square', 'marker' and 'dictionary'")
@@ -207,19 +208,70 @@ def _probe_images(paths: list[Path], count: int = 4) -> list[np.ndarray]:
     return [read_gray(p) for p in paths[::step][:count]]
 
 
+def _downscaled(gray: np.ndarray) -> np.ndarray:
+    scale = min(1.0, DETECTION_MAX_SIDE / max(gray.shape))
+    return gray if scale == 1.0 else cv2.resize(gray, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
+
+
+def _oriented(grid: tuple[int, int], like: tuple[int, int]) -> tuple[int, int]:
+    """``grid`` with its longer side where ``like`` has it (a board counted [6, 9] or [9, 6] is the same board)."""
+    return grid if (grid[0] >= grid[1]) == (like[0] >= like[1]) else (grid[1], grid[0])
+
+
+def chessboard_size(images: list[np.ndarray], like: tuple[int, int], limit: int = 40) -> tuple[int, int] | None:
+    """The inner corners (cols, rows) of the chessboard that ``images`` show, oriented as ``like``, or None.
+
+    OpenCV's sector-based detector, allowed a larger board than a 3x3 part (CALIB_CB_LARGER), proposes each image's
+    whole board; it errs at times (a row too many), so the largest proposal that the detector calibrate uses also
+    finds wins, and grows while a grid one corner larger is found there too. Where nothing is proposed, grids one
+    corner about ``like`` are tried, as the count of squares or of one side is the usual slip."""
+    def found(grid: tuple[int, int], image: np.ndarray) -> bool:
+        return min(grid) >= 3 and find_chessboard(image, grid, fast=True) is not None  # OpenCV needs 3 or more
+
+    proposed: dict[tuple[int, int], list[np.ndarray]] = {}
+    for image in images:
+        ok, _, meta = cv2.findChessboardCornersSBWithMeta(_downscaled(image), (3, 3),
+                                                           cv2.CALIB_CB_LARGER | cv2.CALIB_CB_EXHAUSTIVE)
+        if ok and meta is not None and min(meta.shape[:2]) >= 3:
+            proposed.setdefault(_oriented((meta.shape[1], meta.shape[0]), like), []).append(image)
+    cols, rows = like
+    near = [(cols - 1, rows - 1), (cols + 1, rows + 1), (cols - 1, rows), (cols, rows - 1), (cols + 1, rows),
+            (cols, rows + 1), (cols - 2, rows - 2)]
+    tries = [(grid, proposed[grid]) for grid in sorted(proposed, key=lambda g: -g[0] * g[1])]
+    tries += [(grid, images) for grid in near if grid not in proposed]
+    for grid, where in tries:
+        for board in (grid, grid[::-1]):
+            hits = [image for image in where if found(board, image)]
+            if hits:
+                break
+        else:
+            continue
+        while max(board) < limit:
+            larger = [g for g in ((board[0] + 1, board[1]), (board[0], board[1] + 1)) if found(g, hits[0])]
+            if not larger:
+                break
+            board = larger[0]
+        return _oriented(board, like)
+    return None
+
+
 def refuse_part_of_a_larger_chessboard(spec: BoardSpec, detected: list[Path], where: str, probes: int = 2) -> None:
     """Raise where the images show a chessboard with more inner corners than ``spec``: OpenCV then finds a part of
     it, and which part can differ between images and between a rig's two cameras (E^sl off by whole squares).
-    ``detected``: images in which ``spec`` was found; a few of them, spread out, are searched one corner larger."""
+    ``detected``: images in which ``spec`` was found; a few of them, spread out, are searched one corner larger,
+    and where one is found the board's own count is named."""
     cols, rows = spec.inner_corners  # type: ignore[misc]  # the board type's fields are set (parse_board)
     for path in detected[::max(1, len(detected) // probes)][:probes]:
         gray = read_gray(path)
         for grid in ((cols + 1, rows), (cols, rows + 1)):
             if find_chessboard(gray, grid, fast=True) is not None:
-                raise InputError(f"{where}: {path.name} shows a chessboard with at least inner_corners [{grid[0]}, "
-                                 f"{grid[1]}], more than board.yaml's [{cols}, {rows}]: only a part of the board "
-                                 "would be used, and which part can differ between images and cameras; fix "
-                                 "'inner_corners' in board.yaml (count inner corners = squares - 1)")
+                whole = chessboard_size([gray], (cols, rows))
+                count = (f"inner_corners [{whole[0]}, {whole[1]}]" if whole is not None and whole[0] * whole[1] >= grid[0] * grid[1]
+                         else f"at least inner_corners [{grid[0]}, {grid[1]}]")
+                raise InputError(f"{where}: {path.name} shows a chessboard with {count}, more than board.yaml's "
+                                 f"[{cols}, {rows}]: only a part of the board would be used, and which part can "
+                                 "differ between images and cameras; fix 'inner_corners' in board.yaml (count inner "
+                                 "corners = squares - 1)")
 
 
 def diagnose_no_detection(spec: BoardSpec, paths: list[Path], where: str) -> InputError:
@@ -227,15 +279,12 @@ def diagnose_no_detection(spec: BoardSpec, paths: list[Path], where: str) -> Inp
     images = _probe_images(paths)
     base = f"{where}: the board ({spec.describe()}) was found in none of the {len(paths)} images"
     if spec.type == "chessboard":
-        cols, rows = spec.inner_corners  # type: ignore[misc]  # the board type's fields are set (parse_board)
-        candidates = [(cols - 1, rows - 1), (cols + 1, rows + 1), (cols - 1, rows), (cols, rows - 1),
-                      (cols + 1, rows), (cols, rows + 1), (cols - 2, rows - 2)]
-        for grid in candidates:
-            if min(grid) >= 2 and any(find_chessboard(im, grid, fast=True) is not None for im in images):
-                return InputError(f"{base}, but a chessboard with inner_corners [{grid[0]}, {grid[1]}] was found: "
-                                  "fix 'inner_corners' in board.yaml (count inner corners = squares - 1)")
-        return InputError(f"{base}; check 'inner_corners' ([cols, rows], squares - 1) and that the whole "
-                          "board is visible, sharp and well lit")
+        grid = chessboard_size(images, spec.inner_corners)  # type: ignore[arg-type]  # set for a chessboard
+        if grid is not None:
+            return InputError(f"{base}, but a chessboard with inner_corners [{grid[0]}, {grid[1]}] was found: "
+                              "fix 'inner_corners' in board.yaml (count inner corners = squares - 1)")
+        return InputError(f"{base}, nor a chessboard of another size; check 'inner_corners' ([cols, rows], squares "
+                          "- 1) and that the whole board is visible, sharp and well lit")
     detector = BoardDetector(spec)
     markers = np.concatenate([detector.detect_markers(im) for im in images])
     if len(markers) == 0:

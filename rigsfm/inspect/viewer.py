@@ -4,17 +4,22 @@ Wide frustums are blue, narrow ones orange (and twice as deep); a green line joi
 (a point at the usual centimetre baselines); the world axes at the cameras' centroid are red x, green y, blue z.
 
 ``--screenshot FILE.png`` renders the same view headless with Open3D's OffscreenRenderer (Filament; on a
-machine without GPU it needs a software Vulkan driver, Debian's mesa-vulkan-drivers). Where that is
+machine without GPU it needs a software Vulkan driver, Debian's mesa-vulkan-drivers); the engine's start lines
+go to the log, not the terminal (:func:`engine_lines_to_log`). Where that is
 impossible the same geometry is drawn by a small numpy/OpenCV rasteriser (lines and points, no shading)
 and the fallback is logged.
 """
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import ctypes.util
 import logging
 import os
+import sys
+import tempfile
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -127,7 +132,44 @@ def linear_from_srgb(colour) -> np.ndarray:
     return np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)
 
 
+@contextlib.contextmanager
+def engine_lines_to_log() -> Iterator[list[str]]:
+    """Open3D's and Filament's engine lines ('[Open3D INFO] EngineInstance: ...', 'FEngine ... created'), which
+    native code writes to file descriptors 1 and 2, go to the log instead of the terminal: debug level, but lines
+    that speak of an error at warning level. Open3D's own logger is set to errors meanwhile. The lines are handed
+    out (filled when the block ends, also when it raises) so that a failed render can name them."""
+    lines: list[str] = []
+    level = o3d.utility.get_verbosity_level()
+    for stream in (sys.stdout, sys.stderr):
+        with contextlib.suppress(Exception):  # a stream pytest or a caller replaced may not flush
+            stream.flush()
+    libc = ctypes.CDLL(None)
+    with tempfile.TemporaryFile() as sink:
+        saved = (os.dup(1), os.dup(2))
+        try:
+            o3d.utility.set_verbosity_level(o3d.utility.VerbosityLevel.Error)
+            os.dup2(sink.fileno(), 1)
+            os.dup2(sink.fileno(), 2)
+            yield lines
+        finally:
+            libc.fflush(None)  # C's stdio buffers what native code printed: out before the descriptors go back
+            os.dup2(saved[0], 1)
+            os.dup2(saved[1], 2)
+            os.close(saved[0])
+            os.close(saved[1])
+            o3d.utility.set_verbosity_level(level)
+            sink.seek(0)
+            lines.extend(line.strip() for line in sink.read().decode(errors="replace").splitlines() if line.strip())
+            for line in lines:
+                logger.log(logging.WARNING if "error" in line.lower() else logging.DEBUG, "Open3D: %s", line)
+
+
 def render_offscreen(scene: Scene, width: int, height: int) -> np.ndarray:
+    with engine_lines_to_log():
+        return _render_offscreen(scene, width, height)
+
+
+def _render_offscreen(scene: Scene, width: int, height: int) -> np.ndarray:
     rendering = o3d.visualization.rendering
     renderer = rendering.OffscreenRenderer(width, height)
     renderer.scene.set_background([*BACKGROUND_RGB, 1.0])

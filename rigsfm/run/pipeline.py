@@ -45,6 +45,7 @@ from rigsfm.run.inputs.database import check_database_kept, create_database
 from rigsfm.run.inputs.images import (
     ImageEntry,
     check_image_folder,
+    rig_folders,
     rigs_without_narrow,
     scan_images,
     with_folder_names,
@@ -111,9 +112,22 @@ def check_out_outside_images(out: Path, image_dir: Path) -> None:
                          "choose an output folder outside it")
 
 
+def refuse_a_lone_rig(image_dir: Path, rigs: list[RigCalibration]) -> None:
+    """Refuse a network of one rig: every deliverable (a pair's E, F and band, the scale, the floor) joins two rigs'
+    views, and one rig's frames, taken from one place, give the mapper no baseline (a rig's board images, run by
+    mistake, end in warnings only)."""
+    if len(rigs) >= 2 or len(rig_folders(image_dir)) >= 2:  # a folder without its rig is named by scan_images
+        return
+    names = ", ".join(f"'{rig.name}'" for rig in rigs)
+    raise InputError(f"{image_dir}: one rig ({names}); rigsfm calibrates a network of two or more rigs whose wide "
+                     "views overlap (each pair's E, F and band joins two rigs): add the other rigs' folders, and "
+                     "their calibration to rigs.yaml (a rig's board images are for `rigsfm calibrate`)")
+
+
 def load_inputs(image_dir: Path, rigs_path: Path, scale_path: Path | None = None) -> Inputs:
     """Validate every input before any heavy work; raises ``InputError`` naming file and fix."""
     rigs = with_folder_names(check_image_folder(image_dir), load_rigs(rigs_path))
+    refuse_a_lone_rig(image_dir, rigs)  # before the calibration's warnings: they would not be the user's problem
     priors = calibration_priors(rigs, rigs_path)
     images = scan_images(image_dir, rigs)
     without_narrow = tuple(rigs_without_narrow(image_dir, images, rigs))

@@ -5,7 +5,8 @@ frame), ``plots/<rig>.png``; COLMAP's log and a line per frame are appended to O
 skipped, so the command can run again as recordings arrive; results are merged, checkpointed every
 ``checkpoint_every`` frames and written atomically. Each tracked frame records its files' fingerprints (size,
 modification time, SHA-256): a file that reuses a tracked name with other content (a new recording that numbers
-its frames from 0 again) is registered again, its earlier result replaced, with a warning. Flags and verdicts are recomputed over the whole
+its frames from 0 again) is refused, naming it, before anything is registered: its earlier result would be lost
+(``--overwrite`` starts the series anew); a frame that gained an image (its narrow one) is registered again. Flags and verdicts are recomputed over the whole
 series on every run (with the thresholds of that run).
 """
 
@@ -21,7 +22,7 @@ from pathlib import Path
 import pycolmap
 
 from rigsfm.core import charts
-from rigsfm.core.errors import InputError
+from rigsfm.core.errors import InputError, WorkspaceError
 from rigsfm.core.executors import check_reachable
 from rigsfm.core.io import file_sha256, write_bytes_atomic, write_json_atomic, write_text_atomic
 from rigsfm.core.rig import RigCalibration, nfc
@@ -84,14 +85,40 @@ def task_fingerprints(task: FrameTask, known: dict | None = None) -> dict:
             if isinstance(path, (str, os.PathLike))}
 
 
-def changed_since_tracked(task: FrameTask, entry: dict) -> bool:
-    """Whether the task's files differ from those ``entry`` was tracked from (entries written before fingerprints
-    were recorded count as unchanged)."""
+def compare_with_tracked(task: FrameTask, entry: dict) -> tuple[list[str], list[str]]:
+    """(sensors whose image differs from the one ``entry`` was tracked from, sensors with an image ``entry`` was
+    tracked without); entries written before fingerprints were recorded count as unchanged."""
     known = entry.get("files")
     if not isinstance(known, dict) or not known:
-        return False
-    now = task_fingerprints(task, known)
-    return {s: f["sha256"] for s, f in now.items()} != {s: (f or {}).get("sha256") for s, f in known.items()}
+        return [], []
+    now = {sensor: f["sha256"] for sensor, f in task_fingerprints(task, known).items()}
+    before = {sensor: (f or {}).get("sha256") for sensor, f in known.items()}
+    return ([sensor for sensor in sorted(now) if sensor in before and now[sensor] != before[sensor]],
+            [sensor for sensor in sorted(now) if sensor not in before])
+
+
+def tracked_again(tasks: list[FrameTask], frames: dict, poses_json: Path) -> list[FrameTask]:
+    """The tracked frames to register again: those that gained an image (a narrow one added since) from the same
+    recording. Refuses frames whose names are tracked already from other images (a new recording numbered from 0
+    again, another scene's images): registering them would replace the earlier results, which nothing else keeps."""
+    replaced, grown = [], []
+    for task in tasks:
+        if (task.rig, task.frame) in frames:
+            differ, added = compare_with_tracked(task, frames[(task.rig, task.frame)])
+            if differ:
+                replaced.append(f"'{task.rig}/{task.frame}'")
+            elif added:
+                grown.append(task)
+    if replaced:
+        raise WorkspaceError(
+            f"'{poses_json}' holds results of {len(replaced)} frame(s) of the same name tracked from other images "
+            f"({', '.join(replaced[:3])}{', ...' if len(replaced) > 3 else ''}; a new recording that reuses their file "
+            "names?): name the new frames so that they differ from the tracked ones (e.g. by a timestamp) to add "
+            "them to the series, or pass --overwrite to start the series anew (the earlier results are discarded); "
+            "nothing was registered or changed")
+    if grown:
+        logger.info("%d tracked frame(s) have images they were tracked without: registered again", len(grown))
+    return grown
 
 
 def _save(paths: TrackPaths, poses: dict, plots: bool) -> None:
@@ -119,13 +146,8 @@ def track(out: Path, new_images: Path, options: TrackOptions | None = None, *,
     tasks = frame_tasks(new_images, reference)
     with workspace.lock():
         frames = {} if options.overwrite else load_poses(paths.poses_json, reference)
-        changed = [t for t in tasks if (t.rig, t.frame) in frames and changed_since_tracked(t, frames[(t.rig, t.frame)])]
-        if changed:
-            names = [f"{t.rig}/{t.frame}" for t in changed]
-            logger.warning("%d frame(s) reuse the name of a tracked frame with other content (%s%s): registering them "
-                           "again, their earlier results are replaced", len(changed), ", ".join(names[:3]),
-                           ", ..." if len(names) > 3 else "")
-        todo = [t for t in tasks if (t.rig, t.frame) not in frames or t in changed]
+        again = tracked_again(tasks, frames, paths.poses_json)
+        todo = [t for t in tasks if (t.rig, t.frame) not in frames or t in again]
         logger.info("%d new frames to register, %d already tracked", len(todo), len(tasks) - len(todo))
         files = {(t.rig, t.frame): task_fingerprints(t) for t in todo}
         bad: list[str] = []

@@ -1,7 +1,7 @@
 """Twenty-odd rendered networks, each run as a user runs it and with ``--fixed-calibration``, scored against the
 exact truth: narrow accuracy, the delivered band's coverage and width, run time, and the frame offsets' error.
 
-    python benchmarks/networks.py WORK [--only NAME ...] [--force] [--out FILE] [--report]
+    python benchmarks/networks.py WORK [--only NAME ...] [--force] [--out FILE] [--report] [--default-only]
     python benchmarks/networks.py WORK --measured benchmarks/measured_networks.json   # the saved tables again
 
 Networks (``networks()``; rendered once into ``WORK/<name>/scene`` by ``rigsfm.synth`` at ``--image-scale 0.5``,
@@ -19,12 +19,16 @@ Per network, three results:
 - ``oracle``: ``rigsfm.synth.truth.oracle``, the fixed-calibration adjustment started from the true poses with the
   ``fixed`` run's observations (narrow accuracy only).
 
+``--default-only`` runs ``default`` alone (results under ``WORK/results_default``, the table of its hold-or-refine
+decisions on stdout): the sweep of ``CALIBRATION CONTRADICTED``'s false alarms.
+
 Scores (``benchmarks.metrics.evaluate``, ``benchmarks.trust.score_bands``, ``benchmarks.hold_or_refine.epipolar_p95``):
 narrow relative-rotation error median / max (deg, every narrow pair), the worst pair's 95th percentile of the true
 epipolar distance (px, true floor points), per pair the delivered ``epipolar_band_95_px`` against 400 true floor
 correspondences (pooled coverage, band median, median of band / true p95), CPU seconds (summary.json ``cpu_s``, all
-stages) and wall seconds, what ``--narrow auto`` decided, the self-check's verdicts, and for ``shift`` networks each
-rig's estimated offset (summary.json ``frame_offsets``) against the truth. Results: ``WORK/results/<name>.json``
+stages) and wall seconds, what ``--narrow auto`` decided, the self-check's verdicts, the hold-or-refine decisions
+(``decisions_record``), and for ``shift`` networks each rig's estimated offset (summary.json ``frame_offsets``)
+against the truth. Results: ``WORK/results/<name>.json``
 (kept: a rerun skips scored networks unless ``--force``; workers started side by side share the list, each
 network measured by the first to claim it), all of them in ``--out`` (default ``WORK/networks.json``),
 and a markdown table on stdout.
@@ -180,6 +184,26 @@ def offset_errors(network: Network, summary: dict) -> dict | None:
             "max_abs_error_frames": max((abs(e) for e in errors.values()), default=None)}
 
 
+def decisions_record(summary: dict) -> dict:
+    """The run's hold-or-refine decisions (summary.json ``calibration_decisions``): the network's consistency test
+    (chi-square, dof, its HOLD_QUANTILE and CONTRADICTED_QUANTILE limits), the rigs refined, and whether the
+    ``CALIBRATION CONTRADICTED`` warning is among summary.json's ``warnings``."""
+    from scipy.stats import chi2
+
+    from rigsfm.run.adjustment.decisions import CONTRADICTED_QUANTILE, HOLD_QUANTILE
+
+    decisions = summary.get("calibration_decisions") or []
+    tested = [d for d in decisions if d.get("network_dof")]
+    dof = tested[0]["network_dof"] if tested else 0
+    return {"rigs": len(decisions), "refined": [d["rig"] for d in decisions if not d["held"]],
+            "network_chi2": tested[0]["network_chi2"] if tested else None, "network_dof": dof,
+            "limit_hold": float(chi2.ppf(HOLD_QUANTILE, dof)) if dof else None,
+            "limit_contradicted": float(chi2.ppf(CONTRADICTED_QUANTILE, dof)) if dof else None,
+            "contradicted": any(w.startswith("CALIBRATION CONTRADICTED") for w in summary.get("warnings", [])),
+            "per_rig": [{k: d.get(k) for k in ("rig", "held", "chi2", "dof", "limit", "largest_gain", "reason")}
+                        for d in decisions]}
+
+
 def run_one(network: Network, data, out: Path, fixed: bool, reuse: Path | None) -> tuple[dict, pycolmap.Reconstruction]:
     from rigsfm.run.options import AdjustOptions, Calibration, RunOptions, SelfCheckOptions
     from rigsfm.run.pipeline import run
@@ -202,16 +226,21 @@ def run_one(network: Network, data, out: Path, fixed: bool, reuse: Path | None) 
     row = {"wall_s": wall, "cpu_s": sum(summary["cpu_s"].values()), "timings_s": summary["timings_s"],
            "features_reused": reuse is not None, "narrow_used": record.get("used"),
            "narrow_observations": record.get("observations_added"), "self_check": checks,
-           "warnings": len(summary.get("warnings", [])), **score(result.reconstruction, truth, summary),
-           "frame_offsets": offset_errors(network, summary)}
+           "warnings": len(summary.get("warnings", [])), "decisions": decisions_record(summary),
+           **score(result.reconstruction, truth, summary), "frame_offsets": offset_errors(network, summary)}
     return row, result.reconstruction
 
 
-def measure(network: Network, work: Path, force: bool = False) -> dict:
+def result_path(work: Path, name: str, default_only: bool = False) -> Path:
+    """Where a network's result is kept: default-only results apart, so that a full measurement does not skip them."""
+    return work / ("results_default" if default_only else "results") / f"{name}.json"
+
+
+def measure(network: Network, work: Path, force: bool = False, default_only: bool = False) -> dict:
     from rigsfm.run.pipeline import load_inputs
     from rigsfm.synth.truth import compare_to_ground_truth, oracle
 
-    path = work / "results" / f"{network.name}.json"
+    path = result_path(work, network.name, default_only)
     if path.exists() and not force:
         return json.loads(path.read_text())
     t = time.perf_counter()
@@ -222,6 +251,10 @@ def measure(network: Network, work: Path, force: bool = False) -> dict:
     try:
         result["default"], _ = run_one(network, data, work / network.name / "default", False, None)
         logger.info("%s default: %s", network.name, _brief(result["default"]))
+        if default_only:
+            result["default_only"] = True
+            write_json_atomic(path, result, overwrite=True)
+            return result
         result["fixed"], fixed = run_one(network, data, work / network.name / "fixed", True,
                                          work / network.name / "default")
         logger.info("%s fixed: %s", network.name, _brief(result["fixed"]))
@@ -327,6 +360,23 @@ def table(results: list[dict]) -> str:
     return "\n".join(lines)
 
 
+def decisions_table(results: list[dict]) -> str:
+    """Per network, the default run's network consistency test and whether it warned CALIBRATION CONTRADICTED."""
+    lines = ["| network | rigs | dof | chi-square | 95 % limit | 99.9 % limit | held / refined | warned |",
+             "| --- | --- | --- | --- | --- | --- | --- | --- |"]
+    for r in results:
+        if "error" in r:
+            lines.append(f"| {r['network']} | fails: {r['error'][:80]} | | | | | | |")
+            continue
+        d = r["default"]["decisions"]
+        state = ("refined" if len(d["refined"]) == d["rigs"] else "held" if not d["refined"]
+                 else f"{len(d['refined'])} of {d['rigs']} refined")
+        lines.append(f"| {r['network']} | {d['rigs']} | {d['network_dof']} | {_f(d['network_chi2'], 1)} | "
+                     f"{_f(d['limit_hold'], 1)} | {_f(d['limit_contradicted'], 1)} | {state} | "
+                     f"{'yes' if d['contradicted'] else 'no'} |")
+    return "\n".join(lines)
+
+
 def _stat(values: list[float]) -> str:
     if not values:
         return "- (no pair)"
@@ -363,6 +413,9 @@ def main() -> None:
     parser.add_argument("--only", nargs="+", default=None, choices=sorted(networks()))
     parser.add_argument("--force", action="store_true", help="measure again networks already scored")
     parser.add_argument("--report", action="store_true", help="only the table of the networks already scored")
+    parser.add_argument("--default-only", action="store_true",
+                        help="the default run alone (no --fixed-calibration run, no oracle); results under "
+                        "WORK/results_default, the decisions' table on stdout")
     parser.add_argument("--out", type=Path, default=None)
     parser.add_argument("--measured", type=Path, default=None,
                         help="print the table and summary of this saved copy (benchmarks/measured_networks.json)")
@@ -381,7 +434,7 @@ def main() -> None:
     chosen = [networks()[n] for n in args.only] if args.only else list(networks().values())
     results = []
     for network in chosen:
-        path = args.work / "results" / f"{network.name}.json"
+        path = result_path(args.work, network.name, args.default_only)
         if args.report:
             if path.exists():
                 results.append(json.loads(path.read_text()))
@@ -392,12 +445,15 @@ def main() -> None:
                 continue
             t = time.perf_counter()
             try:
-                measure(network, args.work, args.force)
+                measure(network, args.work, args.force, args.default_only)
             finally:
                 (args.work / network.name / "claimed").unlink(missing_ok=True)
             logger.info("%s done in %.0f s", network.name, time.perf_counter() - t)
         results.append(json.loads(path.read_text()))
     write_json_atomic(args.out or args.work / "networks.json", {"results": results}, overwrite=True)
+    if args.default_only:
+        print(decisions_table(results))
+        return
     print(table(results))
     print()
     print(summary_lines(results))

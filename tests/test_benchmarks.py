@@ -150,3 +150,28 @@ def test_three_rig_bands_table_pools_true_points_and_leaves_out_partial_networks
     rows = table(results).splitlines()
     assert rows[2] == "| sampled | 1 | 2 | 0.900 | 50.0 % / 15.0 % | 11.00 | 4.00 |"  # (300 + 60) / 400
     assert rows[3] == "| linear | 1 | 2 | 0.800 | 50.0 % / 5.0 % | 10.00 | 0.02 |"  # (270 + 50) / 400
+
+
+def test_networks_records_the_network_test_and_the_contradicted_warning():
+    from dataclasses import asdict
+
+    from benchmarks.networks import decisions_record, decisions_table
+    from rigsfm.run.adjustment.decisions import contradiction
+    from rigsfm.run.adjustment.result import CalibrationDecision
+
+    def summary(network_chi2: float, held: bool) -> dict:
+        decisions = [CalibrationDecision(f"rig0{i}", held, "", 0.9, 5.0 + i, 4, 9.49, network_chi2, 15)
+                     for i in range(1, 5)]
+        warning = contradiction(decisions)  # as the run writes it into summary.json's warnings
+        return {"calibration_decisions": [asdict(d) for d in decisions],
+                "warnings": ["NOT METRIC: ..."] + ([warning] if warning else [])}
+
+    wrong, benign, refined = (decisions_record(summary(c, h)) for c, h in ((80.2, True), (28.4, True), (12.0, False)))
+    assert wrong["contradicted"] and not benign["contradicted"] and not refined["contradicted"]
+    assert wrong["network_dof"] == 15 and wrong["network_chi2"] == 80.2
+    assert round(wrong["limit_hold"], 1) == 25.0 and round(wrong["limit_contradicted"], 1) == 37.7
+    assert wrong["refined"] == [] and refined["refined"] == ["rig01", "rig02", "rig03", "rig04"]
+    rows = decisions_table([{"network": n, "default": {"decisions": d}}
+                            for n, d in (("a", wrong), ("b", benign), ("c", refined))]).splitlines()
+    assert rows[2] == "| a | 4 | 15 | 80.2 | 25.0 | 37.7 | held | yes |"
+    assert rows[3].endswith("| held | no |") and rows[4].endswith("| refined | no |")

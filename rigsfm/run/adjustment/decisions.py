@@ -160,7 +160,10 @@ def hold_or_refine(result: AdjustResult, covariance: JointCovariance | None) -> 
 def contradiction(decisions: list[CalibrationDecision]) -> str | None:
     """A warning where the images contradict rigs.yaml far beyond its sigmas (the network's consistency test above
     its ``CONTRADICTED_QUANTILE``): every rig is then held at values the images say are off, and the result is
-    built on them (a focal length 1 % off on one rig of four put the floor at twice its depth, with no other sign)."""
+    built on them (a focal length 1 % off on one rig of four put the floor at twice its depth, with no other sign).
+    The test sees only what the images inform (a narrow camera's intrinsics not at all without narrow
+    observations), and images whose own errors exceed their noise model cross it too (view-dependent features such
+    as persons' silhouettes in the wide images), so the message names both causes."""
     from scipy.stats import chi2 as chi2_distribution
 
     tested = [d for d in decisions if d.network_dof]
@@ -175,4 +178,6 @@ def contradiction(decisions: list[CalibrationDecision]) -> str | None:
             f"{network_chi2:.1f} > {limit:.1f}, the {100 * CONTRADICTED_QUANTILE:g} % quantile of {dof} dof; most "
             f"{worst.rig}: {worst.chi2:.1f} against {worst.limit:.1f}), and the result holds rigs.yaml's values: "
             f"check {worst.rig}'s entry in rigs.yaml (this resolution? a lens, zoom or focus touched since the "
-            "board?) and recalibrate it; its poses, floor and bands may be far off")
+            "board?) and recalibrate it if it is off: the poses, floor and bands may then be far off; if it is "
+            "right, the images' own errors exceed their noise model (persons or other moving or view-dependent "
+            "features in the wide images do this too)")

@@ -25,7 +25,8 @@ import numpy as np
 
 from rigsfm.associate import AssociateOptions, associate_frames, from_arrays, load_run
 from rigsfm.associate.evaluate import make_detections, score_groups, visible_heads
-from rigsfm.associate.solve import _Frame, _pack
+from rigsfm.associate.frame import _Frame
+from rigsfm.associate.packing import _pack
 
 
 def _scores(views, members: np.ndarray, offsets: np.ndarray, truth) -> dict:

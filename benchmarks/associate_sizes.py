@@ -30,7 +30,8 @@ from benchmarks.associate import evaluate  # noqa: E402
 from benchmarks.metrics import roc_auc  # noqa: E402
 from rigsfm.associate import AssociateOptions  # noqa: E402
 from rigsfm.associate.evaluate import score_groups  # noqa: E402
-from rigsfm.associate.solve import _Frame, _pack  # noqa: E402
+from rigsfm.associate.frame import _Frame  # noqa: E402
+from rigsfm.associate.packing import _pack  # noqa: E402
 
 
 def _auc(right: np.ndarray, wrong: np.ndarray) -> float | None:

@@ -43,6 +43,7 @@ import rigsfm.associate.solve as solve  # noqa: E402
 from benchmarks.metrics import roc_auc  # noqa: E402
 from rigsfm.associate import AssociateOptions, associate_frames, from_arrays, load_run  # noqa: E402
 from rigsfm.associate.evaluate import make_detections, score_groups, visible_heads  # noqa: E402
+from rigsfm.associate.packing import _pack  # noqa: E402
 from rigsfm.associate.pipeline import RunModel  # noqa: E402
 from rigsfm.core.names import ImageName  # noqa: E402
 
@@ -440,7 +441,7 @@ def run_seed(dataset: Path, out: Path, seed: int, frames: int, configs: list[tup
             total = int(f0.offsets[-1])
             for name, value in (("one", score0), ("summed", summed)):
                 ok = value > options.min_score
-                chosen = solve._pack(members[ok], value[ok] - options.min_score, total, options.time_limit_s)
+                chosen = _pack(members[ok], value[ok] - options.min_score, total, options.time_limit_s)
                 kept = members[ok][chosen]
                 groups = [[(f0.views[v].name, int(i - f0.offsets[v])) for v, i in enumerate(m) if i >= 0] for m in kept]
                 s = score_groups(groups, truths[0])

@@ -349,8 +349,10 @@ def test_view_shifts_from_right_groups_remove_the_run_s_pose_error(crowd):
     with the shifted views and their tightened bands is far more accurate than on the run's poses."""
     from dataclasses import replace
 
+    from rigsfm.associate.frame import _Frame
     from rigsfm.associate.pipeline import frame_views
-    from rigsfm.associate.solve import _apply_correction, _Frame, associate_views, estimate_view_shifts
+    from rigsfm.associate.shifts import _apply_correction, estimate_view_shifts
+    from rigsfm.associate.solve import associate_views
 
     dataset, out = crowd
     model, truth = _detections(dataset, out)

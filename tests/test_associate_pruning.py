@@ -10,8 +10,9 @@ from test_associate_segments import _crowd_views
 
 from rigsfm.associate import AssociateOptions
 from rigsfm.associate.appearance import AppearanceModel
+from rigsfm.associate.frame import _Frame
 from rigsfm.associate.occupancy import CountGrid
-from rigsfm.associate.solve import _Frame, associate_views
+from rigsfm.associate.solve import associate_views
 
 
 def test_a_grid_box_never_misses_a_point_within_the_radius():
@@ -222,7 +223,7 @@ def test_the_triangulation_entry_by_entry_is_the_stacked_one_to_the_bit():
 
 
 def test_the_record_of_verified_groups_finds_the_last_equal_row_even_where_hashes_collide(monkeypatch):
-    from rigsfm.associate import solve
+    from rigsfm.associate import rows as member_rows
 
     rng = np.random.default_rng(6)
     rows = np.where(rng.random((3000, 6)) < 0.5, rng.integers(0, 40, (3000, 6)), -1)
@@ -231,9 +232,9 @@ def test_the_record_of_verified_groups_finds_the_last_equal_row_even_where_hashe
     last = {r.tobytes(): i for i, r in enumerate(rows)}  # the last of equal rows
     want = np.array([last.get(m.tobytes(), -1) for m in members])
     assert (want >= 0).sum() == 500 and len(last) < 2900
-    for hashes in (solve._row_hashes, lambda m: np.zeros(len(m), dtype=np.uint64)):  # the second: all collide
-        monkeypatch.setattr(solve, "_row_hashes", hashes)
-        record = solve._Verified()
+    for hashes in (member_rows._row_hashes, lambda m: np.zeros(len(m), dtype=np.uint64)):  # the second: all collide
+        monkeypatch.setattr(member_rows, "_row_hashes", hashes)
+        record = member_rows._Verified()
         for chunk in chunks:
             record.add(chunk, (chunk[:, 0].astype(float),))
         np.testing.assert_array_equal(record.starts, np.cumsum([0] + [len(c) for c in chunks]))
@@ -241,7 +242,7 @@ def test_the_record_of_verified_groups_finds_the_last_equal_row_even_where_hashe
 
 
 def test_distinct_member_rows_are_numpy_s_unique_rows_first_occurrences_and_inverse():
-    from rigsfm.associate.solve import _unique_inverse, _unique_rows
+    from rigsfm.associate.rows import _unique_inverse, _unique_rows
 
     rng = np.random.default_rng(7)
     for top in (3, 200, 70_000, 2 ** 40):  # keys of one 16-bit digit to several 64-bit keys of four digits each
@@ -292,14 +293,14 @@ def test_a_shift_the_frame_rejects_raises_no_warning_and_one_it_keeps_does(caplo
     run's pose is worse than its band (a rejected start warned: a false alarm on a view the truth had right)."""
     import logging
 
-    from rigsfm.associate.solve import ViewCorrection, _corrected, _warn_beyond_band
+    from rigsfm.associate.shifts import ViewCorrection, _corrected, _warn_beyond_band
 
     views, _ = _crowd_views()
     for view in views:
         view.sigma_pose_px = 1.0
     far = ViewCorrection(np.array([[12.0, 0.0]] + [[0.0, 0.0]] * (len(views) - 1)), np.full(len(views), 0.1),
                          np.full(len(views), 1.0), np.full(len(views), 50))
-    with caplog.at_level(logging.WARNING, logger="rigsfm.associate.solve"):
+    with caplog.at_level(logging.WARNING, logger="rigsfm.associate.shifts"):
         trial = _corrected(views, far, AssociateOptions(pixel_sigma=1.0))
         assert not caplog.records  # a trial: nothing said yet
         _warn_beyond_band(views)  # the views the frame kept: unshifted

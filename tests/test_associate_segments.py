@@ -6,8 +6,9 @@ import numpy as np
 import pycolmap
 
 from rigsfm.associate import AssociateOptions
+from rigsfm.associate.frame import _Frame
 from rigsfm.associate.segments import segment_in_view
-from rigsfm.associate.solve import View, _Frame
+from rigsfm.associate.views import View
 
 F, W, H = 1800.0, 812, 617
 
@@ -120,7 +121,7 @@ def test_pair_seeds_are_the_ball_searches_in_their_bands():
 
 
 def test_the_pairs_em_candidates_are_the_ball_searches_within_the_gate():
-    from rigsfm.associate.solve import _epipolar_offsets, _segment_in, _signed_distance
+    from rigsfm.associate.shifts import _epipolar_offsets, _segment_in, _signed_distance
 
     views, _ = _crowd_views(seed=3)
     frame = _Frame(views, AssociateOptions(pixel_sigma=1.5))
@@ -145,7 +146,7 @@ def test_the_pairs_em_candidates_are_the_ball_searches_within_the_gate():
 def test_the_pairs_em_heights_are_where_the_rays_meet():
     """Each candidate's height in the pairs' EM is where its ray meets i's: a true pair's is its head's height (exact
     detections), and the finite-difference gradient predicts the height under a shift of either view."""
-    from rigsfm.associate.solve import _epipolar_offsets
+    from rigsfm.associate.shifts import _epipolar_offsets
 
     views, points = _crowd_views(seed=1, noise_px=0.0)
     options = AssociateOptions(pixel_sigma=1.5)
@@ -182,7 +183,7 @@ def test_the_pairs_em_with_heights_finds_shifts_put_into_the_views():
     run's poses and three draws, finds the shifts. The distances alone find them here too: where the heights' start
     wins (a crowd whose chance pairs leave the distances' EM in another optimum) is measured in benchmarks/README.md,
     not tested."""
-    from rigsfm.associate.solve import pairwise_view_shifts
+    from rigsfm.associate.shifts import pairwise_view_shifts
 
     views, _ = _crowd_views(seed=2, heads=300)
     put = np.random.default_rng(12).normal(0.0, 4.0, (len(views), 2))

@@ -1,4 +1,4 @@
-"""The detections' apparent head radii as evidence of depth (solve.py's size term)."""
+"""The detections' apparent head radii as evidence of depth (frame.py's size term)."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import numpy as np
 from test_associate_segments import _crowd_views
 
 from rigsfm.associate import AssociateOptions
-from rigsfm.associate.solve import _Frame
+from rigsfm.associate.frame import _Frame
 
 HEAD_M = 0.11
 

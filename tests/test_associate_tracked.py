@@ -10,7 +10,8 @@ import numpy as np
 from test_associate_segments import H, W, _view
 
 from rigsfm.associate import AssociateOptions
-from rigsfm.associate.solve import _Frame, associate_views
+from rigsfm.associate.frame import _Frame
+from rigsfm.associate.solve import associate_views
 from rigsfm.associate.tracked import row_pairs, seen_before
 
 OPTIONS = AssociateOptions(pixel_sigma=1.5, appearance=False, detection_probability=0.8)

@@ -19,7 +19,8 @@ import pycolmap
 from rigsfm.associate.appearance import read_grey
 from rigsfm.associate.detections import Detections, read_detections
 from rigsfm.associate.options import AssociateOptions
-from rigsfm.associate.solve import FrameResult, View, associate_views, view_pose_sigmas
+from rigsfm.associate.solve import FrameResult, associate_views
+from rigsfm.associate.views import View, view_pose_sigmas
 from rigsfm.core.errors import InputError
 from rigsfm.core.io import file_sha256
 from rigsfm.core.names import ImageName, quoted

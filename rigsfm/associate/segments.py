@@ -13,12 +13,13 @@ there than where the two views see the head at equal distances.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
 
 if TYPE_CHECKING:
-    from rigsfm.associate.solve import _Frame
+    from scipy.spatial import cKDTree
 
 MIN_DEPTH_M = 0.1  # the nearest a point may be to a camera and still be imaged (as the rays' own start)
 
@@ -28,6 +29,26 @@ class _Projecting(Protocol):
     t: np.ndarray
 
     def project(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]: ...
+
+
+class _Stacked(Protocol):
+    """What ``pair_seeds`` reads of a frame (``frame._Frame``, whose pair search calls it): its views and their
+    stacked detections."""
+
+    centres: np.ndarray
+    focals: np.ndarray
+    noise: np.ndarray
+    uv: np.ndarray
+    rays: np.ndarray
+
+    @property
+    def views(self) -> Sequence[_Projecting]: ...
+
+    @property
+    def trees(self) -> Sequence[cKDTree | None]: ...
+
+    @property
+    def tree_index(self) -> Sequence[np.ndarray]: ...
 
 
 def in_front(view: _Projecting, start: np.ndarray, end: np.ndarray,
@@ -78,7 +99,7 @@ def nearest_on_rays(centre_i: np.ndarray, rays_i: np.ndarray, centre_j: np.ndarr
     return centre_i + along[:, None] * rays_i
 
 
-def pair_seeds(frame: _Frame, i: int, j: int, di: np.ndarray, p_lo: np.ndarray, p_hi: np.ndarray, gate: float,
+def pair_seeds(frame: _Stacked, i: int, j: int, di: np.ndarray, p_lo: np.ndarray, p_hi: np.ndarray, gate: float,
                among: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
     """View j's detections inside the band of the rays of view i's detections ``di`` between the heights (their
     points ``p_lo``, ``p_hi``), the band ``gate`` sigmas wide where each candidate would put the head: the rows of

@@ -8,14 +8,18 @@ seed's group is, so it competes on this frame's evidence alone; the earlier fram
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+from typing import Protocol
 
 import numpy as np
 
 from rigsfm.core.names import ImageName
 
-if TYPE_CHECKING:
-    from rigsfm.associate.solve import _Frame
+
+class _Growing(Protocol):
+    """What ``predicted_groups`` asks of a frame (``frame._Frame``, whose tracked hypotheses call it): its growth."""
+
+    def grow(self, members: np.ndarray, points: np.ndarray, covariance: np.ndarray) -> np.ndarray: ...
+
 
 VERTICAL_SHARE = 0.25  # a walking head rises and falls far less than it moves across the floor
 
@@ -44,7 +48,7 @@ def seen_before(earlier_views: list[str], earlier_members: np.ndarray, views: li
     return out
 
 
-def predicted_groups(frame: _Frame, points: np.ndarray, covariance: np.ndarray, seen: np.ndarray,
+def predicted_groups(frame: _Growing, points: np.ndarray, covariance: np.ndarray, seen: np.ndarray,
                      walk_m: float) -> np.ndarray:
     """Per earlier person (its point and covariance, P x 3 and P x 3 x 3, and the views it was ``seen`` in, P x V),
     the detection of each of those views nearest where it would be (Mahalanobis: its covariance, a walk's and the

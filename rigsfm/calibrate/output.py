@@ -13,13 +13,14 @@ from typing import TYPE_CHECKING
 
 import yaml
 
+from rigsfm.calibrate.report import write_report
 from rigsfm.calibrate.uncertainty import add_sigmas, rig_sigmas
 from rigsfm.core.errors import WorkspaceError
 from rigsfm.core.io import load_yaml_or_json, parse_yaml, write_text_atomic
 from rigsfm.core.rig import RigCalibration, load_rigs, rigs_to_yaml
 
 if TYPE_CHECKING:
-    from rigsfm.calibrate.pipeline import CalibrationResult
+    from rigsfm.calibrate.results import CalibrationResult
 
 logger = logging.getLogger(__name__)
 
@@ -57,8 +58,6 @@ def merged(existing: list[RigCalibration], new: list[RigCalibration]) -> list[Ri
 
 def write_outputs(result: CalibrationResult, out: Path, *, merge: bool = False, overwrite: bool = False,
                   report_dir: Path | None = None) -> tuple[Path, Path]:
-    from rigsfm.calibrate.report import write_report
-
     new = result.rig_calibrations()
     existing = check_output(out, [r.name for r in new], merge=merge, overwrite=overwrite)
     report_dir = Path(report_dir) if report_dir is not None else default_report_dir(Path(out))

@@ -16,11 +16,9 @@ SIFT matches on a textured scene instead, with the baseline length from the boar
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-import pycolmap
 
 from rigsfm.calibrate.board import (
     BoardDetector,
@@ -32,59 +30,19 @@ from rigsfm.calibrate.board import (
     refuse_part_of_a_larger_chessboard,
 )
 from rigsfm.calibrate.dataset import RigFrames, discover_rigs
-from rigsfm.calibrate.intrinsics import CameraCalibration, calibrate_camera, colmap_camera
+from rigsfm.calibrate.intrinsics import calibrate_camera
 from rigsfm.calibrate.options import CalibrateOptions, Distortion
-from rigsfm.calibrate.scene import SceneEstimate, estimate_from_scene
-from rigsfm.calibrate.stereo import StereoCalibration, calibrate_stereo
-from rigsfm.calibrate.uncertainty import RigSigmas, rig_sigmas
+from rigsfm.calibrate.output import check_output, default_report_dir, write_outputs
+from rigsfm.calibrate.report import check_report_dir
+from rigsfm.calibrate.results import CalibrationResult, RigResult
+from rigsfm.calibrate.scene import estimate_from_scene
+from rigsfm.calibrate.stereo import calibrate_stereo
 from rigsfm.core.conventions import rotation_angle_deg
 from rigsfm.core.errors import InputError
 from rigsfm.core.opencv_threads import one_opencv_thread
-from rigsfm.core.rig import BASELINE_RANGE_M, RigCalibration
+from rigsfm.core.rig import BASELINE_RANGE_M
 
 logger = logging.getLogger(__name__)
-
-
-@dataclass
-class RigResult:
-    name: str
-    wide: CameraCalibration
-    narrow: CameraCalibration
-    stereo: StereoCalibration
-    R: np.ndarray  # final narrow_from_wide
-    T: np.ndarray
-    scene: SceneEstimate | None = None
-    measured_baseline: float | None = None  # --baseline (m), replacing the board's length of T
-    notes: list[str] = field(default_factory=list)
-    warnings: list[str] = field(default_factory=list)
-
-    def cameras(self) -> tuple[pycolmap.Camera, pycolmap.Camera]:
-        """Final (wide, narrow) cameras, COLMAP convention: joint-refined intrinsics if they were accepted."""
-        fit = self.stereo.final
-        return (colmap_camera(fit.K_wide, fit.dist_wide, self.wide.image_size, self.wide.model),
-                colmap_camera(fit.K_narrow, fit.dist_narrow, self.narrow.image_size, self.narrow.model))
-
-    def sigmas(self) -> RigSigmas:
-        """The uncertainties written with this rig (``uncertainty.py``)."""
-        return rig_sigmas(self)
-
-    def rig_calibration(self) -> RigCalibration:
-        wide, narrow = self.cameras()
-        return RigCalibration(name=self.name, wide=wide, narrow=narrow,
-                              narrow_from_wide=pycolmap.Rigid3d(pycolmap.Rotation3d(self.R), self.T.astype(np.float64)))
-
-
-@dataclass
-class CalibrationResult:
-    board: BoardSpec
-    rigs: list[RigResult]
-
-    def rig_calibrations(self) -> list[RigCalibration]:
-        return [r.rig_calibration() for r in self.rigs]
-
-    @property
-    def warnings(self) -> list[str]:
-        return [w for r in self.rigs for w in r.warnings]
 
 
 def _detect(detector: BoardDetector, paths: dict[str, Path], where: str) -> tuple[dict[str, Detection | None], tuple[int, int]]:
@@ -182,17 +140,12 @@ def calibrate_rigs(board_dir: Path, board: BoardSpec, *, distortion: Distortion 
 def write_calibration(result: CalibrationResult, out: Path, *, merge: bool = False, overwrite: bool = False,
                       report_dir: Path | None = None) -> tuple[Path, Path]:
     """Write rigs.yaml (merged into an existing one with ``merge``) and the report; returns both paths."""
-    from rigsfm.calibrate.output import write_outputs
-
     return write_outputs(result, Path(out), merge=merge, overwrite=overwrite, report_dir=report_dir)
 
 
 def calibrate(board_images: Path, out: Path, options: CalibrateOptions) -> tuple[CalibrationResult, Path, Path]:
     """``rigsfm calibrate``: calibrate every rig under ``board_images`` and write rigs.yaml to ``out`` (checked
     before the slow part) and its report; returns the result, the rigs.yaml and the report folder."""
-    from rigsfm.calibrate.output import check_output, default_report_dir
-    from rigsfm.calibrate.report import check_report_dir
-
     spec = load_board_spec(options.board)
     check_baseline_option(options.baseline)
     names = [r.name for r in discover_rigs(board_images, "board images")]

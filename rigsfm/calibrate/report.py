@@ -21,7 +21,7 @@ from rigsfm.core.errors import WorkspaceError
 from rigsfm.core.io import atomic_directory, write_text_atomic
 
 if TYPE_CHECKING:
-    from rigsfm.calibrate.pipeline import CalibrationResult, RigResult
+    from rigsfm.calibrate.results import CalibrationResult, RigResult
 
 def view_error_chart(cam: CameraCalibration, where: str) -> np.ndarray:
     views = [v for v in cam.views if v.rms is not None]

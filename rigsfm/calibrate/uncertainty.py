@@ -28,18 +28,31 @@ scene (``--from-scene``), its translation when its length comes from ``--baselin
 from __future__ import annotations
 
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
 
 from rigsfm.core.rig import RigSigmas, add_sigmas, load_rigs, sigmas_from_entry
 
 if TYPE_CHECKING:
-    from rigsfm.calibrate.pipeline import RigResult
+    import pycolmap
+
+    from rigsfm.calibrate.scene import SceneEstimate
+    from rigsfm.calibrate.stereo import StereoCalibration
 
 __all__ = ["RigSigmas", "add_sigmas", "colmap_param_sigmas", "load_sigmas", "rig_sigmas", "sigmas_from_entry"]
 
 SENSORS = ("wide", "narrow")
+
+
+class _Calibrated(Protocol):
+    """What ``rig_sigmas`` reads of a rig's result (``results.RigResult``, whose ``sigmas`` calls it)."""
+
+    stereo: StereoCalibration
+    scene: SceneEstimate | None
+    measured_baseline: float | None
+
+    def cameras(self) -> tuple[pycolmap.Camera, pycolmap.Camera]: ...
 
 
 def colmap_param_sigmas(covariance: np.ndarray, model: str) -> np.ndarray:
@@ -54,7 +67,7 @@ def colmap_param_sigmas(covariance: np.ndarray, model: str) -> np.ndarray:
     return out
 
 
-def rig_sigmas(rig: RigResult) -> RigSigmas:
+def rig_sigmas(rig: _Calibrated) -> RigSigmas:
     """The uncertainties of what ``rig`` writes to rigs.yaml (see the module docstring for what is left out)."""
     detail = rig.stereo.joint_detail
     if not rig.stereo.use_joint or detail is None or detail.covariance is None:

@@ -46,7 +46,7 @@ from scipy.spatial import cKDTree
 from rigsfm.core.errors import InputError
 
 if TYPE_CHECKING:
-    from rigsfm.synth.scene import SceneOptions
+    from rigsfm.synth.options import SceneOptions
 
 logger = logging.getLogger(__name__)
 

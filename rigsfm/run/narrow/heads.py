@@ -56,7 +56,8 @@ import numpy as np
 import pycolmap
 
 from rigsfm.associate.options import AssociateOptions
-from rigsfm.associate.solve import View, associate_views, view_pose_sigmas
+from rigsfm.associate.solve import associate_views
+from rigsfm.associate.views import View, view_pose_sigmas
 from rigsfm.core.conventions import colmap_from_opencv_pixels
 from rigsfm.core.geometry import pixel_line_distances
 from rigsfm.core.ground import undistort_pixels

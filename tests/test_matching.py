@@ -26,7 +26,7 @@ def reference_matches(di, dj, a, b, max_ratio):
     return np.array(found, dtype=int).reshape(-1, 2)
 
 
-@pytest.mark.parametrize("dense", [True, False])
+@pytest.mark.parametrize("dense", [True, False, "chunked"])
 @pytest.mark.parametrize("seed", range(4))
 def test_candidate_matches_equal_the_definition(seed, dense, monkeypatch):
     rng = np.random.default_rng(seed)
@@ -43,7 +43,9 @@ def test_candidate_matches_equal_the_definition(seed, dense, monkeypatch):
                             np.c_[50 + k[:15], 200 + k[:15]], np.c_[40 + k[:5], 245 + k[:5]]])
     pairs = rng.permutation(np.unique(pairs, axis=0))  # each candidate once, in no particular order
     a, b = pairs[:, 0], pairs[:, 1]
-    monkeypatch.setattr(matching, "DENSE_FACTOR", 10**9 if dense else 0)
+    monkeypatch.setattr(matching, "DENSE_FACTOR", 10**9 if dense is True else 0)
+    if dense == "chunked":  # the gathered path in chunks of 7 candidates, as millions are
+        monkeypatch.setattr(matching, "GATHER_CHUNK", 7)
     found = candidate_matches(di, dj, a, b, 0.8)
     expected = reference_matches(di, dj, a, b, 0.8)
     assert len(expected) > 20

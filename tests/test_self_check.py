@@ -153,6 +153,29 @@ def test_self_check_fails_and_measures_the_true_distances_when_a_rig_turned(floo
     assert others and all(p.verdict == "ok" for p in others)
 
 
+def test_a_search_beyond_the_candidate_budget_measures_every_kth_keypoint(floor_scene, monkeypatch):
+    """Without a floor frame a pair's search runs along whole lines, and a wide band gave millions of candidate
+    pairs (a user's run sat in the self-check for over 15 minutes): beyond ``MAX_CANDIDATES`` every k-th keypoint
+    of i is searched. Here a quarter of this scene's largest search: each compares at most that many, and the
+    true geometry still measures ok at keypoint noise."""
+    from rigsfm.run.checks import guided
+
+    rec, _, root = floor_scene
+    compared = []
+    match = guided.guided_matches
+    monkeypatch.setattr(guided, "guided_matches", lambda fi, fj, a, b, *rest: compared.append(len(a))
+                        or match(fi, fj, a, b, *rest))
+    checked(rec, root)
+    budget = max(compared) // 4
+    compared.clear()
+    monkeypatch.setattr(guided, "MAX_CANDIDATES", budget)
+    check = checked(rec, root)
+    assert 0 < max(compared) <= budget
+    measured = [p for p in check.pairs if p.verdict in ("ok", "failed")]
+    assert len(measured) >= 8 and all(p.verdict == "ok" for p in measured)
+    assert all(p.median_px < 0.2 for p in measured)
+
+
 def test_no_shared_frame_name_is_reported(tmp_path):
     rec = ring(seed=43, num_rigs=2).reconstruction
     for image in list(rec.images.values()):

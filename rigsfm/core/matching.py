@@ -18,8 +18,11 @@ def candidate_matches(descriptors_i: np.ndarray, descriptors_j: np.ndarray, a: n
     norms_i, norms_j = np.einsum("ij,ij->i", di, di), np.einsum("ij,ij->i", dj, dj)
     if len(di) * len(dj) <= min(DENSE_FACTOR * len(a), DENSE_MAX):  # one product beats two gathered rows a pair
         dots = (di @ dj.T)[a, b]
-    else:
-        dots = np.einsum("ij,ij->i", di[a], dj[b])
+    else:  # in chunks: the gathered rows of millions of candidates would take gigabytes (each row's sum is the same)
+        dots = np.empty(len(a), dtype=np.float32)
+        for start in range(0, len(a), GATHER_CHUNK):
+            rows = slice(start, start + GATHER_CHUNK)
+            dots[rows] = np.einsum("ij,ij->i", di[a[rows]], dj[b[rows]])
     distance = np.sqrt(np.maximum(norms_i[a] + norms_j[b] - 2.0 * dots, 0.0))
     by_distance = np.argsort(distance, kind="stable")  # shared by both groupings below
     order = _grouped(a, by_distance)
@@ -41,6 +44,7 @@ def candidate_matches(descriptors_i: np.ndarray, descriptors_j: np.ndarray, a: n
 # that dense (floor matching and the self-check's guided matching).
 DENSE_FACTOR = 16
 DENSE_MAX = 1 << 24
+GATHER_CHUNK = 1 << 16  # candidates whose descriptor rows are gathered at once (2 x 32 MB)
 
 
 def _grouped(feature: np.ndarray, by_distance: np.ndarray) -> np.ndarray:

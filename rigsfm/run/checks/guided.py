@@ -66,6 +66,10 @@ KEYPOINT_NOISE_PX = 1.0  # SIFT localisation error allowed on top of the band
 MIN_MATCHES = SELF_CHECK_MIN_MATCHES
 MAX_TOLERANCE_PX = 64.0
 MAX_RATIO = 0.7  # Lowe's ratio among the candidates (looser lets false crowd matches through)
+# Candidate pairs one search compares at most: beyond it (no floor frame, so whole epipolar lines, under bands of
+# tens of px) every k-th keypoint of i is searched, which keeps the measurement's statistics and bounds its time and
+# memory; a floor-frame search stays far below it.
+MAX_CANDIDATES = 1_000_000
 
 
 @dataclass
@@ -184,6 +188,21 @@ class BandCandidates:
             keep &= (self.along >= -margin) & (self.along <= 1 + margin)
         return keep
 
+    def subset(self, keep: np.ndarray) -> BandCandidates:
+        return BandCandidates(self.a[keep], self.b[keep], self.lateral[keep],
+                              None if self.along is None else self.along[keep],
+                              None if self.length is None else self.length[keep])
+
+    def thinned(self, budget: int) -> BandCandidates:
+        """The candidates of every k-th keypoint of i, k the smallest that brings them within ``budget`` (all of
+        a keypoint's candidates kept: its ratio test is unchanged)."""
+        if len(self.a) <= budget:
+            return self
+        step = -(-len(self.a) // budget)
+        while np.count_nonzero(self.a % step == 0) > budget:  # keypoints' candidates differ in number
+            step += 1
+        return self.subset(self.a % step == 0)
+
 
 def _pencil(f_ji: np.ndarray, points_j: np.ndarray, lines: np.ndarray):
     """Epipolar lines in j all pass through the epipole e_j (e_j^T F_ji = 0). Returns each point's angle about
@@ -228,9 +247,7 @@ def band_candidates(f_ji: np.ndarray, lines: np.ndarray, undistorted_j: np.ndarr
         keep = valid[a] & np.isfinite(along)
         a, b, lateral, along, length = a[keep], b[keep], lateral[keep], along[keep], length[keep]
     candidates = BandCandidates(a, b, lateral, along, length)
-    keep = candidates.within(tolerance)
-    return BandCandidates(a[keep], b[keep], lateral[keep], None if along is None else along[keep],
-                       None if length is None else length[keep])
+    return candidates.subset(candidates.within(tolerance))
 
 
 def guided_matches(fi: NarrowFeatures, fj: NarrowFeatures, a: np.ndarray, b: np.ndarray,
@@ -297,7 +314,7 @@ def check_pair(first: NarrowView, second: NarrowView, f_ji: np.ndarray, band: fl
     segments = epipolar_segments(image_i, image_j, fi.undistorted, floor_frame)
     tolerance = WIDE_FACTOR * band + KEYPOINT_NOISE_PX
     while True:  # widen until the distances are well inside the tolerance (never truncated by it)
-        candidates = band_candidates(f_ji, lines, fj.undistorted, segments, tolerance)
+        candidates = band_candidates(f_ji, lines, fj.undistorted, segments, tolerance).thinned(MAX_CANDIDATES)
         matches = guided_matches(fi, fj, candidates.a, candidates.b)
         distances = match_line_distances(lines, fj, matches) if len(matches) else np.zeros(0)
         if check.measured_within_px is None:

@@ -572,3 +572,31 @@ def test_a_frame_the_run_was_given_and_did_not_register_is_refused_even_with_pos
     path.write_text("image,x,y\nrig01/narrow/f0.png,10,20\nrig01/narrow/f2.png,10,20\n")
     assert sorted(read_detections(path, sizes, known, {"rig01/narrow": (64, 48)}).images) == [
         "rig01/narrow/f0.png", "rig01/narrow/f2.png"]
+
+
+def test_a_narrow_image_missing_from_a_frame_of_the_run_is_named_as_such(tmp_path):
+    """A recording whose rig03 lacks one narrow image: the run was given that frame (rig03's wide image), so its
+    detections there are refused as a narrow image it was not given, not as a frame it was not given; and a
+    --poses-from frame without rig03's narrow image cannot lend rig03 a pose, which says so and names a frame that
+    can, where it used to call the image not one of the run's ('check the name')."""
+    from rigsfm.associate.detections import read_detections
+    from rigsfm.core.errors import InputError
+
+    path = tmp_path / "heads.csv"
+    sizes = {"rig01/narrow/f0.png": (64, 48), "rig03/narrow/f0.png": (64, 48), "rig01/narrow/f1.png": (64, 48)}
+    known = {*sizes, "rig01/wide/f0.png", "rig03/wide/f0.png", "rig01/wide/f1.png", "rig03/wide/f1.png"}
+    path.write_text("image,x,y\nrig01/narrow/f1.png,10,20\nrig03/narrow/f1.png,10,20\n")
+    with pytest.raises(InputError, match=r"line 3: image 'rig03/narrow/f1.png': the run was given this frame without "
+                                         r"this narrow image \(only its wide image\), so it has no pose for it; .*"
+                                         r"--poses-from FRAME"):
+        read_detections(path, sizes, known)
+    path.write_text("image,x,y\nrig01/narrow/f2.png,10,20\nrig03/narrow/f2.png,10,20\n")
+    with pytest.raises(InputError, match=r"line 2: image 'rig01/narrow/f2.png': the run was not given this frame"):
+        read_detections(path, sizes, known)
+    lender = {"rig01/narrow": (64, 48)}  # f1's registered narrow cameras
+    with pytest.raises(InputError, match=r"line 3: image 'rig03/narrow/f2.png': the run registered no narrow image of "
+                                         r"rig03 in --poses-from's frame 'f1.png', so it has no pose to lend to this "
+                                         r"one; pass a frame where it did \('f0.png'\)"):
+        read_detections(path, sizes, known, lender, "f1.png")
+    assert sorted(read_detections(path, sizes, known, {**lender, "rig03/narrow": (64, 48)}, "f0.png").images) == [
+        "rig01/narrow/f2.png", "rig03/narrow/f2.png"]

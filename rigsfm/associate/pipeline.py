@@ -253,7 +253,7 @@ def associate(out: Path, detections_csv: Path, options: AssociateOptions | None 
     sizes = {name: (image.camera.width, image.camera.height)  # type: ignore[union-attr]
              for name, image in model.images.items()}
     stand_in = frame_sizes(model, options.poses_from) if options.poses_from is not None else None
-    detections = read_detections(Path(detections_csv), sizes, model.known, stand_in)
+    detections = read_detections(Path(detections_csv), sizes, model.known, stand_in, options.poses_from)
     if options.poses_from is not None:
         model = with_stand_ins(model, detections.images, options.poses_from)
         root = model.images_root

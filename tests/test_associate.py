@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import shutil
 import sys
@@ -600,3 +601,56 @@ def test_a_narrow_image_missing_from_a_frame_of_the_run_is_named_as_such(tmp_pat
         read_detections(path, sizes, known, lender, "f1.png")
     assert sorted(read_detections(path, sizes, known, {**lender, "rig03/narrow": (64, 48)}, "f0.png").images) == [
         "rig01/narrow/f2.png", "rig03/narrow/f2.png"]
+
+
+def test_a_frame_of_the_run_lacking_a_narrow_image_is_not_counted_as_a_frame_it_was_not_given(tmp_path):
+    """A recording whose rig03 lacks its narrow image of f1 (the run registered f1's other narrow images): with
+    --poses-from f0 only rig03's view of f1 takes f0's pose. The terminal and report.html used to call f1 a frame the
+    run was not given, 'lent by f0.png' as a whole; they now say which views took f0's poses (persons.json:
+    ``lent_views``). An earlier version's persons.json (no ``lent_views``) lent to every view."""
+    from rigsfm.associate.report import poses_note
+    from rigsfm.cli.associate import lent_lines, written_frames
+
+    views = [f"rig0{r}/narrow/f{{}}.png" for r in (1, 2, 3)]
+    frames = {"f0": (None, []), "f1": ("f0.png", [views[2].format(1)]), "f2": ("f0.png", [v.format(2) for v in views]),
+              "f3": ("f0.png", None)}
+    for frame, (poses_from, lent) in frames.items():
+        data = {"frame": f"{frame}.png", "views": [v.format(frame[1]) for v in views], "poses_from": poses_from,
+                "persons": [], "unassigned": []}
+        if lent is not None:
+            data["lent_views"] = lent
+        (tmp_path / frame).mkdir()
+        (tmp_path / frame / "persons.json").write_text(json.dumps(data))
+    written = written_frames(tmp_path)
+    assert [poses_note(json.loads((tmp_path / f / "persons.json").read_text())) for f in frames] == [
+        "its own", "1 of 3 views lent by f0.png, the others its own", "lent by f0.png", "lent by f0.png"]
+    assert lent_lines(written, "f0.png", Path("out")) == [
+        "2 frame(s) the run was not given: associated with the narrow poses of its frame f0.png (static rigs; "
+        "`rigsfm track out IMAGES` tells whether a rig moved)",
+        "1 frame(s) of the run without some of their narrow images (e.g. f1.png: 'rig03/narrow/f1.png'): those views "
+        "took the narrow poses of its frame f0.png, the others their own"]
+
+
+def test_associate_frames_lends_poses_to_the_views_a_frame_of_the_run_lacks(crowd):
+    """The run's frame f1 with rig04's narrow image missing (here: the crowd's frame0000 renamed, without rig04's):
+    --poses-from frame0000.png lends rig04's pose to its view of f1 alone (``lent_views``), and the frame's persons
+    are those of frame0000 (the same detections, the same poses)."""
+    from rigsfm.associate.pipeline import with_stand_ins
+
+    dataset, out = crowd
+    model, truth = _detections(dataset, out)
+    own = {n: xy for n, xy in truth.points.items()}
+    later = {n.replace("frame0000", "frame0001"): xy for n, xy in own.items()}
+    lacking = "rig04/narrow/frame0001.png"
+    # the run as if it had registered frame0001 too, but for rig04's narrow image (its wide image given)
+    given = with_stand_ins(model, [n for n in later if n != lacking], "frame0000.png")
+    given = dataclasses.replace(given, stand_ins={}, known=given.known | set(given.images) | {
+        "rig04/wide/frame0001.png"})
+    lent = with_stand_ins(given, list(later), "frame0000.png")
+    options = AssociateOptions(pixel_sigma=1.5, appearance=False, walk_m=None)
+    [first] = associate_frames(lent, from_arrays(own), options)
+    [second] = associate_frames(lent, from_arrays(later), options)
+    assert first.poses_from is None and first.lent_views == ()
+    assert second.poses_from == "frame0000.png" and second.lent_views == (lacking,)
+    assert len(first.result) > 100
+    assert _groups(second) == [[(n.replace("frame0000", "frame0001"), i) for n, i in g] for g in _groups(first)]

@@ -104,6 +104,9 @@ def persons_json(frame) -> dict:
             "views": [v.name for v in views],
             # the run's frame whose poses and bands stood in for this frame's (--poses-from); null: the run's own
             "poses_from": frame.poses_from,
+            # the views whose poses it lent: every view of a frame the run was not given, some of a frame of the run
+            # that lacked their narrow images
+            "lent_views": list(frame.lent_views),
             "sigma_pose_px": {v.name: round(v.sigma_pose_px, 4) for v in views},
             # The crowd's correction of each view (undistorted px, subtracted from its detections) and the band's
             # sigma before it, as this frame's persons were found with them; a zero shift: the view kept the run's pose.

@@ -654,3 +654,23 @@ def test_associate_frames_lends_poses_to_the_views_a_frame_of_the_run_lacks(crow
     assert second.poses_from == "frame0000.png" and second.lent_views == (lacking,)
     assert len(first.result) > 100
     assert _groups(second) == [[(n.replace("frame0000", "frame0001"), i) for n, i in g] for g in _groups(first)]
+
+
+@pytest.mark.parametrize("dest, reason", [
+    ("out", "is the workspace or a folder that holds it"), (".", "is the workspace or a folder that holds it"),
+    ("out/sparse", "is inside the workspace's own sparse/ folder"), ("out/export", "is inside the workspace's own export/"),
+    ("out/track/persons", "is inside the workspace's own track/ folder")])
+def test_associate_out_is_refused_in_the_workspaces_own_folders(tmp_path, monkeypatch, dest, reason):
+    """--out OUT was refused as holding 'files rigsfm did not write' (.rigsfm-workspace, colmap.log: rigsfm's),
+    and --out OUT/export or OUT/track, not there yet, took the persons among the other commands' outputs; each is now
+    refused with its reason and the default named, before anything is read or written."""
+    from rigsfm.associate import associate
+    from rigsfm.core.errors import InputError
+
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "out" / "sparse").mkdir(parents=True)
+    (tmp_path / "out" / "colmap.log").write_text("")
+    (tmp_path / "heads.csv").write_text("image,x,y\nrig01/narrow/f0.png,10,20\n")
+    with pytest.raises(InputError, match=f"--out '{dest}' {reason}.*out/associate"):
+        associate(Path("out"), Path("heads.csv"), AssociateOptions(out=Path(dest)))
+    assert sorted(p.name for p in (tmp_path / "out").iterdir()) == ["colmap.log", "sparse"]

@@ -250,6 +250,20 @@ def _associate_frame(frame: str, views: list[View], detections: Detections, opti
     return FramePersons(frame, result, detections, views, wall, cpu, poses_from, lent_views)
 
 
+def refuse_workspace_files(dest: Path, workspace: Workspace) -> None:
+    """--out may not be the workspace, a folder that holds it, or one of the folders its other commands write
+    (their files are rigsfm's, so 'files rigsfm did not write' would be the wrong reason to give)."""
+    resolved, root = Path(dest).resolve(), workspace.root.resolve()
+    if resolved == root or root.is_relative_to(resolved):
+        raise InputError(f"--out '{dest}' is the workspace or a folder that holds it; choose a folder of its own "
+                         f"(the default is {workspace.associate})")
+    for owned in (workspace.sparse, workspace.mapping, workspace.track.root, workspace.root / "export"):
+        if resolved.is_relative_to(owned.resolve()):
+            raise InputError(f"--out '{dest}' is inside the workspace's own {owned.name}/ folder (rigsfm "
+                             f"{'export' if owned.name == 'export' else 'track' if owned.name == 'track' else 'run'}"
+                             f"'s); choose {workspace.associate} (the default) or a folder of its own")
+
+
 def associate(out: Path, detections_csv: Path, options: AssociateOptions | None = None,
               progress: Callable[[int, int], None] | None = None) -> Path:
     """Read OUT (a finished run) and DETECTIONS, associate every frame, write DIR (default OUT/associate);
@@ -257,7 +271,9 @@ def associate(out: Path, detections_csv: Path, options: AssociateOptions | None 
     from rigsfm.associate.output import check_destination, refuse_edited, write_results
 
     options = options or AssociateOptions()
-    dest = Path(options.out) if options.out is not None else Workspace(Path(out)).associate
+    workspace = Workspace(Path(out))
+    dest = Path(options.out) if options.out is not None else workspace.associate
+    refuse_workspace_files(dest, workspace)
     previous = check_destination(dest, options.overwrite)
     model = load_run(Path(out))
     # a model's images have cameras

@@ -4,7 +4,9 @@
                             confidence, views, image, x, y (exactly as given), row (its line in DETECTIONS)
   DIR/<frame>/persons.json  per person: position (world metres), covariance (m^2), score (log-likelihood ratio
                             against clutter), confidence, detections [{image, x, y, row}]; unassigned detections;
-                            size_cue {used, head_radius_m}: whether the DETECTIONS' radii scored the frame
+                            size_cue {used, head_radius_m}: whether the DETECTIONS' radii scored the frame;
+                            poses_from, lent_views: the run's frame whose narrow poses --poses-from lent, and to
+                            which views (every view of a frame the run was not given)
   DIR/<frame>/floor.png     top view of the grid below: every narrow footprint at head height (the middle of
                             ``heights``), every person's 95 % ellipse
   DIR/<frame>/density.csv   persons per m^2 on a grid of ``cell_m`` cells from the world origin, over the cells two

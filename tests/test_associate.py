@@ -594,6 +594,9 @@ def test_a_narrow_image_missing_from_a_frame_of_the_run_is_named_as_such(tmp_pat
     path.write_text("image,x,y\nrig01/narrow/f2.png,10,20\nrig03/narrow/f2.png,10,20\n")
     with pytest.raises(InputError, match=r"line 2: image 'rig01/narrow/f2.png': the run was not given this frame"):
         read_detections(path, sizes, known)
+    with pytest.raises(InputError, match=r"line 3: image 'rig03/narrow/f2.png': the run was given this frame without "
+                                         r"rig03's images, so"):  # rig03 lacks a frame the others have
+        read_detections(path, {**sizes, "rig01/narrow/f2.png": (64, 48)}, {*known, "rig01/wide/f2.png"})
     lender = {"rig01/narrow": (64, 48)}  # f1's registered narrow cameras
     with pytest.raises(InputError, match=r"line 3: image 'rig03/narrow/f2.png': the run registered no narrow image of "
                                          r"rig03 in --poses-from's frame 'f1.png', so it has no pose to lend to this "

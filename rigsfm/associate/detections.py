@@ -154,9 +154,12 @@ def read_detections(path: Path, sizes: dict[str, tuple[int, int]], known: set[st
                                             f"in --poses-from's frame {poses_from!r}, so it has no pose to lend "
                                             f"to this one; {where}")
                 # a frame of the run whose wide image came without this narrow one is not a frame it was not given
-                given = ("was given this frame without this narrow image (only its wide image)"
-                         if str(ImageName(parsed.rig, Sensor.WIDE, parsed.frame)) in known else
-                         "was not given this frame")
+                if str(ImageName(parsed.rig, Sensor.WIDE, parsed.frame)) in known:
+                    given = "was given this frame without this narrow image (only its wide image)"
+                elif any(k.endswith("/" + parsed.frame) and ImageName.parse(k).frame == parsed.frame for k in known):
+                    given = f"was given this frame without {parsed.rig}'s images"
+                else:
+                    given = "was not given this frame"
                 raise _fail(path, line, f"image {name!r}: the run {given}, so it has no pose for it; re-run "
                                         "`rigsfm run` with its images, or, where the rigs have not moved since, "
                                         "pass --poses-from FRAME (a frame of the run) to use its poses")

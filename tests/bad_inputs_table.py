@@ -532,6 +532,8 @@ CASES = [
                       ["export", "out", "--format", "json", "--dest", "notes", "--overwrite"])),
     Case("`associate --overwrite` into a folder with other files", "the folder is untouched",
          users_association_folder),
+    Case("`associate --out OUT` (the workspace itself)", "the workspace is untouched",
+         lambda root: [*with_detections(DETECTIONS)(root)[:-1], "out", "--overwrite"]),
     Case("`rigsfm export` given a demo's folder instead of its run/", "nothing is written",
          on_workspace(lambda out: (out.parent / "demo").mkdir() or out.rename(out.parent / "demo" / "run"),
                       ["export", "demo", "--format", "json"])),

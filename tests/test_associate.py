@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import shutil
 import sys
@@ -574,3 +575,107 @@ def test_a_frame_the_run_was_given_and_did_not_register_is_refused_even_with_pos
     path.write_text("image,x,y\nrig01/narrow/f0.png,10,20\nrig01/narrow/f2.png,10,20\n")
     assert sorted(read_detections(path, sizes, known, {"rig01/narrow": (64, 48)}).images) == [
         "rig01/narrow/f0.png", "rig01/narrow/f2.png"]
+
+
+def test_a_narrow_image_missing_from_a_frame_of_the_run_is_named_as_such(tmp_path):
+    """A recording whose rig03 lacks one narrow image: the run was given that frame (rig03's wide image), so its
+    detections there are refused as a narrow image it was not given, not as a frame it was not given; and a
+    --poses-from frame without rig03's narrow image cannot lend rig03 a pose, which says so and names a frame that
+    can, where it used to call the image not one of the run's ('check the name')."""
+    from rigsfm.associate.detections import read_detections
+    from rigsfm.core.errors import InputError
+
+    path = tmp_path / "heads.csv"
+    sizes = {"rig01/narrow/f0.png": (64, 48), "rig03/narrow/f0.png": (64, 48), "rig01/narrow/f1.png": (64, 48)}
+    known = {*sizes, "rig01/wide/f0.png", "rig03/wide/f0.png", "rig01/wide/f1.png", "rig03/wide/f1.png"}
+    path.write_text("image,x,y\nrig01/narrow/f1.png,10,20\nrig03/narrow/f1.png,10,20\n")
+    with pytest.raises(InputError, match=r"line 3: image 'rig03/narrow/f1.png': the run was given this frame without "
+                                         r"this narrow image \(only its wide image\), so it has no pose for it; .*"
+                                         r"--poses-from FRAME"):
+        read_detections(path, sizes, known)
+    path.write_text("image,x,y\nrig01/narrow/f2.png,10,20\nrig03/narrow/f2.png,10,20\n")
+    with pytest.raises(InputError, match=r"line 2: image 'rig01/narrow/f2.png': the run was not given this frame"):
+        read_detections(path, sizes, known)
+    with pytest.raises(InputError, match=r"line 3: image 'rig03/narrow/f2.png': the run was given this frame without "
+                                         r"rig03's images, so"):  # rig03 lacks a frame the others have
+        read_detections(path, {**sizes, "rig01/narrow/f2.png": (64, 48)}, {*known, "rig01/wide/f2.png"})
+    lender = {"rig01/narrow": (64, 48)}  # f1's registered narrow cameras
+    with pytest.raises(InputError, match=r"line 3: image 'rig03/narrow/f2.png': the run registered no narrow image of "
+                                         r"rig03 in --poses-from's frame 'f1.png', so it has no pose to lend to this "
+                                         r"one; pass a frame where it did \('f0.png'\)"):
+        read_detections(path, sizes, known, lender, "f1.png")
+    assert sorted(read_detections(path, sizes, known, {**lender, "rig03/narrow": (64, 48)}, "f0.png").images) == [
+        "rig01/narrow/f2.png", "rig03/narrow/f2.png"]
+
+
+def test_a_frame_of_the_run_lacking_a_narrow_image_is_not_counted_as_a_frame_it_was_not_given(tmp_path):
+    """A recording whose rig03 lacks its narrow image of f1 (the run registered f1's other narrow images): with
+    --poses-from f0 only rig03's view of f1 takes f0's pose. The terminal and report.html used to call f1 a frame the
+    run was not given, 'lent by f0.png' as a whole; they now say which views took f0's poses (persons.json:
+    ``lent_views``). An earlier version's persons.json (no ``lent_views``) lent to every view."""
+    from rigsfm.associate.report import poses_note
+    from rigsfm.cli.associate import lent_lines, written_frames
+
+    views = [f"rig0{r}/narrow/f{{}}.png" for r in (1, 2, 3)]
+    frames = {"f0": (None, []), "f1": ("f0.png", [views[2].format(1)]), "f2": ("f0.png", [v.format(2) for v in views]),
+              "f3": ("f0.png", None)}
+    for frame, (poses_from, lent) in frames.items():
+        data = {"frame": f"{frame}.png", "views": [v.format(frame[1]) for v in views], "poses_from": poses_from,
+                "persons": [], "unassigned": []}
+        if lent is not None:
+            data["lent_views"] = lent
+        (tmp_path / frame).mkdir()
+        (tmp_path / frame / "persons.json").write_text(json.dumps(data))
+    written = written_frames(tmp_path)
+    assert [poses_note(json.loads((tmp_path / f / "persons.json").read_text())) for f in frames] == [
+        "its own", "1 of 3 views lent by f0.png, the others its own", "lent by f0.png", "lent by f0.png"]
+    assert lent_lines(written, "f0.png", Path("out")) == [
+        "2 frame(s) the run was not given: associated with the narrow poses of its frame f0.png (static rigs; "
+        "`rigsfm track out IMAGES` tells whether a rig moved)",
+        "1 frame(s) of the run without some of their narrow images (e.g. f1.png: 'rig03/narrow/f1.png'): those views "
+        "took the narrow poses of its frame f0.png, the others their own"]
+
+
+def test_associate_frames_lends_poses_to_the_views_a_frame_of_the_run_lacks(crowd):
+    """The run's frame f1 with rig04's narrow image missing (here: the crowd's frame0000 renamed, without rig04's):
+    --poses-from frame0000.png lends rig04's pose to its view of f1 alone (``lent_views``), and the frame's persons
+    are those of frame0000 (the same detections, the same poses)."""
+    from rigsfm.associate.pipeline import with_stand_ins
+
+    dataset, out = crowd
+    model, truth = _detections(dataset, out)
+    own = {n: xy for n, xy in truth.points.items()}
+    later = {n.replace("frame0000", "frame0001"): xy for n, xy in own.items()}
+    lacking = "rig04/narrow/frame0001.png"
+    # the run as if it had registered frame0001 too, but for rig04's narrow image (its wide image given)
+    given = with_stand_ins(model, [n for n in later if n != lacking], "frame0000.png")
+    given = dataclasses.replace(given, stand_ins={}, known=given.known | set(given.images) | {
+        "rig04/wide/frame0001.png"})
+    lent = with_stand_ins(given, list(later), "frame0000.png")
+    options = AssociateOptions(pixel_sigma=1.5, appearance=False, walk_m=None)
+    [first] = associate_frames(lent, from_arrays(own), options)
+    [second] = associate_frames(lent, from_arrays(later), options)
+    assert first.poses_from is None and first.lent_views == ()
+    assert second.poses_from == "frame0000.png" and second.lent_views == (lacking,)
+    assert len(first.result) > 100
+    assert _groups(second) == [[(n.replace("frame0000", "frame0001"), i) for n, i in g] for g in _groups(first)]
+
+
+@pytest.mark.parametrize("dest, reason", [
+    ("out", "is the workspace or a folder that holds it"), (".", "is the workspace or a folder that holds it"),
+    ("out/sparse", "is inside the workspace's own sparse/ folder"), ("out/export", "is inside the workspace's own export/"),
+    ("out/track/persons", "is inside the workspace's own track/ folder")])
+def test_associate_out_is_refused_in_the_workspaces_own_folders(tmp_path, monkeypatch, dest, reason):
+    """--out OUT was refused as holding 'files rigsfm did not write' (.rigsfm-workspace, colmap.log: rigsfm's),
+    and --out OUT/export or OUT/track, not there yet, took the persons among the other commands' outputs; each is now
+    refused with its reason and the default named, before anything is read or written."""
+    from rigsfm.associate import associate
+    from rigsfm.core.errors import InputError
+
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "out" / "sparse").mkdir(parents=True)
+    (tmp_path / "out" / "colmap.log").write_text("")
+    (tmp_path / "heads.csv").write_text("image,x,y\nrig01/narrow/f0.png,10,20\n")
+    with pytest.raises(InputError, match=f"--out '{dest}' {reason}.*out/associate"):
+        associate(Path("out"), Path("heads.csv"), AssociateOptions(out=Path(dest)))
+    assert sorted(p.name for p in (tmp_path / "out").iterdir()) == ["colmap.log", "sparse"]

@@ -23,7 +23,7 @@ import numpy as np
 
 from rigsfm.core.errors import InputError
 from rigsfm.core.io import read_user_text
-from rigsfm.core.names import ImageName
+from rigsfm.core.names import ImageName, Sensor, quoted
 
 logger = logging.getLogger(__name__)
 
@@ -96,11 +96,11 @@ def _radius(path: Path, line: int, text: str, size: tuple[int, int]) -> float | 
 
 
 def read_detections(path: Path, sizes: dict[str, tuple[int, int]], known: set[str],
-                    stand_in: Mapping[str, tuple[int, int]] | None = None) -> Detections:
+                    stand_in: Mapping[str, tuple[int, int]] | None = None, poses_from: str | None = None) -> Detections:
     """Parse and check ``path``. ``sizes``: width, height of every registered narrow image; ``known``: every image
     name the run was given (registered or not), to tell an unknown image from a frame the run did not register;
-    ``stand_in``: per camera (``<rig>/narrow``), the image size of the run's frame whose pose stands in for frames the
-    run was not given (``--poses-from``); None: such frames are refused."""
+    ``stand_in``: per camera (``<rig>/narrow``), the image size of the run's frame ``poses_from`` whose pose stands
+    in for frames the run was not given (``--poses-from``); None: such frames are refused."""
     path = Path(path)
     text = read_user_text(path, "detections")
     lines = text.splitlines()
@@ -144,10 +144,25 @@ def read_detections(path: Path, sizes: dict[str, tuple[int, int]], known: set[st
             if name in known:
                 raise _fail(path, line, f"image {name!r}: the run registered no model for this frame (no pose); "
                                         "drop its rows, or re-run `rigsfm run` with images that register it")
-            if any(k.startswith(parsed.rig + "/") for k in known) and stand_in is None:
-                raise _fail(path, line, f"image {name!r}: the run was not given this frame, so it has no pose for it; "
-                                        "re-run `rigsfm run` with its images, or, where the rigs have not moved "
-                                        "since, pass --poses-from FRAME (a frame of the run) to use its poses")
+            if any(k.startswith(parsed.rig + "/") for k in known):
+                if stand_in is not None:  # the lending frame lacks this camera: nothing to lend
+                    lenders = sorted({ImageName.parse(n).frame for n in sizes
+                                      if ImageName.parse(n).camera == parsed.camera})
+                    where = (f"pass a frame where it did ({quoted(lenders[:4])}{' ...' if len(lenders) > 4 else ''})"
+                             if lenders else f"it registered none in any frame: drop {parsed.rig}'s rows")
+                    raise _fail(path, line, f"image {name!r}: the run registered no narrow image of {parsed.rig} "
+                                            f"in --poses-from's frame {poses_from!r}, so it has no pose to lend "
+                                            f"to this one; {where}")
+                # a frame of the run whose wide image came without this narrow one is not a frame it was not given
+                if str(ImageName(parsed.rig, Sensor.WIDE, parsed.frame)) in known:
+                    given = "was given this frame without this narrow image (only its wide image)"
+                elif any(k.endswith("/" + parsed.frame) and ImageName.parse(k).frame == parsed.frame for k in known):
+                    given = f"was given this frame without {parsed.rig}'s images"
+                else:
+                    given = "was not given this frame"
+                raise _fail(path, line, f"image {name!r}: the run {given}, so it has no pose for it; re-run "
+                                        "`rigsfm run` with its images, or, where the rigs have not moved since, "
+                                        "pass --poses-from FRAME (a frame of the run) to use its poses")
             raise _fail(path, line, f"image {name!r} is not an image of this run (rigs and frames in "
                                     "OUT/narrow_poses.json); check the name")
         xs, ys = fields[col["x"]].strip(), fields[col["y"]].strip()

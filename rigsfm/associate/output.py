@@ -4,7 +4,9 @@
                             confidence, views, image, x, y (exactly as given), row (its line in DETECTIONS)
   DIR/<frame>/persons.json  per person: position (world metres), covariance (m^2), score (log-likelihood ratio
                             against clutter), confidence, detections [{image, x, y, row}]; unassigned detections;
-                            size_cue {used, head_radius_m}: whether the DETECTIONS' radii scored the frame
+                            size_cue {used, head_radius_m}: whether the DETECTIONS' radii scored the frame;
+                            poses_from, lent_views: the run's frame whose narrow poses --poses-from lent, and to
+                            which views (every view of a frame the run was not given)
   DIR/<frame>/floor.png     top view of the grid below: every narrow footprint at head height (the middle of
                             ``heights``), every person's 95 % ellipse
   DIR/<frame>/density.csv   persons per m^2 on a grid of ``cell_m`` cells from the world origin, over the cells two
@@ -104,6 +106,9 @@ def persons_json(frame) -> dict:
             "views": [v.name for v in views],
             # the run's frame whose poses and bands stood in for this frame's (--poses-from); null: the run's own
             "poses_from": frame.poses_from,
+            # the views whose poses it lent: every view of a frame the run was not given, some of a frame of the run
+            # that lacked their narrow images
+            "lent_views": list(frame.lent_views),
             "sigma_pose_px": {v.name: round(v.sigma_pose_px, 4) for v in views},
             # The crowd's correction of each view (undistorted px, subtracted from its detections) and the band's
             # sigma before it, as this frame's persons were found with them; a zero shift: the view kept the run's pose.

@@ -124,12 +124,19 @@ def with_stand_ins(model: RunModel, names: Iterable[str], frame: str) -> RunMode
                 centres[name] = centres[ref]
             if ref in covariances:
                 covariances[name] = covariances[ref]
+    lent_frames = {ImageName.parse(name).frame for name in stand_ins}
     by_frame: dict[str, list[str]] = {}
-    for name in stand_ins:
-        by_frame.setdefault(ImageName.parse(name).frame, []).append(name)
+    for name in images:
+        if ImageName.parse(name).frame in lent_frames:
+            by_frame.setdefault(ImageName.parse(name).frame, []).append(name)
     for group in by_frame.values():
         for a, b in itertools.permutations(group, 2):
-            band = model.bands.get((stand_ins[a], stand_ins[b]))
+            if a in model.stand_ins and b in model.stand_ins or a not in stand_ins and b not in stand_ins:
+                continue  # the bands the model has (the run's, or an earlier lending's)
+            # a view of the run's own frame beside a lent one (its narrow image missing there): the lending
+            # frame's band between their cameras, as for two lent views
+            ra, rb = (stand_ins.get(n) or reference.get(ImageName.parse(n).camera) for n in (a, b))
+            band = model.bands.get((ra, rb)) if ra is not None and rb is not None else None
             if band is not None:
                 bands[(a, b)] = band
     return dataclasses.replace(model, images=images, bands=bands, centre_sigma_m=centres,
@@ -176,6 +183,8 @@ class FramePersons:
     seconds: float = 0.0  # wall time of this frame's association
     cpu_seconds: float = 0.0  # this process's CPU time for it (the next frame's images, read meanwhile, included)
     poses_from: str | None = None  # the run's frame whose poses its views took (a frame the run was not given)
+    # the views that took them: all of a frame the run was not given, some of one whose narrow images it lacked
+    lent_views: tuple[str, ...] = ()
 
 
 def frame_views(model: RunModel, detections: Detections, frame: str, names: list[str]) -> list[View]:
@@ -214,16 +223,18 @@ def associate_frames(model: RunModel, detections: Detections, options: Associate
         for k, (frame, _) in enumerate(frames):
             views = pending.result()  # type: ignore[union-attr]  # one per frame
             pending = reader.submit(frame_views, model, detections, *frames[k + 1]) if k + 1 < len(frames) else None
-            lent = {ImageName.parse(model.stand_ins[v.name]).frame for v in views if v.name in model.stand_ins}
+            lent_views = tuple(v.name for v in views if v.name in model.stand_ins)
+            lent = {ImageName.parse(model.stand_ins[name]).frame for name in lent_views}
             out.append(_associate_frame(frame, views, detections, options, carried, out[-1] if out else None,
-                                        min(lent) if lent else None))
+                                        min(lent) if lent else None, lent_views))
             if progress:
                 progress(len(out), len(frames))
     return out
 
 
 def _associate_frame(frame: str, views: list[View], detections: Detections, options: AssociateOptions,
-                     carried: dict[str, View], before: FramePersons | None, poses_from: str | None) -> FramePersons:
+                     carried: dict[str, View], before: FramePersons | None, poses_from: str | None,
+                     lent_views: tuple[str, ...] = ()) -> FramePersons:
     """One frame of :func:`associate_frames`; ``carried`` (per camera, its latest view) is updated."""
     cameras = [ImageName.parse(v.name).camera for v in views]
     known = bool(views) and all(c in carried for c in cameras)
@@ -237,7 +248,21 @@ def _associate_frame(frame: str, views: list[View], detections: Detections, opti
     carried.update((camera, view) for camera, view in zip(cameras, views) if view.band_sigma_px is not None)
     for view in views:
         view.grey = None  # read for this frame's appearance only; kept, a recording would hold every image
-    return FramePersons(frame, result, detections, views, wall, cpu, poses_from)
+    return FramePersons(frame, result, detections, views, wall, cpu, poses_from, lent_views)
+
+
+def refuse_workspace_files(dest: Path, workspace: Workspace) -> None:
+    """--out may not be the workspace, a folder that holds it, or one of the folders its other commands write
+    (their files are rigsfm's, so 'files rigsfm did not write' would be the wrong reason to give)."""
+    resolved, root = Path(dest).resolve(), workspace.root.resolve()
+    if resolved == root or root.is_relative_to(resolved):
+        raise InputError(f"--out '{dest}' is the workspace or a folder that holds it; choose a folder of its own "
+                         f"(the default is {workspace.associate})")
+    for owned in (workspace.sparse, workspace.mapping, workspace.track.root, workspace.root / "export"):
+        if resolved.is_relative_to(owned.resolve()):
+            raise InputError(f"--out '{dest}' is inside the workspace's own {owned.name}/ folder (rigsfm "
+                             f"{'export' if owned.name == 'export' else 'track' if owned.name == 'track' else 'run'}"
+                             f"'s); choose {workspace.associate} (the default) or a folder of its own")
 
 
 def associate(out: Path, detections_csv: Path, options: AssociateOptions | None = None,
@@ -247,14 +272,16 @@ def associate(out: Path, detections_csv: Path, options: AssociateOptions | None 
     from rigsfm.associate.output import check_destination, refuse_edited, write_results
 
     options = options or AssociateOptions()
-    dest = Path(options.out) if options.out is not None else Workspace(Path(out)).associate
+    workspace = Workspace(Path(out))
+    dest = Path(options.out) if options.out is not None else workspace.associate
+    refuse_workspace_files(dest, workspace)
     previous = check_destination(dest, options.overwrite)
     model = load_run(Path(out))
     # a model's images have cameras
     sizes = {name: (image.camera.width, image.camera.height)  # type: ignore[union-attr]
              for name, image in model.images.items()}
     stand_in = frame_sizes(model, options.poses_from) if options.poses_from is not None else None
-    detections = read_detections(Path(detections_csv), sizes, model.known, stand_in)
+    detections = read_detections(Path(detections_csv), sizes, model.known, stand_in, options.poses_from)
     if options.poses_from is not None:
         model = with_stand_ins(model, detections.images, options.poses_from)
         root = model.images_root

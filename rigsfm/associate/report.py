@@ -23,6 +23,24 @@ def frame_counts(path: Path) -> tuple[dict, int, int]:
     return data, assigned, assigned + len(data["unassigned"])
 
 
+def lent_views(data: dict) -> list[str]:
+    """The views of a frame's persons.json whose poses ``--poses-from`` lent: all of a frame the run was not given,
+    some of a frame of the run that lacked their narrow images (an earlier version's file: all where it lent)."""
+    if not data.get("poses_from"):
+        return []
+    return list(data.get("lent_views") or data.get("views") or [])
+
+
+def poses_note(data: dict) -> str:
+    """Whose narrow poses a frame's persons were found with, in words."""
+    lent, views = lent_views(data), data.get("views") or []
+    if not lent:
+        return "its own"
+    if len(lent) < len(views):
+        return f"{len(lent)} of {len(views)} views lent by {data['poses_from']}, the others its own"
+    return f"lent by {data['poses_from']}"
+
+
 def _frame_row(path: Path) -> list[str]:
     data, assigned, total = frame_counts(path)
     persons = data["persons"]
@@ -32,7 +50,7 @@ def _frame_row(path: Path) -> list[str]:
     return [html.escape(str(data["frame"])), str(len(persons)), str(confident), str((views >= 3).sum()),
             f"{assigned} of {total}",
             f"{np.median(sigma) * 100:.1f}" if len(sigma) else "&ndash;",
-            html.escape(f"lent by {data['poses_from']}") if data.get("poses_from") else "its own"]
+            html.escape(poses_note(data))]
 
 
 def _figure(path: Path, caption: str) -> str:
@@ -55,8 +73,8 @@ def associate_report_section(out: Path) -> str:
              "each person's detections (at most one per view), its position in the world frame and its "
              "covariance (persons.csv / persons.json per frame). Confident: likelier one person than chance "
              "(confidence &ge; 0.5); sigma: the largest horizontal standard deviation of a position; poses: the "
-             "run's own for the frame, or those of a frame of the run lent to a frame it was not given "
-             "(<code>--poses-from</code>: static rigs).</p>",
+             "run's own for the frame, or those of a frame of the run lent to a frame it was not given, or to the views "
+             "of a frame whose narrow images it lacked (<code>--poses-from</code>: static rigs).</p>",
              "<table><thead><tr><th>frame</th><th>persons</th><th>confident</th><th>in &ge; 3 views</th>"
              "<th>detections assigned</th><th>sigma median (cm)</th><th>narrow poses</th></tr></thead><tbody>"]
     parts += ["<tr>" + "".join(f"<td>{cell}</td>" for cell in _frame_row(path)) + "</tr>"

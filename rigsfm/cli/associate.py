@@ -9,6 +9,7 @@ import typer
 
 from rigsfm.cli.common import configure_logging, console, fail_cleanly, flag, progress_bars
 from rigsfm.core.errors import InputError
+from rigsfm.core.names import quoted
 from rigsfm.core.workspace import Workspace
 
 
@@ -72,33 +73,52 @@ def associate_command(
     frames = written_frames(dest)
     for line in frame_lines(frames):
         console.print(line)
-    lent = sum(poses is not None for *_, poses in frames)
-    if lent:
-        console.print(f"{lent} frame(s) the run was not given: associated with the narrow poses of its frame "
-                      f"{poses_from} (static rigs; `rigsfm track {out} IMAGES` tells whether a rig moved)")
+    for line in lent_lines(frames, poses_from, out):
+        console.print(line)
     console.print(f"persons: {dest} (persons.csv / persons.json, floor.png, density per frame)")
     if Path(dest).resolve() == Workspace(out).associate.resolve():
         console.print(f"`rigsfm report {out}` adds them to its report.html")
 
 
-def written_frames(dest: Path) -> list[tuple[str, int, int, int, str | None]]:
-    """Per frame written into ``dest``: its name, persons, the detections they hold, all its detections, and the
-    run's frame whose poses it took (None: its own)."""
-    from rigsfm.associate.report import frame_counts
+def written_frames(dest: Path) -> list[tuple[str, int, int, int, str | None, list[str]]]:
+    """Per frame written into ``dest``: its name, persons, the detections they hold, all its detections, the run's
+    frame whose poses it took (None: its own), and where only some of its views took them (a frame of the run that
+    lacked their narrow images), those views (else empty)."""
+    from rigsfm.associate.report import frame_counts, lent_views
 
     frames = []
     for path in sorted(Path(dest).glob("*/persons.json")):
         data, assigned, total = frame_counts(path)
-        frames.append((data["frame"], len(data["persons"]), assigned, total, data.get("poses_from")))
+        lent = lent_views(data)
+        partly = lent if len(lent) < len(data.get("views") or lent) else []
+        frames.append((data["frame"], len(data["persons"]), assigned, total, data.get("poses_from"), partly))
     return frames
 
 
-def frame_lines(frames: list[tuple[str, int, int, int, str | None]], shown: int = 3) -> list[str]:
+def lent_lines(frames: list[tuple[str, int, int, int, str | None, list[str]]], poses_from: str | None,
+               out: Path) -> list[str]:
+    """Which frames of :func:`written_frames` took the narrow poses of ``poses_from``: the frames the run was not
+    given, and apart from them the run's own frames some of whose narrow images it was not given."""
+    whole = sum(poses is not None and not partly for *_, poses, partly in frames)
+    partial = [(frame, partly) for frame, *_, partly in frames if partly]
+    lines = []
+    if whole:
+        lines.append(f"{whole} frame(s) the run was not given: associated with the narrow poses of its frame "
+                     f"{poses_from} (static rigs; `rigsfm track {out} IMAGES` tells whether a rig moved)")
+    if partial:
+        first, views = partial[0]
+        lines.append(f"{len(partial)} frame(s) of the run without some of their narrow images (e.g. {first}: "
+                     f"{quoted(views[:3])}{' ...' if len(views) > 3 else ''}): those views took the narrow poses of "
+                     f"its frame {poses_from}, the others their own")
+    return lines
+
+
+def frame_lines(frames: list[tuple[str, int, int, int, str | None, list[str]]], shown: int = 3) -> list[str]:
     """The first ``shown`` of :func:`written_frames`, each its persons and the detections they hold; the rest in one
     line."""
     shown = len(frames) if len(frames) <= shown + 1 else shown  # a line of its own, not a summary of one frame
     lines = [f"{frame}: {persons} persons from {assigned} of {total} detections"
-             for frame, persons, assigned, total, _ in frames[:shown]]
+             for frame, persons, assigned, total, *_ in frames[:shown]]
     if len(frames) > shown:
         rest = sorted(c[1] for c in frames[shown:])
         lines.append(f"... {len(rest)} more frames: {rest[len(rest) // 2]} persons (median), {rest[0]}-{rest[-1]}")

@@ -102,8 +102,10 @@ def frame_sizes(model: RunModel, frame: str) -> dict[str, tuple[int, int]]:
              for camera, name in _frame_images(model, frame).items()}
     if not sizes:
         frames = sorted({ImageName.parse(name).frame for name in model.images})
-        raise InputError(f"--poses-from {frame!r} is not a frame of this run with a registered narrow image; its "
-                         f"frames: {quoted(frames[:8])}{' ...' if len(frames) > 8 else ''}")
+        named = [f for f in frames if Path(f).stem == Path(frame).stem]  # the name given without its extension
+        hint = f" (did you mean {quoted(named[:1])}?)" if named else ""
+        raise InputError(f"--poses-from {frame!r} is not a frame of this run with a registered narrow image{hint}; "
+                         f"its frames: {quoted(frames[:8])}{' ...' if len(frames) > 8 else ''}")
     return sizes
 
 

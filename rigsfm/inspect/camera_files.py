@@ -162,7 +162,8 @@ def opencv_cameras(reconstruction: pycolmap.Reconstruction, sensors: Sequence[st
         largest = max(strays)
         logger.warning("%d camera(s) have several frames whose poses differ (up to %.3g in the model's units, metres "
                        "where the run is metric, and %.3g deg: %s, %d frames); each is exported as the mean of its "
-                       "frames: where a rig moved, `rigsfm track` says when", len(strays), largest[0],
+                       "frames. Each frame is registered on its own, so static rigs differ by its noise (millimetres "
+                       "at tens of metres); where a rig moved, `rigsfm track` says when", len(strays), largest[0],
                        max(s[1] for s in strays), largest[2], largest[3])
     cameras.sort(key=lambda c: c.name)
     names = [c.name for c in cameras]
@@ -326,4 +327,21 @@ def _undistorted_images(reconstruction: pycolmap.Reconstruction, cameras: Sequen
         if not ok:
             raise OSError(f"could not encode {target}")
         paths.append(write_bytes_atomic(target, data.tobytes()))
+    _warn_missing_views(paths, dest)
     return paths
+
+
+def _warn_missing_views(paths: list[Path], dest: Path) -> None:
+    """One warning where a camera lacks a frame the others have (its narrow image was not registered or not given):
+    multi-view detectors read every camera in every frame."""
+    frames: dict[str, set[str]] = {}
+    for path in paths:
+        frames.setdefault(path.parent.name, set()).add(path.name)
+    every = set().union(*frames.values()) if frames else set()
+    missing = {rig: sorted(every - have) for rig, have in sorted(frames.items()) if every - have}
+    if missing:
+        first = next(iter(missing))
+        logger.warning("%s: %d camera(s) lack frames the others have (%s: %s%s): the run has no registered narrow image "
+                       "there; loaders of the MVDet family expect every camera in every frame, so leave those frames "
+                       "out of the dataset or give the run their images", dest, len(missing), first,
+                       ", ".join(missing[first][:3]), ", ..." if len(missing[first]) > 3 else "")

@@ -33,6 +33,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--textured-centre", action="store_true", help="crowd-like centre instead of uniform")
     parser.add_argument("--persons-per-m2", type=float, default=0.0,
                         help="3D persons standing and walking on the centre disc (e.g. 4); 0: none")
+    parser.add_argument("--narrow-pitch-deg", type=float, default=10.0,
+                        help="how much further down than its wide camera each narrow camera looks; -4 aims the "
+                             "narrow views at the crowd's centre, so that they share persons (for `rigsfm associate`)")
     parser.add_argument("--frame-period-s", type=float, default=0.5, help="time between a rig's frames")
     parser.add_argument("--frame-offsets", default="",
                         help="unsynchronised rigs: rig02=1,rig05=-0.5 takes rig02's frame k at time k+1 and rig05's at "
@@ -56,6 +59,7 @@ def main(argv: list[str] | None = None) -> int:
             textured_centre=args.textured_centre,
             calibration_noise=not args.no_calibration_noise,
             persons_per_m2=args.persons_per_m2,
+            narrow_extra_pitch_deg=args.narrow_pitch_deg,
             frame_period_s=args.frame_period_s,
             frame_offsets=parse_frame_offsets(args.frame_offsets),
             exposure_jitter=args.exposure_jitter,

@@ -256,15 +256,15 @@ def _associate_frame(frame: str, views: list[View], detections: Detections, opti
 def refuse_workspace_files(dest: Path, workspace: Workspace) -> None:
     """--out may not be the workspace, a folder that holds it, or one of the folders its other commands write
     (their files are rigsfm's, so 'files rigsfm did not write' would be the wrong reason to give)."""
-    resolved, root = Path(dest).resolve(), workspace.root.resolve()
-    if resolved == root or root.is_relative_to(resolved):
+    if workspace.is_within(dest):
         raise InputError(f"--out '{dest}' is the workspace or a folder that holds it; choose a folder of its own "
                          f"(the default is {workspace.associate})")
-    for owned in (workspace.sparse, workspace.mapping, workspace.track.root, workspace.root / "export"):
+    resolved = Path(dest).resolve()
+    for owned, command in ((workspace.sparse, "run"), (workspace.mapping, "run"), (workspace.track.root, "track"),
+                           (workspace.exports, "export")):
         if resolved.is_relative_to(owned.resolve()):
-            raise InputError(f"--out '{dest}' is inside the workspace's own {owned.name}/ folder (rigsfm "
-                             f"{'export' if owned.name == 'export' else 'track' if owned.name == 'track' else 'run'}"
-                             f"'s); choose {workspace.associate} (the default) or a folder of its own")
+            raise InputError(f"--out '{dest}' is inside the workspace's own {owned.name}/ folder (rigsfm {command}'s); "
+                             f"choose {workspace.associate} (the default) or a folder of its own")
 
 
 def associate(out: Path, detections_csv: Path, options: AssociateOptions | None = None,

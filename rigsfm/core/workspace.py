@@ -137,9 +137,18 @@ class Workspace:
         """The default folder of ``rigsfm associate`` (persons per frame)."""
         return self.root / "associate"
 
+    @property
+    def exports(self) -> Path:
+        """The folder of ``rigsfm export``'s default folders, one per format."""
+        return self.root / "export"
+
     def export(self, fmt: str) -> Path:
         """The default folder of ``rigsfm export --format fmt``."""
-        return self.root / "export" / str(fmt)
+        return self.exports / str(fmt)
+
+    def is_within(self, folder: Path) -> bool:
+        """Whether the workspace is ``folder`` or lies inside it (a destination there would hold its files)."""
+        return self.root.resolve().is_relative_to(Path(folder).resolve())
 
     @property
     def results(self) -> tuple[Path, ...]:

@@ -178,12 +178,12 @@ def check_destination(dest: Path, workspace: Workspace, *, overwrite: bool) -> P
 
     Refuses the workspace itself or a folder that holds it, a folder with files no manifest lists, and an earlier
     export without ``overwrite``."""
-    resolved, root = dest.resolve(), workspace.root.resolve()
-    if resolved == root or root.is_relative_to(resolved):
+    if workspace.is_within(dest):
         raise WorkspaceError(f"--dest '{dest}' is the workspace or a folder that holds it; choose a folder of its own "
                              f"(the default is {workspace.export('FORMAT')})")
-    if resolved.is_relative_to(root) and not resolved.is_relative_to(root / "export"):
-        raise WorkspaceError(f"--dest '{dest}' is inside the workspace's own files; use {root / 'export'}/... or a folder "
+    resolved, exports = dest.resolve(), workspace.exports.resolve()
+    if resolved.is_relative_to(workspace.root.resolve()) and not resolved.is_relative_to(exports):
+        raise WorkspaceError(f"--dest '{dest}' is inside the workspace's own files; use {exports}/... or a folder "
                              "outside the workspace")
     return previous_files(dest, MANIFEST, overwrite=overwrite, option="--dest", what="export")
 

@@ -189,10 +189,13 @@ def test_cli_turns_an_internal_error_into_one_line(tmp_path, monkeypatch):
         raise ZeroDivisionError("simulated bug")
 
     monkeypatch.setattr("rigsfm.run.pipeline.run", broken)
+    monkeypatch.setattr("tempfile.tempdir", str(tmp_path))  # the traceback's file, kept out of the machine's /tmp
     result = CliRunner().invoke(app, ["run", str(images), "--rigs", str(rigs_path), "--out", str(tmp_path / "o")])
     assert result.exit_code == 3
     lines = [line for line in result.output.splitlines() if line.strip()]
     assert "internal error: ZeroDivisionError: simulated bug" in " ".join(lines) and "Traceback" not in result.output
+    (kept,) = tmp_path.glob("rigsfm-error-*.txt")
+    assert str(kept) in " ".join(result.output.split()) and "simulated bug" in kept.read_text()
 
 
 @pytest.mark.slow  # a real run of the rendered 3-rig arc (~1 min)

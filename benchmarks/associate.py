@@ -5,12 +5,12 @@
 DATASET: rendered with persons (rigsfm.synth, persons/heads.csv); OUT: ``rigsfm run`` on it; OUT_FIXED: the same
 with ``--fixed-calibration`` (baseline b). Detections = the true visible heads of each narrow image of the first
 ``--frames`` frames + 1.5 px normal noise, 10 % missed, 5 % false (uniform). Time per frame: wall and this process's
-CPU seconds (the CPU time is the fairer one on a shared machine). Reports, per method: pairwise precision / recall / F1,
-person-level F1, the 3D head error (in the truth's frame after a rigid alignment of the camera centres) against
-the reported covariance (share inside the 95 % ellipsoid), and the time per frame. Baseline a is a fixed-threshold
-associator in the style of EasyMocap / multiview_matching: symmetric epipolar distance (undistorted pixels),
-mutual nearest neighbours per pair under the threshold, groups joined across pairs; its threshold is the best of
-2-32 px on the truth.
+CPU seconds (the CPU time is the fairer one on a shared machine). Reports, per method: pairwise precision / recall /
+F1, person-level F1, the persons' confidence against how often they are right (per bin), the 3D head error (in the
+truth's frame after a rigid alignment of the camera centres) against the reported covariance (share inside the 95 %
+ellipsoid), and the time per frame. Baseline a is a fixed-threshold associator in the style of EasyMocap /
+multiview_matching: symmetric epipolar distance (undistorted pixels), mutual nearest neighbours per pair under the
+threshold, groups joined across pairs; its threshold is the best of 2-32 px on the truth.
 """
 
 from __future__ import annotations
@@ -27,6 +27,7 @@ import pycolmap
 from rigsfm.associate import AssociateOptions, associate_frames, from_arrays, load_run
 from rigsfm.associate.evaluate import (
     make_detections,
+    reliability,
     score_groups,
     true_head_radii,
     true_heads,
@@ -145,7 +146,8 @@ def evaluate(dataset: Path, out: Path, seed: int, options: AssociateOptions, fra
             "scores": vars(scores),
             "error_median_m": float(np.median(errors)) if errors else None,
             "error_p95_m": float(np.percentile(errors, 95)) if errors else None,
-            "coverage_95": float(np.mean(inside)) if inside else None, "correct_persons": len(errors)})
+            "coverage_95": float(np.mean(inside)) if inside else None, "correct_persons": len(errors),
+            "reliability": reliability(groups, result.confidence, truth)})
     return {**per_frame[0], "frames": per_frame, "total_seconds": wall, "total_cpu_seconds": cpu,
             "truth": truths[0], "model": model, "found": found}
 

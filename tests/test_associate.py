@@ -15,7 +15,14 @@ from conftest import _once, _shared_root
 from typer.testing import CliRunner
 
 from rigsfm.associate import AssociateOptions, associate_frames, from_arrays, load_run
-from rigsfm.associate.evaluate import make_detections, score_groups, true_heads, truth_from_run, visible_heads
+from rigsfm.associate.evaluate import (
+    make_detections,
+    reliability,
+    score_groups,
+    true_heads,
+    truth_from_run,
+    visible_heads,
+)
 from rigsfm.associate.output import FRAME_FILES, LEGACY_MARKER, MANIFEST, cells_seen, check_destination
 from rigsfm.associate.report import associate_report_section
 from rigsfm.cli import app
@@ -74,9 +81,10 @@ def _errors(dataset: Path, out: Path, truth, frame) -> tuple[np.ndarray, np.ndar
     return np.array(errors), np.array(inside)
 
 
-def test_association_against_the_truth_and_a_fixed_threshold(crowd):
+def test_association_against_the_truth_and_a_fixed_threshold(crowd, caplog):
     """On the run's poses the crowd is hard (the bands are ~10 px, heads ~25 px apart), yet rigsfm's association is
-    far more precise than a fixed-threshold one; with the exact poses (the same bands) most pairs are right."""
+    far more precise than a fixed-threshold one; with the exact poses (the same bands) most pairs are right. On the
+    run's poses most persons are wrong, and the frame says so."""
     sys.path.insert(0, str(Path(__file__).parents[1] / "benchmarks"))
     from associate import fixed_threshold
 
@@ -84,7 +92,10 @@ def test_association_against_the_truth_and_a_fixed_threshold(crowd):
 
     dataset, out = crowd
     model, truth = _detections(dataset, out)
-    frame = associate_frames(model, from_arrays(truth.points), AssociateOptions(pixel_sigma=1.5))[0]
+    with caplog.at_level("WARNING", logger="rigsfm.associate.pipeline"):
+        frame = associate_frames(model, from_arrays(truth.points), AssociateOptions(pixel_sigma=1.5))[0]
+    warned = [r.getMessage() for r in caplog.records if "chance groupings" in r.getMessage()]
+    assert len(warned) == 1 and warned[0].startswith("frame0000.png: only "), warned  # 11 of 222 on this crowd
     groups = _groups(frame)
     ours = score_groups(groups, truth)
     assert ours.true_persons > 150
@@ -97,7 +108,10 @@ def test_association_against_the_truth_and_a_fixed_threshold(crowd):
     exact = pycolmap.Reconstruction(str(dataset / "ground_truth"))
     images = {im.name: im for im in exact.images.values() if im.name in model.images}
     posed = RunModel(images, model.bands, model.known, model.world, model.centre_sigma_m)
-    frame = associate_frames(posed, from_arrays(truth.points), AssociateOptions(pixel_sigma=1.5))[0]
+    caplog.clear()
+    with caplog.at_level("WARNING", logger="rigsfm.associate.pipeline"):
+        frame = associate_frames(posed, from_arrays(truth.points), AssociateOptions(pixel_sigma=1.5))[0]
+    assert not [r for r in caplog.records if "chance groupings" in r.getMessage()]  # 43 of 256 confident here
     scores = score_groups(_groups(frame), truth)
     assert scores.pair_precision > 0.35 and scores.pair_f1 > 0.25, scores
     heads = true_heads(dataset, 0)
@@ -168,6 +182,19 @@ def test_the_crowd_gives_its_detection_probability_and_heights(crowd):
     given = associate_frames(posed, from_arrays(truth.points),
                              AssociateOptions(pixel_sigma=1.5, detection_probability=0.6, height_prior=(1.2, 0.1)))
     assert given[0].result.detection_probability == 0.6 and given[0].result.height_prior == (1.2, 0.1)
+
+
+def test_reliability_bins_persons_by_confidence_and_counts_the_right_ones():
+    """A person is right when every detection is one true person's (a false detection or a second person makes it
+    wrong); the last bin holds a confidence of 1."""
+    from rigsfm.associate.evaluate import SyntheticDetections
+
+    truth = SyntheticDetections(points={"a": np.zeros((3, 2)), "b": np.zeros((3, 2))},
+                                person={"a": np.array([0, 1, -1]), "b": np.array([0, 2, -1])})
+    groups = [[("a", 0), ("b", 0)], [("a", 1), ("b", 1)], [("a", 2), ("b", 2)], [("a", 1)]]
+    bins = reliability(groups, np.array([0.1, 0.3, 0.97, 1.0]), truth, (0.0, 0.5, 0.95, 1.0))
+    assert bins == [{"bin": [0.0, 0.5], "persons": 2, "mean_confidence": 0.2, "right": 0.5},
+                    {"bin": [0.95, 1.0], "persons": 2, "mean_confidence": 0.985, "right": 0.5}]
 
 
 def test_cli_writes_every_output_and_joins_back(crowd, tmp_path):

@@ -149,6 +149,26 @@ def score_groups(groups: list[list[tuple[str, int]]], truth: SyntheticDetections
     return Scores(precision, recall, _f1(precision, recall), pp, pr, _f1(pp, pr), len(groups), len(true_multi))
 
 
+CONFIDENCE_BINS = (0.0, 0.2, 0.4, 0.6, 0.8, 0.95, 0.99, 1.0)
+
+
+def reliability(groups: list[list[tuple[str, int]]], confidence: np.ndarray, truth: SyntheticDetections,
+                bins: tuple[float, ...] = CONFIDENCE_BINS) -> list[dict]:
+    """The persons' confidence against how often they are right (all detections one true person's, as in
+    :func:`score_groups`), per confidence bin (the last includes 1): persons, mean confidence, share right."""
+    right = np.array([len(ids := {int(truth.person[image][index]) for image, index in group}) == 1
+                      and next(iter(ids)) >= 0 for group in groups], dtype=bool)
+    confidence = np.asarray(confidence, dtype=float)
+    out = []
+    for k, (lo, hi) in enumerate(zip(bins[:-1], bins[1:])):
+        inside = (confidence >= lo) & ((confidence < hi) | (k == len(bins) - 2))
+        if inside.any():
+            out.append({"bin": [lo, hi], "persons": int(inside.sum()),
+                        "mean_confidence": float(confidence[inside].mean()),
+                        "right": float(right[inside].mean())})
+    return out
+
+
 def rigid_alignment(source: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """R, t minimising |R source + t - target| (Kabsch, no scale: a wrong metric scale stays an error)."""
     ms, mt = source.mean(axis=0), target.mean(axis=0)

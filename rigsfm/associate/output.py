@@ -3,7 +3,8 @@
   DIR/<frame>/persons.csv   one row per (person, detection): person, x_m, y_m, z_m, sigma_x_m, sigma_y_m, sigma_z_m,
                             confidence, views, image, x, y (exactly as given), row (its line in DETECTIONS)
   DIR/<frame>/persons.json  per person: position (world metres), covariance (m^2), score (log-likelihood ratio
-                            against clutter), confidence, detections [{image, x, y, row}]; unassigned detections;
+                            against clutter), confidence (its logistic: the model's odds, not a measured rate; see
+                            docs/world.md), detections [{image, x, y, row}]; unassigned detections;
                             size_cue {used, head_radius_m}: whether the DETECTIONS' radii scored the frame;
                             poses_from, lent_views: the run's frame whose narrow poses --poses-from lent, and to
                             which views (every view of a frame the run was not given)

@@ -19,6 +19,7 @@ import pycolmap
 from rigsfm.associate.appearance import read_grey
 from rigsfm.associate.detections import Detections, read_detections
 from rigsfm.associate.options import AssociateOptions
+from rigsfm.associate.shifts import _confident
 from rigsfm.associate.solve import FrameResult, associate_views
 from rigsfm.associate.views import View, view_pose_sigmas
 from rigsfm.core.errors import InputError
@@ -247,10 +248,29 @@ def _associate_frame(frame: str, views: list[View], detections: Detections, opti
     result = associate_views(views, options, carried=known, earlier=before.result if before else None)
     wall, cpu = time.perf_counter() - wall, time.process_time() - cpu
     logger.info("%s: %d persons in %.2f s (%.2f s CPU)", frame, len(result), wall, cpu)
+    if not known:
+        _warn_few_confident(frame, result, options)
     carried.update((camera, view) for camera, view in zip(cameras, views) if view.band_sigma_px is not None)
     for view in views:
         view.grey = None  # read for this frame's appearance only; kept, a recording would hold every image
     return FramePersons(frame, result, detections, views, wall, cpu, poses_from, lent_views)
+
+
+FEW_CONFIDENT_SHARE = 0.1  # below it, a frame's persons are mostly chance (benchmarks/README.md, *confidence*)
+
+
+def _warn_few_confident(frame: str, result: FrameResult, options: AssociateOptions) -> None:
+    """Warn where few of a frame's persons are the kind the views' corrections rest on (three or more views, a
+    positive score): there the views keep the run's pose errors and chance groupings of different persons dominate,
+    whatever each person's confidence says."""
+    confident = len(_confident(result.members, result.scores, options))
+    # a share, not a count, so that a small crowd every view sees clearly does not warn
+    if len(result.views) >= 3 and len(result) and confident < FEW_CONFIDENT_SHARE * len(result):
+        logger.warning("%s: only %d of its %d persons are seen by three or more views with a positive score, too few "
+                       "to correct the views' pose errors from the crowd: most of its persons may be chance groupings "
+                       "of different persons, whatever their confidence (the model's odds, not a measured rate). More "
+                       "narrow views sharing the crowd, or a calibration with narrower bands, is what helps",
+                       frame, confident, len(result))
 
 
 def refuse_workspace_files(dest: Path, workspace: Workspace) -> None:

@@ -373,7 +373,7 @@ def consider_sensitivity(result, given, exact, options, unweighted=False, robust
     if unweighted:
         cv.repeated_view_correlation = lambda *a, **k: {}
     try:
-        schur, entries, variable, prior_only, _ = cv._reduced_system(jp, options.max_reprojection_error_px,
+        schur, entries, variable, prior_only, *_ = cv._reduced_system(jp, options.max_reprojection_error_px,
                                                                   options.pixel_sigma_inflation)
     finally:
         cv.repeated_view_correlation = saved

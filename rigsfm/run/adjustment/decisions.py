@@ -34,6 +34,7 @@ class _CalibrationChange:
     prior: np.ndarray
     posterior: np.ndarray
     rigs: np.ndarray
+    excess: np.ndarray | None = None  # JointCovariance.change_excess over the same coordinates
 
 
 def _calibration_change(result: AdjustResult, covariance: JointCovariance) -> _CalibrationChange:
@@ -72,17 +73,38 @@ def _calibration_change(result: AdjustResult, covariance: JointCovariance) -> _C
         at += len(block)
     keep = np.diag(prior) > 0  # sigma 0: held exactly by the prior itself
     posterior = covariance.sub(keys) if keys else np.zeros((0, 0))
+    excess = None
+    if covariance.change_excess is not None and keys:
+        index = covariance.index(keys)
+        excess = covariance.change_excess[np.ix_(index, index)][np.ix_(keep, keep)]
     delta = np.concatenate(changes) if changes else np.zeros(0)
     return _CalibrationChange(delta[keep], prior[np.ix_(keep, keep)], posterior[np.ix_(keep, keep)],
-                              np.asarray(owners, dtype=object)[keep])
+                              np.asarray(owners, dtype=object)[keep], excess)
 
 
-def _gains(prior: np.ndarray, posterior: np.ndarray, delta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The share ``g_k`` of the prior variance the images removed along each eigen-direction of ``I - Q`` (``Q`` the
-    posterior in the prior's whitened coordinates) and the whitened change's coordinates along them."""
+def _directions(prior: np.ndarray, posterior: np.ndarray, delta: np.ndarray
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The share ``g_k`` of the prior variance the images removed along each eigen-direction ``v_k`` of ``I - Q``
+    (``Q`` the posterior in the prior's whitened coordinates), the map from the change to its whitened coordinates
+    along them (``V^T L^-1``), and the change's coordinates ``z``."""
     inverse = scipy.linalg.solve_triangular(np.linalg.cholesky(prior), np.eye(len(prior)), lower=True)
     gains, vectors = np.linalg.eigh(np.eye(len(prior)) - inverse @ posterior @ inverse.T)
-    return gains, vectors.T @ (inverse @ delta)
+    return gains, vectors.T @ inverse, vectors.T @ (inverse @ delta)
+
+
+def _chi2(prior: np.ndarray, posterior: np.ndarray, delta: np.ndarray, excess: np.ndarray | None
+          ) -> tuple[float, int, np.ndarray]:
+    """The consistency test's chi-square over the directions with ``g_k >= MIN_GAIN``, its dof and every direction's
+    gain: ``sum z_k^2 / g_k`` where the change spreads as ``prior - posterior`` (its ``g_k`` along ``v_k``), else
+    ``z^T (diag(g) + V^T L^-1 excess L^-T V)^-1 z`` over those directions (``excess``: how much wider it spreads)."""
+    if not len(delta):
+        return 0.0, 0, np.zeros(0)
+    gains, rows, z = _directions(prior, posterior, delta)
+    tested = gains >= MIN_GAIN
+    if excess is None or not tested.any():
+        return float(np.sum(z[tested] ** 2 / gains[tested])), int(tested.sum()), gains
+    spread = np.diag(gains[tested]) + rows[tested] @ excess @ rows[tested].T
+    return float(z[tested] @ np.linalg.solve(spread, z[tested])), int(tested.sum()), gains
 
 
 def hold_or_refine(result: AdjustResult, covariance: JointCovariance | None) -> list[CalibrationDecision]:
@@ -102,7 +124,9 @@ def hold_or_refine(result: AdjustResult, covariance: JointCovariance | None) -> 
       method: E^sl and the intrinsics from the board);
     - the network's consistency: were priors and images both right, the change would be distributed as ``N(0, I -
       Q)`` (the spread of the posterior mean), so ``sum_k (v_k . u)^2 / g_k`` over the network's directions with
-      ``g_k >= MIN_GAIN`` is chi-square with that many degrees of freedom; above the ``HOLD_QUANTILE`` quantile the
+      ``g_k >= MIN_GAIN`` is chi-square with that many degrees of freedom (where the solve counts a static rig's
+      repeated views as independent, which the covariance does not, the change spreads wider:
+      ``JointCovariance.change_excess`` joins ``I - Q``; :func:`_chi2`); above the ``HOLD_QUANTILE`` quantile the
       images moved the calibration further than their information allows, and every rig is held. One test for the
       network, not one per rig: the rigs' calibrations meet in the shared poses, so a rig held at values the images
       contradict pushes that contradiction into the rigs still refined (their intrinsics and every pose), which is
@@ -116,12 +140,8 @@ def hold_or_refine(result: AdjustResult, covariance: JointCovariance | None) -> 
     if covariance is None:
         return [CalibrationDecision(rig, True, "no covariance to test its refinement against") for rig in rigs]
     change = _calibration_change(result, covariance)
-    network_gains, network_z = _gains(change.prior, change.posterior, change.delta) if len(change.delta) \
-        else (np.zeros(0), np.zeros(0))
+    network_chi2, network_dof, network_gains = _chi2(change.prior, change.posterior, change.delta, change.excess)
     network_gain = float(network_gains.max(initial=0.0))
-    network_tested = network_gains >= MIN_GAIN
-    network_chi2 = float(np.sum(network_z[network_tested] ** 2 / network_gains[network_tested]))
-    network_dof = int(network_tested.sum())
     network_limit = float(chi2_distribution.ppf(HOLD_QUANTILE, network_dof)) if network_dof else 0.0
     decisions = []
     for rig in rigs:
@@ -129,9 +149,8 @@ def hold_or_refine(result: AdjustResult, covariance: JointCovariance | None) -> 
         if not mine.any():
             decisions.append(CalibrationDecision(rig, True, "no image observes its calibration"))
             continue
-        gains, z = _gains(change.prior[np.ix_(mine, mine)], change.posterior[np.ix_(mine, mine)], change.delta[mine])
-        tested = gains >= MIN_GAIN
-        chi2, dof = float(np.sum(z[tested] ** 2 / gains[tested])), int(tested.sum())
+        chi2, dof, gains = _chi2(change.prior[np.ix_(mine, mine)], change.posterior[np.ix_(mine, mine)],
+                                 change.delta[mine], None if change.excess is None else change.excess[np.ix_(mine, mine)])
         limit = float(chi2_distribution.ppf(HOLD_QUANTILE, dof)) if dof else 0.0
         largest = float(gains.max())
         if network_gain < 0.5:

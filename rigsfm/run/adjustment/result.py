@@ -100,6 +100,10 @@ class JointCovariance:
     kind: str  # "posterior" (REFINE) or "consider" (FIXED)
     prior_only: frozenset = frozenset()
     seconds: float = 0.0
+    # REFINE: how much wider the refined calibration's change from rigs.yaml spreads than prior minus posterior (the
+    # solve weighs residuals the noise model counts as correlated as independent; covariance._change_excess), in the
+    # covariance's layout; None where the solve is weighted as the noise model
+    change_excess: np.ndarray | None = None
 
     def slice(self, key) -> slice:
         start, size = self.offsets[key]

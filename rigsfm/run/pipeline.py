@@ -216,8 +216,9 @@ def build_summary(inputs: Inputs, options: RunOptions, mapping: MappingResult, r
     return Summary(
         rigsfm_version=rigsfm.__version__,
         pycolmap_version=pycolmap.__version__,
-        inputs=InputsSummary(images=str(inputs.image_dir), num_rigs=len(inputs.rigs),
-                             scale_file=str(inputs.scale.path) if inputs.scale else None),
+        # Absolute: explore, report and export --images read the images from any working folder, not only this one.
+        inputs=InputsSummary(images=str(inputs.image_dir.absolute()), num_rigs=len(inputs.rigs),
+                             scale_file=str(inputs.scale.path.absolute()) if inputs.scale else None),
         options=json_ready(asdict(options)),
         metric=metric,
         scale=ScaleSummary(

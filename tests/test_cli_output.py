@@ -192,3 +192,16 @@ def test_an_os_error_names_the_real_file_not_the_temporary_one(tmp_path, capsys)
         export()
     said = capsys.readouterr().err
     assert f"{tmp_path / 'dest' / 'poses.json'}: the disk is full" in said and ".tmp" not in said, said
+
+
+def test_a_refused_run_does_not_say_it_lowered_the_mappers_thresholds(tmp_path):
+    """Manual matches into an OUT holding a result: its red line, without the warning that the mapper's thresholds
+    are lowered for them (said first, for a mapper that never ran). rigs.yaml's own warnings may precede it."""
+    (table.workspace(tmp_path) / "summary.json").write_text("{}")  # finished
+    rows = [f"rig01/wide/f0.png,{5 + 6 * k},{4 + 4 * (k % 3) + k},rig02/wide/f0.png,{8 + 5 * k},{6 + 3 * (k % 4) + k}"
+            for k in range(9)]
+    (tmp_path / "m.csv").write_text("image_a,x_a,y_a,image_b,x_b,y_b\n" + "\n".join(rows) + "\n")
+    done = _rigsfm(["run", "images", "--rigs", "rigs.yaml", "--out", "out", "--manual-matches", "m.csv"], tmp_path)
+    lines = [line for line in (done.stdout + done.stderr).splitlines() if line.strip()]
+    assert done.returncode == 1 and lines[-1].startswith("error: 'out' already holds a result"), lines
+    assert not [line for line in lines if "Manual matches given" in line], lines

@@ -442,13 +442,25 @@ def test_ctrl_c_ends_pick_with_where_the_pairs_are(tmp_path):
     args = ["pick", "images/rig01/wide/f0.png", "images/rig02/wide/f0.png", "--out", "m.csv"]
     code, lines, stdout = _stop(args, tmp_path, signal.SIGINT, 0.0, ready="Ctrl-C to stop")  # how it stops
     assert (code, lines) == (0, []), lines
-    assert stdout.splitlines()[-1] == "stopped: 0 pairs in m.csv (for `rigsfm run ... --manual-matches m.csv`)"
+    # nothing picked: no CSV, and the line does not send the user to one
+    assert stdout.splitlines()[-1] == "stopped: no pairs picked, so m.csv was not written" and not (tmp_path / "m.csv").exists()
     assert "without --rigs the epipolar lines ignore the lenses' distortion" in stdout, stdout  # said at the start
     code, lines, _ = _stop(args, tmp_path, signal.SIGTERM, 0.0, ready="Ctrl-C to stop")
     assert code == 143 and len(lines) == 1 and lines[0].startswith("terminated (SIGTERM): "), lines
     # started with both signals blocked (a parent's mask: a test runner's worker had it so), Ctrl-C still ends it
     code, lines, stdout = _stop(args, tmp_path, signal.SIGINT, 0.0, ready="Ctrl-C to stop", start=_with_signals_blocked)
-    assert (code, lines) == (0, []) and stdout.splitlines()[-1].startswith("stopped: 0 pairs in m.csv"), lines
+    assert (code, lines) == (0, []) and stdout.splitlines()[-1].startswith("stopped: no pairs picked"), lines
+
+
+def test_ctrl_c_ends_explore_without_naming_a_labels_file_it_did_not_write(tmp_path):
+    sys.path.insert(0, str(ROOT / "tests"))
+    import bad_inputs_table
+
+    args = bad_inputs_table.explore_workspace(None, [])(tmp_path)
+    code, lines, stdout = _stop(args, tmp_path, signal.SIGINT, 0.0, ready="Ctrl-C to stop")
+    assert (code, lines) == (0, []), lines
+    assert stdout.splitlines()[-1] == "stopped: no labels, so out/labels.csv was not written", stdout
+    assert not (tmp_path / "out" / "labels.csv").exists()
 
 
 @pytest.mark.parametrize("verb", ["calibrate", "report", "view", "export", "explore", "associate", "track", "demo"])

@@ -1,6 +1,7 @@
 """The README's examples are valid input and run, its commands are the ones CI runs, and every ``rigsfm`` command
 line of the README and docs/ names a verb and options that exist."""
 
+import json
 import re
 import shlex
 from pathlib import Path
@@ -95,6 +96,14 @@ def test_readme_python_example_runs(rendered, tmp_path, monkeypatch, capsys):
     assert (i, j) == ("rig01/narrow/frame0000.png", "rig02/narrow/frame0000.png") and 1.0 < float(band) < 50.0
     a, b, c = namespace["a"], namespace["b"], namespace["c"]
     assert abs(a * 400.0 + b * 300.0 + c) > 0.0 and (a, b) != (0.0, 0.0)
+    # Run from here with relative paths, the result is still read from elsewhere with its images (the report's
+    # epipolar figures, explore, export --images): summary.json names IMAGES absolutely.
+    from rigsfm.inspect import write_report
+
+    images = Path(json.loads((tmp_path / "OUT" / "summary.json").read_text())["inputs"]["images"])
+    assert images.is_absolute() and images.samefile(tmp_path / "IMAGES")
+    monkeypatch.chdir(tmp_path.parent)
+    assert "not found: no epipolar figures" not in write_report(tmp_path / "OUT").read_text()
 
 
 @pytest.mark.parametrize("page", [page.name for page in DOCS])

@@ -1,5 +1,7 @@
 """Mapping + rig constraints on a synthesized database with exact ground truth (no images needed)."""
 
+import logging
+
 import numpy as np
 import pycolmap
 import pytest
@@ -81,13 +83,21 @@ def test_scale_trap_is_avoided(tmp_path):
         assert baseline == pytest.approx(np.linalg.norm(rig.narrow_from_wide.translation), abs=1e-9)
 
 
-def test_without_scale_the_result_is_flagged_non_metric(tmp_path):
+def test_without_scale_the_result_is_flagged_non_metric(tmp_path, caplog):
+    """Flagged once: not again by each of the sampled band's calibration draws (a 3-rig run without scale.yaml
+    printed the warning 41 times)."""
+    from rigsfm.run.adjustment.sampled import sampled_pair_bands
+
     net = make_network(tmp_path, num_rigs=3, seed=3)
     mapped = run_mapping(Workspace(tmp_path), tmp_path, MappingOptions(), num_wide=3).reconstruction
-    result = adjust(mapped, net.rigs, None)
+    with caplog.at_level(logging.WARNING):
+        result = adjust(mapped, net.rigs, None)
+        sampled_pair_bands(result, None, num_draws=3)
     assert result.scale_source == ScaleSource.NONE
     assert result.scale is None
     assert isinstance(result.reconstruction, pycolmap.Reconstruction)
+    assert [r.getMessage() for r in caplog.records if "NOT metric" in r.getMessage()] == [
+        "No scale file and no narrow observations: the result is NOT metric"]
 
 
 def test_scale_from_narrow_baselines_with_honest_uncertainty(tmp_path):

@@ -59,12 +59,15 @@ def explore_command(
         return
     server = start_explorer(out, options, port=port)
     session = server.session
-    console.print(f"explorer for {out}, frame {session.frame} ({len(session.result.frames)} frames): open "
-                  f"{server.url} (saves to {session.csv_path} on every change); Ctrl-C to stop")
-    try:
+    try:  # from the line that says Ctrl-C on: a Ctrl-C right after it stops the explorer, as pick's
+        console.print(f"explorer for {out}, frame {session.frame} ({len(session.result.frames)} frames): open "
+                      f"{server.url} (saves to {session.csv_path} on every change); Ctrl-C to stop")
         threading.Event().wait()
     except KeyboardInterrupt:  # Ctrl-C is how the explorer is meant to stop: done, not interrupted
         _signals.handled()
     finally:
         server.close()
+    if not session.csv_path.exists():  # written at the first click, as pick's CSV
+        console.print(f"stopped: no labels, so {session.csv_path} was not written")
+        return
     console.print(f"stopped: {len(session.labels)} labels in {session.csv_path}")

@@ -49,4 +49,7 @@ def pick_command(
                  if session.rescue is not None else "nothing could keep them")
         raise WorkspaceError(f"the last save of {len(session.unsaved)} pairs of {session.images[0].name} <-> "
                              f"{session.images[1].name} failed ({session.save_error}); {where}") from None
+    if not out.exists():  # the CSV is written at the first change: "0 pairs in it" named a file that is not there
+        console.print(f"stopped: no pairs picked, so {out} was not written")
+        return
     console.print(f"stopped: {len(session.pairs)} pairs in {out} (for `rigsfm run ... --manual-matches {shlex.quote(str(out))}`)")

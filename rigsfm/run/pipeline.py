@@ -216,8 +216,9 @@ def build_summary(inputs: Inputs, options: RunOptions, mapping: MappingResult, r
     return Summary(
         rigsfm_version=rigsfm.__version__,
         pycolmap_version=pycolmap.__version__,
-        inputs=InputsSummary(images=str(inputs.image_dir), num_rigs=len(inputs.rigs),
-                             scale_file=str(inputs.scale.path) if inputs.scale else None),
+        # Absolute: explore, report and export --images read the images from any working folder, not only this one.
+        inputs=InputsSummary(images=str(inputs.image_dir.absolute()), num_rigs=len(inputs.rigs),
+                             scale_file=str(inputs.scale.path.absolute()) if inputs.scale else None),
         options=json_ready(asdict(options)),
         metric=metric,
         scale=ScaleSummary(
@@ -270,13 +271,14 @@ def run(
         given_offsets = _given_frame_offsets(options, inputs)
         if given_offsets and options.matching.narrow_features:
             options = replace(options, matching=replace(options.matching, frame_offsets=given_offsets))
+    lowered = options.mapping.few_matches is None and bool(manual_pairs)
     if options.mapping.few_matches is None:
         options = replace(options, mapping=replace(options.mapping, few_matches=bool(manual_pairs)))
-        if manual_pairs:
-            logger.warning("Manual matches given: the mapper's match-count thresholds are lowered for them")
     workspace = Workspace(Path(out))
     with workspace.lock(), disk_errors_named(workspace.root):
         workspace.prepare(overwrite=options.overwrite)
+        if lowered:  # once OUT is taken: a run refused there printed it before its one red line
+            logger.warning("Manual matches given: the mapper's match-count thresholds are lowered for them")
         return _run_locked(workspace, inputs, manual_pairs, options, timings, progress, given_offsets)
 
 

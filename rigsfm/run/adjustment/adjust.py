@@ -137,6 +137,8 @@ def adjust(
         result.priors, result.scale_spec, result.options = priors, scale_spec, options
     result.rigs = tuple(rigs)
     result.seconds = time.perf_counter() - start
+    if result.scale_source == ScaleSource.NONE and held_rigs is None:  # not once per sampled band's draw (40)
+        logger.warning("No scale file and no narrow observations: the result is NOT metric")
     return result
 
 
@@ -165,8 +167,6 @@ def _adjust_fixed(mapped: pycolmap.Reconstruction, rigs: Sequence[RigCalibration
                 break
     else:
         source = ScaleSource.NARROW_BASELINES if narrow_observed else ScaleSource.NONE
-        if source == ScaleSource.NONE:
-            logger.warning("No scale file and no narrow observations: the result is NOT metric")
         restore_calibration(reconstruction, rigs)
         for _ in range(2):
             error = constrained_bundle_adjustment(reconstruction, options, fix_scale=source == ScaleSource.NONE)
@@ -188,7 +188,6 @@ def _choose_gauge(reconstruction: pycolmap.Reconstruction, scale_spec: ScaleSpec
         return ScaleSource.MEASUREMENTS, Gauge.RIGID
     if has_narrow_observations(reconstruction):
         return ScaleSource.NARROW_BASELINES, Gauge.RIGID
-    logger.warning("No scale file and no narrow observations: the result is NOT metric")
     return ScaleSource.NONE, Gauge.TWO_CAMS_FROM_WORLD
 
 

@@ -289,3 +289,27 @@ def test_view_frustum_is_the_pyramid_alone():
     assert len(ends) == 8
     assert np.allclose(points[np.unique(ends)][1:, 2], 2.0)  # every line ends at the centre or at the image plane
     assert np.abs(points[np.unique(ends)][:, :2]).max() < 0.5  # a narrow camera's pyramid is slim: no 2 m axes
+
+
+def test_the_floor_line_names_metres_only_on_a_metric_result(monkeypatch):
+    """Without a scale the floor frame's RMS and camera heights are in the mapper's units: the terminal said mm and m."""
+    import io
+    from types import SimpleNamespace
+
+    from rich.console import Console
+
+    import rigsfm.cli.run as cli_run
+    from rigsfm.core.summary import WorldSummary
+
+    floor = {"num_points": 812, "rms": 0.0042, "camera_height": {"min": 3.41, "max": 3.58}}
+    lines = {}
+    for units in ("metres", "arbitrary (not metric)"):
+        out = io.StringIO()
+        monkeypatch.setattr(cli_run, "console", Console(file=out, width=300))
+        world = WorldSummary(asked="floor", frame="floor", units=units, floor=floor)
+        cli_run.print_world(SimpleNamespace(world=world, epipolar_self_check=None, narrow_observations=None,
+                                                 frame_offsets=None))
+        lines[units] = out.getvalue()
+    assert "RMS 4.2 mm; cameras 3.41-3.58 m above the floor" in lines["metres"]
+    assert " mm" not in lines["arbitrary (not metric)"] and " m above" not in lines["arbitrary (not metric)"]
+    assert "cameras 3.41-3.58 above the floor, in the mapper's units: not metric" in lines["arbitrary (not metric)"]

@@ -85,8 +85,13 @@ def print_world(summary) -> None:
     floor = (world.floor if world else None) or {}
     if world and world.frame == "floor":
         heights = floor.get("camera_height") or {}
-        console.print(f"world: floor frame ({floor.get('num_points')} floor points, RMS {1000 * floor['rms']:.1f} mm; "
-                      f"cameras {heights.get('min', 0):.2f}-{heights.get('max', 0):.2f} m above the floor)")
+        low, high = heights.get("min", 0), heights.get("max", 0)
+        if world.units == "metres":
+            console.print(f"world: floor frame ({floor.get('num_points')} floor points, RMS {1000 * floor['rms']:.1f} "
+                          f"mm; cameras {low:.2f}-{high:.2f} m above the floor)")
+        else:  # no scale: a millimetre or a metre would be a claim the result cannot make
+            console.print(f"world: floor frame ({floor.get('num_points')} floor points, RMS {floor['rms']:.3g}; "
+                          f"cameras {low:.3g}-{high:.3g} above the floor, in the mapper's units: not metric)")
     elif world:
         console.print("world: the mapper's frame" + ("" if world.asked == "mapping" else " (no floor found)"))
     if check and check.pairs:

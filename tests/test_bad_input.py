@@ -180,6 +180,7 @@ def test_cli_never_overwrites_a_result(tmp_path):
     assert result.exit_code == 1
     assert "already holds a result" in result.output and "--overwrite" in result.output
     assert (out / "summary.json").read_text() == "{}"
+    assert "CALIBRATION UNCERTAINTY ASSUMED" not in result.output  # the inputs' warning, not this run's to give
 
 
 def test_cli_turns_an_internal_error_into_one_line(tmp_path, monkeypatch):

@@ -200,10 +200,9 @@ class Workspace:
             raise WorkspaceError(f"'{self.root}' is not empty and was not made by rigsfm; choose a new or empty --out "
                                  "folder (rigsfm never writes among files it did not make)")
 
-    def prepare(self, *, overwrite: bool) -> None:
-        """Create the folder; refuse a folder that holds other files, and an existing result unless ``overwrite``.
-        A run is finished when its summary.json (written last) exists; what a run stopped while delivering wrote
-        before it is replaced, so that the same command resumes."""
+    def refuse(self, *, overwrite: bool) -> None:
+        """:meth:`prepare`'s refusals alone, nothing made: a folder that holds other files, an existing result
+        unless ``overwrite``."""
         self._check_ours()
         existing = [p.name for p in self.results if p.exists()] if self.summary.exists() else []
         if existing and not overwrite:
@@ -211,6 +210,12 @@ class Workspace:
                 f"'{self.root}' already holds a result ({', '.join(existing)}); pass --overwrite to replace it "
                 "(features and matches made with the same settings are reused) or choose another --out"
             )
+
+    def prepare(self, *, overwrite: bool) -> None:
+        """Create the folder; refuse a folder that holds other files, and an existing result unless ``overwrite``.
+        A run is finished when its summary.json (written last) exists; what a run stopped while delivering wrote
+        before it is replaced, so that the same command resumes."""
+        self.refuse(overwrite=overwrite)
         writable(self.root)
         (self.root / MARKER).touch()
         self.sweep()

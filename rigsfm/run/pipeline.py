@@ -263,6 +263,8 @@ def run(
     with timings.stage("validate"):
         validate_world_options(options.world)  # the options first: no input warnings before their refusal
         check_out_outside_images(Path(out), Path(image_dir))
+        # OUT's refusals before the inputs' warnings (prepare repeats them under the lock)
+        Workspace(Path(out)).refuse(overwrite=options.overwrite)
         inputs = load_inputs(image_dir, rigs_path, scale_path)
         if options.executor == Executor.RAY and options.address:
             check_reachable(options.address)  # before any work: ray.init would retry an unreachable one for ever

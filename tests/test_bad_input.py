@@ -199,6 +199,29 @@ def test_cli_turns_an_internal_error_into_one_line(tmp_path, monkeypatch):
     assert str(kept) in " ".join(result.output.split()) and "simulated bug" in kept.read_text()
 
 
+@pytest.mark.slow  # a real run of the rendered 3-rig arc, two frames (~2 min)
+def test_a_rig_lacking_a_frame_finishes_with_one_warning_in_the_terminal_and_summary(tmp_path, rendered):
+    """rig03 lacks frame0001.png (wide and narrow) that the other rigs have: the run said nothing; now one warning
+    names the rig and the frame, on the terminal and in summary.json's warnings."""
+    import shutil
+
+    from rigsfm.synth.scene import SceneOptions
+
+    dataset = rendered(SceneOptions(num_rigs=3, arc_deg=120.0, image_scale=0.5, seed=1, frames_per_rig=2))
+    images = tmp_path / "images"
+    shutil.copytree(dataset.images, images)
+    for sensor in ("wide", "narrow"):
+        (images / "rig03" / sensor / "frame0001.png").unlink()
+    result = CliRunner().invoke(app, ["run", str(images), "--rigs", str(dataset.rigs), "--scale", str(dataset.scale),
+                                      "--out", str(tmp_path / "out")], env={"COLUMNS": "400"})
+    assert result.exit_code == 0, result.output
+    line = ("MISSING FRAMES: 1 of 3 rigs lack frames other rigs have ('rig03' lacks 'frame0001.png'; 2 frames in all): "
+            "a rig adds no view at a frame it lacks; check for a file misnamed or not copied")
+    assert line in result.output
+    warnings = json.loads((tmp_path / "out" / "summary.json").read_text())["warnings"]
+    assert warnings.count(line) == 1, warnings
+
+
 @pytest.mark.slow  # a real run of the rendered 3-rig arc (~1 min)
 def test_a_rig_without_narrow_images_finishes_with_exit_0_and_the_warning(tmp_path, rendered):
     """The README's row: a rig without a narrow folder is legitimate; the run warns and finishes (exit 0)."""

@@ -12,7 +12,7 @@ import yaml
 from support import REAL_STEREO
 
 from rigsfm.calibrate import CalibrateOptions, calibrate
-from rigsfm.calibrate.board import board_spec_from_dict
+from rigsfm.calibrate.board import board_spec_from_dict, chessboard_beyond, find_chessboard, read_gray
 from rigsfm.core.errors import InputError, RigsfmError
 from rigsfm.synth.boards import SynthCamera, board_plane, render, rotation_xyz_deg
 
@@ -68,11 +68,28 @@ def test_chessboard_counted_squares_not_inner_corners(tmp_path):
         run(tmp_path, real_board(tmp_path, FRAMES, FRAMES), {**CHESS, "inner_corners": [10, 7]})
 
 
-def test_chessboard_part_of_a_larger_board(tmp_path):
+@pytest.mark.parametrize("told", [[8, 6], [4, 3]])
+def test_chessboard_part_of_a_larger_board(tmp_path, told):
     """inner_corners [8, 6] on the 9x6 board: OpenCV finds an 8x6 part of it (which part varies by image and can
-    differ between the two cameras), so the calibration is refused with the larger grid named."""
-    with pytest.raises(InputError, match=r"inner_corners \[9, 6\], more than board.yaml's \[8, 6\]"):
-        run(tmp_path, real_board(tmp_path, FRAMES, FRAMES), {**CHESS, "inner_corners": [8, 6]})
+    differ between the two cameras), so the calibration is refused with the larger grid named. [4, 3] passed the
+    check (OpenCV finds no 5x3 or 4x4 grid about a small part, and the first probe's part lies on the screen in the
+    background) and failed later on too few stereo views."""
+    with pytest.raises(InputError, match=rf"inner_corners \[9, 6\], more than board.yaml's \[{told[0]}, {told[1]}\]"):
+        run(tmp_path, real_board(tmp_path, FRAMES, FRAMES), {**CHESS, "inner_corners": told})
+
+
+def test_the_walk_beyond_a_part_counts_the_whole_board():
+    """chessboard_beyond on the real 9x6 board: nothing beyond a whole board found as [9, 6] (its margin does not
+    alternate) in any of the 26 images, one column beyond an [8, 6] part in every image where it is found."""
+    for path in sorted(DATA.glob("*.jpg")):
+        gray = read_gray(path)
+        whole = find_chessboard(gray, (9, 6))
+        if whole is not None:
+            assert chessboard_beyond(gray, whole, (9, 6)) == (0, 0, 0, 0), path.name
+        part = find_chessboard(gray, (8, 6))
+        if part is not None:
+            beyond = chessboard_beyond(gray, part, (8, 6))
+            assert beyond[0] + beyond[1] == 1 and beyond[2:] == (0, 0), (path.name, beyond)
 
 
 @pytest.mark.parametrize("told", [[7, 4], [5, 3]])

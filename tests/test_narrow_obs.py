@@ -38,6 +38,44 @@ def test_auto_needs_matches_concentrated_on_the_epipolar_lines():
     assert decide(NarrowMode.ON, false)[0] is True  # asked: used wherever there are matches
 
 
+def test_a_search_of_whole_epipolar_lines_keeps_to_the_candidate_budget(rendered, monkeypatch):
+    """Without a floor frame every narrow pair is searched along whole epipolar lines (a no-floor crowd: 0.5-0.9 M
+    candidate pairs a pair, 26.5 s CPU for its 28 pairs). Beyond MAX_PAIR_CANDIDATES every k-th keypoint of i is
+    searched, whole lines each, and a pair needs that share of MIN_PAIR_MATCHES; under it nothing changes."""
+    from rigsfm.run.narrow import observations
+
+    dataset = rendered(CROWD)
+    model = dataset.load_ground_truth()
+    compared = []
+
+    def counted(fi, fj, a, b, *rest):
+        compared.append(len(a))
+        return guided(fi, fj, a, b, *rest)
+
+    guided = observations.guided_matches
+    monkeypatch.setattr(observations, "guided_matches", counted)
+    monkeypatch.setattr(observations, "MAX_PAIR_CANDIDATES", 1 << 40)
+    whole = observations.find_matches(model, dataset.images, floor_frame=False)
+    assert all(p.searched == 1.0 for p in whole) and min(compared) > 20_000, compared
+    budget = min(compared) // 4
+    compared.clear()
+    monkeypatch.setattr(observations, "MAX_PAIR_CANDIDATES", budget)
+    thinned = observations.find_matches(model, dataset.images, floor_frame=False)
+    assert compared and max(compared) <= budget, (compared, budget)
+    assert all(p.searched < 0.5 for p in thinned if p.found), [p.searched for p in thinned]
+    assert [p.tolerance_px for p in thinned] == [p.tolerance_px for p in whole]
+    floor = observations.find_matches(model, dataset.images, floor_frame=True)  # far under it: unchanged
+    assert all(p.searched == 1.0 for p in floor)
+
+
+def test_a_thinned_search_needs_its_share_of_the_matches():
+    rng = np.random.default_rng(0)
+    pair = _pair(rng.normal(0, 0.8, MIN_PAIR_MATCHES // 4))
+    assert not pair.textured
+    pair.searched = 0.25
+    assert pair.textured
+
+
 def test_narrow_features_is_the_old_name_of_narrow_on():
     from typer.testing import CliRunner
 

@@ -144,6 +144,28 @@ def test_a_frame_without_its_narrow_image_is_a_warning(tmp_path, caplog):
     assert "NO NARROW IMAGES: rig 'rig01' has none in 1 of its 2 frames" in caplog.text
 
 
+def test_a_rig_lacking_whole_frames_is_one_warning_naming_the_rigs_and_frames(tmp_path, caplog):
+    """rig02 lacks f2 and rig03 lacks f1 and f2 (wide and narrow), which rig01 has: the run went on without a word.
+    One warning names each rig and its frames; the inputs keep it for summary.json."""
+    import shutil
+
+    images, rigs_path, data = make_inputs(tmp_path)
+    shutil.copytree(images / "rig02", images / "rig03")
+    data["rigs"].append(dict(copy.deepcopy(data["rigs"][1]), name="rig03"))
+    write_rigs(rigs_path, data)
+    for frame in ("f1.png", "f2.png"):
+        for rig in ("rig01", "rig02") if frame == "f1.png" else ("rig01",):
+            for sensor in ("wide", "narrow"):
+                shutil.copy(images / rig / sensor / "f0.png", images / rig / sensor / frame)
+    with caplog.at_level(logging.WARNING):
+        inputs = load_inputs(images, rigs_path)
+    assert inputs.missing_frames == (
+        "2 of 3 rigs lack frames other rigs have ('rig02' lacks 'f2.png'; 'rig03' lacks 'f1.png', 'f2.png'; 3 frames "
+        "in all): a rig adds no view at a frame it lacks; check for a file misnamed or not copied"), inputs.missing_frames
+    assert [r.message for r in caplog.records].count(f"MISSING FRAMES: {inputs.missing_frames}") == 1, caplog.text
+    assert load_inputs(*make_inputs(tmp_path / "whole")[:2]).missing_frames is None
+
+
 # --- rigs.yaml: the calibration uncertainties ---------------------------------------------------------------
 
 def test_sigmas_are_read_onto_the_rig_calibration_and_written_back(tmp_path):

@@ -255,23 +255,135 @@ def chessboard_size(images: list[np.ndarray], like: tuple[int, int], limit: int 
     return None
 
 
-def refuse_part_of_a_larger_chessboard(spec: BoardSpec, detected: list[Path], where: str, probes: int = 2) -> None:
+def _square_means(gray: np.ndarray, homography: np.ndarray, centres: np.ndarray, radius: float = 0.15
+                  ) -> np.ndarray | None:
+    """Mean intensity of a patch (``radius`` squares) about each of ``centres`` (board squares, mapped into the
+    image by ``homography``), or None where a patch leaves the image."""
+    steps = np.linspace(-radius, radius, 5)
+    offsets = np.array([(dx, dy) for dx in steps for dy in steps])
+    points = (centres[:, None, :] + offsets[None]).reshape(-1, 1, 2)
+    pixels = cv2.perspectiveTransform(points.astype(np.float64), homography).reshape(len(centres), -1, 2)
+    x, y = np.round(pixels[..., 0]), np.round(pixels[..., 1])
+    if not (np.isfinite(pixels).all() and (x >= 0).all() and (y >= 0).all() and (x < gray.shape[1]).all()
+            and (y < gray.shape[0]).all()):
+        return None
+    return gray[y.astype(int), x.astype(int)].astype(np.float64).mean(axis=1)
+
+
+def chessboard_beyond(gray: np.ndarray, corners: np.ndarray, grid: tuple[int, int], limit: int = 40
+                      ) -> tuple[int, int, int, int]:
+    """Inner corners the chessboard has beyond the found ``grid`` (cols, rows) of ``corners`` on each side (before
+    the first column, after the last, before the first row, after the last): walking outwards one line of corners at
+    a time, a line exists where the squares on both sides of it continue the checkerboard (each square's colour the
+    parity predicts, at a fair part of the found grid's contrast). A whole board's outer squares are followed by its
+    margin, which does not alternate. Each step extrapolates one square from the last three lines (a homography:
+    lens distortion bends the board over longer reaches) and refines the new line's corners."""
+    cols, rows = grid
+    points = corners.reshape(rows, cols, 2)
+    board = np.mgrid[0:cols, 0:rows].T.reshape(-1, 2).astype(np.float64)
+    homography, _ = cv2.findHomography(board, corners)
+    inside = np.array([(c + 0.5, r + 0.5) for r in range(rows - 1) for c in range(cols - 1)])
+    parity = (np.floor(inside).sum(axis=1) % 2).astype(int)
+    means = _square_means(gray, homography, inside)
+    if means is None:
+        return (0, 0, 0, 0)
+    dark_parity = int(means[parity == 1].mean() < means[parity == 0].mean())
+    contrast = abs(means[parity == 0].mean() - means[parity == 1].mean())
+    window = _subpix_window(corners, grid)
+    criteria = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 30, 0.01)
+
+    def at(axis: int, position: float, along: np.ndarray) -> np.ndarray:  # board coordinates of a line's points
+        fixed = np.full(len(along), position)
+        return np.c_[fixed, along] if axis == 0 else np.c_[along, fixed]
+
+    def alternates(homography: np.ndarray, axis: int, position: float, along: np.ndarray) -> bool:
+        centres = at(axis, position, along[:-1] + 0.5)
+        means = _square_means(gray, homography, centres)
+        if means is None:
+            return False
+        dark = (np.floor(centres).sum(axis=1) % 2).astype(int) == dark_parity
+        step = means[~dark].mean() - means[dark].mean()
+        # the outer squares of a printed board are often cut narrower: a part of the contrast is enough
+        return bool(step >= BEYOND_CONTRAST * contrast and
+                    np.all((means > 0.5 * (means[~dark].mean() + means[dark].mean())) == ~dark))
+
+    found = []
+    for axis, sign in ((0, -1), (0, 1), (1, -1), (1, 1)):
+        count = rows if axis == 0 else cols
+        along = np.arange(count, dtype=np.float64)
+        order = range(cols if axis == 0 else rows)
+        lines = [(float(k), points[:, k] if axis == 0 else points[k, :]) for k in (order if sign > 0 else order[::-1])]
+        extra = 0
+        while extra < limit:
+            last = lines[-3:]
+            local, _ = cv2.findHomography(np.concatenate([at(axis, k, along) for k, _ in last]),
+                                          np.concatenate([p for _, p in last]))
+            edge = last[-1][0]
+            if local is None or not all(alternates(local, axis, edge + sign * d, along) for d in (0.5, 1.5)):
+                break
+            guess = cv2.perspectiveTransform(at(axis, edge + sign, along).reshape(-1, 1, 2), local).astype(np.float32)
+            line = cv2.cornerSubPix(gray, guess, (window, window), (-1, -1), criteria).reshape(-1, 2)
+            lines.append((edge + sign, line.astype(np.float64)))
+            extra += 1
+        found.append(extra)
+    return found[0], found[1], found[2], found[3]
+
+
+BEYOND_CONTRAST = 0.3  # of the found grid's dark-light contrast, a square beyond it must show (chessboard_beyond)
+
+
+def _larger_part(gray: np.ndarray, grid: tuple[int, int]) -> tuple[tuple[int, int], tuple[int, int]] | None:
+    """Where ``gray`` shows a chessboard larger than ``grid`` about the part found: a grid one corner larger that
+    OpenCV finds, and the board's count that the walk outwards gives (chessboard_beyond); None where it shows none."""
+    cols, rows = grid
+    larger = next((g for g in ((cols + 1, rows), (cols, rows + 1)) if find_chessboard(gray, g, fast=True) is not None),
+                  None)
+    corners = find_chessboard(gray, grid)
+    beyond = (0, 0, 0, 0) if corners is None else chessboard_beyond(gray, corners, grid)
+    if larger is None and not any(beyond):
+        return None
+    walked = _oriented((cols + beyond[0] + beyond[1], rows + beyond[2] + beyond[3]), grid)
+    return larger or ((cols + 1, rows) if beyond[0] or beyond[1] else (cols, rows + 1)), walked
+
+
+def _whole_board(gray: np.ndarray, grid: tuple[int, int], larger: tuple[int, int], walked: tuple[int, int]
+                 ) -> tuple[int, int] | None:
+    """The count of the board ``gray`` shows, at least ``larger``: OpenCV's proposal (chessboard_size), or the
+    walk's where OpenCV finds that whole grid; None where neither is found."""
+    whole = chessboard_size([gray], grid)
+    if whole is None or whole[0] * whole[1] < walked[0] * walked[1]:
+        if any(find_chessboard(gray, g) is not None for g in (walked, walked[::-1])):
+            whole = walked
+    return whole if whole is not None and whole[0] * whole[1] >= larger[0] * larger[1] else None
+
+
+def refuse_part_of_a_larger_chessboard(spec: BoardSpec, detected: list[Path], where: str, probes: int = 2,
+                                       namers: int = 4) -> None:
     """Raise where the images show a chessboard with more inner corners than ``spec``: OpenCV then finds a part of
     it, and which part can differ between images and between a rig's two cameras (E^sl off by whole squares).
-    ``detected``: images in which ``spec`` was found; a few of them, spread out, are searched one corner larger,
-    and where one is found the board's own count is named."""
-    cols, rows = spec.inner_corners  # type: ignore[misc]  # the board type's fields are set (parse_board)
-    for path in detected[::max(1, len(detected) // probes)][:probes]:
-        gray = read_gray(path)
-        for grid in ((cols + 1, rows), (cols, rows + 1)):
-            if find_chessboard(gray, grid, fast=True) is not None:
-                whole = chessboard_size([gray], (cols, rows))
-                count = (f"inner_corners [{whole[0]}, {whole[1]}]" if whole is not None and whole[0] * whole[1] >= grid[0] * grid[1]
-                         else f"at least inner_corners [{grid[0]}, {grid[1]}]")
-                raise InputError(f"{where}: {path.name} shows a chessboard with {count}, more than board.yaml's "
-                                 f"[{cols}, {rows}]: only a part of the board would be used, and which part can "
-                                 "differ between images and cameras; fix 'inner_corners' in board.yaml (count inner "
-                                 "corners = squares - 1)")
+    ``detected``: images in which ``spec`` was found; a few of them (``probes``), spread out, are searched one corner
+    larger and walked outwards from the part found (chessboard_beyond: OpenCV rarely finds a grid one corner larger
+    than a small part, e.g. 5x3 about a 4x3 part of a 9x6 board). Where one shows a larger board, its count is named
+    from the first of up to ``namers`` images whose whole board OpenCV finds (a small part can lie on a board
+    that leaves the image, or on a screen showing one)."""
+    grid: tuple[int, int] = spec.inner_corners  # type: ignore[assignment]  # set for a chessboard (parse_board)
+    spread = detected[::max(1, len(detected) // probes)]
+    found = next(((path, part) for path in spread[:probes] if (part := _larger_part(read_gray(path), grid))), None)
+    if found is None:
+        return
+    path, (larger, walked) = found
+    named = None
+    for other in [path] + [p for p in detected[::max(1, len(detected) // namers)] if p != path][:namers - 1]:
+        part = (larger, walked) if other == path else _larger_part(read_gray(other), grid)
+        if part is not None and (named := _whole_board(read_gray(other), grid, larger, part[1])) is not None:
+            path = other
+            break
+    count = (f"inner_corners [{named[0]}, {named[1]}]" if named is not None
+             else f"at least inner_corners [{larger[0]}, {larger[1]}]")
+    raise InputError(f"{where}: {path.name} shows a chessboard with {count}, more than board.yaml's "
+                     f"[{grid[0]}, {grid[1]}]: only a part of the board would be used, and which part can differ "
+                     "between images and cameras; fix 'inner_corners' in board.yaml (count inner corners = squares "
+                     "- 1)")
 
 
 def diagnose_no_detection(spec: BoardSpec, paths: list[Path], where: str) -> InputError:

@@ -195,6 +195,7 @@ class NarrowPairSummary:
     textured: bool = False
     in_adjustment: bool = False
     held_out: int = 0
+    searched: float = 1.0  # share of i's keypoints searched (the candidate budget: whole epipolar lines, no floor)
 
 
 @dataclass(kw_only=True)

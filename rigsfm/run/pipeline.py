@@ -46,6 +46,7 @@ from rigsfm.run.inputs.images import (
     ImageEntry,
     check_image_folder,
     rig_folders,
+    rigs_missing_frames,
     rigs_without_narrow,
     scan_images,
     with_folder_names,
@@ -90,6 +91,7 @@ class Inputs:
     scale: ScaleSpec | None
     priors: CalibrationPriors | None = None  # the calibration's uncertainty (rigs.yaml's sigmas or defaults)
     without_narrow: tuple[str, ...] = ()  # rigsfm.run.inputs.images.rigs_without_narrow: one line per rig
+    missing_frames: str | None = None  # rigsfm.run.inputs.images.rigs_missing_frames: one line
 
 
 @dataclass
@@ -133,8 +135,11 @@ def load_inputs(image_dir: Path, rigs_path: Path, scale_path: Path | None = None
     without_narrow = tuple(rigs_without_narrow(image_dir, images, rigs))
     for line in without_narrow:
         logger.warning("NO NARROW IMAGES: %s", line)
+    missing_frames = rigs_missing_frames(images, rigs)
+    if missing_frames is not None:
+        logger.warning("MISSING FRAMES: %s", missing_frames)
     scale = load_scale(scale_path, images, rigs) if scale_path is not None else None
-    return Inputs(Path(image_dir), rigs, images, scale, priors, without_narrow)
+    return Inputs(Path(image_dir), rigs, images, scale, priors, without_narrow, missing_frames)
 
 
 class _Timings(dict):
@@ -213,6 +218,8 @@ def build_summary(inputs: Inputs, options: RunOptions, mapping: MappingResult, r
     if unregistered:
         warnings.append(f"{len(unregistered)} image(s) not registered: {', '.join(unregistered[:5])}")
     warnings.extend(f"NO NARROW IMAGES: {line}" for line in inputs.without_narrow)
+    if inputs.missing_frames is not None:
+        warnings.append(f"MISSING FRAMES: {inputs.missing_frames}")
     return Summary(
         rigsfm_version=rigsfm.__version__,
         pycolmap_version=pycolmap.__version__,

@@ -213,6 +213,25 @@ def rigs_without_narrow(image_dir: Path, images: Sequence[ImageEntry], rigs: Seq
     return lines
 
 
+def rigs_missing_frames(images: Sequence[ImageEntry], rigs: Sequence[RigCalibration], shown: int = 3) -> str | None:
+    """One line naming each rig that lacks a whole frame (no wide image, hence no narrow one, of a name other rigs
+    have) and the frames it lacks (``shown`` of them a rig); None where every rig has every frame. For a warning: a
+    file misnamed or lost in copying otherwise goes unnoticed, and that rig adds no view at that instant (no
+    synchronised narrow pair with it there)."""
+    frames: dict[str, set[str]] = {rig.name: set() for rig in rigs}
+    for e in images:
+        if e.sensor == "wide":
+            frames[e.rig].add(e.frame)
+    every = set().union(*frames.values())
+    missing = {name: sorted(every - have) for name, have in frames.items() if every - have}
+    if not missing:
+        return None
+    listed = "; ".join(f"'{name}' lacks {quoted(lacks[:shown])}{' ...' if len(lacks) > shown else ''}"
+                       f"{f' ({len(lacks)} frames)' if len(lacks) > shown else ''}" for name, lacks in missing.items())
+    return (f"{len(missing)} of {len(rigs)} rigs lack frames other rigs have ({listed}; {len(every)} frames in all): "
+            "a rig adds no view at a frame it lacks; check for a file misnamed or not copied")
+
+
 def check_image(entry: ImageEntry, camera) -> None:
     """The image decodes and matches its camera's calibrated size."""
     try:

@@ -75,6 +75,11 @@ HOLD_OUT_EVERY = 5  # every 5th match of a pair (20 %) is kept out of the adjust
 # second adjustment costs more than they add, and whose errors are not independent (SIFT on warped views).
 MAX_PAIR_MATCHES = 150
 MIN_HELD_OUT = 10  # held-out matches a pair needs for a verdict
+# Candidate pairs one pair's search compares at most. Without a floor frame whole epipolar lines are searched, and
+# beyond it every k-th keypoint of i is (guided.BandCandidates.thinned: each kept keypoint's whole line, so its ratio
+# test is unchanged): a pair keeps at most MAX_PAIR_MATCHES matches and needs MIN_PAIR_MATCHES of a full search, so a
+# share of them measures its texture as well; a floor-frame search (height segments) stays far below it.
+MAX_PAIR_CANDIDATES = 250_000
 MIN_TRIANGULATION_DEG = 1.0  # rays closer than this make no point
 
 
@@ -90,12 +95,14 @@ class PairMatches:
     found: int = 0  # guided matches before MAX_PAIR_MATCHES
     in_adjustment: bool = False  # its matches (less the held-out ones) entered the adjustment
     spread_px: float | None = None  # robust sigma of the matches' signed distances from the epipolar lines
+    searched: float = 1.0  # share of i's keypoints searched (MAX_PAIR_CANDIDATES)
 
     @property
     def textured(self) -> bool:
-        """Matches enough, and concentrated on the epipolar lines: false matches spread evenly over the search
-        band (a robust sigma of tolerance / 1.7), true ones within the geometry's error."""
-        return self.found >= MIN_PAIR_MATCHES and self.spread_px is not None and \
+        """Matches enough (MIN_PAIR_MATCHES of a full search: that share of them where a part of i's keypoints was
+        searched), and concentrated on the epipolar lines: false matches spread evenly over the search band (a robust
+        sigma of tolerance / 1.7), true ones within the geometry's error."""
+        return self.found >= MIN_PAIR_MATCHES * self.searched and self.spread_px is not None and \
             self.spread_px <= MAX_SPREAD_FRACTION * self.tolerance_px
 
     @property
@@ -163,7 +170,7 @@ class NarrowObservations:
             pairs=[NarrowPairSummary(frame=p.frame, i=p.i, j=p.j, found=p.found, matches=p.matches,
                                      spread_px=None if p.spread_px is None else round(p.spread_px, 3),
                                      search_px=round(p.tolerance_px, 3), textured=p.textured,
-                                     in_adjustment=p.in_adjustment,
+                                     in_adjustment=p.in_adjustment, searched=round(p.searched, 4),
                                      held_out=int(p.held_out.sum()) if p.in_adjustment else 0)
                    for p in self.pairs],
             held_out_check=[HeldOutCheckSummary(**c.to_dict()) for c in self.held_out_checks],
@@ -229,7 +236,13 @@ def find_matches(floor_model: pycolmap.Reconstruction, image_dir: Path, options:
             lines = np.c_[fi.undistorted, np.ones(len(fi.undistorted))] @ f_ji.T
             segments = epipolar_segments(image_i, image_j, fi.undistorted, floor_frame)
             tolerance = TOLERANCE_FRACTION * image_j.camera.width  # type: ignore[union-attr]
-            candidates = band_candidates(f_ji, lines, fj.undistorted, segments, tolerance)
+            every = band_candidates(f_ji, lines, fj.undistorted, segments, tolerance)
+            candidates = every.thinned(MAX_PAIR_CANDIDATES)
+            searched = 1.0
+            if candidates is not every:  # the share of i's keypoints with candidates that kept theirs
+                searched = len(np.unique(candidates.a)) / len(np.unique(every.a))
+                logger.info("narrow observations %s -> %s: %d candidate pairs, %.0f %% of the keypoints searched "
+                            "(%d pairs)", name_i, name_j, len(every.a), 100 * searched, len(candidates.a))
             matches = guided_matches(fi, fj, candidates.a, candidates.b)
             if len(matches) == 0:
                 found.append(_empty(frame, name_i, name_j))
@@ -247,7 +260,7 @@ def find_matches(floor_model: pycolmap.Reconstruction, image_dir: Path, options:
             held = np.zeros(len(xy_i), bool)
             held[order[::HOLD_OUT_EVERY]] = True
             found.append(PairMatches(frame, name_i, name_j, xy_i, xy_j, held, found=len(matches),
-                                     tolerance_px=tolerance, spread_px=spread))
+                                     tolerance_px=tolerance, spread_px=spread, searched=searched))
             logger.info("narrow observations %s -> %s: %d guided matches, lateral spread %.2f of %.2f px",
                         name_i, name_j, len(matches), spread, tolerance)
     return found

@@ -37,6 +37,14 @@ def _drawn_rigs(rigs, priors, rng):
     return out
 
 
+def _scale(truth, folder: Path) -> ScaleSpec:
+    """scale.yaml's true distance between rig01's and rig03's wide cameras (a metric gauge)."""
+    a, b = "rig01/wide/frame0000.png", "rig03/wide/frame0000.png"
+    metres = float(np.linalg.norm(truth.find_image_with_name(a).projection_center()
+                                  - truth.find_image_with_name(b).projection_center()))
+    return ScaleSpec(Path(folder / "scale.yaml"), (CameraDistance(a, b, metres),), ())
+
+
 def test_the_change_spreads_as_the_test_says_with_repeated_views(tmp_path):
     """4 rigs of two static frames each, the second frame's keypoints the first's (a static background's keypoint
     errors repeat), the noise model without inflation (the covariance's is then the draws' own), rigs.yaml drawn
@@ -45,10 +53,7 @@ def test_the_change_spreads_as_the_test_says_with_repeated_views(tmp_path):
     the solve counts each repeated view in full and moves the calibration further."""
     net = make_network(tmp_path, num_rigs=4, seed=3, num_points=300)
     truth = net.ground_truth
-    a, b = "rig01/wide/frame0000.png", "rig03/wide/frame0000.png"
-    metres = float(np.linalg.norm(truth.find_image_with_name(a).projection_center()
-                                  - truth.find_image_with_name(b).projection_center()))
-    spec = ScaleSpec(Path(tmp_path / "scale.yaml"), (CameraDistance(a, b, metres),), ())
+    spec = _scale(truth, tmp_path)
     priors = calibration_priors(net.rigs)
     options = replace(AdjustOptions(), pixel_sigma_inflation=1.0)
     rng = np.random.default_rng(0)
@@ -74,10 +79,7 @@ def test_without_repeated_views_the_test_is_the_posteriors(tmp_path):
     are those of ``prior - posterior`` to the last digit."""
     net = make_network(tmp_path, num_rigs=4, seed=3, num_points=300)
     truth = net.ground_truth
-    a, b = "rig01/wide/frame0000.png", "rig03/wide/frame0000.png"
-    metres = float(np.linalg.norm(truth.find_image_with_name(a).projection_center()
-                                  - truth.find_image_with_name(b).projection_center()))
-    spec = ScaleSpec(Path(tmp_path / "scale.yaml"), (CameraDistance(a, b, metres),), ())
+    spec = _scale(truth, tmp_path)
     priors = calibration_priors(net.rigs)
     rigs = _drawn_rigs(net.rigs, priors, np.random.default_rng(1))
     result = _refine(perturbed_model(truth, seed=5), rigs, spec, AdjustOptions(), priors, frozenset())

@@ -71,9 +71,10 @@ def associate_report_section(out: Path) -> str:
     parts = ['<section id="persons">', "<h2>Persons across the narrow views</h2>",
              f"<p>{len(frames)} frame(s) associated by <code>rigsfm associate</code> in {html.escape(str(folder))}: "
              "each person's detections (at most one per view), its position in the world frame and its "
-             "covariance (persons.csv / persons.json per frame). Confident: likelier one person than chance under the "
-             "association's model (confidence &ge; 0.5: the model's odds, not a measured rate; with few views round "
-             "a dense crowd most such persons can be wrong); sigma: the largest horizontal standard deviation of a position; poses: the "
+             "covariance (persons.csv / persons.json per frame). Confident: likelier one person than chance under "
+             "the association's model (confidence &ge; 0.5: the model's odds, not a measured rate; with few views "
+             "round a dense crowd most such persons can be wrong); sigma: the largest horizontal standard deviation "
+             "of a position; poses: the "
              "run's own for the frame, or those of a frame of the run lent to a frame it was not given, or to the views "
              "of a frame whose narrow images it lacked (<code>--poses-from</code>: static rigs).</p>",
              "<table><thead><tr><th>frame</th><th>persons</th><th>confident</th><th>in &ge; 3 views</th>"

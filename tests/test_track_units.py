@@ -172,3 +172,19 @@ def test_new_images_with_a_rig_lacking_a_frame_warn_as_a_run_does(tmp_path, capl
     assert [r.getMessage() for r in caplog.records] == [
         "MISSING FRAMES: 1 of 3 rigs lack frames other rigs have ('rig03' lacks 'f1.png'; 2 frames in all): a rig "
         "adds no view at a frame it lacks; check for a file misnamed or not copied"], caplog.text
+
+
+def test_tracking_a_result_without_scale_warns_that_its_millimetres_are_not(tmp_path, caplog):
+    """rigsfm track on a run without scale printed shifts and compared its threshold in 'mm' without a word."""
+    import json
+    import logging
+
+    from rigsfm.core.workspace import Workspace
+    from rigsfm.track.pipeline import warn_not_metric
+
+    for metric in (True, False):
+        (tmp_path / "summary.json").write_text(json.dumps({"metric": metric}))
+        caplog.clear()
+        with caplog.at_level(logging.WARNING):
+            warn_not_metric(Workspace(tmp_path))
+        assert ("NOT METRIC" in caplog.text) is (not metric), caplog.text

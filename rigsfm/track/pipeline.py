@@ -134,6 +134,18 @@ def _save(paths: TrackPaths, poses: dict, plots: bool) -> None:
             write_bytes_atomic(paths.plot(name), charts.encode(plot))
 
 
+def warn_not_metric(workspace: Workspace) -> None:
+    """Warn where OUT's result has no scale: a rig's shift and --translation-threshold-mm then are thousandths of
+    its arbitrary unit, which the table and poses.json call millimetres."""
+    from rigsfm.core.summary import Summary
+
+    summary = Summary.read(workspace.summary)
+    if summary is not None and summary.metric is False:
+        logger.warning("NOT METRIC: %s has no scale: each shift called 'mm', and --translation-threshold-mm, are "
+                       "thousandths of its arbitrary unit; give `rigsfm run` a scale.yaml for millimetres",
+                       workspace.root)
+
+
 def track(out: Path, new_images: Path, options: TrackOptions | None = None, *,
           progress: Callable[[int, int], None] | None = None) -> TrackResult:
     """Register the new frames, merge them into OUT/track and return the merged result."""
@@ -145,6 +157,7 @@ def track(out: Path, new_images: Path, options: TrackOptions | None = None, *,
         check_reachable(options.address)
     workspace = Workspace(Path(out))
     workspace.require_result()
+    warn_not_metric(workspace)
     paths = workspace.track
     reference = load_reference(workspace.root, options=options.registration)
     tasks = frame_tasks(new_images, reference)

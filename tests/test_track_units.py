@@ -188,3 +188,19 @@ def test_tracking_a_result_without_scale_warns_that_its_millimetres_are_not(tmp_
         with caplog.at_level(logging.WARNING):
             warn_not_metric(Workspace(tmp_path))
         assert ("NOT METRIC" in caplog.text) is (not metric), caplog.text
+
+
+def test_the_report_says_the_tracking_millimetres_are_not_on_a_result_without_scale(tmp_path):
+    """report.html's tracking section gave a run without scale its thresholds and shifts in mm without a word."""
+    import json
+
+    from rigsfm.core.workspace import Workspace
+    from rigsfm.track.report import track_report_section
+
+    poses = Workspace(tmp_path).track.poses_json
+    poses.parent.mkdir(parents=True)
+    poses.write_text(json.dumps({"thresholds": {"rotation_deg": 0.05, "translation_mm": 5.0, "significance_chi2": 16.27},
+                                 "rigs": {}}))
+    for metric in (True, False):
+        (tmp_path / "summary.json").write_text(json.dumps({"metric": metric}))
+        assert ("Not metric" in track_report_section(tmp_path)) is (not metric)

@@ -170,6 +170,29 @@ def test_log_lines_follow_a_replaced_stderr(monkeypatch):
     assert "Logging error" not in second.getvalue()
 
 
+def test_terminal_log_lines_show_the_level_once(monkeypatch):
+    """On a terminal a warning reads 'WARNING  text', not 'WARNING  WARNING:rigsfm.module:text' (logging's
+    BASIC_FORMAT, which basicConfig gives a handler that has no formatter)."""
+    import io
+    import logging
+
+    from rich.console import Console
+
+    import rigsfm.cli.common as common
+
+    terminal = Console(file=io.StringIO(), force_terminal=True, width=200, color_system=None)
+    monkeypatch.setattr(sys, "stderr", io.StringIO())
+    monkeypatch.setattr(common, "err_console", terminal)
+    common.configure_logging(False)
+    try:
+        logging.getLogger("rigsfm.test").warning("frame0000.png: a warning")
+    finally:
+        logging.basicConfig(level=logging.WARNING, handlers=[logging.NullHandler()], force=True)
+    text = terminal.file.getvalue()
+    assert "frame0000.png: a warning" in text, text
+    assert text.count("WARNING") == 1 and "rigsfm.test" not in text, text
+
+
 def test_an_os_error_names_the_real_file_not_the_temporary_one(tmp_path, capsys):
     """An atomic write fails on its temporary file or inside a temporary folder (a full disk while export writes
     DEST's files): the line names the file the user asked for."""

@@ -313,3 +313,26 @@ def test_the_floor_line_names_metres_only_on_a_metric_result(monkeypatch):
     assert "RMS 4.2 mm; cameras 3.41-3.58 m above the floor" in lines["metres"]
     assert " mm" not in lines["arbitrary (not metric)"] and " m above" not in lines["arbitrary (not metric)"]
     assert "cameras 3.41-3.58 above the floor, in the mapper's units: not metric" in lines["arbitrary (not metric)"]
+
+
+def test_the_uncertainty_section_names_millimetres_and_metres_only_on_a_metric_result():
+    """Without a scale a narrow camera's centre sigma and the bands' analysis depths are in the mapper's units: the
+    report's columns said mm and m (rec3 without scale.yaml: 'centre σ (mm) 21027.7', 'their depths in i (m)')."""
+    from types import SimpleNamespace
+
+    from rigsfm.core.summary import NarrowUncertaintySummary, PairBandSummary, UncertaintySummary
+    from rigsfm.inspect.report.html import uncertainty_section
+
+    u = UncertaintySummary(covariance="posterior", pixel_sigma_px=0.5,
+                           narrow={"rig01/narrow/f0.png": NarrowUncertaintySummary(centre_sigma_mm=21027.7,
+                                                                                   rotation_sigma_deg=0.1)},
+                           pairs=[PairBandSummary(i="rig01/narrow/f0.png", j="rig02/narrow/f0.png", band_px=3.0,
+                                                  points="depths", predicted_below_85=0.1)])
+    pairs = [{"i": "rig01/narrow/f0.png", "j": "rig02/narrow/f0.png", "epipolar_band_depth_range_m": [0.5, 2.0]}]
+    html = {metric: uncertainty_section({"metric": metric, "pairs": pairs},
+                                        SimpleNamespace(uncertainty=u, calibration_decisions=[]))  # type: ignore[arg-type]
+            for metric in (True, False)}
+    assert "centre σ (mm)" in html[True] and "their depths in i (m)" in html[True] and "21027.7" in html[True]
+    assert "centre σ (mm)" not in html[False] and "(m)" not in html[False], html[False]
+    assert "centre σ (units)" in html[False] and '<td class="">21</td>' in html[False]
+    assert "their depths in i (units)" in html[False]

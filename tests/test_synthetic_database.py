@@ -94,7 +94,7 @@ def test_without_scale_the_result_is_flagged_non_metric(tmp_path, caplog):
         result = adjust(mapped, net.rigs, None)
         sampled_pair_bands(result, None, num_draws=3)
     assert result.scale_source == ScaleSource.NONE
-    assert result.scale is None
+    assert result.scale is None and result.metres_per_mapping_unit is None  # summary.json's scale claimed metres
     assert isinstance(result.reconstruction, pycolmap.Reconstruction)
     assert [r.getMessage() for r in caplog.records if "NOT metric" in r.getMessage()] == [
         "No scale file and no narrow observations: the result is NOT metric"]

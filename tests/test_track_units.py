@@ -142,3 +142,65 @@ def test_pose_covariance_matches_monte_carlo():
     predicted = np.sqrt(np.diag(pose_covariance(pose, [(camera, pycolmap.Rigid3d(), xy, xyz)], np.eye(3))))
     np.testing.assert_allclose(predicted, empirical, rtol=0.3)
     assert predicted[3:].max() > 0.005  # the weak sideways shift: centimetres, though 0.2 px noise
+
+
+def test_new_images_with_a_rig_lacking_a_frame_warn_as_a_run_does(tmp_path, caplog):
+    """rigsfm track said nothing where one rig's frame was misnamed or lost in NEW_IMAGES; now the run's warning."""
+    import logging
+    import shutil
+    from types import SimpleNamespace
+
+    from test_bad_input import make_inputs
+
+    from rigsfm.core.rig import load_rigs
+    from rigsfm.track.pipeline import frame_tasks
+
+    images, rigs_path, _ = make_inputs(tmp_path, rigs=("rig01", "rig02", "rig03"))
+    for rig in ("rig01", "rig02", "rig03"):
+        for sensor in ("wide", "narrow"):
+            shutil.copy(images / rig / sensor / "f0.png", images / rig / sensor / "f1.png")
+    reference = SimpleNamespace(rigs={r.name: SimpleNamespace(wide=r.wide, narrow=r.narrow,
+                                                              narrow_from_wide=r.narrow_from_wide)
+                                      for r in load_rigs(rigs_path)}, sparse="sparse")
+    with caplog.at_level(logging.WARNING):
+        assert len(frame_tasks(images, reference)) == 6  # type: ignore[arg-type]
+    assert "MISSING FRAMES" not in caplog.text
+    for sensor in ("wide", "narrow"):
+        (images / "rig03" / sensor / "f1.png").unlink()
+    with caplog.at_level(logging.WARNING):
+        assert len(frame_tasks(images, reference)) == 5  # type: ignore[arg-type]
+    assert [r.getMessage() for r in caplog.records] == [
+        "MISSING FRAMES: 1 of 3 rigs lack frames other rigs have ('rig03' lacks 'f1.png'; 2 frames in all): a rig "
+        "adds no view at a frame it lacks; check for a file misnamed or not copied"], caplog.text
+
+
+def test_tracking_a_result_without_scale_warns_that_its_millimetres_are_not(tmp_path, caplog):
+    """rigsfm track on a run without scale printed shifts and compared its threshold in 'mm' without a word."""
+    import json
+    import logging
+
+    from rigsfm.core.workspace import Workspace
+    from rigsfm.track.pipeline import warn_not_metric
+
+    for metric in (True, False):
+        (tmp_path / "summary.json").write_text(json.dumps({"metric": metric}))
+        caplog.clear()
+        with caplog.at_level(logging.WARNING):
+            warn_not_metric(Workspace(tmp_path))
+        assert ("NOT METRIC" in caplog.text) is (not metric), caplog.text
+
+
+def test_the_report_says_the_tracking_millimetres_are_not_on_a_result_without_scale(tmp_path):
+    """report.html's tracking section gave a run without scale its thresholds and shifts in mm without a word."""
+    import json
+
+    from rigsfm.core.workspace import Workspace
+    from rigsfm.track.report import track_report_section
+
+    poses = Workspace(tmp_path).track.poses_json
+    poses.parent.mkdir(parents=True)
+    poses.write_text(json.dumps({"thresholds": {"rotation_deg": 0.05, "translation_mm": 5.0, "significance_chi2": 16.27},
+                                 "rigs": {}}))
+    for metric in (True, False):
+        (tmp_path / "summary.json").write_text(json.dumps({"metric": metric}))
+        assert ("Not metric" in track_report_section(tmp_path)) is (not metric)

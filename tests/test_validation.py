@@ -160,9 +160,16 @@ def test_a_rig_lacking_whole_frames_is_one_warning_naming_the_rigs_and_frames(tm
     with caplog.at_level(logging.WARNING):
         inputs = load_inputs(images, rigs_path)
     assert inputs.missing_frames == (
-        "2 of 3 rigs lack frames other rigs have ('rig02' lacks 'f2.png'; 'rig03' lacks 'f1.png', 'f2.png'; 3 frames "
-        "in all): a rig adds no view at a frame it lacks; check for a file misnamed or not copied"), inputs.missing_frames
+        "1 of 3 rigs lack frames other rigs have ('rig03' lacks 'f1.png'; 'f2.png' is only in 'rig01'; 3 frames in "
+        "all): a rig adds no view at a frame it lacks; check for a file misnamed or not copied"), inputs.missing_frames
     assert [r.message for r in caplog.records].count(f"MISSING FRAMES: {inputs.missing_frames}") == 1, caplog.text
+    # one rig's misnamed frame: that rig is named, not the others for lacking its odd name
+    for sensor in ("wide", "narrow"):
+        (images / "rig03" / sensor / "f0.png").rename(images / "rig03" / sensor / "f_0.png")
+    assert load_inputs(images, rigs_path).missing_frames == (
+        "1 of 3 rigs lack frames other rigs have ('rig03' lacks 'f0.png', 'f1.png'; 'f2.png' is only in 'rig01'; "
+        "'f_0.png' is only in 'rig03'; 4 frames in all): a rig adds no view at a frame it lacks; check for a file "
+        "misnamed or not copied")
     assert load_inputs(*make_inputs(tmp_path / "whole")[:2]).missing_frames is None
 
 
@@ -718,7 +725,8 @@ def test_an_output_folder_inside_the_image_folder_is_refused(tmp_path, out):
     from rigsfm.run.pipeline import run
 
     images, rigs_path, _ = make_inputs(tmp_path)
-    with pytest.raises(InputError, match=r"--out \S+ lies inside the image folder \S+, whose every folder must be a "
+    where = "is" if out == "images" else "lies inside"  # 'OUT lies inside' itself read wrong
+    with pytest.raises(InputError, match=rf"--out \S+ {where} the image folder \S+, whose every folder must be a "
                                          r"rig; choose an output folder outside it"):
         run(images, rigs_path, tmp_path / out, None, RunOptions())
     assert sorted(p.name for p in images.iterdir()) == ["rig01", "rig02"]

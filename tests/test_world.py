@@ -171,3 +171,14 @@ def test_report_shows_the_floor_map_and_the_self_check(tmp_path):
     check = page[page.index("<h2>Epipolar self-check"):]
     assert '<span class="warn">failed</span>' in check and "14" in check and "4.5" in check
 
+
+
+def test_the_mapper_frame_is_described_as_metric_only_on_a_metric_result():
+    """summary.json's world of a run without scale said 'after the metric adjustment'."""
+    from rigsfm.run.options import WorldFrame
+    from rigsfm.run.world.frame import WorldResult
+
+    metric = WorldResult(WorldFrame.MAPPING, WorldFrame.MAPPING, metric=True).summary().description
+    arbitrary = WorldResult(WorldFrame.FLOOR, WorldFrame.MAPPING, metric=False).summary().description
+    assert "metric adjustment" in metric
+    assert arbitrary == "the mapper's frame (arbitrary orientation, origin and units)"

@@ -138,6 +138,9 @@ def configure_logging(verbose: bool) -> None:
     handler: logging.Handler
     if console.is_terminal:
         handler = RichHandler(console=console, level=level, show_path=False, show_time=False)
+        # basicConfig gives a handler without a formatter its BASIC_FORMAT ('WARNING:name:...'), which RichHandler
+        # would print after its own level column
+        handler.setFormatter(logging.Formatter("%(message)s"))
     else:  # one whole line per record where it is read by a program or a file
         handler = _ConsoleStreamHandler(console)
         handler.setLevel(level)

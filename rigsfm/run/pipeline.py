@@ -110,7 +110,8 @@ def check_out_outside_images(out: Path, image_dir: Path) -> None:
     except (OSError, RuntimeError):  # a link loop: the image folder's own check names it
         return
     if out_real == images_real or images_real in out_real.parents:
-        raise InputError(f"--out {out} lies inside the image folder {image_dir}, whose every folder must be a rig; "
+        where = "is" if out_real == images_real else "lies inside"
+        raise InputError(f"--out {out} {where} the image folder {image_dir}, whose every folder must be a rig; "
                          "choose an output folder outside it")
 
 

@@ -27,7 +27,7 @@ from rigsfm.core.executors import check_reachable
 from rigsfm.core.io import file_sha256, write_bytes_atomic, write_json_atomic, write_text_atomic
 from rigsfm.core.rig import RigCalibration, nfc
 from rigsfm.core.workspace import TrackPaths, Workspace, colmap_log_to
-from rigsfm.run.inputs.images import check_image_folder, rig_folders, scan_images
+from rigsfm.run.inputs.images import check_image_folder, rig_folders, rigs_missing_frames, scan_images
 from rigsfm.track.executors import run_frames
 from rigsfm.track.options import TrackOptions
 from rigsfm.track.plot import plot_rig
@@ -66,7 +66,11 @@ def frame_tasks(new_images: Path, reference: ReferenceMap) -> list[FrameTask]:
         narrow_from_wide = pycolmap.Rigid3d() if rig.narrow_from_wide is None else rig.narrow_from_wide
         rigs.append(RigCalibration(name, rig.wide, narrow, narrow_from_wide))
     images: dict[tuple[str, str], dict[str, Path | bytes]] = {}
-    for entry in scan_images(new_images, rigs, check_pixels=False):
+    entries = scan_images(new_images, rigs, check_pixels=False)
+    missing = rigs_missing_frames(entries, rigs)
+    if missing is not None:  # as `rigsfm run` warns: a misnamed or lost file otherwise only shortens a rig's series
+        logger.warning("MISSING FRAMES: %s", missing)
+    for entry in entries:
         images.setdefault((entry.rig, entry.frame), {})[entry.sensor] = entry.path
     return [FrameTask(rig, frame, sensors) for (rig, frame), sensors in sorted(images.items())]
 
@@ -130,6 +134,18 @@ def _save(paths: TrackPaths, poses: dict, plots: bool) -> None:
             write_bytes_atomic(paths.plot(name), charts.encode(plot))
 
 
+def warn_not_metric(workspace: Workspace) -> None:
+    """Warn where OUT's result has no scale: a rig's shift and --translation-threshold-mm then are thousandths of
+    its arbitrary unit, which the table and poses.json call millimetres."""
+    from rigsfm.core.summary import Summary
+
+    summary = Summary.read(workspace.summary)
+    if summary is not None and summary.metric is False:
+        logger.warning("NOT METRIC: %s has no scale: each shift called 'mm', and --translation-threshold-mm, are "
+                       "thousandths of its arbitrary unit; give `rigsfm run` a scale.yaml for millimetres",
+                       workspace.root)
+
+
 def track(out: Path, new_images: Path, options: TrackOptions | None = None, *,
           progress: Callable[[int, int], None] | None = None) -> TrackResult:
     """Register the new frames, merge them into OUT/track and return the merged result."""
@@ -141,6 +157,7 @@ def track(out: Path, new_images: Path, options: TrackOptions | None = None, *,
         check_reachable(options.address)
     workspace = Workspace(Path(out))
     workspace.require_result()
+    warn_not_metric(workspace)
     paths = workspace.track
     reference = load_reference(workspace.root, options=options.registration)
     tasks = frame_tasks(new_images, reference)

@@ -6,6 +6,7 @@ import base64
 import html
 from pathlib import Path
 
+from rigsfm.core.summary import Summary
 from rigsfm.core.workspace import Workspace, read_json
 
 VERDICT_STYLE = {"stable": "color:#2a7d2a", "shaking": "color:#c77700", "moved": "color:#c0392b;font-weight:bold"}
@@ -21,11 +22,15 @@ def track_report_section(out: Path) -> str:
         return '<section id="track"><h2>Pose tracking</h2><p>No tracking results (run <code>rigsfm track</code>).</p></section>'
     poses = read_json(paths.poses_json, "re-run `rigsfm track OUT NEW_IMAGES --overwrite`", keys=("thresholds", "rigs"))
     t = poses["thresholds"]
-    parts = ['<section id="track">', "<h2>Pose tracking</h2>",
-             (f"<p>Thresholds: {t['rotation_deg']:g}&nbsp;deg, {t['translation_mm']:g}&nbsp;mm (and significant at "
-              f"chi&sup2; &gt; {t['significance_chi2']:g}); changes are measured from each rig's reference frame.</p>"),
-             ("<table><thead><tr><th>rig</th><th>verdict</th><th>frames</th><th>registered</th><th>flagged</th>"
-              "<th>steps (frame: deg, mm)</th><th>jitter RMS (deg, mm)</th></tr></thead><tbody>")]
+    summary = Summary.read(Workspace(Path(out)).summary)
+    parts = ['<section id="track">', "<h2>Pose tracking</h2>"]
+    if summary is not None and summary.metric is False:  # as `rigsfm track` warns on the terminal
+        parts.append('<p class="warn">Not metric: the run has no scale, so each &lsquo;mm&rsquo; below is a '
+                     "thousandth of its arbitrary unit, the translation threshold included.</p>")
+    parts += [(f"<p>Thresholds: {t['rotation_deg']:g}&nbsp;deg, {t['translation_mm']:g}&nbsp;mm (and significant at "
+               f"chi&sup2; &gt; {t['significance_chi2']:g}); changes are measured from each rig's reference frame.</p>"),
+              ("<table><thead><tr><th>rig</th><th>verdict</th><th>frames</th><th>registered</th><th>flagged</th>"
+               "<th>steps (frame: deg, mm)</th><th>jitter RMS (deg, mm)</th></tr></thead><tbody>")]
     for name, rig in poses["rigs"].items():
         v = rig["verdict"]
         registered = sum(f["status"] == "registered" for f in rig["frames"])

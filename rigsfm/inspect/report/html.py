@@ -165,9 +165,12 @@ def uncertainty_section(narrow: dict, summary: Summary | None = None) -> str:
             "uncertainties are 1 sigma (root of the trace of the 3x3 covariance) relative to the network as a whole "
             "(its mean centre and orientation held).</p>")
         if u.narrow:
-            parts.append(table(["narrow camera", "centre σ (mm)", "rotation σ (deg)"],
-                               [[esc(name), fmt(v.centre_sigma_mm, 3), fmt(v.rotation_sigma_deg, 3)]
-                                for name, v in sorted(u.narrow.items())]))
+            # without a scale the adjustment's 'mm' are thousandths of the mapper's unit: no millimetre is claimed
+            per = 1.0 if narrow.get("metric") else 1000.0
+            parts.append(table(["narrow camera", "centre σ (mm)" if per == 1.0 else "centre σ (units)",
+                                "rotation σ (deg)"],
+                               [[esc(name), fmt(None if v.centre_sigma_mm is None else v.centre_sigma_mm / per, 3),
+                                 fmt(v.rotation_sigma_deg, 3)] for name, v in sorted(u.narrow.items())]))
         if u.refined_calibration:
             rows = [[esc(camera), fmt(c.get("focal_change_percent"), 3), fmt(c.get("principal_point_change_px"), 3),
                      fmt(c.get("narrow_from_wide_rotation_change_deg"), 3),
@@ -188,7 +191,8 @@ def uncertainty_section(narrow: dict, summary: Summary | None = None) -> str:
                      "–" if not depth else "{:.3g} – {:.3g}".format(*depth), fmt(pair.predicted_below_85, 2)])
     if rows:
         parts.append("<h3>Epipolar band per pair</h3>" + table(
-            ["narrow i", "narrow j", "band 95 % (px)", "analysis points", "their depths in i (m)",
+            ["narrow i", "narrow j", "band 95 % (px)", "analysis points",
+             f"their depths in i ({'m' if narrow.get('metric') else 'units'})",
              "P(pair < 85 % inside)"], rows, left=2))
     decisions = summary.calibration_decisions if summary else []
     if decisions:  # which rigs' calibration the images informed enough to refine, and why the others were held

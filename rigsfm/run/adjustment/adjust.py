@@ -392,7 +392,9 @@ def _refine(mapped: pycolmap.Reconstruction, rigs: Sequence[RigCalibration], sca
     scale = problem.scale_estimate()  # type: ignore[union-attr]  # the loop sets problem
     for row in problem.unused:  # type: ignore[union-attr]
         logger.warning("Scale measurement left out: %s", row)
-    result = AdjustResult(rec, source, scale, _metres_per_mapping_unit(mapped, rec),
+    # without a scale the spread's ratio is of two arbitrary units, not metres (the fixed calibration's None too)
+    metres_per_unit = None if source == ScaleSource.NONE else _metres_per_mapping_unit(mapped, rec)
+    result = AdjustResult(rec, source, scale, metres_per_unit,
                           float(rec.compute_mean_reprojection_error()), calibration=Calibration.REFINE, gauge=gauge,
                           rigs=tuple(rigs), priors=priors, scale_spec=scale_spec, options=options, pixel_sigma=pixel_sigma,
                           rounds=rounds, warnings=warnings, held_rigs=held, point_sigmas=dict(point_sigmas or {}))

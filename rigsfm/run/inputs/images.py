@@ -215,7 +215,8 @@ def rigs_without_narrow(image_dir: Path, images: Sequence[ImageEntry], rigs: Seq
 
 def rigs_missing_frames(images: Sequence[ImageEntry], rigs: Sequence[RigCalibration], shown: int = 3) -> str | None:
     """One line naming each rig that lacks a whole frame (no wide image, hence no narrow one, of a name other rigs
-    have) and the frames it lacks (``shown`` of them a rig); None where every rig has every frame. For a warning: a
+    have) and the frames it lacks (``shown`` of them a rig), and each frame only a minority of rigs has with its rigs;
+    None where every rig has every frame. For a warning: a
     file misnamed or lost in copying otherwise goes unnoticed, and that rig adds no view at that instant (no
     synchronised narrow pair with it there)."""
     frames: dict[str, set[str]] = {rig.name: set() for rig in rigs}
@@ -223,12 +224,19 @@ def rigs_missing_frames(images: Sequence[ImageEntry], rigs: Sequence[RigCalibrat
         if e.sensor == "wide":
             frames[e.rig].add(e.frame)
     every = set().union(*frames.values())
-    missing = {name: sorted(every - have) for name, have in frames.items() if every - have}
-    if not missing:
+    held = {frame: sorted(name for name, have in frames.items() if frame in have) for frame in every}
+    # a frame a minority of rigs has is named with its holders: one rig's misnamed file, not the others' loss
+    rare = sorted(frame for frame, holders in held.items() if 2 * len(holders) < len(rigs))
+    missing = {name: sorted(every - have - set(rare)) for name, have in frames.items() if every - have - set(rare)}
+    if not missing and not rare:
         return None
-    listed = "; ".join(f"'{name}' lacks {quoted(lacks[:shown])}{' ...' if len(lacks) > shown else ''}"
-                       f"{f' ({len(lacks)} frames)' if len(lacks) > shown else ''}" for name, lacks in missing.items())
-    return (f"{len(missing)} of {len(rigs)} rigs lack frames other rigs have ({listed}; {len(every)} frames in all): "
+    items = [f"'{name}' lacks {quoted(lacks[:shown])}{' ...' if len(lacks) > shown else ''}"
+             f"{f' ({len(lacks)} frames)' if len(lacks) > shown else ''}" for name, lacks in missing.items()]
+    items += [f"{quoted([frame])} is only in {quoted(held[frame][:shown])}" for frame in rare[:shown]]
+    items += [f"{len(rare) - shown} more frames only a few rigs have"] if len(rare) > shown else []
+    head = (f"{len(missing)} of {len(rigs)} rigs lack frames other rigs have" if missing
+            else f"{len(rare)} of {len(every)} frames are in only a few rigs")
+    return (f"{head} ({'; '.join(items)}; {len(every)} frames in all): "
             "a rig adds no view at a frame it lacks; check for a file misnamed or not copied")
 
 

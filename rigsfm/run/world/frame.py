@@ -121,7 +121,8 @@ class WorldResult:
             record.origin, record.x_axis, record.z_axis = ORIGIN, X_AXIS.format(rig=self.x_rig), Z_AXIS
             record.plane_heights_m = list(self.plane_heights)
         else:
-            record.description = "the mapper's frame after the metric adjustment (arbitrary orientation and origin)"
+            record.description = ("the mapper's frame after the metric adjustment (arbitrary orientation and origin)"
+                                  if self.metric else "the mapper's frame (arbitrary orientation, origin and units)")
         if self.estimate is not None:
             fit = self.estimate.fit
             # FloorFit is truthy: a NoFloor here; NoFloor is falsy: a FloorFit here

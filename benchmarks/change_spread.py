@@ -145,9 +145,9 @@ def exact_keypoints(mapped, truth, points, sigma, correlation, rng) -> pycolmap.
     return rec
 
 
-def gaussian_rigs(exact, priors, rng):
+def gaussian_rigs(exact, priors, rng, narrow_from_wide: bool = True):
     """rigs.yaml drawn from a Gaussian of its sigmas about the exact calibration (E^sl: rotation vector and
-    translation from its 6x6 covariance)."""
+    translation from its 6x6 covariance; ``narrow_from_wide`` False: the intrinsics alone, E^sl exact)."""
     out = []
     for rig in exact:
         cameras = {}
@@ -156,6 +156,9 @@ def gaussian_rigs(exact, priors, rng):
             cameras[sensor] = pycolmap.Camera(model=given.model_name, width=given.width, height=given.height,
                                               params=np.asarray(given.params)
                                               + sigmas * rng.standard_normal(len(sigmas)))
+        if not narrow_from_wide:
+            out.append(replace(rig, wide=cameras["wide"], narrow=cameras["narrow"]))
+            continue
         draw = rng.multivariate_normal(np.zeros(6), priors[rig.name].narrow_from_wide)
         given = rig.narrow_from_wide
         turn = pycolmap.Rotation3d(pycolmap.Rigid3d(pycolmap.Rotation3d(draw[:3]), np.zeros(3)).rotation.matrix()

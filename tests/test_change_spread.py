@@ -5,11 +5,11 @@ its posterior")."""
 
 from __future__ import annotations
 
+import sys
 from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
-import pycolmap
 from synthetic_db import make_network, perturbed_model
 from test_static_frames import _second_static_frame
 
@@ -20,21 +20,10 @@ from rigsfm.run.adjustment.priors import calibration_priors
 from rigsfm.run.inputs.scale_file import CameraDistance, ScaleSpec
 from rigsfm.run.options import AdjustOptions
 
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+from benchmarks.change_spread import gaussian_rigs  # the benchmark's draw of rigs.yaml
+
 RIGS = ("rig01", "rig02", "rig03", "rig04")
-
-
-def _drawn_rigs(rigs, priors, rng):
-    """rigs.yaml drawn from a Gaussian of its sigmas about the exact intrinsics (the test's null)."""
-    out = []
-    for rig in rigs:
-        cameras = {}
-        for sensor in ("wide", "narrow"):
-            given, sigmas = rig.camera(sensor), priors[rig.name].sensor(sensor)
-            cameras[sensor] = pycolmap.Camera(model=given.model_name, width=given.width, height=given.height,
-                                              params=np.asarray(given.params)
-                                              + sigmas * rng.standard_normal(len(sigmas)))
-        out.append(replace(rig, wide=cameras["wide"], narrow=cameras["narrow"]))
-    return out
 
 
 def _scale(truth, folder: Path) -> ScaleSpec:
@@ -62,7 +51,7 @@ def test_the_change_spreads_as_the_test_says_with_repeated_views(tmp_path):
         mapped = perturbed_model(truth, seed=100 + draw)
         for rig in RIGS:
             _second_static_frame(mapped, rig, np.zeros(3))
-        rigs = _drawn_rigs(net.rigs, priors, rng)
+        rigs = gaussian_rigs(net.rigs, priors, rng, narrow_from_wide=False)
         result = _refine(mapped, rigs, spec, options, priors, frozenset())
         covariance = joint_covariance(result)
         assert covariance is not None and covariance.change_excess is not None
@@ -81,7 +70,7 @@ def test_without_repeated_views_the_test_is_the_posteriors(tmp_path):
     truth = net.ground_truth
     spec = _scale(truth, tmp_path)
     priors = calibration_priors(net.rigs)
-    rigs = _drawn_rigs(net.rigs, priors, np.random.default_rng(1))
+    rigs = gaussian_rigs(net.rigs, priors, np.random.default_rng(1), narrow_from_wide=False)
     result = _refine(perturbed_model(truth, seed=5), rigs, spec, AdjustOptions(), priors, frozenset())
     covariance = joint_covariance(result)
     assert covariance is not None and covariance.change_excess is None

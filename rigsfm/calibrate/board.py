@@ -374,8 +374,9 @@ def refuse_part_of_a_larger_chessboard(spec: BoardSpec, detected: list[Path], wh
     path, (larger, walked) = found
     named = None
     for other in [path] + [p for p in detected[::max(1, len(detected) // namers)] if p != path][:namers - 1]:
-        part = (larger, walked) if other == path else _larger_part(read_gray(other), grid)
-        if part is not None and (named := _whole_board(read_gray(other), grid, larger, part[1])) is not None:
+        gray = read_gray(other)
+        part = (larger, walked) if other == path else _larger_part(gray, grid)
+        if part is not None and (named := _whole_board(gray, grid, larger, part[1])) is not None:
             path = other
             break
     count = (f"inner_corners [{named[0]}, {named[1]}]" if named is not None

@@ -268,11 +268,12 @@ def run(
     options = options or RunOptions()
     stages.start(preload=STAGE_MODULES)  # imports them in the stages' forkserver while the inputs are checked
     timings = _Timings()
+    workspace = Workspace(Path(out))
     with timings.stage("validate"):
         validate_world_options(options.world)  # the options first: no input warnings before their refusal
         check_out_outside_images(Path(out), Path(image_dir))
         # OUT's refusals before the inputs' warnings (prepare repeats them under the lock)
-        Workspace(Path(out)).refuse(overwrite=options.overwrite)
+        workspace.refuse(overwrite=options.overwrite)
         inputs = load_inputs(image_dir, rigs_path, scale_path)
         if options.executor == Executor.RAY and options.address:
             check_reachable(options.address)  # before any work: ray.init would retry an unreachable one for ever
@@ -284,7 +285,6 @@ def run(
     lowered = options.mapping.few_matches is None and bool(manual_pairs)
     if options.mapping.few_matches is None:
         options = replace(options, mapping=replace(options.mapping, few_matches=bool(manual_pairs)))
-    workspace = Workspace(Path(out))
     with workspace.lock(), disk_errors_named(workspace.root):
         workspace.prepare(overwrite=options.overwrite)
         if lowered:  # once OUT is taken: a run refused there printed it before its one red line

@@ -166,8 +166,9 @@ def uncertainty_section(narrow: dict, summary: Summary | None = None) -> str:
             "(its mean centre and orientation held).</p>")
         if u.narrow:
             # without a scale the adjustment's 'mm' are thousandths of the mapper's unit: no millimetre is claimed
-            per = 1.0 if narrow.get("metric") else 1000.0
-            parts.append(table(["narrow camera", "centre σ (mm)" if per == 1.0 else "centre σ (units)",
+            metric = bool(narrow.get("metric"))
+            per = 1.0 if metric else 1000.0
+            parts.append(table(["narrow camera", "centre σ (mm)" if metric else "centre σ (units)",
                                 "rotation σ (deg)"],
                                [[esc(name), fmt(None if v.centre_sigma_mm is None else v.centre_sigma_mm / per, 3),
                                  fmt(v.rotation_sigma_deg, 3)] for name, v in sorted(u.narrow.items())]))

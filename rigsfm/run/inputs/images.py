@@ -216,9 +216,8 @@ def rigs_without_narrow(image_dir: Path, images: Sequence[ImageEntry], rigs: Seq
 def rigs_missing_frames(images: Sequence[ImageEntry], rigs: Sequence[RigCalibration], shown: int = 3) -> str | None:
     """One line naming each rig that lacks a whole frame (no wide image, hence no narrow one, of a name other rigs
     have) and the frames it lacks (``shown`` of them a rig), and each frame only a minority of rigs has with its rigs;
-    None where every rig has every frame. For a warning: a
-    file misnamed or lost in copying otherwise goes unnoticed, and that rig adds no view at that instant (no
-    synchronised narrow pair with it there)."""
+    None where every rig has every frame. For a warning: a file misnamed or lost in copying otherwise goes unnoticed,
+    and that rig adds no view at that instant (no synchronised narrow pair with it there)."""
     frames: dict[str, set[str]] = {rig.name: set() for rig in rigs}
     for e in images:
         if e.sensor == "wide":

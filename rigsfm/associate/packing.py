@@ -12,16 +12,17 @@ from scipy.sparse.csgraph import connected_components
 logger = logging.getLogger(__name__)
 
 
-EXACT_STEPS = 20000  # branchings allowed one group of conflicting hypotheses before it goes to the MILP
+EXACT_GROUP = 20  # hypotheses of a group of conflicts branched on exactly; a larger one goes to the MILP
+EXACT_STEPS = 5000  # branchings allowed one group before it goes to the MILP all the same
 
 
 def _pack(members: np.ndarray, scores: np.ndarray, total: int, time_limit: float) -> np.ndarray:
     """The subset of hypotheses with the largest summed score, each detection in at most one (a mask).
 
     Hypotheses conflict where they share a detection, and the conflicts fall apart into small groups (a few
-    hypotheses of one place of the crowd): each group's best subset is found exactly by branching (its largest
-    weight independent set), and a group too large for that goes to a MILP with the other such groups; a
-    hypothesis without conflicts is kept where its score is positive."""
+    hypotheses of one place of the crowd, where the bands are narrow): each group's best subset is found exactly by
+    branching (its largest weight independent set), and the groups too large for that (a first frame's wide bands
+    join hundreds) go to one MILP; a hypothesis without conflicts is kept where its score is positive."""
     n = len(scores)
     if not n:
         return np.zeros(0, dtype=bool)
@@ -47,7 +48,7 @@ def _pack(members: np.ndarray, scores: np.ndarray, total: int, time_limit: float
     large = []
     for g in np.flatnonzero(size > 1).tolist():
         nodes = order[starts[g]:starts[g + 1]].tolist()
-        best = _best_independent([neighbours[v] for v in nodes], [weights[v] for v in nodes])
+        best = None if len(nodes) > EXACT_GROUP else _best_independent([neighbours[v] for v in nodes], [weights[v] for v in nodes])
         if best is None:
             large.append(g)
             continue

@@ -142,15 +142,19 @@ class AppearanceModel:
         """Per group (members G x V into the stacked ``descriptors``), the pairs' log ratios summed and weighted by
         2 / members: a group of m holds m - 1 independent differences, not m (m - 1) / 2."""
         present = members >= 0
-        total = np.zeros(len(members))
         views = members.shape[1]
+        none = np.zeros(0, dtype=np.int64)
+        rows, first, second = [none], [none], [none]
         for a in range(views):
             for b in range(a + 1, views):
-                both = present[:, a] & present[:, b]
-                if not both.any():
-                    continue
-                rows = np.flatnonzero(both)
-                total[rows] += self.log_ratio(descriptors[members[rows, a]], descriptors[members[rows, b]])
+                both = np.flatnonzero(present[:, a] & present[:, b])
+                rows.append(both)
+                first.append(members[both, a])
+                second.append(members[both, b])
+        # every pair's ratio in one call, summed per group in the order of the pairs of views (bincount adds its
+        # weights in their order, as a sum pair by pair would)
+        ratio = self.log_ratio(descriptors[np.concatenate(first)], descriptors[np.concatenate(second)])
+        total = np.bincount(np.concatenate(rows), weights=ratio, minlength=len(members)).astype(np.float64)
         count = present.sum(axis=1)
         return total * 2.0 / np.maximum(count, 2)
 

@@ -128,7 +128,7 @@ def test_the_median_grey_by_counts_is_numpy_s():
 
 
 def test_the_boxes_of_stored_greys_sum_as_each_box_by_itself():
-    """Detections' box means of stored bytes (every box gathered at once) are each box's own sum's to the bit (the
+    """Detections' box means of stored bytes (OpenCV's integral image) are each box's own sum's to the bit (the
     float greys' path): boxes of several sizes, cut at every edge of the image."""
     from rigsfm.associate.appearance import _box_means
 

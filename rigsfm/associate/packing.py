@@ -27,8 +27,8 @@ def _pack(members: np.ndarray, scores: np.ndarray, total: int, time_limit: float
     if not n:
         return np.zeros(0, dtype=bool)
     present = members >= 0
-    a = sp.csr_matrix((np.ones(int(present.sum())), (members[present], np.repeat(np.arange(n), present.sum(axis=1)))),
-                      shape=(total, n))
+    columns = np.repeat(np.arange(n), present.sum(axis=1))
+    a = sp.csr_matrix((np.ones(len(columns)), (members[present], columns)), shape=(total, n))
     shared = a[np.asarray(a.sum(axis=1)).ravel() > 1]
     conflicts = (shared.T @ shared).tocoo()
     other = conflicts.row != conflicts.col
@@ -48,7 +48,8 @@ def _pack(members: np.ndarray, scores: np.ndarray, total: int, time_limit: float
     large = []
     for g in np.flatnonzero(size > 1).tolist():
         nodes = order[starts[g]:starts[g + 1]].tolist()
-        best = None if len(nodes) > EXACT_GROUP else _best_independent([neighbours[v] for v in nodes], [weights[v] for v in nodes])
+        best = None if len(nodes) > EXACT_GROUP else _best_independent([neighbours[v] for v in nodes],
+                                                                        [weights[v] for v in nodes])
         if best is None:
             large.append(g)
             continue

@@ -118,10 +118,22 @@ def test_the_median_grey_by_counts_is_numpy_s():
     images = [rng.integers(0, top, size).astype(np.float64) for top in (1, 2, 7, 256)
               for size in ((61, 47), (60, 47), (1, 1), (2, 1), (3, 3))]
     images += [images[3].astype(np.uint8), rng.integers(0, 60000, (30, 31)).astype(np.float64)]
-    # stored bytes, odd and even counts (counted two bytes at a time, the odd one out on its own)
+    # stored bytes, odd and even counts (counted by OpenCV's histogram)
     images += [rng.integers(lo, 256, size).astype(np.uint8) for lo in (0, 250) for size in ((61, 47), (60, 47), (1, 1), (2, 1), (3, 3))]
     odd = rng.integers(0, 256, (20, 21)).astype(np.float64)
     images += [odd + 0.5, np.where(odd > 200, np.nan, odd), odd - 100.0]
     for grey in images:
         expected = float(np.median(grey))
         assert median_grey(grey) == expected or (np.isnan(expected) and np.isnan(median_grey(grey))), grey.shape
+
+
+def test_the_boxes_of_stored_greys_sum_as_each_box_by_itself():
+    """Detections' box means of stored bytes (OpenCV's integral image) are each box's own sum's to the bit (the
+    float greys' path): boxes of several sizes, cut at every edge of the image."""
+    from rigsfm.associate.appearance import _box_means
+
+    rng = np.random.default_rng(4)
+    grey = rng.integers(0, 256, (61, 83)).astype(np.uint8)
+    centres = np.r_[rng.uniform(-10, 95, (300, 2)), [[0, 0], [82, 60], [-3, 30], [40, 64]]]
+    for half in (1.0, 2.4, 5.5, 40.0):
+        assert np.array_equal(_box_means(grey, centres, half), _box_means(grey.astype(np.float64), centres, half)), half

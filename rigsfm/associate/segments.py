@@ -58,6 +58,8 @@ def in_front(view: _Projecting, start: np.ndarray, end: np.ndarray,
     depth_s = start @ view.r[2] + view.t[2]
     depth_e = end @ view.r[2] + view.t[2]
     ok = (depth_s >= min_depth) | (depth_e >= min_depth)
+    if np.all(depth_s >= min_depth) and np.all(depth_e >= min_depth):
+        return start, end, ok  # every segment wholly in front (mostly): nothing to cut
     with np.errstate(divide="ignore", invalid="ignore"):
         cut = np.clip((min_depth - depth_s) / (depth_e - depth_s), 0.0, 1.0)
     crossing = start + np.nan_to_num(cut)[:, None] * (end - start)
@@ -115,27 +117,28 @@ def pair_seeds(frame: _Stacked, i: int, j: int, di: np.ndarray, p_lo: np.ndarray
     a, _ = view_j.project(start)
     b, _ = view_j.project(end)
     args = (frame.centres[i], frame.centres[j], frame.focals[i], frame.focals[j], frame.noise[i], frame.noise[j])
-    # the band's widest anywhere along the segment: i's farthest end, j's nearest point of it
     centre_i, centre_j = frame.centres[i], frame.centres[j]
-    far_i = np.maximum(np.linalg.norm(start - centre_i, axis=1), np.linalg.norm(end - centre_i, axis=1))
-    step = end - start
-    with np.errstate(divide="ignore", invalid="ignore"):
-        t = np.clip(np.nan_to_num(np.sum((centre_j - start) * step, axis=1) / np.sum(step ** 2, axis=1)), 0.0, 1.0)
-    near_j = np.maximum(np.linalg.norm(start + t[:, None] * step - centre_j, axis=1), MIN_DEPTH_M)
-    carried = frame.noise[i] * (frame.focals[j] * far_i) / (frame.focals[i] * near_j)
-    reach = gate * np.sqrt(frame.noise[j] ** 2 + carried ** 2)
+    lo_i, hi_i = np.linalg.norm(p_lo - centre_i, axis=1), np.linalg.norm(p_hi - centre_i, axis=1)
+
+    def carried(start: np.ndarray, end: np.ndarray, far_i: np.ndarray) -> np.ndarray:
+        """i's noise carried to j at the segments' widest: i's farthest end (``far_i``), j's nearest point."""
+        step = end - start
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t = np.clip(np.nan_to_num(np.sum((centre_j - start) * step, axis=1) / np.sum(step ** 2, axis=1)), 0.0, 1.0)
+        near_j = np.maximum(np.linalg.norm(start + t[:, None] * step - centre_j, axis=1), MIN_DEPTH_M)
+        return frame.noise[i] * (frame.focals[j] * far_i) / (frame.focals[i] * near_j)
+
+    # The band anywhere on the whole segment (the part behind j included, where the candidates' heads may fall):
+    # no candidate farther from its segment than this can be inside its band.
+    whole = carried(p_lo, p_hi, np.maximum(lo_i, hi_i))
+    # the band's widest on the part in front of j (the whole segment where all of it is)
+    front = whole if start is p_lo and end is p_hi else carried(
+        start, end, np.maximum(np.linalg.norm(start - centre_i, axis=1), np.linalg.norm(end - centre_i, axis=1)))
+    reach = gate * np.sqrt(frame.noise[j] ** 2 + front ** 2)
     seg = b - a
     length = np.linalg.norm(seg, axis=1)
     rows = np.flatnonzero(ok)
-    # The band anywhere on the whole segment (the part behind j included, where the candidates' heads may fall):
-    # no candidate farther from its segment than this can be inside its band.
-    full = p_hi - p_lo
-    with np.errstate(divide="ignore", invalid="ignore"):
-        t = np.clip(np.nan_to_num(np.sum((centre_j - p_lo) * full, axis=1) / np.sum(full ** 2, axis=1)), 0.0, 1.0)
-    nearest_j = np.maximum(np.linalg.norm(p_lo + t[:, None] * full - centre_j, axis=1), MIN_DEPTH_M)
-    farthest_i = np.maximum(np.linalg.norm(p_lo - centre_i, axis=1), np.linalg.norm(p_hi - centre_i, axis=1))
-    widest = gate * np.sqrt(frame.noise[j] ** 2 + (frame.noise[i] * (frame.focals[j] * farthest_i)
-                                                   / (frame.focals[i] * nearest_j)) ** 2)
+    widest = gate * np.sqrt(frame.noise[j] ** 2 + whole ** 2)
     widest = widest * (1 + 1e-9) + 1e-9  # the band below is computed otherwise: room for its rounding
     ra, cb = near_segments(frame.uv[candidates], ((a + b) / 2)[rows], (length / 2 + reach)[rows],
                             a[rows], seg[rows], widest[rows])
@@ -147,8 +150,7 @@ def pair_seeds(frame: _Stacked, i: int, j: int, di: np.ndarray, p_lo: np.ndarray
     l2 = np.maximum(np.sum(s ** 2, axis=1), 1e-12)
     tt = np.clip(np.sum((p - a[ra]) * s, axis=1) / l2, 0.0, 1.0)
     dist = np.linalg.norm(p - (a[ra] + tt[:, None] * s), axis=1)
-    head = nearest_on_rays(centre_i, frame.rays[di[ra]], frame.centres[j], frame.rays[cb],
-                           np.linalg.norm(p_lo[ra] - centre_i, axis=1), np.linalg.norm(p_hi[ra] - centre_i, axis=1))
+    head = nearest_on_rays(centre_i, frame.rays[di[ra]], frame.centres[j], frame.rays[cb], lo_i[ra], hi_i[ra])
     return ra, cb, dist <= gate * band_sigma(head, *args)
 
 

@@ -219,6 +219,8 @@ def associate_frames(model: RunModel, detections: Detections, options: Associate
     out: list[FramePersons] = []
     carried: dict[str, View] = {}  # per camera (<rig>/narrow), its view in the latest frame
     frames = list(detections.frames().items())
+    if progress:  # the work starts: its bar from here
+        progress(0, len(frames))
     with ThreadPoolExecutor(max_workers=1, thread_name_prefix="rigsfm-frame-views") as reader:
         # the next frame's images are read and decoded while this one is associated (OpenCV's decoder releases the
         # GIL; the association holds it)

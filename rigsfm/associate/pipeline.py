@@ -75,14 +75,18 @@ def load_run(out: Path) -> RunModel:
         root = (summary.get("inputs") or {}).get("images")
         images_root = Path(root) if isinstance(root, str) and Path(root).is_dir() else None
         narrow = summary["uncertainty"]["narrow"]
-        centres = {name: float(entry["centre_sigma_mm"]) / 1000.0 for name, entry in narrow.items()
-                   if entry.get("centre_sigma_mm") is not None}
+        # in the model's unit: metres, or the mapper's unit where the run is not metric (its _mm keys null)
+        centres = {name: float(entry["centre_sigma_mm"]) / 1000.0 if entry.get("centre_sigma_mm") is not None
+                   else float(entry["centre_sigma_units"]) for name, entry in narrow.items()
+                   if entry.get("centre_sigma_mm") is not None or entry.get("centre_sigma_units") is not None}
         for name, entry in narrow.items():
-            matrix = entry.get("centre_covariance_mm2")
+            matrix, per = entry.get("centre_covariance_mm2"), 1e-6
+            if matrix is None:
+                matrix, per = entry.get("centre_covariance_units2"), 1.0
             if name in images and matrix is not None:
                 # delivered in the camera's axes: back to the world's through the delivered pose
                 axes = images[name].cam_from_world().rotation.matrix()
-                covariances[name] = 1e-6 * axes.T @ np.asarray(matrix, dtype=np.float64).reshape(3, 3) @ axes
+                covariances[name] = per * axes.T @ np.asarray(matrix, dtype=np.float64).reshape(3, 3) @ axes
     except (OSError, ValueError, KeyError, TypeError):
         logger.warning("%s holds no camera centre uncertainty; the persons' covariances leave it out",
                        workspace.summary)

@@ -725,3 +725,42 @@ def test_associate_out_is_refused_in_the_workspaces_own_folders(tmp_path, monkey
     with pytest.raises(InputError, match=f"--out '{dest}' {reason}.*out/associate"):
         associate(Path("out"), Path("heads.csv"), AssociateOptions(out=Path(dest)))
     assert sorted(p.name for p in (tmp_path / "out").iterdir()) == ["colmap.log", "sparse"]
+
+
+def test_frames_warn_once_a_kind_with_the_frames_named(crowd, caplog):
+    """A CSV of three frames: one of four views with few confident persons, then two of two views each (no person
+    there can be confirmed by a third view: said, not silence). Each kind of warning is said once, naming its
+    frames."""
+    import logging
+
+    from rigsfm.associate.pipeline import with_stand_ins
+
+    dataset, out = crowd
+    model, truth = _detections(dataset, out)
+    cameras = sorted({n.split("/")[0] for n in truth.points})
+    kept = {"frame0000": cameras, "frame0001": cameras[:2], "frame0002": cameras[2:]}
+    points = {n.replace("frame0000", frame): xy for frame, rigs in kept.items() for n, xy in truth.points.items()
+              if n.split("/")[0] in rigs}
+    lent = with_stand_ins(model, [n for n in points if n not in model.images], "frame0000.png")
+    with caplog.at_level(logging.WARNING, logger="rigsfm.associate.pipeline"):
+        frames = associate_frames(lent, from_arrays(points), AssociateOptions(pixel_sigma=1.5, appearance=False))
+    assert [len(f.views) for f in frames] == [4, 2, 2]
+    chance = [r.getMessage() for r in caplog.records if "chance groupings" in r.getMessage()]
+    two = [r.getMessage() for r in caplog.records if "two narrow views only" in r.getMessage()]
+    assert len(chance) == 1 and chance[0].startswith("frame0000.png: only "), chance
+    assert len(two) == 1 and two[0].startswith("2 frames (frame0001.png: "), two
+    assert "frame0002.png: " in two[0] and "frame0000" not in two[0], two
+
+
+def test_a_kind_of_frame_warning_is_said_once_naming_its_frames(caplog):
+    """Frames 0 and 1 of a CSV both with few confident persons: one warning naming both, not one a frame."""
+    import logging
+
+    from rigsfm.associate.pipeline import FrameNotes
+
+    notes = FrameNotes(few_confident=[("frame0000.png", 9, 172), ("frame0001.png", 12, 180)])
+    with caplog.at_level(logging.WARNING, logger="rigsfm.associate.pipeline"):
+        notes.say()
+    [message] = [r.getMessage() for r in caplog.records]
+    assert message.startswith("2 frames (frame0000.png: 9 of 172 persons, frame0001.png: 12 of 180 persons): only "
+                              "those are seen by three or more views"), message

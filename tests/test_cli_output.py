@@ -93,6 +93,19 @@ def test_piped_output_keeps_whole_lines(tmp_path):
     assert f"exported json: {dest}" in done.stdout.splitlines(), done.stdout
 
 
+@pytest.mark.parametrize("args", [
+    ["run", "missing", "--rigs", "rigs.yaml", "--out", "out"],
+    ["associate", "missing", "detections.csv"],
+    ["track", "missing", "new"],
+])
+def test_an_immediate_error_prints_no_progress_display(tmp_path, args):
+    """An error before any work is the command's only output: no empty bar (or blank line, piped) above it."""
+    done = _rigsfm(args, tmp_path)
+    assert done.returncode == 1, done.stderr
+    assert done.stdout == "", done.stdout
+    assert done.stderr.startswith("error: "), done.stderr
+
+
 def test_stage_bars_count_time_from_the_stage_start(tmp_path):
     """Feature extraction and matching report their count only as they finish on small inputs: each stage
     announces its start (stage, 0, 0), and the bar's clock runs from there."""

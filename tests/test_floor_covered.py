@@ -31,3 +31,23 @@ def test_a_covered_floor_is_found_by_lowering_the_guess(three_rig_run, monkeypat
     # Matching through the guess alone finds no floor: the steps below it are what finds it.
     monkeypatch.setattr(floor, "LOWER_STEPS", ())
     assert not floor.estimate_floor(model, dataset.images).fit
+
+
+@pytest.mark.slow
+def test_the_covered_floor_search_fits_each_point_set_once(three_rig_run, monkeypatch):
+    """A fit that finds no floor draws every RANSAC triple (seconds on a crowd): the search fits the sparse points,
+    each matching round's points and each lowered step's points once."""
+    dataset, out, _ = three_rig_run
+    model = _covered(out)
+    fitted = []
+    fit_floor = floor.fit_floor
+
+    def counted(reconstruction, markers=None, options=None, *, extra_points=None, **kwargs):
+        points = np.zeros((0, 3)) if extra_points is None else np.asarray(extra_points)
+        fitted.append(points.tobytes())
+        return fit_floor(reconstruction, markers, options, extra_points=extra_points, **kwargs)
+
+    monkeypatch.setattr(floor, "fit_floor", counted)
+    found = floor.estimate_floor(model, dataset.images)
+    assert found.fit and found.rounds > len(floor.LOWER_STEPS)  # the lowered steps ran
+    assert len(fitted) == len(set(fitted)), f"{len(fitted) - len(set(fitted))} point sets fitted twice"

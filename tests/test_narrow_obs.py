@@ -185,3 +185,15 @@ def test_heads_leave_the_delivered_bands_to_the_first_adjustment():
     assert floor.bands_from == BANDS_WITH_NARROW and floor.summary().bands == BANDS_WITH_NARROW
     assert heads.bands_from == BANDS_WIDE_ONLY and heads.summary().bands == BANDS_WIDE_ONLY
     assert unused.bands_from == BANDS_WIDE_ONLY and unused.summary().bands is None
+
+
+def test_without_a_scale_the_line_says_how_the_registered_narrow_cameras_are_posed(tmp_path):
+    """Printed after 'narrow 17/17 registered', the line must not call those poses unknown: they follow from the wide
+    cameras through E^sl, without the narrow images' own matches."""
+    from rigsfm.run.narrow.observations import describe_record
+    from rigsfm.run.narrow.stage import narrow_observations
+
+    model, record = narrow_observations(None, SimpleNamespace(metric=False), tmp_path, NarrowMode.AUTO)
+    line = describe_record(record.summary())
+    assert model is None and not record.used
+    assert "unknown" not in line and "not metric" in line and "E^sl" in line, line

@@ -336,3 +336,38 @@ def test_the_uncertainty_section_names_millimetres_and_metres_only_on_a_metric_r
     assert "centre σ (mm)" not in html[False] and "(m)" not in html[False], html[False]
     assert "centre σ (units)" in html[False] and '<td class="">21</td>' in html[False]
     assert "their depths in i (units)" in html[False]
+
+
+def test_a_result_that_is_not_metric_writes_no_millimetre_keys_with_numbers():
+    """summary.json's _mm keys hold millimetres or null: without a scale the centre sigma, its covariance and E^sl's
+    translation change are in the mapper's unit, under _units keys (as scale.metres_per_mapping_unit is null), and
+    the report reads them there (E^sl's columns said mm, the covariance was 1e6 times the unit's squares)."""
+    from dataclasses import asdict
+    from types import SimpleNamespace
+
+    from rigsfm.core.summary import Summary
+    from rigsfm.inspect.report.html import uncertainty_section
+    from rigsfm.run.adjustment.narrow import NarrowUncertainty
+    from rigsfm.run.adjustment.uncertainty import uncertainty_summary
+    from rigsfm.run.options import Calibration
+
+    cov = ((4.0e6, 0.0, 0.0), (0.0, 9.0e6, 0.0), (0.0, 0.0, 1.0e6))
+    uncertainty = SimpleNamespace(
+        covariance=None, floor="none", sampled=False, bands={}, bands_from="wide only",
+        narrow={"rig01/narrow/f0.png": NarrowUncertainty(3741.7, 0.1, cov, ((0.01, 0, 0), (0, 0.01, 0), (0, 0, 0.01)))})
+    result = SimpleNamespace(calibration=Calibration.FIXED)
+    records = {metric: json.loads(json.dumps(asdict(uncertainty_summary(result, uncertainty, metric=metric))))
+               for metric in (True, False)}  # type: ignore[arg-type]
+    metric, arbitrary = (records[m]["narrow"]["rig01/narrow/f0.png"] for m in (True, False))
+    assert metric["centre_sigma_mm"] == 3741.7 and metric["centre_covariance_mm2"][1][1] == 9.0e6
+    assert metric["centre_sigma_units"] is None and metric["centre_covariance_units2"] is None
+    assert arbitrary["centre_sigma_mm"] is None and arbitrary["centre_covariance_mm2"] is None
+    assert arbitrary["centre_sigma_units"] == pytest.approx(3.7417) and arbitrary["centre_covariance_units2"][1][1] == 9.0
+
+    summary = Summary.from_json({"uncertainty": {**records[False], "covariance": "posterior", "refined_calibration": {
+        "rig01/narrow": {"narrow_from_wide_translation_change_mm": None, "narrow_from_wide_translation_sigma_mm": None,
+                         "narrow_from_wide_translation_change_units": 0.0125,
+                         "narrow_from_wide_translation_sigma_units": 0.0031, "observed": True}}}})
+    html = uncertainty_section({"metric": False}, summary)
+    assert "E^sl translation change (units)" in html and "(mm)" not in html, html
+    assert ">0.0125<" in html and ">0.0031<" in html and ">3.74<" in html, html

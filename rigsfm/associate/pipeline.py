@@ -75,14 +75,18 @@ def load_run(out: Path) -> RunModel:
         root = (summary.get("inputs") or {}).get("images")
         images_root = Path(root) if isinstance(root, str) and Path(root).is_dir() else None
         narrow = summary["uncertainty"]["narrow"]
-        centres = {name: float(entry["centre_sigma_mm"]) / 1000.0 for name, entry in narrow.items()
-                   if entry.get("centre_sigma_mm") is not None}
+        # in the model's unit: metres, or the mapper's unit where the run is not metric (its _mm keys null)
+        centres = {name: float(entry["centre_sigma_mm"]) / 1000.0 if entry.get("centre_sigma_mm") is not None
+                   else float(entry["centre_sigma_units"]) for name, entry in narrow.items()
+                   if entry.get("centre_sigma_mm") is not None or entry.get("centre_sigma_units") is not None}
         for name, entry in narrow.items():
-            matrix = entry.get("centre_covariance_mm2")
+            matrix, per = entry.get("centre_covariance_mm2"), 1e-6
+            if matrix is None:
+                matrix, per = entry.get("centre_covariance_units2"), 1.0
             if name in images and matrix is not None:
                 # delivered in the camera's axes: back to the world's through the delivered pose
                 axes = images[name].cam_from_world().rotation.matrix()
-                covariances[name] = 1e-6 * axes.T @ np.asarray(matrix, dtype=np.float64).reshape(3, 3) @ axes
+                covariances[name] = per * axes.T @ np.asarray(matrix, dtype=np.float64).reshape(3, 3) @ axes
     except (OSError, ValueError, KeyError, TypeError):
         logger.warning("%s holds no camera centre uncertainty; the persons' covariances leave it out",
                        workspace.summary)
@@ -190,13 +194,21 @@ class FramePersons:
     lent_views: tuple[str, ...] = ()
 
 
-def frame_views(model: RunModel, detections: Detections, frame: str, names: list[str]) -> list[View]:
+NO_BANDS = ("the run holds no epipolar band for any pair of {its} narrow images (its uncertainty was not computed), so "
+            "the association sees the pixel noise only and misses persons wherever the poses are off: re-run `rigsfm "
+            "run` until narrow_poses.json has epipolar_band_95_px")
+
+
+def frame_views(model: RunModel, detections: Detections, frame: str, names: list[str],
+                notes: FrameNotes | None = None) -> list[View]:
+    """``notes``: where a frame without bands is noted, to be said once for all frames (else said here)."""
     views = [View.of(model.images[name], detections.images[name].xy) for name in sorted(names)]
     pairs = {key: band for key, band in model.bands.items() if key[0] in names and key[1] in names}
     if len(views) >= 2 and not pairs:
-        logger.warning("%s: the run holds no epipolar band for any pair of its narrow images (its uncertainty was not "
-                       "computed), so the association sees the pixel noise only and misses persons wherever the poses "
-                       "are off: re-run `rigsfm run` until narrow_poses.json has epipolar_band_95_px", frame)
+        if notes is None:
+            logger.warning("%s: " + NO_BANDS.format(its="its"), frame)
+        else:
+            notes.no_bands.append(frame)
     sigmas = view_pose_sigmas([v.name for v in views], pairs)
     for view in views:
         view.radius_px = detections.images[view.name].radius
@@ -219,26 +231,32 @@ def associate_frames(model: RunModel, detections: Detections, options: Associate
     out: list[FramePersons] = []
     carried: dict[str, View] = {}  # per camera (<rig>/narrow), its view in the latest frame
     frames = list(detections.frames().items())
+    notes = FrameNotes()
+    if progress:  # the work starts: its bar from here
+        progress(0, len(frames))
     with ThreadPoolExecutor(max_workers=1, thread_name_prefix="rigsfm-frame-views") as reader:
         # the next frame's images are read and decoded while this one is associated (OpenCV's decoder releases the
         # GIL; the association holds it)
-        pending = reader.submit(frame_views, model, detections, *frames[0]) if frames else None
+        pending = reader.submit(frame_views, model, detections, *frames[0], notes) if frames else None
         for k, (frame, _) in enumerate(frames):
             views = pending.result()  # type: ignore[union-attr]  # one per frame
-            pending = reader.submit(frame_views, model, detections, *frames[k + 1]) if k + 1 < len(frames) else None
+            pending = (reader.submit(frame_views, model, detections, *frames[k + 1], notes) if k + 1 < len(frames)
+                       else None)
             lent_views = tuple(v.name for v in views if v.name in model.stand_ins)
             lent = {ImageName.parse(model.stand_ins[name]).frame for name in lent_views}
             out.append(_associate_frame(frame, views, detections, options, carried, out[-1] if out else None,
-                                        min(lent) if lent else None, lent_views))
+                                        min(lent) if lent else None, lent_views, notes))
             if progress:
                 progress(len(out), len(frames))
+    notes.say()
     return out
 
 
 def _associate_frame(frame: str, views: list[View], detections: Detections, options: AssociateOptions,
                      carried: dict[str, View], before: FramePersons | None, poses_from: str | None,
-                     lent_views: tuple[str, ...] = ()) -> FramePersons:
-    """One frame of :func:`associate_frames`; ``carried`` (per camera, its latest view) is updated."""
+                     lent_views: tuple[str, ...] = (), notes: FrameNotes | None = None) -> FramePersons:
+    """One frame of :func:`associate_frames`; ``carried`` (per camera, its latest view) is updated; what it warns of
+    goes into ``notes``."""
     cameras = [ImageName.parse(v.name).camera for v in views]
     known = bool(views) and all(c in carried for c in cameras)
     if known:
@@ -248,8 +266,8 @@ def _associate_frame(frame: str, views: list[View], detections: Detections, opti
     result = associate_views(views, options, carried=known, earlier=before.result if before else None)
     wall, cpu = time.perf_counter() - wall, time.process_time() - cpu
     logger.info("%s: %d persons in %.2f s (%.2f s CPU)", frame, len(result), wall, cpu)
-    if not known:
-        _warn_few_confident(frame, result, options)
+    if notes is not None:
+        notes.add(frame, result, options, carried=known)
     carried.update((camera, view) for camera, view in zip(cameras, views) if view.band_sigma_px is not None)
     for view in views:
         view.grey = None  # read for this frame's appearance only; kept, a recording would hold every image
@@ -257,20 +275,62 @@ def _associate_frame(frame: str, views: list[View], detections: Detections, opti
 
 
 FEW_CONFIDENT_SHARE = 0.1  # below it, a frame's persons are mostly chance (benchmarks/README.md, *confidence*)
+SHOWN_FRAMES = 5  # frames named in a warning said once for all of them
 
 
-def _warn_few_confident(frame: str, result: FrameResult, options: AssociateOptions) -> None:
-    """Warn where few of a frame's persons are the kind the views' corrections rest on (three or more views, a
-    positive score): there the views keep the run's pose errors and chance groupings of different persons dominate,
-    whatever each person's confidence says."""
-    confident = len(_confident(result.members, result.scores, options))
-    # a share, not a count, so that a small crowd every view sees clearly does not warn
-    if len(result.views) >= 3 and len(result) and confident < FEW_CONFIDENT_SHARE * len(result):
-        logger.warning("%s: only %d of its %d persons are seen by three or more views with a positive score, too few "
-                       "to correct the views' pose errors from the crowd: most of its persons may be chance groupings "
-                       "of different persons, whatever their confidence (the model's odds, not a measured rate). More "
-                       "narrow views sharing the crowd, or a calibration with narrower bands, is what helps",
-                       frame, confident, len(result))
+@dataclass
+class FrameNotes:
+    """What a command's frames warn of, said once a kind with the frames named (:meth:`say`): per frame, a CSV of
+    hundreds would bury the terminal under one warning repeated."""
+
+    few_confident: list[tuple[str, int, int]] = field(default_factory=list)  # (frame, confident persons, persons)
+    two_views: list[tuple[str, int]] = field(default_factory=list)  # (frame, persons)
+    no_bands: list[str] = field(default_factory=list)  # frames whose views have no band between them
+
+    def add(self, frame: str, result: FrameResult, options: AssociateOptions, carried: bool = False) -> None:
+        """Note where few of a frame's persons are the kind the views' corrections rest on (three or more views, a
+        positive score; not for a frame whose views carry an earlier frame's corrections): there the views keep the
+        run's pose errors and chance groupings of different persons dominate, whatever each person's confidence
+        says. A frame of two views has none of that kind: it is noted as such, whatever its persons."""
+        if len(result.views) == 2:  # with or without persons: the frame cannot confirm one
+            self.two_views.append((frame, len(result)))
+            return
+        if not len(result):
+            return
+        confident = len(_confident(result.members, result.scores, options))
+        # a share, not a count, so that a small crowd every view sees clearly does not warn
+        if not carried and len(result.views) >= 3 and confident < FEW_CONFIDENT_SHARE * len(result):
+            self.few_confident.append((frame, confident, len(result)))
+
+    def say(self) -> None:
+        if self.no_bands:
+            logger.warning("%s: " + NO_BANDS.format(its="their" if len(self.no_bands) > 1 else "its"),
+                           _named([(f, "") for f in self.no_bands]))
+        if len(self.few_confident) == 1:
+            (frame, confident, persons), = self.few_confident
+            head = f"{frame}: only {confident} of its {persons} persons are"
+        else:
+            head = _named([(f, f"{c} of {n} persons") for f, c, n in self.few_confident]) + ": only those are"
+        if self.few_confident:
+            logger.warning("%s seen by three or more views with a positive score, too few to correct the views' pose "
+                           "errors from the crowd: most of the persons may be chance groupings of different persons, "
+                           "whatever their confidence (the model's odds, not a measured rate). More narrow views "
+                           "sharing the crowd, or a calibration with narrower bands, is what helps", head)
+        if self.two_views:
+            logger.warning("%s: two narrow views only, so no person there is confirmed by a third: each is a pair of "
+                           "detections on each other's epipolar band, which two different persons on one band make as "
+                           "well, and the views' pose errors are not corrected from the crowd; any person may be a "
+                           "chance pairing, whatever its confidence. A third narrow view sharing the crowd is what "
+                           "confirms them", _named([(f, f"{n} persons") for f, n in self.two_views]))
+
+
+def _named(frames: list[tuple[str, str]]) -> str:
+    """``frame`` alone, or 'N frames (a: what, b: what, ...)' with ``SHOWN_FRAMES`` of them."""
+    if len(frames) == 1 and not frames[0][1]:
+        return frames[0][0]
+    shown = ", ".join(f"{f}: {what}" if what else f for f, what in frames[:SHOWN_FRAMES])
+    more = ", ..." if len(frames) > SHOWN_FRAMES else ""
+    return f"{frames[0][0]} ({frames[0][1]})" if len(frames) == 1 else f"{len(frames)} frames ({shown}{more})"
 
 
 def refuse_workspace_files(dest: Path, workspace: Workspace) -> None:

@@ -182,9 +182,26 @@ def _log_console() -> Console:
     return _LOG_CONSOLE[0]
 
 
+class _FirstWorkProgress(Progress):
+    """Progress bars shown from the first report of work on: an error before any (a wrong path, a refused input)
+    is the command's only output, not an empty display left above it (a blank line where stdout is piped)."""
+
+    def __enter__(self) -> _FirstWorkProgress:
+        return self
+
+    def update(self, task_id: TaskID, **kwargs) -> None:  # type: ignore[override]
+        if not self.live.is_started:
+            self.start()
+        super().update(task_id, **kwargs)
+
+    def stop(self) -> None:
+        if self.live.is_started:  # rich's own stop ends a display never shown with a blank line where not a terminal
+            super().stop()
+
+
 def progress_bars() -> Progress:
-    return Progress(TextColumn("{task.description:<15}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
-                    console=console, transient=False)
+    return _FirstWorkProgress(TextColumn("{task.description:<15}"), BarColumn(), MofNCompleteColumn(),
+                              TimeElapsedColumn(), console=console, transient=False)
 
 
 class StageProgress:

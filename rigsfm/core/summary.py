@@ -62,6 +62,17 @@ class NarrowUncertaintySummary:
     rotation_sigma_deg: float | None = None
     centre_covariance_mm2: list[list[float]] | None = None  # 3x3, in the camera's axes (x right, y down, z forward)
     rotation_covariance_deg2: list[list[float]] | None = None  # 3x3, in the camera's axes
+    # A result that is not metric has no millimetre: its centre values are in the mapping unit here, and the _mm keys
+    # null (as scale.metres_per_mapping_unit is)
+    centre_sigma_units: float | None = None
+    centre_covariance_units2: list[list[float]] | None = None
+
+    def centre_sigma_in_model_units(self) -> float | None:
+        """The centre's 1 sigma in the model's unit (metres where metric); summaries of older runs without a scale
+        wrote the mapping unit's thousandths under ``centre_sigma_mm``."""
+        if self.centre_sigma_mm is not None:
+            return self.centre_sigma_mm / 1000.0
+        return self.centre_sigma_units
 
 
 @dataclass(kw_only=True)

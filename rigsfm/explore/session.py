@@ -83,7 +83,7 @@ class ExploreResult:
                 sigma = sigmas.get(image.name)
                 self.views[image.name] = View(
                     image.name, self.reconstruction.cameras[image.camera_id], image.cam_from_world(),
-                    centre_sigma_m=1e-3 * (getattr(sigma, "centre_sigma_mm", None) or 0.0),
+                    centre_sigma_m=(sigma.centre_sigma_in_model_units() if sigma is not None else None) or 0.0,
                     rotation_sigma_rad=math.radians(getattr(sigma, "rotation_sigma_deg", None) or 0.0))
         self.pose_uncertainty = bool(sigmas)
         folder = images if images is not None else (Path(summary.inputs.images) if summary and summary.inputs.images

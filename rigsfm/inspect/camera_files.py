@@ -333,7 +333,12 @@ def _undistorted_images(reconstruction: pycolmap.Reconstruction, cameras: Sequen
 
 def _warn_missing_views(paths: list[Path], dest: Path) -> None:
     """One warning where a camera lacks a frame the others have (its narrow image was not registered or not given):
-    multi-view detectors read every camera in every frame."""
+    multi-view detectors read every camera in every frame.
+
+    Not ``rigsfm.run.inputs.images.rigs_missing_frames``, though alike: that one reads the images given (wide, every
+    rig of rigs.yaml, a rig with none lacking all) and names a frame only a minority of rigs has as that rig's extra
+    file; this one reads the narrow images exported (registered ones, only the cameras written), where any frame not
+    in every camera, however many have it, is one a loader cannot read."""
     frames: dict[str, set[str]] = {}
     for path in paths:
         frames.setdefault(path.parent.name, set()).add(path.name)

@@ -457,7 +457,7 @@ def _run_locked(workspace: Workspace, inputs: Inputs, manual_pairs: dict, option
         summary.warnings.append(pairs_warning)
     if options.manual_matches is not None:
         summary.manual_matches = manual_matches_summary(options.manual_matches, manual_reports)
-    summary.uncertainty = uncertainty_summary(result, uncertainty)
+    summary.uncertainty = uncertainty_summary(result, uncertainty, metric=metric)
     if uncertainty.covariance is None:
         summary.warnings.append(NO_COVARIANCE)
     write_json_atomic(workspace.summary, summary.to_json())

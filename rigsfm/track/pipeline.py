@@ -188,6 +188,8 @@ def track(out: Path, new_images: Path, options: TrackOptions | None = None, *,
             if progress:
                 progress(done[0], len(todo))
 
+        if progress:  # the work starts: its bar from here
+            progress(0, len(todo))
         try:
             with colmap_log_to(workspace.colmap_log):  # glog's lines (every extractor's start) are not the user's
                 run_frames(todo, reference, on_result, executor=str(options.executor), workers=options.workers,

@@ -136,8 +136,18 @@ def pairs_section(narrow: dict) -> str:
                      "band 95 % (px)", "F_ji"], rows, left=2))
 
 
+def _translation(change: dict, what: str, metric: bool) -> float | None:
+    """E^sl's translation ``change`` or ``sigma`` of a refined_calibration row, in mm where ``metric``, else in the
+    mapper's unit (summaries of older runs without a scale wrote its thousandths under the _mm key)."""
+    if metric:
+        return change.get(f"narrow_from_wide_translation_{what}_mm")
+    units, thousandths = (change.get(f"narrow_from_wide_translation_{what}_{u}") for u in ("units", "mm"))
+    return units if units is not None or thousandths is None else thousandths / 1000.0
+
+
 def uncertainty_section(narrow: dict, summary: Summary | None = None) -> str:
     u = summary.uncertainty if summary else None
+    metric = bool(narrow.get("metric"))
     parts, calibration = ["<h2>Uncertainty</h2>"], []
     if u is None or u.covariance is None:
         parts.append('<p class="warn">No joint covariance of poses and calibration could be estimated: no bands.</p>'
@@ -165,23 +175,22 @@ def uncertainty_section(narrow: dict, summary: Summary | None = None) -> str:
             "uncertainties are 1 sigma (root of the trace of the 3x3 covariance) relative to the network as a whole "
             "(its mean centre and orientation held).</p>")
         if u.narrow:
-            # without a scale the adjustment's 'mm' are thousandths of the mapper's unit: no millimetre is claimed
-            metric = bool(narrow.get("metric"))
-            per = 1.0 if metric else 1000.0
+            # without a scale there is no millimetre to claim: the mapper's unit
             parts.append(table(["narrow camera", "centre σ (mm)" if metric else "centre σ (units)",
                                 "rotation σ (deg)"],
-                               [[esc(name), fmt(None if v.centre_sigma_mm is None else v.centre_sigma_mm / per, 3),
+                               [[esc(name), fmt(v.centre_sigma_mm if metric else v.centre_sigma_in_model_units(), 3),
                                  fmt(v.rotation_sigma_deg, 3)] for name, v in sorted(u.narrow.items())]))
         if u.refined_calibration:
             rows = [[esc(camera), fmt(c.get("focal_change_percent"), 3), fmt(c.get("principal_point_change_px"), 3),
                      fmt(c.get("narrow_from_wide_rotation_change_deg"), 3),
                      fmt(c.get("narrow_from_wide_rotation_sigma_deg"), 3),
-                     fmt(c.get("narrow_from_wide_translation_change_mm"), 3),
-                     fmt(c.get("narrow_from_wide_translation_sigma_mm"), 3), "yes" if c.get("observed") else "no"]
+                     fmt(_translation(c, "change", metric), 3), fmt(_translation(c, "sigma", metric), 3),
+                     "yes" if c.get("observed") else "no"]
                     for camera, c in sorted(u.refined_calibration.items())]
+            unit = "mm" if metric else "units"
             calibration.append("<h3>Calibration refined from rigs.yaml</h3>" + table(
                 ["camera", "focal change (%)", "principal point change (px)", "E^sl rotation change (deg)",
-                 "E^sl rotation σ (deg)", "E^sl translation change (mm)", "E^sl translation σ (mm)",
+                 "E^sl rotation σ (deg)", f"E^sl translation change ({unit})", f"E^sl translation σ ({unit})",
                  "observed by images"], rows))
     ranges = {(p["i"], p["j"]): p for p in narrow.get("pairs", [])}
     rows = []

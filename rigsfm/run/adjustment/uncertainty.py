@@ -77,10 +77,12 @@ def estimate_uncertainty(result: AdjustResult, num_samples: int = 400, seed: int
     return Uncertainty(covariance, narrow, bands, floor_source, seconds, sampled)
 
 
-def calibration_changes(result: AdjustResult, covariance: JointCovariance | None) -> dict[str, dict]:
+def calibration_changes(result: AdjustResult, covariance: JointCovariance | None, metric: bool = True
+                        ) -> dict[str, dict]:
     """Per camera ``<rig>/<sensor>`` with refined intrinsics: focal and principal-point change from rigs.yaml and
-    their posterior sigma; per narrow camera also E^sl's rotation (deg) and translation (mm) change and sigma.
-    Empty for a fixed calibration."""
+    their posterior sigma; per narrow camera also E^sl's rotation (deg) and translation (mm; not ``metric``: in the
+    mapping unit, ``_units`` keys, the ``_mm`` ones null) change and sigma. Empty for a fixed calibration."""
+    per_metre, unit = (1000.0, "mm") if metric else (1.0, "units")
     if result.calibration != Calibration.REFINE:
         return {}
     rec = result.reconstruction
@@ -92,7 +94,7 @@ def calibration_changes(result: AdjustResult, covariance: JointCovariance | None
             continue
         camera = rec.cameras[image.camera_id]
         before = by_name[name.rig].camera(name.sensor)
-        row = {"focal_change_percent": 100.0 * (camera.mean_focal_length() / before.mean_focal_length() - 1.0),
+        row: dict[str, float | None] = {"focal_change_percent": 100.0 * (camera.mean_focal_length() / before.mean_focal_length() - 1.0),
                "principal_point_change_px": float(np.hypot(camera.principal_point_x - before.principal_point_x,
                                                            camera.principal_point_y - before.principal_point_y))}
         key = ("camera", image.camera_id)
@@ -103,20 +105,36 @@ def calibration_changes(result: AdjustResult, covariance: JointCovariance | None
             prior = by_name[name.rig].narrow_from_wide
             delta = sensor.rotation * prior.rotation.inverse()
             row["narrow_from_wide_rotation_change_deg"] = float(np.degrees(delta.angle()))
-            row["narrow_from_wide_translation_change_mm"] = 1000.0 * float(
+            if not metric:
+                row["narrow_from_wide_translation_change_mm"] = row["narrow_from_wide_translation_sigma_mm"] = None
+            row[f"narrow_from_wide_translation_change_{unit}"] = per_metre * float(
                 np.linalg.norm(np.asarray(sensor.translation) - np.asarray(prior.translation)))
             sensor_key = ("sensor_from_rig", image.camera_id)
             if covariance is not None and sensor_key in covariance.offsets:
                 sigma = covariance.sigma(sensor_key)
                 row["narrow_from_wide_rotation_sigma_deg"] = float(np.degrees(np.linalg.norm(sigma[:3])))
-                row["narrow_from_wide_translation_sigma_mm"] = 1000.0 * float(np.linalg.norm(sigma[3:]))
+                row[f"narrow_from_wide_translation_sigma_{unit}"] = per_metre * float(np.linalg.norm(sigma[3:]))
         out[name.camera] = row
     return out
 
 
-def uncertainty_summary(result: AdjustResult, uncertainty: Uncertainty):
-    """The summary.json record of the uncertainty stage (``rigsfm.core.summary.UncertaintySummary``)."""
+def uncertainty_summary(result: AdjustResult, uncertainty: Uncertainty, metric: bool = True):
+    """The summary.json record of the uncertainty stage (``rigsfm.core.summary.UncertaintySummary``); not ``metric``:
+    the centres' values in the mapping unit (``_units`` keys), their ``_mm`` keys null."""
     from rigsfm.core.summary import NarrowUncertaintySummary, PairBandSummary, UncertaintySummary
+
+    def narrow(u) -> NarrowUncertaintySummary:
+        covariance = None if u.centre_covariance_mm2 is None else [list(r) for r in u.centre_covariance_mm2]
+        record = NarrowUncertaintySummary(
+            rotation_sigma_deg=u.rotation_sigma_deg,
+            rotation_covariance_deg2=None if u.rotation_covariance_deg2 is None
+            else [list(r) for r in u.rotation_covariance_deg2])
+        if metric:
+            record.centre_sigma_mm, record.centre_covariance_mm2 = u.centre_sigma_mm, covariance
+        else:  # the adjustment's 'mm' are the mapping unit's thousandths
+            record.centre_sigma_units = u.centre_sigma_mm / 1000.0
+            record.centre_covariance_units2 = None if covariance is None else [[v / 1e6 for v in r] for r in covariance]
+        return record
 
     covariance = uncertainty.covariance
     return UncertaintySummary(
@@ -126,13 +144,8 @@ def uncertainty_summary(result: AdjustResult, uncertainty: Uncertainty):
         floor=uncertainty.floor,
         bands="sampled" if uncertainty.sampled else "linear",
         bands_from=uncertainty.bands_from,
-        narrow={name: NarrowUncertaintySummary(
-            centre_sigma_mm=u.centre_sigma_mm, rotation_sigma_deg=u.rotation_sigma_deg,
-            centre_covariance_mm2=None if u.centre_covariance_mm2 is None else [list(r) for r in u.centre_covariance_mm2],
-            rotation_covariance_deg2=None if u.rotation_covariance_deg2 is None
-            else [list(r) for r in u.rotation_covariance_deg2])
-                for name, u in uncertainty.narrow.items()},
+        narrow={name: narrow(u) for name, u in uncertainty.narrow.items()},
         pairs=[PairBandSummary(i=i, j=j, band_px=b.band_px, points=b.points, predicted_below_85=b.predicted_below_85)
                for (i, j), b in sorted(uncertainty.bands.items())],
-        refined_calibration=calibration_changes(result, covariance),
+        refined_calibration=calibration_changes(result, covariance, metric),
     )

@@ -70,6 +70,11 @@ def held_out_check(model: pycolmap.Reconstruction, pairs: list[PairMatches], ban
     return checks
 
 
+NOT_METRIC = ("the result is not metric, so the narrow images are not matched: each narrow camera's pose follows from "
+              "its wide camera's through rigs.yaml's E^sl alone (its offset's metres taken as the mapper's units); give "
+              "a scale.yaml")
+
+
 def narrow_observations(result, world, image_dir: Path, asked: NarrowMode, options: SelfCheckOptions | None = None,
                         offsets: dict[str, int] | None = None, bands: dict | None = None, threads: int = 1,
                         progress: Callable[[int, int], None] | None = None
@@ -83,7 +88,7 @@ def narrow_observations(result, world, image_dir: Path, asked: NarrowMode, optio
     if asked == NarrowMode.OFF:
         return None, NarrowObservations(str(asked), False, "not asked (--narrow off)")
     if not world.metric:
-        return None, NarrowObservations(str(asked), False, "the result is not metric: the narrow poses are unknown")
+        return None, NarrowObservations(str(asked), False, NOT_METRIC)
     floor_model = pycolmap.Reconstruction(result.reconstruction)
     floor_frame = world.frame == "floor"
     if floor_frame:

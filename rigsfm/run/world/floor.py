@@ -91,12 +91,14 @@ def axes_convergence(reconstruction: pycolmap.Reconstruction) -> np.ndarray | No
 
 
 def guess_floor(reconstruction: pycolmap.Reconstruction, markers: np.ndarray | None = None,
-                options: FloorOptions | None = None) -> tuple[np.ndarray, float, str] | NoFloor:
+                options: FloorOptions | None = None, sparse: FloorFit | NoFloor | None = None
+                ) -> tuple[np.ndarray, float, str] | NoFloor:
     """A rough floor plane (normal, offset, how) to warp images with, in order of preference: a floor fitted
     to the sparse points; the up prior through the markers' mean height; the up prior through the 2nd
     percentile of the heights of the sparse points below the cameras (the floor is the lowest large surface);
-    the up prior through the point where the cameras' optical axes converge, if it lies below every camera."""
-    fit = fit_floor(reconstruction, markers, options, quiet=True)
+    the up prior through the point where the cameras' optical axes converge, if it lies below every camera.
+    ``sparse``: that fit where the caller made it already (a failed fit draws every RANSAC triple: seconds)."""
+    fit = fit_floor(reconstruction, markers, options, quiet=True) if sparse is None else sparse
     if fit:
         return fit.normal, fit.offset, "sparse points"  # type: ignore[union-attr]  # NoFloor is falsy: a FloorFit here
     up, _ = up_prior(reconstruction)
@@ -175,7 +177,8 @@ def estimate_floor(reconstruction: pycolmap.Reconstruction, image_dir=None, mark
     logger.info("floor: matching the floor between images (%s)", shortfall)
     start = time.perf_counter()
     # NoFloor is falsy: a FloorFit here
-    guess = (sparse.normal, sparse.offset, "sparse points") if sparse else guess_floor(reconstruction, markers, opt)  # type: ignore[union-attr]
+    guess = (sparse.normal, sparse.offset, "sparse points") if sparse else guess_floor(reconstruction, markers, opt,  # type: ignore[union-attr]
+                                                                                       sparse)
     if not guess:
         return FloorEstimate(guess, shortfall, seconds=time.perf_counter() - start)
     normal, offset, how = guess  # type: ignore[misc]  # NoFloor is falsy: a tuple here
@@ -185,18 +188,18 @@ def estimate_floor(reconstruction: pycolmap.Reconstruction, image_dir=None, mark
 
     def rounds_from(normal: np.ndarray, offset: float, matched=None) -> tuple[FloorFit | NoFloor, int, int, int]:
         """Match, fit, and match again through the fit while it moved (fit, rounds, image pairs, matches);
-        ``matched``: the first round's matches where they were made already (not counted again)."""
+        ``matched``: the first round's matches and their fit where they were made already (not counted again)."""
         fit: FloorFit | NoFloor = NoFloor("no matching round ran")
         rounds = pairs = found = 0
         for _ in range(max(1, max_rounds)):
             if matched is not None:
-                matches, matched = matched, None
+                (matches, fit), matched = matched, None
             else:
                 matches = match_floor_points(reconstruction, image_dir, normal, offset, match_options, images=images)
                 rounds, pairs = rounds + 1, pairs + len(matches.pairs)
+                fit = fit_floor(reconstruction, markers, opt, extra_points=matches.points, x_towards=x_towards,
+                                quiet=True)
             found = len(matches)
-            fit = fit_floor(reconstruction, markers, opt, extra_points=matches.points, x_towards=x_towards,
-                            quiet=True)
             if not fit or sparse_floor_shortfall(fit, reconstruction, opt) is None:
                 break  # no floor, or precise enough
             # NoFloor is falsy: a FloorFit here
@@ -214,18 +217,21 @@ def estimate_floor(reconstruction: pycolmap.Reconstruction, image_dir=None, mark
         # and a warp through a plane that high matches little: the plane lowered step by step, the one matching
         # the most floor points (with a floor fitted to them) is where the rounds start again.
         height = float(np.median(centres @ normal + offset))
-        best = None  # (its matches, the lowered offset)
+        best = None  # (its matches, their fit, the lowered offset)
         for step in LOWER_STEPS:
             lowered = offset + step * height
             matches = match_floor_points(reconstruction, image_dir, normal, lowered, match_options, images=images)
             pairs += len(matches.pairs)
-            if fit_floor(reconstruction, markers, opt, extra_points=matches.points, quiet=True) \
-                    and (best is None or len(matches) > len(best[0])):
-                best = (matches, lowered)
+            if best is not None and len(matches) <= len(best[0]):
+                continue  # it cannot be chosen, whatever its fit (a failed fit draws every RANSAC triple: seconds)
+            step_fit = fit_floor(reconstruction, markers, opt, extra_points=matches.points, x_towards=x_towards,
+                                 quiet=True)
+            if step_fit:
+                best = (matches, step_fit, lowered)
         logger.info("floor guess lowered: %s", "no step fits a floor" if best is None else
-                    f"{(best[1] - offset) / height:.0%} of the camera height matched the most ({len(best[0])} points)")
-        if best is not None:  # its matches are the rounds' first: matched once
-            lowered_fit, more_rounds, more_pairs, found = rounds_from(normal, best[1], best[0])
+                    f"{(best[2] - offset) / height:.0%} of the camera height matched the most ({len(best[0])} points)")
+        if best is not None:  # its matches and fit are the rounds' first: matched and fitted once
+            lowered_fit, more_rounds, more_pairs, found = rounds_from(normal, best[2], best[:2])
             fit, rounds, pairs = lowered_fit, rounds + len(LOWER_STEPS) + more_rounds, pairs + more_pairs
     if not fit and sparse:
         fit = sparse  # the matches did not help: keep the sparse floor

@@ -17,9 +17,11 @@ GRID = np.linspace(0.02, 0.98, 97)
 
 def truncated_binomial_p(members: np.ndarray, seen: np.ndarray, at_least: int = 2) -> float | None:
     """Maximum-likelihood detection probability of groups with ``members`` detections among ``seen`` views that
-    see them, each group known to hold at least ``at_least`` (a grid over 0.02-0.98). None without usable groups."""
+    see them, each group known to hold at least ``at_least`` (a grid over 0.02-0.98). None without usable groups:
+    a group seen by only ``at_least`` views holds all of them whatever the probability, so it tells nothing (two
+    views' persons alone would otherwise give the grid's first value, and every person would score as unlikely)."""
     k, n = np.asarray(members, dtype=np.int64), np.asarray(seen, dtype=np.int64)
-    ok = (n >= at_least) & (k >= at_least) & (k <= n)
+    ok = (n > at_least) & (k >= at_least) & (k <= n)
     k, n = k[ok], n[ok]
     if not len(k):
         return None

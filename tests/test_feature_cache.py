@@ -95,3 +95,22 @@ def test_features_come_back_bit_identical_and_only_for_the_same_file_and_setting
     before = sorted((p.name, p.stat().st_mtime_ns) for p in cache.iterdir())
     assert extract(dataset.images, dataset.rigs, "off")[1:] == (2, 0)
     assert sorted((p.name, p.stat().st_mtime_ns) for p in cache.iterdir()) == before
+
+
+def test_a_stage_with_everything_kept_reports_itself_done(rendered, tmp_path):
+    """A re-run whose features and matches are all in the database reports each stage complete: before, neither
+    counted anything, and their bars kept '0/?' and a running clock for the whole run."""
+    from rigsfm.run.matching.match import match_features
+
+    dataset = rendered(SCENE)
+    inputs = load_inputs(dataset.images, dataset.rigs)
+    db_path = create_database(tmp_path / "db.db", inputs.rigs, inputs.images)
+    options = MatchingOptions()
+    extract_features(db_path, dataset.images, inputs.images, options)
+    match_features(db_path, inputs.images, options, tmp_path / "pairs.txt")
+    reports: dict[str, list] = {"features": [], "matching": []}
+    extract_features(db_path, dataset.images, inputs.images, options,
+                     lambda done, total: reports["features"].append((done, total)))
+    match_features(db_path, inputs.images, options, tmp_path / "pairs.txt",
+                   lambda done, total: reports["matching"].append((done, total)))
+    assert reports == {"features": [(2, 2)], "matching": [(1, 1)]}, reports

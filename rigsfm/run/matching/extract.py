@@ -155,9 +155,10 @@ def extract_features(
     (:mod:`rigsfm.run.matching.feature_cache`) and new ones are added to it."""
     with open_database(database_path) as database:
         ids = {image.name: image.image_id for image in database.read_all_images()}
-        todo = [
-            e.name for e in featured_images(images, options) if not database.exists_keypoints(ids[e.name])
-        ]
+        featured = [e.name for e in featured_images(images, options)]
+        todo = [name for name in featured if not database.exists_keypoints(ids[name])]
+    if progress and not todo:  # every image's features kept from before: the stage is done, not still counting
+        progress(len(featured), len(featured))
     first_octave = resolved_first_octave(database_path, images, options)
     paths = {e.name: e.path for e in images}
     cache = FeatureCache.from_environment(_cache_settings(options, first_octave))

@@ -39,6 +39,8 @@ def match_features(
     with open_database(database_path) as database:
         ids = {image.name: image.image_id for image in database.read_all_images()}
         todo = [(a, b) for a, b in selection.pairs if not database.exists_two_view_geometry(ids[a], ids[b])]
+    if progress and not todo:  # every pair verified before: the stage is done, not still counting
+        progress(len(selection.pairs), len(selection.pairs))
     gpu = use_gpu(options.device)
     matching = pycolmap.FeatureMatchingOptions(
         num_threads=num_threads, use_gpu=gpu, rig_verification=options.resolved_rig_verification

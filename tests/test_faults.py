@@ -415,9 +415,12 @@ def test_an_overwrite_stopped_after_the_new_model_is_written_is_not_taken_for_th
         raise KeyboardInterrupt
 
     monkeypatch.setattr(rigsfm.run.pipeline, "_self_check", stopped)
+    assert (copy / "report.html").is_file()
     with pytest.raises(KeyboardInterrupt):
         rigsfm.run.pipeline.run(dataset.images, dataset.rigs, copy, dataset.scale, RunOptions(overwrite=True))
     assert (copy / "narrow_poses.json").is_file() and not (copy / "summary.json").exists()
+    # nor the old report.html, which showed the replaced result's numbers beside the new model (a new recording's)
+    assert not (copy / "report.html").exists()
     Workspace(copy).prepare(overwrite=False)  # unfinished: the same command without --overwrite finishes it
 
 

@@ -423,8 +423,10 @@ def _run_locked(workspace: Workspace, inputs: Inputs, manual_pairs: dict, option
             world.apply(result.reconstruction)  # a rigid move: the bands and sigmas above are unchanged by it
             ground = ground_maps(result.reconstruction, world.plane_heights) if world.plane_heights else None
             # an --overwrite run's files replace the old result's from here: without its summary.json the workspace
-            # reads as unfinished until this run writes its own, not as the old summary over the new model
+            # reads as unfinished until this run writes its own, not as the old summary over the new model; nor is the
+            # old report.html left to show the replaced result until then
             workspace.summary.unlink(missing_ok=True)
+            workspace.report.unlink(missing_ok=True)
             write_model(result.reconstruction, workspace.sparse, overwrite=True)
             poses = narrow_poses(result.reconstruction, metric=metric, bands=uncertainty.bands, world=world.to_dict(),
                                  ground=ground)

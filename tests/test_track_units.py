@@ -206,8 +206,7 @@ def _tracked_against(out, model: bytes):
     """OUT with a model (sparse/) and a tracking series made against it."""
     import json
 
-    from rigsfm.core.workspace import Workspace
-    from rigsfm.track.reference import model_fingerprint
+    from rigsfm.core.workspace import Workspace, model_fingerprint
 
     workspace = Workspace(out)
     workspace.sparse.mkdir(parents=True)

@@ -7,7 +7,7 @@ import html
 from pathlib import Path
 
 from rigsfm.core.summary import Summary
-from rigsfm.core.workspace import Workspace, read_json
+from rigsfm.core.workspace import Workspace, model_fingerprint, read_json
 
 VERDICT_STYLE = {"stable": "color:#2a7d2a", "shaking": "color:#c77700", "moved": "color:#c0392b;font-weight:bold"}
 
@@ -21,8 +21,6 @@ def track_report_section(out: Path) -> str:
     if not paths.poses_json.is_file():
         return '<section id="track"><h2>Pose tracking</h2><p>No tracking results (run <code>rigsfm track</code>).</p></section>'
     poses = read_json(paths.poses_json, "re-run `rigsfm track OUT NEW_IMAGES --overwrite`", keys=("thresholds", "rigs"))
-    from rigsfm.track.reference import model_fingerprint
-
     workspace = Workspace(Path(out))
     if poses.get("reference", {}).get("fingerprint") != model_fingerprint(workspace.sparse):
         # as `rigsfm track` refuses to extend them: a `rigsfm run --overwrite` since replaced the model

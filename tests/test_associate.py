@@ -27,6 +27,7 @@ from rigsfm.associate.output import FRAME_FILES, LEGACY_MARKER, MANIFEST, cells_
 from rigsfm.associate.report import associate_report_section
 from rigsfm.cli import app
 from rigsfm.core.ground import footprint
+from rigsfm.core.workspace import Workspace, model_fingerprint
 
 sys.path.insert(0, str(Path(__file__).parent))
 from bad_inputs_table import CASES, run_case
@@ -197,6 +198,23 @@ def test_reliability_bins_persons_by_confidence_and_counts_the_right_ones():
                     {"bin": [0.95, 1.0], "persons": 2, "mean_confidence": 0.985, "right": 0.5}]
 
 
+def test_the_report_does_not_show_the_persons_of_a_replaced_result(tmp_path):
+    """After `rigsfm run --overwrite` (a new recording, rigs moved) report.html showed OUT/associate's persons,
+    found with the replaced result's poses, as this result's."""
+    workspace = Workspace(tmp_path)
+    workspace.sparse.mkdir()
+    (workspace.sparse / "images.bin").write_bytes(b"the model associated in")
+    (workspace.associate / "frame0000").mkdir(parents=True)
+    (workspace.associate / "frame0000" / "persons.json").write_text(
+        json.dumps({"frame": "frame0000.png", "views": [], "persons": [], "unassigned": []}))
+    (workspace.associate / ".rigsfm-associate.json").write_text(
+        json.dumps({"written_by": "rigsfm associate", "model": model_fingerprint(workspace.sparse)}))
+    assert "<td>frame0000.png</td>" in associate_report_section(tmp_path)
+    (workspace.sparse / "images.bin").write_bytes(b"the model of a run --overwrite")
+    section = associate_report_section(tmp_path)
+    assert "<td>frame0000.png</td>" not in section and "earlier result" in section and "--overwrite" in section
+
+
 def test_cli_writes_every_output_and_joins_back(crowd, tmp_path):
     dataset, out = crowd
     _, truth = _detections(dataset, out, seed=1)
@@ -233,6 +251,8 @@ def test_cli_writes_every_output_and_joins_back(crowd, tmp_path):
     assert (cells_seen(narrow, (*lo, *hi), 1.0, 1.55) >= 2).sum() == (density[:, 6] >= 2).sum()
     again = CliRunner().invoke(app, ["associate", str(out), str(csv_path), "--out", str(dest)])
     assert again.exit_code == 1 and "--overwrite" in again.output
+    # the manifest names the run's model the persons were found in (report.html shows them only beside it)
+    assert json.loads((dest / ".rigsfm-associate.json").read_text())["model"] == model_fingerprint(out / "sparse")
     # report.html's section, where the association is in the workspace's default folder
     shutil.copytree(dest, tmp_path / "workspace" / "associate")
     section = associate_report_section(tmp_path / "workspace")

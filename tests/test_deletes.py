@@ -425,6 +425,21 @@ def test_calibrate_refuses_a_report_folder_with_the_users_files_before_calibrati
     assert mine.read_text() == "the user's notes" and not (tmp_path / "new_rigs.yaml").exists()
 
 
+def test_calibrate_never_replaces_the_users_summary_txt_in_the_report_folder(tmp_path):
+    """`--report-dir reports` (or rigs.calibration/ beside a new rigs.yaml) holding the user's own summary.txt: it
+    was replaced by the calibration's summary, no --overwrite asked; the rig folders alone were checked."""
+    data = Path(__file__).parent / "data" / "opencv-stereo"  # real board images: on the old code it calibrated
+    mine = tmp_path / "reports" / "summary.txt"
+    mine.parent.mkdir(parents=True)
+    mine.write_text("the user's summary of last week's survey")
+    result = invoke("calibrate", data / "board", "--board", data / "board.yaml", "--out", tmp_path / "new_rigs.yaml",
+                    "--report-dir", tmp_path / "reports")
+    assert result.exit_code == 1
+    assert (f"'{mine}' is not a summary rigsfm calibrate wrote; move it away or choose another --report-dir (nothing "
+            "was written)") in one_error_line(result)
+    assert mine.read_text() == "the user's summary of last week's survey" and not (tmp_path / "new_rigs.yaml").exists()
+
+
 def test_a_model_folder_is_replaced_only_while_it_holds_rigsfm_files(out):
     from rigsfm.core.errors import WorkspaceError
     from rigsfm.run.deliver import write_model

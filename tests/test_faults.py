@@ -143,6 +143,20 @@ def test_a_second_run_on_one_out_is_refused_with_the_first_ones_pid(scene):
     assert (out / "summary.json").is_file()
 
 
+def test_report_on_an_out_in_use_is_refused_and_writes_nothing(scene, tmp_path):
+    """`rigsfm report OUT` while a `rigsfm run --overwrite` held OUT wrote the old result's report.html among the
+    run's files, exit 0 (README: one command at a time writes an OUT)."""
+    _, out = scene
+    copy = copy_workspace(out, tmp_path)
+    (copy / "report.html").unlink()
+    with Workspace(copy).lock():
+        result = invoke("report", copy)
+    assert result.exit_code == 1
+    assert f"'{copy}' is in use by process {os.getpid()} (another rigsfm command)" in one_error_line(result)
+    assert not (copy / "report.html").exists()
+    assert invoke("report", copy).exit_code == 0 and (copy / "report.html").is_file()
+
+
 def _run_isolated(wrapper: list[str], dataset, out: Path, setup: str = "") -> subprocess.CompletedProcess:
     """`rigsfm run` in a child process under ``wrapper`` (unshare, setpriv), after the shell commands ``setup``."""
     command = (f"{setup} {sys.executable} -m rigsfm run {dataset.images} --rigs {dataset.rigs} --scale "
@@ -415,9 +429,12 @@ def test_an_overwrite_stopped_after_the_new_model_is_written_is_not_taken_for_th
         raise KeyboardInterrupt
 
     monkeypatch.setattr(rigsfm.run.pipeline, "_self_check", stopped)
+    assert (copy / "report.html").is_file()
     with pytest.raises(KeyboardInterrupt):
         rigsfm.run.pipeline.run(dataset.images, dataset.rigs, copy, dataset.scale, RunOptions(overwrite=True))
     assert (copy / "narrow_poses.json").is_file() and not (copy / "summary.json").exists()
+    # nor the old report.html, which showed the replaced result's numbers beside the new model (a new recording's)
+    assert not (copy / "report.html").exists()
     Workspace(copy).prepare(overwrite=False)  # unfinished: the same command without --overwrite finishes it
 
 

@@ -197,6 +197,19 @@ def test_manual_merge_is_idempotent_and_drops_stale_rows(scenes, tmp_path):
         assert third.kept < first["kept"]
 
 
+def test_a_run_without_the_csv_no_longer_uses_its_manual_matches(scenes, tmp_path):
+    """The same OUT re-run --overwrite without --manual-matches (the clicks dropped as wrong) kept the merged manual
+    matches in the database: the run registered from them and its summary said no manual matches were used. SIFT
+    alone registers nothing here, so it must stop as a run that never had the CSV does."""
+    _, apart, _ = scenes
+    rows, _ = synthetic_correspondences(apart, seed=3)
+    options = RunOptions(world=WorldOptions(frame=WorldFrame.MAPPING), self_check=SelfCheckOptions(enabled=False))
+    run(apart.images, apart.rigs, tmp_path / "out", apart.scale,
+        replace(options, manual_matches=write_manual_matches(tmp_path / "m.csv", rows)))
+    with pytest.raises(ReconstructionError, match="manual correspondences"):
+        run(apart.images, apart.rigs, tmp_path / "out", apart.scale, replace(options, overwrite=True))
+
+
 def _csv(tmp_path, text):
     path = tmp_path / "m.csv"
     path.write_text(text)

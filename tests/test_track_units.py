@@ -194,13 +194,41 @@ def test_the_report_says_the_tracking_millimetres_are_not_on_a_result_without_sc
     """report.html's tracking section gave a run without scale its thresholds and shifts in mm without a word."""
     import json
 
-    from rigsfm.core.workspace import Workspace
     from rigsfm.track.report import track_report_section
 
-    poses = Workspace(tmp_path).track.poses_json
-    poses.parent.mkdir(parents=True)
-    poses.write_text(json.dumps({"thresholds": {"rotation_deg": 0.05, "translation_mm": 5.0, "significance_chi2": 16.27},
-                                 "rigs": {}}))
+    _tracked_against(tmp_path, b"model")
     for metric in (True, False):
         (tmp_path / "summary.json").write_text(json.dumps({"metric": metric}))
         assert ("Not metric" in track_report_section(tmp_path)) is (not metric)
+
+
+def _tracked_against(out, model: bytes):
+    """OUT with a model (sparse/) and a tracking series made against it."""
+    import json
+
+    from rigsfm.core.workspace import Workspace, model_fingerprint
+
+    workspace = Workspace(out)
+    workspace.sparse.mkdir(parents=True)
+    (workspace.sparse / "images.bin").write_bytes(model)
+    workspace.track.root.mkdir(parents=True)
+    rig = {"frames": [{"frame": "f0.png", "status": "registered"}],
+           "verdict": {"verdict": "stable", "steps": [], "flagged_frames": 0, "jitter_rotation_deg": 0.001,
+                       "jitter_translation_mm": 0.1}}
+    workspace.track.poses_json.write_text(json.dumps({
+        "reference": {"sparse": str(workspace.sparse), "fingerprint": model_fingerprint(workspace.sparse)},
+        "thresholds": {"rotation_deg": 0.05, "translation_mm": 5.0, "significance_chi2": 16.27},
+        "rigs": {"rig01": rig}}))
+    return workspace
+
+
+def test_the_report_does_not_show_the_tracking_of_a_replaced_result(tmp_path):
+    """After `rigsfm run --overwrite` on a new recording, report.html showed OUT/track's verdicts, made against the
+    replaced model (rigs since moved read 'stable'), as this result's; `rigsfm track` itself refuses that series."""
+    from rigsfm.track.report import track_report_section
+
+    workspace = _tracked_against(tmp_path, b"the model tracked against")
+    assert "stable" in track_report_section(tmp_path)
+    (workspace.sparse / "images.bin").write_bytes(b"the model of a run --overwrite")
+    section = track_report_section(tmp_path)
+    assert "stable" not in section and "earlier result" in section and "--overwrite" in section

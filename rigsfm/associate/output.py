@@ -16,7 +16,8 @@
                             per_m2 is nan below two, where nobody could be placed)
   DIR/<frame>/density.png   the same grid as an image (grey: fewer than two views)
   DIR/.rigsfm-associate.json  the files written and their SHA-256: what a later ``--overwrite`` may replace
-                            (rigsfm.core.owned; the user's own files in DIR are never removed)
+                            (rigsfm.core.owned; the user's own files in DIR are never removed); ``model``: the
+                            run's model they were made from (``model_fingerprint``), for report.html
 """
 
 from __future__ import annotations
@@ -259,9 +260,11 @@ def _png(path: Path, image: np.ndarray) -> None:
     path.write_bytes(data.tobytes())
 
 
-def write_results(dest: Path, model, frames: list, options, previous: Previous | None = None) -> Path:
+def write_results(dest: Path, model, frames: list, options, previous: Previous | None = None,
+                  fingerprint: str | None = None) -> Path:
     """Write every frame's files into a temporary folder beside ``dest``, then move them in (``previous``: what
-    :func:`check_destination` allowed to replace)."""
+    :func:`check_destination` allowed to replace; ``fingerprint``: the run's model they were made from, recorded in
+    the manifest as ``model``)."""
     dest = Path(dest)
     dest.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{dest.name}.", suffix=".tmp", dir=dest.parent))
@@ -282,7 +285,7 @@ def write_results(dest: Path, model, frames: list, options, previous: Previous |
             _png(folder / "density.png", density_image(counts, options.cell_m, seen))
             _png(folder / "floor.png", floor_map(frame, prints, bounds, height))
         previous = check_destination(dest, True) if previous is None else previous
-        commit(dest, tmp, previous, MANIFEST, {"written_by": "rigsfm associate"},
+        commit(dest, tmp, previous, MANIFEST, {"written_by": "rigsfm associate", "model": fingerprint},
                option="--out", what="association")
     finally:
         shutil.rmtree(tmp, ignore_errors=True)  # the temporary folder made above: only rigsfm's files

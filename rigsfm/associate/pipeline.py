@@ -25,7 +25,7 @@ from rigsfm.associate.views import View, view_pose_sigmas
 from rigsfm.core.errors import InputError
 from rigsfm.core.io import file_sha256
 from rigsfm.core.names import ImageName, quoted
-from rigsfm.core.workspace import Workspace
+from rigsfm.core.workspace import Workspace, model_fingerprint
 from rigsfm.run.matching.reuse import recorded_contents
 
 logger = logging.getLogger(__name__)
@@ -376,4 +376,4 @@ def associate(out: Path, detections_csv: Path, options: AssociateOptions | None 
     require_floor(model, Path(out))
     refuse_edited(dest, previous, detections.frames())
     frames = associate_frames(model, detections, options, progress)
-    return write_results(dest, model, frames, options, previous)
+    return write_results(dest, model, frames, options, previous, model_fingerprint(workspace.sparse))

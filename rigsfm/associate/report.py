@@ -11,7 +11,8 @@ from pathlib import Path
 
 import numpy as np
 
-from rigsfm.core.workspace import Workspace
+from rigsfm.associate.output import MANIFEST
+from rigsfm.core.workspace import Workspace, model_fingerprint
 
 SHOWN_FRAMES = 20  # table rows; the frames after them are summed up in one line
 
@@ -61,13 +62,28 @@ def _figure(path: Path, caption: str) -> str:
             f"<figcaption>{html.escape(caption)}</figcaption></figure>")
 
 
+def _made_from_another_model(workspace: Workspace) -> bool:
+    """Whether OUT/associate's manifest names a model other than OUT/sparse (an earlier version's names none)."""
+    try:
+        made_from = json.loads((workspace.associate / MANIFEST).read_text(encoding="utf-8")).get("model")
+    except (OSError, ValueError, AttributeError):
+        return False
+    return bool(made_from) and workspace.sparse.is_dir() and made_from != model_fingerprint(workspace.sparse)
+
+
 def associate_report_section(out: Path) -> str:
     """HTML (a <section>) of OUT/associate, or a short note where `rigsfm associate` has not written there."""
-    folder = Workspace(Path(out)).associate
+    workspace = Workspace(Path(out))
+    folder = workspace.associate
     frames = sorted(folder.glob("*/persons.json"))
     if not frames:
         return ('<section id="persons"><h2>Persons across the narrow views</h2><p>No association (run <code>rigsfm '
                 "associate OUT DETECTIONS</code>).</p></section>")
+    if _made_from_another_model(workspace):
+        return ('<section id="persons"><h2>Persons across the narrow views</h2><p class="warn">The association in '
+                f"{html.escape(str(folder))} was made from an earlier result of this folder (replaced by <code>rigsfm "
+                "run --overwrite</code> since), so its persons are not shown: re-run <code>rigsfm associate "
+                f"{html.escape(workspace.shell_root)} DETECTIONS --overwrite</code>.</p></section>")
     parts = ['<section id="persons">', "<h2>Persons across the narrow views</h2>",
              f"<p>{len(frames)} frame(s) associated by <code>rigsfm associate</code> in {html.escape(str(folder))}: "
              "each person's detections (at most one per view), its position in the world frame and its "

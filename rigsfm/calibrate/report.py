@@ -159,11 +159,22 @@ def _sigma_text(rig: RigResult) -> list[str]:
 
 REPORT_FILES = frozenset({"report.txt", "stereo_view_errors.png", "wide_view_errors.png", "narrow_view_errors.png",
                           "wide_coverage.png", "narrow_coverage.png"})  # a rig's folder: all a new report replaces
+SUMMARY_START = b"Board: "  # summary.txt's first words: a summary.txt that lacks them is not rigsfm's
+
+
+def _is_our_summary(path: Path) -> bool:
+    """Whether summary.txt begins as :func:`write_report` writes it."""
+    with open(path, "rb") as handle:
+        return handle.read(len(SUMMARY_START)) == SUMMARY_START
 
 
 def check_report_dir(report_dir: Path, rig_names: list[str]) -> None:
     """Refuse a rig's report folder that holds anything a new report would not write again (it replaces the
-    folder whole): the user's files are never removed."""
+    folder whole), and a summary.txt that is not one :func:`write_report` wrote: the user's files are never removed."""
+    summary = Path(report_dir) / "summary.txt"
+    if summary.is_symlink() or (summary.exists() and not (summary.is_file() and _is_our_summary(summary))):
+        raise WorkspaceError(f"'{summary}' is not a summary rigsfm calibrate wrote; move it away or choose another "
+                             "--report-dir (nothing was written)")
     for name in rig_names:
         folder = Path(report_dir) / name
         if folder.is_symlink() or (folder.exists() and not folder.is_dir()):
@@ -181,7 +192,7 @@ def write_report(result: CalibrationResult, report_dir: Path) -> Path:
     report_dir = Path(report_dir)
     check_report_dir(report_dir, [rig.name for rig in result.rigs])  # every rig first: a refusal changes nothing
     report_dir.mkdir(parents=True, exist_ok=True)
-    summary = [f"Board: {result.board.describe()}", ""]
+    summary = [f"{SUMMARY_START.decode()}{result.board.describe()}", ""]
     for rig in result.rigs:
         with atomic_directory(report_dir / rig.name, overwrite=True) as tmp:
             (tmp / "report.txt").write_text(rig_text(rig, result.board.describe()), encoding="utf-8")

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 from pathlib import Path
 from typing import Annotated
 
@@ -16,9 +17,14 @@ WORKSPACE = typer.Argument(metavar="OUT", help="workspace folder of a finished `
 @fail_cleanly
 def report_command(out: Annotated[Path, WORKSPACE]) -> None:
     """Write OUT/report.html: summary, reprojection errors, network plot, narrow pairs, epipolar check."""
+    from rigsfm.core.workspace import Workspace
     from rigsfm.inspect.report.write import write_report
 
-    console.print(f"report: {write_report(out)}")
+    workspace = Workspace(out)
+    workspace.require_result()  # before the lock, which makes the folder
+    # not among the files of a run (or track) writing OUT now; a result copied without rigsfm's marks has no lock
+    with workspace.lock() if workspace.is_ours() else contextlib.nullcontext():
+        console.print(f"report: {write_report(out)}")
 
 
 @fail_cleanly

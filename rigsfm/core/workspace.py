@@ -21,6 +21,7 @@ from __future__ import annotations
 import contextlib
 import errno
 import fcntl
+import hashlib
 import json
 import logging
 import os
@@ -272,6 +273,17 @@ class Workspace:
                 handle.seek(0)
                 handle.truncate()
                 fcntl.flock(handle, fcntl.LOCK_UN)
+
+
+def model_fingerprint(sparse: Path) -> str:
+    """SHA-256 over the model files: what `rigsfm track` and `associate` made from a model (poses.json, persons) is
+    only comparable against the same model, not one a later `rigsfm run --overwrite` wrote."""
+    digest = hashlib.sha256()
+    for path in sorted(Path(sparse).iterdir()):
+        if path.is_file():
+            digest.update(path.name.encode())
+            digest.update(path.read_bytes())
+    return digest.hexdigest()[:16]
 
 
 MODEL_FILES = ("cameras.bin", "images.bin", "points3D.bin")  # rigs.bin and frames.bin: COLMAP 4 models only

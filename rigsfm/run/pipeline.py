@@ -55,7 +55,11 @@ from rigsfm.run.inputs.scale_file import ScaleSpec, load_scale
 from rigsfm.run.mapping.mapper import MappingResult, run_mapping
 from rigsfm.run.matching.extract import extract_features, resolved_first_octave
 from rigsfm.run.matching.manual_matches import read_manual_matches, validate_manual_matches
-from rigsfm.run.matching.manual_merge import add_manual_matches, manual_matches_summary
+from rigsfm.run.matching.manual_merge import (
+    add_manual_matches,
+    drop_earlier_manual_matches,
+    manual_matches_summary,
+)
 from rigsfm.run.matching.match import match_features
 from rigsfm.run.matching.pairs import drop_unsynchronised_pairs, select_pairs
 from rigsfm.run.matching.reuse import drop_changed_images, drop_stale_work
@@ -364,6 +368,7 @@ def _run_locked(workspace: Workspace, inputs: Inputs, manual_pairs: dict, option
                      address=options.address, workers=options.workers)
         with timings.stage("matching"):
             matching_progress = report("matching")
+            drop_earlier_manual_matches(workspace.database, manual_pairs)
             selection = in_child(select_pairs, workspace.database, inputs.images, options.matching)
             in_child(match_features, workspace.database, inputs.images, options.matching, workspace.pairs,
                      matching_progress, num_threads=threads, selection=selection)
@@ -423,8 +428,10 @@ def _run_locked(workspace: Workspace, inputs: Inputs, manual_pairs: dict, option
             world.apply(result.reconstruction)  # a rigid move: the bands and sigmas above are unchanged by it
             ground = ground_maps(result.reconstruction, world.plane_heights) if world.plane_heights else None
             # an --overwrite run's files replace the old result's from here: without its summary.json the workspace
-            # reads as unfinished until this run writes its own, not as the old summary over the new model
+            # reads as unfinished until this run writes its own, not as the old summary over the new model; nor is the
+            # old report.html left to show the replaced result until then
             workspace.summary.unlink(missing_ok=True)
+            workspace.report.unlink(missing_ok=True)
             write_model(result.reconstruction, workspace.sparse, overwrite=True)
             poses = narrow_poses(result.reconstruction, metric=metric, bands=uncertainty.bands, world=world.to_dict(),
                                  ground=ground)

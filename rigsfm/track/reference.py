@@ -14,7 +14,6 @@ cheaply to worker processes and Ray workers (numpy arrays and pycolmap's own cam
 from __future__ import annotations
 
 import copy
-import hashlib
 import logging
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -24,7 +23,7 @@ import pycolmap
 
 from rigsfm.core.errors import ReconstructionError, WorkspaceError
 from rigsfm.core.names import ImageName, name_of
-from rigsfm.core.workspace import Workspace
+from rigsfm.core.workspace import Workspace, model_fingerprint
 from rigsfm.run.inputs.database import damage
 from rigsfm.track.options import RegistrationOptions
 from rigsfm.track.pose import estimate_rig_pose, pose_covariance
@@ -73,16 +72,6 @@ class ReferenceMap:
     blocks: tuple[MapBlock, ...]
     fingerprint: str
     sparse: str = field(default="")
-
-
-def model_fingerprint(sparse: Path) -> str:
-    """SHA-256 over the model files: poses in poses.json are only comparable against the same model."""
-    digest = hashlib.sha256()
-    for path in sorted(Path(sparse).iterdir()):
-        if path.is_file():
-            digest.update(path.name.encode())
-            digest.update(path.read_bytes())
-    return digest.hexdigest()[:16]
 
 
 def _split_name(name: str) -> ImageName:

@@ -7,7 +7,7 @@ import html
 from pathlib import Path
 
 from rigsfm.core.summary import Summary
-from rigsfm.core.workspace import Workspace, read_json
+from rigsfm.core.workspace import Workspace, model_fingerprint, read_json
 
 VERDICT_STYLE = {"stable": "color:#2a7d2a", "shaking": "color:#c77700", "moved": "color:#c0392b;font-weight:bold"}
 
@@ -21,8 +21,15 @@ def track_report_section(out: Path) -> str:
     if not paths.poses_json.is_file():
         return '<section id="track"><h2>Pose tracking</h2><p>No tracking results (run <code>rigsfm track</code>).</p></section>'
     poses = read_json(paths.poses_json, "re-run `rigsfm track OUT NEW_IMAGES --overwrite`", keys=("thresholds", "rigs"))
+    workspace = Workspace(Path(out))
+    if poses.get("reference", {}).get("fingerprint") != model_fingerprint(workspace.sparse):
+        # as `rigsfm track` refuses to extend them: a `rigsfm run --overwrite` since replaced the model
+        return ('<section id="track"><h2>Pose tracking</h2><p class="warn">The tracking results in '
+                f"{html.escape(str(paths.root))} were made against an earlier result of this folder (replaced by "
+                "<code>rigsfm run --overwrite</code> since), so their verdicts are not shown: re-run "
+                f"<code>rigsfm track {html.escape(workspace.shell_root)} NEW_IMAGES --overwrite</code>.</p></section>")
     t = poses["thresholds"]
-    summary = Summary.read(Workspace(Path(out)).summary)
+    summary = Summary.read(workspace.summary)
     parts = ['<section id="track">', "<h2>Pose tracking</h2>"]
     if summary is not None and summary.metric is False:  # as `rigsfm track` warns on the terminal
         parts.append('<p class="warn">Not metric: the run has no scale, so each &lsquo;mm&rsquo; below is a '

@@ -11,7 +11,7 @@ union is verified again and replaces the pair's matches and two-view geometry.
 from __future__ import annotations
 
 import logging
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -276,6 +276,36 @@ def add_manual_matches(
             merge_pair(database, ids, pair, rows, indices, max_error_px)
             for pair, rows in sorted(pairs.items())
         ]
+
+
+def drop_earlier_manual_matches(database_path: Path, pairs: Iterable[tuple[str, str]]) -> list[tuple[str, str]]:
+    """Remove the matches and two-view geometry of every pair that holds manual matches of an earlier CSV and is
+    not among ``pairs`` (this run's CSV, none without one), so that the matcher makes them again from the features
+    alone: else a run without the CSV still registers from the clicks (:func:`merge_pair` replaces only the pairs
+    it is given). Returns the pairs removed."""
+    given = {frozenset(pair) for pair in pairs}
+    dropped = []
+    with open_database(database_path) as database:
+        names = {image.image_id: image.name for image in database.read_all_images()}
+        manual = {image_id: set(_zero_rows(database.read_descriptors(image_id)).tolist())
+                  for image_id in names if database.exists_descriptors(image_id)}
+        ids = sorted(image_id for image_id, rows in manual.items() if rows)
+        for i, id1 in enumerate(ids):
+            for id2 in ids[i + 1:]:
+                if frozenset((names[id1], names[id2])) in given or not database.exists_matches(id1, id2):
+                    continue
+                matches = database.read_matches(id1, id2)
+                if not (np.isin(matches[:, 0], list(manual[id1])) | np.isin(matches[:, 1], list(manual[id2]))).any():
+                    continue
+                with pycolmap.DatabaseTransaction(database):
+                    database.delete_matches(id1, id2)
+                    if database.exists_two_view_geometry(id1, id2):
+                        database.delete_two_view_geometry(id1, id2)
+                dropped.append((names[id1], names[id2]))
+    if dropped:
+        logger.info("Manual matches of an earlier CSV removed from %d pair(s), matched again without them: %s",
+                    len(dropped), ", ".join(f"{a} <-> {b}" for a, b in dropped))
+    return dropped
 
 
 def manual_matches_summary(path: Path, reports: Sequence[PairReport]) -> ManualMatchesSummary:

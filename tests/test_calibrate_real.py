@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import shutil
 from pathlib import Path
 
@@ -12,7 +13,7 @@ import yaml
 from scipy.spatial.transform import Rotation
 from support import REAL_STEREO
 
-from rigsfm.calibrate import CalibrateOptions, calibrate, calibrate_rigs
+from rigsfm.calibrate import CalibrateOptions, CalibrationResult, calibrate, calibrate_rigs, write_calibration
 from rigsfm.calibrate.board import board_spec_from_dict
 from rigsfm.core.rig import load_rigs
 
@@ -125,6 +126,17 @@ def test_cli_writes_rigs_yaml_and_report(board_dir, tmp_path):
         assert (report / name).is_file(), name
     assert cv2.imread(str(report / "wide_view_errors.png")) is not None
     assert "E^sl" in (report / "report.txt").read_text()
+
+
+def test_an_out_named_json_is_written_as_json(result, tmp_path):
+    """rigs.yaml may be JSON (docs/inputs.md): `--out rigs.json` gives a file other tools' JSON readers read."""
+    out = tmp_path / "rigs.json"
+    write_calibration(CalibrationResult(board_spec_from_dict(SPEC), [result]), out)
+    data = json.loads(out.read_text())
+    assert data["units"] == "meters" and data["rigs"][0]["name"] == "rig01"
+    assert "sigma_rotation_deg" in data["rigs"][0]["narrow_from_wide"]
+    (rig,) = load_rigs(out)
+    assert 0.07 < np.linalg.norm(rig.narrow_from_wide.translation) < 0.10
 
 
 def _parameters(rig, R0: np.ndarray) -> np.ndarray:

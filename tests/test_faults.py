@@ -484,3 +484,22 @@ def test_picker_out_that_is_a_folder_is_refused_at_the_start(tmp_path):
     (tmp_path / "picks").mkdir()
     with pytest.raises(ManualMatchError, match=r"'.*picks' is a folder, not a regular file"):
         PickerSession(picker_image(paths[0], None), picker_image(paths[1], None), tmp_path / "picks")
+
+
+def test_picker_refuses_an_image_that_is_not_a_wide_one_at_the_start(tmp_path):
+    """Without --rigs a narrow image, or one outside IMAGES/<rig>/wide/, was served: every pair clicked on it went
+    into a CSV `rigsfm run --manual-matches` refuses (names are <rig>/wide/<file>)."""
+    import shutil
+
+    from rigsfm.pick.session import picker_image
+    from rigsfm.run.matching.manual_matches import ManualMatchError
+
+    wide = picker_images(tmp_path)[0]
+    narrow = tmp_path / "images" / "rig01" / "narrow" / "f0.png"
+    narrow.parent.mkdir()
+    shutil.copy(wide, narrow)
+    loose = shutil.copy(wide, tmp_path / "a.png")
+    for path in (narrow, Path(loose)):
+        with pytest.raises(ManualMatchError, match=r"must be a wide image, IMAGES/<rig>/wide/<file>"):
+            picker_image(path, None)
+    assert picker_image(wide, None).name == "rig01/wide/f0.png"

@@ -113,6 +113,26 @@ def test_local_executor_runs_every_task_in_worker_processes():
     assert check_executor("ray", 1, None) == Executor.RAY
 
 
+def test_local_executor_does_not_run_the_callers_script_again(tmp_path):
+    """A script calling the library at top level, as docs show `track(OUT, NEW, TrackOptions())`, without
+    `if __name__ == "__main__"`: the spawned workers must not execute it again (they did, and track hung)."""
+    marks = tmp_path / "marks.txt"
+    script = tmp_path / "script.py"
+    script.write_text(
+        "import operator\n"
+        "from rigsfm.core.executors import map_unordered\n"
+        f"with open({str(marks)!r}, 'a') as f:\n"
+        "    f.write('ran\\n')\n"
+        "results = []\n"
+        "map_unordered(operator.pow, range(4), results.append, executor='local', workers=2, shared=(2,))\n"
+        "print(sorted(results))\n")
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
+    done = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=120, env=env)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert done.stdout.strip() == "[0, 1, 4, 9]"
+    assert marks.read_text() == "ran\n"
+
+
 # --- an 8-rig circle ---------------------------------------------------------------------------------------
 
 

@@ -7,6 +7,7 @@ that a merge keeps are copied from the existing file entry by entry, so their ow
 
 from __future__ import annotations
 
+import json
 import logging
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -77,4 +78,6 @@ def rigs_yaml_text(result: CalibrationResult, existing: list[RigCalibration], ou
         kept = {e["name"]: e for e in load_yaml_or_json(out, "rig calibration")["rigs"]}
     rigs = [r.name for r in merged(existing, new)]
     data = {"units": "meters", "rigs": [by_name[n] if n in by_name else kept[n] for n in rigs]}
+    if out.suffix.lower() == ".json":  # rigs.yaml may be JSON: a file named so must read with any JSON reader
+        return json.dumps(data, indent=2) + "\n"
     return yaml.safe_dump(data, sort_keys=False, default_flow_style=None, width=120)

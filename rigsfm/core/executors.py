@@ -21,6 +21,7 @@ This module imports nothing heavy (Ray is imported only when used).
 
 from __future__ import annotations
 
+import contextlib
 import enum
 import logging
 import signal
@@ -78,16 +79,22 @@ def run_local(function: Callable, tasks: Sequence, on_result: OnResult, *, worke
     from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
     from multiprocessing import resource_tracker
 
+    from rigsfm.core.processes import _main_not_imported
+
     resource_tracker.ensure_running()  # first: starting it unblocks SIGINT and SIGTERM in this thread
 
     context = multiprocessing.get_context("spawn")  # no fork of a process holding pycolmap/OpenCV threads
     pool = ProcessPoolExecutor(max_workers=min(workers, len(tasks)), mp_context=context,
                                initializer=_init_worker, initargs=(function, shared))
     try:
-        # The workers are spawned by these submits; they inherit the blocked signals until _init_worker.
+        # The workers are spawned by these submits; they inherit the blocked signals until _init_worker, and
+        # do not run a caller's script again (one calling track() at top level: they died, and it hung) unless
+        # the function lives there.
+        in_main = getattr(function, "__module__", None) == "__main__"
         previous = signal.pthread_sigmask(signal.SIG_BLOCK, _STOPS)
         try:
-            pending = {pool.submit(_call_in_worker, task) for task in tasks}
+            with contextlib.nullcontext() if in_main else _main_not_imported():
+                pending = {pool.submit(_call_in_worker, task) for task in tasks}
         finally:
             signal.pthread_sigmask(signal.SIG_SETMASK, previous)
         while pending:

@@ -59,9 +59,11 @@ def picker_image(path: Path, rigs: list[RigCalibration] | None) -> PickerImage:
     parts = path.resolve().parts
     name = "/".join(parts[-3:]) if len(parts) >= 3 else path.name
     camera = None
+    # the CSV names it <rig>/wide/<file>, all `rigsfm run --manual-matches` takes: refused now, not after the clicks
+    if len(parts) < 3 or parts[-2] != "wide":
+        raise ManualMatchError(f"{path}: the image must be a wide image, IMAGES/<rig>/wide/<file> (the CSV names it "
+                               "<rig>/wide/<file>, as `rigsfm run --manual-matches` reads it)")
     if rigs is not None:
-        if len(parts) < 3 or parts[-2] != "wide":
-            raise ManualMatchError(f"{path}: with --rigs the image must be IMAGES/<rig>/wide/<file>")
         by_name = {rig.name: rig for rig in rigs}
         if parts[-3] not in by_name:
             raise ManualMatchError(

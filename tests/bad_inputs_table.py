@@ -486,6 +486,8 @@ CASES = [
          with_detections(SIZED_DETECTIONS.replace(",22,6", ",22,5000"))),
     Case("a detections CSV with a radius on some rows of a frame and not on others", "nothing is written",
          with_detections(SIZED_DETECTIONS.replace(",22,6", ",22,"))),
+    Case("`rigsfm associate --heights 2.1-1.0`", "nothing is written",
+         lambda root: [*with_detections(DETECTIONS)(root), "--heights", "2.1-1.0"]),
     Case("`rigsfm associate` on a run without a floor frame", "nothing is written",
          with_detections(b"\xef\xbb\xbf" + DETECTIONS.encode())),
     # --- frame offsets

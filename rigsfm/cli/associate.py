@@ -59,7 +59,7 @@ def associate_command(
     from rigsfm.core.ground import parse_heights
 
     try:
-        options = AssociateOptions(heights=parse_heights(heights), pixel_sigma=pixel_sigma,
+        options = AssociateOptions(heights=parse_heights(heights, example="1.0-2.1"), pixel_sigma=pixel_sigma,
                                    detection_probability=detection_probability, size_noise=size_noise,
                                    self_calibration_rounds=self_calibration_rounds, walk_m=walk or None,
                                    appearance=not no_appearance, poses_from=poses_from,

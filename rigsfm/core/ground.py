@@ -276,17 +276,18 @@ def coverage(prints: Mapping[str, Footprint | np.ndarray], cell: float = 0.05) -
     return Coverage(counts, origin, cell)
 
 
-def parse_heights(text: str) -> tuple[float, float]:
-    """A ``--heights`` option: ``"0-2.2"`` or ``"0,2.2"`` (metres above the floor) -> (0.0, 2.2)."""
+def parse_heights(text: str, example: str = "0-2.2") -> tuple[float, float]:
+    """A ``--heights`` option: ``"0-2.2"`` or ``"0,2.2"`` (metres above the floor) -> (0.0, 2.2); ``example``: the
+    command's own default, shown in its messages."""
     text = text.strip()
     parts = text.split(",") if "," in text else text.split("-", 1) if not text.startswith("-") else None
     try:
         low, high = (float(p) for p in parts)  # type: ignore[union-attr]
     except (TypeError, ValueError):
-        raise InputError(f"--heights {text!r}: give two heights in metres above the floor, e.g. 0-2.2 or "
-                         "-0.5,2.2") from None
+        raise InputError(f"--heights {text!r}: give two heights in metres above the floor, e.g. {example} or "
+                         f"{example.replace('-', ',', 1)}") from None
     if not (math.isfinite(low) and math.isfinite(high)):
-        raise InputError(f"--heights {text!r}: give two finite heights in metres above the floor, e.g. 0-2.2")
+        raise InputError(f"--heights {text!r}: give two finite heights in metres above the floor, e.g. {example}")
     if not low < high:
-        raise InputError(f"--heights {text!r}: the first height must be below the second (e.g. 0-2.2)")
+        raise InputError(f"--heights {text!r}: the first height must be below the second (e.g. {example})")
     return low, high

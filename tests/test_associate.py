@@ -335,7 +335,8 @@ def test_empty_frame_gives_no_person(crowd, tmp_path):
 def test_bad_detections_are_refused_naming_the_row(case, tmp_path):
     code, line = run_case(case, tmp_path / "case")
     assert code == 1 and line.startswith("error: ")
-    assert "line" in line or "floor" in line or "--poses-from" in line  # the row, or the run / option at fault
+    # the row, or the run / option at fault
+    assert "line" in line or "floor" in line or "--poses-from" in line or "--heights" in line
     assert not (tmp_path / "case" / "persons").exists()
 
 

@@ -111,6 +111,17 @@ def test_verdicts_bump_at_the_right_frame_and_no_false_alarm(tracked):
     assert moved["steps"][0]["rotation_deg"] == pytest.approx(0.3, abs=0.04)
     assert moved["steps"][0]["translation_mm"] == pytest.approx(20.0, abs=12.0)
     assert [f["flagged"] for f in rigs["rig03"]["frames"]] == [i >= BUMP_AT for i in range(NUM_FRAMES)]
+    assert all(rig["verdict"]["unsettled_frames"] == 0 for rig in rigs.values())
+
+
+def test_a_rig_bumped_in_the_last_frame_so_far_is_said_possibly_moved(tracked):
+    """The first batch ends at the bump (frames 0-4, rig03 bumped at 4): rig03 reads 'shaking' until three frames
+    follow the step, so its last frame is called unsettled; the shaking rig02, flagged throughout, is not."""
+    _, _, local, _ = tracked
+    assert FIRST_BATCH == BUMP_AT + 1
+    verdicts = {name: rig["verdict"] for name, rig in local.poses["rigs"].items()}
+    assert verdicts["rig03"]["verdict"] == "shaking" and verdicts["rig03"]["unsettled_frames"] == 1
+    assert verdicts["rig01"]["unsettled_frames"] == 0 and verdicts["rig02"]["unsettled_frames"] == 0
 
 
 def test_ray_result_equals_the_in_process_registration(tracked):

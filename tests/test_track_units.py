@@ -77,6 +77,26 @@ def test_a_bump_in_the_last_frames_is_not_yet_a_step():
     changes[8:, 2] += 0.3 * DEG
     v = verdict(changes)
     assert v.verdict == "shaking" and v.flagged == [False] * 8 + [True] * 2
+    # ... but it is said: a rig moved just now would otherwise read 'shaking' at the moment it matters
+    assert v.unsettled_frames == 2 and v.to_dict()["unsettled_frames"] == 2
+
+
+def test_only_flags_at_the_end_after_still_frames_are_unsettled():
+    """A shaking rig's flags come and go, so its last frame flagged says nothing; a still, a moved (three frames
+    after its step) and a shaking series have no unsettled frames, a bump in the last frame of a still one has."""
+    rng = np.random.default_rng(5)
+    assert verdict(series(12, rng)).unsettled_frames == 0
+    shaking = [verdict(series(12, rng, jitter_deg=0.1, jitter_mm=3.0)) for _ in range(10)]
+    assert all(v.flagged[-1] and v.unsettled_frames == 0 for v in shaking if v.flagged[-1])
+    assert any(v.flagged[-1] for v in shaking)
+    changes = series(12, np.random.default_rng(6))
+    changes[6:] += np.r_[np.array([0.0, 0.2, 0.1]) * DEG, np.array([10.0, 0.0, -5.0]) * MM]
+    moved = verdict(changes)
+    assert moved.verdict == "moved" and moved.unsettled_frames == 0
+    still = series(12, np.random.default_rng(7))
+    still[11:] += np.r_[np.array([0.0, 0.0, 0.4]) * DEG, np.zeros(3)]
+    last = verdict(still)
+    assert last.verdict == "shaking" and last.unsettled_frames == 1, last.flagged
 
 
 def test_shift_within_the_weak_direction_is_not_flagged():

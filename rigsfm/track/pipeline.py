@@ -204,6 +204,13 @@ def track(out: Path, new_images: Path, options: TrackOptions | None = None, *,
                        "; ..." if len(failed) > 2 else "",
                        f"; none did: are these images of the scene of '{workspace.root}'?" if len(failed) == len(todo)
                        else "")
+    unsettled = {rig: record["verdict"]["unsettled_frames"] for rig, record in poses["rigs"].items()
+                 if record["verdict"].get("unsettled_frames")}
+    if unsettled:
+        logger.warning("POSSIBLY MOVED: %s off in the last frame(s) after still ones (%s), too few yet to call a step "
+                       "(%d frames after it): a rig moved just now reads 'shaking' until then. Check it, or track the "
+                       "next frames", ", ".join(unsettled), ", ".join(f"{rig}: {k}" for rig, k in unsettled.items()),
+                       thresholds.min_persist_frames)
     if bad:
         raise InputError(f"{len(bad)} frame(s) could not be used (the others are saved): {bad[0]}"
                          + (f" (and {len(bad) - 1} more)" if len(bad) > 1 else ""))

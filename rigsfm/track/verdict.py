@@ -19,6 +19,10 @@ covariance > ``significance_chi2``.
   ``persist_fraction`` of them closer to their own level than to the other.
 - Verdict: ``moved`` if there is a step, else ``shaking`` if any frame is flagged (zero-mean jitter),
   else ``stable``; ``no data`` without registered frames.
+- *Unsettled* frames: the series' last frames, all flagged after frames that were not, and fewer than
+  ``min_persist_frames``: a rig moved just now, which reads ``shaking`` until enough frames follow its step, or a
+  shake; the next frames tell which. Flags are against the baseline, so after a step (whose frames are all
+  flagged) none are unsettled: a second move shows as its own step.
 """
 
 from __future__ import annotations
@@ -47,6 +51,7 @@ class Verdict:
     flagged: list[bool] = field(default_factory=list)
     jitter_rotation_deg: float | None = None  # RMS about the piecewise-constant levels
     jitter_translation_mm: float | None = None
+    unsettled_frames: int = 0  # the last frames off after still ones, too few yet to call a step (module docstring)
 
     def to_dict(self) -> dict:
         data = asdict(self)
@@ -168,4 +173,14 @@ def classify(frames: list[str], changes: np.ndarray | list, covariances: np.ndar
     translation = 1000.0 * np.linalg.norm(residuals[:, 3:], axis=1)
     verdict = "moved" if steps else "shaking" if any(flagged) else "stable"
     return Verdict(verdict, steps, flagged, float(np.sqrt(np.mean(rotation**2))),
-                   float(np.sqrt(np.mean(translation**2))))
+                   float(np.sqrt(np.mean(translation**2))), _unsettled(flagged, steps, thresholds))
+
+
+def _unsettled(flagged: list[bool], steps: list[Step], thresholds: Thresholds) -> int:
+    """How many of the last frames are flagged after unflagged ones, where fewer than a step needs after it (else
+    0): a shaking rig's flags come and go, a rig moved just now has its flags at the end."""
+    n = len(flagged)
+    trailing = next((k for k in range(n) if not flagged[n - 1 - k]), n)
+    if steps or not 0 < trailing < thresholds.min_persist_frames or any(flagged[:n - trailing]):
+        return 0
+    return trailing

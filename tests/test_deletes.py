@@ -478,3 +478,22 @@ def test_demo_never_replaces_an_accuracy_json_without_overwrite(tmp_path):
     assert result.exit_code == 1
     assert f"{tmp_path / 'accuracy.json'} already exists: pass --overwrite" in one_error_line(result)
     assert (tmp_path / "accuracy.json").read_text() == '{"mine": true}' and not (tmp_path / "scene").exists()
+
+
+# --- one command at a time on OUT -------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("command", [("export", "--format", "json"), ("associate", "detections.csv")])
+def test_export_and_associate_on_an_out_in_use_are_refused_and_write_nothing(out, tmp_path, command):
+    """`rigsfm export` and `rigsfm associate` read OUT's model without its lock: a `rigsfm run --overwrite` holding
+    OUT could rewrite the model under them (report, run and track are refused)."""
+    from rigsfm.core.workspace import Workspace
+
+    (tmp_path / "detections.csv").write_text("image,x,y\nrig01/narrow/f0.png,10,10\n")
+    args = [a if a != "detections.csv" else tmp_path / a for a in command[1:]]
+    with Workspace(out).lock():
+        result = invoke(command[0], out, *args)
+    assert result.exit_code == 1
+    assert f"'{out}' is in use by process {os.getpid()} (another rigsfm command)" in one_error_line(result)
+    assert not (out / "export").exists() and not (out / "associate").exists()
+    if command[0] == "export":
+        assert invoke(command[0], out, *args).exit_code == 0 and (out / "export" / "json").is_dir()

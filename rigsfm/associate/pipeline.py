@@ -353,12 +353,20 @@ def associate(out: Path, detections_csv: Path, options: AssociateOptions | None 
               progress: Callable[[int, int], None] | None = None) -> Path:
     """Read OUT (a finished run) and DETECTIONS, associate every frame, write DIR (default OUT/associate);
     ``progress(done, total)`` after each frame."""
-    from rigsfm.associate.output import check_destination, refuse_edited, write_results
-
     options = options or AssociateOptions()
     workspace = Workspace(Path(out))
     dest = Path(options.out) if options.out is not None else workspace.associate
     refuse_workspace_files(dest, workspace)
+    workspace.require_result()  # before the lock, which makes the folder
+    with workspace.reading():  # the persons of one model: a run rewriting it now is refused
+        return _associate(workspace, dest, Path(detections_csv), options, progress)
+
+
+def _associate(workspace: Workspace, dest: Path, detections_csv: Path, options: AssociateOptions,
+               progress: Callable[[int, int], None] | None) -> Path:
+    from rigsfm.associate.output import check_destination, refuse_edited, write_results
+
+    out = workspace.root
     previous = check_destination(dest, options.overwrite)
     model = load_run(Path(out))
     # a model's images have cameras

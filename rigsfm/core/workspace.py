@@ -274,6 +274,18 @@ class Workspace:
                 handle.truncate()
                 fcntl.flock(handle, fcntl.LOCK_UN)
 
+    @contextlib.contextmanager
+    def reading(self) -> Iterator[None]:
+        """:meth:`lock` for a command that reads OUT's result (``export``, ``associate``): a run rewriting the model
+        under it is refused, as it is under ``report``. Held where rigsfm can hold it: a result copied without
+        rigsfm's marks, or an OUT this process cannot write (where no rigsfm command of its own writes either), is
+        read without it. Call :meth:`require_result` first (the lock makes a missing folder)."""
+        if not self.is_ours() or _write_probe(self.root) is not None:
+            yield
+            return
+        with self.lock():
+            yield
+
 
 def model_fingerprint(sparse: Path) -> str:
     """SHA-256 over the model files: what `rigsfm track` and `associate` made from a model (poses.json, persons) is

@@ -17,6 +17,7 @@ from support import as_from_a_terminal, picker_images
 from typer.testing import CliRunner
 
 from rigsfm.cli import app
+from rigsfm.core.summary import Summary
 from rigsfm.inspect.export import MANIFEST
 
 REPO = Path(__file__).resolve().parents[1]
@@ -51,6 +52,7 @@ def out(tmp_path):
             track.add_element(image_id, k)
         rec.add_point3D(rng.normal(size=3) + [0.0, 0.0, 5.0], track, np.array([1, 2, 3], np.uint8))
     rec.write(out / "sparse")
+    (out / "summary.json").write_text(json.dumps(Summary().to_json()))  # written last by a run that finished
     return out
 
 
@@ -497,3 +499,17 @@ def test_export_and_associate_on_an_out_in_use_are_refused_and_write_nothing(out
     assert not (out / "export").exists() and not (out / "associate").exists()
     if command[0] == "export":
         assert invoke(command[0], out, *args).exit_code == 0 and (out / "export" / "json").is_dir()
+
+
+@pytest.mark.parametrize("command", [("report",), ("export", "--format", "json")])
+def test_report_and_export_say_the_run_did_not_finish(out, command):
+    """`rigsfm report` and `rigsfm export` on an OUT whose run stopped while delivering (no summary.json, written last)
+    read it without a word, though its files may be partly an earlier run's."""
+    (out / "summary.json").unlink()  # the run stopped before it
+    result = invoke(command[0], out, *command[1:])
+    assert result.exit_code == 0, result.output
+    said = [line for line in result.output.splitlines() if "did not finish" in line]
+    assert len(said) == 1 and "re-run the same `rigsfm run ... --out" in said[0] and "WARNING" in said[0], result.output
+    (out / "summary.json").write_text(json.dumps(Summary().to_json()))  # finished
+    result = invoke(command[0], out, *command[1:], *(["--overwrite"] if command[0] == "export" else []))
+    assert result.exit_code == 0 and "did not finish" not in result.output, result.output

@@ -174,6 +174,21 @@ class Workspace:
         if not self.narrow_poses.is_file():
             raise WorkspaceError(f"'{self.narrow_poses}' is missing: re-run `rigsfm run ... --out {self.shell_root} --overwrite`")
 
+    def unfinished(self) -> str | None:
+        """Why OUT's result is not a finished run's, in a clause, or None: summary.json, which a run writes last,
+        is missing (the run stopped while delivering: its files may sit beside an earlier run's)."""
+        if self.summary.is_file():
+            return None
+        return (f"the run that wrote '{self.root}' did not finish (no summary.json, written last; its files may be "
+                f"partly an earlier run's): re-run the same `rigsfm run ... --out {self.shell_root}` to finish it")
+
+    def warn_unfinished(self) -> None:
+        """One warning line where :meth:`unfinished` says why (``report``, ``export``: read as it is, as ``associate``
+        and ``track`` read it)."""
+        why = self.unfinished()
+        if why is not None:
+            logger.warning("%s%s", why[0].upper(), why[1:])
+
     @property
     def shell_root(self) -> str:
         """The folder as a shell word, for the commands that messages suggest (a space or quote stays one word)."""

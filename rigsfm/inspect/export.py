@@ -194,6 +194,7 @@ def export(out: Path, options: ExportOptions) -> Path:
     ``check_destination``)."""
     workspace = Workspace(Path(out))
     workspace.require_result()
+    workspace.warn_unfinished()
     fmt = ExportFormat(options.format)
     if options.images and fmt != ExportFormat.WILDTRACK:  # refused rather than ignored: the user asked for images
         raise InputError(f"--images writes the undistorted narrow images of --format wildtrack only; export "

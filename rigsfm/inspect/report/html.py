@@ -56,7 +56,8 @@ def table(header: list[str], rows: list[list], left: int = 1) -> str:
 def summary_section(summary: Summary | None, reconstruction: pycolmap.Reconstruction, narrow: dict) -> str:
     parts = ["<h2>Summary</h2>"]
     if summary is None:
-        parts.append('<p class="warn">summary.json is missing: scale and timings are not shown.</p>')
+        parts.append('<p class="warn">summary.json is missing (the run did not finish: re-run the same command to '
+                     "finish it): scale and timings are not shown.</p>")
     rigs = sorted({name_of(im).rig for im in reconstruction.images.values()})
     counts = {s: sum(im.has_pose and name_of(im).sensor == s for im in reconstruction.images.values())
               for s in ("wide", "narrow")}

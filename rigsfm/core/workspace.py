@@ -3,7 +3,7 @@
 ```
 OUT/
   .rigsfm-workspace   marker: this folder was made by rigsfm (--overwrite touches nothing else)
-  .rigsfm.lock        held while a command writes OUT (a second one is refused)
+  .rigsfm.lock        held while a command writes or reads OUT (a second one is refused)
   database.db         COLMAP database: cameras, rigs with E^sl, features, verified matches
   features.json       the settings the features and matches were made with
   images.json         the content (SHA-256) of each image file they were made from

@@ -513,3 +513,30 @@ def test_report_and_export_say_the_run_did_not_finish(out, command):
     (out / "summary.json").write_text(json.dumps(Summary().to_json()))  # finished
     result = invoke(command[0], out, *command[1:], *(["--overwrite"] if command[0] == "export" else []))
     assert result.exit_code == 0 and "did not finish" not in result.output, result.output
+
+
+def test_calibrate_overwrite_removes_the_reports_of_rigs_it_no_longer_has_and_only_its_own(tmp_path):
+    """`rigsfm calibrate --overwrite` of a rigs.yaml whose calibration had a rig the new one lacks left that rig's
+    report folder beside the new report, as if it were this calibration's."""
+    data = Path(__file__).parent / "data" / "opencv-stereo"  # real board images of one rig (rig01)
+    args = ["calibrate", data / "board", "--board", data / "board.yaml", "--out", tmp_path / "rigs.yaml"]
+    assert invoke(*args).exit_code == 0
+    reports = tmp_path / "rigs.calibration"
+    line = (reports / "summary.txt").read_text().splitlines()[2]
+    assert line.startswith("rig01: wide RMS ")
+    # an earlier calibration's rig03 (named in its summary, only its report files), rig04 (the user's notes added)
+    # and rig05 (report files alone, named nowhere: not known to be rigsfm's)
+    for rig in ("rig03", "rig04", "rig05"):
+        (reports / rig).mkdir()
+        for name in ("report.txt", "wide_coverage.png"):
+            (reports / rig / name).write_bytes((reports / "rig01" / name).read_bytes())
+    (reports / "rig04" / "notes.txt").write_text("mine")
+    with open(reports / "summary.txt", "a") as summary:
+        summary.write(line.replace("rig01", "rig03") + "\n" + line.replace("rig01", "rig04") + "\n")
+    result = invoke(*args, "--overwrite")
+    assert result.exit_code == 0, result.output
+    assert sorted(p.name for p in reports.iterdir()) == ["rig01", "rig04", "rig05", "summary.txt"]
+    assert (reports / "rig04" / "notes.txt").read_text() == "mine" and len(list((reports / "rig05").iterdir())) == 2
+    said = [line for line in result.output.splitlines() if "left as they are" in line]
+    assert len(said) == 1 and f"'{reports / 'rig04'}', '{reports / 'rig05'}'" in said[0], result.output
+    assert "rig03" not in (reports / "summary.txt").read_text()

@@ -17,6 +17,7 @@ from support import as_from_a_terminal, picker_images
 from typer.testing import CliRunner
 
 from rigsfm.cli import app
+from rigsfm.core.summary import Summary
 from rigsfm.inspect.export import MANIFEST
 
 REPO = Path(__file__).resolve().parents[1]
@@ -51,6 +52,7 @@ def out(tmp_path):
             track.add_element(image_id, k)
         rec.add_point3D(rng.normal(size=3) + [0.0, 0.0, 5.0], track, np.array([1, 2, 3], np.uint8))
     rec.write(out / "sparse")
+    (out / "summary.json").write_text(json.dumps(Summary().to_json()))  # written last by a run that finished
     return out
 
 
@@ -478,3 +480,63 @@ def test_demo_never_replaces_an_accuracy_json_without_overwrite(tmp_path):
     assert result.exit_code == 1
     assert f"{tmp_path / 'accuracy.json'} already exists: pass --overwrite" in one_error_line(result)
     assert (tmp_path / "accuracy.json").read_text() == '{"mine": true}' and not (tmp_path / "scene").exists()
+
+
+# --- one command at a time on OUT -------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("command", [("export", "--format", "json"), ("associate", "detections.csv")])
+def test_export_and_associate_on_an_out_in_use_are_refused_and_write_nothing(out, tmp_path, command):
+    """`rigsfm export` and `rigsfm associate` read OUT's model without its lock: a `rigsfm run --overwrite` holding
+    OUT could rewrite the model under them (report, run and track are refused)."""
+    from rigsfm.core.workspace import Workspace
+
+    (tmp_path / "detections.csv").write_text("image,x,y\nrig01/narrow/f0.png,10,10\n")
+    args = [a if a != "detections.csv" else tmp_path / a for a in command[1:]]
+    with Workspace(out).lock():
+        result = invoke(command[0], out, *args)
+    assert result.exit_code == 1
+    assert f"'{out}' is in use by process {os.getpid()} (another rigsfm command)" in one_error_line(result)
+    assert not (out / "export").exists() and not (out / "associate").exists()
+    if command[0] == "export":
+        assert invoke(command[0], out, *args).exit_code == 0 and (out / "export" / "json").is_dir()
+
+
+@pytest.mark.parametrize("command", [("report",), ("export", "--format", "json")])
+def test_report_and_export_say_the_run_did_not_finish(out, command):
+    """`rigsfm report` and `rigsfm export` on an OUT whose run stopped while delivering (no summary.json, written last)
+    read it without a word, though its files may be partly an earlier run's."""
+    (out / "summary.json").unlink()  # the run stopped before it
+    result = invoke(command[0], out, *command[1:])
+    assert result.exit_code == 0, result.output
+    said = [line for line in result.output.splitlines() if "did not finish" in line]
+    assert len(said) == 1 and "re-run the same `rigsfm run ... --out" in said[0] and "WARNING" in said[0], result.output
+    (out / "summary.json").write_text(json.dumps(Summary().to_json()))  # finished
+    result = invoke(command[0], out, *command[1:], *(["--overwrite"] if command[0] == "export" else []))
+    assert result.exit_code == 0 and "did not finish" not in result.output, result.output
+
+
+def test_calibrate_overwrite_removes_the_reports_of_rigs_it_no_longer_has_and_only_its_own(tmp_path):
+    """`rigsfm calibrate --overwrite` of a rigs.yaml whose calibration had a rig the new one lacks left that rig's
+    report folder beside the new report, as if it were this calibration's."""
+    data = Path(__file__).parent / "data" / "opencv-stereo"  # real board images of one rig (rig01)
+    args = ["calibrate", data / "board", "--board", data / "board.yaml", "--out", tmp_path / "rigs.yaml"]
+    assert invoke(*args).exit_code == 0
+    reports = tmp_path / "rigs.calibration"
+    line = (reports / "summary.txt").read_text().splitlines()[2]
+    assert line.startswith("rig01: wide RMS ")
+    # an earlier calibration's rig03 (named in its summary, only its report files), rig04 (the user's notes added)
+    # and rig05 (report files alone, named nowhere: not known to be rigsfm's)
+    for rig in ("rig03", "rig04", "rig05"):
+        (reports / rig).mkdir()
+        for name in ("report.txt", "wide_coverage.png"):
+            (reports / rig / name).write_bytes((reports / "rig01" / name).read_bytes())
+    (reports / "rig04" / "notes.txt").write_text("mine")
+    with open(reports / "summary.txt", "a") as summary:
+        summary.write(line.replace("rig01", "rig03") + "\n" + line.replace("rig01", "rig04") + "\n")
+    result = invoke(*args, "--overwrite")
+    assert result.exit_code == 0, result.output
+    assert sorted(p.name for p in reports.iterdir()) == ["rig01", "rig04", "rig05", "summary.txt"]
+    assert (reports / "rig04" / "notes.txt").read_text() == "mine" and len(list((reports / "rig05").iterdir())) == 2
+    said = [line for line in result.output.splitlines() if "left as they are" in line]
+    assert len(said) == 1 and f"'{reports / 'rig04'}', '{reports / 'rig05'}'" in said[0], result.output
+    assert "rig03" not in (reports / "summary.txt").read_text()

@@ -280,3 +280,52 @@ def test_cli_prints_one_clear_line_for_bad_manual_matches(scenes, tmp_path):
     result = _cli_run(apart, tmp_path / "o", path)
     assert result.exit_code == 1
     assert "unknown wide image 'nowhere.png'" in result.output and "Traceback" not in result.output
+
+
+def _database_with_manual_rows(path, manual_images):
+    """Four images with automatic keypoints and descriptors, manual keypoints appended to ``manual_images`` (ids), a
+    match of each pair 1-2 (a manual row where both have one), 1-3 and 3-4 (automatic rows)."""
+    from rigsfm.run.matching.manual_merge import append_manual_keypoints
+
+    rng = np.random.default_rng(0)
+    with pycolmap.Database.open(path) as database:
+        camera_id = database.write_camera(pycolmap.Camera(model="PINHOLE", width=100, height=100,
+                                                          params=[100.0, 100.0, 50.0, 50.0]))
+        for image_id in (1, 2, 3, 4):
+            database.write_image(pycolmap.Image(name=f"rig0{image_id}/wide/f.png", camera_id=camera_id,
+                                                image_id=image_id), use_image_id=True)
+            database.write_keypoints(image_id, rng.uniform(0, 100, (20, 2)).astype(np.float32))
+            database.write_descriptors(image_id, pycolmap.FeatureDescriptors(
+                pycolmap.FeatureExtractorType.SIFT, rng.integers(1, 255, (20, 128), dtype=np.uint8)))
+        indices = append_manual_keypoints(database, {i: [(10.0, 20.0), (30.0, 40.0)] for i in manual_images})
+        manual = [indices[i][(30.0, 40.0)] if i in indices else 5 for i in (1, 2)]
+        database.write_matches(1, 2, np.array([[0, 0], manual], dtype=np.uint32))
+        database.write_matches(1, 3, np.array([[1, 1], [2, 2]], dtype=np.uint32))
+        database.write_matches(3, 4, np.array([[1, 1], [2, 2]], dtype=np.uint32))
+
+
+@pytest.mark.parametrize("manual_images", [(), (1, 3), (1, 2), (1, 2, 3, 4)])
+def test_earlier_manual_matches_are_found_reading_only_the_images_that_hold_manual_rows(tmp_path, monkeypatch,
+                                                                                       manual_images):
+    """drop_earlier_manual_matches read every image's descriptors on each run, with or without an earlier CSV: now
+    only those of images whose last row is a manual one (none without), and it drops the same pairs."""
+    from rigsfm.run.matching import manual_merge
+
+    path = tmp_path / "database.db"
+    _database_with_manual_rows(path, manual_images)
+    read = []
+
+    def zero_rows(descriptors):
+        read.append(descriptors.data.shape[0])
+        return zero_rows.original(descriptors)
+
+    zero_rows.original = manual_merge._zero_rows
+    monkeypatch.setattr(manual_merge, "_zero_rows", zero_rows)
+    manual = set(manual_images)
+    kept = manual_merge.drop_earlier_manual_matches(path, [("rig01/wide/f.png", "rig02/wide/f.png")])
+    assert kept == [] and len(read) == (len(manual) if len(manual) >= 2 else 0), read
+    dropped = manual_merge.drop_earlier_manual_matches(path, [])
+    assert dropped == ([("rig01/wide/f.png", "rig02/wide/f.png")] if {1, 2} <= manual else [])
+    with pycolmap.Database.open(path) as database:
+        assert database.exists_matches(1, 2) is not ({1, 2} <= manual)
+        assert database.exists_matches(1, 3) and database.exists_matches(3, 4)  # no manual row matched

@@ -222,15 +222,16 @@ def test_the_report_says_the_tracking_millimetres_are_not_on_a_result_without_sc
         assert ("Not metric" in track_report_section(tmp_path)) is (not metric)
 
 
-def _tracked_against(out, model: bytes):
+def _tracked_against(out, model: bytes | None):
     """OUT with a model (sparse/) and a tracking series made against it."""
     import json
 
     from rigsfm.core.workspace import Workspace, model_fingerprint
 
     workspace = Workspace(out)
-    workspace.sparse.mkdir(parents=True)
-    (workspace.sparse / "images.bin").write_bytes(model)
+    if model is not None:  # None: OUT/sparse as it is
+        workspace.sparse.mkdir(parents=True)
+        (workspace.sparse / "images.bin").write_bytes(model)
     workspace.track.root.mkdir(parents=True)
     rig = {"frames": [{"frame": "f0.png", "status": "registered"}],
            "verdict": {"verdict": "stable", "steps": [], "flagged_frames": 0, "jitter_rotation_deg": 0.001,
@@ -240,6 +241,39 @@ def _tracked_against(out, model: bytes):
         "thresholds": {"rotation_deg": 0.05, "translation_mm": 5.0, "significance_chi2": 16.27},
         "rigs": {"rig01": rig}}))
     return workspace
+
+
+def test_the_report_hashes_the_model_once_for_its_tracking_and_persons(tmp_path, monkeypatch):
+    """report.html's tracking and persons sections each read every file of OUT/sparse to compare their results'
+    model with this one: the page hashed the model twice."""
+    import json
+
+    from test_camera_files import finished_workspace
+
+    import rigsfm.associate.report
+    import rigsfm.inspect.report.html
+    import rigsfm.track.report
+    from rigsfm.core import workspace as workspace_module
+    from rigsfm.inspect.report.write import write_report
+
+    finished_workspace(tmp_path)
+    workspace = _tracked_against(tmp_path, None)
+    (workspace.associate / "frame0000").mkdir(parents=True)
+    (workspace.associate / "frame0000" / "persons.json").write_text(
+        json.dumps({"frame": "frame0000.png", "views": [], "persons": [], "unassigned": []}))
+    (workspace.associate / ".rigsfm-associate.json").write_text(json.dumps(
+        {"written_by": "rigsfm associate", "model": workspace_module.model_fingerprint(workspace.sparse)}))
+    hashed = []
+
+    def counted(sparse):
+        hashed.append(sparse)
+        return workspace_module.model_fingerprint(sparse)
+
+    for module in (rigsfm.inspect.report.html, rigsfm.track.report, rigsfm.associate.report):
+        monkeypatch.setattr(module, "model_fingerprint", counted, raising=False)  # the page had none of its own
+    page = write_report(tmp_path).read_text()
+    assert "stable" in page and "<td>frame0000.png</td>" in page  # both sections shown: the same model
+    assert len(hashed) == 1, hashed
 
 
 def test_the_report_does_not_show_the_tracking_of_a_replaced_result(tmp_path):

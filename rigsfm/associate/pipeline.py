@@ -25,6 +25,7 @@ from rigsfm.associate.views import View, view_pose_sigmas
 from rigsfm.core.errors import InputError
 from rigsfm.core.io import file_sha256
 from rigsfm.core.names import ImageName, quoted
+from rigsfm.core.summary import Summary
 from rigsfm.core.workspace import Workspace, model_fingerprint
 from rigsfm.run.matching.reuse import recorded_contents
 
@@ -71,23 +72,24 @@ def load_run(out: Path) -> RunModel:
     centres, covariances = {}, {}
     images_root = None
     try:
-        summary = json.loads(workspace.summary.read_text(encoding="utf-8"))
-        root = (summary.get("inputs") or {}).get("images")
-        images_root = Path(root) if isinstance(root, str) and Path(root).is_dir() else None
-        narrow = summary["uncertainty"]["narrow"]
+        summary = Summary.from_json(json.loads(workspace.summary.read_text(encoding="utf-8")))
+        root = summary.inputs.images
+        images_root = Path(root) if isinstance(root, str) and root and Path(root).is_dir() else None
+        if summary.uncertainty is None:
+            raise KeyError("uncertainty")
+        narrow = summary.uncertainty.narrow
         # in the model's unit: metres, or the mapper's unit where the run is not metric (its _mm keys null)
-        centres = {name: float(entry["centre_sigma_mm"]) / 1000.0 if entry.get("centre_sigma_mm") is not None
-                   else float(entry["centre_sigma_units"]) for name, entry in narrow.items()
-                   if entry.get("centre_sigma_mm") is not None or entry.get("centre_sigma_units") is not None}
-        for name, entry in narrow.items():
-            matrix, per = entry.get("centre_covariance_mm2"), 1e-6
+        centres = {image_name: float(sigma) for image_name, entry in narrow.items()
+                   if (sigma := entry.centre_sigma_in_model_units()) is not None}
+        for image_name, entry in narrow.items():
+            matrix, per = entry.centre_covariance_mm2, 1e-6
             if matrix is None:
-                matrix, per = entry.get("centre_covariance_units2"), 1.0
-            if name in images and matrix is not None:
+                matrix, per = entry.centre_covariance_units2, 1.0
+            if image_name in images and matrix is not None:
                 # delivered in the camera's axes: back to the world's through the delivered pose
-                axes = images[name].cam_from_world().rotation.matrix()
-                covariances[name] = per * axes.T @ np.asarray(matrix, dtype=np.float64).reshape(3, 3) @ axes
-    except (OSError, ValueError, KeyError, TypeError):
+                axes = images[image_name].cam_from_world().rotation.matrix()
+                covariances[image_name] = per * axes.T @ np.asarray(matrix, dtype=np.float64).reshape(3, 3) @ axes
+    except (OSError, ValueError, KeyError, TypeError, AttributeError):
         logger.warning("%s holds no camera centre uncertainty; the persons' covariances leave it out",
                        workspace.summary)
     return RunModel(images, bands, known, poses.get("world"), centres, covariances, images_root,
@@ -351,12 +353,20 @@ def associate(out: Path, detections_csv: Path, options: AssociateOptions | None 
               progress: Callable[[int, int], None] | None = None) -> Path:
     """Read OUT (a finished run) and DETECTIONS, associate every frame, write DIR (default OUT/associate);
     ``progress(done, total)`` after each frame."""
-    from rigsfm.associate.output import check_destination, refuse_edited, write_results
-
     options = options or AssociateOptions()
     workspace = Workspace(Path(out))
     dest = Path(options.out) if options.out is not None else workspace.associate
     refuse_workspace_files(dest, workspace)
+    workspace.require_result()  # before the lock, which makes the folder
+    with workspace.reading():  # the persons of one model: a run rewriting it now is refused
+        return _associate(workspace, dest, Path(detections_csv), options, progress)
+
+
+def _associate(workspace: Workspace, dest: Path, detections_csv: Path, options: AssociateOptions,
+               progress: Callable[[int, int], None] | None) -> Path:
+    from rigsfm.associate.output import check_destination, refuse_edited, write_results
+
+    out = workspace.root
     previous = check_destination(dest, options.overwrite)
     model = load_run(Path(out))
     # a model's images have cameras

@@ -62,24 +62,27 @@ def _figure(path: Path, caption: str) -> str:
             f"<figcaption>{html.escape(caption)}</figcaption></figure>")
 
 
-def _made_from_another_model(workspace: Workspace) -> bool:
+def _made_from_another_model(workspace: Workspace, fingerprint: str | None) -> bool:
     """Whether OUT/associate's manifest names a model other than OUT/sparse (an earlier version's names none)."""
     try:
         made_from = json.loads((workspace.associate / MANIFEST).read_text(encoding="utf-8")).get("model")
     except (OSError, ValueError, AttributeError):
         return False
-    return bool(made_from) and workspace.sparse.is_dir() and made_from != model_fingerprint(workspace.sparse)
+    if not made_from or not workspace.sparse.is_dir():
+        return False
+    return made_from != (fingerprint if fingerprint is not None else model_fingerprint(workspace.sparse))
 
 
-def associate_report_section(out: Path) -> str:
-    """HTML (a <section>) of OUT/associate, or a short note where `rigsfm associate` has not written there."""
+def associate_report_section(out: Path, fingerprint: str | None = None) -> str:
+    """HTML (a <section>) of OUT/associate, or a short note where `rigsfm associate` has not written there.
+    ``fingerprint``: OUT/sparse's ``model_fingerprint`` where the caller has it (the report hashes the model once)."""
     workspace = Workspace(Path(out))
     folder = workspace.associate
     frames = sorted(folder.glob("*/persons.json"))
     if not frames:
         return ('<section id="persons"><h2>Persons across the narrow views</h2><p>No association (run <code>rigsfm '
                 "associate OUT DETECTIONS</code>).</p></section>")
-    if _made_from_another_model(workspace):
+    if _made_from_another_model(workspace, fingerprint):
         return ('<section id="persons"><h2>Persons across the narrow views</h2><p class="warn">The association in '
                 f"{html.escape(str(folder))} was made from an earlier result of this folder (replaced by <code>rigsfm "
                 "run --overwrite</code> since), so its persons are not shown: re-run <code>rigsfm associate "

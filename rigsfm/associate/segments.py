@@ -55,17 +55,24 @@ def in_front(view: _Projecting, start: np.ndarray, end: np.ndarray,
              min_depth: float = MIN_DEPTH_M) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The segments ``start``-``end`` (N x 3 world points each) cut to their parts at least ``min_depth`` in front of
     ``view``'s camera (world points), and whether any part is."""
+    start, end, ok, _ = cut_in_front(view, start, end, min_depth)
+    return start, end, ok
+
+
+def cut_in_front(view: _Projecting, start: np.ndarray, end: np.ndarray,
+                 min_depth: float = MIN_DEPTH_M) -> tuple[np.ndarray, np.ndarray, np.ndarray, bool]:
+    """:func:`in_front`, and whether any segment was cut (False: ``start`` and ``end`` are the segments given)."""
     depth_s = start @ view.r[2] + view.t[2]
     depth_e = end @ view.r[2] + view.t[2]
     ok = (depth_s >= min_depth) | (depth_e >= min_depth)
     if np.all(depth_s >= min_depth) and np.all(depth_e >= min_depth):
-        return start, end, ok  # every segment wholly in front (mostly): nothing to cut
+        return start, end, ok, False  # every segment wholly in front (mostly): nothing to cut
     with np.errstate(divide="ignore", invalid="ignore"):
         cut = np.clip((min_depth - depth_s) / (depth_e - depth_s), 0.0, 1.0)
     crossing = start + np.nan_to_num(cut)[:, None] * (end - start)
     start = np.where((depth_s < min_depth)[:, None], crossing, start)
     end = np.where((depth_e < min_depth)[:, None], crossing, end)
-    return start, end, ok
+    return start, end, ok, True
 
 
 def segment_in_view(view: _Projecting, start: np.ndarray, end: np.ndarray,
@@ -111,7 +118,7 @@ def pair_seeds(frame: _Stacked, i: int, j: int, di: np.ndarray, p_lo: np.ndarray
     view_j = frame.views[j]
     tree = frame.trees[j]
     candidates = frame.tree_index[j] if among is None else among
-    start, end, ok = in_front(view_j, p_lo, p_hi)
+    start, end, ok, cut = cut_in_front(view_j, p_lo, p_hi)
     if tree is None or not ok.any():
         return None
     a, _ = view_j.project(start)
@@ -132,7 +139,7 @@ def pair_seeds(frame: _Stacked, i: int, j: int, di: np.ndarray, p_lo: np.ndarray
     # no candidate farther from its segment than this can be inside its band.
     whole = carried(p_lo, p_hi, np.maximum(lo_i, hi_i))
     # the band's widest on the part in front of j (the whole segment where all of it is)
-    front = whole if start is p_lo and end is p_hi else carried(
+    front = whole if not cut else carried(
         start, end, np.maximum(np.linalg.norm(start - centre_i, axis=1), np.linalg.norm(end - centre_i, axis=1)))
     reach = gate * np.sqrt(frame.noise[j] ** 2 + front ** 2)
     seg = b - a

@@ -7,6 +7,7 @@ convex hulls, covered grid cells shaded) and ``stereo_view_errors.png``; ``repor
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -22,6 +23,9 @@ from rigsfm.core.io import atomic_directory, write_text_atomic
 
 if TYPE_CHECKING:
     from rigsfm.calibrate.results import CalibrationResult, RigResult
+
+logger = logging.getLogger(__name__)
+
 
 def view_error_chart(cam: CameraCalibration, where: str) -> np.ndarray:
     views = [v for v in cam.views if v.rms is not None]
@@ -160,6 +164,7 @@ def _sigma_text(rig: RigResult) -> list[str]:
 REPORT_FILES = frozenset({"report.txt", "stereo_view_errors.png", "wide_view_errors.png", "narrow_view_errors.png",
                           "wide_coverage.png", "narrow_coverage.png"})  # a rig's folder: all a new report replaces
 SUMMARY_START = b"Board: "  # summary.txt's first words: a summary.txt that lacks them is not rigsfm's
+RIG_LINE = ": wide RMS "  # after a rig's name, its line of summary.txt: the rigs whose folders it wrote
 
 
 def _is_our_summary(path: Path) -> bool:
@@ -188,9 +193,56 @@ def check_report_dir(report_dir: Path, rig_names: list[str]) -> None:
                                  "--report-dir (nothing was written)")
 
 
-def write_report(result: CalibrationResult, report_dir: Path) -> Path:
+def _rigs_in_summary(path: Path) -> set[str]:
+    """The rigs a summary.txt :func:`write_report` wrote names (its lines ``NAME: wide RMS ...``), none where it did
+    not write one."""
+    if path.is_symlink() or not path.is_file() or not _is_our_summary(path):
+        return set()
+    return {line.split(RIG_LINE, 1)[0] for line in path.read_text(encoding="utf-8").splitlines()
+            if RIG_LINE in line and not line[:1].isspace()}
+
+
+def _report_files(folder: Path) -> list[Path] | None:
+    """The files of a rig's report folder, None where it holds anything a report does not (or is no folder)."""
+    if folder.is_symlink() or not folder.is_dir():
+        return None
+    files = list(folder.iterdir())
+    if not files or any(p.name not in REPORT_FILES or p.is_symlink() or not p.is_file() for p in files):
+        return None
+    return files
+
+
+def remove_rigs_no_longer_calibrated(report_dir: Path, written: set[str], calibrated: set[str]) -> list[Path]:
+    """Remove the report folders of the rigs an earlier report in ``report_dir`` wrote (``written``: its
+    summary.txt names them) that this calibration (``calibrated``) no longer has, where they hold only a report's
+    files; a folder that holds other files, or looks like a rig's report but no summary of rigsfm's names it, is
+    left, named in one warning line. Returns the folders removed."""
+    removed, left = [], []
+    for folder in sorted(p for p in report_dir.iterdir() if p.name not in calibrated and not p.name.startswith(".")):
+        files = _report_files(folder)
+        if folder.name in written and files is not None:
+            for file in files:  # each a report's file: never the folder whole
+                file.unlink()
+            folder.rmdir()
+            removed.append(folder)
+        elif folder.name in written or files is not None:
+            left.append(folder)
+    if removed:
+        logger.info("Removed the reports of rig(s) this calibration no longer has: %s",
+                    ", ".join(str(p) for p in removed))
+    if left:
+        logger.warning("%s: report folder(s) of rig(s) this calibration does not have, left as they are (rigsfm "
+                       "removes only those its summary.txt names that hold only a report's files); remove them if "
+                       "they are stale", ", ".join(f"'{p}'" for p in left))
+    return removed
+
+
+def write_report(result: CalibrationResult, report_dir: Path, *, merge: bool = False) -> Path:
+    """The calibration's report in ``report_dir``: a folder per rig and summary.txt. Without ``merge`` (the rigs
+    replace rigs.yaml's), the folders an earlier report wrote of rigs this one lacks are removed."""
     report_dir = Path(report_dir)
     check_report_dir(report_dir, [rig.name for rig in result.rigs])  # every rig first: a refusal changes nothing
+    written = _rigs_in_summary(report_dir / "summary.txt")  # before this report replaces it
     report_dir.mkdir(parents=True, exist_ok=True)
     summary = [f"{SUMMARY_START.decode()}{result.board.describe()}", ""]
     for rig in result.rigs:
@@ -201,9 +253,11 @@ def write_report(result: CalibrationResult, report_dir: Path) -> Path:
                 cv2.imwrite(str(tmp / f"{cam.sensor}_coverage.png"), coverage_image(cam, f"{rig.name} {cam.sensor}"))
             cv2.imwrite(str(tmp / "stereo_view_errors.png"), stereo_chart(rig))
         f = rig.stereo.final
-        summary.append(f"{rig.name}: wide RMS {rig.wide.rms:.3f} px, narrow RMS {rig.narrow.rms:.3f} px, E^sl RMS "
+        summary.append(f"{rig.name}{RIG_LINE}{rig.wide.rms:.3f} px, narrow RMS {rig.narrow.rms:.3f} px, E^sl RMS "
                        f"{f.rms:.3f} px, baseline {np.linalg.norm(rig.T) * 1000:.2f} mm"
                        f"{' (scene rotation)' if rig.scene else ''}; {len(rig.warnings)} warnings")
         summary += [f"  WARNING: {w}" for w in rig.warnings]
+    if not merge:  # before the summary that names them goes: a stop between the two leaves them named
+        remove_rigs_no_longer_calibrated(report_dir, written, {rig.name for rig in result.rigs})
     write_text_atomic(report_dir / "summary.txt", "\n".join(summary) + "\n")
     return report_dir

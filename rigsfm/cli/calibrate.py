@@ -8,7 +8,7 @@ from typing import Annotated
 import typer
 
 from rigsfm.calibrate.options import CalibrateOptions, Distortion
-from rigsfm.cli.common import console, err_console, fail_cleanly, flag, styled
+from rigsfm.cli.common import configure_logging, console, err_console, fail_cleanly, flag, styled
 
 
 @fail_cleanly
@@ -36,6 +36,7 @@ def calibrate_command(
     """Calibrate each rig's wide and narrow intrinsics and E^sl (narrow_from_wide) from board images."""
     from rigsfm.calibrate.pipeline import calibrate
 
+    configure_logging(False)  # the report folders an --overwrite leaves, named as warnings
     options = CalibrateOptions(board=board, distortion=distortion, scene_dir=from_scene, baseline=baseline,
                                merge=merge, overwrite=overwrite, report_dir=report_dir)
     result, rigs_path, report = calibrate(board_images, out, options)

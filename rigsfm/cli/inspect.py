@@ -20,6 +20,7 @@ def report_command(out: Annotated[Path, WORKSPACE]) -> None:
     from rigsfm.core.workspace import Workspace
     from rigsfm.inspect.report.write import write_report
 
+    configure_logging(False)  # a run that did not finish, said as a warning
     workspace = Workspace(out)
     workspace.require_result()  # before the lock, which makes the folder
     # not among the files of a run (or track) writing OUT now; a result copied without rigsfm's marks has no lock

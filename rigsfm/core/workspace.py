@@ -3,7 +3,7 @@
 ```
 OUT/
   .rigsfm-workspace   marker: this folder was made by rigsfm (--overwrite touches nothing else)
-  .rigsfm.lock        held while a command writes OUT (a second one is refused)
+  .rigsfm.lock        held while a command writes or reads OUT (a second one is refused)
   database.db         COLMAP database: cameras, rigs with E^sl, features, verified matches
   features.json       the settings the features and matches were made with
   images.json         the content (SHA-256) of each image file they were made from
@@ -174,6 +174,21 @@ class Workspace:
         if not self.narrow_poses.is_file():
             raise WorkspaceError(f"'{self.narrow_poses}' is missing: re-run `rigsfm run ... --out {self.shell_root} --overwrite`")
 
+    def unfinished(self) -> str | None:
+        """Why OUT's result is not a finished run's, in a clause, or None: summary.json, which a run writes last,
+        is missing (the run stopped while delivering: its files may sit beside an earlier run's)."""
+        if self.summary.is_file():
+            return None
+        return (f"the run that wrote '{self.root}' did not finish (no summary.json, written last; its files may be "
+                f"partly an earlier run's): re-run the same `rigsfm run ... --out {self.shell_root}` to finish it")
+
+    def warn_unfinished(self) -> None:
+        """One warning line where :meth:`unfinished` says why (``report``, ``export``: read as it is, as ``associate``
+        and ``track`` read it)."""
+        why = self.unfinished()
+        if why is not None:
+            logger.warning("%s%s", why[0].upper(), why[1:])
+
     @property
     def shell_root(self) -> str:
         """The folder as a shell word, for the commands that messages suggest (a space or quote stays one word)."""
@@ -273,6 +288,18 @@ class Workspace:
                 handle.seek(0)
                 handle.truncate()
                 fcntl.flock(handle, fcntl.LOCK_UN)
+
+    @contextlib.contextmanager
+    def reading(self) -> Iterator[None]:
+        """:meth:`lock` for a command that reads OUT's result (``export``, ``associate``): a run rewriting the model
+        under it is refused, as it is under ``report``. Held where rigsfm can hold it: a result copied without
+        rigsfm's marks, or an OUT this process cannot write (where no rigsfm command of its own writes either), is
+        read without it. Call :meth:`require_result` first (the lock makes a missing folder)."""
+        if not self.is_ours() or _write_probe(self.root) is not None:
+            yield
+            return
+        with self.lock():
+            yield
 
 
 def model_fingerprint(sparse: Path) -> str:

@@ -194,10 +194,16 @@ def export(out: Path, options: ExportOptions) -> Path:
     ``check_destination``)."""
     workspace = Workspace(Path(out))
     workspace.require_result()
+    workspace.warn_unfinished()
     fmt = ExportFormat(options.format)
     if options.images and fmt != ExportFormat.WILDTRACK:  # refused rather than ignored: the user asked for images
         raise InputError(f"--images writes the undistorted narrow images of --format wildtrack only; export "
                          f"{fmt} without it")
+    with workspace.reading():  # a run rewriting the model now is refused, not exported half old, half new
+        return _export(workspace, fmt, options)
+
+
+def _export(workspace: Workspace, fmt: ExportFormat, options: ExportOptions) -> Path:
     dest = Path(options.dest) if options.dest is not None else workspace.export(fmt)
     previous = check_destination(dest, workspace, overwrite=options.overwrite)
     reconstruction = workspace.read_sparse()

@@ -12,8 +12,9 @@ from rigsfm.core.workspace import Workspace, model_fingerprint, read_json
 VERDICT_STYLE = {"stable": "color:#2a7d2a", "shaking": "color:#c77700", "moved": "color:#c0392b;font-weight:bold"}
 
 
-def track_report_section(out: Path) -> str:
+def track_report_section(out: Path, fingerprint: str | None = None) -> str:
     """HTML (a <section>) summarising OUT/track: per rig verdict, steps, jitter and the embedded PNG plot.
+    ``fingerprint``: OUT/sparse's ``model_fingerprint`` where the caller has it (the report hashes the model once).
 
     Returns a short note when `rigsfm track` has not been run on this workspace.
     """
@@ -22,7 +23,9 @@ def track_report_section(out: Path) -> str:
         return '<section id="track"><h2>Pose tracking</h2><p>No tracking results (run <code>rigsfm track</code>).</p></section>'
     poses = read_json(paths.poses_json, "re-run `rigsfm track OUT NEW_IMAGES --overwrite`", keys=("thresholds", "rigs"))
     workspace = Workspace(Path(out))
-    if poses.get("reference", {}).get("fingerprint") != model_fingerprint(workspace.sparse):
+    if fingerprint is None:
+        fingerprint = model_fingerprint(workspace.sparse)
+    if poses.get("reference", {}).get("fingerprint") != fingerprint:
         # as `rigsfm track` refuses to extend them: a `rigsfm run --overwrite` since replaced the model
         return ('<section id="track"><h2>Pose tracking</h2><p class="warn">The tracking results in '
                 f"{html.escape(str(paths.root))} were made against an earlier result of this folder (replaced by "

@@ -13,7 +13,7 @@ from rigsfm.core import charts
 from rigsfm.core.names import ImageName, name_of
 from rigsfm.core.residuals import reprojection_errors
 from rigsfm.core.summary import BANDS_WITH_NARROW, Summary
-from rigsfm.core.workspace import Workspace
+from rigsfm.core.workspace import Workspace, model_fingerprint
 from rigsfm.inspect.report.figures import (
     JPEG_QUALITY,
     epipolar_figure,
@@ -56,7 +56,8 @@ def table(header: list[str], rows: list[list], left: int = 1) -> str:
 def summary_section(summary: Summary | None, reconstruction: pycolmap.Reconstruction, narrow: dict) -> str:
     parts = ["<h2>Summary</h2>"]
     if summary is None:
-        parts.append('<p class="warn">summary.json is missing: scale and timings are not shown.</p>')
+        parts.append('<p class="warn">summary.json is missing (the run did not finish: re-run the same command to '
+                     "finish it): scale and timings are not shown.</p>")
     rigs = sorted({name_of(im).rig for im in reconstruction.images.values()})
     counts = {s: sum(im.has_pose and name_of(im).sensor == s for im in reconstruction.images.values())
               for s in ("wide", "narrow")}
@@ -377,13 +378,18 @@ def render_page(out: Path, summary: Summary | None, reconstruction: pycolmap.Rec
             world_section(narrow, reconstruction),
             pairs_section(narrow), uncertainty_section(narrow, summary),
             epipolar_section(out, summary, reconstruction, narrow), self_check_section(summary)]
-    if Workspace(out).track.poses_json.is_file():  # `rigsfm track` results, when there are any
+    workspace = Workspace(out)
+    tracked = workspace.track.poses_json.is_file()  # `rigsfm track` results, when there are any
+    associated = any(workspace.associate.glob("*/persons.json"))  # `rigsfm associate`'s persons in its default folder
+    # both sections compare their results' model with this one: the model's files are read once, not per section
+    fingerprint = model_fingerprint(workspace.sparse) if tracked or associated else None
+    if tracked:
         from rigsfm.track import track_report_section
 
-        body.append(track_report_section(out))
-    if any(Workspace(out).associate.glob("*/persons.json")):  # `rigsfm associate`'s persons in its default folder
+        body.append(track_report_section(out, fingerprint))
+    if associated:
         from rigsfm.associate.report import associate_report_section
 
-        body.append(associate_report_section(out))
+        body.append(associate_report_section(out, fingerprint))
     return ('<!DOCTYPE html><html lang="en"><head><meta charset="utf-8">'
             f"<title>{esc(title)}</title><style>{CSS}</style></head><body>{''.join(body)}</body></html>\n")

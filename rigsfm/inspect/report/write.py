@@ -32,6 +32,7 @@ def write_report(out: Path) -> Path:
     """Write ``out/report.html`` from the workspace's results (replacing an older report) and return it."""
     workspace = Workspace(Path(out))
     reconstruction, narrow, summary = load_result(workspace.root)
+    workspace.warn_unfinished()
     page = render_page(workspace.root, summary, reconstruction, narrow)
     path = write_text_atomic(workspace.report, page)
     logger.info("Wrote %s (%.1f kB)", path, path.stat().st_size / 1e3)

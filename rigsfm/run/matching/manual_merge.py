@@ -10,7 +10,9 @@ union is verified again and replaces the pair's matches and two-view geometry.
 
 from __future__ import annotations
 
+import contextlib
 import logging
+import sqlite3
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -284,11 +286,14 @@ def drop_earlier_manual_matches(database_path: Path, pairs: Iterable[tuple[str, 
     alone: else a run without the CSV still registers from the clicks (:func:`merge_pair` replaces only the pairs
     it is given). Returns the pairs removed."""
     given = {frozenset(pair) for pair in pairs}
-    dropped = []
+    dropped: list[tuple[str, str]] = []
+    candidates = _images_ending_in_a_zero_row(database_path)
+    if len(candidates) < 2:  # a pair needs manual rows in both images: nothing more to read
+        return dropped
     with open_database(database_path) as database:
         names = {image.image_id: image.name for image in database.read_all_images()}
         manual = {image_id: set(_zero_rows(database.read_descriptors(image_id)).tolist())
-                  for image_id in names if database.exists_descriptors(image_id)}
+                  for image_id in candidates if image_id in names and database.exists_descriptors(image_id)}
         ids = sorted(image_id for image_id, rows in manual.items() if rows)
         for i, id1 in enumerate(ids):
             for id2 in ids[i + 1:]:
@@ -306,6 +311,19 @@ def drop_earlier_manual_matches(database_path: Path, pairs: Iterable[tuple[str, 
         logger.info("Manual matches of an earlier CSV removed from %d pair(s), matched again without them: %s",
                     len(dropped), ", ".join(f"{a} <-> {b}" for a, b in dropped))
     return dropped
+
+
+def _images_ending_in_a_zero_row(database_path: Path) -> set[int]:
+    """The ids of the images whose last descriptor row is all zero, read in SQLite one row per image: the only
+    ones that can hold manual keypoints, as :func:`append_manual_keypoints` appends them after the automatic ones
+    (reading every image's descriptors cost a pass over the whole table on each run)."""
+    try:
+        with contextlib.closing(sqlite3.connect(f"{Path(database_path).resolve().as_uri()}?mode=ro", uri=True)) as db:
+            tails = db.execute("SELECT image_id, substr(data, length(data) - length(data) / rows + 1) FROM descriptors "
+                               "WHERE rows > 0 AND length(data) > 0").fetchall()
+    except sqlite3.OperationalError as error:  # as COLMAP's own errors: a full disk is named by disk_errors_named
+        raise RuntimeError(f"{database_path}: {error}") from None
+    return {int(image_id) for image_id, tail in tails if tail is not None and not any(tail)}
 
 
 def manual_matches_summary(path: Path, reports: Sequence[PairReport]) -> ManualMatchesSummary:

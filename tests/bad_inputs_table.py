@@ -539,6 +539,8 @@ CASES = [
     Case("`rigsfm export` given a demo's folder instead of its run/", "nothing is written",
          on_workspace(lambda out: (out.parent / "demo").mkdir() or out.rename(out.parent / "demo" / "run"),
                       ["export", "demo", "--format", "json"])),
+    Case("`rigsfm export` given a file of the run (`out/narrow_poses.json`) instead of its folder",
+         "nothing is written", on_workspace(lambda out: None, ["export", "out/narrow_poses.json", "--format", "json"])),
     Case("`rigsfm report` on a folder without a result", "nothing is written",
          lambda root: (inputs(root), ["report", "images"])[1]),
     Case("a truncated `sparse/images.bin`", "nothing is written",

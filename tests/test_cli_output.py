@@ -52,6 +52,16 @@ def test_a_demo_folder_points_to_its_run(tmp_path):
     assert not (tmp_path / "c" / "demo" / "export").exists()
 
 
+def test_a_file_given_for_out_is_named_a_file(tmp_path):
+    """A file of the run given for OUT was said not to exist (it does: it is not a folder)."""
+    code, message = table.run_case(
+        _case("`rigsfm export` given a file of the run (`out/narrow_poses.json`) instead of its folder"), tmp_path / "c")
+    assert code == 1
+    assert message == "error: 'out/narrow_poses.json' is a file, not the folder of a `rigsfm run` (its --out); give " \
+                      "that folder"
+    assert not (tmp_path / "c" / "out" / "export").exists()
+
+
 def _options(help_text: str) -> list[tuple[str, str]]:
     """(names and metavar, description) of each option in click's help."""
     block = help_text.split("\nOptions:\n", 1)[1]

@@ -161,6 +161,9 @@ class Workspace:
 
     def require_result(self) -> None:
         """Raise a ``WorkspaceError`` saying what to do when OUT holds no finished run."""
+        if self.root.exists() and not self.root.is_dir():  # a file given for OUT (an image, sparse/images.bin, ...)
+            raise WorkspaceError(f"'{self.root}' is a file, not the folder of a `rigsfm run` (its --out); give that "
+                                 "folder")
         if not self.root.is_dir():
             raise WorkspaceError(f"'{self.root}' does not exist: run `rigsfm run IMAGES --rigs rigs.yaml --out {self.shell_root}`"
                                  " first")

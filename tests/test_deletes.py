@@ -540,3 +540,37 @@ def test_calibrate_overwrite_removes_the_reports_of_rigs_it_no_longer_has_and_on
     said = [line for line in result.output.splitlines() if "left as they are" in line]
     assert len(said) == 1 and f"'{reports / 'rig04'}', '{reports / 'rig05'}'" in said[0], result.output
     assert "rig03" not in (reports / "summary.txt").read_text()
+
+
+def test_outputs_made_from_a_replaced_model_are_named(out):
+    """`rigsfm run --overwrite` replaced the model under OUT/export, OUT/track and OUT/associate without a word: the
+    exports (read by other tools, which nothing in rigsfm shows) kept the earlier result's poses. They are named,
+    with the command that makes each again, and kept."""
+    from rigsfm.core.workspace import Workspace, model_fingerprint
+    from rigsfm.run.deliver import earlier_outputs, earlier_outputs_warning, write_model
+
+    workspace = Workspace(out)
+    assert invoke("export", out, "--format", "json").exit_code == 0
+    assert invoke("export", out, "--format", "toml").exit_code == 0
+    old = model_fingerprint(out / "sparse")
+    (out / "track").mkdir()
+    (out / "track" / "poses.json").write_text(json.dumps({"reference": {"fingerprint": old}}))
+    (out / "associate").mkdir()
+    (out / "associate" / ".rigsfm-associate.json").write_text(json.dumps({"model": old, "files": []}))
+    assert earlier_outputs(workspace) == [] and earlier_outputs_warning(workspace) is None  # all of this model
+
+    model = pycolmap.Reconstruction(out / "sparse")  # what a `run --overwrite` delivers: another model
+    frame = next(iter(model.frames.values()))
+    frame.rig_from_world = pycolmap.Rigid3d(frame.rig_from_world.rotation, frame.rig_from_world.translation + 0.01)
+    write_model(model, out / "sparse", overwrite=True)
+    exported = sorted(tree(out / "export").items())
+    warning = earlier_outputs_warning(workspace)
+    assert warning is not None and warning.startswith(f"MADE FROM THE EARLIER RESULT: 4 output(s) in {out} ")
+    for made, command in ((out / "track", f"rigsfm track {out} NEW_IMAGES --overwrite"),
+                          (out / "associate", f"rigsfm associate {out} DETECTIONS --overwrite"),
+                          (out / "export" / "json", f"rigsfm export {out} --format json --overwrite"),
+                          (out / "export" / "toml", f"rigsfm export {out} --format toml --overwrite")):
+        assert f"{made} (`{command}`)" in warning
+    assert sorted(tree(out / "export").items()) == exported  # kept as they are
+    assert invoke("export", out, "--format", "json", "--overwrite").exit_code == 0
+    assert "export/json" not in earlier_outputs_warning(workspace) and "export/toml" in earlier_outputs_warning(workspace)

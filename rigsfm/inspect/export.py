@@ -38,7 +38,7 @@ from rigsfm.core.names import name_of
 from rigsfm.core.owned import Previous, commit, previous_files
 from rigsfm.core.serialise import camera_to_dict, pose_to_dict
 from rigsfm.core.summary import Summary
-from rigsfm.core.workspace import Workspace
+from rigsfm.core.workspace import Workspace, model_fingerprint
 from rigsfm.inspect.camera_files import write_opencv, write_toml, write_wildtrack
 from rigsfm.inspect.options import ExportFormat, ExportOptions
 
@@ -229,7 +229,8 @@ def _export(workspace: Workspace, fmt: ExportFormat, options: ExportOptions) -> 
             write_wildtrack(reconstruction, tmp, images_dir if options.images else None)
         else:
             write_json_poses(reconstruction, tmp)
-        commit(dest, tmp, previous, MANIFEST, {"format": str(fmt), "workspace": str(workspace.root.resolve())},
+        commit(dest, tmp, previous, MANIFEST, {"format": str(fmt), "workspace": str(workspace.root.resolve()),
+                                             "model": model_fingerprint(workspace.sparse)},
                option="--dest", what="export")
     finally:
         shutil.rmtree(tmp, ignore_errors=True)  # the temporary folder made above: only rigsfm's files

@@ -22,7 +22,9 @@ from __future__ import annotations
 
 import itertools
 import logging
+import shlex
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import pycolmap
@@ -32,6 +34,9 @@ from rigsfm.core.errors import WorkspaceError
 from rigsfm.core.io import atomic_directory, write_json_atomic
 from rigsfm.core.names import name_of
 from rigsfm.core.serialise import camera_to_dict, pose_to_dict
+
+if TYPE_CHECKING:
+    from rigsfm.core.workspace import Workspace
 
 logger = logging.getLogger(__name__)
 
@@ -137,3 +142,53 @@ def write_narrow_poses(reconstruction: pycolmap.Reconstruction, path: Path, *, m
                        bands: dict | None = None, world: dict | None = None, ground=None) -> Path:
     return write_json_atomic(path, narrow_poses(reconstruction, metric=metric, bands=bands, world=world,
                                                 ground=ground), overwrite=overwrite)
+
+
+def _recorded_model(path: Path, *keys: str) -> str | None:
+    """The model fingerprint a JSON file of OUT records under ``keys`` (None where it records none)."""
+    import json
+
+    try:
+        value = json.loads(path.read_text(encoding="utf-8"))
+        for key in keys:
+            value = value.get(key)
+    except (OSError, ValueError, AttributeError):
+        return None
+    return value if isinstance(value, str) else None
+
+
+def earlier_outputs(workspace: Workspace) -> list[str]:
+    """What in OUT was made from another model than ``OUT/sparse``: ``rigsfm track``'s series, ``rigsfm
+    associate``'s default folder and each ``rigsfm export`` default folder, with the command that makes each again
+    (an export from before exports recorded their model counts as another's: it was made before this model)."""
+    from rigsfm.associate.output import MANIFEST as ASSOCIATE_MANIFEST
+    from rigsfm.core.workspace import model_fingerprint
+    from rigsfm.inspect.export import MANIFEST as EXPORT_MANIFEST
+
+    if not workspace.sparse.is_dir():
+        return []
+    model = model_fingerprint(workspace.sparse)
+    found = []
+    if workspace.track.poses_json.is_file() and _recorded_model(workspace.track.poses_json, "reference",
+                                                                  "fingerprint") != model:
+        found.append(f"{workspace.track.root} (`rigsfm track {workspace.shell_root} NEW_IMAGES --overwrite`)")
+    manifest = workspace.associate / ASSOCIATE_MANIFEST
+    if manifest.is_file() and _recorded_model(manifest, "model") != model:
+        found.append(f"{workspace.associate} (`rigsfm associate {workspace.shell_root} DETECTIONS --overwrite`)")
+    if workspace.exports.is_dir():
+        for folder in sorted(p for p in workspace.exports.iterdir() if (p / EXPORT_MANIFEST).is_file()):
+            if _recorded_model(folder / EXPORT_MANIFEST, "model") != model:
+                fmt = _recorded_model(folder / EXPORT_MANIFEST, "format") or folder.name
+                dest = "" if folder.name == fmt else f" --dest {shlex.quote(str(folder))}"  # not its format's default
+                found.append(f"{folder} (`rigsfm export {workspace.shell_root} --format {fmt}{dest} --overwrite`)")
+    return found
+
+
+def earlier_outputs_warning(workspace: Workspace) -> str | None:
+    """One warning naming :func:`earlier_outputs`, or None."""
+    found = earlier_outputs(workspace)
+    if not found:
+        return None
+    return (f"MADE FROM THE EARLIER RESULT: {len(found)} output(s) in {workspace.root} were made from the result "
+            f"this run replaced and no longer match it: {'; '.join(found)}; make each again with the command named "
+            "(they are kept as they are)")

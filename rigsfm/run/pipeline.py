@@ -40,7 +40,7 @@ from rigsfm.run.adjustment.scale_check import check_scale_agreement
 from rigsfm.run.adjustment.uncertainty import estimate_uncertainty, uncertainty_summary
 from rigsfm.run.checks.diagnostics import check_reconstruction
 from rigsfm.run.checks.missed_pairs import pairs_report
-from rigsfm.run.deliver import narrow_poses, write_model, write_points_ply
+from rigsfm.run.deliver import earlier_outputs_warning, narrow_poses, write_model, write_points_ply
 from rigsfm.run.inputs.database import check_database_kept, create_database
 from rigsfm.run.inputs.images import (
     ImageEntry,
@@ -462,6 +462,9 @@ def _run_locked(workspace: Workspace, inputs: Inputs, manual_pairs: dict, option
     summary.cpu_s = dict(timings.cpu)
     if pairs_warning:
         summary.warnings.append(pairs_warning)
+    earlier = earlier_outputs_warning(workspace)  # an --overwrite run replaced the model they were made from
+    if earlier:
+        summary.warnings.append(earlier)
     if options.manual_matches is not None:
         summary.manual_matches = manual_matches_summary(options.manual_matches, manual_reports)
     summary.uncertainty = uncertainty_summary(result, uncertainty, metric=metric)

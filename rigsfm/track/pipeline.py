@@ -146,6 +146,21 @@ def warn_not_metric(workspace: Workspace) -> None:
                        workspace.root)
 
 
+def moved_warning(poses: dict, out: str) -> str | None:
+    """One warning naming the rigs whose verdict is 'moved', each with its first step, and what no longer holds:
+    the run's poses of that rig, so its pairs' F_ji and bands, the exports and `associate --poses-from`."""
+    moved = [(name, rig["verdict"]["steps"][0]) for name, rig in poses["rigs"].items()
+             if rig["verdict"]["verdict"] == "moved" and rig["verdict"]["steps"]]
+    if not moved:
+        return None
+    steps = "; ".join(f"{name} at {step['frame']} ({step['rotation_deg']:.3f} deg, {step['translation_mm']:.1f} mm)"
+                      for name, step in moved)
+    return (f"MOVED: {steps}. The poses of {out} (narrow_poses.json: their pairs' F_ji and bands; the exports; "
+            "`rigsfm associate --poses-from`) no longer hold for its images from that frame on: calibrate the network "
+            "again on frames taken since (`rigsfm run IMAGES --rigs rigs.yaml --out NEW_OUT`, IMAGES holding those "
+            "frames of every rig)")
+
+
 def track(out: Path, new_images: Path, options: TrackOptions | None = None, *,
           progress: Callable[[int, int], None] | None = None) -> TrackResult:
     """Register the new frames, merge them into OUT/track and return the merged result."""
@@ -211,6 +226,9 @@ def track(out: Path, new_images: Path, options: TrackOptions | None = None, *,
                        "(%d frames after it): a rig moved just now reads 'shaking' until then. Check it, or track the "
                        "next frames", ", ".join(unsettled), ", ".join(f"{rig}: {k}" for rig, k in unsettled.items()),
                        thresholds.min_persist_frames)
+    moved = moved_warning(poses, workspace.shell_root)
+    if moved:
+        logger.warning("%s", moved)
     if bad:
         raise InputError(f"{len(bad)} frame(s) could not be used (the others are saved): {bad[0]}"
                          + (f" (and {len(bad) - 1} more)" if len(bad) > 1 else ""))

@@ -304,3 +304,21 @@ def test_wildtrack_export_says_when_the_world_is_not_metric_on_the_floor(tmp_pat
     with pytest.raises(InputError, match="--format wildtrack only"):
         export(tmp_path / "out", ExportOptions(format=ExportFormat.JSON, images=True))
     assert not (tmp_path / "out" / "export" / "json").exists()
+
+
+def test_wildtrack_images_and_calibrations_name_a_rig_alike(tmp_path):
+    """Rig names may hold spaces: the calibration files took the name OpenCV's keys allow (intr_rig_01.xml) and the
+    images the rig's own (Image_subsets/rig 01/), so a loader pairing them by camera name found no images."""
+    from rigsfm.inspect.camera_files import write_wildtrack
+
+    rec = make_reconstruction({"PINHOLE": MODELS["PINHOLE"], "OPENCV": MODELS["OPENCV"]}, rig_names=["rig 01", "rig 02"])
+    for image in list(rec.images.values()):  # the narrow images, as the export writes only those
+        image.name = image.name.replace("/wide/", "/narrow/")
+        path = tmp_path / "images" / image.name
+        path.parent.mkdir(parents=True, exist_ok=True)
+        cv2.imwrite(str(path), np.full((617, 812), 128, np.uint8))
+    write_wildtrack(rec, tmp_path / "wildtrack", tmp_path / "images")
+    cameras = sorted(p.stem.removeprefix("intr_") for p in (tmp_path / "wildtrack" / "calibrations" /
+                                                             "intrinsic_zero").iterdir())
+    assert cameras == ["rig_01", "rig_02"]
+    assert sorted(p.name for p in (tmp_path / "wildtrack" / "Image_subsets").iterdir()) == cameras

@@ -322,3 +322,25 @@ def test_wildtrack_images_and_calibrations_name_a_rig_alike(tmp_path):
                                                              "intrinsic_zero").iterdir())
     assert cameras == ["rig_01", "rig_02"]
     assert sorted(p.name for p in (tmp_path / "wildtrack" / "Image_subsets").iterdir()) == cameras
+
+
+@pytest.mark.parametrize("fmt", ["opencv", "toml", "nerfstudio", "json"])  # (open3d: this model has no points)
+def test_an_export_of_a_result_without_scale_says_it_is_not_metres(tmp_path, caplog, fmt):
+    """EasyMocap, aniposelib, nerfstudio (and Open3D) users take the files for metres, as the docs promise them: a
+    result without scale was exported in the mapper's arbitrary unit without a word (only WILDTRACK warned)."""
+    import json
+    import logging
+
+    from rigsfm.inspect.export import export
+    from rigsfm.inspect.options import ExportFormat, ExportOptions
+
+    finished_workspace(tmp_path / "out")
+    with caplog.at_level(logging.WARNING, logger="rigsfm.inspect.export"):
+        export(tmp_path / "out", ExportOptions(format=ExportFormat(fmt)))
+    assert not [r for r in caplog.records if "NOT METRIC" in r.getMessage()]
+    poses_path = tmp_path / "out" / "narrow_poses.json"
+    poses_path.write_text(json.dumps({**json.loads(poses_path.read_text()), "metric": False}))
+    with caplog.at_level(logging.WARNING, logger="rigsfm.inspect.export"):
+        export(tmp_path / "out", ExportOptions(format=ExportFormat(fmt), overwrite=True))
+    (warned,) = [r.getMessage() for r in caplog.records if "NOT METRIC" in r.getMessage()]
+    assert f"so the {fmt} export's positions are in the mapper's arbitrary unit" in warned

@@ -172,6 +172,19 @@ def warn_wildtrack_world(workspace: Workspace) -> None:
                        " and ".join(problems))
 
 
+def warn_not_metric(workspace: Workspace, fmt: ExportFormat) -> None:
+    """Say where the run's result has no scale: every format but COLMAP's is read as metres by its tools (the
+    files carry no units), and the docs promise metres (WILDTRACK's own warning says centimetres)."""
+    try:
+        metric = json.loads(workspace.narrow_poses.read_text(encoding="utf-8")).get("metric")
+    except (OSError, json.JSONDecodeError, UnicodeDecodeError, AttributeError):
+        return
+    if metric is False:
+        logger.warning("NOT METRIC: %s has no scale, so the %s export's positions are in the mapper's arbitrary unit, "
+                       "which its readers take for metres; give `rigsfm run` a scale.yaml (a camera distance or a "
+                       "known length) for metres", workspace.root, fmt)
+
+
 def check_destination(dest: Path, workspace: Workspace, *, overwrite: bool) -> Previous:
     """What an export into ``dest`` may replace: the files of an earlier export listed in its manifest and still
     as rigsfm wrote them.
@@ -211,6 +224,8 @@ def _export(workspace: Workspace, fmt: ExportFormat, options: ExportOptions) -> 
     images_dir = Path(summary.inputs.images) if summary and summary.inputs.images else None
     dest.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{dest.name}.", suffix=".tmp", dir=dest.parent))
+    if fmt not in (ExportFormat.COLMAP_BIN, ExportFormat.COLMAP_TXT, ExportFormat.WILDTRACK):  # (COLMAP: no units)
+        warn_not_metric(workspace, fmt)
     try:
         if fmt in (ExportFormat.COLMAP_BIN, ExportFormat.COLMAP_TXT):
             write_colmap(reconstruction, tmp, binary=fmt == ExportFormat.COLMAP_BIN)

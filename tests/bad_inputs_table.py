@@ -541,6 +541,8 @@ CASES = [
                       ["export", "demo", "--format", "json"])),
     Case("`rigsfm export` given a file of the run (`out/narrow_poses.json`) instead of its folder",
          "nothing is written", on_workspace(lambda out: None, ["export", "out/narrow_poses.json", "--format", "json"])),
+    Case("`export --format wildtrack --images` of a run stopped before its summary.json", "nothing is written",
+         on_workspace(lambda out: None, ["export", "out", "--format", "wildtrack", "--images"])),
     Case("`rigsfm report` on a folder without a result", "nothing is written",
          lambda root: (inputs(root), ["report", "images"])[1]),
     Case("a truncated `sparse/images.bin`", "nothing is written",

@@ -222,10 +222,18 @@ def _export(workspace: Workspace, fmt: ExportFormat, options: ExportOptions) -> 
     reconstruction = workspace.read_sparse()
     summary = Summary.read(workspace.summary)
     images_dir = Path(summary.inputs.images) if summary and summary.inputs.images else None
-    dest.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{dest.name}.", suffix=".tmp", dir=dest.parent))
+    if options.images and images_dir is None:
+        raise InputError(f"{workspace.summary} names no image folder; export without --images" if summary else
+                         f"{workspace.summary} is missing (the run stopped before writing it), so the run's image "
+                         "folder is unknown: re-run the same `rigsfm run` command to finish it, or export without "
+                         "--images")
+    if summary is None and workspace.database.is_file():  # a run stopped before its summary.json, written last
+        logger.warning("UNFINISHED RUN: the run that wrote %s stopped before its summary.json: this exports its result "
+                       "as far as it went; the same `rigsfm run` command finishes it", workspace.root)
     if fmt not in (ExportFormat.COLMAP_BIN, ExportFormat.COLMAP_TXT, ExportFormat.WILDTRACK):  # (COLMAP: no units)
         warn_not_metric(workspace, fmt)
+    dest.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{dest.name}.", suffix=".tmp", dir=dest.parent))
     try:
         if fmt in (ExportFormat.COLMAP_BIN, ExportFormat.COLMAP_TXT):
             write_colmap(reconstruction, tmp, binary=fmt == ExportFormat.COLMAP_BIN)
@@ -239,8 +247,6 @@ def _export(workspace: Workspace, fmt: ExportFormat, options: ExportOptions) -> 
             write_toml(reconstruction, tmp, metadata=world_metadata(workspace))
         elif fmt == ExportFormat.WILDTRACK:
             warn_wildtrack_world(workspace)
-            if options.images and images_dir is None:
-                raise InputError(f"{workspace.summary} names no image folder; export without --images")
             write_wildtrack(reconstruction, tmp, images_dir if options.images else None)
         else:
             write_json_poses(reconstruction, tmp)

@@ -22,6 +22,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import shutil
@@ -218,6 +219,14 @@ def export(out: Path, options: ExportOptions) -> Path:
 
 def _export(workspace: Workspace, fmt: ExportFormat, options: ExportOptions) -> Path:
     dest = Path(options.dest) if options.dest is not None else workspace.export(fmt)
+    inside = dest.resolve().is_relative_to(workspace.root.resolve()) and workspace.is_ours()
+    # one command at a time writes an OUT (a run --overwrite replacing the model, a second export); a --dest of its
+    # own is not OUT's, so a result on a read-only disk still exports there
+    with workspace.lock() if inside else contextlib.nullcontext():
+        return _export(workspace, fmt, dest, options)
+
+
+def _export(workspace: Workspace, fmt: ExportFormat, dest: Path, options: ExportOptions) -> Path:
     previous = check_destination(dest, workspace, overwrite=options.overwrite)
     reconstruction = workspace.read_sparse()
     summary = Summary.read(workspace.summary)

@@ -543,6 +543,8 @@ CASES = [
          "nothing is written", on_workspace(lambda out: None, ["export", "out/narrow_poses.json", "--format", "json"])),
     Case("`export --format wildtrack --images` of a run stopped before its summary.json", "nothing is written",
          on_workspace(lambda out: None, ["export", "out", "--format", "wildtrack", "--images"])),
+    Case("`rigsfm track OUT OUT` (the workspace given for the new images)", "nothing is written",
+         on_workspace(lambda out: None, ["track", "out", "out"])),
     Case("`rigsfm report` on a folder without a result", "nothing is written",
          lambda root: (inputs(root), ["report", "images"])[1]),
     Case("a truncated `sparse/images.bin`", "nothing is written",

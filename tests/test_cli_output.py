@@ -84,6 +84,17 @@ def test_an_unfinished_run_is_named_by_export(tmp_path):
         "exports its result as far as it went; the same `rigsfm run` command finishes it" in done.output, done.output
 
 
+def test_track_given_the_workspace_for_new_images_says_so(tmp_path):
+    """`rigsfm track OUT OUT` read the reference, then called OUT's export, mapping, sparse and track folders rigs
+    that are not in the model."""
+    code, message = table.run_case(_case("`rigsfm track OUT OUT` (the workspace given for the new images)"),
+                                   tmp_path / "c")
+    assert code == 1
+    assert message == "error: NEW_IMAGES 'out' is the workspace OUT, whose folders are not rigs: give the folder of " \
+                      "the new recording (<rig>/<wide|narrow>/<frame file>)"
+    assert not (tmp_path / "c" / "out" / "track").exists()
+
+
 def _options(help_text: str) -> list[tuple[str, str]]:
     """(names and metavar, description) of each option in click's help."""
     block = help_text.split("\nOptions:\n", 1)[1]

@@ -172,6 +172,12 @@ def track(out: Path, new_images: Path, options: TrackOptions | None = None, *,
         check_reachable(options.address)
     workspace = Workspace(Path(out))
     workspace.require_result()
+    root, given = workspace.root.resolve(), Path(new_images).resolve()
+    if root == given or (root.parent == given and not root.name.startswith(".")):  # (before the reference is read)
+        where = "is the workspace OUT, whose folders are not rigs" if root == given else \
+            f"holds the workspace OUT '{out}', which is not a rig"
+        raise InputError(f"NEW_IMAGES '{new_images}' {where}: give the folder of the new recording "
+                         "(<rig>/<wide|narrow>/<frame file>)")
     warn_not_metric(workspace)
     paths = workspace.track
     reference = load_reference(workspace.root, options=options.registration)

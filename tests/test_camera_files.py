@@ -344,3 +344,18 @@ def test_an_export_of_a_result_without_scale_says_it_is_not_metres(tmp_path, cap
         export(tmp_path / "out", ExportOptions(format=ExportFormat(fmt), overwrite=True))
     (warned,) = [r.getMessage() for r in caplog.records if "NOT METRIC" in r.getMessage()]
     assert f"so the {fmt} export's positions are in the mapper's arbitrary unit" in warned
+
+
+def test_the_json_export_says_what_its_numbers_are_in(tmp_path):
+    """poses.json of `export --format json` held poses and cameras but not whether they are metres, nor the world
+    frame (narrow_poses.json's metric, units and world): a reader of the export alone could not tell."""
+    import json
+
+    from rigsfm.inspect.export import export
+    from rigsfm.inspect.options import ExportFormat, ExportOptions
+
+    finished_workspace(tmp_path / "out")
+    poses = json.loads((export(tmp_path / "out", ExportOptions(format=ExportFormat.JSON)) / "poses.json").read_text())
+    narrow = json.loads((tmp_path / "out" / "narrow_poses.json").read_text())
+    assert poses["metric"] is True and poses["units"] == narrow["units"] and poses["world"] == narrow["world"]
+    assert poses["world"]["frame"] == "floor" and len(poses["images"]) > 0

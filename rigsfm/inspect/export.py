@@ -130,7 +130,9 @@ def write_nerfstudio(reconstruction: pycolmap.Reconstruction, dest: Path, images
     return sorted(dest.iterdir())
 
 
-def write_json_poses(reconstruction: pycolmap.Reconstruction, dest: Path) -> list[Path]:
+def write_json_poses(reconstruction: pycolmap.Reconstruction, dest: Path, result: dict | None = None) -> list[Path]:
+    """``poses.json``; ``result``: the run's ``metric``, ``units`` and ``world`` (from narrow_poses.json), which say
+    what the numbers are in."""
     images = []
     for image in registered_images(reconstruction):
         name = name_of(image)
@@ -138,10 +140,20 @@ def write_json_poses(reconstruction: pycolmap.Reconstruction, dest: Path) -> lis
                        "camera": camera_to_dict(reconstruction.cameras[image.camera_id]),
                        "cam_from_world": pose_to_dict(image.cam_from_world()),
                        "centre": image.projection_center().tolist()})
-    write_json_atomic(dest / "poses.json", {"conventions": {k: CONVENTIONS[k] for k in
+    write_json_atomic(dest / "poses.json", {**(result or {}),
+                                            "conventions": {k: CONVENTIONS[k] for k in
                                                             ("cam_from_world", "quaternion", "pixels")},
                                             "images": images})
     return sorted(dest.iterdir())
+
+
+def result_frame(workspace: Workspace) -> dict:
+    """narrow_poses.json's ``metric``, ``units`` and ``world``: what the poses' numbers are in."""
+    try:
+        poses = json.loads(workspace.narrow_poses.read_text(encoding="utf-8"))
+    except (OSError, json.JSONDecodeError, UnicodeDecodeError):
+        return {}
+    return {key: poses[key] for key in ("metric", "units", "world") if isinstance(poses, dict) and key in poses}
 
 
 def world_metadata(workspace: Workspace) -> dict[str, str]:
@@ -258,7 +270,7 @@ def _export(workspace: Workspace, fmt: ExportFormat, dest: Path, options: Export
             warn_wildtrack_world(workspace)
             write_wildtrack(reconstruction, tmp, images_dir if options.images else None)
         else:
-            write_json_poses(reconstruction, tmp)
+            write_json_poses(reconstruction, tmp, result_frame(workspace))
         commit(dest, tmp, previous, MANIFEST, {"format": str(fmt), "workspace": str(workspace.root.resolve()),
                                              "model": model_fingerprint(workspace.sparse)},
                option="--dest", what="export")

@@ -545,8 +545,10 @@ CASES = [
          on_workspace(lambda out: None, ["export", "out", "--format", "wildtrack", "--images"])),
     Case("`rigsfm track OUT OUT` (the workspace given for the new images)", "nothing is written",
          on_workspace(lambda out: None, ["track", "out", "out"])),
-    Case("`rigsfm report` on a folder without a result", "nothing is written",
+    Case("`rigsfm report` given the image folder instead of OUT", "nothing is written",
          lambda root: (inputs(root), ["report", "images"])[1]),
+    Case("`rigsfm report` on a folder without a result", "nothing is written",
+         lambda root: ((root / "notes").mkdir(), ["report", "notes"])[1]),
     Case("a truncated `sparse/images.bin`", "nothing is written",
          on_workspace(lambda out: (out / "sparse" / "images.bin").write_bytes(
              (out / "sparse" / "images.bin").read_bytes()[:30]), ["report", "out"])),

@@ -95,6 +95,18 @@ def test_track_given_the_workspace_for_new_images_says_so(tmp_path):
     assert not (tmp_path / "c" / "out" / "track").exists()
 
 
+def test_the_image_folder_given_for_out_is_named(tmp_path):
+    """IMAGES given where OUT was meant: the error said to `rigsfm run ... --out images`, which writes a run into the
+    image folder (refused by `run`: its folders must be rigs)."""
+    code, message = table.run_case(_case("`rigsfm report` given the image folder instead of OUT"), tmp_path / "c")
+    assert code == 1
+    assert message == "error: 'images' is an image folder (<rig>/wide/...), not the --out folder of a `rigsfm run`: " \
+                      "give that folder (`rigsfm run images --rigs rigs.yaml --out OUT` makes one)"
+    code, message = table.run_case(_case("`rigsfm report` on a folder without a result"), tmp_path / "d")
+    assert code == 1 and message == "error: 'notes' holds no result ('notes/sparse' is missing): run `rigsfm run ... " \
+                                    "--out notes` first"
+
+
 def _options(help_text: str) -> list[tuple[str, str]]:
     """(names and metavar, description) of each option in click's help."""
     block = help_text.split("\nOptions:\n", 1)[1]

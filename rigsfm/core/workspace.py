@@ -171,6 +171,10 @@ class Workspace:
         if not (self.sparse / "images.bin").is_file() and demo_run.has_result():
             raise WorkspaceError(f"'{self.root}' is a `rigsfm demo` folder, whose result is in its run/ folder: use "
                                  f"{demo_run.root} (e.g. `rigsfm view {demo_run.shell_root}`)")
+        if not (self.sparse / "images.bin").is_file() and not self.is_ours() and self._is_image_folder():
+            raise WorkspaceError(f"'{self.root}' is an image folder (<rig>/wide/...), not the --out folder of a "
+                                 f"`rigsfm run`: give that folder (`rigsfm run {self.shell_root} --rigs rigs.yaml --out "
+                                 "OUT` makes one)")
         if not (self.sparse / "images.bin").is_file():
             raise WorkspaceError(f"'{self.root}' holds no result ('{self.sparse}' is missing): run `rigsfm run ... --out "
                                  f"{self.shell_root}` first")
@@ -191,6 +195,14 @@ class Workspace:
         why = self.unfinished()
         if why is not None:
             logger.warning("%s%s", why[0].upper(), why[1:])
+
+
+    def _is_image_folder(self) -> bool:
+        """Whether the folder looks like IMAGES (a rig folder with a wide/ folder), given where OUT was meant."""
+        try:
+            return any((rig / "wide").is_dir() for rig in self.root.iterdir() if rig.is_dir())
+        except OSError:
+            return False
 
     @property
     def shell_root(self) -> str:

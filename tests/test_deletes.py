@@ -589,3 +589,34 @@ def test_an_export_into_an_out_in_use_is_refused_and_writes_nothing(out, tmp_pat
         assert not (out / "export").exists()
         assert invoke("export", out, "--format", "json", "--dest", tmp_path / "elsewhere").exit_code == 0
     assert invoke("export", out, "--format", "json").exit_code == 0 and (out / "export" / "json").is_dir()
+
+
+def test_a_replaced_result_says_what_changed(out):
+    """A `run --overwrite` after rigs moved (or on new images) replaced narrow_poses.json without a word on how the
+    cameras differ from the result it replaced: the user re-estimating could not tell what changed."""
+    from rigsfm.core.summary import Summary
+    from rigsfm.run.deliver import changes_from, describe_changes
+    from rigsfm.run.deliver import narrow_poses as make_narrow_poses
+
+    model = pycolmap.Reconstruction(out / "sparse")
+    earlier = make_narrow_poses(model, metric=True)
+    assert changes_from(None, earlier) is None  # nothing replaced
+    same = changes_from(earlier, earlier)
+    assert same["rigs"] == {"rig01": {"rotation_deg": 0.0, "centre_mm": 0.0},
+                            "rig02": {"rotation_deg": 0.0, "centre_mm": 0.0}}
+    frame = next(f for f in model.frames.values() if f.rig_id == 2)  # rig02 turned 0.3 deg about y, shifted 20 mm
+    turn = pycolmap.Rigid3d(pycolmap.Rotation3d(np.array([0.0, np.sin(np.radians(0.15)), 0.0, np.cos(np.radians(0.15))])),
+                            [0.0, 0.0, 0.0])
+    moved = turn * frame.rig_from_world
+    frame.rig_from_world = pycolmap.Rigid3d(moved.rotation, moved.translation + [0.02, 0.0, 0.0])
+    changes = changes_from(earlier, make_narrow_poses(model, metric=True))
+    assert changes["rigs"]["rig01"] == {"rotation_deg": 0.0, "centre_mm": 0.0}
+    assert changes["rigs"]["rig02"]["rotation_deg"] == pytest.approx(0.3, abs=1e-6)
+    assert changes["rigs"]["rig02"]["centre_mm"] > 1.0 and changes["new_images"] == changes["gone_images"] == []
+    line = describe_changes(changes)
+    assert line.startswith("replaced the earlier result: narrow cameras turned by up to 0.300 deg (rig02) and moved by "
+                           "up to ") and "mm (rig02)" in line
+    assert Summary.from_json(Summary(replaced=changes).to_json()).replaced == changes  # kept in summary.json
+    unscaled = changes_from(earlier, make_narrow_poses(model, metric=False))
+    assert unscaled["rigs"]["rig02"]["centre_mm"] is None and "moved by" not in describe_changes(unscaled)
+    assert describe_changes(same) == "replaced the earlier result: the same narrow poses (summary.json: replaced)"

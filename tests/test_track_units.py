@@ -1,5 +1,7 @@
 """rigsfm.track without images: verdicts on synthetic change series, the rig pose solver and its covariance."""
 
+import dataclasses
+
 import numpy as np
 import pycolmap
 import pytest
@@ -306,3 +308,19 @@ def test_a_moved_rig_is_said_with_what_no_longer_holds():
     assert warning is not None and warning.startswith(
         f"MOVED: rig03 at f006 ({step['rotation_deg']:.3f} deg, {step['translation_mm']:.1f} mm). The poses of out ")
     assert "rig01" not in warning and "`rigsfm run IMAGES --rigs rigs.yaml --out NEW_OUT`" in warning
+
+
+def test_a_new_series_leaves_no_plot_of_a_rig_it_does_not_hold(tmp_path):
+    """`track --overwrite` with a recording of fewer rigs left plots/<rig>.png of the discarded series (a rig03
+    'moved' plot beside a series without rig03); the user's own files in plots/ are kept."""
+    from rigsfm.core.workspace import TrackPaths
+    from rigsfm.track.options import Thresholds
+    from rigsfm.track.pipeline import _save
+
+    paths = TrackPaths(tmp_path / "track")
+    paths.plots.mkdir(parents=True)
+    paths.plot("rig03").write_bytes(b"the discarded series' plot")
+    (paths.plots / "notes.png").write_bytes(b"the user's")
+    _save(paths, {"thresholds": dataclasses.asdict(Thresholds()), "rigs": {}}, plots=True, rigs=["rig01", "rig03"])
+    assert sorted(p.name for p in paths.plots.iterdir()) == ["notes.png"]
+    assert paths.poses_json.is_file() and paths.poses_csv.is_file()

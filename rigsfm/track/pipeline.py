@@ -15,7 +15,7 @@ from __future__ import annotations
 import logging
 import os
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -125,13 +125,18 @@ def tracked_again(tasks: list[FrameTask], frames: dict, poses_json: Path) -> lis
     return grown
 
 
-def _save(paths: TrackPaths, poses: dict, plots: bool) -> None:
+def _save(paths: TrackPaths, poses: dict, plots: bool, rigs: Iterable[str] = ()) -> None:
+    """Write poses.json and poses.csv, and with ``plots`` each rig's plot; the plots of ``rigs`` (the reference's)
+    that the series no longer holds (an --overwrite's new series without them) are removed, not left to show the
+    discarded series."""
     write_json_atomic(paths.poses_json, poses)
     write_text_atomic(paths.poses_csv, to_csv(poses))
     if plots:
         for name, rig in poses["rigs"].items():
             plot = plot_rig(name, {**rig, "thresholds": poses["thresholds"]})
             write_bytes_atomic(paths.plot(name), charts.encode(plot))
+        for name in set(rigs) - set(poses["rigs"]):
+            paths.plot(name).unlink(missing_ok=True)  # rigsfm's name for the rig's plot
 
 
 def warn_not_metric(workspace: Workspace) -> None:
@@ -218,7 +223,7 @@ def track(out: Path, new_images: Path, options: TrackOptions | None = None, *,
         finally:
             poses = assemble(frames, reference, thresholds)
             if frames or options.overwrite:
-                _save(paths, poses, plots=True)
+                _save(paths, poses, plots=True, rigs=reference.rigs)
     if failed:  # else a scene's wrong images, none registered, left only the verdict table, all 'stable'
         logger.warning("FRAMES NOT REGISTERED: %d of %d new frame(s) did not register against the reference (%s%s); "
                        "they are in poses.csv without a pose%s", len(failed), len(todo), "; ".join(failed[:2]),

@@ -576,21 +576,6 @@ def test_outputs_made_from_a_replaced_model_are_named(out):
     assert "export/json" not in earlier_outputs_warning(workspace) and "export/toml" in earlier_outputs_warning(workspace)
 
 
-def test_an_export_into_an_out_in_use_is_refused_and_writes_nothing(out, tmp_path):
-    """`rigsfm export OUT` wrote OUT/export/FORMAT while another command held OUT (a `run --overwrite` replacing
-    the model it read, a second export into the same folder): README, one command at a time writes an OUT. A --dest
-    outside OUT is not OUT's to hold."""
-    from rigsfm.core.workspace import Workspace
-
-    with Workspace(out).lock():
-        result = invoke("export", out, "--format", "json")
-        assert result.exit_code == 1
-        assert f"'{out}' is in use by process {os.getpid()} (another rigsfm command)" in one_error_line(result)
-        assert not (out / "export").exists()
-        assert invoke("export", out, "--format", "json", "--dest", tmp_path / "elsewhere").exit_code == 0
-    assert invoke("export", out, "--format", "json").exit_code == 0 and (out / "export" / "json").is_dir()
-
-
 def test_a_replaced_result_says_what_changed(out):
     """A `run --overwrite` after rigs moved (or on new images) replaced narrow_poses.json without a word on how the
     cameras differ from the result it replaced: the user re-estimating could not tell what changed."""

@@ -196,7 +196,6 @@ class Workspace:
         if why is not None:
             logger.warning("%s%s", why[0].upper(), why[1:])
 
-
     def _is_image_folder(self) -> bool:
         """Whether the folder looks like IMAGES (a rig folder with a wide/ folder), given where OUT was meant."""
         try:

@@ -22,7 +22,6 @@
 
 from __future__ import annotations
 
-import contextlib
 import json
 import logging
 import shutil
@@ -231,14 +230,6 @@ def export(out: Path, options: ExportOptions) -> Path:
 
 def _export(workspace: Workspace, fmt: ExportFormat, options: ExportOptions) -> Path:
     dest = Path(options.dest) if options.dest is not None else workspace.export(fmt)
-    inside = dest.resolve().is_relative_to(workspace.root.resolve()) and workspace.is_ours()
-    # one command at a time writes an OUT (a run --overwrite replacing the model, a second export); a --dest of its
-    # own is not OUT's, so a result on a read-only disk still exports there
-    with workspace.lock() if inside else contextlib.nullcontext():
-        return _export(workspace, fmt, dest, options)
-
-
-def _export(workspace: Workspace, fmt: ExportFormat, dest: Path, options: ExportOptions) -> Path:
     previous = check_destination(dest, workspace, overwrite=options.overwrite)
     reconstruction = workspace.read_sparse()
     summary = Summary.read(workspace.summary)
@@ -248,9 +239,6 @@ def _export(workspace: Workspace, fmt: ExportFormat, dest: Path, options: Export
                          f"{workspace.summary} is missing (the run stopped before writing it), so the run's image "
                          "folder is unknown: re-run the same `rigsfm run` command to finish it, or export without "
                          "--images")
-    if summary is None and workspace.database.is_file():  # a run stopped before its summary.json, written last
-        logger.warning("UNFINISHED RUN: the run that wrote %s stopped before its summary.json: this exports its result "
-                       "as far as it went; the same `rigsfm run` command finishes it", workspace.root)
     if fmt not in (ExportFormat.COLMAP_BIN, ExportFormat.COLMAP_TXT, ExportFormat.WILDTRACK):  # (COLMAP: no units)
         warn_not_metric(workspace, fmt)
     dest.parent.mkdir(parents=True, exist_ok=True)

@@ -785,3 +785,29 @@ def test_a_kind_of_frame_warning_is_said_once_naming_its_frames(caplog):
     [message] = [r.getMessage() for r in caplog.records]
     assert message.startswith("2 frames (frame0000.png: 9 of 172 persons, frame0001.png: 12 of 180 persons): only "
                               "those are seen by three or more views"), message
+
+
+def test_views_lent_poses_after_a_tracked_move_are_named(tmp_path):
+    """`rigsfm track` found rig02 moved at f3; `associate --poses-from f0` then lent f0's pose to rig02's views of
+    f3-f5 without a word (the docs said nothing checks that the rigs stayed put, while OUT/track said they had not)."""
+    from bad_inputs_table import workspace as small_workspace
+
+    from rigsfm.associate.pipeline import lent_after_moves
+
+    out = small_workspace(tmp_path)
+    ws = Workspace(out)
+    lent = [f"rig{r:02d}/narrow/f{k}.png" for r in (1, 2) for k in (1, 2, 3, 4, 5)]
+    assert lent_after_moves(ws, lent) is None  # nothing tracked
+    step = {"frame": "f3.png", "rotation_deg": 0.3, "translation_mm": 20.0}
+    poses = {"reference": {"fingerprint": model_fingerprint(out / "sparse")},
+             "rigs": {"rig01": {"verdict": {"verdict": "shaking", "steps": []}},
+                      "rig02": {"verdict": {"verdict": "moved", "steps": [step]}}}}
+    ws.track.poses_json.parent.mkdir(parents=True)
+    ws.track.poses_json.write_text(json.dumps(poses))
+    warning = lent_after_moves(ws, lent)
+    assert warning is not None and warning.startswith("LENT AFTER A MOVE: `rigsfm track` found rig02 moved (")
+    assert "(rig02: 3 frame(s) from f3.png, its step at f3.png)" in warning and "rig01" not in warning
+    assert lent_after_moves(ws, [n for n in lent if not n.startswith("rig02")]) is None
+    poses["reference"]["fingerprint"] = "another model"  # a series of a replaced result: not this model's
+    ws.track.poses_json.write_text(json.dumps(poses))
+    assert lent_after_moves(ws, lent) is None

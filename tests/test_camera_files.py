@@ -304,3 +304,58 @@ def test_wildtrack_export_says_when_the_world_is_not_metric_on_the_floor(tmp_pat
     with pytest.raises(InputError, match="--format wildtrack only"):
         export(tmp_path / "out", ExportOptions(format=ExportFormat.JSON, images=True))
     assert not (tmp_path / "out" / "export" / "json").exists()
+
+
+def test_wildtrack_images_and_calibrations_name_a_rig_alike(tmp_path):
+    """Rig names may hold spaces: the calibration files took the name OpenCV's keys allow (intr_rig_01.xml) and the
+    images the rig's own (Image_subsets/rig 01/), so a loader pairing them by camera name found no images."""
+    from rigsfm.inspect.camera_files import write_wildtrack
+
+    rec = make_reconstruction({"PINHOLE": MODELS["PINHOLE"], "OPENCV": MODELS["OPENCV"]}, rig_names=["rig 01", "rig 02"])
+    for image in list(rec.images.values()):  # the narrow images, as the export writes only those
+        image.name = image.name.replace("/wide/", "/narrow/")
+        path = tmp_path / "images" / image.name
+        path.parent.mkdir(parents=True, exist_ok=True)
+        cv2.imwrite(str(path), np.full((617, 812), 128, np.uint8))
+    write_wildtrack(rec, tmp_path / "wildtrack", tmp_path / "images")
+    cameras = sorted(p.stem.removeprefix("intr_") for p in (tmp_path / "wildtrack" / "calibrations" /
+                                                             "intrinsic_zero").iterdir())
+    assert cameras == ["rig_01", "rig_02"]
+    assert sorted(p.name for p in (tmp_path / "wildtrack" / "Image_subsets").iterdir()) == cameras
+
+
+@pytest.mark.parametrize("fmt", ["opencv", "toml", "nerfstudio", "json"])  # (open3d: this model has no points)
+def test_an_export_of_a_result_without_scale_says_it_is_not_metres(tmp_path, caplog, fmt):
+    """EasyMocap, aniposelib, nerfstudio (and Open3D) users take the files for metres, as the docs promise them: a
+    result without scale was exported in the mapper's arbitrary unit without a word (only WILDTRACK warned)."""
+    import json
+    import logging
+
+    from rigsfm.inspect.export import export
+    from rigsfm.inspect.options import ExportFormat, ExportOptions
+
+    finished_workspace(tmp_path / "out")
+    with caplog.at_level(logging.WARNING, logger="rigsfm.inspect.export"):
+        export(tmp_path / "out", ExportOptions(format=ExportFormat(fmt)))
+    assert not [r for r in caplog.records if "NOT METRIC" in r.getMessage()]
+    poses_path = tmp_path / "out" / "narrow_poses.json"
+    poses_path.write_text(json.dumps({**json.loads(poses_path.read_text()), "metric": False}))
+    with caplog.at_level(logging.WARNING, logger="rigsfm.inspect.export"):
+        export(tmp_path / "out", ExportOptions(format=ExportFormat(fmt), overwrite=True))
+    (warned,) = [r.getMessage() for r in caplog.records if "NOT METRIC" in r.getMessage()]
+    assert f"so the {fmt} export's positions are in the mapper's arbitrary unit" in warned
+
+
+def test_the_json_export_says_what_its_numbers_are_in(tmp_path):
+    """poses.json of `export --format json` held poses and cameras but not whether they are metres, nor the world
+    frame (narrow_poses.json's metric, units and world): a reader of the export alone could not tell."""
+    import json
+
+    from rigsfm.inspect.export import export
+    from rigsfm.inspect.options import ExportFormat, ExportOptions
+
+    finished_workspace(tmp_path / "out")
+    poses = json.loads((export(tmp_path / "out", ExportOptions(format=ExportFormat.JSON)) / "poses.json").read_text())
+    narrow = json.loads((tmp_path / "out" / "narrow_poses.json").read_text())
+    assert poses["metric"] is True and poses["units"] == narrow["units"] and poses["world"] == narrow["world"]
+    assert poses["world"]["frame"] == "floor" and len(poses["images"]) > 0

@@ -52,6 +52,50 @@ def test_a_demo_folder_points_to_its_run(tmp_path):
     assert not (tmp_path / "c" / "demo" / "export").exists()
 
 
+def test_a_file_given_for_out_is_named_a_file(tmp_path):
+    """A file of the run given for OUT was said not to exist (it does: it is not a folder)."""
+    code, message = table.run_case(
+        _case("`rigsfm export` given a file of the run (`out/narrow_poses.json`) instead of its folder"), tmp_path / "c")
+    assert code == 1
+    assert message == "error: 'out/narrow_poses.json' is a file, not the folder of a `rigsfm run` (its --out); give " \
+                      "that folder"
+    assert not (tmp_path / "c" / "out" / "export").exists()
+
+
+def test_an_unfinished_run_is_named_by_export_images(tmp_path):
+    """A run stopped before its summary.json (Ctrl-C in the self-check): `export --images` blamed a summary.json that
+    does not exist for naming no image folder."""
+    code, message = table.run_case(
+        _case("`export --format wildtrack --images` of a run stopped before its summary.json"), tmp_path / "c")
+    assert code == 1
+    assert message == "error: out/summary.json is missing (the run stopped before writing it), so the run's image " \
+                      "folder is unknown: re-run the same `rigsfm run` command to finish it, or export without --images"
+    assert not (tmp_path / "c" / "out" / "export").exists()
+
+
+def test_track_given_the_workspace_for_new_images_says_so(tmp_path):
+    """`rigsfm track OUT OUT` read the reference, then called OUT's export, mapping, sparse and track folders rigs
+    that are not in the model."""
+    code, message = table.run_case(_case("`rigsfm track OUT OUT` (the workspace given for the new images)"),
+                                   tmp_path / "c")
+    assert code == 1
+    assert message == "error: NEW_IMAGES 'out' is the workspace OUT, whose folders are not rigs: give the folder of " \
+                      "the new recording (<rig>/<wide|narrow>/<frame file>)"
+    assert not (tmp_path / "c" / "out" / "track").exists()
+
+
+def test_the_image_folder_given_for_out_is_named(tmp_path):
+    """IMAGES given where OUT was meant: the error said to `rigsfm run ... --out images`, which writes a run into the
+    image folder (refused by `run`: its folders must be rigs)."""
+    code, message = table.run_case(_case("`rigsfm report` given the image folder instead of OUT"), tmp_path / "c")
+    assert code == 1
+    assert message == "error: 'images' is an image folder (<rig>/wide/...), not the --out folder of a `rigsfm run`: " \
+                      "give that folder (`rigsfm run images --rigs rigs.yaml --out OUT` makes one)"
+    code, message = table.run_case(_case("`rigsfm report` on a folder without a result"), tmp_path / "d")
+    assert code == 1 and message == "error: 'notes' holds no result ('notes/sparse' is missing): run `rigsfm run ... " \
+                                    "--out notes` first"
+
+
 def _options(help_text: str) -> list[tuple[str, str]]:
     """(names and metavar, description) of each option in click's help."""
     block = help_text.split("\nOptions:\n", 1)[1]

@@ -540,3 +540,68 @@ def test_calibrate_overwrite_removes_the_reports_of_rigs_it_no_longer_has_and_on
     said = [line for line in result.output.splitlines() if "left as they are" in line]
     assert len(said) == 1 and f"'{reports / 'rig04'}', '{reports / 'rig05'}'" in said[0], result.output
     assert "rig03" not in (reports / "summary.txt").read_text()
+
+
+def test_outputs_made_from_a_replaced_model_are_named(out):
+    """`rigsfm run --overwrite` replaced the model under OUT/export, OUT/track and OUT/associate without a word: the
+    exports (read by other tools, which nothing in rigsfm shows) kept the earlier result's poses. They are named,
+    with the command that makes each again, and kept."""
+    from rigsfm.core.workspace import Workspace, model_fingerprint
+    from rigsfm.run.deliver import earlier_outputs, earlier_outputs_warning, write_model
+
+    workspace = Workspace(out)
+    assert invoke("export", out, "--format", "json").exit_code == 0
+    assert invoke("export", out, "--format", "toml").exit_code == 0
+    old = model_fingerprint(out / "sparse")
+    (out / "track").mkdir()
+    (out / "track" / "poses.json").write_text(json.dumps({"reference": {"fingerprint": old}}))
+    (out / "associate").mkdir()
+    (out / "associate" / ".rigsfm-associate.json").write_text(json.dumps({"model": old, "files": []}))
+    assert earlier_outputs(workspace) == [] and earlier_outputs_warning(workspace) is None  # all of this model
+
+    model = pycolmap.Reconstruction(out / "sparse")  # what a `run --overwrite` delivers: another model
+    frame = next(iter(model.frames.values()))
+    frame.rig_from_world = pycolmap.Rigid3d(frame.rig_from_world.rotation, frame.rig_from_world.translation + 0.01)
+    write_model(model, out / "sparse", overwrite=True)
+    exported = sorted(tree(out / "export").items())
+    warning = earlier_outputs_warning(workspace)
+    assert warning is not None and warning.startswith(f"MADE FROM THE EARLIER RESULT: 4 output(s) in {out} ")
+    for made, command in ((out / "track", f"rigsfm track {out} NEW_IMAGES --overwrite"),
+                          (out / "associate", f"rigsfm associate {out} DETECTIONS --overwrite"),
+                          (out / "export" / "json", f"rigsfm export {out} --format json --overwrite"),
+                          (out / "export" / "toml", f"rigsfm export {out} --format toml --overwrite")):
+        assert f"{made} (`{command}`)" in warning
+    assert sorted(tree(out / "export").items()) == exported  # kept as they are
+    assert invoke("export", out, "--format", "json", "--overwrite").exit_code == 0
+    assert "export/json" not in earlier_outputs_warning(workspace) and "export/toml" in earlier_outputs_warning(workspace)
+
+
+def test_a_replaced_result_says_what_changed(out):
+    """A `run --overwrite` after rigs moved (or on new images) replaced narrow_poses.json without a word on how the
+    cameras differ from the result it replaced: the user re-estimating could not tell what changed."""
+    from rigsfm.core.summary import Summary
+    from rigsfm.run.deliver import changes_from, describe_changes
+    from rigsfm.run.deliver import narrow_poses as make_narrow_poses
+
+    model = pycolmap.Reconstruction(out / "sparse")
+    earlier = make_narrow_poses(model, metric=True)
+    assert changes_from(None, earlier) is None  # nothing replaced
+    same = changes_from(earlier, earlier)
+    assert same["rigs"] == {"rig01": {"rotation_deg": 0.0, "centre_mm": 0.0},
+                            "rig02": {"rotation_deg": 0.0, "centre_mm": 0.0}}
+    frame = next(f for f in model.frames.values() if f.rig_id == 2)  # rig02 turned 0.3 deg about y, shifted 20 mm
+    turn = pycolmap.Rigid3d(pycolmap.Rotation3d(np.array([0.0, np.sin(np.radians(0.15)), 0.0, np.cos(np.radians(0.15))])),
+                            [0.0, 0.0, 0.0])
+    moved = turn * frame.rig_from_world
+    frame.rig_from_world = pycolmap.Rigid3d(moved.rotation, moved.translation + [0.02, 0.0, 0.0])
+    changes = changes_from(earlier, make_narrow_poses(model, metric=True))
+    assert changes["rigs"]["rig01"] == {"rotation_deg": 0.0, "centre_mm": 0.0}
+    assert changes["rigs"]["rig02"]["rotation_deg"] == pytest.approx(0.3, abs=1e-6)
+    assert changes["rigs"]["rig02"]["centre_mm"] > 1.0 and changes["new_images"] == changes["gone_images"] == []
+    line = describe_changes(changes)
+    assert line.startswith("replaced the earlier result: narrow cameras turned by up to 0.300 deg (rig02) and moved by "
+                           "up to ") and "mm (rig02)" in line
+    assert Summary.from_json(Summary(replaced=changes).to_json()).replaced == changes  # kept in summary.json
+    unscaled = changes_from(earlier, make_narrow_poses(model, metric=False))
+    assert unscaled["rigs"]["rig02"]["centre_mm"] is None and "moved by" not in describe_changes(unscaled)
+    assert describe_changes(same) == "replaced the earlier result: the same narrow poses (summary.json: replaced)"

@@ -1,5 +1,7 @@
 """rigsfm.track without images: verdicts on synthetic change series, the rig pose solver and its covariance."""
 
+import dataclasses
+
 import numpy as np
 import pycolmap
 import pytest
@@ -286,3 +288,39 @@ def test_the_report_does_not_show_the_tracking_of_a_replaced_result(tmp_path):
     (workspace.sparse / "images.bin").write_bytes(b"the model of a run --overwrite")
     section = track_report_section(tmp_path)
     assert "stable" not in section and "earlier result" in section and "--overwrite" in section
+
+
+def test_a_moved_rig_is_said_with_what_no_longer_holds():
+    """A rig's verdict 'moved' was a word in the table: nothing said that the run's poses, F_ji and bands of that
+    rig, its exports and `associate --poses-from`, no longer hold after the step, nor what to do."""
+    from rigsfm.track.pipeline import moved_warning
+
+    rng = np.random.default_rng(6)
+    still = verdict(series(12, rng))
+    changes = series(12, rng)
+    changes[6:] += np.r_[np.array([0.0, 0.2, 0.1]) * DEG, np.array([10.0, 0.0, -5.0]) * MM]
+    moved = verdict(changes)
+    assert moved.verdict == "moved"
+    assert moved_warning({"rigs": {"rig01": {"verdict": still.to_dict()}}}, "out") is None
+    warning = moved_warning({"rigs": {"rig01": {"verdict": still.to_dict()}, "rig03": {"verdict": moved.to_dict()}}},
+                            "out")
+    step = moved.to_dict()["steps"][0]
+    assert warning is not None and warning.startswith(
+        f"MOVED: rig03 at f006 ({step['rotation_deg']:.3f} deg, {step['translation_mm']:.1f} mm). The poses of out ")
+    assert "rig01" not in warning and "`rigsfm run IMAGES --rigs rigs.yaml --out NEW_OUT`" in warning
+
+
+def test_a_new_series_leaves_no_plot_of_a_rig_it_does_not_hold(tmp_path):
+    """`track --overwrite` with a recording of fewer rigs left plots/<rig>.png of the discarded series (a rig03
+    'moved' plot beside a series without rig03); the user's own files in plots/ are kept."""
+    from rigsfm.core.workspace import TrackPaths
+    from rigsfm.track.options import Thresholds
+    from rigsfm.track.pipeline import _save
+
+    paths = TrackPaths(tmp_path / "track")
+    paths.plots.mkdir(parents=True)
+    paths.plot("rig03").write_bytes(b"the discarded series' plot")
+    (paths.plots / "notes.png").write_bytes(b"the user's")
+    _save(paths, {"thresholds": dataclasses.asdict(Thresholds()), "rigs": {}}, plots=True, rigs=["rig01", "rig03"])
+    assert sorted(p.name for p in paths.plots.iterdir()) == ["notes.png"]
+    assert paths.poses_json.is_file() and paths.poses_csv.is_file()

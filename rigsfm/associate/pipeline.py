@@ -349,6 +349,31 @@ def refuse_workspace_files(dest: Path, workspace: Workspace) -> None:
                              f"choose {workspace.associate} (the default) or a folder of its own")
 
 
+def lent_after_moves(workspace: Workspace, lent: Iterable[str]) -> str | None:
+    """A warning where ``rigsfm track`` (OUT/track, against this model) found a rig moved and views of it at or after
+    its step take lent poses (``lent``: narrow image names): the run's pose no longer holds there."""
+    try:
+        poses = json.loads(workspace.track.poses_json.read_text(encoding="utf-8"))
+        if poses["reference"]["fingerprint"] != model_fingerprint(workspace.sparse):
+            return None  # a series of an earlier model: its verdicts say nothing of this one (report.html says so)
+        steps = {name: rig["verdict"]["steps"][0] for name, rig in poses["rigs"].items()
+                 if rig["verdict"]["verdict"] == "moved" and rig["verdict"]["steps"]}
+    except (OSError, ValueError, KeyError, TypeError, AttributeError, IndexError):
+        return None
+    after: dict[str, list[str]] = {}
+    for name in sorted(lent):
+        parsed = ImageName.parse(name)
+        if parsed.rig in steps and parsed.frame >= steps[parsed.rig]["frame"]:  # track orders frames by file name
+            after.setdefault(parsed.rig, []).append(parsed.frame)
+    if not after:
+        return None
+    named = "; ".join(f"{rig}: {len(frames)} frame(s) from {frames[0]}, its step at {steps[rig]['frame']}"
+                      for rig, frames in after.items())
+    return (f"LENT AFTER A MOVE: `rigsfm track` found {', '.join(after)} moved ({workspace.track.poses_json}), and "
+            f"its views from its step on take the poses of --poses-from ({named}): those views' persons are "
+            "unreliable; calibrate the frames since with `rigsfm run` and associate them against that result")
+
+
 def associate(out: Path, detections_csv: Path, options: AssociateOptions | None = None,
               progress: Callable[[int, int], None] | None = None) -> Path:
     """Read OUT (a finished run) and DETECTIONS, associate every frame, write DIR (default OUT/associate);
@@ -376,6 +401,9 @@ def _associate(workspace: Workspace, dest: Path, detections_csv: Path, options: 
     detections = read_detections(Path(detections_csv), sizes, model.known, stand_in, options.poses_from)
     if options.poses_from is not None:
         model = with_stand_ins(model, detections.images, options.poses_from)
+        moved = lent_after_moves(workspace, model.stand_ins)
+        if moved:
+            logger.warning("%s", moved)
         root = model.images_root
         missing = [n for n in model.stand_ins if root is None or not (root / n).is_file()]
         if missing and options.appearance:

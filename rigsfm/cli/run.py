@@ -94,6 +94,10 @@ def print_world(summary) -> None:
                           f"cameras {low:.3g}-{high:.3g} above the floor, in the mapper's units: not metric)")
     elif world:
         console.print("world: the mapper's frame" + ("" if world.asked == "mapping" else " (no floor found)"))
+    if summary.replaced is not None:
+        from rigsfm.run.deliver import describe_changes
+
+        console.print(describe_changes(summary.replaced))
     if check and check.pairs:
         from rigsfm.core.summary import describe_self_check as describe
 

@@ -298,6 +298,8 @@ class Summary:
     pairs: PairsSummary | None = None
     cpu_s: dict[str, float] = field(default_factory=dict)  # CPU seconds per stage (all threads)
     narrow_observations: NarrowObservationsSummary | None = None  # --narrow (None: off)
+    # what changed from the finished result this run replaced (rigsfm.run.deliver.changes_from); None: none replaced
+    replaced: dict | None = None
 
     def to_json(self) -> dict:
         data = asdict(self)

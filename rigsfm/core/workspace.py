@@ -161,6 +161,9 @@ class Workspace:
 
     def require_result(self) -> None:
         """Raise a ``WorkspaceError`` saying what to do when OUT holds no finished run."""
+        if self.root.exists() and not self.root.is_dir():  # a file given for OUT (an image, sparse/images.bin, ...)
+            raise WorkspaceError(f"'{self.root}' is a file, not the folder of a `rigsfm run` (its --out); give that "
+                                 "folder")
         if not self.root.is_dir():
             raise WorkspaceError(f"'{self.root}' does not exist: run `rigsfm run IMAGES --rigs rigs.yaml --out {self.shell_root}`"
                                  " first")
@@ -168,6 +171,10 @@ class Workspace:
         if not (self.sparse / "images.bin").is_file() and demo_run.has_result():
             raise WorkspaceError(f"'{self.root}' is a `rigsfm demo` folder, whose result is in its run/ folder: use "
                                  f"{demo_run.root} (e.g. `rigsfm view {demo_run.shell_root}`)")
+        if not (self.sparse / "images.bin").is_file() and not self.is_ours() and self._is_image_folder():
+            raise WorkspaceError(f"'{self.root}' is an image folder (<rig>/wide/...), not the --out folder of a "
+                                 f"`rigsfm run`: give that folder (`rigsfm run {self.shell_root} --rigs rigs.yaml --out "
+                                 "OUT` makes one)")
         if not (self.sparse / "images.bin").is_file():
             raise WorkspaceError(f"'{self.root}' holds no result ('{self.sparse}' is missing): run `rigsfm run ... --out "
                                  f"{self.shell_root}` first")
@@ -188,6 +195,13 @@ class Workspace:
         why = self.unfinished()
         if why is not None:
             logger.warning("%s%s", why[0].upper(), why[1:])
+
+    def _is_image_folder(self) -> bool:
+        """Whether the folder looks like IMAGES (a rig folder with a wide/ folder), given where OUT was meant."""
+        try:
+            return any((rig / "wide").is_dir() for rig in self.root.iterdir() if rig.is_dir())
+        except OSError:
+            return False
 
     @property
     def shell_root(self) -> str:

@@ -321,7 +321,8 @@ def _undistorted_images(reconstruction: pycolmap.Reconstruction, cameras: Sequen
             maps[c.name] = cv2.initUndistortRectifyMap(c.matrix, c.distortion, None, c.matrix, (c.width, c.height),
                                                        cv2.CV_32FC1)
         undistorted = cv2.remap(pixels, *maps[c.name], cv2.INTER_LINEAR)
-        target = dest / parsed.rig / (Path(parsed.frame).stem + ".png")
+        # the camera's name, as its calibration files are named (a rig named with a space: rig_01, not 'rig 01')
+        target = dest / c.name.removesuffix("_narrow") / (Path(parsed.frame).stem + ".png")
         target.parent.mkdir(parents=True, exist_ok=True)
         ok, data = cv2.imencode(".png", undistorted)
         if not ok:

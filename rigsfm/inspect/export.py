@@ -38,7 +38,7 @@ from rigsfm.core.names import name_of
 from rigsfm.core.owned import Previous, commit, previous_files
 from rigsfm.core.serialise import camera_to_dict, pose_to_dict
 from rigsfm.core.summary import Summary
-from rigsfm.core.workspace import Workspace
+from rigsfm.core.workspace import Workspace, model_fingerprint
 from rigsfm.inspect.camera_files import write_opencv, write_toml, write_wildtrack
 from rigsfm.inspect.options import ExportFormat, ExportOptions
 
@@ -129,7 +129,9 @@ def write_nerfstudio(reconstruction: pycolmap.Reconstruction, dest: Path, images
     return sorted(dest.iterdir())
 
 
-def write_json_poses(reconstruction: pycolmap.Reconstruction, dest: Path) -> list[Path]:
+def write_json_poses(reconstruction: pycolmap.Reconstruction, dest: Path, result: dict | None = None) -> list[Path]:
+    """``poses.json``; ``result``: the run's ``metric``, ``units`` and ``world`` (from narrow_poses.json), which say
+    what the numbers are in."""
     images = []
     for image in registered_images(reconstruction):
         name = name_of(image)
@@ -137,10 +139,20 @@ def write_json_poses(reconstruction: pycolmap.Reconstruction, dest: Path) -> lis
                        "camera": camera_to_dict(reconstruction.cameras[image.camera_id]),
                        "cam_from_world": pose_to_dict(image.cam_from_world()),
                        "centre": image.projection_center().tolist()})
-    write_json_atomic(dest / "poses.json", {"conventions": {k: CONVENTIONS[k] for k in
+    write_json_atomic(dest / "poses.json", {**(result or {}),
+                                            "conventions": {k: CONVENTIONS[k] for k in
                                                             ("cam_from_world", "quaternion", "pixels")},
                                             "images": images})
     return sorted(dest.iterdir())
+
+
+def result_frame(workspace: Workspace) -> dict:
+    """narrow_poses.json's ``metric``, ``units`` and ``world``: what the poses' numbers are in."""
+    try:
+        poses = json.loads(workspace.narrow_poses.read_text(encoding="utf-8"))
+    except (OSError, json.JSONDecodeError, UnicodeDecodeError):
+        return {}
+    return {key: poses[key] for key in ("metric", "units", "world") if isinstance(poses, dict) and key in poses}
 
 
 def world_metadata(workspace: Workspace) -> dict[str, str]:
@@ -170,6 +182,19 @@ def warn_wildtrack_world(workspace: Workspace) -> None:
     if problems:
         logger.warning("WILDTRACK export of a result %s: a loader will take it for centimetres on the floor",
                        " and ".join(problems))
+
+
+def warn_not_metric(workspace: Workspace, fmt: ExportFormat) -> None:
+    """Say where the run's result has no scale: every format but COLMAP's is read as metres by its tools (the
+    files carry no units), and the docs promise metres (WILDTRACK's own warning says centimetres)."""
+    try:
+        metric = json.loads(workspace.narrow_poses.read_text(encoding="utf-8")).get("metric")
+    except (OSError, json.JSONDecodeError, UnicodeDecodeError, AttributeError):
+        return
+    if metric is False:
+        logger.warning("NOT METRIC: %s has no scale, so the %s export's positions are in the mapper's arbitrary unit, "
+                       "which its readers take for metres; give `rigsfm run` a scale.yaml (a camera distance or a "
+                       "known length) for metres", workspace.root, fmt)
 
 
 def check_destination(dest: Path, workspace: Workspace, *, overwrite: bool) -> Previous:
@@ -209,6 +234,13 @@ def _export(workspace: Workspace, fmt: ExportFormat, options: ExportOptions) -> 
     reconstruction = workspace.read_sparse()
     summary = Summary.read(workspace.summary)
     images_dir = Path(summary.inputs.images) if summary and summary.inputs.images else None
+    if options.images and images_dir is None:
+        raise InputError(f"{workspace.summary} names no image folder; export without --images" if summary else
+                         f"{workspace.summary} is missing (the run stopped before writing it), so the run's image "
+                         "folder is unknown: re-run the same `rigsfm run` command to finish it, or export without "
+                         "--images")
+    if fmt not in (ExportFormat.COLMAP_BIN, ExportFormat.COLMAP_TXT, ExportFormat.WILDTRACK):  # (COLMAP: no units)
+        warn_not_metric(workspace, fmt)
     dest.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{dest.name}.", suffix=".tmp", dir=dest.parent))
     try:
@@ -224,12 +256,11 @@ def _export(workspace: Workspace, fmt: ExportFormat, options: ExportOptions) -> 
             write_toml(reconstruction, tmp, metadata=world_metadata(workspace))
         elif fmt == ExportFormat.WILDTRACK:
             warn_wildtrack_world(workspace)
-            if options.images and images_dir is None:
-                raise InputError(f"{workspace.summary} names no image folder; export without --images")
             write_wildtrack(reconstruction, tmp, images_dir if options.images else None)
         else:
-            write_json_poses(reconstruction, tmp)
-        commit(dest, tmp, previous, MANIFEST, {"format": str(fmt), "workspace": str(workspace.root.resolve())},
+            write_json_poses(reconstruction, tmp, result_frame(workspace))
+        commit(dest, tmp, previous, MANIFEST, {"format": str(fmt), "workspace": str(workspace.root.resolve()),
+                                             "model": model_fingerprint(workspace.sparse)},
                option="--dest", what="export")
     finally:
         shutil.rmtree(tmp, ignore_errors=True)  # the temporary folder made above: only rigsfm's files

@@ -22,7 +22,9 @@ from __future__ import annotations
 
 import itertools
 import logging
+import shlex
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import pycolmap
@@ -32,6 +34,9 @@ from rigsfm.core.errors import WorkspaceError
 from rigsfm.core.io import atomic_directory, write_json_atomic
 from rigsfm.core.names import name_of
 from rigsfm.core.serialise import camera_to_dict, pose_to_dict
+
+if TYPE_CHECKING:
+    from rigsfm.core.workspace import Workspace
 
 logger = logging.getLogger(__name__)
 
@@ -137,3 +142,102 @@ def write_narrow_poses(reconstruction: pycolmap.Reconstruction, path: Path, *, m
                        bands: dict | None = None, world: dict | None = None, ground=None) -> Path:
     return write_json_atomic(path, narrow_poses(reconstruction, metric=metric, bands=bands, world=world,
                                                 ground=ground), overwrite=overwrite)
+
+
+def _recorded_model(path: Path, *keys: str) -> str | None:
+    """The model fingerprint a JSON file of OUT records under ``keys`` (None where it records none)."""
+    import json
+
+    try:
+        value = json.loads(path.read_text(encoding="utf-8"))
+        for key in keys:
+            value = value.get(key)
+    except (OSError, ValueError, AttributeError):
+        return None
+    return value if isinstance(value, str) else None
+
+
+def earlier_outputs(workspace: Workspace) -> list[str]:
+    """What in OUT was made from another model than ``OUT/sparse``: ``rigsfm track``'s series, ``rigsfm
+    associate``'s default folder and each ``rigsfm export`` default folder, with the command that makes each again
+    (an export from before exports recorded their model counts as another's: it was made before this model)."""
+    from rigsfm.associate.output import MANIFEST as ASSOCIATE_MANIFEST
+    from rigsfm.core.workspace import model_fingerprint
+    from rigsfm.inspect.export import MANIFEST as EXPORT_MANIFEST
+
+    if not workspace.sparse.is_dir():
+        return []
+    model = model_fingerprint(workspace.sparse)
+    found = []
+    if workspace.track.poses_json.is_file() and _recorded_model(workspace.track.poses_json, "reference",
+                                                                  "fingerprint") != model:
+        found.append(f"{workspace.track.root} (`rigsfm track {workspace.shell_root} NEW_IMAGES --overwrite`)")
+    manifest = workspace.associate / ASSOCIATE_MANIFEST
+    if manifest.is_file() and _recorded_model(manifest, "model") != model:
+        found.append(f"{workspace.associate} (`rigsfm associate {workspace.shell_root} DETECTIONS --overwrite`)")
+    if workspace.exports.is_dir():
+        for folder in sorted(p for p in workspace.exports.iterdir() if (p / EXPORT_MANIFEST).is_file()):
+            if _recorded_model(folder / EXPORT_MANIFEST, "model") != model:
+                fmt = _recorded_model(folder / EXPORT_MANIFEST, "format") or folder.name
+                dest = "" if folder.name == fmt else f" --dest {shlex.quote(str(folder))}"  # not its format's default
+                found.append(f"{folder} (`rigsfm export {workspace.shell_root} --format {fmt}{dest} --overwrite`)")
+    return found
+
+
+def earlier_outputs_warning(workspace: Workspace) -> str | None:
+    """One warning naming :func:`earlier_outputs`, or None."""
+    found = earlier_outputs(workspace)
+    if not found:
+        return None
+    return (f"MADE FROM THE EARLIER RESULT: {len(found)} output(s) in {workspace.root} were made from the result "
+            f"this run replaced and no longer match it: {'; '.join(found)}; make each again with the command named "
+            "(they are kept as they are)")
+
+
+def changes_from(earlier: dict | None, now: dict) -> dict | None:
+    """How the narrow cameras of ``now`` (a narrow_poses.json) differ from those of the result it replaces
+    (``earlier``): per rig the largest rotation (deg) and centre shift (mm where both are metric, else None) of
+    its narrow images in both, and the images in one only. Both are in their own world (the floor frame: it
+    follows the rigs, so a moved rig shifts it a little too)."""
+    if not isinstance(earlier, dict) or not isinstance(earlier.get("narrow"), list):
+        return None
+    before = {str(e.get("name")): e for e in earlier["narrow"] if isinstance(e, dict)}
+    after = {e["name"]: e for e in now["narrow"]}
+    metric = earlier.get("metric") is True and now.get("metric") is True
+    rigs: dict[str, dict] = {}
+    for name in sorted(set(before) & set(after)):
+        try:
+            r0, r1 = (np.asarray(e["cam_from_world"]["rotation"], dtype=float) for e in (before[name], after[name]))
+            c0, c1 = (np.asarray(e["centre"], dtype=float) for e in (before[name], after[name]))
+            angle = float(np.degrees(np.arccos(np.clip((np.trace(r1 @ r0.T) - 1.0) / 2.0, -1.0, 1.0))))
+        except (KeyError, TypeError, ValueError):
+            continue
+        rig = rigs.setdefault(after[name]["rig"], {"rotation_deg": 0.0, "centre_mm": 0.0 if metric else None})
+        rig["rotation_deg"] = max(rig["rotation_deg"], angle)
+        if metric:
+            rig["centre_mm"] = max(rig["centre_mm"], 1000.0 * float(np.linalg.norm(c1 - c0)))
+    return {"rigs": rigs, "new_images": sorted(set(after) - set(before)),
+            "gone_images": sorted(set(before) - set(after)), "world_before": (earlier.get("world") or {}).get("frame")}
+
+
+def describe_changes(replaced: dict) -> str:
+    """One line of :func:`changes_from` for the terminal."""
+    rigs = replaced.get("rigs") or {}
+    parts = []
+    if rigs and not replaced.get("new_images") and not replaced.get("gone_images") and all(
+            v["rotation_deg"] < 1e-9 and (v.get("centre_mm") or 0.0) < 1e-9 for v in rigs.values()):
+        return "replaced the earlier result: the same narrow poses (summary.json: replaced)"
+    if rigs:
+        rig, worst = max(rigs.items(), key=lambda item: item[1]["rotation_deg"])
+        shifts = [(v["centre_mm"], name) for name, v in rigs.items() if v.get("centre_mm") is not None]
+        text = f"narrow cameras turned by up to {worst['rotation_deg']:.3f} deg ({rig})"
+        if shifts:
+            shift, moved = max(shifts)
+            text += f" and moved by up to {shift:.1f} mm ({moved})"
+        parts.append(text)
+    for key, what in (("new_images", "new"), ("gone_images", "no longer in the result")):
+        if replaced.get(key):
+            parts.append(f"{len(replaced[key])} narrow image(s) {what} ({replaced[key][0]}"
+                         f"{', ...' if len(replaced[key]) > 1 else ''})")
+    return "replaced the earlier result: " + ("; ".join(parts) or "no narrow image in both") + \
+        " (each in its own floor frame; summary.json: replaced)"

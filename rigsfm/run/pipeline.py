@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import json
 import logging
 import time
 from collections.abc import Callable, Iterator
@@ -40,7 +41,13 @@ from rigsfm.run.adjustment.scale_check import check_scale_agreement
 from rigsfm.run.adjustment.uncertainty import estimate_uncertainty, uncertainty_summary
 from rigsfm.run.checks.diagnostics import check_reconstruction
 from rigsfm.run.checks.missed_pairs import pairs_report
-from rigsfm.run.deliver import narrow_poses, write_model, write_points_ply
+from rigsfm.run.deliver import (
+    changes_from,
+    earlier_outputs_warning,
+    narrow_poses,
+    write_model,
+    write_points_ply,
+)
 from rigsfm.run.inputs.database import check_database_kept, create_database
 from rigsfm.run.inputs.images import (
     ImageEntry,
@@ -296,6 +303,16 @@ def run(
         return _run_locked(workspace, inputs, manual_pairs, options, timings, progress, given_offsets)
 
 
+def _replaced_poses(workspace: Workspace) -> dict | None:
+    """narrow_poses.json of the finished result in OUT (its summary.json written), or None."""
+    if not workspace.summary.is_file():
+        return None
+    try:
+        return json.loads(workspace.narrow_poses.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return None
+
+
 def _given_frame_offsets(options: RunOptions, inputs: Inputs) -> dict[str, int] | None:
     """The --frame-offsets FILE, checked against the rigs and the recording (before any heavy work)."""
     given = options.self_check.frame_offsets
@@ -430,11 +447,13 @@ def _run_locked(workspace: Workspace, inputs: Inputs, manual_pairs: dict, option
             # an --overwrite run's files replace the old result's from here: without its summary.json the workspace
             # reads as unfinished until this run writes its own, not as the old summary over the new model; nor is the
             # old report.html left to show the replaced result until then
+            earlier = _replaced_poses(workspace)  # the finished result this run replaces, to say what changed
             workspace.summary.unlink(missing_ok=True)
             workspace.report.unlink(missing_ok=True)
             write_model(result.reconstruction, workspace.sparse, overwrite=True)
             poses = narrow_poses(result.reconstruction, metric=metric, bands=uncertainty.bands, world=world.to_dict(),
                                  ground=ground)
+            replaced = changes_from(earlier, poses)
             write_json_atomic(workspace.narrow_poses, poses, overwrite=True)
             write_points_ply(result.reconstruction, workspace.points_ply, overwrite=True)
         with timings.stage("check_pairs"):
@@ -462,6 +481,10 @@ def _run_locked(workspace: Workspace, inputs: Inputs, manual_pairs: dict, option
     summary.cpu_s = dict(timings.cpu)
     if pairs_warning:
         summary.warnings.append(pairs_warning)
+    summary.replaced = replaced
+    made_before = earlier_outputs_warning(workspace)  # an --overwrite run replaced the model they were made from
+    if made_before:
+        summary.warnings.append(made_before)
     if options.manual_matches is not None:
         summary.manual_matches = manual_matches_summary(options.manual_matches, manual_reports)
     summary.uncertainty = uncertainty_summary(result, uncertainty, metric=metric)

@@ -15,7 +15,7 @@ from __future__ import annotations
 import logging
 import os
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -125,13 +125,18 @@ def tracked_again(tasks: list[FrameTask], frames: dict, poses_json: Path) -> lis
     return grown
 
 
-def _save(paths: TrackPaths, poses: dict, plots: bool) -> None:
+def _save(paths: TrackPaths, poses: dict, plots: bool, rigs: Iterable[str] = ()) -> None:
+    """Write poses.json and poses.csv, and with ``plots`` each rig's plot; the plots of ``rigs`` (the reference's)
+    that the series no longer holds (an --overwrite's new series without them) are removed, not left to show the
+    discarded series."""
     write_json_atomic(paths.poses_json, poses)
     write_text_atomic(paths.poses_csv, to_csv(poses))
     if plots:
         for name, rig in poses["rigs"].items():
             plot = plot_rig(name, {**rig, "thresholds": poses["thresholds"]})
             write_bytes_atomic(paths.plot(name), charts.encode(plot))
+        for name in set(rigs) - set(poses["rigs"]):
+            paths.plot(name).unlink(missing_ok=True)  # rigsfm's name for the rig's plot
 
 
 def warn_not_metric(workspace: Workspace) -> None:
@@ -146,6 +151,21 @@ def warn_not_metric(workspace: Workspace) -> None:
                        workspace.root)
 
 
+def moved_warning(poses: dict, out: str) -> str | None:
+    """One warning naming the rigs whose verdict is 'moved', each with its first step, and what no longer holds:
+    the run's poses of that rig, so its pairs' F_ji and bands, the exports and `associate --poses-from`."""
+    moved = [(name, rig["verdict"]["steps"][0]) for name, rig in poses["rigs"].items()
+             if rig["verdict"]["verdict"] == "moved" and rig["verdict"]["steps"]]
+    if not moved:
+        return None
+    steps = "; ".join(f"{name} at {step['frame']} ({step['rotation_deg']:.3f} deg, {step['translation_mm']:.1f} mm)"
+                      for name, step in moved)
+    return (f"MOVED: {steps}. The poses of {out} (narrow_poses.json: their pairs' F_ji and bands; the exports; "
+            "`rigsfm associate --poses-from`) no longer hold for its images from that frame on: calibrate the network "
+            "again on frames taken since (`rigsfm run IMAGES --rigs rigs.yaml --out NEW_OUT`, IMAGES holding those "
+            "frames of every rig)")
+
+
 def track(out: Path, new_images: Path, options: TrackOptions | None = None, *,
           progress: Callable[[int, int], None] | None = None) -> TrackResult:
     """Register the new frames, merge them into OUT/track and return the merged result."""
@@ -157,6 +177,12 @@ def track(out: Path, new_images: Path, options: TrackOptions | None = None, *,
         check_reachable(options.address)
     workspace = Workspace(Path(out))
     workspace.require_result()
+    root, given = workspace.root.resolve(), Path(new_images).resolve()
+    if root == given or (root.parent == given and not root.name.startswith(".")):  # (before the reference is read)
+        where = "is the workspace OUT, whose folders are not rigs" if root == given else \
+            f"holds the workspace OUT '{out}', which is not a rig"
+        raise InputError(f"NEW_IMAGES '{new_images}' {where}: give the folder of the new recording "
+                         "(<rig>/<wide|narrow>/<frame file>)")
     warn_not_metric(workspace)
     paths = workspace.track
     reference = load_reference(workspace.root, options=options.registration)
@@ -197,7 +223,7 @@ def track(out: Path, new_images: Path, options: TrackOptions | None = None, *,
         finally:
             poses = assemble(frames, reference, thresholds)
             if frames or options.overwrite:
-                _save(paths, poses, plots=True)
+                _save(paths, poses, plots=True, rigs=reference.rigs)
     if failed:  # else a scene's wrong images, none registered, left only the verdict table, all 'stable'
         logger.warning("FRAMES NOT REGISTERED: %d of %d new frame(s) did not register against the reference (%s%s); "
                        "they are in poses.csv without a pose%s", len(failed), len(todo), "; ".join(failed[:2]),
@@ -211,6 +237,9 @@ def track(out: Path, new_images: Path, options: TrackOptions | None = None, *,
                        "(%d frames after it): a rig moved just now reads 'shaking' until then. Check it, or track the "
                        "next frames", ", ".join(unsettled), ", ".join(f"{rig}: {k}" for rig, k in unsettled.items()),
                        thresholds.min_persist_frames)
+    moved = moved_warning(poses, workspace.shell_root)
+    if moved:
+        logger.warning("%s", moved)
     if bad:
         raise InputError(f"{len(bad)} frame(s) could not be used (the others are saved): {bad[0]}"
                          + (f" (and {len(bad) - 1} more)" if len(bad) > 1 else ""))

@@ -63,7 +63,7 @@ def test_rig_without_images(tmp_path):
     images, rigs_path, data = make_inputs(tmp_path)
     data["rigs"].append(dict(copy.deepcopy(RIG), name="rig03"))
     write_rigs(rigs_path, data)
-    expect(tmp_path, r"rig 'rig03' .* has no folder", images, rigs_path)
+    expect(tmp_path, r"rig 'rig03' .* has no folder .*: put its images in .*rig03/wide/ and narrow/, or leave it out", images, rigs_path)
 
 
 def test_folder_without_rig(tmp_path):

@@ -138,7 +138,9 @@ def scan_images(image_dir: Path, rigs: Sequence[RigCalibration], *, check_pixels
     for rig in rigs:
         rig_dir = by_name.get(nfc(rig.name))
         if rig_dir is None:
-            raise InputError(f"rig '{rig.name}' from the calibration file has no folder '{image_dir / rig.name}'")
+            raise InputError(f"rig '{rig.name}' from the calibration file has no folder '{image_dir / rig.name}': put its "
+                             f"images in {image_dir / rig.name}/wide/ and narrow/, or leave it out of a copy of "
+                             "rigs.yaml for this run")
         extra = [p.name for p in _listing(rig_dir) if not _is_hidden(p) and p.name not in SENSORS]
         if extra:
             raise InputError(f"{rig_dir}: unexpected {quoted(sorted(extra))}; only 'wide' and 'narrow' belong here")

@@ -230,4 +230,5 @@ def test_a_frame_too_sparse_to_correct_its_views_is_associated_again_with_the_sh
     assert not any(np.any(shift) for shift in alone[0].result.shift_px.values())  # alone: the run's poses
     precision, recall = _pair_precision_recall(found[0].result.members, ids[0])
     before = _pair_precision_recall(alone[0].result.members, ids[0])
-    assert precision >= before[0] and recall >= before[1], (precision, recall, before)
+    # 1.0 / 1.0 against 0.97 / 0.88 on the run's poses
+    assert precision >= before[0] and recall > before[1] + 0.05, (precision, recall, before)

@@ -167,3 +167,68 @@ def test_a_tracked_frame_grows_once_and_finds_the_persons_two_rounds_find(monkey
     np.testing.assert_array_equal(once.points, twice.points)
     np.testing.assert_array_equal(once.scores, twice.scores)
     assert grown[None] < 0.8 * grown[2]  # the growth's second round is what it saves
+
+
+class _Posed:
+    """A narrow image as associate_frames reads one from a run: its name, camera and pose."""
+
+    def __init__(self, view) -> None:
+        import pycolmap
+
+        self.name, self.has_pose, self.camera = view.name, True, view.camera
+        self._pose = pycolmap.Rigid3d(pycolmap.Rotation3d(view.r), view.t)
+        self._centre = view.centre
+
+    def cam_from_world(self):
+        return self._pose
+
+    def projection_center(self):
+        return self._centre
+
+
+def _recording(frames: list[np.ndarray], shifts: np.ndarray, sigma_px: float):
+    """A recording of static cameras (five on a ring) seeing the heads of each frame, every view's detections moved
+    by its camera's ``shifts`` (a pose error the run's bands, ``sigma_px`` per view, allow): the run's model, the
+    detections and per frame, per view, each detection's head (-1: false)."""
+    from rigsfm.associate import from_arrays
+    from rigsfm.associate.pipeline import RunModel
+    from rigsfm.associate.views import BAND_Z
+
+    images, points, ids = {}, {}, []
+    for k, heads in enumerate(frames):
+        views, frame_ids = _crowd(heads, seed=10 + k)
+        for view, shift in zip(views, shifts):
+            name = view.name.replace("frame.png", f"frame{k:04d}.png")
+            images[name] = _Posed(dataclasses.replace(view, name=name))
+            points[name] = view.xy + shift
+        ids.append(frame_ids)
+    bands = {(a, b): BAND_Z * np.sqrt(2) * sigma_px for a, b in itertools.permutations(images, 2)
+             if a.split("/")[-1] == b.split("/")[-1]}
+    return RunModel(images, bands, set(images), {"frame": "floor"}), from_arrays(points), ids
+
+
+def test_a_frame_too_sparse_to_correct_its_views_is_associated_again_with_the_shifts_of_the_frames_after():
+    """The recording starts with a few persons, too few for the crowd to correct the views, then fills: the later
+    frames find each camera's shift, and the first frame is associated again with them (a static camera's pose
+    error is the same in every frame), which the frame alone cannot do."""
+    from rigsfm.associate import associate_frames
+
+    rng = np.random.default_rng(5)
+    full, _ = _walked(seed=4, heads=300)
+    sparse = np.c_[rng.uniform(-4, 4, (12, 2)), rng.uniform(1.6, 1.9, 12)]
+    walked = full + np.c_[rng.normal(0, 0.1, (300, 2)), np.zeros(300)]
+    shifts = np.random.default_rng(12).normal(0.0, 4.0, (5, 2))
+    model, detections, ids = _recording([sparse, full, walked], shifts, sigma_px=3.5)
+    options = dataclasses.replace(OPTIONS, detection_probability=None)
+    found = associate_frames(model, detections, options)
+    alone = associate_frames(model, detections, dataclasses.replace(options, revisit=False))
+    # the later frames found the cameras' shifts: the first frame's persons are found with them
+    later = np.array([found[1].result.shift_px[v.name] for v in found[1].views])
+    assert np.max(np.linalg.norm(later - shifts, axis=1)) < 1.0, later
+    first = np.array([found[0].result.shift_px[v.name] for v in found[0].views])
+    assert np.max(np.linalg.norm(first - shifts, axis=1)) < 1.0, first
+    assert not any(np.any(shift) for shift in alone[0].result.shift_px.values())  # alone: the run's poses
+    precision, recall = _pair_precision_recall(found[0].result.members, ids[0])
+    before = _pair_precision_recall(alone[0].result.members, ids[0])
+    # 1.0 / 1.0 against 0.97 / 0.88 on the run's poses
+    assert precision >= before[0] and recall > before[1] + 0.05, (precision, recall, before)

@@ -47,6 +47,9 @@ class AssociateOptions:
     self_calibration_rounds: int = 4
     self_calibration_min_score: float = 0.0
     self_calibration_min_members: int = 10  # a view's shift needs this many group members (else it stays as run)
+    # A frame whose crowd corrected none of its views is associated again, carried, with the shifts a later frame's
+    # crowd found for its cameras (the recording's, pooled over the frames since).
+    revisit: bool = True
     # Add the heads' and torsos' greys to the score where the run's narrow images can be read (rigsfm.associate.
     # appearance): its model comes from the frame's own confident persons.
     appearance: bool = True

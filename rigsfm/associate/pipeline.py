@@ -250,8 +250,35 @@ def associate_frames(model: RunModel, detections: Detections, options: Associate
                                         min(lent) if lent else None, lent_views, notes))
             if progress:
                 progress(len(out), len(frames))
+    if options.revisit:
+        _revisit(model, detections, options, carried, out, notes)
     notes.say()
     return out
+
+
+def _revisit(model: RunModel, detections: Detections, options: AssociateOptions, carried: dict[str, View],
+             out: list[FramePersons], notes: FrameNotes) -> None:
+    """Associate again, carried, each frame whose own crowd corrected none of its views (its persons found on the run's
+    poses) where a later frame's did for every one of its cameras: a static camera's shift is the same in every frame,
+    and ``carried`` holds it as the recording's frames since refined it. Backwards, each frame looking for the persons
+    of the frame after it."""
+    for k in range(len(out) - 1, -1, -1):
+        done = out[k]
+        cameras = [ImageName.parse(v.name).camera for v in done.views]
+        if any(v.band_sigma_px is not None for v in done.views) or not cameras \
+                or not all(c in carried for c in cameras):
+            continue
+        names = [v.name for v in done.views]
+        views = frame_views(model, detections, done.frame, names, notes)
+        logger.info("%s: associated again with the shifts later frames found", done.frame)
+        notes.forget(done.frame)
+        after = out[k + 1] if k + 1 < len(out) else None
+        # the recording's shifts, not this frame's refinement of them: the frames after it already hold those
+        kept = dict(carried)
+        out[k] = _associate_frame(done.frame, views, detections, options, kept, after, done.poses_from,
+                                  done.lent_views, notes)
+        out[k].seconds += done.seconds  # the frame's time: both its associations
+        out[k].cpu_seconds += done.cpu_seconds
 
 
 def _associate_frame(frame: str, views: list[View], detections: Detections, options: AssociateOptions,
@@ -303,6 +330,12 @@ class FrameNotes:
         # a share, not a count, so that a small crowd every view sees clearly does not warn
         if not carried and len(result.views) >= 3 and confident < FEW_CONFIDENT_SHARE * len(result):
             self.few_confident.append((frame, confident, len(result)))
+
+    def forget(self, frame: str) -> None:
+        """Drop what ``frame`` noted (it is associated again)."""
+        self.few_confident = [n for n in self.few_confident if n[0] != frame]
+        self.two_views = [n for n in self.two_views if n[0] != frame]
+        self.no_bands = [f for f in self.no_bands if f != frame]
 
     def say(self) -> None:
         if self.no_bands:

@@ -1,11 +1,12 @@
 """The narrow stage's CPU (``--narrow auto``'s second pass) on a rendered scene, its inputs captured once and the stage
 rerun alone: per repeat the process's CPU seconds (the stage processes included) and a hash of what the stage gave.
 
-    python benchmarks/narrow_stage_cost.py SCENE [--repeats 3] [--profile out.prof] [--in-process]
+    python benchmarks/narrow_stage_cost.py SCENE [--repeats 3] [--profile out.prof] [--in-process] [--recapture]
 
 ``SCENE``: a rendered scene (``benchmarks/narrow_observations.py``'s ``WORK/persons8c``). The first call runs
 ``rigsfm run`` (defaults) into ``SCENE_stage`` and keeps ``second_pass``'s inputs in ``SCENE_stage/inputs.pkl``;
-later calls reuse them. ``--profile``: cProfile of the stage (``--in-process``: the second adjustment in this process,
+later calls reuse them (``--recapture``: run again). ``--profile``: cProfile of the stage's first repeat by
+process CPU time (``--in-process``: the second adjustment in this process,
 so that it shows in the profile). The hash covers the heads' pairs (their pixels, to the bit), the record's counts
 and the second adjustment's poses, calibration and points: two code versions giving one hash gave the same result.
 """

@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 
+from rigsfm.core.blas_threads import one_blas_thread
 from rigsfm.core.geometry import pixel_line_distances
 from rigsfm.core.ground import undistort_pixels
 from rigsfm.core.processes import in_child
@@ -162,9 +163,18 @@ def second_pass(result, world, inputs, options, offsets: dict[str, int] | None =
     adjustment's change alone, and fitting it again would cost more than the whole second pass. ``offsets``: the
     --frame-offsets FILE's (narrow frames paired by time); ``progress(done, total)``: the heads' (match_heads)."""
     threads = options.num_threads if options.num_threads > 0 else os.cpu_count() or 1
-    model, record = narrow_observations(result, world, inputs.image_dir, options.narrow, options.self_check, offsets,
-                                        bands, threads, progress)
+    with one_blas_thread():  # the association runs on one core: a second BLAS thread only spins
+        model, record = narrow_observations(result, world, inputs.image_dir, options.narrow, options.self_check,
+                                            offsets, bands, threads, progress)
     if model is None:
         return result, record
-    return in_child(adjust, model, inputs.rigs, inputs.scale, options.adjust, inputs.priors,
+    return in_child(adjust_on_one_blas_thread, model, inputs.rigs, inputs.scale, options.adjust, inputs.priors,
                     point_sigmas=record.point_sigmas), record
+
+
+def adjust_on_one_blas_thread(*args, **kwargs):
+    """The second adjustment (:func:`rigsfm.run.adjustment.adjust.adjust`'s arguments) with OpenBLAS on one thread:
+    its dense algebra (the covariance, the hold-or-refine test) is too small for a second thread to gain more than its
+    spinning costs (benchmarks/README.md, "The narrow stage's BLAS threads")."""
+    with one_blas_thread():
+        return adjust(*args, **kwargs)

@@ -1,34 +1,31 @@
-"""rigsfm.core.blas_threads: OpenBLAS on one thread for the narrow stage (its second adjustment included)."""
+"""rigsfm.core.blas_threads: BLAS on one thread for the narrow stage (its second adjustment included)."""
 
 import numpy as np
 import scipy.linalg  # noqa: F401  # scipy's own OpenBLAS, loaded
+from threadpoolctl import threadpool_info, threadpool_limits
 
-from rigsfm.core.blas_threads import _loaded_openblas, one_blas_thread
+from rigsfm.core.blas_threads import one_blas_thread
 from rigsfm.run.narrow import stage
 
 
 def _threads() -> list[int]:
-    return [get() for get, _ in _loaded_openblas()]
+    return [info["num_threads"] for info in threadpool_info() if info["user_api"] == "blas"]
 
 
-def _two_threads() -> None:
-    for _, set_ in _loaded_openblas():
-        set_(2)
-
-
-def test_every_loaded_openblas_runs_on_one_thread_inside_the_block_and_as_before_after():
-    assert len(_loaded_openblas()) >= 2  # numpy's and scipy's
-    _two_threads()
-    with one_blas_thread():
-        assert _threads() == [1] * len(_threads())
-        assert np.allclose(np.linalg.cholesky(np.eye(3) * 4.0), np.eye(3) * 2.0)
-    assert _threads() == [2] * len(_threads())
+def test_every_loaded_blas_runs_on_one_thread_inside_the_block_and_as_before_after():
+    with threadpool_limits(limits=2, user_api="blas"):
+        assert len(_threads()) >= 2  # numpy's and scipy's
+        assert _threads() == [2] * len(_threads())
+        with one_blas_thread():
+            assert _threads() == [1] * len(_threads())
+            assert np.allclose(np.linalg.cholesky(np.eye(3) * 4.0), np.eye(3) * 2.0)
+        assert _threads() == [2] * len(_threads())
 
 
 def test_the_second_adjustment_runs_on_one_blas_thread(monkeypatch):
     seen = []
     monkeypatch.setattr(stage, "adjust", lambda *args, **kwargs: seen.append((_threads(), args, kwargs)) or "adjusted")
-    _two_threads()
-    assert stage.adjust_on_one_blas_thread(1, 2, point_sigmas={3: 1.5}) == "adjusted"
-    assert seen == [([1] * len(_threads()), (1, 2), {"point_sigmas": {3: 1.5}})]
-    assert _threads() == [2] * len(_threads())
+    with threadpool_limits(limits=2, user_api="blas"):
+        assert stage.adjust_on_one_blas_thread(1, 2, point_sigmas={3: 1.5}) == "adjusted"
+        assert seen == [([1] * len(_threads()), (1, 2), {"point_sigmas": {3: 1.5}})]
+        assert _threads() == [2] * len(_threads())

@@ -187,3 +187,32 @@ def test_counts_flat_in_the_shift_name_no_rig():
              "rig01/narrow": flat["rig01/narrow"]}
     assert {c: t.offset for c, t in timings(clear).items()} == {
         "rig01/narrow": 2, "rig02/narrow": 0, "rig03/narrow": 0, "rig04/narrow": 0}
+
+
+def test_auto_pairs_the_frames_of_a_named_rig_by_time(crowd, tmp_path, monkeypatch):  # noqa: F811
+    # the 4-rig crowd does not time its views (above), so the check's verdict is given: rig02 -1, as recorded
+    from typer.testing import CliRunner
+
+    import rigsfm.associate.sync as sync
+    from rigsfm.cli import app
+
+    real = sync.check_frame_offsets
+
+    def named(model, detections, chain, options, asked, applied=None):
+        check = real(model, detections, chain, options, asked, applied)
+        check.rigs["rig02"] = sync.RigTiming("rig02/narrow", {-1: 10, 0: 20, 1: 40}, -1, 3.7)
+        return check
+
+    monkeypatch.setattr(sync, "check_frame_offsets", named)
+    dataset, out = crowd
+    detections = _recording(dataset, {"rig02": -1}, tmp_path / "heads.csv")
+    dest = tmp_path / "auto"
+    result = CliRunner().invoke(app, ["associate", str(out), str(detections), "--out", str(dest), "--pixel-sigma",
+                                      "1.5", "--no-appearance", "--poses-from", "frame0000.png",
+                                      "--frame-offsets", "auto"])
+    assert result.exit_code == 0, result.output
+    assert "frame offsets (auto): estimated rig02 -1 frame" in result.output
+    assert "frames paired by time: rig02 -1" in result.output
+    record = _offsets(dest)
+    assert record["applied"] == {"rig02": -1}, record
+    assert "rig02/narrow/frame0004.png" in json.loads((dest / "frame0003" / "persons.json").read_text())["views"]

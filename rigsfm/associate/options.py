@@ -58,6 +58,10 @@ class AssociateOptions:
     # A frame of the run whose narrow cameras' poses (and bands) stand in for frames the run was not given: static
     # rigs, associated frame after frame of a recording calibrated once. None: every frame must be one of the run's.
     poses_from: str | None = None
+    # Whether the rigs took their frames together (rigsfm.associate.sync): None checks a recording of three frames or
+    # more and warns of a rig off in time; "auto" also pairs the frames by the offsets it names; "off" skips the
+    # check; else a file of offsets ('rig03: 1', rigsfm run --frame-offsets FILE's) to pair them by.
+    frame_offsets: str | Path | None = None
     out: Path | None = None  # DIR; None: OUT/associate
     overwrite: bool = False
 

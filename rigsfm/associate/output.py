@@ -7,7 +7,10 @@
                             docs/world.md), detections [{image, x, y, row}]; unassigned detections;
                             size_cue {used, head_radius_m}: whether the DETECTIONS' radii scored the frame;
                             poses_from, lent_views: the run's frame whose narrow poses --poses-from lent, and to
-                            which views (every view of a frame the run was not given)
+                            which views (every view of a frame the run was not given);
+                            frame_offsets: whether the rigs took their frames together (rigsfm.associate.sync:
+                            each rig's offset, the frames tested, the offsets the frames were paired by), null
+                            where not checked; the manifest holds the same
   DIR/<frame>/floor.png     top view of the grid below: every narrow footprint at head height (the middle of
                             ``heights``), every person's 95 % ellipse
   DIR/<frame>/density.csv   persons per m^2 on a grid of ``cell_m`` cells from the world origin, over the cells two
@@ -86,7 +89,7 @@ def persons_rows(frame) -> list[list]:
     return rows
 
 
-def persons_json(frame) -> dict:
+def persons_json(frame, frame_offsets: dict | None = None) -> dict:
     result, views, det = frame.result, frame.views, frame.detections
     persons = []
     used = set()
@@ -120,6 +123,9 @@ def persons_json(frame) -> dict:
             # radius, as its persons gave it (null: the cue was off, or too few persons to estimate it from).
             "size_cue": {"used": bool(views) and all(v.radius_px is not None for v in views),
                          "head_radius_m": result.head_radius_m},
+            # whether the rigs took their frames together (rigsfm.associate.sync; the same in every frame): the
+            # offsets named and those the frames were paired by; null: not checked (--frame-offsets off)
+            "frame_offsets": frame_offsets,
             "persons": persons, "unassigned": unassigned}
 
 
@@ -261,7 +267,7 @@ def _png(path: Path, image: np.ndarray) -> None:
 
 
 def write_results(dest: Path, model, frames: list, options, previous: Previous | None = None,
-                  fingerprint: str | None = None) -> Path:
+                  fingerprint: str | None = None, frame_offsets: dict | None = None) -> Path:
     """Write every frame's files into a temporary folder beside ``dest``, then move them in (``previous``: what
     :func:`check_destination` allowed to replace; ``fingerprint``: the run's model they were made from, recorded in
     the manifest as ``model``)."""
@@ -278,14 +284,15 @@ def write_results(dest: Path, model, frames: list, options, previous: Previous |
             (folder / "persons.csv").write_text(_csv(
                 ["person", "x_m", "y_m", "z_m", "sigma_x_m", "sigma_y_m", "sigma_z_m", "confidence", "views",
                  "image", "x", "y", "row"], persons_rows(frame)))
-            (folder / "persons.json").write_text(_json_text(persons_json(frame)))
+            (folder / "persons.json").write_text(_json_text(persons_json(frame, frame_offsets)))
             counts, rows = density_grid(frame.result.points, bounds, options.cell_m, seen)
             (folder / "density.csv").write_text(_csv(["x_min_m", "y_min_m", "x_max_m", "y_max_m", "persons", "per_m2",
                                                       "views"], rows))
             _png(folder / "density.png", density_image(counts, options.cell_m, seen))
             _png(folder / "floor.png", floor_map(frame, prints, bounds, height))
         previous = check_destination(dest, True) if previous is None else previous
-        commit(dest, tmp, previous, MANIFEST, {"written_by": "rigsfm associate", "model": fingerprint},
+        commit(dest, tmp, previous, MANIFEST, {"written_by": "rigsfm associate", "model": fingerprint,
+                                                "frame_offsets": frame_offsets},
                option="--out", what="association")
     finally:
         shutil.rmtree(tmp, ignore_errors=True)  # the temporary folder made above: only rigsfm's files

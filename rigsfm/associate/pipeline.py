@@ -223,16 +223,18 @@ def frame_views(model: RunModel, detections: Detections, frame: str, names: list
 
 
 def associate_frames(model: RunModel, detections: Detections, options: AssociateOptions,
-                     progress: Callable[[int, int], None] | None = None) -> list[FramePersons]:
+                     progress: Callable[[int, int], None] | None = None,
+                     frames: list[tuple[str, list[str]]] | None = None) -> list[FramePersons]:
     """The persons of every frame of ``detections`` (library entry; nothing written); ``progress(done, total)``
-    after each frame.
+    after each frame; ``frames``: each frame's images, where not the frames of their names (rigs paired by time,
+    rigsfm.associate.sync.paired_frames).
 
     A narrow camera's pose error is the same in every frame, so the shifts the crowd finds in one frame carry to the
     next frame's images of the same cameras (pooled with each frame's own groups); a frame whose cameras all carry
     one is associated once instead of self-calibrating from scratch."""
     out: list[FramePersons] = []
     carried: dict[str, View] = {}  # per camera (<rig>/narrow), its view in the latest frame
-    frames = list(detections.frames().items())
+    frames = list(detections.frames().items()) if frames is None else frames
     notes = FrameNotes()
     if progress:  # the work starts: its bar from here
         progress(0, len(frames))
@@ -423,6 +425,7 @@ def associate(out: Path, detections_csv: Path, options: AssociateOptions | None 
 def _associate(workspace: Workspace, dest: Path, detections_csv: Path, options: AssociateOptions,
                progress: Callable[[int, int], None] | None) -> Path:
     from rigsfm.associate.output import check_destination, refuse_edited, write_results
+    from rigsfm.associate.sync import check_frame_offsets, given_offsets, paired_frames, with_camera_bands
 
     out = workspace.root
     previous = check_destination(dest, options.overwrite)
@@ -446,5 +449,24 @@ def _associate(workspace: Workspace, dest: Path, detections_csv: Path, options: 
                            quoted(missing[:3]) + (" ..." if len(missing) > 3 else ""))
     require_floor(model, Path(out))
     refuse_edited(dest, previous, detections.frames())
-    frames = associate_frames(model, detections, options, progress)
-    return write_results(dest, model, frames, options, previous, model_fingerprint(workspace.sparse))
+    asked = options.frame_offsets
+    # a file's offsets are checked before any association (rigsfm run's file and rules)
+    applied = {} if asked in (None, "off", "auto") else given_offsets(
+        Path(asked), detections, (ImageName.parse(n).rig for n in model.images))
+    paired = None
+    if applied:
+        paired = paired_frames(detections, applied)
+        model = with_camera_bands(model, [names for _, names in paired])
+    frames = associate_frames(model, detections, options, progress, paired)
+    check = None
+    if asked != "off":
+        check = check_frame_offsets(model, detections, frames, options, str(asked or "check"), applied)
+        if asked == "auto" and check.named:
+            paired = paired_frames(detections, check.named)
+            model = with_camera_bands(model, [names for _, names in paired])
+            frames = associate_frames(model, detections, options, progress, paired)
+            check.applied = dict(check.named)
+        if check.warning:
+            logger.warning("%s", check.warning)
+    return write_results(dest, model, frames, options, previous, model_fingerprint(workspace.sparse),
+                         None if check is None else check.to_dict())

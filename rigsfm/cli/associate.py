@@ -47,6 +47,12 @@ def associate_command(
         help="associate frames the run was not given with the narrow poses of its frame FRAME (e.g. frame0000.png): "
              "static rigs calibrated once; `rigsfm track` checks they have not moved  [default: none: such frames "
              "are refused]", show_default=False)] = None,
+    frame_offsets: Annotated[str | None, typer.Option(
+        "--frame-offsets", metavar="auto|FILE|off",
+        help="unsynchronised rigs: auto estimates each rig's frame offset from the persons and pairs the frames by "
+             "time; FILE (yaml 'rig03: 1': rig03's frame k was taken at the others' frame k+1) applies given ones; "
+             "off skips the check [default: a recording of three frames or more is checked and a rig off in time "
+             "named]", show_default=False)] = None,
     no_appearance: Annotated[bool, flag("--no-appearance", help="geometry only: leave out the heads' and torsos' greys "
                                         "sampled from the run's narrow images")] = False,
     overwrite: Annotated[bool, flag("--overwrite", help="replace an earlier association in --out")] = False,
@@ -63,6 +69,7 @@ def associate_command(
                                    detection_probability=detection_probability, size_noise=size_noise,
                                    self_calibration_rounds=self_calibration_rounds, walk_m=walk or None,
                                    appearance=not no_appearance, poses_from=poses_from,
+                                   frame_offsets=frame_offsets,
                                    out=dest, overwrite=overwrite)
     except ValueError as e:
         raise InputError(f"{e}; see rigsfm associate --help") from None
@@ -75,6 +82,9 @@ def associate_command(
         console.print(line)
     for line in lent_lines(frames, poses_from, out):
         console.print(line)
+    offsets = offsets_line(dest)
+    if offsets:
+        console.print(offsets)
     console.print(f"persons: {dest} (persons.csv / persons.json, floor.png, density per frame)")
     if Path(dest).resolve() == Workspace(out).associate.resolve():
         console.print(f"`rigsfm report {out}` adds them to its report.html")
@@ -123,3 +133,19 @@ def frame_lines(frames: list[tuple[str, int, int, int, str | None, list[str]]], 
         rest = sorted(c[1] for c in frames[shown:])
         lines.append(f"... {len(rest)} more frames: {rest[len(rest) // 2]} persons (median), {rest[0]}-{rest[-1]}")
     return lines
+
+
+def offsets_line(dest: Path) -> str | None:
+    """The frame-offsets check's line (rigsfm.associate.sync), from the manifest; None where it did not run."""
+    import json
+
+    from rigsfm.associate.output import MANIFEST
+    from rigsfm.associate.sync import describe
+
+    try:
+        record = json.loads((Path(dest) / MANIFEST).read_text(encoding="utf-8")).get("frame_offsets")
+    except (OSError, ValueError):
+        return None
+    if not record or record["asked"] == "check" and record["skipped"] and not record["applied"]:
+        return None  # a frame or two, not asked about: nothing to say
+    return describe(record)

@@ -9,12 +9,15 @@ covariance: ``--poses-from frame0000.png``). Detections per frame as benchmarks/
 heads, 1.5 px noise, 10 % missed, 5 % false; seed + 1000 k for frame k). "Exact": the same association on the
 truth's poses with the run's bands (a reference, not a result). ``--alone``: each frame also associated as a
 recording of its own (does its crowd correct its views?). CPU: this process's seconds for the whole recording.
-benchmarks/README.md, "Nineteenth pass", has the numbers.
+``--walks 0.15,auto,0``: instead, the recording (revisit on) at each walk (``auto``: the options' default; 0: every
+pair searched).
+benchmarks/README.md, "Nineteenth pass" and "The walk from the recording", have the numbers.
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import sys
 import time
@@ -31,6 +34,9 @@ from rigsfm.associate import AssociateOptions, associate_frames, from_arrays, lo
 from rigsfm.associate.evaluate import make_detections, score_groups, visible_heads  # noqa: E402
 from rigsfm.associate.pipeline import RunModel  # noqa: E402
 
+# a fixed walk: the estimate from the recording off, where this code has it
+FIXED = {"walk_from_recording": False} if "walk_from_recording" in AssociateOptions.__dataclass_fields__ else {}
+
 
 def pair_f1(found, truths) -> list[float]:
     return [score_groups([[(fp.views[v].name, int(i)) for v, i in enumerate(m) if i >= 0]
@@ -46,6 +52,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--alone", action="store_true", help="each frame also associated on its own")
     parser.add_argument("--exact", action="store_true", help="also on the truth's poses (the reference)")
     parser.add_argument("--json", type=Path, default=None)
+    parser.add_argument("--walks", default=None,
+                        help="instead: the recording at each of these walks (m; 0: every pair searched; auto: the "
+                             "walk estimated from the recording, the default)")
     args = parser.parse_args(argv)
     run = lend_poses(load_run(args.out), args.dataset, args.frames, "frame0000.png")
     exact_images = {im.name: im for im in pycolmap.Reconstruction(str(args.dataset / "ground_truth")).images.values()}
@@ -60,13 +69,20 @@ def main(argv: list[str] | None = None) -> int:
             truths.append(truth)
             points.update(truth.points)
         detections = from_arrays(points)
-        configs = [("run", run, False), ("run", run, True)] + ([("exact", exact, True)] if args.exact else [])
-        for poses, model, revisit in configs:
+        configs = [("run", run, False, "auto"), ("run", run, True, "auto")] + (
+            [("exact", exact, True, "auto")] if args.exact else [])
+        if args.walks:
+            configs = [("run", run, True, walk) for walk in args.walks.split(",")]
+        for poses, model, revisit, walk in configs:
+            options = AssociateOptions(pixel_sigma=1.5, revisit=revisit)
+            if walk != "auto":
+                options = dataclasses.replace(options, walk_m=float(walk) or None, **FIXED)
             cpu = time.process_time()
-            found = associate_frames(model, detections, AssociateOptions(pixel_sigma=1.5, revisit=revisit))
+            found = associate_frames(model, detections, options)
             cpu = time.process_time() - cpu
             f1 = pair_f1(found, truths)
-            row = {"seed": seed, "poses": poses, "revisit": revisit, "pair_f1": [round(x, 3) for x in f1],
+            row = {"seed": seed, "poses": poses, "revisit": revisit, "walk": walk,
+                   "walk_m": [getattr(fp.result, "walk_m", None) for fp in found], "pair_f1": [round(x, 3) for x in f1],
                    "mean": round(float(np.mean(f1)), 3), "cpu_s": round(cpu, 1),
                    "corrected": [any(np.any(s) for s in fp.result.shift_px.values()) for fp in found]}
             rows.append(row)

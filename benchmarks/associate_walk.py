@@ -1,5 +1,5 @@
 """A walking crowd recorded at several frame rates: each frame's pair F1 at the options' default walk (``auto``:
-estimated from the recording on branch h/walk-estimate, 0.15 m on main) and with ``--walk`` fixed (0: every pair), on
+0.15 m; the walk estimated from the recording was measured on a branch not kept) and with ``--walk`` fixed (0: every pair), on
 the synthetic five-camera ring of tests/test_associate_tracked.py (exact truth, no rendering).
 
     python benchmarks/associate_walk.py [--fps 2,10] [--frames 4] [--heads 150] [--seeds 0,1] [--walks auto,0.15]

@@ -308,7 +308,7 @@ def test_the_floor_line_names_metres_only_on_a_metric_result(monkeypatch):
         monkeypatch.setattr(cli_run, "console", Console(file=out, width=300))
         world = WorldSummary(asked="floor", frame="floor", units=units, floor=floor)
         cli_run.print_world(SimpleNamespace(world=world, epipolar_self_check=None, narrow_observations=None,
-                                                 frame_offsets=None))
+                                                 frame_offsets=None, replaced=None))
         lines[units] = out.getvalue()
     assert "RMS 4.2 mm; cameras 3.41-3.58 m above the floor" in lines["metres"]
     assert " mm" not in lines["arbitrary (not metric)"] and " m above" not in lines["arbitrary (not metric)"]

@@ -117,6 +117,17 @@ def test_the_warning_names_the_late_rig_and_the_fix():
     assert check.warning is None
 
 
+def test_a_crowd_that_tells_no_time_is_said_unknown_not_synchronised():
+    from rigsfm.associate.sync import SyncCheck, describe, timings
+
+    flat = {f"rig0{k}/narrow": {-1: 20, 0: 21, 1: 19} for k in range(1, 5)}  # no clear peak anywhere
+    check = SyncCheck("check", frames=["f2.png"], search=1,
+                      rigs={camera.split("/")[0]: t for camera, t in timings(flat).items()})
+    assert check.named == {} and check.warning is None
+    line = describe(check.to_dict())
+    assert "not told" in line and "unknown" in line and "at 0" not in line
+
+
 def _walking_views(offsets: dict[str, int], frames: int = 7, seed: int = 0) -> list[list]:
     """Per frame, six exact narrow views on a ring 18 m across round 150 heads walking 0.13 m a frame (a tenth of a
     second at 1.3 m/s), the issue's detector (1.5 px, 10 % missed, 5 % false); rig r's frame k shows the heads at

@@ -97,6 +97,9 @@ def describe(record: dict) -> str:
         return f"frame offsets ({record['asked']}): {what}"
     rigs = record.get("rigs") or {}
     untold = sorted(r for r, t in rigs.items() if t["offset"] is None)
+    if rigs and len(untold) == len(rigs):  # the crowd's persons do not time these views: nothing is known
+        return (f"frame offsets ({record['asked']}): not told (the persons of {len(record['tested_frames'])} frame(s) "
+                f"peak at no shift clearly, {record['seconds']:.1f} s): whether the rigs are synchronised is unknown")
     named = ", ".join(f"{r} {_frames(o)}" for r, o in sorted(record["named"].items()))
     applied = ", ".join(f"{r} {o:+d}" for r, o in sorted(record["applied"].items()))
     return (f"frame offsets ({record['asked']}): " + (f"estimated {named}" if named else "all rigs at 0")

@@ -137,6 +137,9 @@ def test_sigmas_written_to_rigs_yaml(result, tmp_path):
     assert [r.name for r in load_rigs(out)] == ["rig01", "rig02"]
     np.testing.assert_array_equal(merged_sigmas["rig01"].covariance, sigmas.covariance)
     np.testing.assert_array_equal(merged_sigmas["rig02"].narrow, sigmas.narrow)
+    # its summary names the rig the merge kept, so a later --overwrite knows the report wrote rig01's folder
+    lines = (tmp_path / "rigs.calibration" / "summary.txt").read_text().splitlines()
+    assert [line.split(":")[0] for line in lines if ": wide RMS " in line] == ["rig02", "rig01"]
 
 
 def test_merge_keeps_other_rigs(result, tmp_path):

@@ -202,6 +202,22 @@ def _rigs_in_summary(path: Path) -> set[str]:
             if RIG_LINE in line and not line[:1].isspace()}
 
 
+def _kept_lines(path: Path, rigs: set[str]) -> list[str]:
+    """The lines of ``rigs`` (each ``NAME: wide RMS ...`` and its warnings below it) in a summary.txt
+    :func:`write_report` wrote."""
+    if not rigs or path.is_symlink() or not path.is_file() or not _is_our_summary(path):
+        return []
+    kept, keeping = [], False
+    for line in path.read_text(encoding="utf-8").splitlines():
+        if RIG_LINE in line and not line[:1].isspace():
+            keeping = line.split(RIG_LINE, 1)[0] in rigs
+        elif not line[:1].isspace():
+            keeping = False
+        if keeping:
+            kept.append(line)
+    return kept
+
+
 def _report_files(folder: Path) -> list[Path] | None:
     """The files of a rig's report folder, None where it holds anything a report does not (or is no folder)."""
     if folder.is_symlink() or not folder.is_dir():
@@ -239,7 +255,8 @@ def remove_rigs_no_longer_calibrated(report_dir: Path, written: set[str], calibr
 
 def write_report(result: CalibrationResult, report_dir: Path, *, merge: bool = False) -> Path:
     """The calibration's report in ``report_dir``: a folder per rig and summary.txt. Without ``merge`` (the rigs
-    replace rigs.yaml's), the folders an earlier report wrote of rigs this one lacks are removed."""
+    replace rigs.yaml's), the folders an earlier report wrote of rigs this one lacks are removed; with it, their
+    lines of the earlier summary.txt are kept (rigs.yaml keeps them)."""
     report_dir = Path(report_dir)
     check_report_dir(report_dir, [rig.name for rig in result.rigs])  # every rig first: a refusal changes nothing
     written = _rigs_in_summary(report_dir / "summary.txt")  # before this report replaces it
@@ -257,7 +274,9 @@ def write_report(result: CalibrationResult, report_dir: Path, *, merge: bool = F
                        f"{f.rms:.3f} px, baseline {np.linalg.norm(rig.T) * 1000:.2f} mm"
                        f"{' (scene rotation)' if rig.scene else ''}; {len(rig.warnings)} warnings")
         summary += [f"  WARNING: {w}" for w in rig.warnings]
-    if not merge:  # before the summary that names them goes: a stop between the two leaves them named
+    if merge:  # the rigs a merge keeps keep their lines: a later --overwrite knows it wrote their folders
+        summary += _kept_lines(report_dir / "summary.txt", written - {rig.name for rig in result.rigs})
+    else:  # before the summary that names them goes: a stop between the two leaves them named
         remove_rigs_no_longer_calibrated(report_dir, written, {rig.name for rig in result.rigs})
     write_text_atomic(report_dir / "summary.txt", "\n".join(summary) + "\n")
     return report_dir

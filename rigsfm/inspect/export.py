@@ -146,33 +146,34 @@ def write_json_poses(reconstruction: pycolmap.Reconstruction, dest: Path, result
     return sorted(dest.iterdir())
 
 
-def result_frame(workspace: Workspace) -> dict:
-    """narrow_poses.json's ``metric``, ``units`` and ``world``: what the poses' numbers are in."""
+def read_narrow_poses(workspace: Workspace) -> dict | None:
+    """narrow_poses.json (read once per export: its ``metric`` and ``world`` say what the numbers are in), None
+    where it cannot be read."""
     try:
         poses = json.loads(workspace.narrow_poses.read_text(encoding="utf-8"))
     except (OSError, json.JSONDecodeError, UnicodeDecodeError):
-        return {}
-    return {key: poses[key] for key in ("metric", "units", "world") if isinstance(poses, dict) and key in poses}
+        return None
+    return poses if isinstance(poses, dict) else None
 
 
-def world_metadata(workspace: Workspace) -> dict[str, str]:
-    """The run's world frame in words, for the files' metadata (from narrow_poses.json)."""
-    try:
-        world = json.loads(workspace.narrow_poses.read_text(encoding="utf-8")).get("world") or {}
-    except (OSError, json.JSONDecodeError, UnicodeDecodeError):
-        world = {}
+def result_frame(poses: dict | None) -> dict:
+    """narrow_poses.json's (``poses``) ``metric``, ``units`` and ``world``: what the poses' numbers are in."""
+    return {key: poses[key] for key in ("metric", "units", "world") if key in poses} if poses else {}
+
+
+def world_metadata(poses: dict | None) -> dict[str, str]:
+    """The run's world frame in words, for the files' metadata (from narrow_poses.json, ``poses``)."""
+    world = (poses or {}).get("world") or {}
     if world.get("frame") == "floor":
         return {"world": f"floor frame: z {world.get('z_axis')}; origin {world.get('origin')}; "
                          f"x {world.get('x_axis')}", "units": str(world.get("units", "metres"))}
     return {"world": "the mapper's frame (no floor frame)"} if world else {}
 
 
-def warn_wildtrack_world(workspace: Workspace) -> None:
+def warn_wildtrack_world(poses: dict | None) -> None:
     """WILDTRACK's loaders take the extrinsics in centimetres with the floor at z = 0: say where the run's world
-    is neither (the files carry no units or frame to tell them)."""
-    try:
-        poses = json.loads(workspace.narrow_poses.read_text(encoding="utf-8"))
-    except (OSError, json.JSONDecodeError, UnicodeDecodeError):
+    (narrow_poses.json, ``poses``) is neither (the files carry no units or frame to tell them)."""
+    if poses is None:
         return
     problems = []
     if poses.get("metric") is not True:
@@ -184,14 +185,11 @@ def warn_wildtrack_world(workspace: Workspace) -> None:
                        " and ".join(problems))
 
 
-def warn_not_metric(workspace: Workspace, fmt: ExportFormat) -> None:
-    """Say where the run's result has no scale: every format but COLMAP's is read as metres by its tools (the
-    files carry no units), and the docs promise metres (WILDTRACK's own warning says centimetres)."""
-    try:
-        metric = json.loads(workspace.narrow_poses.read_text(encoding="utf-8")).get("metric")
-    except (OSError, json.JSONDecodeError, UnicodeDecodeError, AttributeError):
-        return
-    if metric is False:
+def warn_not_metric(workspace: Workspace, poses: dict | None, fmt: ExportFormat) -> None:
+    """Say where the run's result (narrow_poses.json, ``poses``) has no scale: every format but COLMAP's is read as
+    metres by its tools (the files carry no units), and the docs promise metres (WILDTRACK's own warning says
+    centimetres)."""
+    if poses is not None and poses.get("metric") is False:
         logger.warning("NOT METRIC: %s has no scale, so the %s export's positions are in the mapper's arbitrary unit, "
                        "which its readers take for metres; give `rigsfm run` a scale.yaml (a camera distance or a "
                        "known length) for metres", workspace.root, fmt)
@@ -239,8 +237,9 @@ def _export(workspace: Workspace, fmt: ExportFormat, options: ExportOptions) -> 
                          f"{workspace.summary} is missing (the run stopped before writing it), so the run's image "
                          "folder is unknown: re-run the same `rigsfm run` command to finish it, or export without "
                          "--images")
+    poses = read_narrow_poses(workspace)
     if fmt not in (ExportFormat.COLMAP_BIN, ExportFormat.COLMAP_TXT, ExportFormat.WILDTRACK):  # (COLMAP: no units)
-        warn_not_metric(workspace, fmt)
+        warn_not_metric(workspace, poses, fmt)
     dest.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{dest.name}.", suffix=".tmp", dir=dest.parent))
     try:
@@ -253,12 +252,12 @@ def _export(workspace: Workspace, fmt: ExportFormat, options: ExportOptions) -> 
         elif fmt == ExportFormat.OPENCV:
             write_opencv(reconstruction, tmp)
         elif fmt == ExportFormat.TOML:
-            write_toml(reconstruction, tmp, metadata=world_metadata(workspace))
+            write_toml(reconstruction, tmp, metadata=world_metadata(poses))
         elif fmt == ExportFormat.WILDTRACK:
-            warn_wildtrack_world(workspace)
+            warn_wildtrack_world(poses)
             write_wildtrack(reconstruction, tmp, images_dir if options.images else None)
         else:
-            write_json_poses(reconstruction, tmp, result_frame(workspace))
+            write_json_poses(reconstruction, tmp, result_frame(poses))
         commit(dest, tmp, previous, MANIFEST, {"format": str(fmt), "workspace": str(workspace.root.resolve()),
                                              "model": model_fingerprint(workspace.sparse)},
                option="--dest", what="export")

@@ -384,15 +384,19 @@ def refuse_workspace_files(dest: Path, workspace: Workspace) -> None:
                              f"choose {workspace.associate} (the default) or a folder of its own")
 
 
-def lent_after_moves(workspace: Workspace, lent: Iterable[str]) -> str | None:
+def lent_after_moves(workspace: Workspace, lent: Iterable[str], fingerprint: str | None = None) -> str | None:
     """A warning where ``rigsfm track`` (OUT/track, against this model) found a rig moved and views of it at or after
-    its step take lent poses (``lent``: narrow image names): the run's pose no longer holds there."""
+    its step take lent poses (``lent``: narrow image names): the run's pose no longer holds there. ``fingerprint``:
+    OUT/sparse's ``model_fingerprint`` where the caller has it."""
+    from rigsfm.track.pipeline import moved_steps
+
     try:
         poses = json.loads(workspace.track.poses_json.read_text(encoding="utf-8"))
-        if poses["reference"]["fingerprint"] != model_fingerprint(workspace.sparse):
+        if fingerprint is None:
+            fingerprint = model_fingerprint(workspace.sparse)
+        if poses["reference"]["fingerprint"] != fingerprint:
             return None  # a series of an earlier model: its verdicts say nothing of this one (report.html says so)
-        steps = {name: rig["verdict"]["steps"][0] for name, rig in poses["rigs"].items()
-                 if rig["verdict"]["verdict"] == "moved" and rig["verdict"]["steps"]}
+        steps = moved_steps(poses)
     except (OSError, ValueError, KeyError, TypeError, AttributeError, IndexError):
         return None
     after: dict[str, list[str]] = {}
@@ -428,6 +432,7 @@ def _associate(workspace: Workspace, dest: Path, detections_csv: Path, options: 
     from rigsfm.associate.sync import check_frame_offsets, given_offsets, paired_frames, with_camera_bands
 
     out = workspace.root
+    fingerprint = model_fingerprint(workspace.sparse)  # the persons' model: the track series' and the manifest's
     previous = check_destination(dest, options.overwrite)
     model = load_run(Path(out))
     # a model's images have cameras
@@ -437,7 +442,7 @@ def _associate(workspace: Workspace, dest: Path, detections_csv: Path, options: 
     detections = read_detections(Path(detections_csv), sizes, model.known, stand_in, options.poses_from)
     if options.poses_from is not None:
         model = with_stand_ins(model, detections.images, options.poses_from)
-        moved = lent_after_moves(workspace, model.stand_ins)
+        moved = lent_after_moves(workspace, model.stand_ins, fingerprint)
         if moved:
             logger.warning("%s", moved)
         root = model.images_root
@@ -468,5 +473,5 @@ def _associate(workspace: Workspace, dest: Path, detections_csv: Path, options: 
             check.applied = dict(check.named)
         if check.warning:
             logger.warning("%s", check.warning)
-    return write_results(dest, model, frames, options, previous, model_fingerprint(workspace.sparse),
+    return write_results(dest, model, frames, options, previous, fingerprint,
                          None if check is None else check.to_dict())

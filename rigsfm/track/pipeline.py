@@ -151,11 +151,16 @@ def warn_not_metric(workspace: Workspace) -> None:
                        workspace.root)
 
 
+def moved_steps(poses: dict) -> dict[str, dict]:
+    """The rigs of a poses.json (``poses``) whose verdict is 'moved', each with its first step."""
+    return {name: rig["verdict"]["steps"][0] for name, rig in poses["rigs"].items()
+            if rig["verdict"]["verdict"] == "moved" and rig["verdict"]["steps"]}
+
+
 def moved_warning(poses: dict, out: str) -> str | None:
     """One warning naming the rigs whose verdict is 'moved', each with its first step, and what no longer holds:
     the run's poses of that rig, so its pairs' F_ji and bands, the exports and `associate --poses-from`."""
-    moved = [(name, rig["verdict"]["steps"][0]) for name, rig in poses["rigs"].items()
-             if rig["verdict"]["verdict"] == "moved" and rig["verdict"]["steps"]]
+    moved = list(moved_steps(poses).items())
     if not moved:
         return None
     steps = "; ".join(f"{name} at {step['frame']} ({step['rotation_deg']:.3f} deg, {step['translation_mm']:.1f} mm)"

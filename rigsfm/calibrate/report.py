@@ -193,29 +193,19 @@ def check_report_dir(report_dir: Path, rig_names: list[str]) -> None:
                                  "--report-dir (nothing was written)")
 
 
-def _rigs_in_summary(path: Path) -> set[str]:
-    """The rigs a summary.txt :func:`write_report` wrote names (its lines ``NAME: wide RMS ...``), none where it did
-    not write one."""
+def _summary_lines(path: Path) -> dict[str, list[str]]:
+    """Per rig a summary.txt :func:`write_report` wrote names, its lines (``NAME: wide RMS ...`` and its warnings
+    below it); none where it did not write one."""
     if path.is_symlink() or not path.is_file() or not _is_our_summary(path):
-        return set()
-    return {line.split(RIG_LINE, 1)[0] for line in path.read_text(encoding="utf-8").splitlines()
-            if RIG_LINE in line and not line[:1].isspace()}
-
-
-def _kept_lines(path: Path, rigs: set[str]) -> list[str]:
-    """The lines of ``rigs`` (each ``NAME: wide RMS ...`` and its warnings below it) in a summary.txt
-    :func:`write_report` wrote."""
-    if not rigs or path.is_symlink() or not path.is_file() or not _is_our_summary(path):
-        return []
-    kept, keeping = [], False
+        return {}
+    lines: dict[str, list[str]] = {}
+    rig = None
     for line in path.read_text(encoding="utf-8").splitlines():
-        if RIG_LINE in line and not line[:1].isspace():
-            keeping = line.split(RIG_LINE, 1)[0] in rigs
-        elif not line[:1].isspace():
-            keeping = False
-        if keeping:
-            kept.append(line)
-    return kept
+        if not line[:1].isspace():
+            rig = line.split(RIG_LINE, 1)[0] if RIG_LINE in line else None
+        if rig is not None:
+            lines.setdefault(rig, []).append(line)
+    return lines
 
 
 def _report_files(folder: Path) -> list[Path] | None:
@@ -259,7 +249,8 @@ def write_report(result: CalibrationResult, report_dir: Path, *, merge: bool = F
     lines of the earlier summary.txt are kept (rigs.yaml keeps them)."""
     report_dir = Path(report_dir)
     check_report_dir(report_dir, [rig.name for rig in result.rigs])  # every rig first: a refusal changes nothing
-    written = _rigs_in_summary(report_dir / "summary.txt")  # before this report replaces it
+    earlier = _summary_lines(report_dir / "summary.txt")  # before this report replaces it
+    written = set(earlier)
     report_dir.mkdir(parents=True, exist_ok=True)
     summary = [f"{SUMMARY_START.decode()}{result.board.describe()}", ""]
     for rig in result.rigs:
@@ -275,7 +266,8 @@ def write_report(result: CalibrationResult, report_dir: Path, *, merge: bool = F
                        f"{' (scene rotation)' if rig.scene else ''}; {len(rig.warnings)} warnings")
         summary += [f"  WARNING: {w}" for w in rig.warnings]
     if merge:  # the rigs a merge keeps keep their lines: a later --overwrite knows it wrote their folders
-        summary += _kept_lines(report_dir / "summary.txt", written - {rig.name for rig in result.rigs})
+        calibrated = {rig.name for rig in result.rigs}
+        summary += [line for rig, lines in earlier.items() if rig not in calibrated for line in lines]
     else:  # before the summary that names them goes: a stop between the two leaves them named
         remove_rigs_no_longer_calibrated(report_dir, written, {rig.name for rig in result.rigs})
     write_text_atomic(report_dir / "summary.txt", "\n".join(summary) + "\n")

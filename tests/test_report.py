@@ -129,6 +129,32 @@ def test_open3d_export_reads_back(result, tmp_path):
         assert k[0, 2] == pytest.approx(camera.principal_point_x - 0.5) and k[0, 0] == pytest.approx(camera.focal_length_x)
 
 
+def test_open3d_export_of_a_model_without_points(result, tmp_path, caplog):
+    """Open3D neither writes nor reads a cloud of no points: the cameras are exported and the missing cloud said."""
+    import open3d as o3d
+
+    _, shared, rec = result
+    out = copy_run(shared, tmp_path / "out")
+    pointless = pycolmap.Reconstruction(out / "sparse")
+    for point_id in list(pointless.point3D_ids()):
+        pointless.delete_point3D(point_id)
+    pointless.write_binary(str(out / "sparse"))
+    dest = export(out, ExportOptions(format=ExportFormat.OPEN3D, dest=tmp_path / "o3d"))
+    assert not (dest / "points.ply").exists() and "no 3D points" in caplog.text
+    assert len(o3d.io.read_pinhole_camera_trajectory(str(dest / "trajectory.json")).parameters) == rec.num_reg_images()
+
+
+def test_nerfstudio_export_says_where_images_are_missing(result, tmp_path, caplog):
+    """transforms.json points at the run's images: an export made after they moved says so, not nerfstudio later."""
+    _, shared, _ = result
+    out = copy_run(shared, tmp_path / "out")
+    summary = json.loads((out / "summary.json").read_text())
+    summary["inputs"]["images"] = str(tmp_path / "moved")
+    (out / "summary.json").write_text(json.dumps(summary))
+    export(out, ExportOptions(format=ExportFormat.NERFSTUDIO, dest=tmp_path / "ns"))
+    assert "lacks 6 of 6 image(s)" in caplog.text and "nerfstudio will not find them" in caplog.text
+
+
 @pytest.mark.parametrize("fmt", ["colmap-bin", "colmap-txt"])
 def test_colmap_export_opens_in_debian_colmap(result, tmp_path, fmt):
     _, out, rec = result

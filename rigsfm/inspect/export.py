@@ -65,7 +65,9 @@ def write_open3d(reconstruction: pycolmap.Reconstruction, dest: Path) -> list[Pa
     from rigsfm.inspect.viewer import build_scene, pinhole_intrinsic
 
     scene = build_scene(reconstruction)
-    if not o3d.io.write_point_cloud(str(dest / "points.ply"), scene.points):  # type: ignore[arg-type]  # takes str too
+    if len(scene.points.points) == 0:  # Open3D neither writes nor reads a cloud of no points
+        logger.warning("the model holds no 3D points: the Open3D export has the cameras only (no points.ply)")
+    elif not o3d.io.write_point_cloud(str(dest / "points.ply"), scene.points):  # type: ignore[arg-type]  # takes str
         raise WorkspaceError(f"Open3D could not write {dest / 'points.ply'}")
     frustums = o3d.geometry.LineSet()
     for line_set in scene.lines.values():
@@ -109,12 +111,20 @@ def nerfstudio_intrinsics(camera: pycolmap.Camera) -> dict:
 
 
 def write_nerfstudio(reconstruction: pycolmap.Reconstruction, dest: Path, images_dir: Path | None) -> list[Path]:
-    frames = []
+    frames, missing = [], []
     for image in registered_images(reconstruction):
         path = (images_dir / image.name).resolve() if images_dir is not None else Path(image.name)
+        if images_dir is None or not path.is_file():
+            missing.append(image.name)
         frames.append({"file_path": str(path), **nerfstudio_intrinsics(reconstruction.cameras[image.camera_id]),
                        "transform_matrix": opengl_c2w_from_cam_from_world(image.cam_from_world()).tolist(),
                        "rigsfm_name": image.name})
+    if missing:  # nerfstudio loads every file_path before it trains: say so now, not there
+        where = (f"the run's image folder {images_dir} lacks" if images_dir is not None else
+                 "summary.json names no image folder, so file_path is the bare image name for")
+        logger.warning("nerfstudio export: %s %d of %d image(s) (%s%s); nerfstudio will not find them: put the run's "
+                       "images back (or edit file_path) before training", where, len(missing), len(frames),
+                       ", ".join(missing[:3]), " ..." if len(missing) > 3 else "")
     reconstruction.export_PLY(str(dest / "points3D.ply"))
     write_json_atomic(dest / "transforms.json", {
         "frames": frames,

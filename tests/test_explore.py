@@ -269,6 +269,37 @@ def test_a_save_that_cannot_be_written_names_the_csv(run, tmp_path):
         server.close()
 
 
+def test_labels_on_a_changed_picture_are_set_aside(run, tmp_path, caplog):
+    """Clicks belong to the picture they were made on: after a new picture under the same name (a new recording
+    re-run with --overwrite), its labels are neither shown nor checked, and the next save keeps them in a backup only;
+    the other images' labels are untouched."""
+    import shutil
+
+    from rigsfm.explore.session import ExploreSession
+
+    dataset, out = run
+    images = tmp_path / "images"
+    shutil.copytree(dataset.images, images)
+    csv = tmp_path / "labels.csv"
+    session = ExploreSession(out, ExploreOptions(labels=csv, images=images))
+    names = session.result.frame_names(session.frame)
+    session.set_frame_labels(session.frame, [{"image": names[0], "x": 100.0, "y": 120.0, "person": "p1"},
+                                             {"image": names[1], "x": 300.0, "y": 200.0, "person": "p1"}])
+    assert check_labels(out, csv, ExploreOptions(images=images)).stale == 0
+    picture = cv2.imread(str(images / names[0]))
+    cv2.imwrite(str(images / names[0]), picture[::-1])  # another picture, the same name and size
+    again = ExploreSession(out, ExploreOptions(labels=csv, images=images))
+    assert [label.image for label in again.labels] == [names[1]] and "STALE LABELS" in caplog.text
+    assert again.state()["stale_labels"] == 1
+    checked = check_labels(out, csv, ExploreOptions(images=images))
+    assert checked.stale == 1 and checked.pairs == 0
+    before = csv.read_text()
+    again.set_frame_labels(again.frame, [{"image": names[1], "x": 300.0, "y": 200.0, "person": "p1"},
+                                         {"image": names[0], "x": 50.0, "y": 60.0, "person": "p1"}])
+    assert csv.with_name("labels.csv.bak").read_text() == before and "100.000" not in csv.read_text()
+    assert ExploreSession(out, ExploreOptions(labels=csv, images=images)).stale == []  # the new click is on it
+
+
 @slow
 def test_check_measures_the_bands_coverage_on_true_correspondences(run, tmp_path):
     """Every true correspondence of 300 points (floor to 2.2 m) labelled exactly: the share inside the band is what

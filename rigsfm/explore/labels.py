@@ -4,19 +4,27 @@ image, a person label that is not a number (so a reader of ``image, x, y[, score
 Rows that are not labels of this OUT's narrow images (another format, an image the model does not hold, a pixel
 outside the image) are *foreign*: they are kept, in their place at the end of the file, with a warning, and the file
 as it was is copied to a backup before rigsfm first rewrites it.
+
+A click belongs to the picture it was made on, not to a file name: ``<CSV>.images.json`` records each labelled
+image's SHA-256 when its labels are saved. Labels whose image has changed since (a new recording under the same
+names, a `rigsfm run --overwrite` on it) are *stale*: not shown or checked, with a warning, and left out of the CSV
+at the next save, after the file as it was is copied to a backup. Labels of an image the record does not name (a CSV
+written by hand or before the record) are taken as they are.
 """
 
 from __future__ import annotations
 
 import csv
+import hashlib
 import io
+import json
 import logging
 import math
 from dataclasses import dataclass
 from pathlib import Path
 
 from rigsfm.core.errors import InputError
-from rigsfm.core.io import read_user_text, write_bytes_atomic, write_text_atomic
+from rigsfm.core.io import read_user_text, write_bytes_atomic, write_json_atomic, write_text_atomic
 
 logger = logging.getLogger(__name__)
 
@@ -138,3 +146,70 @@ def save_labels(path: Path, labels: list[Label], foreign: list[ForeignRow], *, b
         logger.warning("%s as it was is kept in %s", path, written)
     write_text_atomic(path, format_labels(labels, foreign))
     return written
+
+
+def record_path(path: Path) -> Path:
+    """``<CSV>.images.json``: the image each saved label was clicked on (module docstring)."""
+    path = Path(path)
+    return path.with_name(path.name + ".images.json")
+
+
+class ImageDigests:
+    """SHA-256 of image files, each read again only when its size or time changed."""
+
+    def __init__(self, images_dir: Path | None):
+        self.images_dir = Path(images_dir) if images_dir is not None else None
+        self._known: dict[str, tuple[tuple[int, int], str]] = {}
+
+    def __call__(self, name: str) -> str | None:
+        """The image's digest, or None where it cannot be read (no folder, no file)."""
+        if self.images_dir is None:
+            return None
+        path = self.images_dir / name
+        try:
+            stat = path.stat()
+            key = (stat.st_size, stat.st_mtime_ns)
+            if name not in self._known or self._known[name][0] != key:
+                self._known[name] = (key, hashlib.sha256(path.read_bytes()).hexdigest()[:16])
+        except OSError:
+            return None
+        return self._known[name][1]
+
+
+def read_record(path: Path) -> dict[str, str]:
+    """The recorded digest per image of the labels CSV ``path``; none where there is no readable record."""
+    try:
+        images = json.loads(record_path(path).read_text(encoding="utf-8")).get("images")
+    except (OSError, ValueError, AttributeError):
+        return {}
+    return {str(k): v for k, v in images.items() if isinstance(v, str)} if isinstance(images, dict) else {}
+
+
+def drop_stale(path: Path, labels: list[Label], digests: ImageDigests) -> tuple[list[Label], list[Label]]:
+    """The labels still on the pictures they were clicked on, and the stale ones (module docstring), with a warning
+    naming the latter's images."""
+    record = read_record(path)
+    fresh: list[Label] = []
+    stale: list[Label] = []
+    for label in labels:
+        now = digests(label.image) if label.image in record else None
+        (stale if now is not None and now != record[label.image] else fresh).append(label)
+    if stale:
+        images = sorted({label.image for label in stale})
+        logger.warning("STALE LABELS: %s: %d label(s) on %d image(s) (%s%s) were clicked on other pictures of the same "
+                       "name (the files changed since); they are not shown or checked, and the next save leaves them "
+                       "out after keeping the CSV as it is in a backup", path, len(stale), len(images),
+                       ", ".join(images[:3]), " ..." if len(images) > 3 else "")
+    return fresh, stale
+
+
+def save_record(path: Path, labels: list[Label], digests: ImageDigests) -> None:
+    """Record the digest of every image ``labels`` holds, as the CSV ``path`` is saved with them."""
+    images = {}
+    for name in sorted({label.image for label in labels}):
+        digest = digests(name)
+        if digest is not None:
+            images[name] = digest
+    write_json_atomic(record_path(path), {
+        "about": "the SHA-256 (first 16 hex digits) of each labelled image when its labels were saved: rigsfm "
+                 "explore sets aside labels whose image has changed since", "images": images})

@@ -22,7 +22,16 @@ from rigsfm.core.names import ImageName, name_of, quoted
 from rigsfm.core.summary import Summary
 from rigsfm.core.workspace import Workspace
 from rigsfm.explore.geometry import View, band_in_view, floor_trace, triangulate
-from rigsfm.explore.labels import ForeignRow, Label, parse_row, read_labels, save_labels
+from rigsfm.explore.labels import (
+    ForeignRow,
+    ImageDigests,
+    Label,
+    drop_stale,
+    parse_row,
+    read_labels,
+    save_labels,
+    save_record,
+)
 
 logger = logging.getLogger(__name__)
 
@@ -130,14 +139,17 @@ class ExploreSession:
         self.lock = threading.Lock()
         self.labels: list[Label] = []
         self.foreign: list[ForeignRow] = []
-        self.backed_up = False  # the CSV as it was (with foreign rows) is copied once before the first rewrite
+        self.stale: list[Label] = []  # clicked on other pictures of the same names: left out at the next save
+        self.digests = ImageDigests(self.result.images_dir)
+        self.backed_up = False  # the CSV as it was (foreign or stale rows) is copied once before the first rewrite
         self._analysed: dict[tuple, dict] = {}
         self.reload()
 
     def reload(self) -> None:
         labels, foreign = read_labels(self.csv_path, self.result.sizes)
+        labels, stale = drop_stale(self.csv_path, labels, self.digests)
         with self.lock:
-            self.labels, self.foreign = labels, foreign
+            self.labels, self.foreign, self.stale = labels, foreign, stale
 
     # -- geometry -------------------------------------------------------------------------------------------
 
@@ -216,6 +228,7 @@ class ExploreSession:
         with self.lock:
             labels = list(self.labels)
             foreign = len(self.foreign)
+            stale = len(self.stale)
         persons: dict[str, list[Label]] = {}
         for label in labels:
             if label.image in names:
@@ -231,6 +244,7 @@ class ExploreSession:
             "pose_uncertainty": self.result.pose_uncertainty,
             "csv": str(self.csv_path),
             "foreign_rows": foreign,
+            "stale_labels": stale,
             "labels_elsewhere": sum(label.image not in names for label in labels),
             "floor_map": self._floor_map(names),
             "persons": [self.person(names, clicks) for clicks in persons.values()],
@@ -267,10 +281,12 @@ class ExploreSession:
             new = {(c.image, c.person, round(c.x, 3), round(c.y, 3)) for c in clean}
             lost = [c for c in self.labels if c.image in names
                     and (c.image, c.person, round(c.x, 3), round(c.y, 3)) not in new]
-            backup = self.csv_path.is_file() and (len(lost) > 1 or (bool(self.foreign) and not self.backed_up))
+            backup = self.csv_path.is_file() and (len(lost) > 1 or (bool(self.foreign or self.stale)
+                                                                    and not self.backed_up))
             written = save_labels(self.csv_path, kept + clean, self.foreign, backup=backup)
+            save_record(self.csv_path, kept + clean, self.digests)
             self.backed_up = self.backed_up or bool(written)
-            self.labels = kept + clean
+            self.labels, self.stale = kept + clean, []
         logger.info("Saved %d labels of frame %s to %s", len(clean), frame, self.csv_path)
         state = self.state(frame)
         if written is not None:
@@ -284,6 +300,7 @@ class CheckResult:
     inside: int
     without_band: int
     foreign_rows: int
+    stale: int  # labels clicked on other pictures of the same names (rigsfm.explore.labels), not checked
     per_pair: dict[tuple[str, str], tuple[int, int]]  # camera pair -> (inside, pairs)
     distances: list[dict]
 
@@ -300,6 +317,7 @@ def check_labels(out: Path, labels_csv: Path, options: ExploreOptions = ExploreO
     if not Path(labels_csv).is_file():
         raise InputError(f"labels file {labels_csv} does not exist")
     labels, foreign = read_labels(Path(labels_csv), result.sizes)
+    labels, stale = drop_stale(Path(labels_csv), labels, ImageDigests(result.images_dir))
     groups: dict[tuple[str, str], list[Label]] = {}
     for label in labels:
         groups.setdefault((ImageName.parse(label.image).frame, label.person), []).append(label)
@@ -326,6 +344,6 @@ def check_labels(out: Path, labels_csv: Path, options: ExploreOptions = ExploreO
                                   "distance_px": distance, "band_px": band.band_px, "allowed_px": allowed,
                                   "inside": bool(inside)})
     total = sum(c[1] for c in per_pair.values())
-    return CheckResult(total, sum(c[0] for c in per_pair.values()), without, len(foreign),
+    return CheckResult(total, sum(c[0] for c in per_pair.values()), without, len(foreign), len(stale),
                        {k: (v[0], v[1]) for k, v in sorted(per_pair.items())}, distances)
 

@@ -159,9 +159,11 @@ function describe() {
   const n = state.persons.reduce((sum, p) => sum + p.clicks.length, 0);
   const foreign = info.foreign_rows ? `; ${plural(info.foreign_rows, "foreign row")} kept as they are` : "";
   const elsewhere = info.labels_elsewhere ? `; ${plural(info.labels_elsewhere, "label")} in other frames` : "";
+  const stale = info.stale_labels ? `; ${plural(info.stale_labels, "label")} clicked on other pictures of the same `
+    + "names set aside (kept in a backup at the next save)" : "";
   const next = state.current ? `; ${state.current}: click them in another view, or Next person` : "; click a person";
   setStatus(`${plural(n, "label")} of ${plural(state.persons.length, "person")} saved to ${info.csv}${elsewhere}`
-    + `${foreign}${next}`);
+    + `${foreign}${stale}${next}`);
   $("note").textContent = `Band: the anchor's (first click's) epipolar curve between heights ${info.heights[0]} and ` +
     `${info.heights[1]} m (ticks at ${info.ticks.join(", ")} m), widened by the pair's calibrated 95 % band; ` +
     `a click is outside beyond the band + ${info.click_allowance_px} px (the two clicks' noise). ` +

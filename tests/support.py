@@ -143,3 +143,12 @@ def as_from_a_terminal() -> None:
     import signal
 
     signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
+def worker_threads(_task) -> list[tuple[str, int]]:
+    """The thread pools of a pool worker (``rigsfm.core.executors``), after it loads scipy's own OpenBLAS: a library
+    loaded after the worker's set-up."""
+    import scipy.linalg  # noqa: F401
+    from threadpoolctl import threadpool_info
+
+    return sorted({(info["internal_api"], info["num_threads"]) for info in threadpool_info()})

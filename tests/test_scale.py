@@ -113,6 +113,16 @@ def test_local_executor_runs_every_task_in_worker_processes():
     assert check_executor("ray", 1, None) == Executor.RAY
 
 
+def test_local_executor_workers_run_their_libraries_on_one_thread():
+    """One worker per core: OpenBLAS (numpy's and scipy's, loaded later), OpenMP and OpenCV on one thread each, not
+    one per core in every worker (on a 1-core machine this holds anyway)."""
+    from support import worker_threads
+
+    results = []
+    map_unordered(worker_threads, range(2), results.append, executor="local", workers=2)
+    assert results[0] and all(threads == 1 for result in results for _, threads in result), results
+
+
 def test_local_executor_does_not_run_the_callers_script_again(tmp_path):
     """A script calling the library at top level, as docs show `track(OUT, NEW, TrackOptions())`, without
     `if __name__ == "__main__"`: the spawned workers must not execute it again (they did, and track hung)."""

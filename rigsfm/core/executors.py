@@ -24,6 +24,7 @@ from __future__ import annotations
 import contextlib
 import enum
 import logging
+import os
 import signal
 import socket
 from collections.abc import Callable, Iterable, Sequence
@@ -48,15 +49,25 @@ _STOPS = (signal.SIGINT, signal.SIGTERM)
 
 
 def _init_worker(function: Callable, shared: tuple) -> None:
-    import cv2
-
     # Started with SIGINT and SIGTERM blocked (run_local): the caller decides on Ctrl-C and kills the workers; a
     # SIGTERM to the process group ends a worker quietly, not with glog's stack trace (pycolmap is imported).
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_DFL)
     signal.pthread_sigmask(signal.SIG_UNBLOCK, _STOPS)
-    cv2.setNumThreads(1)
+    _one_thread_each()
     _WORKER["function"], _WORKER["shared"] = function, shared
+
+
+def _one_thread_each() -> None:
+    """OpenCV, BLAS and OpenMP on one thread in a worker: the pool runs one worker per core, and each library's own
+    threads would only contend with the other workers (OpenBLAS's idle threads spin). The libraries loaded so far
+    are limited now, those loaded later (scipy's own OpenBLAS) by the variables they read as they load."""
+    import cv2
+    from threadpoolctl import threadpool_limits
+
+    os.environ["OPENBLAS_NUM_THREADS"] = os.environ["OMP_NUM_THREADS"] = "1"
+    cv2.setNumThreads(1)
+    threadpool_limits(limits=1)
 
 
 def _call_in_worker(task: Any) -> Any:
@@ -64,9 +75,7 @@ def _call_in_worker(task: Any) -> Any:
 
 
 def _call_on_ray(function: Callable, task: Any, *shared: Any) -> Any:
-    import cv2
-
-    cv2.setNumThreads(1)
+    _one_thread_each()
     return function(task, *shared)
 
 

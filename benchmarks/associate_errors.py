@@ -1,6 +1,15 @@
 """Where the association's pairwise errors come from, against a rendered crowd's truth (one seed, frame 0).
 
     python benchmarks/associate_errors.py DATASET OUT [--seed 0] [--pixel-sigma 1.5] [--json errors.json]
+    python benchmarks/associate_errors.py DATASET OUT --frames 4 [--seed 0]
+
+``--frames N``: a recording (OUT a run of its first frame, whose poses the later frames take, as
+benchmarks/associate_recording.py lends them): every frame associated as ``associate_frames`` carries them, and each
+frame taken apart on the views, rates and appearance its own association used (its last ``_solve``, recorded):
+the wrong and missed pairs by cause as above, the true groups by size (among the hypotheses, below the minimum score,
+found exactly), why a true 2-view group was never a hypothesis (a member held by a person found again, which the
+packing then did not keep as one person; a seed below the carried frames' floor), and what the detections held by
+the persons found again ended in.
 
 DATASET, OUT and the detections as in ``benchmarks/associate.py`` (the same seed gives the same detections).
 Reports: the wrong pairs by cause (a false detection absorbed, two persons merged; the groups by size and kind), the
@@ -23,6 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
+import rigsfm.associate.solve as solve_module
 from rigsfm.associate import AssociateOptions, associate_frames, from_arrays, load_run
 from rigsfm.associate.evaluate import make_detections, score_groups, visible_heads
 from rigsfm.associate.frame import _Frame
@@ -135,15 +145,147 @@ def analyse(dataset: Path, out: Path, seed: int, pixel_sigma: float) -> dict:
     return report
 
 
+def _pure(pid: np.ndarray, row: np.ndarray) -> bool:
+    ids = pid[row[row >= 0]]
+    return bool((ids >= 0).all() and len(set(ids.tolist())) == 1)
+
+
+def analyse_frame(state: tuple, result, truth, options: AssociateOptions) -> dict:
+    """One frame of a recording taken apart: ``state`` its association's last ``_solve`` (frame, members, ...)."""
+    frame, members = state[0], state[1]
+    views, offsets = frame.views, frame.offsets
+    final = dataclasses.replace(options, detection_probability=result.detection_probability,
+                                height_prior=result.height_prior)
+    pid = np.concatenate([truth.person[v.name] for v in views])
+    group_of = np.full(len(pid), -1)
+    for g, row in enumerate(members):
+        group_of[row[row >= 0]] = g
+    report: dict = {"scores": _scores(views, members, offsets, truth)}
+    wrong, kinds = collections.Counter(), collections.Counter()
+    for row in members:
+        ids = pid[row[row >= 0]]
+        for a, b in itertools.combinations(ids.tolist(), 2):
+            wrong["right" if a == b and a >= 0 else "a false detection" if min(a, b) < 0 else "two persons merged"] += 1
+        kind = "pure" if _pure(pid, row) else "with a false detection" if len(set(ids[ids >= 0].tolist())) <= 1 \
+            else "two or more persons"
+        kinds[f"{min(len(ids), 4)}{'+' if len(ids) >= 4 else ''} views, {kind}"] += 1
+    report["pairs_found"], report["groups"] = dict(wrong), dict(sorted(kinds.items()))
+    persons = collections.defaultdict(list)
+    for k, p in enumerate(pid.tolist()):
+        if p >= 0:
+            persons[p].append(k)
+    missed, true_rows = collections.Counter(), []
+    for p, dets in persons.items():
+        if len(dets) < 2:
+            continue
+        gs = group_of[dets]
+        for ga, gb in itertools.combinations(gs.tolist(), 2):
+            if ga >= 0 and ga == gb:
+                continue
+            if ga < 0 and gb < 0:
+                missed["both left out"] += 1
+            elif ga < 0 or gb < 0:
+                missed["one left out, the other in " + ("its own group" if _owner(pid, members[max(ga, gb)]) == p
+                                                        else "another person's")] += 1
+            else:
+                own = _owner(pid, members[ga]) == p and _owner(pid, members[gb]) == p
+                missed["split between its own groups" if own else "absorbed into another person's group"] += 1
+        row = np.full(len(views), -1)
+        row[frame.view_of[dets]] = dets
+        true_rows.append(row)
+    report["pairs_missed"] = dict(missed)
+    true_m = np.array(true_rows)
+    saved, frame.options = frame.options, final
+    try:
+        points, covariance = frame.triangulate(true_m)
+        points, covariance = frame.triangulate(true_m, points)
+        true_s = frame.score(true_m, points, covariance)
+        grown = frame._grown.get(None)
+        pool = set(map(tuple, grown[0].tolist())) if grown is not None else set()
+        found = set(map(tuple, members.tolist()))
+        size = np.minimum(np.sum(true_m >= 0, axis=1), 4)
+        report["true_groups"] = {f"{s}{'+' if s == 4 else ''} views": {
+            "count": int(sel.sum()), "among_hypotheses": int(sum(tuple(r) in pool for r in true_m[sel].tolist())),
+            "below_min_score": int((true_s[sel] <= final.min_score).sum()),
+            "found_exactly": int(sum(tuple(r) in found for r in true_m[sel].tolist()))}
+            for s in (2, 3, 4) for sel in [size == s]}
+        among = frame._among
+        why = collections.Counter()
+        for row in true_m[size == 2]:
+            if tuple(row.tolist()) in pool:
+                continue
+            dets = row[row >= 0]
+            if among is not None and not among[dets].all():
+                why["a member held by a person found again"] += 1
+            elif not len(frame._gated(row[None], None)[0]):
+                why["outside the heights or a gate"] += 1
+            elif among is not None and final.seed_min_score is not None \
+                    and not len(frame._gated(row[None], final.seed_min_score)[0]):
+                why["below the seeds' floor"] += 1
+            else:
+                why["grown into another group"] += 1
+        report["true_2_view_groups_never_hypotheses"] = dict(why)
+        if among is not None:
+            held = np.flatnonzero(~among)
+            ends = collections.Counter("left out" if group_of[d] < 0 else "in a right person"
+                                       if _pure(pid, members[group_of[d]]) else "in a wrong person" for d in held)
+            report["held_by_persons_found_again"] = {"held": len(held), **ends}
+    finally:
+        frame.options = saved
+    return report
+
+
+def analyse_recording(dataset: Path, out: Path, seed: int, pixel_sigma: float, frames: int) -> list[dict]:
+    """Each frame of a recording associated as ``associate_frames`` carries them, taken apart (``analyse_frame``)."""
+    sys.path.insert(0, str(Path(__file__).resolve().parent.parent))  # run as a script: the benchmarks package
+    from benchmarks.associate import lend_poses
+
+    options = AssociateOptions(pixel_sigma=pixel_sigma, poses_from="frame0000.png")
+    model = lend_poses(load_run(out), dataset, frames, "frame0000.png")
+    sizes = {n: (im.camera.width, im.camera.height) for n, im in model.images.items()}
+    truths, points = [], {}
+    for k in range(frames):
+        heads = {n: v for n, v in visible_heads(dataset, f"frame{k:04d}").items() if n in sizes}
+        truths.append(make_detections(heads, sizes, sigma_px=1.5, missed=0.1, false=0.05, seed=seed + 1000 * k))
+        points.update(truths[-1].points)
+    # the association's own state per frame: the last ``_solve`` of each ``associate_views`` call, recorded
+    solves: list = []
+    states: list = []
+    solve_fn, views_fn = solve_module._solve, solve_module.associate_views
+
+    def recorded_solve(*args, **kwargs):
+        solves.append(solve_fn(*args, **kwargs))
+        return solves[-1]
+
+    def recorded_views(*args, **kwargs):
+        solves.clear()
+        result = views_fn(*args, **kwargs)
+        states.append(solves[-1])
+        return result
+
+    import rigsfm.associate.pipeline as pipeline_module
+    solve_module._solve, pipeline_module.associate_views = recorded_solve, recorded_views  # type: ignore[assignment]
+    try:
+        found = associate_frames(model, from_arrays(points), options)
+    finally:
+        solve_module._solve, pipeline_module.associate_views = solve_fn, views_fn  # type: ignore[assignment]
+    if len(states) != len(found):
+        raise SystemExit(f"{len(states)} associations for {len(found)} frames (a frame revisited): not taken apart")
+    return [{"frame": fp.frame, "cpu_seconds": round(fp.cpu_seconds, 2), **analyse_frame(state, fp.result, truth, options)}
+            for fp, state, truth in zip(found, states, truths)]
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("dataset", type=Path)
     parser.add_argument("out", type=Path)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--pixel-sigma", type=float, default=1.5)
+    parser.add_argument("--frames", type=int, default=1, help="a recording's first frames, each taken apart")
     parser.add_argument("--json", type=Path, default=None)
     args = parser.parse_args(argv)
-    report = analyse(args.dataset, args.out, args.seed, args.pixel_sigma)
+    report: dict | list = analyse(args.dataset, args.out, args.seed, args.pixel_sigma) if args.frames == 1 else \
+        analyse_recording(args.dataset, args.out, args.seed, args.pixel_sigma, args.frames)
     text = json.dumps(report, indent=1)
     print(text)
     if args.json:

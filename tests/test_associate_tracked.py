@@ -82,6 +82,26 @@ def test_a_carried_frame_finds_the_walked_crowd_from_the_frame_before_with_fewer
     assert len(seeded._seeds) < 0.5 * len(everything._seeds)
 
 
+def test_persons_found_again_in_two_views_only_leave_their_detections_to_the_pair_search():
+    """A person found again in two views only is the frame before's wrong person as often as not: it competes in the
+    packing, but its detections stay in the pair search (held, they hid the right pairs from it)."""
+    before, after = _walked()
+    first = associate_views(_crowd(before, seed=1)[0], OPTIONS, carried=True)
+    two = np.sum(first.members >= 0, axis=1) == 2
+    assert two.sum() >= 5
+    views, _ = _crowd(after, seed=2)
+    earlier = (first.points[two], first.covariances[two],
+               seen_before(first.views, first.members[two], [v.name for v in views]))
+    seeded = _Frame(views, OPTIONS, earlier=earlier)
+    members, _, _, scores = seeded.hypotheses()
+    assert len(members) > 60 and seeded._among is not None
+    assert seeded._scored is not None and np.isfinite(seeded._scored[0]).sum() >= 5  # found again, scored
+    # what the pair search was not given: only detections of persons found again in three or more views
+    confident = members[(np.sum(members >= 0, axis=1) >= 3) & (scores > OPTIONS.self_calibration_min_score)]
+    held = np.flatnonzero(~seeded._among)
+    assert np.isin(held, confident[confident >= 0]).all(), np.setdiff1d(held, confident)
+
+
 def test_earlier_persons_nowhere_near_leave_the_full_search():
     _, after = _walked(seed=5)
     views, _ = _crowd(after, seed=6)

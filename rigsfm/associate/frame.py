@@ -551,9 +551,10 @@ class _Frame:
     def _tracked_hypotheses(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The groups of a frame with an earlier frame's persons: grown from the detections nearest where each
         earlier person was (``tracked.predicted_groups``, the row verified and every two of its members as a pair
-        seed), scored and packed; the detections of those packed are theirs, and the pairs are searched among the
-        others only (the pairs grow with the square of the detections they are searched among). Every group goes on
-        to the frame's own packing: the earlier frame says where to look, this frame's evidence what is kept."""
+        seed), scored and packed; the detections of the confident ones packed (three or more views, as the
+        self-calibration's) are theirs, and the pairs are searched among the others only (the pairs grow with the
+        square of the detections they are searched among). Every group goes on to the frame's own packing: the
+        earlier frame says where to look, this frame's evidence what is kept."""
         earlier, covariance, seen = self.earlier  # type: ignore[misc]  # the caller's test
         rows = predicted_groups(self, earlier, covariance, seen, self.options.walk_m)  # type: ignore[arg-type]
         total = int(self.offsets[-1])
@@ -572,6 +573,10 @@ class _Frame:
         chosen = above[_pack(tracked[0][above], scores[above] - self.options.min_score, total,
                              self.options.time_limit_s)]
         held = tracked[0][chosen]
+        # only the confident ones hold their detections (three or more views, as the self-calibration trusts): a
+        # weak group found again is the frame before's wrong person as often as not, and held, its detections would
+        # hide the right pairs from the search
+        held = held[(np.sum(held >= 0, axis=1) >= 3) & (scores[chosen] > self.options.self_calibration_min_score)]
         self._among = np.ones(total, dtype=bool)
         self._among[held[held >= 0]] = False
         rest = self._grown_from_pairs(self._among)

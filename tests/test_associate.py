@@ -811,3 +811,19 @@ def test_views_lent_poses_after_a_tracked_move_are_named(tmp_path):
     poses["reference"]["fingerprint"] = "another model"  # a series of a replaced result: not this model's
     ws.track.poses_json.write_text(json.dumps(poses))
     assert lent_after_moves(ws, lent) is None
+
+
+def test_a_frame_paired_by_time_is_not_called_a_frame_of_the_run(tmp_path):
+    """With --frame-offsets (rig03 +1) and --poses-from f0, frame f1 holds the others' f1 images (lent f0's poses)
+    and rig03's f0 image (the run's own): the terminal called f1 'a frame of the run without some of their narrow
+    images', a frame the run was not given. Only a view of the frame itself (its own file name) makes it the run's."""
+    from rigsfm.cli.associate import lent_lines, written_frames
+
+    lent = ["rig01/narrow/f1.png", "rig02/narrow/f1.png"]
+    data = {"frame": "f1.png", "views": [*lent, "rig03/narrow/f0.png"], "poses_from": "f0.png", "lent_views": lent,
+            "persons": [], "unassigned": []}
+    (tmp_path / "f1").mkdir()
+    (tmp_path / "f1" / "persons.json").write_text(json.dumps(data))
+    assert lent_lines(written_frames(tmp_path), "f0.png", Path("out")) == [
+        "1 frame(s) the run was not given: associated with the narrow poses of its frame f0.png (static rigs; "
+        "`rigsfm track out IMAGES` tells whether a rig moved)"]

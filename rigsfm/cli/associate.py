@@ -100,7 +100,9 @@ def written_frames(dest: Path) -> list[tuple[str, int, int, int, str | None, lis
     for path in sorted(Path(dest).glob("*/persons.json")):
         data, assigned, total = frame_counts(path)
         lent = lent_views(data)
-        partly = lent if len(lent) < len(data.get("views") or lent) else []
+        # a frame of the run: a view of its own file name kept its pose (frames paired by time hold other frames')
+        own = [v for v in data.get("views") or [] if v not in lent and v.endswith("/" + str(data["frame"]))]
+        partly = lent if own else []
         frames.append((data["frame"], len(data["persons"]), assigned, total, data.get("poses_from"), partly))
     return frames
 

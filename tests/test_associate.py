@@ -843,3 +843,21 @@ def test_the_report_says_the_density_grid_counts_the_persons_found(tmp_path):
     section = associate_report_section(tmp_path)
     assert "persons found per m2" in section and "a fraction of those there" in section
 
+
+
+def test_a_recording_the_offsets_check_could_not_test_is_said(tmp_path):
+    """A recording of five frames with one rig's narrow image missing in its middle frame: no frame has every view in
+    the frames around it, so the check of the rigs' timing tested nothing, and the terminal said nothing, though the
+    docs promise a recording of three frames or more is checked (a rig one frame late went unnamed). A recording of
+    a frame or two is still not spoken of."""
+    from rigsfm.associate.output import MANIFEST
+    from rigsfm.associate.sync import SyncCheck
+    from rigsfm.cli.associate import offsets_line
+
+    check = SyncCheck("check", skipped="no frame with every narrow view in the frames around it")
+    (tmp_path / MANIFEST).write_text(json.dumps({"frame_offsets": check.to_dict()}))
+    assert offsets_line(tmp_path) == ("frame offsets (check): not checked (no frame with every narrow view in the "
+                                      "frames around it): whether the rigs took their frames together is unknown")
+    not_a_recording = SyncCheck("check", skipped="three frames and three narrow views are needed")
+    (tmp_path / MANIFEST).write_text(json.dumps({"frame_offsets": not_a_recording.to_dict()}))
+    assert offsets_line(tmp_path) is None

@@ -33,6 +33,7 @@ from rigsfm.run.checks.sync import _frames, read_frame_offsets
 logger = logging.getLogger(__name__)
 
 SEARCH = 2  # whole frames searched either way
+NOT_A_RECORDING = "three frames and three narrow views are needed"  # skipped, not asked: nothing to say
 TESTED_FRAMES = 4  # carried frames tested: each costs 1 + cameras x 2 SEARCH associations
 # A rig is named where its best shift's count exceeds the count at 0 by this many sigmas (the two counts taken as
 # independent Poisson counts: an overstated sigma, they share most persons); on the rendered crowds a synchronised
@@ -93,7 +94,8 @@ def describe(record: dict) -> str:
     """The terminal's line on a check's record (:meth:`SyncCheck.to_dict`): what was tested, named and applied."""
     if record.get("skipped"):
         what = "applied " + ", ".join(f"{r} {o:+d}" for r, o in sorted(record["applied"].items())) \
-            if record.get("applied") else f"not checked ({record['skipped']})"
+            if record.get("applied") else (f"not checked ({record['skipped']}): whether the rigs took their frames "
+                                            "together is unknown")
         return f"frame offsets ({record['asked']}): {what}"
     rigs = record.get("rigs") or {}
     untold = sorted(r for r, t in rigs.items() if t["offset"] is None)
@@ -175,7 +177,7 @@ def check_frame_offsets(model, detections: Detections, chain: list, options: Ass
     search = min(SEARCH, (len(frames) - 1) // 2)
     chained = {f.frame: k for k, f in enumerate(chain)}
     if len(cameras) < 3 or search < 1:
-        check.skipped = "three frames and three narrow views are needed"
+        check.skipped = NOT_A_RECORDING
         return check
 
     def testable(i: int) -> bool:

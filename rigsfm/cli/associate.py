@@ -142,12 +142,12 @@ def offsets_line(dest: Path) -> str | None:
     import json
 
     from rigsfm.associate.output import MANIFEST
-    from rigsfm.associate.sync import describe
+    from rigsfm.associate.sync import NOT_A_RECORDING, describe
 
     try:
         record = json.loads((Path(dest) / MANIFEST).read_text(encoding="utf-8")).get("frame_offsets")
     except (OSError, ValueError):
         return None
-    if not record or record["asked"] == "check" and record["skipped"] and not record["applied"]:
-        return None  # a frame or two, not asked about: nothing to say
+    if not record or record["asked"] == "check" and record["skipped"] == NOT_A_RECORDING:
+        return None  # a frame or two, not asked about: nothing to say (a recording the check could not test is said)
     return describe(record)

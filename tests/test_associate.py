@@ -861,3 +861,24 @@ def test_a_recording_the_offsets_check_could_not_test_is_said(tmp_path):
     not_a_recording = SyncCheck("check", skipped="three frames and three narrow views are needed")
     (tmp_path / MANIFEST).write_text(json.dumps({"frame_offsets": not_a_recording.to_dict()}))
     assert offsets_line(tmp_path) is None
+
+
+def test_an_image_changed_since_the_run_is_named_once_per_command(tmp_path, caplog):
+    """An image changed since the run was named once per association of its frame: three times in one command with
+    --frame-offsets auto (the frame, the timing check, the frames paired again), twice with the default check."""
+    import dataclasses as dc
+
+    from rigsfm.associate.pipeline import RunModel, _run_image_grey
+    from rigsfm.core.io import file_sha256
+
+    image = tmp_path / "rig01" / "narrow" / "f0.png"
+    image.parent.mkdir(parents=True)
+    image.write_bytes(b"the image the run read")
+    recorded = file_sha256(image)
+    image.write_bytes(b"another recording under the same name")
+    model = RunModel({}, {}, set(), None, images_root=tmp_path, image_sha256={"rig01/narrow/f0.png": recorded})
+    with caplog.at_level("WARNING"):
+        for same_command in (model, dc.replace(model, bands={("a", "b"): 1.0})):  # the command's models, replaced
+            assert _run_image_grey(same_command, "rig01/narrow/f0.png") is None
+            assert _run_image_grey(same_command, "rig01/narrow/f0.png") is None
+    assert sum("changed since the run" in r.getMessage() for r in caplog.records) == 1

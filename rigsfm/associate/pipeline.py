@@ -47,6 +47,8 @@ class RunModel:
     image_sha256: dict[str, str] = field(default_factory=dict)  # the content the run was made from (images.json)
     # an image the run was not given -> the run's image whose pose and bands it takes (``--poses-from``)
     stand_ins: dict[str, str] = field(default_factory=dict)
+    # the images whose appearance was refused and said so: once per command (dataclasses.replace keeps this set)
+    images_said: set[str] = field(default_factory=set)
 
 
 def load_run(out: Path) -> RunModel:
@@ -164,12 +166,15 @@ def _run_image_grey(model: RunModel, name: str) -> np.ndarray | None:
         changed = recorded is not None and file_sha256(path) != recorded
     except OSError:
         changed = False  # read_grey below says it cannot be read
+    said = name in model.images_said  # a frame is associated again (the timing check, frames paired by time)
+    model.images_said.add(name)
     if changed:
-        logger.warning("%s changed since the run (its content is not the one the run recorded), so its view is "
-                       "associated by geometry only (no appearance); re-run `rigsfm run` on these images", path)
+        if not said:
+            logger.warning("%s changed since the run (its content is not the one the run recorded), so its view is "
+                           "associated by geometry only (no appearance); re-run `rigsfm run` on these images", path)
         return None
     grey = read_grey(path)
-    if grey is None:
+    if grey is None and not said:
         logger.warning("%s cannot be read, so its view is associated by geometry only (no appearance)", path)
     return grey
 

@@ -499,5 +499,6 @@ def _say_left_out(detections: Detections, paired: list[tuple[str, list[str]]]) -
     left = sorted(set(detections.images) - kept)
     if left:
         logger.warning("%d narrow image(s) of the detections were taken, by the frame offsets, at frames the "
-                       "detections do not hold (%s%s): their detections are left out; give the detections of those "
-                       "frames to pair them", len(left), quoted(left[:3]), " ..." if len(left) > 3 else "")
+                       "detections do not hold (%s%s: past the recording's ends, or frames left out of the "
+                       "detections): their detections are left out; where those frames were recorded, give their "
+                       "detections to pair them", len(left), quoted(left[:3]), " ..." if len(left) > 3 else "")

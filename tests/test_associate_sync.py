@@ -227,3 +227,33 @@ def test_auto_pairs_the_frames_of_a_named_rig_by_time(crowd, tmp_path, monkeypat
     record = _offsets(dest)
     assert record["applied"] == {"rig02": -1}, record
     assert "rig02/narrow/frame0004.png" in json.loads((dest / "frame0003" / "persons.json").read_text())["views"]
+
+
+def test_offsets_count_the_recording_s_frames_in_detections_of_every_second_frame(tmp_path):
+    """Detections of every second frame (f0, f2, f4) with rig03 one frame late ('rig03: 1'): its f0 image, taken at
+    the others' f1, was paired with their f2, a frame after it was taken (counted in the DETECTIONS' frames, not the
+    recording's); on the rendered 8-rig recording 8-12 % of rig03's detections in persons were then the others'
+    person (76-81 % with every frame). The recording's frames come from the run's images folder; and the check of
+    the rigs' timing, which steps through the DETECTIONS' frames, says it needs consecutive ones."""
+    from rigsfm.associate.detections import from_arrays
+    from rigsfm.associate.sync import paired_frames, recording_frames, skipped_frames
+
+    names = [f"rig0{r}/narrow/f{k}.png" for r in (1, 2, 3) for k in (0, 2, 4)]
+    detections = from_arrays({n: np.zeros((1, 2)) for n in names})
+    for r in (1, 2, 3):
+        (tmp_path / f"rig0{r}" / "narrow").mkdir(parents=True)
+        for k in range(6):
+            (tmp_path / f"rig0{r}" / "narrow" / f"f{k}.png").write_bytes(b"")
+    (tmp_path / "rig01" / "narrow" / "notes.txt").write_text("not a frame")
+    recording = recording_frames(detections, tmp_path, known=["rig01/wide/f0.png"])
+    assert recording == [f"f{k}.png" for k in range(6)]
+    assert paired_frames(detections, {"rig03": 1}, recording) == [
+        ("f0.png", ["rig01/narrow/f0.png", "rig02/narrow/f0.png"]),
+        ("f2.png", ["rig01/narrow/f2.png", "rig02/narrow/f2.png"]),
+        ("f4.png", ["rig01/narrow/f4.png", "rig02/narrow/f4.png"])]  # rig03's were taken at f1, f3, f5: no one's
+    assert paired_frames(detections, {"rig03": 2}, recording) == [
+        ("f0.png", ["rig01/narrow/f0.png", "rig02/narrow/f0.png"]),
+        ("f2.png", ["rig01/narrow/f2.png", "rig02/narrow/f2.png", "rig03/narrow/f0.png"]),
+        ("f4.png", ["rig01/narrow/f4.png", "rig02/narrow/f4.png", "rig03/narrow/f2.png"])]
+    assert skipped_frames(detections, recording) == ["f1.png", "f3.png"]
+    assert recording_frames(detections) == ["f0.png", "f2.png", "f4.png"]  # no images folder: the DETECTIONS' own

@@ -584,7 +584,7 @@ def test_a_replaced_result_says_what_changed(out):
     from rigsfm.run.deliver import narrow_poses as make_narrow_poses
 
     model = pycolmap.Reconstruction(out / "sparse")
-    earlier = make_narrow_poses(model, metric=True)
+    earlier = make_narrow_poses(model, metric=True, world={"frame": "floor"})
     assert changes_from(None, earlier) is None  # nothing replaced
     same = changes_from(earlier, earlier)
     assert same["rigs"] == {"rig01": {"rotation_deg": 0.0, "centre_mm": 0.0},
@@ -594,7 +594,7 @@ def test_a_replaced_result_says_what_changed(out):
                             [0.0, 0.0, 0.0])
     moved = turn * frame.rig_from_world
     frame.rig_from_world = pycolmap.Rigid3d(moved.rotation, moved.translation + [0.02, 0.0, 0.0])
-    changes = changes_from(earlier, make_narrow_poses(model, metric=True))
+    changes = changes_from(earlier, make_narrow_poses(model, metric=True, world={"frame": "floor"}))
     assert changes["rigs"]["rig01"] == {"rotation_deg": 0.0, "centre_mm": 0.0}
     assert changes["rigs"]["rig02"]["rotation_deg"] == pytest.approx(0.3, abs=1e-6)
     assert changes["rigs"]["rig02"]["centre_mm"] > 1.0 and changes["new_images"] == changes["gone_images"] == []
@@ -602,6 +602,46 @@ def test_a_replaced_result_says_what_changed(out):
     assert line.startswith("replaced the earlier result: narrow cameras turned by up to 0.300 deg (rig02) and moved by "
                            "up to ") and "mm (rig02)" in line
     assert Summary.from_json(Summary(replaced=changes).to_json()).replaced == changes  # kept in summary.json
-    unscaled = changes_from(earlier, make_narrow_poses(model, metric=False))
+    unscaled = changes_from(earlier, make_narrow_poses(model, metric=False, world={"frame": "floor"}))
     assert unscaled["rigs"]["rig02"]["centre_mm"] is None and "moved by" not in describe_changes(unscaled)
     assert describe_changes(same) == "replaced the earlier result: the same narrow poses (summary.json: replaced)"
+
+
+def test_a_replaced_result_in_another_world_is_compared_after_aligning(out):
+    """A run that found no floor (the mapper's frame), then `--overwrite` with floor markers added (as NO FLOOR FOUND
+    advises), said 'narrow cameras turned by up to 17 deg': each camera compared in two different worlds, a rig
+    change that is the frames' rotation. Where the worlds are not both the floor frame, the earlier cameras are
+    aligned onto the new ones first; two rigs (too few centres to align) are not compared."""
+    from rigsfm.run.deliver import changes_from, describe_changes
+    from rigsfm.run.deliver import narrow_poses as make_narrow_poses
+
+    model = pycolmap.Reconstruction(out / "sparse")
+    floor = make_narrow_poses(model, metric=True, world={"frame": "floor"})
+    turned = pycolmap.Sim3d(1.0, pycolmap.Rotation3d(np.array([0.0, np.sin(np.radians(8.5)), 0.0,
+                                                               np.cos(np.radians(8.5))])), [1.0, -2.0, 0.5])
+    mapping = pycolmap.Reconstruction(model)
+    mapping.transform(turned)
+    earlier = make_narrow_poses(mapping, metric=True, world={"frame": "mapping"})
+    assert max(e["cam_from_world"]["rotation"] != f["cam_from_world"]["rotation"]
+               for e, f in zip(earlier["narrow"], floor["narrow"]))  # the worlds differ by 17 deg
+    changes = changes_from(earlier, floor)  # two rigs: two narrow centres, no alignment
+    assert changes["rigs"] == {} and changes["compared"] is None
+    line = describe_changes(changes)
+    assert "turned" not in line and "not compared" in line and "mapping" in line
+    # three cameras: a third narrow camera beside the two, off their line, in both worlds
+    rotation = np.asarray(floor["narrow"][1]["cam_from_world"]["rotation"])
+    centre = np.asarray(floor["narrow"][1]["centre"]) + [0.0, 3.0, 1.0]
+    moved = dict(floor["narrow"][1], name="rig03/narrow/f0.png", rig="rig03", centre=centre.tolist(),
+                 cam_from_world={"rotation": rotation.tolist()})
+    before = dict(moved, centre=(turned * centre).tolist(),
+                  cam_from_world={"rotation": (rotation @ turned.rotation.matrix().T).tolist()})
+    three_now = dict(floor, narrow=[*floor["narrow"], moved])
+    three_before = dict(earlier, narrow=[*earlier["narrow"], before])
+    changes = changes_from(three_before, three_now)
+    assert changes["compared"] == "aligned"
+    assert all(v["rotation_deg"] < 1e-6 and v["centre_mm"] < 1e-3 for v in changes["rigs"].values())
+    assert describe_changes(changes) == ("replaced the earlier result: the same narrow poses, once the earlier "
+                                         "result's world (mapping) is aligned onto this one's (floor) "
+                                         "(summary.json: replaced)")
+    same = changes_from(floor, floor)  # both in the floor frame: compared as they are
+    assert same["compared"] == "floor"

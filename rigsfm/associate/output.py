@@ -13,8 +13,10 @@
                             where not checked; the manifest holds the same
   DIR/<frame>/floor.png     top view of the grid below: every narrow footprint at head height (the middle of
                             ``heights``), every person's 95 % ellipse
-  DIR/<frame>/density.csv   persons per m^2 on a grid of ``cell_m`` cells from the world origin, over the cells two
-                            or more narrow views see at head height and every person found (x_min_m, y_min_m,
+  DIR/<frame>/density.csv   persons found per m^2 (detected in two views or more: a lower bound of the crowd's
+                            density where heads hide one another) on a grid of ``cell_m`` cells from the world
+                            origin, over the cells two or more narrow views see at head height and every person
+                            found (x_min_m, y_min_m,
                             x_max_m, y_max_m, persons, per_m2, views: how many narrow views see the cell's centre;
                             per_m2 is nan below two, where nobody could be placed)
   DIR/<frame>/density.png   the same grid as an image (grey: fewer than two views)
@@ -252,8 +254,10 @@ def density_image(counts: np.ndarray, cell: float, seen: np.ndarray, pixels: int
     image = cv2.applyColorMap(grey[::-1], cv2.COLORMAP_VIRIDIS)  # type: ignore[index]  # np.uint8(array) is an array
     image[seen[::-1] < 2] = charts.bgr("grid")
     image = cv2.resize(image, (image.shape[1] * pixels, image.shape[0] * pixels), interpolation=cv2.INTER_NEAREST)
-    band = charts.canvas(max(image.shape[1], 320), 24)
-    charts.text(band, f"persons per m2, max {top:.1f}; grey: fewer than 2 narrow views", (4, 16), size=0.4)
+    band = charts.canvas(max(image.shape[1], 440), 24)  # the legend's width
+    # the persons found: one hidden or missed in all but one view is not among them (a dense crowd's most)
+    charts.text(band, f"persons found per m2 (not the hidden), max {top:.1f}; grey: fewer than 2 narrow views",
+                (4, 16), size=0.4)
     if band.shape[1] > image.shape[1]:
         image = np.hstack([image, charts.canvas(band.shape[1] - image.shape[1], image.shape[0])])
     return np.vstack([band, image])

@@ -47,6 +47,8 @@ class RunModel:
     image_sha256: dict[str, str] = field(default_factory=dict)  # the content the run was made from (images.json)
     # an image the run was not given -> the run's image whose pose and bands it takes (``--poses-from``)
     stand_ins: dict[str, str] = field(default_factory=dict)
+    # the images whose appearance was refused and said so: once per command (dataclasses.replace keeps this set)
+    images_said: set[str] = field(default_factory=set)
 
 
 def load_run(out: Path) -> RunModel:
@@ -164,12 +166,15 @@ def _run_image_grey(model: RunModel, name: str) -> np.ndarray | None:
         changed = recorded is not None and file_sha256(path) != recorded
     except OSError:
         changed = False  # read_grey below says it cannot be read
+    said = name in model.images_said  # a frame is associated again (the timing check, frames paired by time)
+    model.images_said.add(name)
     if changed:
-        logger.warning("%s changed since the run (its content is not the one the run recorded), so its view is "
-                       "associated by geometry only (no appearance); re-run `rigsfm run` on these images", path)
+        if not said:
+            logger.warning("%s changed since the run (its content is not the one the run recorded), so its view is "
+                           "associated by geometry only (no appearance); re-run `rigsfm run` on these images", path)
         return None
     grey = read_grey(path)
-    if grey is None:
+    if grey is None and not said:
         logger.warning("%s cannot be read, so its view is associated by geometry only (no appearance)", path)
     return grey
 
@@ -429,7 +434,13 @@ def associate(out: Path, detections_csv: Path, options: AssociateOptions | None 
 def _associate(workspace: Workspace, dest: Path, detections_csv: Path, options: AssociateOptions,
                progress: Callable[[int, int], None] | None) -> Path:
     from rigsfm.associate.output import check_destination, refuse_edited, write_results
-    from rigsfm.associate.sync import check_frame_offsets, given_offsets, paired_frames, with_camera_bands
+    from rigsfm.associate.sync import (
+        check_frame_offsets,
+        given_offsets,
+        paired_frames,
+        recording_frames,
+        with_camera_bands,
+    )
 
     out = workspace.root
     fingerprint = model_fingerprint(workspace.sparse)  # the persons' model: the track series' and the manifest's
@@ -459,19 +470,35 @@ def _associate(workspace: Workspace, dest: Path, detections_csv: Path, options: 
     applied = {} if asked in (None, "off", "auto") else given_offsets(
         Path(asked), detections, (ImageName.parse(n).rig for n in model.images))
     paired = None
+    recording = recording_frames(detections, model.images_root, model.known)  # offsets count its frames
     if applied:
-        paired = paired_frames(detections, applied)
+        paired = paired_frames(detections, applied, recording)
         model = with_camera_bands(model, [names for _, names in paired])
+    if paired:
+        _say_left_out(detections, paired)
     frames = associate_frames(model, detections, options, progress, paired)
     check = None
     if asked != "off":
         check = check_frame_offsets(model, detections, frames, options, str(asked or "check"), applied)
         if asked == "auto" and check.named:
-            paired = paired_frames(detections, check.named)
+            paired = paired_frames(detections, check.named, recording)
             model = with_camera_bands(model, [names for _, names in paired])
+            _say_left_out(detections, paired)
             frames = associate_frames(model, detections, options, progress, paired)
             check.applied = dict(check.named)
         if check.warning:
             logger.warning("%s", check.warning)
     return write_results(dest, model, frames, options, previous, fingerprint,
                          None if check is None else check.to_dict())
+
+
+def _say_left_out(detections: Detections, paired: list[tuple[str, list[str]]]) -> None:
+    """One warning for the images that frames paired by time leave out (taken at an instant of a frame the
+    DETECTIONS do not hold, or outside the recording): their detections are in no frame's persons."""
+    kept = {name for _, names in paired for name in names}
+    left = sorted(set(detections.images) - kept)
+    if left:
+        logger.warning("%d narrow image(s) of the detections were taken, by the frame offsets, at frames the "
+                       "detections do not hold (%s%s: past the recording's ends, or frames left out of the "
+                       "detections): their detections are left out; where those frames were recorded, give their "
+                       "detections to pair them", len(left), quoted(left[:3]), " ..." if len(left) > 3 else "")

@@ -105,7 +105,9 @@ def associate_report_section(out: Path, fingerprint: str | None = None) -> str:
         parts.append(f"<p>... and {len(frames) - SHOWN_FRAMES} more frames.</p>")
     first = frames[0].parent
     parts.append(_figure(first / "floor.png", f"{first.name}: persons' 95 % ellipses and the narrow footprints"))
-    parts.append(_figure(first / "density.png", f"{first.name}: persons per m2 (grey: seen by fewer than two "
+    parts.append(_figure(first / "density.png", f"{first.name}: persons found per m2, those detected in two narrow "
+                                                "views or more: in a dense crowd a fraction of those there, most "
+                                                "heads hidden from all views but one (grey: seen by fewer than two "
                                                 "narrow views)"))
     parts.append("</section>")
     return "\n".join(parts)

@@ -33,6 +33,7 @@ from rigsfm.run.checks.sync import _frames, read_frame_offsets
 logger = logging.getLogger(__name__)
 
 SEARCH = 2  # whole frames searched either way
+NOT_A_RECORDING = "three frames and three narrow views are needed"  # skipped, not asked: nothing to say
 TESTED_FRAMES = 4  # carried frames tested: each costs 1 + cameras x 2 SEARCH associations
 # A rig is named where its best shift's count exceeds the count at 0 by this many sigmas (the two counts taken as
 # independent Poisson counts: an overstated sigma, they share most persons); on the rendered crowds a synchronised
@@ -93,7 +94,8 @@ def describe(record: dict) -> str:
     """The terminal's line on a check's record (:meth:`SyncCheck.to_dict`): what was tested, named and applied."""
     if record.get("skipped"):
         what = "applied " + ", ".join(f"{r} {o:+d}" for r, o in sorted(record["applied"].items())) \
-            if record.get("applied") else f"not checked ({record['skipped']})"
+            if record.get("applied") else (f"not checked ({record['skipped']}): whether the rigs took their frames "
+                                            "together is unknown")
         return f"frame offsets ({record['asked']}): {what}"
     rigs = record.get("rigs") or {}
     untold = sorted(r for r, t in rigs.items() if t["offset"] is None)
@@ -129,15 +131,53 @@ def given_offsets(path: Path, detections: Detections, rigs: Iterable[str]) -> di
     return {r: o for r, o in read_frame_offsets(path, sorted(set(rigs)), counts).items() if o}
 
 
-def paired_frames(detections: Detections, offsets: dict[str, int]) -> list[tuple[str, list[str]]]:
+def recording_frames(detections: Detections, images_root: Path | None = None, known: Iterable[str] = ()) -> list[str]:
+    """The recording's frames in order: the DETECTIONS' and the run's (``known`` image names), and where the run's
+    images folder holds the detected rigs' narrow images, theirs: a DETECTIONS of every second frame counts its
+    offsets in the recording's frames, not its own."""
+    from rigsfm.run.inputs.images import IMAGE_SUFFIXES
+
+    frames = {ImageName.parse(n).frame for n in detections.images}
+    rigs = {ImageName.parse(n).rig for n in detections.images}
+    for name in known:
+        try:
+            parsed = ImageName.parse(name)
+        except ValueError:
+            continue
+        if parsed.is_narrow and parsed.rig in rigs:
+            frames.add(parsed.frame)
+    if images_root is not None:
+        for rig in rigs:
+            try:
+                frames.update(p.name for p in (Path(images_root) / rig / "narrow").iterdir()
+                              if p.suffix.lower() in IMAGE_SUFFIXES and p.is_file())
+            except OSError:
+                continue  # not there (moved, or the frames only in DETECTIONS): the DETECTIONS' frames count
+    return sorted(frames)
+
+
+def skipped_frames(detections: Detections, recording: list[str]) -> list[str]:
+    """The recording's frames between the DETECTIONS' first and last that the DETECTIONS do not hold."""
+    frames = image_index(detections)[0]
+    if not frames:
+        return []
+    first, last = recording.index(frames[0]), recording.index(frames[-1])
+    return [f for f in recording[first:last + 1] if f not in set(frames)]
+
+
+def paired_frames(detections: Detections, offsets: dict[str, int], recording: list[str] | None = None,
+                  ) -> list[tuple[str, list[str]]]:
     """The frames with each rig's images paired by time: a rig off by o joins its frame j to the others' frame
-    j + o (frames that would fall outside the recording are left out: nobody's frame took them)."""
+    j + o, counted in the ``recording``'s frames (:func:`recording_frames`; None: the DETECTIONS' own); frames that
+    would fall outside the recording, or on a frame the DETECTIONS do not hold, are left out: nobody's frame took
+    them."""
     frames, names = image_index(detections)
+    recording = frames if recording is None else recording
     groups: dict[str, list[str]] = {f: [] for f in frames}
     for (camera, frame), name in names.items():
-        j = frames.index(frame) + offsets.get(camera.split("/")[0], 0)
-        if 0 <= j < len(frames):
-            groups[frames[j]].append(name)
+        j = recording.index(frame) + offsets.get(camera.split("/")[0], 0)
+        if 0 <= j < len(recording) and recording[j] in groups:
+            groups[recording[j]].append(name)
     return [(f, sorted(g)) for f, g in groups.items() if g]
 
 
@@ -175,7 +215,12 @@ def check_frame_offsets(model, detections: Detections, chain: list, options: Ass
     search = min(SEARCH, (len(frames) - 1) // 2)
     chained = {f.frame: k for k, f in enumerate(chain)}
     if len(cameras) < 3 or search < 1:
-        check.skipped = "three frames and three narrow views are needed"
+        check.skipped = NOT_A_RECORDING
+        return check
+    skipped = skipped_frames(detections, recording_frames(detections, model.images_root, model.known))
+    if skipped:  # the shifts below step through the DETECTIONS' frames: every second one would count double
+        check.skipped = (f"the detections skip {len(skipped)} frame(s) of the recording (e.g. {skipped[0]}), and the "
+                         "check needs consecutive frames")
         return check
 
     def testable(i: int) -> bool:

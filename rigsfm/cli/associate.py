@@ -100,7 +100,9 @@ def written_frames(dest: Path) -> list[tuple[str, int, int, int, str | None, lis
     for path in sorted(Path(dest).glob("*/persons.json")):
         data, assigned, total = frame_counts(path)
         lent = lent_views(data)
-        partly = lent if len(lent) < len(data.get("views") or lent) else []
+        # a frame of the run: a view of its own file name kept its pose (frames paired by time hold other frames')
+        own = [v for v in data.get("views") or [] if v not in lent and v.endswith("/" + str(data["frame"]))]
+        partly = lent if own else []
         frames.append((data["frame"], len(data["persons"]), assigned, total, data.get("poses_from"), partly))
     return frames
 
@@ -140,12 +142,12 @@ def offsets_line(dest: Path) -> str | None:
     import json
 
     from rigsfm.associate.output import MANIFEST
-    from rigsfm.associate.sync import describe
+    from rigsfm.associate.sync import NOT_A_RECORDING, describe
 
     try:
         record = json.loads((Path(dest) / MANIFEST).read_text(encoding="utf-8")).get("frame_offsets")
     except (OSError, ValueError):
         return None
-    if not record or record["asked"] == "check" and record["skipped"] and not record["applied"]:
-        return None  # a frame or two, not asked about: nothing to say
+    if not record or record["asked"] == "check" and record["skipped"] == NOT_A_RECORDING:
+        return None  # a frame or two, not asked about: nothing to say (a recording the check could not test is said)
     return describe(record)

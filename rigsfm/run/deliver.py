@@ -194,39 +194,81 @@ def earlier_outputs_warning(workspace: Workspace) -> str | None:
             "(they are kept as they are)")
 
 
+def _alignment(before: np.ndarray, after: np.ndarray, scaled: bool) -> tuple[float, np.ndarray, np.ndarray] | None:
+    """s, R, t with ``after ~ s R before + t`` (Umeyama; s = 1 unless ``scaled``) from three or more camera centres
+    not on one line; None where they do not fix a rotation."""
+    if len(before) < 3:
+        return None
+    mb, ma = before.mean(axis=0), after.mean(axis=0)
+    u, d, vt = np.linalg.svd((after - ma).T @ (before - mb))
+    if d[1] <= 1e-9 * max(d[0], 1e-300):  # on one line: a rotation about it is free
+        return None
+    sign = np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))])
+    rotation = u @ sign @ vt
+    scale = float(np.trace(np.diag(d) @ sign) / np.sum((before - mb) ** 2)) if scaled else 1.0
+    return scale, rotation, ma - scale * rotation @ mb
+
+
 def changes_from(earlier: dict | None, now: dict) -> dict | None:
     """How the narrow cameras of ``now`` (a narrow_poses.json) differ from those of the result it replaces
     (``earlier``): per rig the largest rotation (deg) and centre shift (mm where both are metric, else None) of
-    its narrow images in both, and the images in one only. Both are in their own world (the floor frame: it
-    follows the rigs, so a moved rig shifts it a little too)."""
+    its narrow images in both, and the images in one only. Where both are in the floor frame they are compared as
+    they are (it follows the rigs, so a moved rig shifts it a little too: ``compared`` 'floor'); else (the mapper's
+    frame, arbitrary in each run, or a floor found in one only) the earlier cameras are first aligned onto the new
+    ones by their centres (rigid, or with a scale where either is not metric: 'aligned'), and with fewer than three
+    centres off one line they are not compared (no rigs, ``compared`` None)."""
     if not isinstance(earlier, dict) or not isinstance(earlier.get("narrow"), list):
         return None
     before = {str(e.get("name")): e for e in earlier["narrow"] if isinstance(e, dict)}
     after = {e["name"]: e for e in now["narrow"]}
     metric = earlier.get("metric") is True and now.get("metric") is True
-    rigs: dict[str, dict] = {}
+    worlds = [(d.get("world") or {}).get("frame") for d in (earlier, now)]
+    cameras = []
     for name in sorted(set(before) & set(after)):
         try:
             r0, r1 = (np.asarray(e["cam_from_world"]["rotation"], dtype=float) for e in (before[name], after[name]))
             c0, c1 = (np.asarray(e["centre"], dtype=float) for e in (before[name], after[name]))
-            angle = float(np.degrees(np.arccos(np.clip((np.trace(r1 @ r0.T) - 1.0) / 2.0, -1.0, 1.0))))
         except (KeyError, TypeError, ValueError):
             continue
+        if r0.shape == r1.shape == (3, 3) and c0.shape == c1.shape == (3,):
+            cameras.append((name, r0, r1, c0, c1))
+    compared: str | None = "floor"
+    if worlds[0] != "floor" or worlds[1] != "floor":
+        aligned = _alignment(np.array([c[3] for c in cameras]).reshape(-1, 3),
+                             np.array([c[4] for c in cameras]).reshape(-1, 3), scaled=not metric)
+        if aligned is None:
+            compared, cameras = None, []
+        else:
+            compared, (scale, rotation, shift) = "aligned", aligned
+            cameras = [(name, r0 @ rotation.T, r1, scale * rotation @ c0 + shift, c1)
+                       for name, r0, r1, c0, c1 in cameras]
+    rigs: dict[str, dict] = {}
+    for name, r0, r1, c0, c1 in cameras:
+        turn = r1 @ r0.T  # its angle from sine and cosine: arccos alone loses small angles to rounding
+        sine = np.linalg.norm([turn[2, 1] - turn[1, 2], turn[0, 2] - turn[2, 0], turn[1, 0] - turn[0, 1]]) / 2.0
+        angle = float(np.degrees(np.arctan2(sine, (np.trace(turn) - 1.0) / 2.0)))
         rig = rigs.setdefault(after[name]["rig"], {"rotation_deg": 0.0, "centre_mm": 0.0 if metric else None})
         rig["rotation_deg"] = max(rig["rotation_deg"], angle)
         if metric:
             rig["centre_mm"] = max(rig["centre_mm"], 1000.0 * float(np.linalg.norm(c1 - c0)))
     return {"rigs": rigs, "new_images": sorted(set(after) - set(before)),
-            "gone_images": sorted(set(before) - set(after)), "world_before": (earlier.get("world") or {}).get("frame")}
+            "gone_images": sorted(set(before) - set(after)), "world_before": worlds[0], "world": worlds[1],
+            "compared": compared}
 
 
 def describe_changes(replaced: dict) -> str:
     """One line of :func:`changes_from` for the terminal."""
     rigs = replaced.get("rigs") or {}
+    compared = replaced.get("compared", "floor")  # an earlier version's record: compared as they were
+    worlds = f"{replaced.get('world_before') or 'unknown'}, this one's {replaced.get('world') or 'unknown'}"
+    aligned = (f"once the earlier result's world ({replaced.get('world_before') or 'unknown'}) is aligned onto this "
+               f"one's ({replaced.get('world') or 'unknown'})")
+    where = {"floor": "each in its own floor frame", "aligned": aligned}.get(compared or "", "")
     parts = []
     if rigs and not replaced.get("new_images") and not replaced.get("gone_images") and all(
-            v["rotation_deg"] < 1e-9 and (v.get("centre_mm") or 0.0) < 1e-9 for v in rigs.values()):
-        return "replaced the earlier result: the same narrow poses (summary.json: replaced)"
+            v["rotation_deg"] < 1e-9 and (v.get("centre_mm") or 0.0) < 1e-6 for v in rigs.values()):
+        return f"replaced the earlier result: the same narrow poses{', ' + where if compared == 'aligned' else ''} " \
+               "(summary.json: replaced)"
     if rigs:
         rig, worst = max(rigs.items(), key=lambda item: item[1]["rotation_deg"])
         shifts = [(v["centre_mm"], name) for name, v in rigs.items() if v.get("centre_mm") is not None]
@@ -235,9 +277,12 @@ def describe_changes(replaced: dict) -> str:
             shift, moved = max(shifts)
             text += f" and moved by up to {shift:.1f} mm ({moved})"
         parts.append(text)
+    elif compared is None:
+        parts.append(f"narrow poses not compared (the earlier result's world is {worlds}, and fewer than three "
+                     "narrow cameras off one line are in both to align them)")
     for key, what in (("new_images", "new"), ("gone_images", "no longer in the result")):
         if replaced.get(key):
             parts.append(f"{len(replaced[key])} narrow image(s) {what} ({replaced[key][0]}"
                          f"{', ...' if len(replaced[key]) > 1 else ''})")
     return "replaced the earlier result: " + ("; ".join(parts) or "no narrow image in both") + \
-        " (each in its own floor frame; summary.json: replaced)"
+        (f" ({where}; summary.json: replaced)" if where and rigs else " (summary.json: replaced)")

@@ -4,7 +4,7 @@ import numpy as np
 import pycolmap
 import pytest
 
-from rigsfm.core.geometry import project, project_world, sampson, sampson_error_px
+from rigsfm.core.geometry import align_points, project, project_world, sampson, sampson_error_px
 from rigsfm.core.serialise import camera_from_dict, camera_to_dict, pose_from_dict, pose_to_dict
 
 # The arena's wide lens: strong barrel distortion, so the polynomial turns back beyond the field of view.
@@ -73,3 +73,19 @@ def test_every_seen_pixel_maps_back_onto_its_ray(camera):
     back = np.asarray(camera.cam_from_img(xy[seen]))
     np.testing.assert_allclose(back, rays[seen, :2], atol=1e-5)
     assert 0 < seen.sum() < len(rays)
+
+
+def test_align_points_recovers_a_similarity_and_refuses_a_line():
+    rng = np.random.default_rng(3)
+    source = rng.normal(size=(6, 3))
+    quaternion = np.array([0.1, -0.3, 0.2, 0.9])  # xyzw
+    truth = pycolmap.Sim3d(2.5, pycolmap.Rotation3d(quaternion / np.linalg.norm(quaternion)), np.array([1.0, -2.0, 0.5]))
+    target = truth * source
+    found = align_points(source, target, scaled=True)
+    np.testing.assert_allclose(found.matrix(), truth.matrix(), atol=1e-9)
+    rigid = align_points(source, target, scaled=False)  # no scale: it stays in the residual
+    assert rigid.scale == 1.0
+    np.testing.assert_allclose(rigid.rotation.matrix(), truth.rotation.matrix(), atol=1e-9)
+    line = np.outer(np.arange(5.0), [1.0, 2.0, 3.0])
+    assert align_points(line, line + 1.0, scaled=False) is None and align_points(source[:2], target[:2],
+                                                                                   scaled=True) is None

@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
+from rigsfm.core.geometry import align_points
 from rigsfm.core.names import ImageName
 
 
@@ -170,12 +171,11 @@ def reliability(groups: list[list[tuple[str, int]]], confidence: np.ndarray, tru
 
 
 def rigid_alignment(source: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """R, t minimising |R source + t - target| (Kabsch, no scale: a wrong metric scale stays an error)."""
-    ms, mt = source.mean(axis=0), target.mean(axis=0)
-    u, _, vt = np.linalg.svd((target - mt).T @ (source - ms))
-    d = np.sign(np.linalg.det(u @ vt))
-    r = u @ np.diag([1.0, 1.0, d]) @ vt
-    return r, mt - r @ ms
+    """R, t minimising |R source + t - target| (no scale: a wrong metric scale stays an error)."""
+    target_from_source = align_points(source, target, scaled=False)
+    if target_from_source is None:
+        raise ValueError("three or more points off one line are needed to align the run onto the truth")
+    return target_from_source.rotation.matrix(), np.asarray(target_from_source.translation)
 
 
 def truth_from_run(run, truth) -> tuple[np.ndarray, np.ndarray]:

@@ -170,3 +170,20 @@ def correspondence_check(estimate: pycolmap.Reconstruction, truth: pycolmap.Reco
     lines = epipolar_lines(camera_i, camera_j, j_from_i, pixels[0][0][both])
     rays_j = np.asarray(camera_j.cam_from_img(pixels[1][0][both]))
     return np.abs(line_distances(camera_j, lines, np.column_stack([rays_j, np.ones(len(rays_j))])))
+
+
+def align_points(source: np.ndarray, target: np.ndarray, *, scaled: bool) -> pycolmap.Sim3d | None:
+    """``target_from_source`` minimising |s R source + t - target| over N x 3 points (Umeyama; s = 1 unless
+    ``scaled``: a wrong metric scale then stays an error); None with fewer than three points or all on one line,
+    where a rotation about it is free."""
+    source, target = np.asarray(source, dtype=float).reshape(-1, 3), np.asarray(target, dtype=float).reshape(-1, 3)
+    if len(source) < 3:
+        return None
+    ms, mt = source.mean(axis=0), target.mean(axis=0)
+    u, d, vt = np.linalg.svd((target - mt).T @ (source - ms))
+    if d[1] <= 1e-9 * max(d[0], 1e-300):
+        return None
+    sign = np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))])
+    rotation = u @ sign @ vt
+    scale = float(np.trace(np.diag(d) @ sign) / np.sum((source - ms) ** 2)) if scaled else 1.0
+    return pycolmap.Sim3d(scale, pycolmap.Rotation3d(rotation), mt - scale * rotation @ ms)

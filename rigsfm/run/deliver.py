@@ -31,6 +31,7 @@ import pycolmap
 
 from rigsfm.core.conventions import CONVENTIONS, euler_zyx_degrees
 from rigsfm.core.errors import WorkspaceError
+from rigsfm.core.geometry import align_points
 from rigsfm.core.io import atomic_directory, write_json_atomic
 from rigsfm.core.names import name_of
 from rigsfm.core.serialise import camera_to_dict, pose_to_dict
@@ -194,21 +195,6 @@ def earlier_outputs_warning(workspace: Workspace) -> str | None:
             "(they are kept as they are)")
 
 
-def _alignment(before: np.ndarray, after: np.ndarray, scaled: bool) -> tuple[float, np.ndarray, np.ndarray] | None:
-    """s, R, t with ``after ~ s R before + t`` (Umeyama; s = 1 unless ``scaled``) from three or more camera centres
-    not on one line; None where they do not fix a rotation."""
-    if len(before) < 3:
-        return None
-    mb, ma = before.mean(axis=0), after.mean(axis=0)
-    u, d, vt = np.linalg.svd((after - ma).T @ (before - mb))
-    if d[1] <= 1e-9 * max(d[0], 1e-300):  # on one line: a rotation about it is free
-        return None
-    sign = np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))])
-    rotation = u @ sign @ vt
-    scale = float(np.trace(np.diag(d) @ sign) / np.sum((before - mb) ** 2)) if scaled else 1.0
-    return scale, rotation, ma - scale * rotation @ mb
-
-
 def changes_from(earlier: dict | None, now: dict) -> dict | None:
     """How the narrow cameras of ``now`` (a narrow_poses.json) differ from those of the result it replaces
     (``earlier``): per rig the largest rotation (deg) and centre shift (mm where both are metric, else None) of
@@ -234,14 +220,13 @@ def changes_from(earlier: dict | None, now: dict) -> dict | None:
             cameras.append((name, r0, r1, c0, c1))
     compared: str | None = "floor"
     if worlds[0] != "floor" or worlds[1] != "floor":
-        aligned = _alignment(np.array([c[3] for c in cameras]).reshape(-1, 3),
-                             np.array([c[4] for c in cameras]).reshape(-1, 3), scaled=not metric)
-        if aligned is None:
+        now_from_before = align_points(np.array([c[3] for c in cameras]), np.array([c[4] for c in cameras]),
+                                       scaled=not metric)
+        if now_from_before is None:
             compared, cameras = None, []
         else:
-            compared, (scale, rotation, shift) = "aligned", aligned
-            cameras = [(name, r0 @ rotation.T, r1, scale * rotation @ c0 + shift, c1)
-                       for name, r0, r1, c0, c1 in cameras]
+            compared, rotation = "aligned", now_from_before.rotation.matrix()
+            cameras = [(name, r0 @ rotation.T, r1, now_from_before * c0, c1) for name, r0, r1, c0, c1 in cameras]
     rigs: dict[str, dict] = {}
     for name, r0, r1, c0, c1 in cameras:
         turn = r1 @ r0.T  # its angle from sine and cosine: arccos alone loses small angles to rounding

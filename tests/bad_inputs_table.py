@@ -475,7 +475,7 @@ CASES = [
     Case("a detections CSV saved with `;` separators", "nothing is written",
          with_detections(DETECTIONS.replace(",", ";"))),
     Case("a detection repeated on two rows", "nothing is written",
-         with_detections(DETECTIONS + "rig01/narrow/f0.png,10.5,20.25\n")),
+         with_detections(DETECTIONS + "rig01/narrow/f0.png,10.50,20.250\n")),  # the same point, other digits
     Case("detections in a frame the run was not given", "nothing is written",
          with_detections(DETECTIONS + "rig01/narrow/f1.png,10,20\n")),
     Case("`associate --poses-from` a frame the run does not have", "nothing is written",

@@ -190,7 +190,7 @@ def read_detections(path: Path, sizes: dict[str, tuple[int, int]], known: set[st
                 raise _fail(path, line, f"score {fields[col['score']]} is not finite; give a number or leave it empty")
         radius = _radius(path, line, fields[col["radius"]].strip(), size) if "radius" in col else None
         sized.setdefault(parsed.frame, {}).setdefault(radius is not None, line)
-        key = (name, xs, ys)
+        key = (name, x, y)  # the point, not its text: 200.25 and 200.250 are one detection
         if key in seen:
             raise _fail(path, line, f"repeats line {seen[key]} ('{name}', {xs}, {ys}); remove the duplicate row")
         seen[key] = line

@@ -24,7 +24,7 @@ from collections.abc import Iterator
 
 EXIT_INTERRUPTED, EXIT_TERMINATED = 130, 143
 SIGNALS = (signal.SIGINT, signal.SIGTERM)
-RESUME = "nothing finished was lost; re-run the same command to resume"
+RESUME = "nothing finished was lost; re-run the same command (run and track go on from where they stopped)"
 
 
 class Terminated(BaseException):

@@ -117,7 +117,7 @@ def read_detections(path: Path, sizes: dict[str, tuple[int, int]], known: set[st
                          f"(optionally score, label, radius), found {', '.join(header) or 'nothing'}")
     col = {name: header.index(name) for name in (*REQUIRED, *OPTIONAL) if name in header}
     images: dict[str, dict] = {}
-    seen: dict[tuple[str, str, str], int] = {}
+    seen: dict[tuple[str, float, float], int] = {}
     sized: dict[str, dict[bool, int]] = {}  # per frame, the first line with and the first without a radius
     reader = csv.reader(io.StringIO("\n".join(lines[1:])))
     for offset, fields in enumerate(reader):

@@ -8,6 +8,7 @@ import shutil
 import sys
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pycolmap
 import pytest
@@ -28,6 +29,8 @@ from rigsfm.associate.report import associate_report_section
 from rigsfm.cli import app
 from rigsfm.core.ground import footprint
 from rigsfm.core.workspace import Workspace, model_fingerprint
+from rigsfm.inspect.export import export
+from rigsfm.inspect.options import ExportFormat, ExportOptions
 
 sys.path.insert(0, str(Path(__file__).parent))
 from bad_inputs_table import CASES, run_case
@@ -366,6 +369,23 @@ def test_wildtrack_export_reads_and_projects_like_mvdet(crowd, tmp_path):
         # float32 rvec / tvec, as the loader reads them
         assert np.max(np.abs(mvdet - rigsfm_floor_pixels(image, floor_m))) < 0.05
         assert (dest / "Image_subsets" / rig / "frame0000.png").is_file()
+
+
+def test_wildtrack_images_that_changed_since_the_run_are_named(crowd, tmp_path, caplog):
+    """Undistorted copies of pictures the run was not made from pair new pixels with its calibration: said."""
+    _, shared = crowd
+    out = tmp_path / "out"
+    shutil.copytree(shared, out)
+    summary = json.loads((out / "summary.json").read_text())
+    images = tmp_path / "images"
+    shutil.copytree(summary["inputs"]["images"], images)
+    summary["inputs"]["images"] = str(images)
+    (out / "summary.json").write_text(json.dumps(summary))
+    model = pycolmap.Reconstruction(str(out / "sparse"))
+    name = sorted(im.name for im in model.images.values() if "/narrow/" in im.name and im.has_pose)[0]
+    cv2.imwrite(str(images / name), cv2.imread(str(images / name))[::-1])
+    export(out, ExportOptions(format=ExportFormat.WILDTRACK, dest=tmp_path / "wildtrack", images=True))
+    assert f"1 narrow image(s) changed since the run ({name})" in caplog.text
 
 
 def test_wildtrack_images_name_a_camera_that_lacks_a_frame(tmp_path, caplog):

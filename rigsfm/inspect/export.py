@@ -33,7 +33,7 @@ import pycolmap
 
 from rigsfm.core.conventions import CONVENTIONS, opengl_c2w_from_cam_from_world
 from rigsfm.core.errors import InputError, WorkspaceError
-from rigsfm.core.io import write_json_atomic
+from rigsfm.core.io import file_sha256, write_json_atomic
 from rigsfm.core.names import name_of
 from rigsfm.core.owned import Previous, commit, previous_files
 from rigsfm.core.serialise import camera_to_dict, pose_to_dict
@@ -205,6 +205,24 @@ def warn_not_metric(workspace: Workspace, poses: dict | None, fmt: ExportFormat)
                        "known length) for metres", workspace.root, fmt)
 
 
+def warn_changed_images(workspace: Workspace, reconstruction: pycolmap.Reconstruction, images_dir: Path) -> None:
+    """Say which narrow images now hold other pictures than the run was made from (images.json): their undistorted
+    copies pair new pixels with the run's calibration."""
+    from rigsfm.run.matching.reuse import recorded_contents
+
+    recorded = recorded_contents(workspace.image_contents)
+    changed = []
+    for image in registered_images(reconstruction):
+        path = images_dir / image.name
+        if name_of(image).is_narrow and image.name in recorded and path.is_file() \
+                and file_sha256(path) != recorded[image.name]:
+            changed.append(image.name)
+    if changed:
+        logger.warning("%d narrow image(s) changed since the run (%s%s): their undistorted copies show the new pictures "
+                       "with the run's calibration; where the rigs may have moved, re-run `rigsfm run --overwrite` on "
+                       "them first", len(changed), ", ".join(changed[:3]), " ..." if len(changed) > 3 else "")
+
+
 def check_destination(dest: Path, workspace: Workspace, *, overwrite: bool) -> Previous:
     """What an export into ``dest`` may replace: the files of an earlier export listed in its manifest and still
     as rigsfm wrote them.
@@ -265,6 +283,8 @@ def _export(workspace: Workspace, fmt: ExportFormat, options: ExportOptions) -> 
             write_toml(reconstruction, tmp, metadata=world_metadata(poses))
         elif fmt == ExportFormat.WILDTRACK:
             warn_wildtrack_world(poses)
+            if options.images and images_dir is not None:
+                warn_changed_images(workspace, reconstruction, images_dir)
             write_wildtrack(reconstruction, tmp, images_dir if options.images else None)
         else:
             write_json_poses(reconstruction, tmp, result_frame(poses))

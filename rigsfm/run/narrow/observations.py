@@ -155,9 +155,10 @@ class NarrowObservations:
     def warnings(self) -> list[str]:
         """A rig the heads name off in time (its heads were kept out of the adjustment)."""
         late = self.head_timing.named if self.head_timing is not None else {}
+        lines = ", ".join(f"'{r}: {o}'" for r, o in sorted(late.items()))
         return [not_synchronised(late, "its heads are kept out of the narrow adjustment (they lie where its walkers "
                                        "will be, not where the other views see them); give --frame-offsets FILE "
-                                       "('rig03: 1') to pair its frames by time")] if late else []
+                                       f"({lines}) to pair its frames by time")] if late else []
 
     @property
     def bands_from(self) -> str:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import dataclasses
 from pathlib import Path
 
 import cv2
@@ -24,11 +25,15 @@ from rigsfm.run.narrow.heads import (
     scene_footprint,
     search_bands,
 )
+from rigsfm.run.narrow.observations import NarrowObservations
+from rigsfm.run.narrow.stage import heads_instead
 from rigsfm.synth.scene import SceneOptions
 
 # 3D persons (heads at 1.5-1.9 m, occluding flat-shaded bodies, 4 per m2) round which the narrow cameras, aimed at
 # the crowd's centre, share heads (benchmarks/associate.py's crowds).
 PERSONS = SceneOptions(num_rigs=6, image_scale=0.5, seed=1, persons_per_m2=4.0, narrow_extra_pitch_deg=-4.0)
+# The same crowd as a recording whose rig03 took each frame one frame (0.5 s) after the others.
+LATE = dataclasses.replace(PERSONS, frames_per_rig=4, frame_period_s=0.5, frame_offsets=(("rig03", 1.0),))
 BAND_PX = 8.0  # the 95 % band of a realistic first adjustment (benchmarks/README.md, "Association")
 
 
@@ -233,3 +238,27 @@ def test_a_view_in_too_few_persons_gives_none_of_its_heads():
     members[33:35, 4] = [20, 21]
     out = confident_members(members, scores)
     assert (out[:, 4] == -1).all() and (out[:, 5] == -1).all()
+
+
+@pytest.mark.slow
+def test_a_rig_off_in_time_is_named_by_its_heads_and_kept_out(rendered):
+    """A recording whose rig03 took its frames one frame (0.5 s) late: the heads' timing check
+    (rigsfm.run.narrow.timing) names it, no other rig, and its heads stay out of the adjustment's pairs; a run
+    that gives the offsets pairs the frames by them and checks nothing."""
+    dataset = rendered(LATE)
+    truth = dataset.load_ground_truth()  # the floor frame, exact poses
+    names = [im.name for im in truth.images.values() if "/narrow/" in im.name]
+    bands = {(a, b): BAND_PX for a in names for b in names if a != b}
+    record = NarrowObservations("auto", False, "")
+    assert heads_instead(truth, dataset.images, None, None, bands, record), record.reason
+    timing = record.head_timing
+    assert timing is not None and timing.named == {"rig03": 1}, timing.to_dict()
+    assert all(t.offset == 0 for rig, t in timing.rigs.items() if rig != "rig03"), timing.to_dict()
+    assert record.pairs and not any(p.i.startswith("rig03/") or p.j.startswith("rig03/") for p in record.pairs)
+    assert "rig03 left out" in record.reason
+    [warning] = record.warnings
+    assert warning.startswith("FRAMES NOT SYNCHRONISED: rig03 is about +1 frame off"), warning
+    assert record.summary().head_frame_offsets["named"] == {"rig03": 1}
+    given = NarrowObservations("auto", False, "")
+    assert heads_instead(truth, dataset.images, None, {"rig03": 1}, bands, given), given.reason
+    assert given.head_timing is None and not given.warnings

@@ -8,6 +8,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
+from rigsfm.associate.sync import RigTiming, SyncCheck
 from rigsfm.core.summary import BANDS_WIDE_ONLY, BANDS_WITH_NARROW
 from rigsfm.run.narrow.observations import MIN_PAIR_MATCHES, NarrowObservations, PairMatches, decide
 from rigsfm.run.options import NarrowMode, RunOptions
@@ -197,3 +198,22 @@ def test_without_a_scale_the_line_says_how_the_registered_narrow_cameras_are_pos
     line = describe_record(record.summary())
     assert model is None and not record.used
     assert "unknown" not in line and "not metric" in line and "E^sl" in line, line
+
+
+def test_a_rig_the_heads_name_off_in_time_is_warned_and_recorded():
+    """The heads' timing check (rigsfm.run.narrow.timing) in the record: a rig named off in time gives associate's
+    FRAMES NOT SYNCHRONISED line with run's consequence and the file line that pairs its frames, and summary.json
+    keeps the check; a rig not told, or none named, warns nothing."""
+    record = NarrowObservations("auto", True, "heads usable")
+    assert record.warnings == [] and record.summary().head_frame_offsets is None
+    record.head_timing = SyncCheck("check", frames=["f1.png", "f2.png"], search=1,
+                                   rigs={"rig03": RigTiming("rig03/narrow", {-1: 90, 0: 28, 1: 25}, 1, 5.7),
+                                         "rig05": RigTiming("rig05/narrow", {-1: 30, 0: 24, 1: 20}, None, 0.8),
+                                         "rig01": RigTiming("rig01/narrow", {-1: 20, 0: 60, 1: 20}, 0, 0.0)})
+    [warning] = record.warnings
+    assert warning.startswith("FRAMES NOT SYNCHRONISED: rig03 is about +1 frame off (")
+    assert "kept out of the narrow adjustment" in warning and "('rig03: 1')" in warning
+    summary = record.summary().head_frame_offsets
+    assert summary["named"] == {"rig03": 1} and summary["rigs"]["rig05"]["offset"] is None
+    record.head_timing.rigs["rig03"].offset = None
+    assert record.warnings == []

@@ -76,18 +76,23 @@ class SyncCheck:
         off = {r: o for r, o in self.named.items() if o != self.applied.get(r, 0)}
         if not off:
             return None
-        rigs = ", ".join(f"{r} is about {_frames(o)} off" for r, o in sorted(off.items()))
         hint = ("; the offsets applied were not these" if self.applied else
                 "; give --frame-offsets auto (or a file 'rig: offset') to pair the frames by time")
-        return (f"FRAMES NOT SYNCHRONISED: {rigs} (its heads meet the other views' persons best at that shift: frame k "
-                "of it was taken at the others' frame k + offset): not a detection or calibration fault, and its "
-                f"persons are missed or wrong until the frames are paired by time{hint}")
+        return not_synchronised(off, "not a detection or calibration fault, and its persons are missed or wrong until "
+                                     f"the frames are paired by time{hint}")
 
     def to_dict(self) -> dict:
         return {"asked": self.asked, "tested_frames": list(self.frames), "search": self.search,
                 "named": dict(self.named), "applied": dict(self.applied), "skipped": self.skipped,
                 "seconds": round(self.seconds, 3), "z_named": Z_NAMED, "z_tells": Z_TELLS,
                 "rigs": {r: t.to_dict() for r, t in sorted(self.rigs.items())}}
+
+
+def not_synchronised(off: dict[str, int], consequence: str) -> str:
+    """The warning on rigs named off in time (rig -> offset), ``consequence`` what it means for this command."""
+    rigs = ", ".join(f"{r} is about {_frames(o)} off" for r, o in sorted(off.items()))
+    return (f"FRAMES NOT SYNCHRONISED: {rigs} (its heads meet the other views' persons best at that shift: frame k "
+            f"of it was taken at the others' frame k + offset): {consequence}")
 
 
 def describe(record: dict) -> str:
@@ -254,24 +259,33 @@ def check_frame_offsets(model, detections: Detections, chain: list, options: Ass
 
 
 def shift_counts(windows: list, cameras: list[str], search: int, options: AssociateOptions,
-                 ) -> dict[str, dict[int, int]]:
+                 own_pose: bool = False, only: list[str] | None = None) -> dict[str, dict[int, int]]:
     """Per camera and shift s, its detections in confident persons, summed over ``windows``: each (templates, carried,
     earlier): per (camera, s) the camera's view of the tested frame's k + s, per camera its view of the frame before
-    (whose shift it carries), and the frame before's persons."""
-    counts = {c: dict.fromkeys(range(-search, search + 1), 0) for c in cameras}
+    (whose shift it carries), and the frame before's persons; carried None: each association corrects its views'
+    poses itself. ``own_pose``: the tested camera carries its head size but not its pose correction, at every shift
+    (0 included: one association per camera and shift), the others carry theirs: a late rig's correction carried
+    from the frame before was fitted to its heads a frame away (``rigsfm run``'s heads, rigsfm.run.narrow.timing).
+    ``only``: these cameras tested and counted (default: all)."""
+    tested_cameras = cameras if only is None else [c for c in cameras if c in only]
+    counts = {c: dict.fromkeys(range(-search, search + 1), 0) for c in tested_cameras}
     for templates, carried, earlier in windows:
-        for shifted in [None, *cameras]:
+        for tested in tested_cameras if own_pose else [None, *tested_cameras]:
             for s in range(-search, search + 1):
-                if (shifted is None) != (s == 0):
+                if not own_pose and (tested is None) != (s == 0):
                     continue
-                views = [copy.copy(templates[(c, s if c == shifted else 0)]) for c in cameras]
-                for view, camera in zip(views, cameras):
-                    view.carry(carried[camera])
-                result = associate_views(views, options, carried=True, earlier=earlier)
+                views = [copy.copy(templates[(c, s if c == tested else 0)]) for c in cameras]
+                if carried is not None:
+                    for view, camera in zip(views, cameras):
+                        if own_pose and camera == tested:
+                            view.head_px = carried[camera].head_px
+                        else:
+                            view.carry(carried[camera])
+                result = associate_views(views, options, carried=carried is not None, earlier=earlier)
                 confident = (np.sum(result.members >= 0, axis=1) >= 3) & (
                     result.scores > options.self_calibration_min_score)
                 for v, camera in enumerate(cameras):
-                    if shifted is None or camera == shifted:
+                    if camera in counts and (tested is None or camera == tested):
                         counts[camera][s] += int(np.sum(confident & (result.members[:, v] >= 0)))
         for view in templates.values():
             view.grey = None

@@ -242,6 +242,9 @@ class NarrowObservationsSummary:
     head_candidates: int | None = None  # head candidates in the narrow images, where searched
     head_verdicts: int = 0  # self-check pairs whose verdict comes from their head matches
     head_sigma_px: float | None = None  # the noise per coordinate the heads' observations were weighed at, where used
+    # The heads' frame-offset check of a recording (rigsfm.run.narrow.timing; rigsfm.associate.sync.SyncCheck's
+    # record), where the heads were matched without given offsets
+    head_frame_offsets: dict | None = None
 
 
 @dataclass(kw_only=True)

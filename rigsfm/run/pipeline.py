@@ -477,6 +477,7 @@ def _run_locked(workspace: Workspace, inputs: Inputs, manual_pairs: dict, option
         summary.frame_offsets = frame_offsets
     if narrow is not None:
         summary.narrow_observations = narrow.summary()
+        summary.warnings.extend(narrow.warnings)
     summary.pairs = pairs
     summary.cpu_s = dict(timings.cpu)
     if pairs_warning:

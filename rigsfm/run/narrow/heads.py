@@ -39,6 +39,9 @@ SIFT on flat-shaded, view-dependent silhouettes gives chance matches only. Heads
    (:class:`rigsfm.run.adjustment.problem.JointProblem`'s ``point_sigmas``), not at the images' pooled one: estimated
    from the confident persons themselves, their centres' residuals about the association's points with each view's
    pose correction removed (:func:`head_sigma`; ``HEAD_PIXEL_SIGMA`` where too few).
+7. **Timing**: on a recording of three frames or more (without ``--frame-offsets FILE``), a rig whose heads meet
+   the other views' persons best a frame away (:mod:`rigsfm.run.narrow.timing`) is named, and the heads are matched
+   again without it: its heads stay out of the adjustment (``FRAMES NOT SYNCHRONISED``).
 """
 
 from __future__ import annotations
@@ -279,6 +282,12 @@ def _hough(gray: np.ndarray, low: float, high: float) -> np.ndarray:
     return circles
 
 
+def head_candidates(image: pycolmap.Image, image_dir: Path, footprint: np.ndarray | None) -> np.ndarray:
+    """:func:`detect_heads` of the image file (none where it cannot be read)."""
+    gray = read_image(Path(image_dir) / image.name, cv2.IMREAD_GRAYSCALE)
+    return np.zeros((0, 3)) if gray is None else detect_heads(image, gray, footprint)
+
+
 def head_sigma(residuals: np.ndarray, persons: int) -> float | None:
     """A head centre's noise per coordinate (module docstring, step 6) from ``residuals`` (N x 2 px) of ``persons``
     triangulated points: the median absolute coordinate as a normal's (a wrong member of a person does not pull
@@ -313,13 +322,15 @@ def _association_options() -> AssociateOptions:
 
 def match_heads(floor_model: pycolmap.Reconstruction, image_dir: Path, frames: dict[str, list[pycolmap.Image]],
                 bands: dict[tuple[str, str], float], max_frames: int = 1, threads: int = 1,
-                progress: Callable[[int, int], None] | None = None) -> HeadMatches:
+                progress: Callable[[int, int], None] | None = None,
+                searched: dict[str, np.ndarray] | None = None) -> HeadMatches:
     """Heads matched across the synchronised narrow views of the first ``max_frames`` frames (module docstring,
     steps 1-3). ``floor_model``: the first adjustment in the floor frame; ``frames``: frame -> its narrow images
     (of ``floor_model``); ``bands``: (i, j) -> the pair's 95 % band (px) from the first adjustment's uncertainty;
     ``threads``: images searched at once; ``progress(done, total)``: per frame, its images searched and then its
-    association."""
+    association; ``searched``: image -> its candidates, those searched before (and this call's, added)."""
     out = HeadMatches()
+    searched = {} if searched is None else searched
     footprint = scene_footprint(floor_model)
     for frame in list(frames)[:max(1, max_frames)]:
         images = frames[frame]
@@ -330,8 +341,9 @@ def match_heads(floor_model: pycolmap.Reconstruction, image_dir: Path, frames: d
         images_of = [floor_model.find_image_with_name(name) for name in names]
 
         def candidates(image: pycolmap.Image) -> np.ndarray:
-            gray = read_image(Path(image_dir) / image.name, cv2.IMREAD_GRAYSCALE)
-            return np.zeros((0, 3)) if gray is None else detect_heads(image, gray, footprint)
+            if image.name not in searched:
+                searched[image.name] = head_candidates(image, image_dir, footprint)
+            return searched[image.name]
 
         views = []
         # The images side by side (OpenCV's Hough frees the GIL), each search on one thread: the same circles.

@@ -41,6 +41,7 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 
+from rigsfm.associate.sync import SyncCheck, not_synchronised
 from rigsfm.core.summary import (
     BANDS_WIDE_ONLY,
     BANDS_WITH_NARROW,
@@ -148,6 +149,16 @@ class NarrowObservations:
     head_sigma_px: float | None = None  # the heads' centres' noise per coordinate their observations are weighed at
     # point3D_id -> that noise, per point the heads added (the second adjustment's point_sigmas)
     point_sigmas: dict[int, float] = field(default_factory=dict, repr=False)
+    head_timing: SyncCheck | None = None  # the heads' frame-offset check (rigsfm.run.narrow.timing), where it ran
+
+    @property
+    def warnings(self) -> list[str]:
+        """A rig the heads name off in time (its heads were kept out of the adjustment)."""
+        late = self.head_timing.named if self.head_timing is not None else {}
+        lines = ", ".join(f"'{r}: {o}'" for r, o in sorted(late.items()))
+        return [not_synchronised(late, "its heads are kept out of the narrow adjustment (they lie where its walkers "
+                                       "will be, not where the other views see them); give --frame-offsets FILE "
+                                       f"({lines}) to pair its frames by time")] if late else []
 
     @property
     def bands_from(self) -> str:
@@ -176,7 +187,8 @@ class NarrowObservations:
             held_out_check=[HeldOutCheckSummary(**c.to_dict()) for c in self.held_out_checks],
             bands=self.bands_from if self.used else None, matched_by=self.matched_by, head_persons=self.head_persons,
             head_candidates=self.head_candidates, head_verdicts=self.head_verdicts,
-            head_sigma_px=None if self.head_sigma_px is None else round(self.head_sigma_px, 3))
+            head_sigma_px=None if self.head_sigma_px is None else round(self.head_sigma_px, 3),
+            head_frame_offsets=None if self.head_timing is None else self.head_timing.to_dict())
 
 
 def describe_record(record: NarrowObservationsSummary) -> str:

@@ -15,6 +15,7 @@ import pycolmap
 from rigsfm.core.blas_threads import one_blas_thread
 from rigsfm.core.geometry import pixel_line_distances
 from rigsfm.core.ground import undistort_pixels
+from rigsfm.core.names import name_of
 from rigsfm.core.processes import in_child
 from rigsfm.run.adjustment.adjust import adjust
 from rigsfm.run.checks.guided import KEYPOINT_NOISE_PX
@@ -32,6 +33,7 @@ from rigsfm.run.narrow.observations import (
     decide,
     find_matches,
 )
+from rigsfm.run.narrow.timing import time_heads
 from rigsfm.run.options import NarrowMode, SelfCheckOptions
 
 logger = logging.getLogger(__name__)
@@ -128,8 +130,10 @@ def heads_instead(floor_model: pycolmap.Reconstruction, image_dir: Path, options
                   offsets: dict[str, int] | None, bands: dict | None, record: NarrowObservations, threads: int = 1,
                   progress: Callable[[int, int], None] | None = None) -> bool:
     """Match heads (rigsfm.run.narrow.heads); where they decide on (``auto``: enough confident persons; ``on``:
-    any), ``record`` takes their pairs and decision. Returns whether it did."""
+    any), ``record`` takes their pairs and decision. Returns whether it did. Without given ``offsets`` a recording's
+    rigs are timed by their heads (rigsfm.run.narrow.timing): a rig named off in time is left out of the heads."""
     opt = options or SelfCheckOptions()
+    asked_on = record.asked == str(NarrowMode.ON)
     offsets = {r: int(o) for r, o in (offsets or {}).items() if o}
     frames = frames_by_time(floor_model, offsets) if offsets else synchronised_frames(floor_model)
     frames = {f: frames[f] for f in frames_most_rigs_share(frames, opt.max_frames)}
@@ -138,10 +142,19 @@ def heads_instead(floor_model: pycolmap.Reconstruction, image_dir: Path, options
         value = getattr(band, "band_px", band)
         if value is not None:
             floats[key] = floats[(key[1], key[0])] = float(value)
-    heads = match_heads(floor_model, image_dir, frames, floats, opt.max_frames, threads, progress)
+    searched: dict = {}
+    heads = match_heads(floor_model, image_dir, frames, floats, opt.max_frames, threads, progress, searched)
     enough, reason = decide_heads(heads)
+    if (enough or asked_on) and not offsets:  # given offsets pair the frames by time: nothing to check
+        record.head_timing = time_heads(floor_model, image_dir, floats, threads, searched=searched)
+        late = record.head_timing.named
+        if late:  # a late rig's heads lie where its walkers will be: kept out (the others' matched again without it)
+            frames = {f: [im for im in images if name_of(im).rig not in late] for f, images in frames.items()}
+            heads = match_heads(floor_model, image_dir, frames, floats, opt.max_frames, threads, None, searched)
+            enough, reason = decide_heads(heads)
+            reason += f" ({', '.join(sorted(late))} left out: not synchronised)"
     record.head_persons, record.head_candidates = heads.persons, sum(heads.candidates.values())
-    if not (enough or (record.asked == str(NarrowMode.ON) and heads.persons > 0)):
+    if not (enough or (asked_on and heads.persons > 0)):
         record.reason += f"; {reason}"
         return False
     record.pairs, record.used, record.matched_by = heads.pairs, True, "heads"

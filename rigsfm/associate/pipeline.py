@@ -167,14 +167,15 @@ def _run_image_grey(model: RunModel, name: str) -> np.ndarray | None:
     except OSError:
         changed = False  # read_grey below says it cannot be read
     said = name in model.images_said  # a frame is associated again (the timing check, frames paired by time)
-    model.images_said.add(name)
     if changed:
         if not said:
+            model.images_said.add(name)
             logger.warning("%s changed since the run (its content is not the one the run recorded), so its view is "
                            "associated by geometry only (no appearance); re-run `rigsfm run` on these images", path)
         return None
     grey = read_grey(path)
     if grey is None and not said:
+        model.images_said.add(name)
         logger.warning("%s cannot be read, so its view is associated by geometry only (no appearance)", path)
     return grey
 

@@ -29,7 +29,7 @@ import numpy as np
 import pycolmap
 
 from rigsfm.associate.solve import associate_views
-from rigsfm.associate.sync import SEARCH, TESTED_FRAMES, SyncCheck, shift_counts, timings
+from rigsfm.associate.sync import NOT_A_RECORDING, SEARCH, TESTED_FRAMES, SyncCheck, shift_counts, timings
 from rigsfm.associate.views import View, view_pose_sigmas
 from rigsfm.core.names import ImageName, name_of
 from rigsfm.core.opencv_threads import one_opencv_thread
@@ -66,7 +66,7 @@ def time_heads(floor_model: pycolmap.Reconstruction, image_dir: Path, bands: dic
     cameras = sorted({c for images in by_frame.values() for c in images})
     search = min(SEARCH, (len(frames) - 1) // 2)
     if len(cameras) < 3 or search < 1:
-        check.skipped = "three frames and three narrow views are needed"
+        check.skipped = NOT_A_RECORDING
         return check
     tested = [i for i in range(search, len(frames) - search)
               if all(c in by_frame[frames[j]] for c in cameras for j in range(i - search, i + search + 1))]

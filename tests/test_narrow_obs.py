@@ -8,9 +8,15 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from rigsfm.associate.sync import RigTiming, SyncCheck
+from rigsfm.associate.sync import NOT_A_RECORDING, RigTiming, SyncCheck
 from rigsfm.core.summary import BANDS_WIDE_ONLY, BANDS_WITH_NARROW
-from rigsfm.run.narrow.observations import MIN_PAIR_MATCHES, NarrowObservations, PairMatches, decide
+from rigsfm.run.narrow.observations import (
+    MIN_PAIR_MATCHES,
+    NarrowObservations,
+    PairMatches,
+    decide,
+    describe_record,
+)
 from rigsfm.run.options import NarrowMode, RunOptions
 from rigsfm.run.pipeline import run
 from rigsfm.synth.scene import SceneOptions
@@ -215,5 +221,12 @@ def test_a_rig_the_heads_name_off_in_time_is_warned_and_recorded():
     assert "kept out of the narrow adjustment" in warning and "('rig03: 1')" in warning
     summary = record.summary().head_frame_offsets
     assert summary["named"] == {"rig03": 1} and summary["rigs"]["rig05"]["offset"] is None
+    assert "heads' frame offsets (check): estimated rig03 +1 frame (rig05 not told) over 2 frame(s)" in \
+        describe_record(record.summary())
     record.head_timing.rigs["rig03"].offset = None
     assert record.warnings == []
+    for rig in record.head_timing.rigs.values():  # the crowd timed no rig: the terminal says it is unknown
+        rig.offset = None
+    assert "heads' frame offsets (check): not told" in describe_record(record.summary())
+    record.head_timing = SyncCheck("check", skipped=NOT_A_RECORDING)  # one or two frames: nothing to say
+    assert "frame offsets" not in describe_record(record.summary())

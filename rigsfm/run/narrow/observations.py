@@ -41,7 +41,8 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 
-from rigsfm.associate.sync import SyncCheck, not_synchronised
+from rigsfm.associate.sync import NOT_A_RECORDING, SyncCheck, not_synchronised
+from rigsfm.associate.sync import describe as describe_timing
 from rigsfm.core.summary import (
     BANDS_WIDE_ONLY,
     BANDS_WITH_NARROW,
@@ -203,6 +204,9 @@ def describe_record(record: NarrowObservationsSummary) -> str:
             rest = len(verdicts) - verdicts.count("ok") - verdicts.count("failed")
             line += (f"; held-out check: {verdicts.count('ok')} ok, {verdicts.count('failed')} failed, "
                      f"{rest} without verdict")
+    timing = record.head_frame_offsets
+    if timing and timing.get("skipped") != NOT_A_RECORDING:  # a recording's heads timed its rigs, or could not
+        line += "; heads' " + describe_timing(timing)
     return line
 
 

@@ -793,6 +793,25 @@ def test_frames_warn_once_a_kind_with_the_frames_named(crowd, caplog):
     assert "frame0002.png: " in two[0] and "frame0000" not in two[0], two
 
 
+def test_the_library_says_once_that_lent_frames_have_no_images(crowd, caplog):
+    """associate_frames (the library call, as the benchmarks use it) says that a lent frame's images are not beside
+    the run's, so its views have no appearance: once, though a command associates a recording again."""
+    import logging
+
+    from rigsfm.associate.pipeline import with_stand_ins
+
+    dataset, out = crowd
+    model, truth = _detections(dataset, out)
+    points = {**truth.points, **{n.replace("frame0000", "frame0001"): xy for n, xy in truth.points.items()}}
+    lent = with_stand_ins(model, [n for n in points if n not in model.images], "frame0000.png")
+    options = AssociateOptions(pixel_sigma=1.5)
+    with caplog.at_level(logging.WARNING, logger="rigsfm.associate.pipeline"):
+        for _ in range(2):
+            associate_frames(lent, from_arrays(points), options)
+    said = [r.getMessage() for r in caplog.records if "not beside its images" in r.getMessage()]
+    assert len(said) == 1 and said[0].startswith(f"{len(truth.points)} narrow image(s) of the frames"), said
+
+
 def test_a_kind_of_frame_warning_is_said_once_naming_its_frames(caplog):
     """Frames 0 and 1 of a CSV both with few confident persons: one warning naming both, not one a frame."""
     import logging

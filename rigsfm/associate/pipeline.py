@@ -238,6 +238,8 @@ def associate_frames(model: RunModel, detections: Detections, options: Associate
     A narrow camera's pose error is the same in every frame, so the shifts the crowd finds in one frame carry to the
     next frame's images of the same cameras (pooled with each frame's own groups); a frame whose cameras all carry
     one is associated once instead of self-calibrating from scratch."""
+    if options.appearance:
+        _say_lent_images_missing(model)
     out: list[FramePersons] = []
     carried: dict[str, View] = {}  # per camera (<rig>/narrow), its view in the latest frame
     frames = list(detections.frames().items()) if frames is None else frames
@@ -262,6 +264,19 @@ def associate_frames(model: RunModel, detections: Detections, options: Associate
         _revisit(model, detections, options, carried, out, notes)
     notes.say()
     return out
+
+
+def _say_lent_images_missing(model: RunModel) -> None:
+    """One warning (per command: ``model.images_said``) for the narrow images of frames the run was not given that
+    are not beside its images: their views are associated by geometry only."""
+    root = model.images_root
+    missing = [n for n in model.stand_ins if (root is None or not (root / n).is_file()) and n not in model.images_said]
+    if missing:
+        model.images_said.update(missing)
+        logger.warning("%d narrow image(s) of the frames the run was not given are not beside its images in %s (%s): "
+                       "their views are associated by geometry only; put them there (<rig>/narrow/<frame file>) for "
+                       "the heads' and torsos' greys", len(missing), root or "(unknown)",
+                       quoted(missing[:3]) + (" ..." if len(missing) > 3 else ""))
 
 
 def _revisit(model: RunModel, detections: Detections, options: AssociateOptions, carried: dict[str, View],
@@ -457,13 +472,6 @@ def _associate(workspace: Workspace, dest: Path, detections_csv: Path, options: 
         moved = lent_after_moves(workspace, model.stand_ins, fingerprint)
         if moved:
             logger.warning("%s", moved)
-        root = model.images_root
-        missing = [n for n in model.stand_ins if root is None or not (root / n).is_file()]
-        if missing and options.appearance:
-            logger.warning("%d narrow image(s) of the frames the run was not given are not beside its images in %s "
-                           "(%s): their views are associated by geometry only; put them there (<rig>/narrow/<frame "
-                           "file>) for the heads' and torsos' greys", len(missing), root or "(unknown)",
-                           quoted(missing[:3]) + (" ..." if len(missing) > 3 else ""))
     require_floor(model, Path(out))
     refuse_edited(dest, previous, detections.frames())
     asked = options.frame_offsets

@@ -294,7 +294,8 @@ def world_section(narrow: dict, reconstruction: pycolmap.Reconstruction) -> str:
     rows = [["z", esc(world.get("z_axis"))], ["origin", esc(world.get("origin"))], ["x", esc(world.get("x_axis"))],
             ["floor points", ", ".join(f"{esc(k)} {v}" for k, v in (floor.get("points_by_source") or {}).items())],
             ["fit residual RMS (m)", fmt(floor.get("rms"))],
-            ["normal σ (deg)", fmt(floor.get("normal_sigma_deg"), 3)],
+            # the points' scatter only: the cameras' pose errors they share are not in it (docs/world.md)
+            ["normal σ of the points' scatter (deg; a lower bound)", fmt(floor.get("normal_sigma_deg"), 3)],
             ["camera heights (m)", f"{fmt(heights.get('min'))} – {fmt(heights.get('max'))}"],
             ["floor matching", "not needed (the sparse points fix the floor)" if not matching.get("ran") else
              f"{matching.get('rounds')} round(s), {matching.get('image_pairs')} image pairs, "

@@ -14,7 +14,7 @@ from rigsfm.associate.appearance import AppearanceModel
 from rigsfm.associate.occupancy import CountGrid
 from rigsfm.associate.options import AssociateOptions
 from rigsfm.associate.packing import _pack
-from rigsfm.associate.rows import _rowwise, _unique_inverse, _unique_rows, _Verified
+from rigsfm.associate.rows import _rowwise, _unique_inverse, _unique_rows, _Verified, confident_rows
 from rigsfm.associate.segments import pair_seeds
 from rigsfm.associate.tracked import predicted_groups, row_pairs
 from rigsfm.associate.views import View
@@ -576,7 +576,7 @@ class _Frame:
         # only the confident ones hold their detections (three or more views, as the self-calibration trusts): a
         # weak group found again is the frame before's wrong person as often as not, and held, its detections would
         # hide the right pairs from the search
-        held = held[(np.sum(held >= 0, axis=1) >= 3) & (scores[chosen] > self.options.self_calibration_min_score)]
+        held = held[confident_rows(held, scores[chosen], self.options.self_calibration_min_score)]
         self._among = np.ones(total, dtype=bool)
         self._among[held[held >= 0]] = False
         rest = self._grown_from_pairs(self._among)

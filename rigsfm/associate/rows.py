@@ -33,6 +33,12 @@ def _rowwise(method):
     return blocked
 
 
+def confident_rows(members: np.ndarray, scores: np.ndarray, min_score: float) -> np.ndarray:
+    """Which groups a view's correction may rest on: three or more views, scoring above ``min_score`` (the
+    self-calibration's threshold, ``AssociateOptions.self_calibration_min_score``)."""
+    return (np.sum(members >= 0, axis=1) >= 3) & (scores > min_score)
+
+
 def _sorted_rows(members: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The order that sorts member rows (-1 or a detection) as ``np.unique(axis=0)`` does, stable, and where in it a
     row repeats the one before: the columns packed into a few integer keys sort far faster than rows compared as

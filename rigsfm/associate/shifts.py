@@ -13,6 +13,7 @@ import scipy.sparse as sp
 
 from rigsfm.associate.frame import _Frame
 from rigsfm.associate.options import AssociateOptions
+from rigsfm.associate.rows import confident_rows
 from rigsfm.associate.segments import near_segments
 from rigsfm.associate.views import View
 
@@ -359,7 +360,7 @@ def _warn_beyond_band(views: list[View]) -> None:
 
 def _confident(members: np.ndarray, scores: np.ndarray, options: AssociateOptions) -> np.ndarray:
     """The groups a correction may rest on: three or more views, scoring above the self-calibration's threshold."""
-    return members[(np.sum(members >= 0, axis=1) >= 3) & (scores > options.self_calibration_min_score)]
+    return members[confident_rows(members, scores, options.self_calibration_min_score)]
 
 
 def _corrected(views: list[View], correction: ViewCorrection, options: AssociateOptions) -> list[View]:

@@ -26,6 +26,7 @@ import numpy as np
 
 from rigsfm.associate.detections import Detections
 from rigsfm.associate.options import AssociateOptions
+from rigsfm.associate.rows import confident_rows
 from rigsfm.associate.solve import associate_views
 from rigsfm.core.names import ImageName
 from rigsfm.run.checks.sync import _frames, read_frame_offsets
@@ -282,8 +283,7 @@ def shift_counts(windows: list, cameras: list[str], search: int, options: Associ
                         else:
                             view.carry(carried[camera])
                 result = associate_views(views, options, carried=carried is not None, earlier=earlier)
-                confident = (np.sum(result.members >= 0, axis=1) >= 3) & (
-                    result.scores > options.self_calibration_min_score)
+                confident = confident_rows(result.members, result.scores, options.self_calibration_min_score)
                 for v, camera in enumerate(cameras):
                     if camera in counts and (tested is None or camera == tested):
                         counts[camera][s] += int(np.sum(confident & (result.members[:, v] >= 0)))

@@ -209,8 +209,8 @@ def test_auto_pairs_the_frames_of_a_named_rig_by_time(crowd, tmp_path, monkeypat
 
     real = sync.check_frame_offsets
 
-    def named(model, detections, chain, options, asked, applied=None):
-        check = real(model, detections, chain, options, asked, applied)
+    def named(model, detections, chain, options, asked, applied=None, recording=None):
+        check = real(model, detections, chain, options, asked, applied, recording)
         check.rigs["rig02"] = sync.RigTiming("rig02/narrow", {-1: 10, 0: 20, 1: 40}, -1, 3.7)
         return check
 

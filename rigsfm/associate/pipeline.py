@@ -488,7 +488,7 @@ def _associate(workspace: Workspace, dest: Path, detections_csv: Path, options: 
     frames = associate_frames(model, detections, options, progress, paired)
     check = None
     if asked != "off":
-        check = check_frame_offsets(model, detections, frames, options, str(asked or "check"), applied)
+        check = check_frame_offsets(model, detections, frames, options, str(asked or "check"), applied, recording)
         if asked == "auto" and check.named:
             paired = paired_frames(detections, check.named, recording)
             model = with_camera_bands(model, [names for _, names in paired])

@@ -206,9 +206,10 @@ def with_camera_bands(model, groups: Iterable[list[str]]):
 
 
 def check_frame_offsets(model, detections: Detections, chain: list, options: AssociateOptions, asked: str,
-                        applied: dict[str, int] | None = None) -> SyncCheck:
+                        applied: dict[str, int] | None = None, recording: list[str] | None = None) -> SyncCheck:
     """Each rig's frame offset (module docstring) from ``chain`` (associate_frames' frames of ``detections``, in
-    order, paired as given: ``applied`` offsets already applied, none by default)."""
+    order, paired as given: ``applied`` offsets already applied, none by default); ``recording``: its frames
+    (:func:`recording_frames`, where the caller has them)."""
     from rigsfm.associate.pipeline import frame_views
 
     start = time.perf_counter()
@@ -223,7 +224,9 @@ def check_frame_offsets(model, detections: Detections, chain: list, options: Ass
     if len(cameras) < 3 or search < 1:
         check.skipped = NOT_A_RECORDING
         return check
-    skipped = skipped_frames(detections, recording_frames(detections, model.images_root, model.known))
+    if recording is None:
+        recording = recording_frames(detections, model.images_root, model.known)
+    skipped = skipped_frames(detections, recording)
     if skipped:  # the shifts below step through the DETECTIONS' frames: every second one would count double
         check.skipped = (f"the detections skip {len(skipped)} frame(s) of the recording (e.g. {skipped[0]}), and the "
                          "check needs consecutive frames")

@@ -15,7 +15,6 @@ written by hand or before the record) are taken as they are.
 from __future__ import annotations
 
 import csv
-import hashlib
 import io
 import json
 import logging
@@ -24,7 +23,13 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from rigsfm.core.errors import InputError
-from rigsfm.core.io import read_user_text, write_bytes_atomic, write_json_atomic, write_text_atomic
+from rigsfm.core.io import (
+    file_sha256,
+    read_user_text,
+    write_bytes_atomic,
+    write_json_atomic,
+    write_text_atomic,
+)
 
 logger = logging.getLogger(__name__)
 
@@ -170,7 +175,7 @@ class ImageDigests:
             stat = path.stat()
             key = (stat.st_size, stat.st_mtime_ns)
             if name not in self._known or self._known[name][0] != key:
-                self._known[name] = (key, hashlib.sha256(path.read_bytes()).hexdigest()[:16])
+                self._known[name] = (key, file_sha256(path))
         except OSError:
             return None
         return self._known[name][1]
@@ -211,5 +216,5 @@ def save_record(path: Path, labels: list[Label], digests: ImageDigests) -> None:
         if digest is not None:
             images[name] = digest
     write_json_atomic(record_path(path), {
-        "about": "the SHA-256 (first 16 hex digits) of each labelled image when its labels were saved: rigsfm "
+        "about": "the SHA-256 of each labelled image when its labels were saved (as the run's images.json): rigsfm "
                  "explore sets aside labels whose image has changed since", "images": images})

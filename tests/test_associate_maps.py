@@ -7,7 +7,7 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from rigsfm.associate.output import density_image, floor_map
+from rigsfm.associate.output import COLOUR_BAR, density_image, floor_map
 from rigsfm.core import charts
 
 BOUNDS = (-3.0, -2.0, 5.0, 4.0)  # x0, y0, x1, y1 (m): the origin inside, negative and positive ticks
@@ -58,9 +58,14 @@ def test_the_density_image_has_metre_axes_and_a_scale():
     counts[1, 2] = 3
     seen = np.full((6, 8), 2)
     image = density_image(counts, cell, seen, BOUNDS)
-    frame = charts.MapFrame(*BOUNDS, scale=24.0 / cell, top=charts.MapFrame.top + 24)
+    frame = charts.MapFrame(*BOUNDS, scale=24.0 / cell, top=charts.MapFrame.top + 44)
     _check_axes(image, frame)
     # the cell (row 1, column 2) lies at x 2-3 m from x0, y 1-2 m from y0: its colour is there on the map
     centre = frame.px([BOUNDS[0] + 2.5 * cell, BOUNDS[1] + 1.5 * cell])[0].round().astype(int)
     empty = frame.px([BOUNDS[0] + 0.5 * cell, BOUNDS[1] + 0.5 * cell])[0].round().astype(int)
     assert not np.array_equal(image[centre[1], centre[0]], image[empty[1], empty[0]])
+    # the colours' scale: a bar from 0 (the empty cell's colour) to the largest density (the full cell's)
+    x0, y0, x1, y1 = COLOUR_BAR
+    full = frame.px([BOUNDS[0] + 2.5 * cell, BOUNDS[1] + 1.5 * cell])[0].round().astype(int)
+    assert np.abs(image[(y0 + y1) // 2, x0].astype(int) - image[empty[1], empty[0]]).max() <= 3
+    assert np.abs(image[(y0 + y1) // 2, x1 - 1].astype(int) - image[full[1], full[0]]).max() <= 3

@@ -247,6 +247,9 @@ def floor_map(frame, prints: list[np.ndarray], bounds, plane_m: float, size: int
     return image
 
 
+COLOUR_BAR = (16, 26, 216, 36)  # density.png's colour bar (x0, y0, x1, y1 px): 0 to the frame's largest density
+
+
 def density_image(counts: np.ndarray, cell: float, seen: np.ndarray, bounds, pixels: int = 24) -> np.ndarray:
     """The density grid over ``bounds`` (its cells of ``cell`` metres, ``pixels`` each) in the run's world, with
     metre axes and a scale bar; grey where fewer than two views see a cell."""
@@ -256,7 +259,7 @@ def density_image(counts: np.ndarray, cell: float, seen: np.ndarray, bounds, pix
     cells = cv2.applyColorMap(grey[::-1], cv2.COLORMAP_VIRIDIS)  # type: ignore[index]  # np.uint8(array) is an array
     cells[seen[::-1] < 2] = charts.bgr("grid")
     cells = cv2.resize(cells, (cells.shape[1] * pixels, cells.shape[0] * pixels), interpolation=cv2.INTER_NEAREST)
-    legend = 24  # a band above the map for the legend
+    legend = 44  # a band above the map for the legend and its colour bar
     x0, y0, x1, y1 = (float(v) for v in bounds)
     view = charts.MapFrame(x0, y0, x1, y1, scale=pixels / cell, top=charts.MapFrame.top + legend)
     image = charts.canvas(max(view.width, 440), view.height)  # the legend's width
@@ -265,6 +268,12 @@ def density_image(counts: np.ndarray, cell: float, seen: np.ndarray, bounds, pix
     # the persons found: one hidden or missed in all but one view is not among them (a dense crowd's most)
     charts.text(image, f"persons found per m2 (not the hidden), max {top:.1f}; grey: fewer than 2 narrow views",
                 (4, 16), size=0.4)
+    ramp = cv2.applyColorMap(np.linspace(0, 255, COLOUR_BAR[2] - COLOUR_BAR[0]).astype(np.uint8)[None, :],
+                             cv2.COLORMAP_VIRIDIS)
+    x0, y0, x1, y1 = COLOUR_BAR
+    image[y0:y1, x0:x1] = np.repeat(ramp, y1 - y0, axis=0)
+    charts.text(image, "0", (x0 - 12, y1 - 1), size=0.4, colour="muted")
+    charts.text(image, f"{top:.1f} per m2", (x1 + 6, y1 - 1), size=0.4, colour="muted")
     return image
 
 

@@ -421,3 +421,21 @@ def test_a_floor_from_the_markers_alone_is_said_so(monkeypatch):
     assert "RMS" not in line and "2 floor points" not in line
     assert "world: floor frame (from the 2 known-length end points alone, tilt sigma 0.45 deg; cameras 3.38-3.74 m " \
            "above the floor)" in line
+
+
+def test_the_report_names_a_floor_from_the_markers_alone():
+    """report.html labelled a floor made of the known-length bar's ends 'normal σ of the points' scatter (a lower
+    bound)' with a 'fit residual RMS 0': its sigma is the cameras' up's (their rolls), its residual no fit's."""
+    import pycolmap
+
+    from rigsfm.inspect.report.html import world_section
+
+    floor = {"found": True, "num_points": 2, "rms": 0.0, "camera_height": {"min": 3.38, "max": 3.74},
+             "points_by_source": {"sparse": 0, "matched": 0, "markers": 2}, "normal_sigma_deg": 0.45,
+             "marker_residuals": [0.0, 0.0], "matching": {"ran": True, "rounds": 1, "image_pairs": 12,
+                                                          "matched_points": 55, "seconds": 16.1, "why": "none"}}
+    world = {"frame": "floor", "asked": "floor", "units": "metres", "z_axis": "up", "origin": "o", "x_axis": "x",
+             "floor": floor}
+    section = world_section({"world": world}, pycolmap.Reconstruction())
+    assert "points' scatter" not in section and "fit residual" not in section
+    assert "the known-length markers alone" in section and "normal σ from the cameras' rolls" in section

@@ -411,3 +411,6 @@ def test_wildtrack_images_of_frames_the_run_was_not_given(tmp_path, caplog):
                                   poses_from="nope.png"))
     with pytest.raises(InputError, match="--poses-from needs --images"):
         export(out, ExportOptions(format=ExportFormat.WILDTRACK, dest=tmp_path / "w4", poses_from=frame))
+    cv2.imwrite(str(images / narrow[0].name.replace(frame, "later.png")), np.zeros((100, 120), np.uint8))
+    with pytest.raises(InputError, match=r"later.png is 120x100 px, its camera rig01_narrow"):
+        export(out, ExportOptions(format=ExportFormat.WILDTRACK, dest=tmp_path / "w5", images=True, poses_from=frame))

@@ -245,7 +245,7 @@ def test_markers_that_cannot_be_the_floor_are_not_taken_for_it():
     markers = np.array([world.model_from_truth * p for p in ([27.9, 0.0, 1.0], [27.9, 0.0, 3.0], [27.0, 7.2, 1.0],
                                                               [27.0, 7.2, 3.0])])
     fit = estimate_floor(world.reconstruction, None, markers).fit
-    assert not fit and "known-length" in fit.reason and "on the floor" in fit.reason
+    assert not fit and "known-length" in fit.reason and "off the floor" in fit.reason
 
 
 def test_one_bar_and_two_rigs_give_no_floor():

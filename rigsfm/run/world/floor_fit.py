@@ -319,7 +319,8 @@ def marker_floor(reconstruction: pycolmap.Reconstruction, markers: np.ndarray, r
     heights = centres @ normal + offset
     if angle > max_tilt or heights.min() <= 0:
         return NoFloor(f"{reason}; the known-length markers' plane is {angle:.0f} deg from the cameras' up"
-                       f"{' and has a camera below it' if heights.min() <= 0 else ''}: are they on the floor?")
+                       f"{' and has a camera below it' if heights.min() <= 0 else ''} (markers off the floor, or a bar's ends "
+                       "a and b swapped in one image)")
     residuals = points @ normal + offset
     rms = float(np.sqrt(np.mean(residuals**2)))
     if spread_out:

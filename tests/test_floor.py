@@ -132,6 +132,9 @@ def test_markers_off_the_floor_are_flagged():
     assert fit.marker_residuals == pytest.approx([0.0, 0.5], abs=0.01)
     assert fit.points_by_source["markers"] == 1
     assert any("markers on the floor" in w for w in fit.warnings)
+    # a bar whose ends a and b are swapped in one image triangulates off the floor too (rendered 6-rig crowd: its
+    # plane 8 deg off the cameras' up), with its length met: the scale it sets is then wrong, and only this says so
+    assert any("a and b swapped in one image" in w and "scale" in w for w in fit.warnings)
 
 
 def test_markers_alone_guess_the_floor_height():

@@ -242,7 +242,8 @@ def fit_floor(reconstruction: pycolmap.Reconstruction, markers: np.ndarray | Non
     far = [v for v in marker_residuals if abs(v) > 3 * t]
     if far:
         warnings.append(f"{len(far)} known-length end point(s) are off the floor by up to {max(map(abs, far)):.3g}: "
-                        "are the markers on the floor?")
+                        "are the markers on the floor? (or a and b swapped in one image: the bar then triangulates "
+                        "off the floor at another length, and sets a wrong scale where it is the only measurement)")
     angle = float(np.degrees(np.arccos(np.clip(normal @ up, -1.0, 1.0))))
     normal_sigma, height_sigma = plane_precision(points[inliers], normal, max(robust_sigma, rms / 3), centres)
     floor_from_model, origin_rig = _floor_frame(normal, offset, reconstruction, x_towards)
@@ -320,7 +321,7 @@ def marker_floor(reconstruction: pycolmap.Reconstruction, markers: np.ndarray, r
     if angle > max_tilt or heights.min() <= 0:
         return NoFloor(f"{reason}; the known-length markers' plane is {angle:.0f} deg from the cameras' up"
                        f"{' and has a camera below it' if heights.min() <= 0 else ''} (markers off the floor, or a bar's ends "
-                       "a and b swapped in one image)")
+                       "a and b swapped in one image, which also sets a wrong scale where it is the only measurement)")
     residuals = points @ normal + offset
     rms = float(np.sqrt(np.mean(residuals**2)))
     if spread_out:

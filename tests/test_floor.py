@@ -3,6 +3,8 @@ the truth, the frame's definition, the transform's effect on the rigs, and scene
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pycolmap
 import pytest
@@ -267,3 +269,30 @@ def test_no_floor_with_markers_does_not_ask_for_markers():
     assert "give known-length markers on the floor" in no_floor_warning("no plane", 0)
     with_markers = no_floor_warning("no plane", 2)
     assert "give known-length markers" not in with_markers and "add one away from the others" in with_markers
+
+
+def test_a_bar_with_its_ends_swapped_in_one_image_is_named_as_a_scale_problem():
+    """A known length whose ends a and b were swapped in one of its images triangulates at another length along the
+    epipolar lines without a pixel residual, so the adjustment met its 2 m and set the scale 3.7x off (rendered 6-rig
+    crowd, that bar alone in scale.yaml: rig01-rig04 8.117 m for 30.001 m, metric true, no scale warning). A bar on
+    the floor is level: one whose ends differ in height is named, and a level one is not."""
+    from rigsfm.run.adjustment.scale_check import unlevel_known_lengths
+    from rigsfm.run.inputs.scale_file import KnownLength, LengthObservation, ScaleSpec
+
+    world = ring(seed=20, num_rigs=6)
+    rec = world.reconstruction
+    ends = _bars(world, [(1.0, 2.0), (2.6, 3.2)])
+    seen = [im for im in sorted(rec.images.values(), key=lambda im: im.name) if "/wide/" in im.name
+            and all(im.project_point(e) is not None for e in ends)][:2]
+    assert len(seen) == 2
+
+    def spec(swapped: bool) -> ScaleSpec:
+        observations = []
+        for k, image in enumerate(seen):
+            a, b = (tuple(float(v) for v in image.project_point(e)) for e in ends)
+            observations.append(LengthObservation(image.name, *((b, a) if swapped and k == 1 else (a, b))))
+        return ScaleSpec(Path("scale.yaml"), (), (KnownLength(2.0, tuple(observations)),))
+
+    assert unlevel_known_lengths(rec, spec(False)) == []
+    (warning,) = unlevel_known_lengths(rec, spec(True))
+    assert warning.startswith("SCALE MARKER: known_length[0] (2 m)") and "swapped" in warning and seen[1].name in warning

@@ -359,3 +359,58 @@ def test_the_json_export_says_what_its_numbers_are_in(tmp_path):
     narrow = json.loads((tmp_path / "out" / "narrow_poses.json").read_text())
     assert poses["metric"] is True and poses["units"] == narrow["units"] and poses["world"] == narrow["world"]
     assert poses["world"]["frame"] == "floor" and len(poses["images"]) > 0
+
+
+def test_wildtrack_images_of_frames_the_run_was_not_given(tmp_path, caplog):
+    """A recording beside the run's images, associated with `rigsfm associate --poses-from FRAME` (static rigs):
+    `export --format wildtrack --images` wrote only the run's own frame, without a word, so MVDet-family tools got one
+    frame of the recording. It now names the frames left out, and with --poses-from FRAME writes them too,
+    undistorted with the run's cameras."""
+    import json
+    import logging
+
+    from typer.testing import CliRunner
+
+    from rigsfm.cli import app
+    from rigsfm.inspect.export import export
+    from rigsfm.inspect.options import ExportFormat, ExportOptions
+
+    out, images = tmp_path / "out", tmp_path / "images"
+    rec = finished_workspace(out)
+    narrow = sorted((im for im in rec.images.values() if "/narrow/" in im.name), key=lambda im: im.name)
+    frame = narrow[0].name.split("/")[-1]
+    rigs = [im.name.split("/")[0] for im in narrow]
+    rng = np.random.default_rng(0)
+    for image in narrow:
+        pixels = rng.integers(0, 255, (image.camera.height, image.camera.width), dtype=np.uint8)
+        for name in (image.name, image.name.replace(frame, "later.png")):  # the same picture in both frames
+            (images / name).parent.mkdir(parents=True, exist_ok=True)
+            cv2.imwrite(str(images / name), pixels)
+    (out / "summary.json").write_text(json.dumps({"inputs": {"images": str(images)}}))
+
+    def written(dest):
+        return sorted(p.relative_to(dest / "Image_subsets").as_posix() for p in (dest / "Image_subsets").rglob("*"))
+
+    with caplog.at_level(logging.WARNING, logger="rigsfm.inspect.export"):
+        dest = export(out, ExportOptions(format=ExportFormat.WILDTRACK, dest=tmp_path / "w1", images=True))
+    stem = frame.rsplit(".", 1)[0]
+    assert written(dest) == sorted([*rigs, *(f"{rig}/{stem}.png" for rig in rigs)])
+    assert f"{len(rigs)} narrow image(s) of 1 frame(s) the run was not given (later.png)" in caplog.text
+    assert f"--poses-from {frame}" in caplog.text
+
+    result = CliRunner().invoke(app, ["export", str(out), "--format", "wildtrack", "--images", "--poses-from", frame,
+                                      "--dest", str(tmp_path / "w2")])
+    assert result.exit_code == 0, result.output
+    lent = tmp_path / "w2"
+    assert written(lent) == sorted([*rigs, *(f"{rig}/{s}.png" for rig in rigs for s in (stem, "later"))])
+    for rig in rigs:  # undistorted exactly as the run's own frame: its camera
+        assert (lent / "Image_subsets" / rig / "later.png").read_bytes() == \
+            (lent / "Image_subsets" / rig / f"{stem}.png").read_bytes()
+    with pytest.raises(InputError, match="--poses-from 'nope.png' is not a frame of this run"):
+        export(out, ExportOptions(format=ExportFormat.WILDTRACK, dest=tmp_path / "w3", images=True,
+                                  poses_from="nope.png"))
+    with pytest.raises(InputError, match="--poses-from needs --images"):
+        export(out, ExportOptions(format=ExportFormat.WILDTRACK, dest=tmp_path / "w4", poses_from=frame))
+    cv2.imwrite(str(images / narrow[0].name.replace(frame, "later.png")), np.zeros((100, 120), np.uint8))
+    with pytest.raises(InputError, match=r"later.png is 120x100 px, its camera rig01_narrow"):
+        export(out, ExportOptions(format=ExportFormat.WILDTRACK, dest=tmp_path / "w5", images=True, poses_from=frame))

@@ -446,3 +446,29 @@ def test_frame_selector(two_frames, tmp_path):
                                                                      ("rig02/narrow/frame0000.png", "p1")]
     finally:
         server.close()
+
+
+def test_frames_the_run_was_not_given_are_named_as_not_shown(tmp_path, caplog):
+    """A recording beside the run's images (associated with `rigsfm associate --poses-from`): the explorer offered
+    the run's frames only, and said nothing of the others; it names them and what shows their persons instead."""
+    import json
+    import logging
+
+    import cv2
+    from test_camera_files import finished_workspace
+
+    from rigsfm.explore.session import ExploreResult
+
+    out, images = tmp_path / "out", tmp_path / "images"
+    rec = finished_workspace(out)
+    for image in rec.images.values():
+        if "/narrow/" in image.name:
+            for name in (image.name, image.name.rsplit("/", 1)[0] + "/later.png"):
+                (images / name).parent.mkdir(parents=True, exist_ok=True)
+                cv2.imwrite(str(images / name), np.zeros((image.camera.height, image.camera.width), np.uint8))
+    (out / "summary.json").write_text(json.dumps({"inputs": {"images": str(images)}}))
+    with caplog.at_level(logging.WARNING, logger="rigsfm.explore.session"):
+        result = ExploreResult(out)
+    assert "later.png" not in result.frames
+    assert "1 frame(s) beside the run's images that it was not given (later.png)" in caplog.text
+    assert "--poses-from" in caplog.text

@@ -262,3 +262,26 @@ def test_a_rig_off_in_time_is_named_by_its_heads_and_kept_out(rendered):
     given = NarrowObservations("auto", False, "")
     assert heads_instead(truth, dataset.images, None, {"rig03": 1}, bands, given), given.reason
     assert given.head_timing is None and not given.warnings
+
+
+def test_without_a_floor_the_reason_says_heads_were_not_searched(monkeypatch):
+    """A 6-rig crowd of 3D persons without a floor frame: `narrow observations not used: the narrow images carry no
+    usable texture`, though the heads, which carry such a run, are searched only in the floor frame and were not
+    tried: the user was not told that finding the floor would bring them."""
+    from types import SimpleNamespace
+
+    import pycolmap
+
+    from rigsfm.run.narrow import stage
+    from rigsfm.run.options import NarrowMode
+
+    monkeypatch.setattr(stage, "find_matches", lambda *args, **kwargs: [])
+    called = []
+    monkeypatch.setattr(stage, "heads_instead", lambda *args, **kwargs: called.append(1))
+    result = SimpleNamespace(reconstruction=pycolmap.Reconstruction())
+    for frame, searched in (("mapping", False), ("floor", True)):
+        world = SimpleNamespace(metric=True, frame=frame, apply=lambda model: None)
+        _, record = stage.narrow_observations(result, world, Path("."), NarrowMode.AUTO)
+        assert bool(called) == searched
+        said = "heads" in record.reason and "floor frame" in record.reason
+        assert said != searched, record.reason

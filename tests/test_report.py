@@ -397,3 +397,45 @@ def test_a_result_that_is_not_metric_writes_no_millimetre_keys_with_numbers():
     html = uncertainty_section({"metric": False}, summary)
     assert "E^sl translation change (units)" in html and "(mm)" not in html, html
     assert ">0.0125<" in html and ">0.0031<" in html and ">3.74<" in html, html
+
+
+def test_a_floor_from_the_markers_alone_is_said_so(monkeypatch):
+    """A crowd hid the floor, so the floor frame came from the known-length bar's two ends: the terminal said
+    '2 floor points, RMS 0.0 mm', a fit of two points that fit nothing."""
+    import io
+    from types import SimpleNamespace
+
+    from rich.console import Console
+
+    import rigsfm.cli.run as cli_run
+    from rigsfm.core.summary import WorldSummary
+
+    floor = {"num_points": 2, "rms": 0.0, "camera_height": {"min": 3.38, "max": 3.74},
+             "points_by_source": {"sparse": 0, "matched": 0, "markers": 2}, "normal_sigma_deg": 0.45}
+    out = io.StringIO()
+    monkeypatch.setattr(cli_run, "console", Console(file=out, width=300))
+    world = WorldSummary(asked="floor", frame="floor", units="metres", floor=floor)
+    cli_run.print_world(SimpleNamespace(world=world, epipolar_self_check=None, narrow_observations=None,
+                                        frame_offsets=None, replaced=None))
+    line = out.getvalue()
+    assert "RMS" not in line and "2 floor points" not in line
+    assert "world: floor frame (from the 2 known-length end points alone, tilt sigma 0.45 deg; cameras 3.38-3.74 m " \
+           "above the floor)" in line
+
+
+def test_the_report_names_a_floor_from_the_markers_alone():
+    """report.html labelled a floor made of the known-length bar's ends 'normal σ of the points' scatter (a lower
+    bound)' with a 'fit residual RMS 0': its sigma is the cameras' up's (their rolls), its residual no fit's."""
+    import pycolmap
+
+    from rigsfm.inspect.report.html import world_section
+
+    floor = {"found": True, "num_points": 2, "rms": 0.0, "camera_height": {"min": 3.38, "max": 3.74},
+             "points_by_source": {"sparse": 0, "matched": 0, "markers": 2}, "normal_sigma_deg": 0.45,
+             "marker_residuals": [0.0, 0.0], "matching": {"ran": True, "rounds": 1, "image_pairs": 12,
+                                                          "matched_points": 55, "seconds": 16.1, "why": "none"}}
+    world = {"frame": "floor", "asked": "floor", "units": "metres", "z_axis": "up", "origin": "o", "x_axis": "x",
+             "floor": floor}
+    section = world_section({"world": world}, pycolmap.Reconstruction())
+    assert "points' scatter" not in section and "fit residual" not in section
+    assert "the known-length markers alone" in section and "normal σ from the cameras' rolls" in section

@@ -212,16 +212,13 @@ def _csv(header: list[str], rows: list[list]) -> str:
 
 
 def floor_map(frame, prints: list[np.ndarray], bounds, plane_m: float, size: int = 900) -> np.ndarray:
-    """Top view over ``bounds``: the narrow footprints ``prints`` on the plane ``plane_m`` above the floor and
-    every person's 95 % ellipse."""
+    """Top view over ``bounds`` in the run's world (metres on both axes, a scale bar): the narrow footprints
+    ``prints`` on the plane ``plane_m`` above the floor and every person's 95 % ellipse."""
     x0, y0, x1, y1 = bounds
-    scale = (size - 60) / max(x1 - x0, y1 - y0)
-    width, height = int((x1 - x0) * scale) + 60, int((y1 - y0) * scale) + 60
+    view = charts.MapFrame.fit(bounds, size)
+    scale, width, height = view.scale, view.width, view.height
     image = charts.canvas(width, height)
-
-    def px(xy):
-        xy = np.atleast_2d(xy)
-        return np.c_[30 + (xy[:, 0] - x0) * scale, height - 30 - (xy[:, 1] - y0) * scale]
+    px = view.px
 
     for gx in range(math.ceil(x0), math.floor(x1) + 1):
         a, b = px([gx, y0])[0], px([gx, y1])[0]
@@ -232,7 +229,9 @@ def floor_map(frame, prints: list[np.ndarray], bounds, plane_m: float, size: int
     for polygon in prints:
         cv2.polylines(image, [np.round(px(polygon)).astype(np.int32)], True, charts.bgr("narrow"), 1, cv2.LINE_AA)
     blank = charts.canvas(width, height)  # footprints reach far beyond the grid: cut them at its edge
-    image[:30], image[-30:], image[:, :30], image[:, -30:] = blank[:30], blank[-30:], blank[:, :30], blank[:, -30:]
+    top, bottom, left, right = view.top, height - view.bottom, view.left, width - view.right
+    image[:top], image[bottom + 1:], image[:, :left], image[:, right + 1:] = (
+        blank[:top], blank[bottom + 1:], blank[:, :left], blank[:, right + 1:])
     result = frame.result
     if len(result):  # every person's ellipse at once: a recording writes a map per frame
         values, vectors = np.linalg.eigh(result.covariances[:, :2, :2])
@@ -242,25 +241,40 @@ def floor_map(frame, prints: list[np.ndarray], bounds, plane_m: float, size: int
         for (cx, cy), (minor, major), angle in zip(centres.tolist(), axes.tolist(), angles.tolist()):
             cv2.ellipse(image, (cx, cy), (major, minor), angle, 0, 360, charts.bgr("wide"), 1, cv2.LINE_AA)
             cv2.circle(image, (cx, cy), 1, charts.bgr("ink"), -1)
+    view.draw_axes(image)
     charts.text(image, f"{frame.frame}: {len(result)} persons; narrow footprints at {plane_m:.2f} m (orange), "
-                       "95 % ellipses (blue), 1 m grid", (10, 18))
+                       "95 % ellipses (blue), 1 m grid; world metres", (10, 18))
     return image
 
 
-def density_image(counts: np.ndarray, cell: float, seen: np.ndarray, pixels: int = 24) -> np.ndarray:
+COLOUR_BAR = (16, 26, 216, 36)  # density.png's colour bar (x0, y0, x1, y1 px): 0 to the frame's largest density
+
+
+def density_image(counts: np.ndarray, cell: float, seen: np.ndarray, bounds, pixels: int = 24) -> np.ndarray:
+    """The density grid over ``bounds`` (its cells of ``cell`` metres, ``pixels`` each) in the run's world, with
+    metre axes and a scale bar; grey where fewer than two views see a cell."""
     density = counts / cell ** 2
     top = max(float(density.max()), 1e-9)
     grey = np.uint8(np.clip(density / top * 255, 0, 255))
-    image = cv2.applyColorMap(grey[::-1], cv2.COLORMAP_VIRIDIS)  # type: ignore[index]  # np.uint8(array) is an array
-    image[seen[::-1] < 2] = charts.bgr("grid")
-    image = cv2.resize(image, (image.shape[1] * pixels, image.shape[0] * pixels), interpolation=cv2.INTER_NEAREST)
-    band = charts.canvas(max(image.shape[1], 440), 24)  # the legend's width
+    cells = cv2.applyColorMap(grey[::-1], cv2.COLORMAP_VIRIDIS)  # type: ignore[index]  # np.uint8(array) is an array
+    cells[seen[::-1] < 2] = charts.bgr("grid")
+    cells = cv2.resize(cells, (cells.shape[1] * pixels, cells.shape[0] * pixels), interpolation=cv2.INTER_NEAREST)
+    legend = 44  # a band above the map for the legend and its colour bar
+    x0, y0, x1, y1 = (float(v) for v in bounds)
+    view = charts.MapFrame(x0, y0, x1, y1, scale=pixels / cell, top=charts.MapFrame.top + legend)
+    image = charts.canvas(max(view.width, 440), view.height)  # the legend's width
+    image[view.top:view.top + cells.shape[0], view.left:view.left + cells.shape[1]] = cells
+    view.draw_axes(image)
     # the persons found: one hidden or missed in all but one view is not among them (a dense crowd's most)
-    charts.text(band, f"persons found per m2 (not the hidden), max {top:.1f}; grey: fewer than 2 narrow views",
+    charts.text(image, f"persons found per m2 (not the hidden), max {top:.1f}; grey: fewer than 2 narrow views",
                 (4, 16), size=0.4)
-    if band.shape[1] > image.shape[1]:
-        image = np.hstack([image, charts.canvas(band.shape[1] - image.shape[1], image.shape[0])])
-    return np.vstack([band, image])
+    ramp = cv2.applyColorMap(np.linspace(0, 255, COLOUR_BAR[2] - COLOUR_BAR[0]).astype(np.uint8)[None, :],
+                             cv2.COLORMAP_VIRIDIS)
+    x0, y0, x1, y1 = COLOUR_BAR
+    image[y0:y1, x0:x1] = np.repeat(ramp, y1 - y0, axis=0)
+    charts.text(image, "0", (x0 - 12, y1 - 1), size=0.4, colour="muted")
+    charts.text(image, f"{top:.1f} per m2", (x1 + 6, y1 - 1), size=0.4, colour="muted")
+    return image
 
 
 def _png(path: Path, image: np.ndarray) -> None:
@@ -292,7 +306,7 @@ def write_results(dest: Path, model, frames: list, options, previous: Previous |
             counts, rows = density_grid(frame.result.points, bounds, options.cell_m, seen)
             (folder / "density.csv").write_text(_csv(["x_min_m", "y_min_m", "x_max_m", "y_max_m", "persons", "per_m2",
                                                       "views"], rows))
-            _png(folder / "density.png", density_image(counts, options.cell_m, seen))
+            _png(folder / "density.png", density_image(counts, options.cell_m, seen, bounds))
             _png(folder / "floor.png", floor_map(frame, prints, bounds, height))
         previous = check_destination(dest, True) if previous is None else previous
         commit(dest, tmp, previous, MANIFEST, {"written_by": "rigsfm associate", "model": fingerprint,

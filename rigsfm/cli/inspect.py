@@ -57,11 +57,16 @@ def export_command(
                                                         "wrote there are removed)")] = False,
     images: Annotated[bool, flag("--images", help="wildtrack: also write the narrow images, undistorted "
                                                   "(Image_subsets/<rig>/<frame>.png)")] = False,
+    poses_from: Annotated[str | None, typer.Option(
+        "--poses-from", metavar="FRAME",
+        help="with --images: also the narrow images of frames the run was not given (a recording beside its images, "
+             "as `rigsfm associate --poses-from`), undistorted with the cameras of its frame FRAME (static rigs)  "
+             "[default: the run's frames only]", show_default=False)] = None,
 ) -> None:
     """Export the calibrated network for COLMAP, Open3D, nerfstudio, EasyMocap (opencv), aniposelib (toml),
     WILDTRACK / MVDet (wildtrack) or as plain JSON poses."""
     from rigsfm.inspect.export import export
 
     configure_logging(False)  # the files an --overwrite keeps, named as warnings
-    options = ExportOptions(format=fmt, dest=dest, overwrite=overwrite, images=images)
+    options = ExportOptions(format=fmt, dest=dest, overwrite=overwrite, images=images, poses_from=poses_from)
     console.print(f"exported {fmt}: {export(out, options)}")

@@ -86,7 +86,13 @@ def print_world(summary) -> None:
     if world and world.frame == "floor":
         heights = floor.get("camera_height") or {}
         low, high = heights.get("min", 0), heights.get("max", 0)
-        if world.units == "metres":
+        by_source = floor.get("points_by_source") or {}
+        if by_source and by_source.get("markers") == floor.get("num_points"):  # a crowd hid the floor: no fit to show
+            unit = " m" if world.units == "metres" else " (the mapper's units: not metric)"
+            console.print(f"world: floor frame (from the {floor.get('num_points')} known-length end points alone, tilt "
+                          f"sigma {floor.get('normal_sigma_deg', float('nan')):.2g} deg; cameras {low:.2f}-{high:.2f}"
+                          f"{unit} above the floor)")
+        elif world.units == "metres":
             console.print(f"world: floor frame ({floor.get('num_points')} floor points, RMS {1000 * floor['rms']:.1f} "
                           f"mm; cameras {low:.2f}-{high:.2f} m above the floor)")
         else:  # no scale: a millimetre or a metre would be a claim the result cannot make

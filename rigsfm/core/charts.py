@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import base64
 from collections.abc import Sequence
+from dataclasses import dataclass
 
 import cv2
 import numpy as np
@@ -90,6 +91,80 @@ class Axes:
                      cv2.LINE_AA)
         if label:
             text(self.image, label, (self.right - 8 * len(label) - 6, y - 5), size=0.4, colour=colour)
+
+
+@dataclass(frozen=True)
+class MapFrame:
+    """A top view of the world (x right, y up, metres) in an image: the plot area over ``x0..x1`` by ``y0..y1`` at
+    ``scale`` pixels per metre, inside margins that hold the axes' labels (:meth:`draw_axes`)."""
+
+    x0: float
+    y0: float
+    x1: float
+    y1: float
+    scale: float  # pixels per metre
+    left: int = 52
+    top: int = 40
+    right: int = 24
+    bottom: int = 48
+
+    @classmethod
+    def fit(cls, bounds: Sequence[float], size: int) -> MapFrame:
+        """The frame whose longer side of ``bounds`` spans ``size`` pixels less the margins."""
+        x0, y0, x1, y1 = (float(v) for v in bounds)
+        return cls(x0, y0, x1, y1, (size - cls.left - cls.right) / max(x1 - x0, y1 - y0, 1e-9))
+
+    @property
+    def width(self) -> int:
+        return self.left + int(round((self.x1 - self.x0) * self.scale)) + self.right
+
+    @property
+    def height(self) -> int:
+        return self.top + int(round((self.y1 - self.y0) * self.scale)) + self.bottom
+
+    def px(self, xy) -> np.ndarray:
+        """Image pixels (Nx2, x right, y down) of world points (Nx2 or more columns, metres)."""
+        xy = np.atleast_2d(np.asarray(xy, dtype=np.float64))
+        return np.c_[self.left + (xy[:, 0] - self.x0) * self.scale,
+                     self.height - self.bottom - (xy[:, 1] - self.y0) * self.scale]
+
+    def step(self, axis: str = "x") -> float:
+        """The ticks' spacing (m) along ``axis``: the smallest round length at least 60 px long on x, where labels
+        such as -12.5 stand side by side, 30 px on y, where they stand one above the other."""
+        raw = (60.0 if axis == "x" else 30.0) / self.scale
+        magnitude = 10 ** np.floor(np.log10(raw))
+        return float(next(m * magnitude for m in (1, 2, 2.5, 5, 10) if m * magnitude >= raw - 1e-12))
+
+    def ticks(self, axis: str) -> list[float]:
+        """The labelled values of ``axis`` ("x" or "y") inside the plot: whole multiples of :meth:`step`."""
+        lo, hi = (self.x0, self.x1) if axis == "x" else (self.y0, self.y1)
+        step = self.step(axis)
+        return [round(k * step, 9) + 0.0 for k in range(int(np.ceil(lo / step - 1e-9)), int(np.floor(hi / step + 1e-9)) + 1)]
+
+    def draw_axes(self, image: np.ndarray) -> None:
+        """Ticks labelled in metres under the plot (x) and left of it (y), the axes' names and a scale bar one tick
+        step long."""
+        bottom, right = self.height - self.bottom, self.width - self.right
+        cv2.rectangle(image, (self.left, self.top), (right, bottom), bgr("muted"), 1)
+        for x in self.ticks("x"):
+            u = int(round(self.px([x, self.y0])[0, 0]))
+            cv2.line(image, (u, bottom), (u, bottom + 4), bgr("muted"), 1)
+            label = f"{x:g}"
+            text(image, label, (u - 4 * len(label), bottom + 17), size=0.4, colour="muted")
+        for y in self.ticks("y"):
+            v = int(round(self.px([self.x0, y])[0, 1]))
+            cv2.line(image, (self.left - 4, v), (self.left, v), bgr("muted"), 1)
+            label = f"{y:g}"
+            text(image, label, (self.left - 8 - 8 * len(label), v + 4), size=0.4, colour="muted")
+        text(image, "x (m)", (right - 40, bottom + 40), size=0.4)
+        text(image, "y (m)", (4, self.top - 8), size=0.4)
+        step = self.step()
+        length = int(round(step * self.scale))
+        y = bottom + 36
+        cv2.line(image, (self.left, y), (self.left + length, y), bgr("ink"), 2)
+        for u in (self.left, self.left + length):
+            cv2.line(image, (u, y - 4), (u, y + 4), bgr("ink"), 1)
+        text(image, f"{step:g} m", (self.left + length + 6, y + 4), size=0.4)
 
 
 def bar_chart(title: str, labels: Sequence[str], series: Sequence[Sequence[float | None]],

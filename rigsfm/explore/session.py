@@ -114,6 +114,21 @@ class ExploreResult:
             if missing:
                 raise InputError(f"{self.images_dir} lacks {', '.join(missing[:3])}"
                                  f"{' ...' if len(missing) > 3 else ''}; pass --images IMAGES (the run's)")
+        self._say_frames_not_shown()
+
+    def _say_frames_not_shown(self) -> None:
+        """One warning for the narrow frames beside the run's images that it was not given (a recording associated
+        with ``rigsfm associate --poses-from``): the explorer shows the run's own frames only."""
+        from rigsfm.inspect.export import frames_not_in_run
+
+        assert self.images_dir is not None
+        others = sorted({name.rsplit("/", 1)[1] for name in frames_not_in_run(self.reconstruction, self.images_dir)})
+        if others:
+            logger.warning("the explorer shows the run's frames only (%s): %d frame(s) beside the run's images that it "
+                           "was not given (%s%s) are not shown; their persons are in `rigsfm associate OUT "
+                           "DETECTIONS --poses-from FRAME`'s persons.json and floor.png, and to check one by eye give "
+                           "its images to `rigsfm run`", ", ".join(list(self.frames)[:3]), len(others),
+                           ", ".join(others[:3]), " ..." if len(others) > 3 else "")
 
     def frame_names(self, frame: str) -> list[str]:
         if frame not in self.frames:

@@ -36,7 +36,7 @@ from __future__ import annotations
 import json
 import logging
 import re
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -272,15 +272,16 @@ def _xml_matrix(key: str, value: np.ndarray) -> str:
             f"  <dt>d</dt>\n  <data>\n    {data}</data></{key}>\n")
 
 
-def write_wildtrack(reconstruction: pycolmap.Reconstruction, dest: Path, images_dir: Path | None = None,
-                    ) -> list[Path]:
+def write_wildtrack(reconstruction: pycolmap.Reconstruction, dest: Path, images_dir: Path | None = None, *,
+                    lent: Mapping[str, pycolmap.Image] | None = None) -> list[Path]:
     """WILDTRACK's calibration layout, as MVDet-family loaders read it, for the narrow cameras:
     ``calibrations/intrinsic_zero/intr_<rig>.xml`` (OpenCV FileStorage XML: ``camera_matrix`` with OpenCV pixel
     centres and zero ``distortion_coefficients``: for undistorted images) and ``calibrations/extrinsic/
     extr_<rig>.xml`` (``<rvec>`` Rodrigues and ``<tvec>`` in centimetres, world-to-camera, as space-separated text
     the loaders split). World: the run's, in centimetres; in the floor frame the floor is z = 0, the plane MVDet
     projects onto. With ``images_dir``: ``Image_subsets/<rig>/<frame>.png``, each narrow image undistorted to that
-    camera matrix."""
+    camera matrix; ``lent``: more narrow image names under ``images_dir`` (frames the run was not given), each
+    undistorted as the run's image it maps to (its camera: static rigs)."""
     cameras = opencv_cameras(reconstruction, ("narrow",), allow_fisheye=False)
     dest = Path(dest)
     intrinsic, extrinsic = dest / "calibrations" / "intrinsic_zero", dest / "calibrations" / "extrinsic"
@@ -297,26 +298,30 @@ def write_wildtrack(reconstruction: pycolmap.Reconstruction, dest: Path, images_
                 f"<tvec>{' '.join(_num(100.0 * v) for v in c.tvec)}</tvec>\n</opencv_storage>\n")
         paths.append(write_text_atomic(extrinsic / f"extr_{rig}.xml", text))
     if images_dir is not None:
-        paths += _undistorted_images(reconstruction, cameras, dest / "Image_subsets", Path(images_dir))
+        paths += _undistorted_images(reconstruction, cameras, dest / "Image_subsets", Path(images_dir), lent or {})
     return paths
 
 
 def _undistorted_images(reconstruction: pycolmap.Reconstruction, cameras: Sequence[OpenCVCamera], dest: Path,
-                        images_dir: Path) -> list[Path]:
+                        images_dir: Path, lent: Mapping[str, pycolmap.Image]) -> list[Path]:
     by_name = {c.name: c for c in cameras}
     paths = []
     maps: dict[str, tuple[np.ndarray, np.ndarray]] = {}
-    for image in sorted(reconstruction.images.values(), key=lambda im: im.name):
-        parsed = _parsed(image.name)
+    own = [(image.name, image) for image in reconstruction.images.values()]
+    for name, image in sorted([*own, *lent.items()], key=lambda item: item[0]):
+        parsed = _parsed(name)
         if not image.has_pose or parsed is None or not parsed.is_narrow:
             continue
         c = by_name.get(camera_name(image.name, image.camera_id))
         if c is None:
             continue
-        source = images_dir / image.name
+        source = images_dir / name
         pixels = read_image(source, cv2.IMREAD_UNCHANGED)
         if pixels is None:
             raise InputError(f"cannot read {source} to undistort it; export without images or restore the file")
+        if pixels.shape[:2] != (c.height, c.width):  # a lent frame's picture from another camera or setting
+            raise InputError(f"{source} is {pixels.shape[1]}x{pixels.shape[0]} px, its camera {c.name} "
+                             f"{c.width}x{c.height}: export it without --poses-from or replace the file")
         if c.name not in maps:
             maps[c.name] = cv2.initUndistortRectifyMap(c.matrix, c.distortion, None, c.matrix, (c.width, c.height),
                                                        cv2.CV_32FC1)

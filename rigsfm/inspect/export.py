@@ -223,6 +223,54 @@ def warn_changed_images(workspace: Workspace, reconstruction: pycolmap.Reconstru
                        "them first", len(changed), ", ".join(changed[:3]), " ..." if len(changed) > 3 else "")
 
 
+def frames_not_in_run(reconstruction: pycolmap.Reconstruction, images_dir: Path) -> list[str]:
+    """The narrow images in ``images_dir`` (``<rig>/narrow/<frame file>``) of the run's registered narrow cameras
+    that the run does not hold: a recording put beside its images (``rigsfm associate --poses-from``)."""
+    from rigsfm.run.inputs.images import IMAGE_SUFFIXES
+
+    held = {image.name for image in reconstruction.images.values()}
+    rigs = {name_of(image).rig for image in registered_images(reconstruction) if name_of(image).is_narrow}
+    names = []
+    for rig in sorted(rigs):
+        try:
+            files = sorted(p.name for p in (images_dir / rig / "narrow").iterdir()
+                           if p.suffix.lower() in IMAGE_SUFFIXES and p.is_file())
+        except OSError:
+            continue  # the folder is gone: the run's own images are refused by name when read
+        names += [f"{rig}/narrow/{file}" for file in files if f"{rig}/narrow/{file}" not in held]
+    return names
+
+
+def lent_images(reconstruction: pycolmap.Reconstruction, images_dir: Path, poses_from: str | None
+                ) -> dict[str, pycolmap.Image]:
+    """Per narrow image of ``images_dir`` the run was not given (:func:`frames_not_in_run`), the run's narrow image
+    of its camera in frame ``poses_from`` (static rigs: the same camera); without ``poses_from``, none, and a
+    warning naming the frames left out."""
+    names = frames_not_in_run(reconstruction, images_dir)
+    frames = sorted({name.rsplit("/", 1)[1] for name in names})
+    if poses_from is None:
+        if names:
+            own = sorted({name_of(im).frame for im in registered_images(reconstruction) if name_of(im).is_narrow})
+            logger.warning("%d narrow image(s) of %d frame(s) the run was not given (%s%s) lie beside its images in "
+                           "%s and are not exported: pass --poses-from %s (a frame of the run) to write them "
+                           "undistorted with its cameras (static rigs; `rigsfm track` tells whether a rig moved)",
+                           len(names), len(frames), ", ".join(frames[:3]), " ..." if len(frames) > 3 else "",
+                           images_dir, own[0] if own else "FRAME")
+        return {}
+    reference = {name_of(im).rig: im for im in registered_images(reconstruction)
+                 if name_of(im).is_narrow and name_of(im).frame == poses_from}
+    if not reference:
+        own = sorted({name_of(im).frame for im in registered_images(reconstruction) if name_of(im).is_narrow})
+        raise InputError(f"--poses-from {poses_from!r} is not a frame of this run with a registered narrow image; its "
+                         f"frames: {', '.join(own[:8])}{' ...' if len(own) > 8 else ''}")
+    lent = {name: reference[name.split("/", 1)[0]] for name in names if name.split("/", 1)[0] in reference}
+    if names and len(lent) < len(names):
+        left = sorted({name.split("/", 1)[0] for name in names} - set(reference))
+        logger.warning("frame %s of the run has no registered narrow image of %s: their images of the frames the run "
+                       "was not given are not exported", poses_from, ", ".join(left))
+    return lent
+
+
 def check_destination(dest: Path, workspace: Workspace, *, overwrite: bool) -> Previous:
     """What an export into ``dest`` may replace: the files of an earlier export listed in its manifest and still
     as rigsfm wrote them.
@@ -250,6 +298,9 @@ def export(out: Path, options: ExportOptions) -> Path:
     if options.images and fmt != ExportFormat.WILDTRACK:  # refused rather than ignored: the user asked for images
         raise InputError(f"--images writes the undistorted narrow images of --format wildtrack only; export "
                          f"{fmt} without it")
+    if options.poses_from is not None and not options.images:
+        raise InputError("--poses-from needs --images (--format wildtrack): it lends the run's cameras to the narrow "
+                         "images of frames the run was not given")
     with workspace.reading():  # a run rewriting the model now is refused, not exported half old, half new
         return _export(workspace, fmt, options)
 
@@ -283,9 +334,11 @@ def _export(workspace: Workspace, fmt: ExportFormat, options: ExportOptions) -> 
             write_toml(reconstruction, tmp, metadata=world_metadata(poses))
         elif fmt == ExportFormat.WILDTRACK:
             warn_wildtrack_world(poses)
+            lent: dict[str, pycolmap.Image] = {}
             if options.images and images_dir is not None:
                 warn_changed_images(workspace, reconstruction, images_dir)
-            write_wildtrack(reconstruction, tmp, images_dir if options.images else None)
+                lent = lent_images(reconstruction, images_dir, options.poses_from)
+            write_wildtrack(reconstruction, tmp, images_dir if options.images else None, lent=lent)
         else:
             write_json_poses(reconstruction, tmp, result_frame(poses))
         commit(dest, tmp, previous, MANIFEST, {"format": str(fmt), "workspace": str(workspace.root.resolve()),

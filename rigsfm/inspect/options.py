@@ -24,3 +24,6 @@ class ExportOptions:
     dest: Path | None = None  # default OUT/export/<format>
     overwrite: bool = False  # replace an earlier export of rigsfm in dest (nothing else is ever removed)
     images: bool = False  # wildtrack: also the narrow images, undistorted (Image_subsets/)
+    # with images: also the narrow images beside the run's of frames it was not given (a recording, as
+    # `rigsfm associate --poses-from`), undistorted with the cameras of its frame poses_from (static rigs)
+    poses_from: str | None = None

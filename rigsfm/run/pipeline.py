@@ -37,7 +37,7 @@ from rigsfm.core.workspace import Workspace, colmap_log_to, disk_errors_named
 from rigsfm.inspect.report import write_report
 from rigsfm.run.adjustment.adjust import AdjustResult, ScaleSource, adjust
 from rigsfm.run.adjustment.priors import CalibrationPriors, calibration_priors
-from rigsfm.run.adjustment.scale_check import check_scale_agreement
+from rigsfm.run.adjustment.scale_check import check_scale_agreement, unlevel_known_lengths
 from rigsfm.run.adjustment.uncertainty import estimate_uncertainty, uncertainty_summary
 from rigsfm.run.checks.diagnostics import check_reconstruction
 from rigsfm.run.checks.missed_pairs import pairs_report
@@ -225,6 +225,7 @@ def build_summary(inputs: Inputs, options: RunOptions, mapping: MappingResult, r
         )
     warnings.extend(result.warnings)
     warnings.extend(check_reconstruction(reconstruction, result.scale, database))
+    warnings.extend(unlevel_known_lengths(reconstruction, inputs.scale))
     if inputs.priors is not None and inputs.priors.warning():
         warnings.append(inputs.priors.warning())  # type: ignore[arg-type]  # checked just above
     if unregistered:

@@ -291,16 +291,23 @@ def world_section(narrow: dict, reconstruction: pycolmap.Reconstruction) -> str:
         return "".join(parts)
     matching = floor.get("matching") or {}
     heights = floor.get("camera_height") or {}
+    by_source = floor.get("points_by_source") or {}
     rows = [["z", esc(world.get("z_axis"))], ["origin", esc(world.get("origin"))], ["x", esc(world.get("x_axis"))],
-            ["floor points", ", ".join(f"{esc(k)} {v}" for k, v in (floor.get("points_by_source") or {}).items())],
-            ["fit residual RMS (m)", fmt(floor.get("rms"))],
-            # the points' scatter only: the cameras' pose errors they share are not in it (docs/world.md)
-            ["normal σ of the points' scatter (deg; a lower bound)", fmt(floor.get("normal_sigma_deg"), 3)],
-            ["camera heights (m)", f"{fmt(heights.get('min'))} – {fmt(heights.get('max'))}"],
-            ["floor matching", "not needed (the sparse points fix the floor)" if not matching.get("ran") else
-             f"{matching.get('rounds')} round(s), {matching.get('image_pairs')} image pairs, "
-             f"{matching.get('matched_points')} points, {fmt(matching.get('seconds'), 3)} s "
-             f"({esc(matching.get('why'))})"]]
+            ["floor points", ", ".join(f"{esc(k)} {v}" for k, v in by_source.items())]]
+    if by_source and by_source.get("markers") == floor.get("num_points"):  # a crowd hid the floor (marker_floor)
+        rows += [["floor from", "the known-length markers alone (no floor fitted the points)"],
+                 # one bar: the tilt about it is the cameras' up's, from their rolls' scatter (docs/world.md)
+                 ["normal σ from the cameras' rolls, or the markers' scatter with two bars apart (deg)",
+                  fmt(floor.get("normal_sigma_deg"), 3)]]
+    else:
+        rows += [["fit residual RMS (m)", fmt(floor.get("rms"))],
+                 # the points' scatter only: the cameras' pose errors they share are not in it (docs/world.md)
+                 ["normal σ of the points' scatter (deg; a lower bound)", fmt(floor.get("normal_sigma_deg"), 3)]]
+    rows += [["camera heights (m)", f"{fmt(heights.get('min'))} – {fmt(heights.get('max'))}"],
+             ["floor matching", "not needed (the sparse points fix the floor)" if not matching.get("ran") else
+              f"{matching.get('rounds')} round(s), {matching.get('image_pairs')} image pairs, "
+              f"{matching.get('matched_points')} points, {fmt(matching.get('seconds'), 3)} s "
+              f"({esc(matching.get('why'))})"]]
     if floor.get("marker_residuals"):
         rows.append(["marker heights (m)", ", ".join(f"{v:+.4f}" for v in floor["marker_residuals"])])
     parts.append(table(["", ""], rows))

@@ -149,3 +149,42 @@ def check_scale_agreement(reconstruction: pycolmap.Reconstruction, spec: ScaleSp
                          f"{fix}")
     raise InputError(f"{spec.path}: {', '.join(m.label for m in implied)} disagree on the scale by up to "
                      f"{_times(spread)} in the mapped model, no group of them agreeing: one or more is {fix}")
+
+
+# A known length lies level on the floor (README): its ends' heights along the cameras' up differ by the up's error
+# only (synthetic rings of 3-8 rigs with 2 deg rolls: at most 6.6 % of its length, benchmarks/README.md); a bar
+# marked with a and b swapped in one image differs by more (13 % on a rendered 6-rig crowd).
+LEVEL_TOLERANCE = 0.08
+
+
+def unlevel_known_lengths(reconstruction: pycolmap.Reconstruction, spec: ScaleSpec | None) -> list[str]:
+    """``SCALE MARKER`` warnings for the known lengths of ``spec`` whose ends, triangulated in ``reconstruction``,
+    differ in height along the cameras' up by more than :data:`LEVEL_TOLERANCE` of their length: other points
+    marked in one image, most often a and b swapped. Such a bar triangulates at another length along the epipolar
+    lines without a pixel residual, so the adjustment meets its length at a wrong scale and no residual says it. Only
+    where the cameras' x axes give the up (the -y fallback is off by their pitch)."""
+    from rigsfm.run.adjustment.scale import triangulate_observed_point
+    from rigsfm.run.world.floor_model import posed_images, up_prior
+
+    if spec is None or not spec.known_lengths or not posed_images(reconstruction):
+        return []
+    up, source = up_prior(reconstruction)
+    if source != "camera x axes":
+        return []
+    warnings = []
+    for i, item in enumerate(spec.known_lengths):
+        ends = [triangulate_observed_point(reconstruction, [(o.image, np.asarray(getattr(o, end), dtype=np.float64))
+                                                            for o in item.observations]) for end in ("a", "b")]
+        if ends[0] is None or ends[1] is None:
+            continue  # fewer than two registered images: the adjustment names it as unused
+        length = float(np.linalg.norm(ends[0] - ends[1]))
+        slope = abs(float((ends[0] - ends[1]) @ up)) / length if length > 0 else 0.0
+        if slope > LEVEL_TOLERANCE:
+            images = ", ".join(o.image for o in item.observations)
+            warning = (f"SCALE MARKER: known_length[{i}] ({item.meters:g} m): its ends differ in height by "
+                       f"{100 * slope:.0f} % of its length, but a known length lies level on the floor: a and b "
+                       f"swapped (or other points marked) in one of {images}, which makes the adjustment meet its "
+                       f"length at a wrong scale with no residual to show it; fix its pixels in {spec.path}")
+            logger.warning(warning)
+            warnings.append(warning)
+    return warnings

@@ -22,7 +22,9 @@ Which sparse points are floor is decided from the geometry, not from labels:
    the inlier set is stable. ``rms`` is the RMS point-to-plane residual of the final inliers.
 5. **No floor.** Too few candidates, no valid hypothesis, fewer than ``min_points`` inliers, inliers covering
    fewer than ``min_cells`` cells of half the camera height (box tops, a platform), or many points well below
-   the plane give :class:`NoFloor` with the reason; the caller warns and keeps the mapper's frame.
+   the plane give :class:`NoFloor` with the reason. Where markers were given, the floor is then theirs
+   (:func:`rigsfm.run.world.floor_fit.marker_floor`: a crowd hides the floor from the points); else the caller
+   warns and keeps the mapper's frame.
 6. **Cost.** :func:`estimate_floor` reads images only when the sparse points and markers do not fix the floor
    (:func:`sparse_floor_shortfall`: fewer than 100 inliers, or standard errors of the normal above 0.02 deg or of
    a camera height above 0.2 % of it). Then floor matching (:mod:`rigsfm.run.world.floor_matching`) triangulates
@@ -50,7 +52,7 @@ from dataclasses import dataclass
 import numpy as np
 import pycolmap
 
-from rigsfm.run.world.floor_fit import fit_floor
+from rigsfm.run.world.floor_fit import fit_floor, marker_floor
 from rigsfm.run.world.floor_model import (
     FloorFit,
     FloorOptions,
@@ -170,6 +172,8 @@ def estimate_floor(reconstruction: pycolmap.Reconstruction, image_dir=None, mark
     sparse = fit_floor(reconstruction, markers, opt, x_towards=x_towards, quiet=True)
     shortfall = sparse_floor_shortfall(sparse, reconstruction, opt)
     if shortfall is None or image_dir is None:
+        if not sparse and markers is not None and len(markers):
+            sparse = marker_floor(reconstruction, markers, sparse.reason, opt, x_towards=x_towards)  # type: ignore[union-attr]  # FloorFit is truthy: a NoFloor here
         # NoFloor is falsy: a FloorFit here
         for warning in sparse.warnings if sparse else ():  # type: ignore[union-attr]
             logger.warning("floor: %s", warning)
@@ -235,6 +239,8 @@ def estimate_floor(reconstruction: pycolmap.Reconstruction, image_dir=None, mark
             fit, rounds, pairs = lowered_fit, rounds + len(LOWER_STEPS) + more_rounds, pairs + more_pairs
     if not fit and sparse:
         fit = sparse  # the matches did not help: keep the sparse floor
+    if not fit and markers is not None and len(markers):  # a crowd hides the floor: its markers are floor points
+        fit = marker_floor(reconstruction, markers, fit.reason, opt, x_towards=x_towards)  # type: ignore[union-attr]  # FloorFit is truthy: a NoFloor here
     for warning in fit.warnings if fit else ():  # type: ignore[union-attr]  # NoFloor is falsy: a FloorFit here
         logger.warning("floor: %s", warning)
     seconds = time.perf_counter() - start

@@ -242,7 +242,8 @@ def fit_floor(reconstruction: pycolmap.Reconstruction, markers: np.ndarray | Non
     far = [v for v in marker_residuals if abs(v) > 3 * t]
     if far:
         warnings.append(f"{len(far)} known-length end point(s) are off the floor by up to {max(map(abs, far)):.3g}: "
-                        "are the markers on the floor?")
+                        "are the markers on the floor? (or a and b swapped in one image: the bar then triangulates "
+                        "off the floor at another length, and sets a wrong scale where it is the only measurement)")
     angle = float(np.degrees(np.arccos(np.clip(normal @ up, -1.0, 1.0))))
     normal_sigma, height_sigma = plane_precision(points[inliers], normal, max(robust_sigma, rms / 3), centres)
     floor_from_model, origin_rig = _floor_frame(normal, offset, reconstruction, x_towards)
@@ -260,4 +261,85 @@ def fit_floor(reconstruction: pycolmap.Reconstruction, markers: np.ndarray | Non
         marker_residuals=marker_residuals, below_fraction=below_fraction,
         inlier_ids=ids[inliers[: len(ids)]], warnings=tuple(warnings),
         normal_sigma_deg=normal_sigma, height_sigma=height_sigma,
+    )
+
+
+def marker_floor(reconstruction: pycolmap.Reconstruction, markers: np.ndarray, reason: str,
+                 options: FloorOptions | None = None, *, x_towards: str | None = None) -> FloorFit | NoFloor:
+    """The floor through the known-length markers alone, where no floor fits the points (``reason``: why; a dense
+    crowd hides the floor from the sparse points and the floor matches). Markers lie on the floor (README), so:
+
+    - end points spread over the floor (two bars apart: 4 or more points not on one line): their least-squares plane,
+      its sigmas from their scatter;
+    - on one line (one bar): the plane through that line nearest the cameras' up (their x axes, mounted without
+      roll): the tilt about the bar is then the prior's error, estimated as the cameras' roll scatter over the
+      square root of the rigs (measured: 0.18 deg said, 0.19 deg true on a rendered 6-rig crowd).
+
+    A plane more than ``max_tilt_deg`` from the cameras' up, or with a camera below it, is no floor (markers on a
+    wall, or mistaken image points)."""
+    opt = options or FloorOptions()
+    points = np.asarray(markers, dtype=np.float64).reshape(-1, 3)
+    images = posed_images(reconstruction)
+    if len(points) < 2 or not images:
+        return NoFloor(reason)
+    up, prior_source = up_prior(reconstruction)
+    max_tilt = opt.max_tilt_deg if prior_source == "camera x axes" else min(2.0 * opt.max_tilt_deg, 60.0)
+    centres = np.array([im.projection_center() for im in images])
+    centroid = points.mean(axis=0)
+    _, spread, axes = np.linalg.svd(points - centroid, full_matrices=False)
+    x_axes = np.array([im.cam_from_world().rotation.matrix()[0] for im in images])
+    rolls = np.degrees(np.arcsin(np.clip(x_axes @ up, -1.0, 1.0)))
+    # per axis: each rig's roll tilts the up along one horizontal direction, so n rigs measure each axis about n/2
+    # times, and the up fitted to them leaves n - 2 of their n degrees of freedom in the rolls' scatter; widened by
+    # Student's t over 1.96 so that 1.96 sigmas hold 95 % with that few (4 rigs: 2 degrees of freedom)
+    rigs = len(rig_positions(reconstruction))
+    if rigs > 2:
+        from scipy.stats import t as student_t
+
+        widen = float(student_t.ppf(0.975, rigs - 2)) / 1.96
+        prior_sigma = float(np.sqrt(np.mean(rolls**2) * 2.0 / (rigs - 2))) * widen
+    else:
+        prior_sigma = float("inf")  # two rigs' x axes fix the up exactly, whatever their rolls
+    spread_out = len(points) >= 4 and spread[1] > 0.1 * spread[0]
+    if spread_out:
+        normal, offset = fit_plane(points)
+        normal, offset = (normal, offset) if normal @ up >= 0 else (-normal, -offset)
+        how = f"the {len(points)} known-length end points alone (bars apart on the floor fix its tilt)"
+    elif not np.isfinite(prior_sigma):
+        return NoFloor(f"{reason}; the known-length markers lie on one line, and two rigs cannot tell how the floor "
+                       "tilts about it: put a second known length on the floor, away from the first (scale.yaml)")
+    else:
+        bar = axes[0]
+        normal = up - (up @ bar) * bar
+        normal /= np.linalg.norm(normal)
+        offset = -float(normal @ centroid)
+        how = ("the known-length bar's ends and the cameras' up (their x axes: cameras mounted without roll), so its "
+               f"tilt about the bar is the cameras' mean roll, about {prior_sigma:.2g} deg here; for a measured floor "
+               "put a second known length on the floor, away from the first (scale.yaml)")
+    angle = float(np.degrees(np.arccos(np.clip(normal @ up, -1.0, 1.0))))
+    heights = centres @ normal + offset
+    if angle > max_tilt or heights.min() <= 0:
+        return NoFloor(f"{reason}; the known-length markers' plane is {angle:.0f} deg from the cameras' up"
+                       f"{' and has a camera below it' if heights.min() <= 0 else ''} (markers off the floor, or a bar's ends "
+                       "a and b swapped in one image, which also sets a wrong scale where it is the only measurement)")
+    residuals = points @ normal + offset
+    rms = float(np.sqrt(np.mean(residuals**2)))
+    if spread_out:
+        normal_sigma, height_sigma = plane_precision(points, normal, rms, centres)
+    else:  # the tilt about the bar, levered to each camera's distance from it
+        across_bar = np.cross(normal, axes[0])
+        normal_sigma = prior_sigma
+        height_sigma = float(np.radians(prior_sigma) * np.abs((centres - centroid) @ across_bar).max())
+    floor_from_model, origin_rig = _floor_frame(normal, offset, reconstruction, x_towards)
+    warning = f"no floor fits the points ({reason}): the floor is the plane of {how}"
+    logger.info("floor: %s", warning)
+    return FloorFit(
+        normal=normal, offset=float(offset), rms=rms, robust_sigma=1.4826 * float(np.median(np.abs(residuals))),
+        threshold=0.0, num_points=len(points), num_candidates=len(points),
+        points_by_source={"sparse": 0, "matched": 0, "markers": len(points)},
+        up_prior=up, up_prior_source=prior_source, prior_angle_deg=angle,
+        floor_from_model=floor_from_model, origin_rig=origin_rig,
+        camera_heights={im.name: float(h) for im, h in zip(images, heights)},
+        marker_residuals=[float(v) for v in residuals], warnings=(warning,),
+        normal_sigma_deg=float(normal_sigma), height_sigma=float(height_sigma),
     )

@@ -44,6 +44,15 @@ ORIGIN = "on the floor under the centroid of the rigs (mean wide-camera centre o
 X_AXIS = "horizontal, from the origin towards the first registered rig of rigs.yaml ({rig})"
 Z_AXIS = "up, normal to the floor; z = 0 on the floor"
 NO_FLOOR_HELP = "give known-length markers on the floor (scale.yaml), or --world mapping"
+NO_FLOOR_WITH_MARKERS_HELP = ("check that scale.yaml's known lengths lie on the floor and add one away from the "
+                              "others, or --world mapping")
+
+
+def no_floor_warning(reason: str, markers: int) -> str:
+    """The NO FLOOR FOUND warning: what to do depends on whether known-length markers were there to use
+    (``markers``: their end points triangulated)."""
+    help_ = NO_FLOOR_WITH_MARKERS_HELP if markers else NO_FLOOR_HELP
+    return f"NO FLOOR FOUND: {reason}; the mapper's frame is kept: {help_}"
 
 
 def validate_world_options(options: WorldOptions) -> None:
@@ -158,7 +167,7 @@ def locate_world(reconstruction: pycolmap.Reconstruction, image_dir: Path | None
     fit = estimate.fit
     if not fit:
         # FloorFit is truthy: a NoFloor here
-        warning = f"NO FLOOR FOUND: {fit.reason}; the mapper's frame is kept: {NO_FLOOR_HELP}"  # type: ignore[union-attr]
+        warning = no_floor_warning(fit.reason, len(markers))  # type: ignore[union-attr]
         logger.warning(warning)
         return WorldResult(options.frame, WorldFrame.MAPPING, estimate, metric=metric, warnings=[warning])
     heights = tuple(options.plane_heights)

@@ -3,7 +3,10 @@ sigma cover the truth? Synthetic rings of N rigs (tests/synthetic_world.py, 0.5 
 cameras but one 2 m bar on the floor at a random place and direction): the tilt against the exact floor, within
 1.96 ``normal_sigma_deg``; every camera's height within 1.96 ``camera_height_sigma``.
 
-    python benchmarks/marker_floor.py [--seeds 80] [--rigs 4,6,8]
+    python benchmarks/marker_floor.py [--seeds 80] [--rigs 4,6,8] [--bars 1|2] [--end-noise-mm 0]
+
+``--bars 2``: a second 2 m bar 3-6 m from the first; ``--end-noise-mm``: Gaussian error of each triangulated end
+(the rendered 6-rig crowd's bar ends lay 6.5-7 mm from the floor).
 
 ``--level``: how sloped a level bar on the floor looks along the cameras' up at its worst direction (the up's error),
 against ``SCALE MARKER``'s tolerance (``rigsfm.run.adjustment.scale_check.LEVEL_TOLERANCE``), for 0.5-2 deg rolls.
@@ -27,6 +30,8 @@ def main(argv=None) -> None:
     parser.add_argument("--seeds", type=int, default=80)
     parser.add_argument("--rigs", default="4,6,8")
     parser.add_argument("--level", action="store_true")
+    parser.add_argument("--bars", type=int, default=1, choices=(1, 2))
+    parser.add_argument("--end-noise-mm", type=float, default=0.0)
     args = parser.parse_args(argv)
     logging.disable(logging.WARNING)
     if args.level:
@@ -42,7 +47,13 @@ def main(argv=None) -> None:
             rng = np.random.default_rng(seed)
             start, angle = rng.uniform(-5, 5, 2), rng.uniform(0, np.pi)
             ends = [start, start + 2.0 * np.array([np.cos(angle), np.sin(angle)])]
-            markers = np.array([world.model_from_truth * np.array([x, y, 0.0]) for x, y in ends])
+            if args.bars == 2:
+                away, turn = rng.uniform(0, 2 * np.pi), rng.uniform(0, np.pi)
+                second = start + rng.uniform(3, 6) * np.array([np.cos(away), np.sin(away)])
+                ends += [second, second + 2.0 * np.array([np.cos(turn), np.sin(turn)])]
+            true_ends = np.array([[x, y, 0.0] for x, y in ends])
+            true_ends += rng.normal(0.0, args.end_noise_mm / 1000.0, true_ends.shape)
+            markers = np.array([world.model_from_truth * p for p in true_ends])
             fit = estimate_floor(world.reconstruction, None, markers).fit
             up = world.model_from_truth.rotation.matrix() @ np.array([0.0, 0.0, 1.0])
             tilt = float(np.degrees(np.arccos(np.clip(fit.normal @ up, -1.0, 1.0))))

@@ -325,7 +325,13 @@ def marker_floor(reconstruction: pycolmap.Reconstruction, markers: np.ndarray, r
     residuals = points @ normal + offset
     rms = float(np.sqrt(np.mean(residuals**2)))
     if spread_out:
-        normal_sigma, height_sigma = plane_precision(points, normal, rms, centres)
+        # the residuals' sigma over their n - 3 degrees of freedom, widened by Student's t over 1.96: two bars' four
+        # ends leave one, and their RMS alone often lies near 0
+        dof = len(points) - 3
+        from scipy.stats import t as student_t
+
+        sigma = float(np.sqrt(np.sum(residuals**2) / dof)) * float(student_t.ppf(0.975, dof)) / 1.96
+        normal_sigma, height_sigma = plane_precision(points, normal, sigma, centres)
     else:  # the tilt about the bar, levered to each camera's distance from it
         across_bar = np.cross(normal, axes[0])
         normal_sigma = prior_sigma

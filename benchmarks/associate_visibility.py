@@ -1,6 +1,6 @@
 """The association with each view's detection probability from the crowd's occlusion (measured, not landed).
 
-    python benchmarks/associate_visibility.py DATASET OUT [--seeds 2] [--pixel-sigma 1.5]
+    python benchmarks/associate_visibility.py DATASET OUT [--seeds 2] [--first-seed 0] [--pixel-sigma 1.5]
 
 The score's detection probability is one number for every view (the crowd's, rigsfm.associate.rates). Here, once the
 crowd's rates are estimated (after the self-calibration), each view's probability of detecting a point X becomes
@@ -125,6 +125,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("dataset", type=Path)
     parser.add_argument("out", type=Path)
     parser.add_argument("--seeds", type=int, default=2)
+    parser.add_argument("--first-seed", type=int, default=0, help="the detections' seeds from this one on")
     parser.add_argument("--pixel-sigma", type=float, default=1.5)
     args = parser.parse_args(argv)
     model = load_run(args.out)
@@ -133,7 +134,7 @@ def main(argv: list[str] | None = None) -> int:
     solve_module._crowd_rates = patched_rates  # type: ignore[assignment]
     _Frame.score = patched_score  # type: ignore[method-assign]
     try:
-        for seed in range(args.seeds):
+        for seed in range(args.first_seed, args.first_seed + args.seeds):
             MODEL.clear()
             truth = make_detections(heads, sizes, sigma_px=1.5, missed=0.1, false=0.05, seed=seed)
             found = associate_frames(model, from_arrays(truth.points), AssociateOptions(pixel_sigma=args.pixel_sigma))[0]

@@ -18,6 +18,15 @@ into another's) and by how many views detect the person, the persons found exact
 whether the search or the model loses them: how many complete true groups are among the hypotheses, how the true
 groups score, the packing's objective of the truth against the association's own, and the first packing again
 with every true group added to its hypotheses (if that does not raise F1, the score, not the search, is the limit).
+
+``--terms`` (frame 0): the score taken apart term by term (``score_terms``: the density prior, the height prior, the
+point's volume, the members' detection probability, clutter density, normalisation and residuals, the views that see
+the point without a member, the appearance and the head sizes; they sum to ``_Frame.score``): summed over the
+association's groups and the truth's (those above the minimum score, as the packing's objective counts them); the
+2-view groups (the truth's below and above the minimum, the association's right and wrong); each wrong 2-view group
+against the true groups of its members' persons (what it displaced); and over every 2-view hypothesis above the
+minimum, how well each term tells a right one (one person) from a wrong one: its area under the ROC curve and its
+weight in a logistic regression on the terms (1 where a term is the log-likelihood ratio it claims to be).
 """
 
 from __future__ import annotations
@@ -27,6 +36,7 @@ import collections
 import dataclasses
 import itertools
 import json
+import math
 import sys
 from pathlib import Path
 
@@ -50,7 +60,138 @@ def _owner(pid: np.ndarray, row: np.ndarray) -> int:
     return collections.Counter(pid[row[row >= 0]].tolist()).most_common(1)[0][0]
 
 
-def analyse(dataset: Path, out: Path, seed: int, pixel_sigma: float) -> dict:
+TERMS = ("rho", "height", "volume", "detect", "clutter", "norm", "residual", "misses", "appearance", "size")
+
+
+def score_terms(frame: _Frame, members: np.ndarray, points: np.ndarray, covariance: np.ndarray,
+                ) -> dict[str, np.ndarray]:
+    """``frame.score``'s terms per group (G each), and ``n_miss``: the views that see the point without a member."""
+    o = frame.options
+    p_d = o.detection_probability
+    assert p_d is not None
+    n = len(points)
+    if o.height_prior is None:
+        height = np.full(n, -math.log(o.heights[1] - o.heights[0]))
+    else:
+        mean, sigma = o.height_prior
+        var = sigma ** 2 + np.maximum(covariance[:, 2, 2], 0.0)
+        height = -0.5 * np.log(2 * math.pi * var) - 0.5 * (points[:, 2] - mean) ** 2 / var
+    sign, logdet = np.linalg.slogdet(covariance)
+    d2 = np.nan_to_num(frame.residuals(members, points), nan=0.0, posinf=1e6)
+    present = members >= 0
+    clutter = np.where(present, frame.clutter[np.where(present, members, 0)], 1.0)
+    misses = np.zeros(n)
+    frame._add_misses(misses, points, present)
+    terms = {
+        "rho": np.full(n, math.log(o.persons_per_m2)), "height": height,
+        "volume": 1.5 * math.log(2 * math.pi) + 0.5 * np.where(sign > 0, logdet, -np.inf),
+        "detect": present.sum(axis=1) * math.log(p_d),
+        "clutter": -np.where(present, np.log(clutter), 0.0).sum(axis=1),
+        "norm": -np.where(present, np.log(2 * math.pi * frame.noise ** 2)[None], 0.0).sum(axis=1),
+        "residual": -0.5 * np.where(present, d2, 0.0).sum(axis=1), "misses": misses,
+        "appearance": frame.appearance.group_log_ratio(frame.descriptors, members)
+        if frame.appearance is not None and frame.descriptors is not None else np.zeros(n),
+        "size": frame.size_log_ratio(members, points, covariance) if frame.log_radius is not None else np.zeros(n)}
+    total = sum(terms[k] for k in TERMS)
+    score = frame.score(members, points, covariance)
+    finite = np.isfinite(score)
+    assert np.allclose(total[finite], score[finite], atol=1e-6), "score_terms no longer sums to _Frame.score"
+    terms["n_miss"] = np.round(misses / math.log(max(1.0 - p_d, 1e-6))).astype(np.int64)
+    return terms
+
+
+def _kinds(pid: np.ndarray, members: np.ndarray, full: collections.Counter) -> np.ndarray:
+    """Per group: 'complete' (one person, every detection of it), 'partial' (one person, not all) or 'wrong'."""
+    out = []
+    for row in members:
+        ids = pid[row[row >= 0]]
+        one = bool((ids >= 0).all() and len(set(ids.tolist())) == 1)
+        out.append("wrong" if not one else "complete" if len(ids) == full[int(ids[0])] else "partial")
+    return np.array(out)
+
+
+def _auc(x: np.ndarray, positive: np.ndarray) -> float:
+    from scipy.stats import rankdata
+
+    r = rankdata(x)
+    npos, nneg = int(positive.sum()), int((~positive).sum())
+    return float((r[positive].sum() - npos * (npos + 1) / 2) / max(npos * nneg, 1))
+
+
+def _logistic(x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Logistic regression (Newton's method) of y on the columns of x and an intercept: weights and their sigmas."""
+    a = np.c_[np.ones(len(x)), x]
+    w = np.zeros(a.shape[1])
+    hessian = np.eye(len(w))
+    for _ in range(50):
+        p = 1.0 / (1.0 + np.exp(-np.clip(a @ w, -30, 30)))
+        hessian = (a * (p * (1 - p))[:, None]).T @ a + 1e-9 * np.eye(len(w))
+        step = np.linalg.solve(hessian, a.T @ (y - p))
+        w += step
+        if np.abs(step).max() < 1e-9:
+            break
+    return w, np.sqrt(np.diag(np.linalg.inv(hessian)))
+
+
+def terms_report(frame: _Frame, members: np.ndarray, true_m: np.ndarray, pid: np.ndarray, hyp: tuple) -> dict:
+    """``--terms``: the score term by term on the association's groups, the truth's and the 2-view hypotheses."""
+    full = collections.Counter(pid[pid >= 0].tolist())
+    floor = frame.options.min_score
+    sets = {}
+    for name, m in (("association", members), ("truth", true_m)):
+        p, c = frame.triangulate(m)
+        p, c = frame.triangulate(m, p)
+        sets[name] = (m, score_terms(frame, m, p, c), frame.score(m, p, c), _kinds(pid, m, full))
+    columns = TERMS + ("n_miss",)
+    report: dict = {"objective_by_term": {}, "two_view_groups": {}}
+    for name, (m, t, s, _) in sets.items():
+        size = np.minimum((m >= 0).sum(axis=1), 4)
+        for sz in (2, 3, 4):
+            above = (size == sz) & (s > floor)
+            report["objective_by_term"][f"{name}, {sz}{'+' if sz == 4 else ''} views"] = {
+                "groups": int(above.sum()), "at or below the minimum": int(((size == sz) & (s <= floor)).sum()),
+                "minimum's offset": round(-floor * float(above.sum()), 1),
+                **{k: round(float(t[k][above].sum()), 1) for k in TERMS}, "score": round(float(s[above].sum()), 1)}
+    (tm, tt, ts, _), (am, at, as_, akind) = sets["truth"], sets["association"]
+    t2, a2 = (tm >= 0).sum(axis=1) == 2, (am >= 0).sum(axis=1) == 2
+    for label, t, s, sel in (("truth, at or below the minimum", tt, ts, t2 & (ts <= floor)),
+                             ("truth, above the minimum", tt, ts, t2 & (ts > floor)),
+                             ("association, right", at, as_, a2 & (akind != "wrong")),
+                             ("association, wrong", at, as_, a2 & (akind == "wrong"))):
+        report["two_view_groups"][label] = {"groups": int(sel.sum()),
+                                            **{k: round(float(t[k][sel].mean()), 2) for k in columns},
+                                            "score": round(float(s[sel].mean()), 2)}
+    # each wrong 2-view group against the true group of each of its members' persons (seen in two views or more)
+    owner = {int(pid[row[row >= 0][0]]): g for g, row in enumerate(tm)}
+    diffs = []
+    for g in np.flatnonzero(a2 & (akind == "wrong")).tolist():
+        for p in pid[am[g][am[g] >= 0]].tolist():
+            if p >= 0 and p in owner:
+                h = owner[p]
+                diffs.append([tt[k][h] - at[k][g] for k in columns] + [ts[h] - as_[g], int((tm[h] >= 0).sum())])
+    d = np.array(diffs).reshape(-1, len(columns) + 2)
+    report["displaced_true_minus_wrong"] = {
+        label: {"pairs": int(sel.sum()), **{k: round(float(d[sel, i].mean()), 2) for i, k in enumerate(columns)},
+                "score": round(float(d[sel, -2].mean()), 2),
+                "true scores below the wrong": int((d[sel, -2] < 0).sum())}
+        for label, sel in (("true group of 2 views", d[:, -1] == 2), ("true group of 3+ views", d[:, -1] >= 3))
+        if sel.any()}
+    # every 2-view hypothesis above the minimum: how each term tells right from wrong
+    hm, hp, hc, hs = hyp
+    keep = ((hm >= 0).sum(axis=1) == 2) & (hs > floor)
+    hm, hp, hc, hs = hm[keep], hp[keep], hc[keep], hs[keep]
+    t = score_terms(frame, hm, hp, hc)
+    right = _kinds(pid, hm, full) != "wrong"
+    varying = [k for k in TERMS if np.ptp(t[k]) > 0]
+    w, sigma = _logistic(np.array([t[k] for k in varying]).T, right.astype(np.float64))
+    report["two_view_hypotheses"] = {
+        "count": int(len(hm)), "right": int(right.sum()),
+        "auc": {**{k: round(_auc(t[k], right), 3) for k in varying + ["n_miss"]}, "score": round(_auc(hs, right), 3)},
+        "logistic_weight": {k: f"{w[i + 1]:.2f} +- {sigma[i + 1]:.2f}" for i, k in enumerate(varying)}}
+    return report
+
+
+def analyse(dataset: Path, out: Path, seed: int, pixel_sigma: float, terms: bool = False) -> dict:
     options = AssociateOptions(pixel_sigma=pixel_sigma)
     model = load_run(out)
     sizes = {n: (im.camera.width, im.camera.height) for n, im in model.images.items()}
@@ -58,8 +199,9 @@ def analyse(dataset: Path, out: Path, seed: int, pixel_sigma: float) -> dict:
     truth = make_detections(heads, sizes, sigma_px=1.5, missed=0.1, false=0.05, seed=seed)
     found = associate_frames(model, from_arrays(truth.points), options)[0]
     views, result = found.views, found.result
+    # a first frame grows every pair seed (associate_views: no seeds' floor)
     final = dataclasses.replace(options, detection_probability=result.detection_probability,
-                                height_prior=result.height_prior)
+                                height_prior=result.height_prior, seed_min_score=None)
     frame = _Frame(views, final, result.appearance)  # the final association's views, rates and appearance
     offsets = frame.offsets
     pid = np.concatenate([truth.person[v.name] for v in views])  # true person per stacked detection, -1 false
@@ -142,6 +284,8 @@ def analyse(dataset: Path, out: Path, seed: int, pixel_sigma: float) -> dict:
         keep = s > final.min_score
         chosen = _pack(m[keep], s[keep] - final.min_score, total, final.time_limit_s)
         report[label] = _scores(views, m[keep][chosen], offsets, truth)
+    if terms:
+        report["terms"] = terms_report(frame, members, true_m, pid, frame.hypotheses())
     return report
 
 
@@ -282,9 +426,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--pixel-sigma", type=float, default=1.5)
     parser.add_argument("--frames", type=int, default=1, help="a recording's first frames, each taken apart")
+    parser.add_argument("--terms", action="store_true", help="frame 0's score taken apart term by term")
     parser.add_argument("--json", type=Path, default=None)
     args = parser.parse_args(argv)
-    report: dict | list = analyse(args.dataset, args.out, args.seed, args.pixel_sigma) if args.frames == 1 else \
+    report: dict | list = analyse(args.dataset, args.out, args.seed, args.pixel_sigma, args.terms) \
+        if args.frames == 1 else \
         analyse_recording(args.dataset, args.out, args.seed, args.pixel_sigma, args.frames)
     text = json.dumps(report, indent=1)
     print(text)

@@ -441,6 +441,9 @@ def _run_locked(workspace: Workspace, inputs: Inputs, manual_pairs: dict, option
                     floor, floor_source = world.analysis_floor(result.reconstruction, result.scale_spec)
                     uncertainty = in_child(estimate_uncertainty, result, floor=floor, floor_source=floor_source)
                     uncertainty.bands_from = BANDS_WITH_NARROW
+            if result is not first:  # the second adjustment moved the network: the floor fitted again on it
+                with timings.stage("world_refit"):  # after the bands, which keep the first fit's floor
+                    world.refit(result.reconstruction, inputs.scale)
         with timings.stage("deliver"):
             world.apply(result.reconstruction)  # a rigid move: the bands and sigmas above are unchanged by it
             ground = ground_maps(result.reconstruction, world.plane_heights) if world.plane_heights else None

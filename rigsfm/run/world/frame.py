@@ -35,7 +35,7 @@ from rigsfm.core.summary import WorldSummary
 from rigsfm.run.inputs.scale_file import ScaleSpec
 from rigsfm.run.options import WorldFrame, WorldOptions
 from rigsfm.run.world.analysis_floor import find_floor
-from rigsfm.run.world.floor import FloorEstimate, apply_floor_frame, estimate_floor
+from rigsfm.run.world.floor import FloorEstimate, apply_floor_frame, estimate_floor, refit_floor
 from rigsfm.run.world.floor_model import floor_markers, rig_positions
 
 logger = logging.getLogger(__name__)
@@ -100,6 +100,15 @@ class WorldResult:
         plane = self.floor_plane()
         return (plane, "floor_fit") if plane is not None else find_floor(reconstruction, scale)
 
+    def refit(self, reconstruction: pycolmap.Reconstruction, scale: ScaleSpec | None) -> None:
+        """Fit the floor again in ``reconstruction``, the model this frame was found in adjusted once more (the
+        narrow stage's second adjustment), so the frame :meth:`apply` moves it into fits the delivered poses
+        (:func:`rigsfm.run.world.floor.refit_floor`: no image read again). Nothing unless the floor frame was found."""
+        if self.frame != WorldFrame.FLOOR:
+            return
+        self.estimate = refit_floor(self.estimate, reconstruction, floor_markers(reconstruction, scale),  # type: ignore[arg-type]  # FLOOR: estimated
+                                    x_towards=self.x_rig)
+
     def apply(self, reconstruction: pycolmap.Reconstruction) -> None:
         """Move ``reconstruction`` (in place, scale 1) into this frame; nothing for the mapper's frame."""
         if self.frame != WorldFrame.FLOOR:
@@ -130,9 +139,13 @@ class WorldResult:
             if fit:
                 floor = {"found": True, **{k: floor[k] for k in (
                     "num_points", "points_by_source", "rms", "robust_sigma", "threshold", "num_candidates",
-                    "normal_sigma_deg", "camera_height_sigma", "camera_height", "prior_angle_deg",
+                    "normal_sigma_deg", "camera_height_sigma", "scatter_normal_sigma_deg",
+                    "scatter_camera_height_sigma", "group_sigma", "num_groups", "effective_groups", "sigma_basis",
+                    "camera_height", "prior_angle_deg",
                     "up_prior_source", "marker_residuals", "floor_from_model")}}
                 floor["floor_from_mapping"] = floor.pop("floor_from_model")
+            if fit:
+                floor["refitted_after_narrow_adjustment"] = self.estimate.refitted
             floor["matching"] = {"ran": self.estimate.why_matched is not None, "why": self.estimate.why_matched,
                                  "rounds": self.estimate.rounds, "image_pairs": self.estimate.pairs,
                                  "matched_points": self.estimate.matched_points,

@@ -3,6 +3,8 @@
 
 from __future__ import annotations
 
+from types import SimpleNamespace
+
 import numpy as np
 import pycolmap
 import pytest
@@ -112,6 +114,23 @@ def test_the_floor_fitted_again_fits_the_moved_model():
     floor = result.summary().floor
     assert floor["refitted_after_narrow_adjustment"] is True
     assert floor["normal_sigma_deg"] >= floor["scatter_normal_sigma_deg"]
+
+
+def test_a_narrow_cameras_height_sigma_adds_its_own_vertical_uncertainty():
+    world = ring(seed=20)
+    rec = world.reconstruction
+    result = locate_world(rec, None, None, ["rig01"], WorldOptions())
+    result.apply(rec)
+    # 10 mm along the camera's x and z, 20 mm along its y (down, ~vertical for a camera looking slightly down)
+    own = {name: SimpleNamespace(centre_covariance_mm2=np.diag([100.0, 400.0, 100.0])) for name in world.truth_heights}
+    result.set_narrow_heights(rec, own)
+    heights = result.summary().floor["narrow_camera_heights"]
+    assert sorted(heights) == sorted(n for n in world.truth_heights if "/narrow/" in n)
+    for name, entry in heights.items():
+        assert entry["height_m"] == pytest.approx(world.truth_heights[name], abs=3e-3)
+        assert 0.015 < entry["own_sigma_m"] < 0.020
+        assert 0 < entry["floor_sigma_m"] <= result.estimate.fit.height_sigma
+        assert entry["sigma_m"] == pytest.approx(np.hypot(entry["floor_sigma_m"], entry["own_sigma_m"]))
 
 
 def test_floor_matches_are_triangulated_again_with_the_new_poses():

@@ -446,6 +446,7 @@ def _run_locked(workspace: Workspace, inputs: Inputs, manual_pairs: dict, option
                     world.refit(result.reconstruction, inputs.scale)
         with timings.stage("deliver"):
             world.apply(result.reconstruction)  # a rigid move: the bands and sigmas above are unchanged by it
+            world.set_narrow_heights(result.reconstruction, uncertainty.narrow)
             ground = ground_maps(result.reconstruction, world.plane_heights) if world.plane_heights else None
             # an --overwrite run's files replace the old result's from here: without its summary.json the workspace
             # reads as unfinished until this run writes its own, not as the old summary over the new model; nor is the

@@ -143,6 +143,7 @@ def grouped_plane_precision(points: np.ndarray, groups: np.ndarray, normal: np.n
     n = np.bincount(labels).astype(np.float64)
     k, count = len(n), len(p)
     result = {"normal_sigma_deg": float("inf"), "height_sigma": float("inf"), "group_sigma": float("inf"),
+              "height_sigmas": np.full(len(np.asarray(centres).reshape(-1, 3)), np.inf),
               "point_sigma": float("nan"), "num_groups": int(k),
               "effective_groups": float(count**2 / np.sum(n**2)) if count else 0.0}
     if count < 4 or k < 4:
@@ -178,6 +179,7 @@ def grouped_plane_precision(points: np.ndarray, groups: np.ndarray, normal: np.n
                @ np.stack([a, b]).T]
     variance = np.einsum("ij,jk,ik->i", at, cov, at)
     result.update(normal_sigma_deg=normal_sigma, height_sigma=float(np.sqrt(variance.max())) if len(at) else float("inf"),
+                  height_sigmas=np.sqrt(np.maximum(variance, 0.0)),
                   group_sigma=float(np.sqrt(group_var)), point_sigma=float(np.sqrt(point_var)))
     return result
 
@@ -326,7 +328,8 @@ def fit_floor(reconstruction: pycolmap.Reconstruction, markers: np.ndarray | Non
                                                                  centres)
     grouped = grouped_plane_precision(points[inliers], groups[inliers].astype(str), normal, offset, centres)
     if not np.isfinite(grouped["normal_sigma_deg"]):  # too few pairs to see their shared error: the scatter's
-        grouped.update(normal_sigma_deg=scatter_normal_sigma, height_sigma=scatter_height_sigma)
+        grouped.update(normal_sigma_deg=scatter_normal_sigma, height_sigma=scatter_height_sigma,
+                       height_sigmas=np.full(len(centres), scatter_height_sigma))
         sigma_basis = (f"the points' scatter alone, a lower bound: {grouped['num_groups']} image pair(s) cannot show "
                        "the pose error each pair's points share")
     elif grouped["num_groups"] < MIN_GROUPS:
@@ -352,4 +355,5 @@ def fit_floor(reconstruction: pycolmap.Reconstruction, markers: np.ndarray | Non
         scatter_normal_sigma_deg=scatter_normal_sigma, scatter_height_sigma=scatter_height_sigma,
         group_sigma=grouped["group_sigma"], num_groups=grouped["num_groups"],
         effective_groups=grouped["effective_groups"], sigma_basis=sigma_basis,
+        camera_height_sigmas={im.name: float(h) for im, h in zip(images, grouped["height_sigmas"])},
     )

@@ -75,6 +75,7 @@ class FloorFit:
     num_groups: int = 0  # image pairs (groups of points sharing a pose error) among the inliers
     effective_groups: float = 0.0  # (sum n)^2 / sum n^2 of their sizes: how many equal pairs they weigh as
     sigma_basis: str = ""  # what normal_sigma_deg and height_sigma rest on (weakly determined, a lower bound)
+    camera_height_sigmas: dict[str, float] = field(default_factory=dict)  # image name -> the floor's part of its sigma
 
     def height(self, points: np.ndarray) -> np.ndarray:
         """Signed height above the floor of model-frame points (Nx3)."""

@@ -85,6 +85,7 @@ class WorldResult:
     plane_heights: tuple[float, ...] = ()  # planes of the ground maps (0 = the floor first)
     metric: bool = True
     warnings: list[str] = field(default_factory=list)
+    narrow_heights: dict[str, dict] | None = None  # :meth:`set_narrow_heights`'s
 
     def floor_plane(self) -> Plane | None:
         """The floor in the frame it was fitted in (before :meth:`apply`); None unless the floor frame was found."""
@@ -108,6 +109,27 @@ class WorldResult:
             return
         self.estimate = refit_floor(self.estimate, reconstruction, floor_markers(reconstruction, scale),  # type: ignore[arg-type]  # FLOOR: estimated
                                     x_towards=self.x_rig)
+
+    def set_narrow_heights(self, reconstruction: pycolmap.Reconstruction, own: dict) -> None:
+        """Every registered narrow camera's height above the floor and its 1 sigma: the floor's part (the plane's
+        covariance at that camera) and the camera's own vertical centre uncertainty relative to the network
+        (``own``: the uncertainty stage's ``narrow``, covariances in the camera's axes), independent, so added in
+        quadrature. ``reconstruction`` in the floor frame (after :meth:`apply`)."""
+        if self.frame != WorldFrame.FLOOR:
+            return
+        fit = self.estimate.fit  # type: ignore[union-attr]  # FLOOR: estimated
+        heights = {}
+        for image in registered_narrow_images(reconstruction):
+            floor_part = fit.camera_height_sigmas.get(image.name, float("nan"))  # type: ignore[union-attr]
+            entry = {"height_m": float(image.projection_center()[2]), "floor_sigma_m": floor_part}
+            record = own.get(image.name)
+            covariance = getattr(record, "centre_covariance_mm2", None)
+            if covariance is not None:
+                up = image.cam_from_world().rotation.matrix()[:, 2]  # the floor's z in the camera's axes
+                entry["own_sigma_m"] = float(np.sqrt(max(up @ np.asarray(covariance) @ up, 0.0))) / 1000.0
+                entry["sigma_m"] = float(np.hypot(floor_part, entry["own_sigma_m"]))
+            heights[image.name] = entry
+        self.narrow_heights = heights
 
     def apply(self, reconstruction: pycolmap.Reconstruction) -> None:
         """Move ``reconstruction`` (in place, scale 1) into this frame; nothing for the mapper's frame."""
@@ -146,6 +168,8 @@ class WorldResult:
                 floor["floor_from_mapping"] = floor.pop("floor_from_model")
             if fit:
                 floor["refitted_after_narrow_adjustment"] = self.estimate.refitted
+                if self.narrow_heights is not None:
+                    floor["narrow_camera_heights"] = self.narrow_heights
             floor["matching"] = {"ran": self.estimate.why_matched is not None, "why": self.estimate.why_matched,
                                  "rounds": self.estimate.rounds, "image_pairs": self.estimate.pairs,
                                  "matched_points": self.estimate.matched_points,

@@ -10,10 +10,12 @@ import pycolmap
 import pytest
 from synthetic_world import ring
 
+from rigsfm.run.adjustment.result import JointCovariance
 from rigsfm.run.options import WorldOptions
-from rigsfm.run.world.floor_fit import grouped_plane_precision, plane_precision
+from rigsfm.run.world.floor_fit import fit_floor, grouped_plane_precision, plane_precision
 from rigsfm.run.world.floor_matching import FloorMatches, PairMatches
 from rigsfm.run.world.floor_model import fit_plane
+from rigsfm.run.world.floor_poses import pose_tilt_covariance
 from rigsfm.run.world.frame import locate_world
 
 # A crowd run's floor: 12 image pairs' patches round the arena, three of them holding most points (benchmarks/README.md)
@@ -147,3 +149,51 @@ def test_floor_matches_are_triangulated_again_with_the_new_poses():
     points, groups = matches.triangulated_in(rec)
     np.testing.assert_allclose(points, np.array([transform * p for p in truth]), atol=1e-6)
     assert groups == matches.groups()
+
+
+def ring_floor_matches(world, rng: np.random.Generator, pairs=((1, 2), (2, 3), (3, 4), (5, 6), (7, 8))) -> FloorMatches:
+    """Floor points (truth z = 0) seen by both wide images of each pair of rigs, as floor matches (exact pixels)."""
+    rec = world.reconstruction
+    matches, points = [], []
+    for a, b in pairs:
+        images = [rec.find_image_with_name(f"rig{k:02d}/wide/frame0000.png") for k in (a, b)]
+        truth = np.c_[rng.uniform(-8, 8, (400, 2)), np.zeros(400)]
+        model = np.array([world.model_from_truth * p for p in truth])
+        xy, seen = [], np.ones(len(model), bool)
+        for image in images:
+            in_cam = np.array([image.cam_from_world() * p for p in model])
+            seen &= in_cam[:, 2] > 0
+            pixels = image.camera.img_from_cam(in_cam)
+            seen &= (pixels[:, 0] > 0) & (pixels[:, 0] < image.camera.width) & (pixels[:, 1] > 0) \
+                & (pixels[:, 1] < image.camera.height)
+            xy.append(pixels)
+        matches.append(PairMatches(images[0].name, images[1].name, xy[0][seen], xy[1][seen]))
+        points.append(model[seen])
+    return FloorMatches(np.vstack(points), {}, matches)
+
+
+def frames_covariance(rec: pycolmap.Reconstruction, mode: np.ndarray | None = None) -> JointCovariance:
+    frames = sorted(rec.reg_frame_ids())
+    keys = tuple(("frame", f) for f in frames)
+    offsets = {key: (6 * k, 6) for k, key in enumerate(keys)}
+    covariance = np.outer(mode, mode) if mode is not None else np.eye(6 * len(frames)) * 1e-8
+    return JointCovariance(keys, offsets, covariance, 1.0, "posterior")
+
+
+def test_the_poses_covariance_tilts_the_floor_but_not_a_rotation_of_the_whole_network():
+    """One frame's rotation error (1e-4 rad on each axis) tilts the floor relative to the cameras; the whole network
+    turned together (every frame by the same world rotation: the gauge) moves floor and cameras alike: no tilt."""
+    world = ring(seed=4)
+    rec = world.reconstruction
+    matches = ring_floor_matches(world, np.random.default_rng(0))
+    fit = fit_floor(rec, extra_points=matches.points, extra_groups=matches.groups())
+    assert fit and fit.points_by_source["matched"] > 500
+    frames = sorted(rec.reg_frame_ids())
+    one = np.zeros(6 * len(frames))
+    one[6:9] = 1e-4  # the second frame's rotation
+    tilt = pose_tilt_covariance(rec, matches, fit.normal, fit.offset, fit.threshold, frames_covariance(rec, one))
+    assert np.sqrt(np.linalg.eigvalsh(tilt).max()) > 1e-6
+    theta = np.array([3e-4, -2e-4, 1e-4])  # the same world rotation of every frame: w = -R theta, dt = 0
+    whole = np.concatenate([np.r_[-rec.frame(f).rig_from_world.rotation.matrix() @ theta, np.zeros(3)] for f in frames])
+    tilt = pose_tilt_covariance(rec, matches, fit.normal, fit.offset, fit.threshold, frames_covariance(rec, whole))
+    assert np.sqrt(np.linalg.eigvalsh(tilt).max()) < 1e-8

@@ -61,6 +61,7 @@ from rigsfm.run.world.floor_model import (
 )
 
 if TYPE_CHECKING:  # floor matching imports OpenCV: only where the floor is matched
+    from rigsfm.run.adjustment.result import JointCovariance
     from rigsfm.run.world.floor_matching import FloorMatches
 
 logger = logging.getLogger(__name__)
@@ -269,3 +270,28 @@ def refit_floor(estimate: FloorEstimate, reconstruction: pycolmap.Reconstruction
                        fit.reason)  # type: ignore[union-attr]
         return estimate
     return replace(estimate, fit=fit, refitted=True)
+
+
+def with_pose_uncertainty(estimate: FloorEstimate, reconstruction: pycolmap.Reconstruction,
+                          covariance: JointCovariance | None) -> FloorEstimate:
+    """``estimate`` with its normal's sigma widened to the poses' share where that is larger than the pairs'
+    residuals show: the poses' covariance carried through the floor matches
+    (:func:`rigsfm.run.world.floor_poses.pose_tilt_covariance`) and the points' scatter, in quadrature. A network's
+    pose errors are correlated from pair to pair, so the plane can be off with every pair agreeing
+    (benchmarks/README.md). Unchanged without floor matches or a covariance. ``reconstruction``: the model the fit
+    is in (before the floor frame is applied)."""
+    if not estimate.fit or estimate.matches is None or covariance is None:
+        return estimate
+    fit: FloorFit = estimate.fit  # type: ignore[assignment]  # NoFloor is falsy: a FloorFit here
+    from rigsfm.run.world.floor_poses import pose_tilt_covariance  # OpenCV: only where the floor was matched
+
+    tilt = pose_tilt_covariance(reconstruction, estimate.matches, fit.normal, fit.offset, fit.threshold, covariance)
+    if tilt is None:
+        return estimate
+    pose_sigma = float(np.degrees(np.sqrt(max(float(np.linalg.eigvalsh(tilt).max()), 0.0))))
+    from_poses = float(np.hypot(pose_sigma, fit.scatter_normal_sigma_deg))
+    normal_sigma = max(fit.normal_sigma_deg, from_poses)
+    basis = fit.sigma_basis + ("; widened to the poses' covariance carried through the floor matches"
+                               if from_poses > fit.normal_sigma_deg else "")
+    return replace(estimate, fit=replace(fit, normal_sigma_deg=normal_sigma, pose_normal_sigma_deg=pose_sigma,
+                                         sigma_basis=basis))

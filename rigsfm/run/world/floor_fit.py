@@ -355,5 +355,6 @@ def fit_floor(reconstruction: pycolmap.Reconstruction, markers: np.ndarray | Non
         scatter_normal_sigma_deg=scatter_normal_sigma, scatter_height_sigma=scatter_height_sigma,
         group_sigma=grouped["group_sigma"], num_groups=grouped["num_groups"],
         effective_groups=grouped["effective_groups"], sigma_basis=sigma_basis,
+        grouped_normal_sigma_deg=grouped["normal_sigma_deg"],
         camera_height_sigmas={im.name: float(h) for im, h in zip(images, grouped["height_sigmas"])},
     )

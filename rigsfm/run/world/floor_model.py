@@ -76,6 +76,10 @@ class FloorFit:
     effective_groups: float = 0.0  # (sum n)^2 / sum n^2 of their sizes: how many equal pairs they weigh as
     sigma_basis: str = ""  # what normal_sigma_deg and height_sigma rest on (weakly determined, a lower bound)
     camera_height_sigmas: dict[str, float] = field(default_factory=dict)  # image name -> the floor's part of its sigma
+    # The normal's sigma from the pairs' residuals alone (grouped_plane_precision), and from the poses' covariance
+    # carried through the floor matches (floor_poses.pose_tilt_covariance; NaN where not propagated)
+    grouped_normal_sigma_deg: float = float("inf")
+    pose_normal_sigma_deg: float = float("nan")
 
     def height(self, points: np.ndarray) -> np.ndarray:
         """Signed height above the floor of model-frame points (Nx3)."""
@@ -107,6 +111,8 @@ class FloorFit:
             "num_groups": self.num_groups,
             "effective_groups": self.effective_groups,
             "sigma_basis": self.sigma_basis,
+            "grouped_normal_sigma_deg": self.grouped_normal_sigma_deg,
+            "pose_normal_sigma_deg": None if np.isnan(self.pose_normal_sigma_deg) else self.pose_normal_sigma_deg,
             "marker_residuals": self.marker_residuals,
             "warnings": list(self.warnings),
         }

@@ -35,7 +35,13 @@ from rigsfm.core.summary import WorldSummary
 from rigsfm.run.inputs.scale_file import ScaleSpec
 from rigsfm.run.options import WorldFrame, WorldOptions
 from rigsfm.run.world.analysis_floor import find_floor
-from rigsfm.run.world.floor import FloorEstimate, apply_floor_frame, estimate_floor, refit_floor
+from rigsfm.run.world.floor import (
+    FloorEstimate,
+    apply_floor_frame,
+    estimate_floor,
+    refit_floor,
+    with_pose_uncertainty,
+)
 from rigsfm.run.world.floor_model import floor_markers, rig_positions
 
 logger = logging.getLogger(__name__)
@@ -110,6 +116,12 @@ class WorldResult:
         self.estimate = refit_floor(self.estimate, reconstruction, floor_markers(reconstruction, scale),  # type: ignore[arg-type]  # FLOOR: estimated
                                     x_towards=self.x_rig)
 
+    def add_pose_uncertainty(self, reconstruction: pycolmap.Reconstruction, covariance) -> None:
+        """Widen the floor's normal sigma to the poses' covariance carried through the floor matches where larger
+        (:func:`rigsfm.run.world.floor.with_pose_uncertainty`); ``reconstruction`` before :meth:`apply`."""
+        if self.frame == WorldFrame.FLOOR:
+            self.estimate = with_pose_uncertainty(self.estimate, reconstruction, covariance)  # type: ignore[arg-type]  # FLOOR: estimated
+
     def set_narrow_heights(self, reconstruction: pycolmap.Reconstruction, own: dict) -> None:
         """Every registered narrow camera's height above the floor and its 1 sigma: the floor's part (the plane's
         covariance at that camera) and the camera's own vertical centre uncertainty relative to the network
@@ -163,6 +175,7 @@ class WorldResult:
                     "num_points", "points_by_source", "rms", "robust_sigma", "threshold", "num_candidates",
                     "normal_sigma_deg", "camera_height_sigma", "scatter_normal_sigma_deg",
                     "scatter_camera_height_sigma", "group_sigma", "num_groups", "effective_groups", "sigma_basis",
+                    "grouped_normal_sigma_deg", "pose_normal_sigma_deg",
                     "camera_height", "prior_angle_deg",
                     "up_prior_source", "marker_residuals", "floor_from_model")}}
                 floor["floor_from_mapping"] = floor.pop("floor_from_model")

@@ -444,9 +444,8 @@ def _run_locked(workspace: Workspace, inputs: Inputs, manual_pairs: dict, option
             if result is not first:  # the second adjustment moved the network: the floor fitted again on it
                 with timings.stage("world_refit"):  # after the bands, which keep the first fit's floor
                     world.refit(result.reconstruction, inputs.scale)
-        with timings.stage("world_sigma"):  # the poses' covariance carried into the floor (before the move)
-            world.add_pose_uncertainty(result.reconstruction, uncertainty.covariance)
         with timings.stage("deliver"):
+            world.add_pose_uncertainty(result.reconstruction, uncertainty.covariance)  # before the move: its frame
             world.apply(result.reconstruction)  # a rigid move: the bands and sigmas above are unchanged by it
             world.set_narrow_heights(result.reconstruction, uncertainty.narrow)
             ground = ground_maps(result.reconstruction, world.plane_heights) if world.plane_heights else None

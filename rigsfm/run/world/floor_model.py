@@ -107,7 +107,7 @@ class FloorFit:
             "camera_height_sigma": self.height_sigma,
             "scatter_normal_sigma_deg": self.scatter_normal_sigma_deg,
             "scatter_camera_height_sigma": self.scatter_height_sigma,
-            "group_sigma": self.group_sigma,
+            "group_sigma": self.group_sigma if np.isfinite(self.group_sigma) else None,  # None: under 4 pairs
             "num_groups": self.num_groups,
             "effective_groups": self.effective_groups,
             "sigma_basis": self.sigma_basis,

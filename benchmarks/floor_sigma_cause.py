@@ -13,16 +13,11 @@ import rigsfm.run.world.floor_matching as fm
 
 root = Path(sys.argv[1])
 est = pycolmap.Reconstruction(str(root / "run/sparse")); gt = pycolmap.Reconstruction(str(root / "scene/ground_truth"))
-rec = []
-orig = fm._triangulate
-def spy(image_i, image_j, xy_i, xy_j, *a, **k):
-    pts = fm.triangulate_pairs(image_i, image_j, xy_i, xy_j)
-    kept = orig(image_i, image_j, xy_i, xy_j, *a, **k)
-    idx = [int(np.argmin(np.linalg.norm(np.nan_to_num(pts, nan=1e9) - p, axis=1))) for p in kept]
-    rec.append((image_i.name, image_j.name, xy_i[idx], xy_j[idx], kept))
-    return kept
-fm._triangulate = spy
-fm.match_floor_points(est, root / "scene/images", np.array([0, 0, 1.0]), 0.0)
+matches = fm.match_floor_points(est, root / "scene/images", np.array([0, 0, 1.0]), 0.0)
+rec, start = [], 0
+for m in matches.matches:  # the kept matches' pixels, pair after pair, in the points' order
+    rec.append((m.image_i, m.image_j, m.xy_i, m.xy_j, matches.points[start:start + len(m.xy_i)]))
+    start += len(m.xy_i)
 f = json.load(open(root / "run/summary.json"))["world"]["floor"]
 
 def hybrid(poses, intr):

@@ -56,6 +56,10 @@ def measure(root):
                 out[sensor]["centre_vertical_sigma_mm"] = {"min": float(zc.min()), "max": float(zc.max())}
                 out[sensor]["z_height_combined_max"] = float(np.max(np.abs(d) / comb))
                 out[sensor]["frac_within_95_combined"] = float(np.mean(np.abs(d) <= 1.96 * comb))
+                if "narrow_camera_heights" in f:  # the run's own per-camera height sigma (floor's part + own centre's)
+                    reported = np.array([1000 * f["narrow_camera_heights"][n]["sigma_m"] for n in names])
+                    out[sensor]["z_height_reported_max"] = float(np.max(np.abs(d) / reported))
+                    out[sensor]["frac_within_95_reported"] = float(np.mean(np.abs(d) <= 1.96 * reported))
             out[sensor].update({"height_err_mm": {"min": float(d.min()), "median": float(np.median(d)), "max": float(d.max()),
                                 "max_abs": float(np.abs(d).max())}, "z_height_max": float(np.abs(d).max() / (1000 * hs)),
                                 "frac_within_95": float(np.mean(np.abs(d) <= 1.96 * 1000 * hs))})

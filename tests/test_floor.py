@@ -312,3 +312,26 @@ def test_two_bars_tilt_sigma_covers_their_ends_error():
         assert fit, fit
         inside += angle_deg(fit.normal, truth_up_in_model(world)) < 1.96 * fit.normal_sigma_deg
     assert inside >= 17
+
+
+def test_a_floor_from_the_markers_is_fitted_again_from_the_markers(caplog):
+    """After the narrow stage's second adjustment the floor is fitted again (refit_floor): one from the markers alone
+    (a crowd hid the floor) must come from them again, not from a point fit that found none before ("not found again
+    ... the first fit is kept", the floor then off the moved poses)."""
+    from rigsfm.run.world.floor import refit_floor
+
+    world = ring(seed=15, num_rigs=6, floor_points=0)
+    markers = _bars(world, [(1.0, 2.0), (2.6, 3.2)])
+    estimate = estimate_floor(world.reconstruction, None, markers)
+    moved = pycolmap.Sim3d(1.0, pycolmap.Rotation3d(np.array([0.01, 0.0, 0.0, 1.0]) / np.linalg.norm([0.01, 0, 0, 1])),
+                           [0.2, -0.1, 0.05])
+    rec = pycolmap.Reconstruction(world.reconstruction)
+    rec.transform(moved)  # the network moved as a whole: the floor moves with it
+    moved_markers = np.array([moved * p for p in markers])
+    with caplog.at_level("WARNING"):
+        again = refit_floor(estimate, rec, moved_markers)
+    assert again.refitted and again.fit.points_by_source == {"sparse": 0, "matched": 0, "markers": 2}
+    assert not any("not found again" in r.getMessage() for r in caplog.records)
+    for name, height in estimate.fit.camera_heights.items():
+        assert again.fit.camera_heights[name] == pytest.approx(height, abs=1e-6)
+    assert again.fit.sigma_basis and set(again.fit.camera_height_sigmas) == set(again.fit.camera_heights)

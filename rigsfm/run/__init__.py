@@ -13,8 +13,11 @@ summary.json's ``timings_s``), over the sub-packages that hold them:
 6. ``adjust`` -- ``adjustment.adjust`` (``problem``, ``priors``, ``costs``, ``scale``, ``decisions``): the metric
    bundle adjustment with the rigs' calibration;
 7. ``world`` -- ``world.frame`` (``floor``, ``floor_fit``, ``floor_matching``, ``analysis_floor``): the floor frame;
-8. ``uncertainty`` -- ``adjustment.uncertainty`` (``covariance``, ``narrow``, ``bands``, ``sampled``);
-9. ``deliver`` -- ``deliver``: sparse/, narrow_poses.json, points3D.ply; summary.json (``rigsfm.core.summary``)
+8. ``uncertainty`` -- ``adjustment.uncertainty`` (``covariance``, ``narrow``, ``bands``, ``sampled``); with narrow
+   observations ``narrow_observations``, ``uncertainty_final`` and ``world_refit`` (the floor fitted again on the
+   model adjusted again);
+9. ``deliver`` -- ``world.floor_poses`` (the poses' covariance carried into the floor's sigma), ``deliver``: sparse/,
+   narrow_poses.json, points3D.ply; summary.json (``rigsfm.core.summary``)
    with ``checks.diagnostics``' warnings;
 10. ``check_pairs`` -- ``checks.missed_pairs``: skipped pairs the model says would have shared many points;
 11. ``self_check`` -- ``checks.self_check`` (``guided``, ``sync``): epipolar distances of matches between

@@ -442,8 +442,13 @@ def _run_locked(workspace: Workspace, inputs: Inputs, manual_pairs: dict, option
                     floor, floor_source = world.analysis_floor(result.reconstruction, result.scale_spec)
                     uncertainty = in_child(estimate_uncertainty, result, floor=floor, floor_source=floor_source)
                     uncertainty.bands_from = BANDS_WITH_NARROW
+            if result is not first:  # the second adjustment moved the network: the floor fitted again on it
+                with timings.stage("world_refit"):  # after the bands, which keep the first fit's floor
+                    world.refit(result.reconstruction, inputs.scale)
         with timings.stage("deliver"):
+            world.add_pose_uncertainty(result.reconstruction, uncertainty.covariance)  # before the move: its frame
             world.apply(result.reconstruction)  # a rigid move: the bands and sigmas above are unchanged by it
+            world.set_narrow_heights(result.reconstruction, uncertainty.narrow)
             ground = ground_maps(result.reconstruction, world.plane_heights) if world.plane_heights else None
             # an --overwrite run's files replace the old result's from here: without its summary.json the workspace
             # reads as unfinished until this run writes its own, not as the old summary over the new model; nor is the

@@ -301,9 +301,12 @@ def world_section(narrow: dict, reconstruction: pycolmap.Reconstruction) -> str:
                   fmt(floor.get("normal_sigma_deg"), 3)]]
     else:
         rows += [["fit residual RMS (m)", fmt(floor.get("rms"))],
-                 # the points' scatter only: the cameras' pose errors they share are not in it (docs/world.md)
-                 ["normal σ of the points' scatter (deg; a lower bound)", fmt(floor.get("normal_sigma_deg"), 3)]]
-    rows += [["camera heights (m)", f"{fmt(heights.get('min'))} – {fmt(heights.get('max'))}"],
+                 # with each image pair's points sharing its pose error (docs/world.md); older results: the scatter
+                 ["normal σ (deg)" if floor.get("sigma_basis") else "normal σ of the points' scatter (deg; a lower bound)",
+                  fmt(floor.get("normal_sigma_deg"), 3) + (f" ({esc(floor['sigma_basis'])})"
+                                                           if floor.get("sigma_basis") else "")]]
+    rows += [["camera height σ from the floor (m; the largest)", fmt(floor.get("camera_height_sigma"), 3)],
+             ["camera heights (m)", f"{fmt(heights.get('min'))} – {fmt(heights.get('max'))}"],
              ["floor matching", "not needed (the sparse points fix the floor)" if not matching.get("ran") else
               f"{matching.get('rounds')} round(s), {matching.get('image_pairs')} image pairs, "
               f"{matching.get('matched_points')} points, {fmt(matching.get('seconds'), 3)} s "

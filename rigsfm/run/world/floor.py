@@ -47,7 +47,8 @@ metric model must never be re-scaled here: the metres come from ``rigsfm.run.adj
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
+from typing import TYPE_CHECKING
 
 import numpy as np
 import pycolmap
@@ -60,6 +61,10 @@ from rigsfm.run.world.floor_model import (
     posed_images,
     up_prior,
 )
+
+if TYPE_CHECKING:  # floor matching imports OpenCV: only where the floor is matched
+    from rigsfm.run.adjustment.result import JointCovariance
+    from rigsfm.run.world.floor_matching import FloorMatches
 
 logger = logging.getLogger(__name__)
 
@@ -129,6 +134,8 @@ class FloorEstimate:
     pairs: int = 0  # image pairs matched, over all rounds
     matched_points: int = 0  # triangulated floor matches of the last round
     seconds: float = 0.0  # floor matching (reading images, SIFT, warps, triangulation)
+    matches: FloorMatches | None = None  # the last round's matches (their pixels: refit_floor triangulates them again)
+    refitted: bool = False  # fitted again on the model adjusted once more (refit_floor)
 
 
 def sparse_floor_shortfall(fit: FloorFit | NoFloor, reconstruction: pycolmap.Reconstruction,
@@ -144,10 +151,11 @@ def sparse_floor_shortfall(fit: FloorFit | NoFloor, reconstruction: pycolmap.Rec
     median_height = float(np.median(list(fit.camera_heights.values())))  # type: ignore[union-attr]
     if fit.num_points < opt.enough_points:  # type: ignore[union-attr]
         return f"{fit.num_points} sparse floor points (want {opt.enough_points})"  # type: ignore[union-attr]
-    if fit.normal_sigma_deg > opt.enough_normal_sigma_deg:  # type: ignore[union-attr]
-        return f"their normal is uncertain by {fit.normal_sigma_deg:.3f} deg (want {opt.enough_normal_sigma_deg})"  # type: ignore[union-attr]
-    if fit.height_sigma > opt.enough_height_sigma * median_height:  # type: ignore[union-attr]
-        return (f"camera heights uncertain by {fit.height_sigma:.3g} (want "  # type: ignore[union-attr]
+    if fit.scatter_normal_sigma_deg > opt.enough_normal_sigma_deg:  # type: ignore[union-attr]
+        return (f"their normal is uncertain by {fit.scatter_normal_sigma_deg:.3f} deg from their scatter (want "  # type: ignore[union-attr]
+                f"{opt.enough_normal_sigma_deg})")
+    if fit.scatter_height_sigma > opt.enough_height_sigma * median_height:  # type: ignore[union-attr]
+        return (f"camera heights uncertain by {fit.scatter_height_sigma:.3g} from their scatter (want "  # type: ignore[union-attr]
                 f"{opt.enough_height_sigma * median_height:.3g})")
     return None
 
@@ -201,9 +209,9 @@ def estimate_floor(reconstruction: pycolmap.Reconstruction, image_dir=None, mark
             else:
                 matches = match_floor_points(reconstruction, image_dir, normal, offset, match_options, images=images)
                 rounds, pairs = rounds + 1, pairs + len(matches.pairs)
-                fit = fit_floor(reconstruction, markers, opt, extra_points=matches.points, x_towards=x_towards,
-                                quiet=True)
-            found = len(matches)
+                fit = fit_floor(reconstruction, markers, opt, extra_points=matches.points,
+                                extra_groups=matches.groups(), x_towards=x_towards, quiet=True)
+            found, last[0] = len(matches), matches
             if not fit or sparse_floor_shortfall(fit, reconstruction, opt) is None:
                 break  # no floor, or precise enough
             # NoFloor is falsy: a FloorFit here
@@ -214,6 +222,8 @@ def estimate_floor(reconstruction: pycolmap.Reconstruction, image_dir=None, mark
             logger.info("floor moved by %.3f deg / %.3g at the cameras from the matching plane", moved_deg, moved)
             normal, offset = fit.normal, fit.offset  # type: ignore[union-attr]  # NoFloor is falsy: a FloorFit here
         return fit, rounds, pairs, found
+
+    last: list = [None]  # the matches of the last fit made
 
     fit, rounds, pairs, found = rounds_from(normal, offset)
     if not fit and how == LOWEST_POINTS:
@@ -228,8 +238,8 @@ def estimate_floor(reconstruction: pycolmap.Reconstruction, image_dir=None, mark
             pairs += len(matches.pairs)
             if best is not None and len(matches) <= len(best[0]):
                 continue  # it cannot be chosen, whatever its fit (a failed fit draws every RANSAC triple: seconds)
-            step_fit = fit_floor(reconstruction, markers, opt, extra_points=matches.points, x_towards=x_towards,
-                                 quiet=True)
+            step_fit = fit_floor(reconstruction, markers, opt, extra_points=matches.points,
+                                 extra_groups=matches.groups(), x_towards=x_towards, quiet=True)
             if step_fit:
                 best = (matches, step_fit, lowered)
         logger.info("floor guess lowered: %s", "no step fits a floor" if best is None else
@@ -238,11 +248,61 @@ def estimate_floor(reconstruction: pycolmap.Reconstruction, image_dir=None, mark
             lowered_fit, more_rounds, more_pairs, found = rounds_from(normal, best[2], best[:2])
             fit, rounds, pairs = lowered_fit, rounds + len(LOWER_STEPS) + more_rounds, pairs + more_pairs
     if not fit and sparse:
-        fit = sparse  # the matches did not help: keep the sparse floor
+        fit, last[0] = sparse, None  # the matches did not help: keep the sparse floor
     if not fit and markers is not None and len(markers):  # a crowd hides the floor: its markers are floor points
-        fit = marker_floor(reconstruction, markers, fit.reason, opt, x_towards=x_towards)  # type: ignore[union-attr]  # FloorFit is truthy: a NoFloor here
+        fit, last[0] = marker_floor(reconstruction, markers, fit.reason, opt, x_towards=x_towards), None  # type: ignore[union-attr]  # FloorFit is truthy: a NoFloor here
     for warning in fit.warnings if fit else ():  # type: ignore[union-attr]  # NoFloor is falsy: a FloorFit here
         logger.warning("floor: %s", warning)
     seconds = time.perf_counter() - start
     logger.info("floor matching: %d round(s), %d image pairs, %.1f s", rounds, pairs, seconds)
-    return FloorEstimate(fit, shortfall, rounds, pairs, found, seconds)
+    return FloorEstimate(fit, shortfall, rounds, pairs, found, seconds, last[0] if fit else None)
+
+
+def refit_floor(estimate: FloorEstimate, reconstruction: pycolmap.Reconstruction, markers: np.ndarray | None = None,
+                options: FloorOptions | None = None, *, x_towards: str | None = None) -> FloorEstimate:
+    """``estimate``'s floor fitted again in ``reconstruction``, the same model adjusted once more (the narrow stage's
+    second adjustment moves the network: the first fit, carried over, was off the delivered poses by up to 36 mm,
+    benchmarks/README.md): its sparse points, ``markers`` and the floor matches' pixels triangulated with the new
+    poses; no image is read again. The estimate unchanged where it has no floor, or no floor fits again."""
+    if not estimate.fit:
+        return estimate
+    before: FloorFit = estimate.fit  # type: ignore[assignment]  # NoFloor is falsy: a FloorFit here
+    if before.points_by_source.get("markers") == before.num_points and markers is not None and len(markers):
+        # a floor from the markers alone (a crowd hid it from the points): the markers again, in the new poses
+        fit = marker_floor(reconstruction, markers, "no floor fitted the points", options, x_towards=x_towards)
+    else:
+        matches = estimate.matches
+        points, groups = matches.triangulated_in(reconstruction) if matches is not None else (None, None)
+        fit = fit_floor(reconstruction, markers, options, extra_points=points, extra_groups=groups,
+                        x_towards=x_towards, quiet=True)
+    if not fit:
+        # FloorFit is truthy: a NoFloor here
+        logger.warning("floor: not found again after the narrow adjustment (%s); the first fit is kept",
+                       fit.reason)  # type: ignore[union-attr]
+        return estimate
+    return replace(estimate, fit=fit, refitted=True)
+
+
+def with_pose_uncertainty(estimate: FloorEstimate, reconstruction: pycolmap.Reconstruction,
+                          covariance: JointCovariance | None) -> FloorEstimate:
+    """``estimate`` with its normal's sigma widened to the poses' share where that is larger than the pairs'
+    residuals show: the poses' covariance carried through the floor matches
+    (:func:`rigsfm.run.world.floor_poses.pose_tilt_covariance`) and the points' scatter, in quadrature. A network's
+    pose errors are correlated from pair to pair, so the plane can be off with every pair agreeing
+    (benchmarks/README.md). Unchanged without floor matches or a covariance. ``reconstruction``: the model the fit
+    is in (before the floor frame is applied)."""
+    if not estimate.fit or estimate.matches is None or covariance is None:
+        return estimate
+    fit: FloorFit = estimate.fit  # type: ignore[assignment]  # NoFloor is falsy: a FloorFit here
+    from rigsfm.run.world.floor_poses import pose_tilt_covariance  # OpenCV: only where the floor was matched
+
+    tilt = pose_tilt_covariance(reconstruction, estimate.matches, fit.normal, fit.offset, fit.threshold, covariance)
+    if tilt is None:
+        return estimate
+    pose_sigma = float(np.degrees(np.sqrt(max(float(np.linalg.eigvalsh(tilt).max()), 0.0))))
+    from_poses = float(np.hypot(pose_sigma, fit.scatter_normal_sigma_deg))
+    normal_sigma = max(fit.normal_sigma_deg, from_poses)
+    basis = fit.sigma_basis + ("; widened to the poses' covariance carried through the floor matches"
+                               if from_poses > fit.normal_sigma_deg else "")
+    return replace(estimate, fit=replace(fit, normal_sigma_deg=normal_sigma, pose_normal_sigma_deg=pose_sigma,
+                                         sigma_basis=basis))

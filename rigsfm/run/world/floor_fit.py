@@ -4,11 +4,12 @@ refinement, its precision and the floor frame."""
 from __future__ import annotations
 
 import logging
+from collections.abc import Sequence
 
 import numpy as np
 import pycolmap
 
-from rigsfm.core.names import name_of
+from rigsfm.core.names import ImageName, name_of
 from rigsfm.run.world.floor_model import (
     FloorFit,
     FloorOptions,
@@ -22,6 +23,7 @@ from rigsfm.run.world.floor_model import (
 logger = logging.getLogger(__name__)
 
 
+MIN_GROUPS = 6  # image pairs below which the floor's tilt and sigma are weakly determined (grouped_plane_precision)
 FIRST_TRIPLES = 100  # RANSAC's first batch; then batches double up to FloorOptions.ransac_iterations
 
 
@@ -123,6 +125,65 @@ def plane_precision(points: np.ndarray, normal: np.ndarray, sigma: float,
     return normal_sigma, float(np.sqrt(variance.max())) if len(at) else float("inf")
 
 
+def grouped_plane_precision(points: np.ndarray, groups: np.ndarray, normal: np.ndarray, offset: float,
+                            centres: np.ndarray) -> dict:
+    """Standard errors of the least-squares plane through ``points`` (as :func:`plane_precision`'s) where the points
+    of one group (``groups``: a label per point; the image pair that triangulated them) share an offset from the
+    plane: that pair's pose error moves all its points together, so they are not independent draws.
+
+    Model: height residual r_i = b_g + e_i, b_g ~ (0, sigma_b^2) per group, e_i ~ (0, sigma_e^2). Both variances are
+    the unbiased moment estimates from the residuals' between-group and within-group sums of squares, their
+    expectations taken through the plane fit (which absorbs three of the groups' offsets: a plane through three
+    patches leaves them no residual). The plane's covariance is then the OLS sandwich under that model,
+    (X^T X)^-1 X^T V X (X^T X)^-1 with V = sigma_e^2 I + sigma_b^2 Z Z^T. Needs four groups or more (the between-group
+    variance has ``num_groups`` - 3 degrees of freedom); with fewer the sigmas are infinite."""
+    p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    _, labels = np.unique(np.asarray(groups), return_inverse=True)
+    labels = labels.reshape(-1)
+    n = np.bincount(labels).astype(np.float64)
+    k, count = len(n), len(p)
+    result = {"normal_sigma_deg": float("inf"), "height_sigma": float("inf"), "group_sigma": float("inf"),
+              "height_sigmas": np.full(len(np.asarray(centres).reshape(-1, 3)), np.inf),
+              "point_sigma": float("nan"), "num_groups": int(k),
+              "effective_groups": float(count**2 / np.sum(n**2)) if count else 0.0}
+    if count < 4 or k < 4:
+        return result
+    a = np.cross(normal, [1.0, 0.0, 0.0] if abs(normal[0]) < 0.9 else [0.0, 1.0, 0.0])
+    a /= np.linalg.norm(a)
+    b = np.cross(normal, a)
+    centroid = p.mean(axis=0)
+    x = np.c_[np.ones(count), (p - centroid) @ np.stack([a, b]).T]  # height = e + tilt_a u + tilt_b v
+    r = p @ normal + offset
+    xtx = x.T @ x
+    if np.linalg.cond(xtx) > 1e12:
+        return result
+    inv = np.linalg.inv(xtx)
+    s = np.stack([np.bincount(labels, weights=x[:, j], minlength=k) for j in range(3)])  # X^T Z
+    sums = np.bincount(labels, weights=r, minlength=k)
+    between = float(np.sum(sums**2 / n))  # r^T P_Z r
+    within = float(r @ r) - between
+    g = np.diag(n) - s.T @ inv @ s  # Z^T M Z
+    t_pm = k - float(np.trace(inv @ (s / n) @ s.T))  # tr(P_Z M)
+    t_gdg = float(np.trace(g @ (g / n[:, None])))  # tr(Z^T M P_Z M Z)
+    system = np.array([[t_pm, t_gdg], [count - 3 - t_pm, float(np.trace(g)) - t_gdg]])
+    try:
+        point_var, group_var = np.linalg.solve(system, [between, within])
+    except np.linalg.LinAlgError:
+        return result
+    if group_var < 0:  # the groups agree better than their points: no shared offset seen
+        point_var, group_var = float(r @ r) / (count - 3), 0.0
+    point_var = max(float(point_var), 0.0)
+    cov = inv @ (point_var * xtx + group_var * s @ s.T) @ inv
+    normal_sigma = float(np.degrees(np.sqrt(max(np.linalg.eigvalsh(cov[1:, 1:]).max(), 0.0))))
+    at = np.c_[np.ones(len(centres)), (np.asarray(centres, dtype=np.float64).reshape(-1, 3) - centroid)
+               @ np.stack([a, b]).T]
+    variance = np.einsum("ij,jk,ik->i", at, cov, at)
+    result.update(normal_sigma_deg=normal_sigma, height_sigma=float(np.sqrt(variance.max())) if len(at) else float("inf"),
+                  height_sigmas=np.sqrt(np.maximum(variance, 0.0)),
+                  group_sigma=float(np.sqrt(group_var)), point_sigma=float(np.sqrt(point_var)))
+    return result
+
+
 def _occupied_cells(points: np.ndarray, normal: np.ndarray, cell: float) -> int:
     """How many square cells of side ``cell`` of the plane (normal ``normal``) the points fall in."""
     a = np.cross(normal, [1.0, 0.0, 0.0] if abs(normal[0]) < 0.9 else [0.0, 1.0, 0.0])
@@ -165,13 +226,21 @@ def _simultaneous(track: pycolmap.Track, frame_of: dict[int, str]) -> bool:
     return len(set(frames)) < len(frames)
 
 
+def _rig_pair(names: Sequence[str]) -> str:
+    """The group of a point seen in these images: the first two rigs (sorted), whose poses its error shares."""
+    rigs = sorted(dict.fromkeys(ImageName.parse(name).rig for name in names))
+    return "|".join(rigs[:2])
+
+
 def fit_floor(reconstruction: pycolmap.Reconstruction, markers: np.ndarray | None = None,
               options: FloorOptions | None = None, *, extra_points: np.ndarray | None = None,
+              extra_groups: Sequence[tuple[str, str]] | None = None,
               x_towards: str | None = None, quiet: bool = False) -> FloorFit | NoFloor:
     """Fit the floor plane to the sparse points, ``extra_points`` (e.g. from
-    :func:`rigsfm.run.world.floor_matching.match_floor_points`) and ``markers`` (model-frame points known to be on
-    the floor), and define the floor frame (module docstring). Returns :class:`NoFloor` with the reason when
-    the scene has no detectable floor. ``quiet``: leave the warnings in the result, unlogged."""
+    :func:`rigsfm.run.world.floor_matching.match_floor_points`; ``extra_groups``: the image pair of each, its
+    ``groups()``) and ``markers`` (model-frame points known to be on the floor), and define the floor frame (module
+    docstring). Returns :class:`NoFloor` with the reason when the scene has no detectable floor. ``quiet``: leave
+    the warnings in the result, unlogged."""
     opt = options or FloorOptions()
     images = posed_images(reconstruction)
     if len(images) < 1:
@@ -181,20 +250,31 @@ def fit_floor(reconstruction: pycolmap.Reconstruction, markers: np.ndarray | Non
     centres = np.array([im.projection_center() for im in images])
     lowest = float((centres @ up).min())
 
-    ids, xyz = [], []
+    ids, xyz, tracks = [], [], []
     frame_of = {image.image_id: name_of(image).frame for image in images}
+    name_by_id = {image.image_id: image.name for image in images}
     for point_id, point in reconstruction.points3D.items():
         if point.track.length() >= opt.min_track_length and point.error <= opt.max_reprojection_error \
                 and _simultaneous(point.track, frame_of):
             ids.append(point_id)
             xyz.append(point.xyz)
+            tracks.append(point.track)
     ids = np.asarray(ids, dtype=np.int64)  # type: ignore[assignment]  # here an array
     xyz = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)  # type: ignore[assignment]
     below = xyz @ up < lowest
     ids, xyz = ids[below], xyz[below]
+    sparse_groups = [_rig_pair([name_by_id[e.image_id] for e in track.elements if e.image_id in name_by_id])
+                     for track, keep in zip(tracks, below) if keep]
     markers = np.zeros((0, 3)) if markers is None else np.asarray(markers, dtype=np.float64).reshape(-1, 3)
     extra = np.zeros((0, 3)) if extra_points is None else np.asarray(extra_points, dtype=np.float64).reshape(-1, 3)
-    extra = extra[extra @ up < lowest]
+    extra_group = (["matched"] * len(extra) if extra_groups is None else
+                   [_rig_pair(pair) for pair in extra_groups])
+    if len(extra_group) != len(extra):
+        raise ValueError(f"{len(extra_group)} extra_groups for {len(extra)} extra_points")
+    extra_below = extra @ up < lowest
+    extra = extra[extra_below]
+    groups = np.array([*sparse_groups, *(g for g, keep in zip(extra_group, extra_below) if keep),
+                       *["markers"] * len(markers)], dtype=object)
     points = np.vstack([xyz, extra, markers])
     source = np.repeat(np.array(["sparse", "matched", "markers"]), [len(xyz), len(extra), len(markers)])
     is_marker = source == "markers"
@@ -245,7 +325,19 @@ def fit_floor(reconstruction: pycolmap.Reconstruction, markers: np.ndarray | Non
                         "are the markers on the floor? (or a and b swapped in one image: the bar then triangulates "
                         "off the floor at another length, and sets a wrong scale where it is the only measurement)")
     angle = float(np.degrees(np.arccos(np.clip(normal @ up, -1.0, 1.0))))
-    normal_sigma, height_sigma = plane_precision(points[inliers], normal, max(robust_sigma, rms / 3), centres)
+    scatter_normal_sigma, scatter_height_sigma = plane_precision(points[inliers], normal, max(robust_sigma, rms / 3),
+                                                                 centres)
+    grouped = grouped_plane_precision(points[inliers], groups[inliers].astype(str), normal, offset, centres)
+    if not np.isfinite(grouped["normal_sigma_deg"]):  # too few pairs to see their shared error: the scatter's
+        grouped.update(normal_sigma_deg=scatter_normal_sigma, height_sigma=scatter_height_sigma,
+                       height_sigmas=np.full(len(centres), scatter_height_sigma))
+        sigma_basis = (f"the points' scatter alone, a lower bound: {grouped['num_groups']} image pair(s) cannot show "
+                       "the pose error each pair's points share")
+    elif grouped["num_groups"] < MIN_GROUPS:
+        sigma_basis = (f"weakly determined: {grouped['num_groups']} image pairs (want {MIN_GROUPS}) for the pose error "
+                       "each pair's points share")
+    else:
+        sigma_basis = f"{grouped['num_groups']} image pairs, each pair's points sharing its pose error"
     floor_from_model, origin_rig = _floor_frame(normal, offset, reconstruction, x_towards)
     for w in warnings if not quiet else ():
         logger.warning("floor: %s", w)
@@ -260,7 +352,12 @@ def fit_floor(reconstruction: pycolmap.Reconstruction, markers: np.ndarray | Non
         camera_heights={im.name: float(h) for im, h in zip(images, heights_of_centres)},
         marker_residuals=marker_residuals, below_fraction=below_fraction,
         inlier_ids=ids[inliers[: len(ids)]], warnings=tuple(warnings),
-        normal_sigma_deg=normal_sigma, height_sigma=height_sigma,
+        normal_sigma_deg=grouped["normal_sigma_deg"], height_sigma=grouped["height_sigma"],
+        scatter_normal_sigma_deg=scatter_normal_sigma, scatter_height_sigma=scatter_height_sigma,
+        group_sigma=grouped["group_sigma"], num_groups=grouped["num_groups"],
+        effective_groups=grouped["effective_groups"], sigma_basis=sigma_basis,
+        grouped_normal_sigma_deg=grouped["normal_sigma_deg"],
+        camera_height_sigmas={im.name: float(h) for im, h in zip(images, grouped["height_sigmas"])},
     )
 
 
@@ -331,11 +428,16 @@ def marker_floor(reconstruction: pycolmap.Reconstruction, markers: np.ndarray, r
         from scipy.stats import t as student_t
 
         sigma = float(np.sqrt(np.sum(residuals**2) / dof)) * float(student_t.ppf(0.975, dof)) / 1.96
-        normal_sigma, height_sigma = plane_precision(points, normal, sigma, centres)
+        normal_sigma, _ = plane_precision(points, normal, sigma, centres)
+        height_sigmas = np.array([plane_precision(points, normal, sigma, c[None])[1] for c in centres])
+        basis = (f"the {len(points)} known-length end points' residuals over their {dof} degree(s) of freedom, "
+                 "widened by Student's t")
     else:  # the tilt about the bar, levered to each camera's distance from it
         across_bar = np.cross(normal, axes[0])
         normal_sigma = prior_sigma
-        height_sigma = float(np.radians(prior_sigma) * np.abs((centres - centroid) @ across_bar).max())
+        height_sigmas = np.radians(prior_sigma) * np.abs((centres - centroid) @ across_bar)
+        basis = f"the cameras' rolls about their up ({rigs} rigs): the tilt about the one known-length bar"
+    height_sigma = float(height_sigmas.max())
     floor_from_model, origin_rig = _floor_frame(normal, offset, reconstruction, x_towards)
     warning = f"no floor fits the points ({reason}): the floor is the plane of {how}"
     logger.info("floor: %s", warning)
@@ -347,5 +449,9 @@ def marker_floor(reconstruction: pycolmap.Reconstruction, markers: np.ndarray, r
         floor_from_model=floor_from_model, origin_rig=origin_rig,
         camera_heights={im.name: float(h) for im, h in zip(images, heights)},
         marker_residuals=[float(v) for v in residuals], warnings=(warning,),
-        normal_sigma_deg=float(normal_sigma), height_sigma=float(height_sigma),
+        normal_sigma_deg=float(normal_sigma), height_sigma=height_sigma,
+        # the markers are too few to gate on their scatter: the same sigmas stand for it
+        scatter_normal_sigma_deg=float(normal_sigma), scatter_height_sigma=height_sigma,
+        grouped_normal_sigma_deg=float(normal_sigma), sigma_basis=basis,
+        camera_height_sigmas={im.name: float(h) for im, h in zip(images, height_sigmas)},
     )

@@ -58,13 +58,41 @@ class FloorMatchOptions:
     search_radius_px: float = 40.0
 
 
+@dataclass(frozen=True)
+class PairMatches:
+    """The kept matches of one image pair (COLMAP pixels), to triangulate again once the poses move."""
+
+    image_i: str
+    image_j: str
+    xy_i: np.ndarray  # Nx2
+    xy_j: np.ndarray  # Nx2
+
+
 @dataclass
 class FloorMatches:
-    points: np.ndarray  # Nx3 triangulated points (model frame)
+    points: np.ndarray  # Nx3 triangulated points (model frame), pair after pair in ``matches``' order
     pairs: dict[tuple[str, str], int] = field(default_factory=dict)  # image pair -> kept matches
+    matches: list[PairMatches] = field(default_factory=list)  # the kept matches' pixels, in ``points``' order
 
     def __len__(self) -> int:
         return len(self.points)
+
+    def groups(self) -> list[tuple[str, str]]:
+        """The image pair of each point: its points share that pair's pose error (``fit_floor``'s groups)."""
+        return [(m.image_i, m.image_j) for m in self.matches for _ in range(len(m.xy_i))]
+
+    def triangulated_in(self, reconstruction: pycolmap.Reconstruction) -> tuple[np.ndarray, list[tuple[str, str]]]:
+        """The same matches triangulated with ``reconstruction``'s poses (the model adjusted again) and their image
+        pairs; matches of images it lacks, or without a point, are left out."""
+        images = {image.name: image for image in reconstruction.images.values() if image.has_pose}
+        points, groups = [], []
+        for m in self.matches:
+            if m.image_i in images and m.image_j in images and len(m.xy_i):
+                found = triangulate_pairs(images[m.image_i], images[m.image_j], m.xy_i, m.xy_j)
+                found = found[np.isfinite(found).all(axis=1)]
+                points.append(found)
+                groups += [(m.image_i, m.image_j)] * len(found)
+        return (np.vstack(points) if points else np.zeros((0, 3))), groups
 
 
 GRID = 4  # px: rays and warp maps are computed on this grid and interpolated in between (cv2.remap)
@@ -185,9 +213,9 @@ def triangulate_pairs(image_i: pycolmap.Image, image_j: pycolmap.Image, xy_i: np
 
 
 def _triangulate(image_i: pycolmap.Image, image_j: pycolmap.Image, xy_i: np.ndarray, xy_j: np.ndarray,
-                 max_px: float, min_angle_deg: float = 0.0) -> np.ndarray:
-    """Triangulated points (COLMAP pixels in) that reproject within ``max_px`` in both images and whose rays
-    meet at ``min_angle_deg`` or more."""
+                 max_px: float, min_angle_deg: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """Triangulated points (COLMAP pixels in; every match's) and which of them to keep: those that reproject within
+    ``max_px`` in both images and whose rays meet at ``min_angle_deg`` or more."""
     points = triangulate_pairs(image_i, image_j, xy_i, xy_j)
     good = np.isfinite(points).all(axis=1)
     rays = [points - image.projection_center() for image in (image_i, image_j)]
@@ -199,7 +227,7 @@ def _triangulate(image_i: pycolmap.Image, image_j: pycolmap.Image, xy_i: np.ndar
         xy, seen = project_world(image.camera, image.cam_from_world(), np.nan_to_num(points), margin_px=None)  # type: ignore[arg-type]
         with np.errstate(invalid="ignore"):
             good &= seen & (np.linalg.norm(xy - observed, axis=1) <= max_px)
-    return points[good]
+    return points, good
 
 
 @dataclass
@@ -288,7 +316,7 @@ def match_floor_points(reconstruction: pycolmap.Reconstruction, image_dir: Path 
     sift = _sift(opt)
     matcher = cv2.BFMatcher(cv2.NORM_L2)
     hits = {}
-    points, counts = [], {}
+    points, counts, kept_matches = [], {}, []
     for a, b in neighbour_pairs(images, opt):
         first, second = images[a], images[b]
         image_i, image_j = first.image, second.image
@@ -320,11 +348,13 @@ def match_floor_points(reconstruction: pycolmap.Reconstruction, image_dir: Path 
             continue
         xy_j = warp.source_pixels(xy_w[good[:, 1]] - warp.origin)
         xy_i_colmap = colmap_from_opencv_pixels(xy_i[good[:, 0]])
-        found = _triangulate(image_i, image_j, xy_i_colmap, xy_j, opt.max_reprojection_px, opt.min_angle_deg)
+        found, kept = _triangulate(image_i, image_j, xy_i_colmap, xy_j, opt.max_reprojection_px, opt.min_angle_deg)
+        found = found[kept]
         counts[(image_i.name, image_j.name)] = len(found)
         points.append(found)
+        kept_matches.append(PairMatches(image_i.name, image_j.name, xy_i_colmap[kept], xy_j[kept]))
         logger.debug("floor matching %s - %s: %d ratio-test matches, %d triangulated", image_i.name,
                      image_j.name, len(good), len(found))
-    result = FloorMatches(np.vstack(points) if points else np.zeros((0, 3)), counts)
+    result = FloorMatches(np.vstack(points) if points else np.zeros((0, 3)), counts, kept_matches)
     logger.info("floor matching: %d points from %d image pairs", len(result), len(counts))
     return result

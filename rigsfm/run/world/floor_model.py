@@ -63,8 +63,23 @@ class FloorFit:
     below_fraction: float = 0.0  # candidates below the plane by > max(3 thresholds, 5 % camera height), per inlier
     inlier_ids: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # point3D ids
     warnings: tuple[str, ...] = ()
-    normal_sigma_deg: float = float("inf")  # standard error of the normal's tilt (largest axis), from the inliers
-    height_sigma: float = float("inf")  # largest standard error of a camera's height, from the inliers
+    # Standard errors of the normal's tilt (largest axis) and of the cameras' heights (the largest), the points of
+    # one image pair sharing its pose error (floor_fit.grouped_plane_precision)
+    normal_sigma_deg: float = float("inf")
+    height_sigma: float = float("inf")
+    # The same with every point an independent draw: the points' scatter alone, a lower bound (floor_fit.plane_precision);
+    # what decides whether more points are needed (floor.sparse_floor_shortfall)
+    scatter_normal_sigma_deg: float = float("inf")
+    scatter_height_sigma: float = float("inf")
+    group_sigma: float = float("inf")  # spread of the image pairs' shared offsets from the plane (model units)
+    num_groups: int = 0  # image pairs (groups of points sharing a pose error) among the inliers
+    effective_groups: float = 0.0  # (sum n)^2 / sum n^2 of their sizes: how many equal pairs they weigh as
+    sigma_basis: str = ""  # what normal_sigma_deg and height_sigma rest on (weakly determined, a lower bound)
+    camera_height_sigmas: dict[str, float] = field(default_factory=dict)  # image name -> the floor's part of its sigma
+    # The normal's sigma from the pairs' residuals alone (grouped_plane_precision), and from the poses' covariance
+    # carried through the floor matches (floor_poses.pose_tilt_covariance; NaN where not propagated)
+    grouped_normal_sigma_deg: float = float("inf")
+    pose_normal_sigma_deg: float = float("nan")
 
     def height(self, points: np.ndarray) -> np.ndarray:
         """Signed height above the floor of model-frame points (Nx3)."""
@@ -90,6 +105,14 @@ class FloorFit:
             "camera_height": {"min": float(heights.min()), "max": float(heights.max())} if heights.size else None,
             "normal_sigma_deg": self.normal_sigma_deg,
             "camera_height_sigma": self.height_sigma,
+            "scatter_normal_sigma_deg": self.scatter_normal_sigma_deg,
+            "scatter_camera_height_sigma": self.scatter_height_sigma,
+            "group_sigma": self.group_sigma if np.isfinite(self.group_sigma) else None,  # None: under 4 pairs
+            "num_groups": self.num_groups,
+            "effective_groups": self.effective_groups,
+            "sigma_basis": self.sigma_basis,
+            "grouped_normal_sigma_deg": self.grouped_normal_sigma_deg,
+            "pose_normal_sigma_deg": None if np.isnan(self.pose_normal_sigma_deg) else self.pose_normal_sigma_deg,
             "marker_residuals": self.marker_residuals,
             "warnings": list(self.warnings),
         }

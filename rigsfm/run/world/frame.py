@@ -35,7 +35,13 @@ from rigsfm.core.summary import WorldSummary
 from rigsfm.run.inputs.scale_file import ScaleSpec
 from rigsfm.run.options import WorldFrame, WorldOptions
 from rigsfm.run.world.analysis_floor import find_floor
-from rigsfm.run.world.floor import FloorEstimate, apply_floor_frame, estimate_floor
+from rigsfm.run.world.floor import (
+    FloorEstimate,
+    apply_floor_frame,
+    estimate_floor,
+    refit_floor,
+    with_pose_uncertainty,
+)
 from rigsfm.run.world.floor_model import floor_markers, rig_positions
 
 logger = logging.getLogger(__name__)
@@ -94,6 +100,7 @@ class WorldResult:
     plane_heights: tuple[float, ...] = ()  # planes of the ground maps (0 = the floor first)
     metric: bool = True
     warnings: list[str] = field(default_factory=list)
+    narrow_heights: dict[str, dict] | None = None  # :meth:`set_narrow_heights`'s
 
     def floor_plane(self) -> Plane | None:
         """The floor in the frame it was fitted in (before :meth:`apply`); None unless the floor frame was found."""
@@ -108,6 +115,42 @@ class WorldResult:
         and where it comes from: the floor fit (``floor_fit``), else :func:`find_floor`'s."""
         plane = self.floor_plane()
         return (plane, "floor_fit") if plane is not None else find_floor(reconstruction, scale)
+
+    def refit(self, reconstruction: pycolmap.Reconstruction, scale: ScaleSpec | None) -> None:
+        """Fit the floor again in ``reconstruction``, the model this frame was found in adjusted once more (the
+        narrow stage's second adjustment), so the frame :meth:`apply` moves it into fits the delivered poses
+        (:func:`rigsfm.run.world.floor.refit_floor`: no image read again). Nothing unless the floor frame was found."""
+        if self.frame != WorldFrame.FLOOR:
+            return
+        self.estimate = refit_floor(self.estimate, reconstruction, floor_markers(reconstruction, scale),  # type: ignore[arg-type]  # FLOOR: estimated
+                                    x_towards=self.x_rig)
+
+    def add_pose_uncertainty(self, reconstruction: pycolmap.Reconstruction, covariance) -> None:
+        """Widen the floor's normal sigma to the poses' covariance carried through the floor matches where larger
+        (:func:`rigsfm.run.world.floor.with_pose_uncertainty`); ``reconstruction`` before :meth:`apply`."""
+        if self.frame == WorldFrame.FLOOR:
+            self.estimate = with_pose_uncertainty(self.estimate, reconstruction, covariance)  # type: ignore[arg-type]  # FLOOR: estimated
+
+    def set_narrow_heights(self, reconstruction: pycolmap.Reconstruction, own: dict) -> None:
+        """Every registered narrow camera's height above the floor and its 1 sigma: the floor's part (the plane's
+        covariance at that camera) and the camera's own vertical centre uncertainty relative to the network
+        (``own``: the uncertainty stage's ``narrow``, covariances in the camera's axes), independent, so added in
+        quadrature. ``reconstruction`` in the floor frame (after :meth:`apply`)."""
+        if self.frame != WorldFrame.FLOOR:
+            return
+        fit = self.estimate.fit  # type: ignore[union-attr]  # FLOOR: estimated
+        heights = {}
+        for image in registered_narrow_images(reconstruction):
+            floor_part = fit.camera_height_sigmas.get(image.name, float("nan"))  # type: ignore[union-attr]
+            entry = {"height_m": float(image.projection_center()[2]), "floor_sigma_m": floor_part}
+            record = own.get(image.name)
+            covariance = getattr(record, "centre_covariance_mm2", None)
+            if covariance is not None:
+                up = image.cam_from_world().rotation.matrix()[:, 2]  # the floor's z in the camera's axes
+                entry["own_sigma_m"] = float(np.sqrt(max(up @ np.asarray(covariance) @ up, 0.0))) / 1000.0
+                entry["sigma_m"] = float(np.hypot(floor_part, entry["own_sigma_m"]))
+            heights[image.name] = entry
+        self.narrow_heights = heights
 
     def apply(self, reconstruction: pycolmap.Reconstruction) -> None:
         """Move ``reconstruction`` (in place, scale 1) into this frame; nothing for the mapper's frame."""
@@ -139,9 +182,16 @@ class WorldResult:
             if fit:
                 floor = {"found": True, **{k: floor[k] for k in (
                     "num_points", "points_by_source", "rms", "robust_sigma", "threshold", "num_candidates",
-                    "normal_sigma_deg", "camera_height_sigma", "camera_height", "prior_angle_deg",
+                    "normal_sigma_deg", "camera_height_sigma", "scatter_normal_sigma_deg",
+                    "scatter_camera_height_sigma", "group_sigma", "num_groups", "effective_groups", "sigma_basis",
+                    "grouped_normal_sigma_deg", "pose_normal_sigma_deg",
+                    "camera_height", "prior_angle_deg",
                     "up_prior_source", "marker_residuals", "floor_from_model")}}
                 floor["floor_from_mapping"] = floor.pop("floor_from_model")
+            if fit:
+                floor["refitted_after_narrow_adjustment"] = self.estimate.refitted
+                if self.narrow_heights is not None:
+                    floor["narrow_camera_heights"] = self.narrow_heights
             floor["matching"] = {"ran": self.estimate.why_matched is not None, "why": self.estimate.why_matched,
                                  "rounds": self.estimate.rounds, "image_pairs": self.estimate.pairs,
                                  "matched_points": self.estimate.matched_points,

@@ -2,6 +2,11 @@
 
     python benchmarks/associate_sync.py RECORDING RUN --cases "none;rig03=1;rig02=-1,rig06=1" [--seeds 1]
         [--frames 4] [--search 2] [--json results.json]
+    python benchmarks/associate_sync.py RECORDING RUN --library WORK --cases "none@2;rig01=1,rig04=-2@3"
+
+``--library``: rigsfm.associate.sync's own check on associate_frames' chain of each case (``case@seed``: that
+detection seed alone), with the verdict the counts under the carried corrections alone would give (the check before
+``confirmed_counts``) beside it, and the CPU of the recount.
 
 RECORDING: a synchronised recording rendered with persons (``python -m rigsfm.synth ... --frames-per-rig 9``);
 RUN: ``rigsfm run`` on its frame 0 alone (its narrow poses are lent to every other frame, ``--poses-from``).
@@ -24,6 +29,7 @@ from __future__ import annotations
 import argparse
 import copy
 import dataclasses
+import functools
 import json
 import sys
 import time
@@ -31,7 +37,7 @@ from pathlib import Path
 
 import numpy as np
 
-from rigsfm.associate import AssociateOptions, from_arrays, load_run
+from rigsfm.associate import AssociateOptions, from_arrays, load_run, sync
 from rigsfm.associate.evaluate import make_detections, visible_heads
 from rigsfm.associate.pipeline import frame_views, with_stand_ins
 from rigsfm.associate.solve import associate_views
@@ -136,7 +142,7 @@ def summarise(case: dict, cameras: list[str], search: int) -> list[dict]:
 
 
 def library_case(recording: Path, run: Path, offsets: dict[str, int], frames: int, seed: int, work: Path,
-                 options: AssociateOptions) -> dict:
+                 options: AssociateOptions, recount: str = "self") -> dict:
     """``rigsfm associate``'s own check (rigsfm.associate.sync) on the case's recording of ``frames`` frames: rig r's
     frame k is the recording's frame k + offset_r + ``lead`` (so that every frame exists), its images linked into
     ``work`` (the appearance cue reads them there), the detections made from the recording's frames."""
@@ -169,8 +175,43 @@ def library_case(recording: Path, run: Path, offsets: dict[str, int], frames: in
     cpu = time.process_time()
     chain = associate_frames(model, dets, options)
     chain_cpu = time.process_time() - cpu
-    check = check_frame_offsets(model, dets, chain, options, "check")
-    return {**check.to_dict(), "chain_cpu_s": chain_cpu, "check_cpu_s": time.process_time() - cpu - chain_cpu}
+    calls: list[float] = []
+    counting = sync.shift_counts
+
+    def timed(*args, **kwargs):
+        start = time.process_time()
+        try:
+            return counting(*args, **kwargs)
+        finally:
+            calls.append(time.process_time() - start)
+
+    confirming = sync.confirmed_counts
+    sync.shift_counts = timed  # the recount's own CPU (the second call, where a rig is doubted)
+    if recount == "own":  # the doubted rig's correction not carried, the others' carried (cheap: no self-calibration)
+        sync.confirmed_counts = functools.partial(confirming, own_pose=True)
+    try:
+        check = check_frame_offsets(model, dets, chain, options, "check", correct="confirm")
+    finally:
+        sync.shift_counts, sync.confirmed_counts = counting, confirming
+    record = check.to_dict()
+    return {**record, "carried_only": carried_only(record), "chain_cpu_s": chain_cpu,
+            "check_cpu_s": time.process_time() - cpu - chain_cpu, "recount_cpu_s": sum(calls[1:])}
+
+
+def carried_only(record: dict) -> dict:
+    """The verdict of the counts under the carried corrections alone (the check before ``confirmed_counts``): per
+    rig its offset and z, and the median lead."""
+    counts = {}
+    for rig, t in record["rigs"].items():
+        got = t.get("carried_confident_detections") or t["confident_detections"]
+        counts[rig] = {int(s): c for s, c in got.items()}
+    out = {r: {"offset": t.offset, "z": round(t.z, 2)} for r, t in sync.timings(counts).items()}
+    leads = []
+    for c in counts.values():
+        first, second = sorted(c.values(), reverse=True)[:2]
+        leads.append((first - second) / max(first + second, 1) ** 0.5)
+    return {"rigs": out, "named": {r: t["offset"] for r, t in out.items() if t["offset"]},
+            "median_lead": round(float(np.median(leads)), 2)}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -186,20 +227,24 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--reset", action="store_true",
                         help="the tested rig's view does not carry its own shift (every shift, 0 included): a late "
                              "rig's self-calibration was made on its late frames")
+    parser.add_argument("--recount", choices=("self", "own"), default="self",
+                        help="--library: the doubted rigs counted again each association correcting itself (the "
+                             "check's), or carrying the others' corrections and not the rig's own")
     parser.add_argument("--library", type=Path, default=None, metavar="WORK",
                         help="run rigsfm.associate.sync's check instead (the case's images linked under WORK)")
     args = parser.parse_args(argv)
     options = AssociateOptions(pixel_sigma=1.5)
     if args.library is not None:
         records = []
-        for seed in range(args.seeds):
-            for text in args.cases.split(";"):
-                offsets = parse_case(text)
-                span = args.recording_frames - max([0] + list(offsets.values())) + min([0] + list(offsets.values()))
-                record = library_case(args.recording, args.run, offsets, span, seed, args.library / f"s{seed}_{text}",
-                                      options)
-                records.append({"seed": seed, "case": text, **record})
-                print(json.dumps(records[-1]), flush=True)
+        runs = [(seed, text) for seed in range(args.seeds) for text in args.cases.split(";") if "@" not in text]
+        runs += [(int(text.split("@")[1]), text.split("@")[0]) for text in args.cases.split(";") if "@" in text]
+        for seed, text in runs:
+            offsets = parse_case(text)
+            span = args.recording_frames - max([0] + list(offsets.values())) + min([0] + list(offsets.values()))
+            record = library_case(args.recording, args.run, offsets, span, seed, args.library / f"s{seed}_{text}",
+                                  options, args.recount)
+            records.append({"seed": seed, "case": text, **record})
+            print(json.dumps(records[-1]), flush=True)
         if args.json:
             args.json.write_text(json.dumps(records, indent=1))
         return 0

@@ -49,10 +49,15 @@ class RigTiming:
     counts: dict[int, int]  # per shift s: its detections in confident persons, summed over the tested frames
     offset: int | None  # its frame k was taken at the others' frame k + offset; None: not told (no clear peak)
     z: float  # the best shift's count above the count at 0, in sigmas (0 where 0 is best)
+    # where its counts under the carried corrections peaked away from 0 (:func:`confirmed_counts`): those counts
+    carried: dict[int, int] | None = None
 
     def to_dict(self) -> dict:
-        return {"camera": self.camera, "confident_detections": {f"{s:+d}": c for s, c in sorted(self.counts.items())},
-                "offset": self.offset, "z": round(self.z, 2)}
+        out = {"camera": self.camera, "confident_detections": {f"{s:+d}": c for s, c in sorted(self.counts.items())},
+               "offset": self.offset, "z": round(self.z, 2)}
+        if self.carried is not None:
+            out["carried_confident_detections"] = {f"{s:+d}": c for s, c in sorted(self.carried.items())}
+        return out
 
 
 @dataclass
@@ -187,14 +192,24 @@ def paired_frames(detections: Detections, offsets: dict[str, int], recording: li
     return [(f, sorted(g)) for f, g in groups.items() if g]
 
 
+def camera_bands(bands: dict[tuple[str, str], float]) -> dict[tuple[str, str], float]:
+    """(camera a, camera b) -> a band of two of their images, both ways (a static rig's band holds in every
+    frame)."""
+    out: dict[tuple[str, str], float] = {}
+    for (a, b), band in bands.items():
+        if band is not None and math.isfinite(float(band)):
+            ca, cb = ImageName.parse(a).camera, ImageName.parse(b).camera
+            out.setdefault((ca, cb), float(band))
+            out.setdefault((cb, ca), float(band))
+    return out
+
+
 def with_camera_bands(model, groups: Iterable[list[str]]):
     """``model`` with a band for every two images of a group of different cameras taken in different frames: their
-    cameras' band (a frame's band between two cameras of static rigs holds in every frame)."""
-    by_cameras: dict[tuple[str, str], float] = {}
-    for (a, b), band in model.bands.items():
-        pa, pb = ImageName.parse(a), ImageName.parse(b)
-        if pa.frame == pb.frame:
-            by_cameras.setdefault((pa.camera, pb.camera), band)
+    cameras' band (:func:`camera_bands` of its frames' own bands: a frame's band between two cameras of static rigs
+    holds in every frame)."""
+    by_cameras = camera_bands({(a, b): band for (a, b), band in model.bands.items()
+                               if ImageName.parse(a).frame == ImageName.parse(b).frame})
     bands = dict(model.bands)
     for group in groups:
         cameras = [ImageName.parse(n).camera for n in group]
@@ -205,11 +220,21 @@ def with_camera_bands(model, groups: Iterable[list[str]]):
     return dataclasses.replace(model, bands=bands)
 
 
+def tested_frames(frames: list[str], search: int, complete) -> list[int]:
+    """The first ``TESTED_FRAMES`` frames (indices) with ``search`` frames either way whose ``complete(i)`` holds
+    (every view there, and whatever else the caller needs)."""
+    return [i for i in range(max(1, search), len(frames) - search) if complete(i)][:TESTED_FRAMES]
+
+
 def check_frame_offsets(model, detections: Detections, chain: list, options: AssociateOptions, asked: str,
-                        applied: dict[str, int] | None = None, recording: list[str] | None = None) -> SyncCheck:
+                        applied: dict[str, int] | None = None, recording: list[str] | None = None,
+                        correct: str = "carry") -> SyncCheck:
     """Each rig's frame offset (module docstring) from ``chain`` (associate_frames' frames of ``detections``, in
     order, paired as given: ``applied`` offsets already applied, none by default); ``recording``: its frames
-    (:func:`recording_frames`, where the caller has them)."""
+    (:func:`recording_frames`, where the caller has them). ``correct``: the views' corrections carried from the
+    chain's frame before (``carry``), or ``confirm`` (:func:`confirmed_counts`, ``rigsfm run``'s way; not the
+    default: on the rendered crowds it named no more late rigs, one at a wrong offset, at many times the CPU, the
+    self-calibrating associations being the costly ones: benchmarks/README.md)."""
     from rigsfm.associate.pipeline import frame_views
 
     start = time.perf_counter()
@@ -239,7 +264,7 @@ def check_frame_offsets(model, detections: Detections, chain: list, options: Ass
         return carried >= set(cameras) and all((c, frames[j]) in names for c in cameras
                                                 for j in range(i - search, i + search + 1))
 
-    tested = [i for i in range(max(1, search), len(frames) - search) if testable(i)][:TESTED_FRAMES]
+    tested = tested_frames(frames, search, testable)
     if not tested:
         check.skipped = "no frame with every narrow view in the frames around it"
         return check
@@ -254,8 +279,15 @@ def check_frame_offsets(model, detections: Detections, chain: list, options: Ass
                 templates[(ImageName.parse(view.name).camera, j - i)] = view
         before = chain[chained[frames[i - 1]]]
         windows.append((templates, {ImageName.parse(v.name).camera: v for v in before.views}, before.result))
-    counts = shift_counts(windows, cameras, search, options)
-    check.rigs = {camera.split("/")[0]: timing for camera, timing in timings(counts).items()}
+    carried: dict[str, dict[int, int]] = {}
+    if correct == "confirm":
+        counts, carried = confirmed_counts(windows, cameras, search, options)
+    else:
+        counts = shift_counts(windows, cameras, search, options)
+    for templates, _, _ in windows:
+        for view in templates.values():
+            view.grey = None
+    check.rigs = rig_timings(counts, carried)
     check.seconds = time.perf_counter() - start
     logger.info("frame offsets: %s over %s (%.1f s)", {r: t.counts for r, t in check.rigs.items()}, check.frames,
                 check.seconds)
@@ -290,9 +322,29 @@ def shift_counts(windows: list, cameras: list[str], search: int, options: Associ
                 for v, camera in enumerate(cameras):
                     if camera in counts and (tested is None or camera == tested):
                         counts[camera][s] += int(np.sum(confident & (result.members[:, v] >= 0)))
-        for view in templates.values():
-            view.grey = None
     return counts
+
+
+def best_shift(counts: dict[int, int]) -> int:
+    """The shift of the largest count (the nearest to 0 among equals)."""
+    return max(counts, key=lambda s: (counts[s], -abs(s)))
+
+
+def confirmed_counts(windows: list, cameras: list[str], search: int, options: AssociateOptions,
+                     own_pose: bool = False) -> tuple[dict[str, dict[int, int]], dict[str, dict[int, int]]]:
+    """:func:`shift_counts` under the views' carried corrections, then again, each association correcting its
+    views itself, for the cameras whose carried count peaks away from 0 (doubted): a late rig's correction carried
+    from the frame before was fitted to its heads a frame away, which hides its peak, while correcting every
+    association itself for every camera costs several times the CPU. Returns the counts (the doubted cameras' their
+    own) and the doubted cameras' carried counts. ``own_pose``: the recount carries the others' corrections and
+    not the doubted camera's (:func:`shift_counts`), instead of every view correcting itself."""
+    counts = shift_counts(windows, cameras, search, options)
+    doubted = [c for c, n in counts.items() if best_shift(n) != 0]
+    if not doubted:
+        return counts, {}
+    own = shift_counts(windows if own_pose else [(t, None, None) for t, _, _ in windows], cameras, search, options,
+                       own_pose=own_pose, only=doubted)
+    return {**counts, **own}, {c: counts[c] for c in doubted}
 
 
 def timings(counts: dict[str, dict[int, int]]) -> dict[str, RigTiming]:
@@ -302,10 +354,20 @@ def timings(counts: dict[str, dict[int, int]]) -> dict[str, RigTiming]:
     told = tells_time(counts)
     out = {}
     for camera, c in counts.items():
-        best = max(c, key=lambda s: (c[s], -abs(s)))
+        best = best_shift(c)
         z = (c[best] - c[0]) / math.sqrt(max(c[best] + c[0], 1))
         offset = None if not told else 0 if best == 0 else (-best if z >= Z_NAMED else None)
         out[camera] = RigTiming(camera, c, offset, z)
+    return out
+
+
+def rig_timings(counts: dict[str, dict[int, int]], carried: dict[str, dict[int, int]] | None = None,
+                ) -> dict[str, RigTiming]:
+    """Per rig its :func:`timings`, with the carried counts of the cameras counted again (:func:`confirmed_counts`)."""
+    out = {}
+    for camera, timing in timings(counts).items():
+        timing.carried = (carried or {}).get(camera)
+        out[camera.split("/")[0]] = timing
     return out
 
 

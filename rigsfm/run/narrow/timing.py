@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-import math
 import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -29,24 +28,22 @@ import numpy as np
 import pycolmap
 
 from rigsfm.associate.solve import associate_views
-from rigsfm.associate.sync import NOT_A_RECORDING, SEARCH, TESTED_FRAMES, SyncCheck, shift_counts, timings
+from rigsfm.associate.sync import (
+    NOT_A_RECORDING,
+    SEARCH,
+    SyncCheck,
+    camera_bands,
+    confirmed_counts,
+    rig_timings,
+    shift_counts,
+    tested_frames,
+)
 from rigsfm.associate.views import View, view_pose_sigmas
-from rigsfm.core.names import ImageName, name_of
+from rigsfm.core.names import name_of
 from rigsfm.core.opencv_threads import one_opencv_thread
 from rigsfm.run.narrow.heads import _association_options, head_candidates, scene_footprint
 
 logger = logging.getLogger(__name__)
-
-
-def camera_bands(bands: dict[tuple[str, str], float]) -> dict[tuple[str, str], float]:
-    """(camera a, camera b) -> a band of two of their images (a static rig's band holds in every frame)."""
-    out: dict[tuple[str, str], float] = {}
-    for (a, b), band in bands.items():
-        if band is not None and math.isfinite(float(band)):
-            ca, cb = ImageName.parse(a).camera, ImageName.parse(b).camera
-            out.setdefault((ca, cb), float(band))
-            out.setdefault((cb, ca), float(band))
-    return out
 
 
 def time_heads(floor_model: pycolmap.Reconstruction, image_dir: Path, bands: dict[tuple[str, str], float],
@@ -68,9 +65,8 @@ def time_heads(floor_model: pycolmap.Reconstruction, image_dir: Path, bands: dic
     if len(cameras) < 3 or search < 1:
         check.skipped = NOT_A_RECORDING
         return check
-    tested = [i for i in range(search, len(frames) - search)
-              if all(c in by_frame[frames[j]] for c in cameras for j in range(i - search, i + search + 1))]
-    tested = tested[:TESTED_FRAMES]
+    tested = tested_frames(frames, search, lambda i: all(c in by_frame[frames[j]] for c in cameras
+                                                         for j in range(i - search, i + search + 1)))
     if not tested:
         check.skipped = "no frame with every narrow view in the frames around it"
         return check
@@ -112,13 +108,12 @@ def time_heads(floor_model: pycolmap.Reconstruction, image_dir: Path, bands: dic
             windows.append((templates, dict(zip(cameras, before)), earlier))
         else:
             windows.append((templates, None, None))
-    counts = shift_counts(windows, cameras, search, options, own_pose=correct == "own")
+    carried: dict[str, dict[int, int]] = {}
     if correct == "confirm":  # the rigs whose carried count peaks away from 0, counted again correcting themselves
-        doubted = [c for c, n in counts.items() if max(n, key=lambda s: (n[s], -abs(s))) != 0]
-        if doubted:
-            own = shift_counts([(t, None, None) for t, _, _ in windows], cameras, search, options, only=doubted)
-            counts.update(own)
-    check.rigs = {camera.split("/")[0]: timing for camera, timing in timings(counts).items()}
+        counts, carried = confirmed_counts(windows, cameras, search, options)
+    else:
+        counts = shift_counts(windows, cameras, search, options, own_pose=correct == "own")
+    check.rigs = rig_timings(counts, carried)
     check.seconds = time.perf_counter() - start
     logger.info("frame offsets from the heads: %s over %s (%.1f s)", {r: t.counts for r, t in check.rigs.items()},
                 check.frames, check.seconds)

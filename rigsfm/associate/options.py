@@ -21,7 +21,8 @@ class AssociateOptions:
     height_prior: tuple[float, float] | None = None
     # Each view's detection probability from the crowd's occlusion (rates.Occlusion: persons in front of a point
     # hide it, so a view that hides it is no miss); False: ``detection_probability`` in every view. ``occlusion``:
-    # the model, None: fitted from the frame's persons with the rates (and carried to later frames as they are).
+    # the model, None: fitted from a self-calibrating frame's persons with the rates; not carried (a carried frame
+    # counts one probability for every view: with it, a third of its CPU, benchmarks/README.md).
     visibility: bool = True
     occlusion: Occlusion | None = None
     # The detections' apparent head radii (px; the DETECTIONS' radius column) as evidence of depth, used where every

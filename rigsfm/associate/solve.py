@@ -76,7 +76,7 @@ class FrameResult:
     # to hold the shifts refined from its persons, for the next frame.
     shift_px: dict[str, np.ndarray] = field(default_factory=dict)
     band_sigma_px: dict[str, float] = field(default_factory=dict)
-    occlusion: Occlusion | None = None  # each view's detection probability from the crowd's occlusion, where fitted
+    occlusion: Occlusion | None = None  # each view's detection probability from the crowd's occlusion, where fitted (not carried)
 
     @property
     def confidence(self) -> np.ndarray:
@@ -172,8 +172,6 @@ def associate_views(views: list[View], options: AssociateOptions, carried: bool 
                                   or START_DETECTION)
     if options.height_prior is None and earlier is not None:
         options = dataclasses.replace(options, height_prior=earlier.height_prior)
-    if options.occlusion is None and earlier is not None:
-        options = dataclasses.replace(options, occlusion=earlier.occlusion)
     if options.head_radius_m is None and earlier is not None and earlier.head_radius_m is not None:
         options = dataclasses.replace(options, head_radius_m=earlier.head_radius_m)
     model = _carried_appearance(views, options, earlier) if carried else None

@@ -416,9 +416,13 @@ class _Frame:
               floor: float | None = None) -> np.ndarray:
         """Each group's log-likelihood ratio against clutter. ``misses=False``: without the views that see its point
         and hold no member (each costs, so that is an upper bound of the full score). ``floor``: a group whose bound
-        is at or below it scores -inf (its full score is at most the bound), its misses not counted."""
+        is at or below it scores -inf (its full score is at most the bound), its misses not counted. With the
+        options' occlusion, each view's detection probability is its own (at most ``q``: the bound's, per member)."""
         p_d = self.options.detection_probability
         assert p_d is not None  # associate_views resolves it
+        occlusion = self.options.occlusion if self.options.visibility else None
+        if occlusion is not None:
+            p_d = occlusion.q
         lo, hi = self.options.heights
         # A person's point is a priori anywhere on the crowd's floor, at a height the crowd's persons have: the
         # likelihood integrated over it (Laplace) pays for the three coordinates the detections themselves fix.
@@ -442,15 +446,15 @@ class _Frame:
         appearance = self.appearance.group_log_ratio(self.descriptors, members) \
             if self.appearance is not None and self.descriptors is not None else None
         kept = None
-        if misses and floor is not None:
-            # the misses (the costly part: every view's lens) only where they can matter
+        if floor is not None and (misses or occlusion is not None):
+            # the misses and each view's occlusion (the costly part: every view's lens) only where they can matter
             kept = (total if appearance is None else total + appearance) > floor
             rows = np.flatnonzero(kept)
             miss_total = total[rows]
-            self._add_misses(miss_total, points[rows], present[rows])
+            self._add_misses(miss_total, points[rows], present[rows], misses)
             total[rows] = miss_total
-        elif misses:
-            self._add_misses(total, points, present)
+        elif misses or occlusion is not None:
+            self._add_misses(total, points, present, misses)
         if appearance is not None:
             total += appearance
         if kept is not None:
@@ -491,15 +495,31 @@ class _Frame:
         chance = -0.5 * (np.log(2 * math.pi * var) + (self.log_radius[idx] - m) ** 2 / var)
         return person - np.where(present, chance, 0.0).sum(axis=1)
 
-    def _add_misses(self, total: np.ndarray, points: np.ndarray, present: np.ndarray) -> None:
-        """Add, in place, the cost of every view that sees a point inside its image and holds no member."""
-        p_d = self.options.detection_probability
-        assert p_d is not None  # associate_views resolves it
-        miss = math.log(max(1.0 - p_d, 1e-6))
+    def _add_misses(self, total: np.ndarray, points: np.ndarray, present: np.ndarray, misses: bool = True) -> None:
+        """Add, in place, the cost of every view that sees a point inside its image and holds no member (``misses``)
+        and, with the options' occlusion, each member's view's own detection probability against the ``q`` the
+        score counted it at."""
+        occlusion = self.options.occlusion if self.options.visibility else None
+        if occlusion is None:
+            p_d = self.options.detection_probability
+            assert p_d is not None  # associate_views resolves it
+            miss = math.log(max(1.0 - p_d, 1e-6))
+            for v, view in enumerate(self.views):
+                uv, z = view.project(points)
+                seen = view.inside(uv, z) & ~present[:, v]
+                total += np.where(seen, miss, 0.0)
+            return
+        log_q = math.log(occlusion.q)
         for v, view in enumerate(self.views):
             uv, z = view.project(points)
-            seen = view.inside(uv, z) & ~present[:, v]
-            total += np.where(seen, miss, 0.0)
+            at = np.flatnonzero((view.inside(uv, z) & misses) | present[:, v])
+            if not len(at):
+                continue
+            p = occlusion.probability(np.repeat(self.centres[v][None], len(at), axis=0), points[at])
+            member = present[at, v]
+            total[at[member]] += np.log(np.maximum(p[member], 1e-6)) - log_q
+            if misses:
+                total[at[~member]] += np.log(np.maximum(1 - p[~member], 1e-6))
 
     @_rowwise
     def seen(self, points: np.ndarray) -> np.ndarray:
@@ -616,7 +636,7 @@ class _Frame:
         members = seeds[ok]
         points, covariance = points[ok], covariance[ok]
         if floor is not None:
-            strong = self.score(members, points, covariance, misses=False) > floor
+            strong = self.score(members, points, covariance, misses=False, floor=floor) > floor
             members, points, covariance = members[strong], points[strong], covariance[strong]
         return members, points, covariance
 

@@ -6,6 +6,8 @@ import math
 from dataclasses import dataclass
 from pathlib import Path
 
+from rigsfm.associate.rates import Occlusion
+
 
 @dataclass(frozen=True, kw_only=True)
 class AssociateOptions:
@@ -17,6 +19,12 @@ class AssociateOptions:
     # Mean and sigma (m) of the points' heights, the score's prior over height inside ``heights``; None: estimated
     # from the frame's confident persons (uniform over ``heights`` until there are enough).
     height_prior: tuple[float, float] | None = None
+    # Each view's detection probability from the crowd's occlusion (rates.Occlusion: persons in front of a point
+    # hide it, so a view that hides it is no miss); False: ``detection_probability`` in every view. ``occlusion``:
+    # the model, None: fitted from a self-calibrating frame's persons with the rates; not carried (a carried frame
+    # counts one probability for every view: with it, a third of its CPU, benchmarks/README.md).
+    visibility: bool = True
+    occlusion: Occlusion | None = None
     # The detections' apparent head radii (px; the DETECTIONS' radius column) as evidence of depth, used where every
     # detection of a frame has one: a radius is f R / distance, R the person's head radius. ``size_noise``: the
     # detector's relative (log) error of a radius; ``head_radius_spread``: the persons' relative spread of R;

@@ -13,7 +13,8 @@ Per frame:
    outside their band are dropped, twice over. Hypotheses outside the height range are dropped.
 4. Each hypothesis scores its log-likelihood ratio against "these detections are clutter": per member
    ``log(p_d / clutter density) - log(2 pi s^2) - d^2 / 2``, per view that sees the point inside its image and has
-   no member ``log(1 - p_d)``, and once the prior density of persons in the crowd's volume times the volume the
+   no member ``log(1 - p_d)`` (``p_d`` each view's own from the crowd's occlusion, rates.Occlusion, once the
+   crowd's rates are estimated), and once the prior density of persons in the crowd's volume times the volume the
    point's covariance leaves (``log rho + 3/2 log 2 pi + 1/2 log det Sigma``: two views fix a point much less
    than four). A global set packing (each detection in at most one person; scipy's MILP) keeps the
    set of hypotheses with the largest summed score.
@@ -41,7 +42,7 @@ from rigsfm.associate.appearance import AppearanceModel, describe, estimate, hea
 from rigsfm.associate.frame import _Frame
 from rigsfm.associate.options import AssociateOptions
 from rigsfm.associate.packing import _pack
-from rigsfm.associate.rates import truncated_binomial_p
+from rigsfm.associate.rates import Occlusion, fit_occlusion, truncated_binomial_p
 from rigsfm.associate.shifts import (
     ViewCorrection,
     _apply_correction,
@@ -75,6 +76,7 @@ class FrameResult:
     # to hold the shifts refined from its persons, for the next frame.
     shift_px: dict[str, np.ndarray] = field(default_factory=dict)
     band_sigma_px: dict[str, float] = field(default_factory=dict)
+    occlusion: Occlusion | None = None  # each view's detection probability from the crowd's occlusion, where fitted (not carried)
 
     @property
     def confidence(self) -> np.ndarray:
@@ -248,7 +250,8 @@ def associate_views(views: list[View], options: AssociateOptions, carried: bool 
         _apply_correction(views, pending, options)
     return FrameResult(names, points[order], covariance[order], scores[order], local[order],
                        options.detection_probability, options.height_prior, model,
-                       options.head_radius_m if state[0].log_radius is not None else None, used, bands)
+                       options.head_radius_m if state[0].log_radius is not None else None, used, bands,
+                       options.occlusion if options.visibility else None)
 
 
 START_DETECTION = 0.7  # the detection probability assumed until the frame's persons say otherwise
@@ -271,6 +274,10 @@ def _crowd_rates(state: tuple, options: AssociateOptions, given: AssociateOption
         own = float(np.median(covariance[confident, 2, 2]))  # the score adds each point's own on top
         sigma = math.sqrt(max(float(np.var(z)) - own, 0.02 ** 2))
         changes["height_prior"] = (round(float(np.mean(z)), 2), round(sigma, 2))
+    heights = changes.get("height_prior", options.height_prior)
+    if given.visibility and given.occlusion is None and heights is not None and confident.sum() >= MIN_RATE_GROUPS:
+        # fitted on the persons found under one probability for every view, the frame associated again with it
+        changes["occlusion"] = fit_occlusion(frame.views, frame.centres, members, points, confident, heights)
     if given.head_radius_m is None and frame.log_radius is not None and confident.sum() >= MIN_RATE_GROUPS:
         # each member's radius times its distance over the focal: the person's R (the median: robust to a wrong one)
         rows, cols = np.nonzero(members[confident] >= 0)

@@ -367,7 +367,7 @@ def marker_floor(reconstruction: pycolmap.Reconstruction, markers: np.ndarray, r
     crowd hides the floor from the sparse points and the floor matches). Markers lie on the floor (README), so:
 
     - end points spread over the floor (two bars apart: 4 or more points not on one line): their least-squares plane,
-      its sigmas from their scatter;
+      its sigmas from their residuals over their n - 3 degrees of freedom, widened by Student's t;
     - on one line (one bar): the plane through that line nearest the cameras' up (their x axes, mounted without
       roll): the tilt about the bar is then the prior's error, estimated as the cameras' roll scatter over the
       square root of the rigs (measured: 0.18 deg said, 0.19 deg true on a rendered 6-rig crowd).

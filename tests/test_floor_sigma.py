@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import json
 from types import SimpleNamespace
 
 import numpy as np
@@ -133,6 +134,13 @@ def test_a_narrow_cameras_height_sigma_adds_its_own_vertical_uncertainty():
         assert 0.015 < entry["own_sigma_m"] < 0.020
         assert 0 < entry["floor_sigma_m"] <= result.estimate.fit.height_sigma
         assert entry["sigma_m"] == pytest.approx(np.hypot(entry["floor_sigma_m"], entry["own_sigma_m"]))
+    # a camera the fit holds no sigma for: null, not NaN (summary.json is read by strict JSON parsers)
+    name = sorted(heights)[0]
+    del result.estimate.fit.camera_height_sigmas[name]
+    result.set_narrow_heights(rec, own)
+    entry = result.summary().floor["narrow_camera_heights"][name]
+    assert entry["floor_sigma_m"] is None and "sigma_m" not in entry and entry["own_sigma_m"] > 0
+    json.dumps(result.summary().floor, allow_nan=False)
 
 
 def test_floor_matches_are_triangulated_again_with_the_new_poses():

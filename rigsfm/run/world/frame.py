@@ -142,13 +142,17 @@ class WorldResult:
         heights = {}
         for image in registered_narrow_images(reconstruction):
             floor_part = fit.camera_height_sigmas.get(image.name, float("nan"))  # type: ignore[union-attr]
-            entry = {"height_m": float(image.projection_center()[2]), "floor_sigma_m": floor_part}
+            # None, not NaN, where the fit has no sigma for it: summary.json stays strict JSON
+            entry = {"height_m": float(image.projection_center()[2]),
+                     "floor_sigma_m": floor_part if np.isfinite(floor_part) else None}
             record = own.get(image.name)
             covariance = getattr(record, "centre_covariance_mm2", None)
             if covariance is not None:
                 up = image.cam_from_world().rotation.matrix()[:, 2]  # the floor's z in the camera's axes
-                entry["own_sigma_m"] = float(np.sqrt(max(up @ np.asarray(covariance) @ up, 0.0))) / 1000.0
-                entry["sigma_m"] = float(np.hypot(floor_part, entry["own_sigma_m"]))
+                own_sigma = float(np.sqrt(max(up @ np.asarray(covariance) @ up, 0.0))) / 1000.0
+                entry["own_sigma_m"] = own_sigma
+                if np.isfinite(floor_part):
+                    entry["sigma_m"] = float(np.hypot(floor_part, own_sigma))
             heights[image.name] = entry
         self.narrow_heights = heights
 
@@ -188,7 +192,6 @@ class WorldResult:
                     "camera_height", "prior_angle_deg",
                     "up_prior_source", "marker_residuals", "floor_from_model")}}
                 floor["floor_from_mapping"] = floor.pop("floor_from_model")
-            if fit:
                 floor["refitted_after_narrow_adjustment"] = self.estimate.refitted
                 if self.narrow_heights is not None:
                     floor["narrow_camera_heights"] = self.narrow_heights

@@ -280,7 +280,7 @@ def test_without_a_floor_the_reason_says_heads_were_not_searched(monkeypatch):
     monkeypatch.setattr(stage, "heads_instead", lambda *args, **kwargs: called.append(1))
     result = SimpleNamespace(reconstruction=pycolmap.Reconstruction())
     for frame, searched in (("mapping", False), ("floor", True)):
-        world = SimpleNamespace(metric=True, frame=frame, apply=lambda model: None)
+        world = SimpleNamespace(metric=True, asked="floor", frame=frame, apply=lambda model: None)
         _, record = stage.narrow_observations(result, world, Path("."), NarrowMode.AUTO)
         assert bool(called) == searched
         said = "heads" in record.reason and "floor frame" in record.reason

@@ -100,8 +100,7 @@ def narrow_observations(result, world, image_dir: Path, asked: NarrowMode, optio
     pairs = find_matches(floor_model, image_dir, options, floor_frame=floor_frame, offsets=offsets, features=features)
     used, reason = decide(asked, pairs)
     if not floor_frame and not any(p.textured for p in pairs):  # a crowd's heads need heights above the floor
-        why = ("--world mapping left out" if str(getattr(world, "asked", "")) == "mapping"
-               else "this run did not find (NO FLOOR FOUND)")
+        why = "--world mapping left out" if world.asked == "mapping" else "this run did not find (NO FLOOR FOUND)"
         reason += f"; heads (a crowd of 3D persons) are searched only in the floor frame, which {why}"
     record = NarrowObservations(str(asked), used, reason, pairs, features=features)
     if floor_frame and not any(p.textured for p in pairs):

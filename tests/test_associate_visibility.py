@@ -75,3 +75,18 @@ def test_the_fit_recovers_the_occlusion_of_simulated_detections():
         members[inside[rng.random(len(inside)) < 0.85], v] = 0
     flat = fit_occlusion(views, centres, members, points, confident, HEIGHTS)
     assert flat is not None and abs(flat.q - 0.85) < 0.04 and flat.a < 0.5, flat
+
+
+def test_the_occlusion_is_fitted_on_a_self_calibrating_frame_and_not_carried():
+    """A carried frame counts one probability for every view: with the frame before's occlusion its lens per
+    (hypothesis, view) tripled a carried frame's CPU (0.27 -> 0.85 s on 8 views) for no gain in pair F1
+    (benchmarks/README.md, twenty-second pass)."""
+    from rigsfm.associate.solve import associate_views
+
+    views, _ = _crowd_views(seed=2, heads=150)
+    options = AssociateOptions(pixel_sigma=1.0)
+    first = associate_views(views, options)
+    assert first.occlusion is not None  # fitted with the crowd's rates
+    later, _ = _crowd_views(seed=2, heads=150, noise_px=1.2)
+    carried = associate_views(later, options, carried=True, earlier=first)
+    assert carried.occlusion is None and carried.detection_probability == first.detection_probability

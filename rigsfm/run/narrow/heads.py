@@ -282,10 +282,17 @@ def _hough(gray: np.ndarray, low: float, high: float) -> np.ndarray:
     return circles
 
 
-def head_candidates(image: pycolmap.Image, image_dir: Path, footprint: np.ndarray | None) -> np.ndarray:
-    """:func:`detect_heads` of the image file (none where it cannot be read)."""
+def head_candidates(image: pycolmap.Image, image_dir: Path, footprint: np.ndarray | None,
+                    searched: dict[str, np.ndarray] | None = None) -> np.ndarray:
+    """:func:`detect_heads` of the image file (none where it cannot be read); ``searched``: image name -> its
+    candidates, those searched before (taken from it; this one's added)."""
+    if searched is not None and image.name in searched:
+        return searched[image.name]
     gray = read_image(Path(image_dir) / image.name, cv2.IMREAD_GRAYSCALE)
-    return np.zeros((0, 3)) if gray is None else detect_heads(image, gray, footprint)
+    found = np.zeros((0, 3)) if gray is None else detect_heads(image, gray, footprint)
+    if searched is not None:
+        searched[image.name] = found
+    return found
 
 
 def head_sigma(residuals: np.ndarray, persons: int) -> float | None:
@@ -343,9 +350,7 @@ def match_heads(floor_model: pycolmap.Reconstruction, image_dir: Path, frames: d
         images_of = [floor_model.find_image_with_name(name) for name in names]
 
         def candidates(image: pycolmap.Image) -> np.ndarray:
-            if image.name not in searched:
-                searched[image.name] = head_candidates(image, image_dir, footprint)
-            return searched[image.name]
+            return head_candidates(image, image_dir, footprint, searched)
 
         views = []
         # The images side by side (OpenCV's Hough frees the GIL), each search on one thread: the same circles.

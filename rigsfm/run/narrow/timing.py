@@ -76,10 +76,7 @@ def time_heads(floor_model: pycolmap.Reconstruction, image_dir: Path, bands: dic
     searched = {} if searched is None else searched
 
     def candidates(key: tuple[str, str]) -> np.ndarray:
-        image = by_frame[key[1]][key[0]]
-        if image.name not in searched:
-            searched[image.name] = head_candidates(image, image_dir, footprint)
-        return searched[image.name]
+        return head_candidates(by_frame[key[1]][key[0]], image_dir, footprint, searched)
 
     with one_opencv_thread(), ThreadPoolExecutor(max(1, threads)) as pool:
         heads = dict(zip(needed, pool.map(candidates, needed)))

@@ -190,7 +190,7 @@ def library_case(recording: Path, run: Path, offsets: dict[str, int], frames: in
     if recount == "own":  # the doubted rig's correction not carried, the others' carried (cheap: no self-calibration)
         sync.confirmed_counts = functools.partial(confirming, own_pose=True)
     try:
-        check = check_frame_offsets(model, dets, chain, options, "check", correct="confirm")
+        check = check_frame_offsets(model, dets, chain, options, "check", correct=sync.Correction.CONFIRM)
     finally:
         sync.shift_counts, sync.confirmed_counts = counting, confirming
     record = check.to_dict()

@@ -23,6 +23,7 @@ sys.path.insert(0, str(REPO))
 
 import pycolmap  # noqa: E402
 
+from rigsfm.associate.sync import Correction  # noqa: E402
 from rigsfm.core.blas_threads import one_blas_thread  # noqa: E402
 from rigsfm.core.workspace import Workspace  # noqa: E402
 from rigsfm.run.narrow.timing import time_heads  # noqa: E402
@@ -64,7 +65,7 @@ def main() -> None:
     parser.add_argument("out", type=Path)
     parser.add_argument("images", type=Path)
     parser.add_argument("--json", type=Path, default=None)
-    parser.add_argument("--correct", default="confirm", choices=["self", "carry", "own", "confirm", "none"],
+    parser.add_argument("--correct", default=Correction.CONFIRM, choices=list(Correction), type=Correction,
                         help="the views' pose correction: each association's own, carried from the frame before, carried but the tested camera's, none")
     args = parser.parse_args()
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
@@ -76,7 +77,7 @@ def main() -> None:
     cpu = time.process_time()
     with one_blas_thread():
         check = time_heads(model, args.images, bands, correct=args.correct)
-    record = {**check.to_dict(), "correct": args.correct, "cpu_s": round(time.process_time() - cpu, 1)}
+    record = {**check.to_dict(), "correct": str(args.correct), "cpu_s": round(time.process_time() - cpu, 1)}
     print(json.dumps(record), flush=True)
     if args.json:
         args.json.write_text(json.dumps(record, indent=2) + "\n")

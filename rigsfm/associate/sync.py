@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import enum
 import logging
 import math
 import time
@@ -36,6 +37,18 @@ logger = logging.getLogger(__name__)
 SEARCH = 2  # whole frames searched either way
 NOT_A_RECORDING = "three frames and three narrow views are needed"  # skipped, not asked: nothing to say
 TESTED_FRAMES = 4  # carried frames tested: each costs 1 + cameras x 2 SEARCH associations
+
+
+class Correction(enum.StrEnum):
+    """How a tested association corrects its views' poses (rigsfm.run.narrow.timing's docstring says each)."""
+
+    CONFIRM = "confirm"  # carried, then the doubted rigs counted again correcting themselves
+    CARRY = "carry"  # each view's correction from the frame before
+    SELF = "self"  # each association its own
+    OWN = "own"  # carried, except the tested rig's
+    NONE = "none"
+
+
 # A rig is named where its best shift's count exceeds the count at 0 by this many sigmas (the two counts taken as
 # independent Poisson counts: an overstated sigma, they share most persons); on the rendered crowds a synchronised
 # rig's count a frame away was 0.67-0.87x its count at 0 at 10 fps, a third at 2 fps (benchmarks/README.md).
@@ -228,7 +241,7 @@ def tested_frames(frames: list[str], search: int, complete) -> list[int]:
 
 def check_frame_offsets(model, detections: Detections, chain: list, options: AssociateOptions, asked: str,
                         applied: dict[str, int] | None = None, recording: list[str] | None = None,
-                        correct: str = "carry") -> SyncCheck:
+                        correct: Correction = Correction.CARRY) -> SyncCheck:
     """Each rig's frame offset (module docstring) from ``chain`` (associate_frames' frames of ``detections``, in
     order, paired as given: ``applied`` offsets already applied, none by default); ``recording``: its frames
     (:func:`recording_frames`, where the caller has them). ``correct``: the views' corrections carried from the
@@ -280,7 +293,7 @@ def check_frame_offsets(model, detections: Detections, chain: list, options: Ass
         before = chain[chained[frames[i - 1]]]
         windows.append((templates, {ImageName.parse(v.name).camera: v for v in before.views}, before.result))
     carried: dict[str, dict[int, int]] = {}
-    if correct == "confirm":
+    if correct == Correction.CONFIRM:
         counts, carried = confirmed_counts(windows, cameras, search, options)
     else:
         counts = shift_counts(windows, cameras, search, options)

@@ -31,6 +31,7 @@ from rigsfm.associate.solve import associate_views
 from rigsfm.associate.sync import (
     NOT_A_RECORDING,
     SEARCH,
+    Correction,
     SyncCheck,
     camera_bands,
     confirmed_counts,
@@ -47,7 +48,7 @@ logger = logging.getLogger(__name__)
 
 
 def time_heads(floor_model: pycolmap.Reconstruction, image_dir: Path, bands: dict[tuple[str, str], float],
-               threads: int = 1, correct: str = "confirm", searched: dict[str, np.ndarray] | None = None) -> SyncCheck:
+               threads: int = 1, correct: Correction = Correction.CONFIRM, searched: dict[str, np.ndarray] | None = None) -> SyncCheck:
     """Each rig's frame offset from its heads (module docstring). ``floor_model``: the first adjustment in the floor
     frame; ``bands``: (i, j) -> the pair's 95 % band (px); ``threads``: images searched at once; ``correct``: the
     views' pose corrections (module docstring); ``searched``: image -> its head candidates, those searched before
@@ -85,7 +86,7 @@ def time_heads(floor_model: pycolmap.Reconstruction, image_dir: Path, bands: dic
     sigmas = view_pose_sigmas(cameras, {(a, b): band for (a, b), band in by_cameras.items()
                                         if a in cameras and b in cameras})
     options = _association_options()
-    if correct == "none":
+    if correct == Correction.NONE:
         options = dataclasses.replace(options, self_calibration_rounds=0)
     windows: list = []
     for i in tested:
@@ -95,7 +96,7 @@ def time_heads(floor_model: pycolmap.Reconstruction, image_dir: Path, bands: dic
                 view = View.of(by_frame[frames[i + s]][c], heads[(c, frames[i + s])][:, :2])
                 view.sigma_pose_px = sigmas[c]
                 templates[(c, s)] = view
-        if correct in ("carry", "own", "confirm"):
+        if correct in (Correction.CARRY, Correction.OWN, Correction.CONFIRM):
             before = []
             for c in cameras:
                 view = View.of(by_frame[frames[i - 1]][c], heads[(c, frames[i - 1])][:, :2])
@@ -106,10 +107,10 @@ def time_heads(floor_model: pycolmap.Reconstruction, image_dir: Path, bands: dic
         else:
             windows.append((templates, None, None))
     carried: dict[str, dict[int, int]] = {}
-    if correct == "confirm":  # the rigs whose carried count peaks away from 0, counted again correcting themselves
+    if correct == Correction.CONFIRM:  # the rigs whose carried count peaks away from 0, counted again correcting themselves
         counts, carried = confirmed_counts(windows, cameras, search, options)
     else:
-        counts = shift_counts(windows, cameras, search, options, own_pose=correct == "own")
+        counts = shift_counts(windows, cameras, search, options, own_pose=correct == Correction.OWN)
     check.rigs = rig_timings(counts, carried)
     check.seconds = time.perf_counter() - start
     logger.info("frame offsets from the heads: %s over %s (%.1f s)", {r: t.counts for r, t in check.rigs.items()},

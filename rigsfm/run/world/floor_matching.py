@@ -193,14 +193,20 @@ def _sample(map_: np.ndarray, xy: np.ndarray) -> np.ndarray:
 
 def triangulate_pairs(image_i: pycolmap.Image, image_j: pycolmap.Image, xy_i: np.ndarray,
                       xy_j: np.ndarray) -> np.ndarray:
-    """World points (N x 3; NaN where none) of matched COLMAP pixels of two posed images: COLMAP's linear
-    two-view triangulation (``pycolmap.triangulate_point``: the 4 x 4 DLT system's null vector), for all
-    matches at once."""
-    poses = (image_i.cam_from_world().matrix(), image_j.cam_from_world().matrix())
+    """World points (N x 3; NaN where none) of matched COLMAP pixels of two posed images (:func:`triangulate_rays`)."""
+    # a model's images have their cameras
+    rays = [np.asarray(image.camera.cam_from_img(np.asarray(xy, np.float64).reshape(-1, 2)), np.float64)  # type: ignore[union-attr]
+            for image, xy in ((image_i, xy_i), (image_j, xy_j))]
+    return triangulate_rays(image_i.cam_from_world().matrix(), image_j.cam_from_world().matrix(), *rays)
+
+
+def triangulate_rays(cam_i_from_world: np.ndarray, cam_j_from_world: np.ndarray, rays_i: np.ndarray,
+                     rays_j: np.ndarray) -> np.ndarray:
+    """World points (N x 3; NaN where none) of normalised rays (N x 2) of two cameras (3 x 4 poses): COLMAP's linear
+    two-view triangulation (``pycolmap.triangulate_point``: the 4 x 4 DLT system's null vector), for all rays at
+    once."""
     rows = []
-    for image, pose, xy in ((image_i, poses[0], xy_i), (image_j, poses[1], xy_j)):
-        # a model's images have their cameras
-        rays = np.asarray(image.camera.cam_from_img(np.asarray(xy, np.float64).reshape(-1, 2)), np.float64)  # type: ignore[union-attr]
+    for pose, rays in ((cam_i_from_world, rays_i), (cam_j_from_world, rays_j)):
         rows += [rays[:, :1] * pose[2] - pose[0], rays[:, 1:] * pose[2] - pose[1]]
     systems = np.stack(rows, axis=1)  # N x 4 x 4
     points = np.full((len(systems), 3), np.nan)

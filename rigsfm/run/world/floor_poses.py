@@ -10,21 +10,13 @@ import pycolmap
 
 from rigsfm.core.geometry import skew
 from rigsfm.run.adjustment.result import JointCovariance
-from rigsfm.run.world.floor_matching import FloorMatches
+from rigsfm.run.world.floor_matching import FloorMatches, triangulate_rays
 
 STEP = 1e-6  # central differences: radians for the rotation, model units for the translation
 
 
 def _rays(camera: pycolmap.Camera, xy: np.ndarray) -> np.ndarray:
     return np.asarray(camera.cam_from_img(np.asarray(xy, np.float64).reshape(-1, 2)), np.float64)
-
-
-def _triangulate(pose_i: np.ndarray, pose_j: np.ndarray, rays_i: np.ndarray, rays_j: np.ndarray) -> np.ndarray:
-    """Linear two-view triangulation (floor_matching.triangulate_pairs's) of normalised rays with 3x4 poses."""
-    rows = [rays_i[:, :1] * pose_i[2] - pose_i[0], rays_i[:, 1:] * pose_i[2] - pose_i[1],
-            rays_j[:, :1] * pose_j[2] - pose_j[0], rays_j[:, 1:] * pose_j[2] - pose_j[1]]
-    null = np.linalg.svd(np.stack(rows, axis=1))[2][:, 3]
-    return null[:, :3] / null[:, 3:]
 
 
 def _pose(rotation: np.ndarray, translation: np.ndarray, w: np.ndarray, dt: np.ndarray) -> np.ndarray:
@@ -68,7 +60,7 @@ def pose_tilt_covariance(reconstruction: pycolmap.Reconstruction, matches: Floor
         for fi, fj, ri, rj in pairs:
             pi = moved[fi] if fi in moved else np.c_[poses[fi][0], poses[fi][1]]
             pj = moved[fj] if fj in moved else np.c_[poses[fj][0], poses[fj][1]]
-            out.append(_triangulate(pi, pj, ri, rj))
+            out.append(triangulate_rays(pi, pj, ri, rj))
         return np.vstack(out)
 
     nominal = points({})

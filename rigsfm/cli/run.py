@@ -18,7 +18,7 @@ from rigsfm.cli.common import (
     flag,
     progress_bars,
 )
-from rigsfm.core.summary import ManualMatchesSummary
+from rigsfm.core.summary import ManualMatchesSummary, floor_from_markers_alone
 from rigsfm.inspect.options import ExportFormat
 from rigsfm.run.options import (
     GLOBAL_FROM_FRAMES,
@@ -86,8 +86,7 @@ def print_world(summary) -> None:
     if world and world.frame == "floor":
         heights = floor.get("camera_height") or {}
         low, high = heights.get("min", 0), heights.get("max", 0)
-        by_source = floor.get("points_by_source") or {}
-        if by_source and by_source.get("markers") == floor.get("num_points"):  # a crowd hid the floor: no fit to show
+        if floor_from_markers_alone(floor.get("points_by_source"), floor.get("num_points")):  # no fit to show
             unit = " m" if world.units == "metres" else " (the mapper's units: not metric)"
             console.print(f"world: floor frame (from the {floor.get('num_points')} known-length end points alone, tilt "
                           f"sigma {floor.get('normal_sigma_deg', float('nan')):.2g} deg; cameras {low:.2f}-{high:.2f}"

@@ -134,6 +134,12 @@ class FrameOffsetsSummary:
     estimate: dict | None = None  # the estimate's record, when one was made
 
 
+def floor_from_markers_alone(points_by_source: dict | None, num_points: int | None) -> bool:
+    """Whether a floor fit rests on the known-length markers alone (rigsfm.run.world.floor_fit.marker_floor: a crowd
+    hid the floor from the points), from its record's ``points_by_source`` and ``num_points``."""
+    return bool(points_by_source) and points_by_source is not None and points_by_source.get("markers") == num_points
+
+
 @dataclass(kw_only=True)
 class WorldSummary:
     """The result's frame and its floor fit (rigsfm.run.world.frame.WorldResult.summary); also narrow_poses.json's

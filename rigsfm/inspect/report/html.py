@@ -12,7 +12,7 @@ import pycolmap
 from rigsfm.core import charts
 from rigsfm.core.names import ImageName, name_of
 from rigsfm.core.residuals import reprojection_errors
-from rigsfm.core.summary import BANDS_WITH_NARROW, Summary
+from rigsfm.core.summary import BANDS_WITH_NARROW, Summary, floor_from_markers_alone
 from rigsfm.core.workspace import Workspace, model_fingerprint
 from rigsfm.inspect.report.figures import (
     JPEG_QUALITY,
@@ -294,7 +294,7 @@ def world_section(narrow: dict, reconstruction: pycolmap.Reconstruction) -> str:
     by_source = floor.get("points_by_source") or {}
     rows = [["z", esc(world.get("z_axis"))], ["origin", esc(world.get("origin"))], ["x", esc(world.get("x_axis"))],
             ["floor points", ", ".join(f"{esc(k)} {v}" for k, v in by_source.items())]]
-    if by_source and by_source.get("markers") == floor.get("num_points"):  # a crowd hid the floor (marker_floor)
+    if floor_from_markers_alone(by_source, floor.get("num_points")):
         rows += [["floor from", "the known-length markers alone (no floor fitted the points)"],
                  # one bar: the tilt about it is the cameras' up's, from their rolls' scatter (docs/world.md)
                  ["normal σ from the cameras' rolls, or the markers' scatter with two bars apart (deg)",

@@ -53,6 +53,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 import pycolmap
 
+from rigsfm.core.summary import floor_from_markers_alone
 from rigsfm.run.world.floor_fit import fit_floor, marker_floor
 from rigsfm.run.world.floor_model import (
     FloorFit,
@@ -267,8 +268,8 @@ def refit_floor(estimate: FloorEstimate, reconstruction: pycolmap.Reconstruction
     if not estimate.fit:
         return estimate
     before: FloorFit = estimate.fit  # type: ignore[assignment]  # NoFloor is falsy: a FloorFit here
-    if before.points_by_source.get("markers") == before.num_points and markers is not None and len(markers):
-        # a floor from the markers alone (a crowd hid it from the points): the markers again, in the new poses
+    if floor_from_markers_alone(before.points_by_source, before.num_points) and markers is not None and len(markers):
+        # the markers again, in the new poses
         fit = marker_floor(reconstruction, markers, "no floor fitted the points", options, x_towards=x_towards)
     else:
         matches = estimate.matches

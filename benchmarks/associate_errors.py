@@ -65,9 +65,12 @@ TERMS = ("rho", "height", "volume", "detect", "clutter", "norm", "residual", "mi
 
 def score_terms(frame: _Frame, members: np.ndarray, points: np.ndarray, covariance: np.ndarray,
                 ) -> dict[str, np.ndarray]:
-    """``frame.score``'s terms per group (G each), and ``n_miss``: the views that see the point without a member."""
+    """``frame.score``'s terms per group (G each), and ``n_miss``: the views that see the point without a member. With
+    the options' occlusion, ``detect`` is each member's view's own detection probability and ``misses`` each view
+    without a member's ``log(1 - p_v)``."""
     o = frame.options
-    p_d = o.detection_probability
+    occlusion = o.occlusion if o.visibility else None
+    p_d = occlusion.q if occlusion is not None else o.detection_probability
     assert p_d is not None
     n = len(points)
     if o.height_prior is None:
@@ -80,12 +83,21 @@ def score_terms(frame: _Frame, members: np.ndarray, points: np.ndarray, covarian
     d2 = np.nan_to_num(frame.residuals(members, points), nan=0.0, posinf=1e6)
     present = members >= 0
     clutter = np.where(present, frame.clutter[np.where(present, members, 0)], 1.0)
+    detect = present.sum(axis=1) * math.log(p_d)
     misses = np.zeros(n)
     frame._add_misses(misses, points, present)
+    if occlusion is not None:  # the members' own probabilities against q, apart from the misses
+        own = np.zeros(n)
+        frame._add_misses(own, points, present, misses=False)
+        detect, misses = detect + own, misses - own
+    n_miss = np.zeros(n, np.int64)
+    for v, view in enumerate(frame.views):
+        uv, z = view.project(points)
+        n_miss += view.inside(uv, z) & ~present[:, v]
     terms = {
         "rho": np.full(n, math.log(o.persons_per_m2)), "height": height,
         "volume": 1.5 * math.log(2 * math.pi) + 0.5 * np.where(sign > 0, logdet, -np.inf),
-        "detect": present.sum(axis=1) * math.log(p_d),
+        "detect": detect,
         "clutter": -np.where(present, np.log(clutter), 0.0).sum(axis=1),
         "norm": -np.where(present, np.log(2 * math.pi * frame.noise ** 2)[None], 0.0).sum(axis=1),
         "residual": -0.5 * np.where(present, d2, 0.0).sum(axis=1), "misses": misses,
@@ -96,7 +108,7 @@ def score_terms(frame: _Frame, members: np.ndarray, points: np.ndarray, covarian
     score = frame.score(members, points, covariance)
     finite = np.isfinite(score)
     assert np.allclose(total[finite], score[finite], atol=1e-6), "score_terms no longer sums to _Frame.score"
-    terms["n_miss"] = np.round(misses / math.log(max(1.0 - p_d, 1e-6))).astype(np.int64)
+    terms["n_miss"] = n_miss
     return terms
 
 
@@ -200,7 +212,7 @@ def analyse(dataset: Path, out: Path, seed: int, pixel_sigma: float, terms: bool
     found = associate_frames(model, from_arrays(truth.points), options)[0]
     views, result = found.views, found.result
     # a first frame grows every pair seed (associate_views: no seeds' floor)
-    final = dataclasses.replace(options, detection_probability=result.detection_probability,
+    final = dataclasses.replace(options, detection_probability=result.detection_probability, occlusion=result.occlusion,
                                 height_prior=result.height_prior, seed_min_score=None)
     frame = _Frame(views, final, result.appearance)  # the final association's views, rates and appearance
     offsets = frame.offsets
@@ -298,7 +310,7 @@ def analyse_frame(state: tuple, result, truth, options: AssociateOptions) -> dic
     """One frame of a recording taken apart: ``state`` its association's last ``_solve`` (frame, members, ...)."""
     frame, members = state[0], state[1]
     views, offsets = frame.views, frame.offsets
-    final = dataclasses.replace(options, detection_probability=result.detection_probability,
+    final = dataclasses.replace(options, detection_probability=result.detection_probability, occlusion=result.occlusion,
                                 height_prior=result.height_prior)
     pid = np.concatenate([truth.person[v.name] for v in views])
     group_of = np.full(len(pid), -1)

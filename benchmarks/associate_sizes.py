@@ -41,7 +41,7 @@ def _auc(right: np.ndarray, wrong: np.ndarray) -> float | None:
 def separation(found, truth, options: AssociateOptions) -> dict:
     """AUCs and the first packing's pair F1 of the final association's hypotheses, with and without the size term."""
     views, result = found.views, found.result
-    final = dataclasses.replace(options, detection_probability=result.detection_probability,
+    final = dataclasses.replace(options, detection_probability=result.detection_probability, occlusion=result.occlusion,
                                 height_prior=result.height_prior, head_radius_m=result.head_radius_m)
     frame = _Frame(views, final, result.appearance)
     members, points, covariance, _ = frame.hypotheses()

@@ -234,15 +234,12 @@ def _csv(header: list[str], rows: list[list]) -> str:
     return buffer.getvalue()
 
 
-def floor_map(frame, prints: list[np.ndarray], bounds, plane_m: float, size: int = 900) -> np.ndarray:
-    """Top view over ``bounds`` in the run's world (metres on both axes, a scale bar): the narrow footprints
-    ``prints`` on the plane ``plane_m`` above the floor and every person's 95 % ellipse."""
+def _floor_background(view: charts.MapFrame, bounds, prints: list[np.ndarray]) -> np.ndarray:
+    """floor_map's 1 m grid and narrow footprints, cut at the plot's edge."""
     x0, y0, x1, y1 = bounds
-    view = charts.MapFrame.fit(bounds, size)
-    scale, width, height = view.scale, view.width, view.height
+    width, height = view.width, view.height
     image = charts.canvas(width, height)
     px = view.px
-
     for gx in range(math.ceil(x0), math.floor(x1) + 1):
         a, b = px([gx, y0])[0], px([gx, y1])[0]
         cv2.line(image, (int(a[0]), int(a[1])), (int(b[0]), int(b[1])), charts.bgr("grid"), 1)
@@ -255,6 +252,23 @@ def floor_map(frame, prints: list[np.ndarray], bounds, plane_m: float, size: int
     top, bottom, left, right = view.top, height - view.bottom, view.left, width - view.right
     image[:top], image[bottom + 1:], image[:, :left], image[:, right + 1:] = (
         blank[:top], blank[bottom + 1:], blank[:, :left], blank[:, right + 1:])
+    return image
+
+
+def floor_map(frame, prints: list[np.ndarray], bounds, plane_m: float, size: int = 900,
+              known: dict | None = None) -> np.ndarray:
+    """Top view over ``bounds`` in the run's world (metres on both axes, a scale bar): the narrow footprints
+    ``prints`` on the plane ``plane_m`` above the floor and every person's 95 % ellipse. ``known``: the maps
+    drawn before without their persons, kept there (a recording's frames of the same cameras share one)."""
+    view = charts.MapFrame.fit(bounds, size)
+    scale, px = view.scale, view.px
+    drawn = ("floor", tuple(float(b) for b in bounds), size, tuple(p.tobytes() for p in prints))
+    background = None if known is None else known.get(drawn)
+    if background is None:
+        background = _floor_background(view, bounds, prints)
+        if known is not None:
+            known[drawn] = background
+    image = background.copy()
     result = frame.result
     if len(result):  # every person's ellipse at once: a recording writes a map per frame
         values, vectors = np.linalg.eigh(result.covariances[:, :2, :2])
@@ -331,7 +345,7 @@ def write_results(dest: Path, model, frames: list, options, previous: Previous |
             (folder / "density.csv").write_text(_csv(["x_min_m", "y_min_m", "x_max_m", "y_max_m", "persons", "per_m2",
                                                       "views"], rows))
             _png(folder / "density.png", density_image(counts, options.cell_m, seen, bounds))
-            _png(folder / "floor.png", floor_map(frame, prints, bounds, height))
+            _png(folder / "floor.png", floor_map(frame, prints, bounds, height, known=known))
         previous = check_destination(dest, True) if previous is None else previous
         commit(dest, tmp, previous, MANIFEST, {"written_by": "rigsfm associate", "model": fingerprint,
                                                 "frame_offsets": frame_offsets},

@@ -115,3 +115,21 @@ def test_grid_cells_computes_once_per_extent(monkeypatch):
     wider = grid_cells(images, np.array([[-9.0, 0.0, 1.6]]), 1.0, 1.55, known)
     alone = grid_cells(images, np.array([[-9.0, 0.0, 1.6]]), 1.0, 1.55)
     assert wider[0] == alone[0] != fresh[0] and np.array_equal(wider[1], alone[1])
+
+
+def test_floor_maps_of_a_recording_share_their_background_and_nothing_else():
+    """The grid and footprints are drawn once per recording: each frame's map is still the map drawn alone (no
+    earlier frame's persons in it, another frame's footprints not taken for its own)."""
+    bounds = (-3.0, -2.0, 5.0, 4.0)
+    prints = [np.array([[-2.0, -1.0], [4.0, -1.0], [4.0, 3.0], [-2.0, 3.0]])]
+    other = [np.array([[-1.0, -1.5], [3.0, -1.0], [2.0, 3.5]])]
+    frames = [_frame(seed) for seed in range(2)]
+    for f in frames:  # inside the map
+        f.result.points[:, :2] = np.clip(f.result.points[:, :2], -2.5, 3.5)
+    known: dict = {}
+    for f, feet in ((frames[0], prints), (frames[1], prints), (frames[0], other), (frames[1], prints)):
+        drawn = output.floor_map(f, feet, bounds, 1.55, known=known)
+        np.testing.assert_array_equal(drawn, output.floor_map(f, feet, bounds, 1.55))
+    assert len(known) == 2  # one background per set of footprints
+    assert not np.array_equal(output.floor_map(frames[0], prints, bounds, 1.55),
+                              output.floor_map(frames[1], prints, bounds, 1.55))

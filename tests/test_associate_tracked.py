@@ -155,6 +155,25 @@ def test_a_tracked_frame_s_groups_keep_the_scores_they_took_before_the_pairs():
     np.testing.assert_array_equal(scores, frame.score(members, points, covariance, floor=OPTIONS.min_score))
 
 
+def test_the_seeds_gate_scores_each_seed_with_its_own_residuals():
+    """The gate hands the score the residuals it computed for its own test: the seeds it keeps are those that a
+    fresh score of each (its residuals computed anew) keeps, with the same points."""
+    frame = _tracked_frame(seed=7)
+    frame.hypotheses()  # the pair seeds, among what the tracked persons leave
+    seeds = frame._seeds
+    assert seeds is not None and len(seeds) > 100
+    floor = -4.0
+    members, points, covariance = frame._gated(seeds, floor)
+    at, at_covariance = frame.triangulate(seeds)
+    lo, hi = OPTIONS.heights
+    ok = (at[:, 2] >= lo) & (at[:, 2] <= hi) & np.all(
+        np.nan_to_num(frame.residuals(seeds, at), nan=0.0) <= OPTIONS.member_gate ** 2, axis=1)
+    scores = frame.score(seeds[ok], at[ok], at_covariance[ok], misses=False, floor=floor)
+    assert 0 < len(members) < ok.sum()  # the floor decides for some
+    np.testing.assert_array_equal(members, seeds[ok][scores > floor])
+    np.testing.assert_array_equal(points, at[ok][scores > floor])
+
+
 def test_a_tracked_frame_grows_once_and_finds_the_persons_two_rounds_find(monkeypatch):
     before, after = _walked(seed=11)
     first = associate_views(_crowd(before, seed=12)[0], OPTIONS, carried=True)

@@ -413,11 +413,12 @@ class _Frame:
 
     @_rowwise
     def score(self, members: np.ndarray, points: np.ndarray, covariance: np.ndarray, misses: bool = True,
-              floor: float | None = None) -> np.ndarray:
+              floor: float | None = None, d2: np.ndarray | None = None) -> np.ndarray:
         """Each group's log-likelihood ratio against clutter. ``misses=False``: without the views that see its point
         and hold no member (each costs, so that is an upper bound of the full score). ``floor``: a group whose bound
         is at or below it scores -inf (its full score is at most the bound), its misses not counted. With the
-        options' occlusion, each view's detection probability is its own (at most ``q``: the bound's, per member)."""
+        options' occlusion, each view's detection probability is its own (at most ``q``: the bound's, per member).
+        ``d2``: the groups' ``residuals`` at ``points``, where the caller has them."""
         p_d = self.options.detection_probability
         assert p_d is not None  # associate_views resolves it
         occlusion = self.options.occlusion if self.options.visibility else None
@@ -435,7 +436,7 @@ class _Frame:
         prior = math.log(self.options.persons_per_m2) + height + 1.5 * math.log(2 * math.pi)
         sign, logdet = np.linalg.slogdet(covariance)
         prior = prior + 0.5 * np.where(sign > 0, logdet, -np.inf)
-        d2 = self.residuals(members, points)
+        d2 = self.residuals(members, points) if d2 is None else d2
         present = members >= 0
         clutter = np.where(present, self.clutter[np.where(present, members, 0)], 1.0)
         per_member = math.log(p_d) - np.log(clutter) - np.log(2 * math.pi * self.noise ** 2)[None] \
@@ -631,12 +632,13 @@ class _Frame:
         whose own score, its misses left out, exceeds it): members, points, covariances."""
         points, covariance = self.triangulate(seeds)
         lo, hi = self.options.heights
+        d2 = self.residuals(seeds, points)
         ok = (points[:, 2] >= lo) & (points[:, 2] <= hi) & np.all(
-            np.nan_to_num(self.residuals(seeds, points), nan=0.0) <= self.options.member_gate ** 2, axis=1)
+            np.nan_to_num(d2, nan=0.0) <= self.options.member_gate ** 2, axis=1)
         members = seeds[ok]
         points, covariance = points[ok], covariance[ok]
         if floor is not None:
-            strong = self.score(members, points, covariance, misses=False, floor=floor) > floor
+            strong = self.score(members, points, covariance, misses=False, floor=floor, d2=d2[ok]) > floor
             members, points, covariance = members[strong], points[strong], covariance[strong]
         return members, points, covariance
 

@@ -79,15 +79,19 @@ def refuse_edited(dest: Path, previous: Previous, frames: Iterable[str]) -> None
 def persons_rows(frame) -> list[list]:
     result, views, det = frame.result, frame.views, frame.detections
     rows = []
-    conf = result.confidence
-    for p in range(len(result)):
-        x, y, z = result.points[p]
-        sx, sy, sz = np.sqrt(np.diag(result.covariances[p]))
-        members = [(v, int(i)) for v, i in enumerate(result.members[p]) if i >= 0]
+    # every person's numbers as Python floats at once (the same values; a frame has hundreds of persons)
+    conf, points = result.confidence.tolist(), result.points.tolist()
+    sigmas = np.sqrt(np.diagonal(result.covariances, axis1=1, axis2=2)).tolist()
+    found = [det.images[view.name] for view in views]
+    numbers = [d.rows.tolist() for d in found]
+    for p, held in enumerate(result.members.tolist()):
+        x, y, z = points[p]
+        sx, sy, sz = sigmas[p]
+        members = [(v, i) for v, i in enumerate(held) if i >= 0]
         for v, i in members:
-            d = det.images[views[v].name]
+            d = found[v]
             rows.append([p, f"{x:.4f}", f"{y:.4f}", f"{z:.4f}", f"{sx:.4f}", f"{sy:.4f}", f"{sz:.4f}",
-                         f"{conf[p]:.4f}", len(members), d.image, d.text[i][0], d.text[i][1], int(d.rows[i])])
+                         f"{conf[p]:.4f}", len(members), d.image, d.text[i][0], d.text[i][1], numbers[v][i]])
     return rows
 
 
@@ -95,20 +99,24 @@ def persons_json(frame, frame_offsets: dict | None = None) -> dict:
     result, views, det = frame.result, frame.views, frame.detections
     persons = []
     used = set()
-    for p in range(len(result)):
+    found = [det.images[view.name] for view in views]
+    # every person's numbers as Python floats at once (the same values and roundings as element by element)
+    xys, numbers = [d.xy.tolist() for d in found], [d.rows.tolist() for d in found]
+    points, scores = result.points.tolist(), result.scores.tolist()
+    covariances, confidence = np.round(result.covariances, 9).tolist(), result.confidence.tolist()
+    for p, held in enumerate(result.members.tolist()):
         dets = []
-        for v, i in enumerate(result.members[p]):
+        for v, i in enumerate(held):
             if i >= 0:
-                d = det.images[views[v].name]
-                dets.append({"image": d.image, "x": float(d.xy[i, 0]), "y": float(d.xy[i, 1]),
-                             "x_text": d.text[i][0], "y_text": d.text[i][1], "row": int(d.rows[i])})
-                used.add((v, int(i)))
-        persons.append({"person": p, "position_m": [round(float(c), 5) for c in result.points[p]],
-                        "covariance_m2": np.round(result.covariances[p], 9).tolist(),
-                        "score": round(float(result.scores[p]), 4), "confidence": round(float(result.confidence[p]), 5),
-                        "detections": dets})
-    unassigned = [{"image": views[v].name, "row": int(det.images[views[v].name].rows[i])}
-                  for v in range(len(views)) for i in range(len(det.images[views[v].name])) if (v, i) not in used]
+                d = found[v]
+                dets.append({"image": d.image, "x": xys[v][i][0], "y": xys[v][i][1],
+                             "x_text": d.text[i][0], "y_text": d.text[i][1], "row": numbers[v][i]})
+                used.add((v, i))
+        persons.append({"person": p, "position_m": [round(c, 5) for c in points[p]],
+                        "covariance_m2": covariances[p], "score": round(scores[p], 4),
+                        "confidence": round(confidence[p], 5), "detections": dets})
+    unassigned = [{"image": views[v].name, "row": numbers[v][i]}
+                  for v in range(len(views)) for i in range(len(found[v])) if (v, i) not in used]
     return {"frame": frame.frame, "frame_units": "world metres (the run's world frame)",
             "views": [v.name for v in views],
             # the run's frame whose poses and bands stood in for this frame's (--poses-from); null: the run's own
@@ -145,18 +153,30 @@ def cells_seen(images: list[pycolmap.Image], bounds: tuple[float, float, float, 
     return seen.reshape(ny, nx)
 
 
-def grid_cells(images: list[pycolmap.Image], points: np.ndarray, cell: float, height: float
-               ) -> tuple[tuple[float, float, float, float], np.ndarray, list[np.ndarray]]:
+def grid_cells(images: list[pycolmap.Image], points: np.ndarray, cell: float, height: float,
+               known: dict | None = None) -> tuple[tuple[float, float, float, float], np.ndarray, list[np.ndarray]]:
     """The density grid: its extent (the cells whose centres two or more narrow views see at ``height``, where a
     person can be placed, and every person found, on whole cells from the world origin: the same cells in every
-    frame of the same cameras), each cell's views (:func:`cells_seen`) and the views' footprints at ``height``."""
-    prints = [np.asarray(fp.polygon) for fp in (footprint(image, height) for image in images)
-              if fp is not None and len(fp.polygon)]
+    frame of the same cameras), each cell's views (:func:`cells_seen`) and the views' footprints at ``height``.
+    ``known``: what earlier calls for the same model's images found (each image's footprint, the cells' views of
+    each extent), kept there: a recording's frames of the same cameras compute them once."""
+    known = {} if known is None else known
+    prints = []
+    for image in images:
+        key = ("footprint", image.name, height)
+        if key not in known:
+            fp = footprint(image, height)
+            known[key] = np.asarray(fp.polygon) if fp is not None and len(fp.polygon) else None
+        if known[key] is not None:
+            prints.append(known[key])
     corners = np.concatenate([p[:, :2] for p in prints] + [points[:, :2]]) if prints or len(points) \
         else np.zeros((1, 2))
     lo, hi = np.floor(corners.min(axis=0) / cell) * cell, np.ceil(corners.max(axis=0) / cell) * cell
     bounds = (float(lo[0]), float(lo[1]), float(max(hi[0], lo[0] + cell)), float(max(hi[1], lo[1] + cell)))
-    seen = cells_seen(images, bounds, cell, height)
+    extent = ("seen", tuple(image.name for image in images), bounds, cell, height)
+    if extent not in known:
+        known[extent] = cells_seen(images, bounds, cell, height)
+    seen = known[extent]
     twice = np.argwhere(seen >= 2)
     if not len(twice):
         return bounds, seen, prints
@@ -182,8 +202,12 @@ def density_grid(points: np.ndarray, bounds: tuple[float, float, float, float], 
         iy = np.floor((points[:, 1] - y0) / cell).astype(int)
         ok = (ix >= 0) & (ix < nx) & (iy >= 0) & (iy < ny)
         np.add.at(counts, (iy[ok], ix[ok]), 1)
-    rows = [[f"{x0 + i * cell:.3f}", f"{y0 + j * cell:.3f}", f"{x0 + (i + 1) * cell:.3f}", f"{y0 + (j + 1) * cell:.3f}",
-             int(counts[j, i]), f"{counts[j, i] / cell ** 2:.3f}" if seen[j, i] >= 2 else "nan", int(seen[j, i])]
+    # each cell's edges and numbers as Python values at once (the same arithmetic as cell by cell)
+    xs = [f"{x:.3f}" for x in (x0 + np.arange(nx + 1) * cell).tolist()]
+    ys = [f"{y:.3f}" for y in (y0 + np.arange(ny + 1) * cell).tolist()]
+    number, views = counts.tolist(), seen.tolist()
+    per_m2 = [[f"{d:.3f}" for d in row] for row in (counts / cell ** 2).tolist()]
+    rows = [[xs[i], ys[j], xs[i + 1], ys[j + 1], number[j][i], per_m2[j][i] if views[j][i] >= 2 else "nan", views[j][i]]
             for j in range(ny) for i in range(nx)]
     return counts, rows
 
@@ -191,8 +215,7 @@ def density_grid(points: np.ndarray, bounds: tuple[float, float, float, float], 
 def _json_text(data: dict) -> str:
     """JSON with a line per top-level key and per element of its lists: readable, and written by json's C encoder
     (an indented dump costs more than a carried frame's association)."""
-    def one(value) -> str:
-        return json.dumps(value, separators=(", ", ": "))
+    one = json.JSONEncoder(separators=(", ", ": ")).encode  # json.dumps' own encoder, made once
 
     lines = []
     for key, value in data.items():
@@ -211,15 +234,12 @@ def _csv(header: list[str], rows: list[list]) -> str:
     return buffer.getvalue()
 
 
-def floor_map(frame, prints: list[np.ndarray], bounds, plane_m: float, size: int = 900) -> np.ndarray:
-    """Top view over ``bounds`` in the run's world (metres on both axes, a scale bar): the narrow footprints
-    ``prints`` on the plane ``plane_m`` above the floor and every person's 95 % ellipse."""
+def _floor_background(view: charts.MapFrame, bounds, prints: list[np.ndarray]) -> np.ndarray:
+    """floor_map's 1 m grid and narrow footprints, cut at the plot's edge."""
     x0, y0, x1, y1 = bounds
-    view = charts.MapFrame.fit(bounds, size)
-    scale, width, height = view.scale, view.width, view.height
+    width, height = view.width, view.height
     image = charts.canvas(width, height)
     px = view.px
-
     for gx in range(math.ceil(x0), math.floor(x1) + 1):
         a, b = px([gx, y0])[0], px([gx, y1])[0]
         cv2.line(image, (int(a[0]), int(a[1])), (int(b[0]), int(b[1])), charts.bgr("grid"), 1)
@@ -232,6 +252,23 @@ def floor_map(frame, prints: list[np.ndarray], bounds, plane_m: float, size: int
     top, bottom, left, right = view.top, height - view.bottom, view.left, width - view.right
     image[:top], image[bottom + 1:], image[:, :left], image[:, right + 1:] = (
         blank[:top], blank[bottom + 1:], blank[:, :left], blank[:, right + 1:])
+    return image
+
+
+def floor_map(frame, prints: list[np.ndarray], bounds, plane_m: float, size: int = 900,
+              known: dict | None = None) -> np.ndarray:
+    """Top view over ``bounds`` in the run's world (metres on both axes, a scale bar): the narrow footprints
+    ``prints`` on the plane ``plane_m`` above the floor and every person's 95 % ellipse. ``known``: the maps
+    drawn before without their persons, kept there (a recording's frames of the same cameras share one)."""
+    view = charts.MapFrame.fit(bounds, size)
+    scale, px = view.scale, view.px
+    drawn = ("floor", tuple(float(b) for b in bounds), size, tuple(p.tobytes() for p in prints))
+    background = None if known is None else known.get(drawn)
+    if background is None:
+        background = _floor_background(view, bounds, prints)
+        if known is not None:
+            known[drawn] = background
+    image = background.copy()
     result = frame.result
     if len(result):  # every person's ellipse at once: a recording writes a map per frame
         values, vectors = np.linalg.eigh(result.covariances[:, :2, :2])
@@ -292,13 +329,14 @@ def write_results(dest: Path, model, frames: list, options, previous: Previous |
     dest = Path(dest)
     dest.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{dest.name}.", suffix=".tmp", dir=dest.parent))
+    known: dict = {}  # grid_cells' footprints and cells' views, for the frames after the first
     try:
         for frame in frames:
             folder = tmp / _stem(frame.frame)
             folder.mkdir()
             height = (options.heights[0] + options.heights[1]) / 2
             placed = [model.images[view.name] for view in frame.views]
-            bounds, seen, prints = grid_cells(placed, frame.result.points, options.cell_m, height)
+            bounds, seen, prints = grid_cells(placed, frame.result.points, options.cell_m, height, known)
             (folder / "persons.csv").write_text(_csv(
                 ["person", "x_m", "y_m", "z_m", "sigma_x_m", "sigma_y_m", "sigma_z_m", "confidence", "views",
                  "image", "x", "y", "row"], persons_rows(frame)))
@@ -307,7 +345,7 @@ def write_results(dest: Path, model, frames: list, options, previous: Previous |
             (folder / "density.csv").write_text(_csv(["x_min_m", "y_min_m", "x_max_m", "y_max_m", "persons", "per_m2",
                                                       "views"], rows))
             _png(folder / "density.png", density_image(counts, options.cell_m, seen, bounds))
-            _png(folder / "floor.png", floor_map(frame, prints, bounds, height))
+            _png(folder / "floor.png", floor_map(frame, prints, bounds, height, known=known))
         previous = check_destination(dest, True) if previous is None else previous
         commit(dest, tmp, previous, MANIFEST, {"written_by": "rigsfm associate", "model": fingerprint,
                                                 "frame_offsets": frame_offsets},

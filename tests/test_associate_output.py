@@ -91,8 +91,13 @@ def test_grid_cells_computes_once_per_extent(monkeypatch):
 
     def fake_footprint(image, height):
         calls["footprint"] += 1
-        k = float(image.name[-1])
+        k = float(image.cam_from_world().matrix()[0, 3])
         return SimpleNamespace(polygon=np.array([[-4.0 + k, -3.0], [3.0 + k, -3.0], [3.0 + k, 4.0]]))
+
+    def placed(name: str, k: float):  # an image of a camera at pose k (what its footprint depends on)
+        pose = np.c_[np.eye(3), [k, 0.0, 0.0]]
+        camera = SimpleNamespace(model="PINHOLE", params=np.array([800.0, 800.0, 400.0, 300.0]), width=800, height=600)
+        return SimpleNamespace(name=name, camera=camera, cam_from_world=lambda: SimpleNamespace(matrix=lambda: pose))
 
     def fake_cells_seen(images, bounds, cell, height):
         calls["cells_seen"] += 1
@@ -101,14 +106,17 @@ def test_grid_cells_computes_once_per_extent(monkeypatch):
 
     monkeypatch.setattr(output, "footprint", fake_footprint)
     monkeypatch.setattr(output, "cells_seen", fake_cells_seen)
-    images = [SimpleNamespace(name="a0"), SimpleNamespace(name="a1")]
+    images = [placed("a/frame0", 0.0), placed("b/frame0", 1.0)]
+    later = [placed("a/frame1", 0.0), placed("b/frame1", 1.0)]  # the next frame of the same static cameras
     inside = np.array([[0.0, 0.0, 1.6]])
     fresh = grid_cells(images, inside, 1.0, 1.55)
     calls.update(footprint=0, cells_seen=0)
     known: dict = {}
     first = grid_cells(images, inside, 1.0, 1.55, known)
-    again = grid_cells(images, inside + 0.5, 1.0, 1.55, known)
+    again = grid_cells(later, inside + 0.5, 1.0, 1.55, known)
     assert calls == {"footprint": 2, "cells_seen": 1}  # once for both frames
+    moved = grid_cells([placed("a/frame2", 0.0), placed("b/frame2", 1.5)], inside, 1.0, 1.55, known)
+    assert calls["footprint"] == 3 and moved[0] != first[0]  # a camera that moved is placed again
     for got in (first, again):
         assert got[0] == fresh[0] and np.array_equal(got[1], fresh[1])
         assert all(np.array_equal(a, b) for a, b in zip(got[2], fresh[2]))

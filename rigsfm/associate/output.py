@@ -161,9 +161,14 @@ def grid_cells(images: list[pycolmap.Image], points: np.ndarray, cell: float, he
     ``known``: what earlier calls for the same model's images found (each image's footprint, the cells' views of
     each extent), kept there: a recording's frames of the same cameras compute them once."""
     known = {} if known is None else known
+    # what a footprint depends on: its camera and pose (a recording's frames of static rigs share them, with lent
+    # poses exactly)
+    placed = tuple((str(image.camera.model), image.camera.params.tobytes(), image.camera.width,  # type: ignore[union-attr]
+                    image.camera.height,  # type: ignore[union-attr]
+                    image.cam_from_world().matrix().tobytes()) for image in images)
     prints = []
-    for image in images:
-        key = ("footprint", image.name, height)
+    for image, where in zip(images, placed):
+        key = ("footprint", where, height)
         if key not in known:
             fp = footprint(image, height)
             known[key] = np.asarray(fp.polygon) if fp is not None and len(fp.polygon) else None
@@ -173,7 +178,7 @@ def grid_cells(images: list[pycolmap.Image], points: np.ndarray, cell: float, he
         else np.zeros((1, 2))
     lo, hi = np.floor(corners.min(axis=0) / cell) * cell, np.ceil(corners.max(axis=0) / cell) * cell
     bounds = (float(lo[0]), float(lo[1]), float(max(hi[0], lo[0] + cell)), float(max(hi[1], lo[1] + cell)))
-    extent = ("seen", tuple(image.name for image in images), bounds, cell, height)
+    extent = ("seen", placed, bounds, cell, height)
     if extent not in known:
         known[extent] = cells_seen(images, bounds, cell, height)
     seen = known[extent]

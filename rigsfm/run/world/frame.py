@@ -126,7 +126,7 @@ class WorldResult:
                                     x_towards=self.x_rig)
 
     def add_pose_uncertainty(self, reconstruction: pycolmap.Reconstruction, covariance) -> None:
-        """Widen the floor's normal sigma to the poses' covariance carried through the floor matches where larger
+        """Widen the floor's normal sigma to the poses' covariance carried through the floor points where larger
         (:func:`rigsfm.run.world.floor.with_pose_uncertainty`); ``reconstruction`` before :meth:`apply`."""
         if self.frame == WorldFrame.FLOOR:
             self.estimate = with_pose_uncertainty(self.estimate, reconstruction, covariance)  # type: ignore[arg-type]  # FLOOR: estimated

@@ -2,7 +2,10 @@
 """The floor's reported sigma against the render's truth (benchmarks/README.md, 2026-11-28): gauge-free floor normal
 (per camera, and the cameras' rotation-only mean) and camera heights, z-scores against summary.json's floor sigmas.
 
-    PYTHONPATH=. python benchmarks/floor_sigma_measure.py RUN_ROOT...   (RUN_ROOT holding scene/ and run/)
+    PYTHONPATH=. python benchmarks/floor_sigma_measure.py [--table] RUN_ROOT...   (RUN_ROOT holding scene/ and run/)
+
+``--table``: one markdown row per run (the sparse floors' table: where the floor's points came from, its sigmas and
+their basis, the normal's error and z, the narrow heights within 1.96 of their reported sigma) instead of the JSON.
 """
 import json
 import sys
@@ -25,7 +28,12 @@ def measure(root):
     s = json.load(open(root / "run/summary.json")); f = s["world"]["floor"]
     ns, hs = f["normal_sigma_deg"], f["camera_height_sigma"]
     z = np.array([0, 0, 1.0]); out = {"run": root.name, "normal_sigma_deg": ns, "height_sigma_mm": 1000 * hs,
-                                      "floor_points": f["points_by_source"], "markers_mm": [1000 * m for m in f.get("marker_residuals", [])]}
+                                      "floor_points": f["points_by_source"], "markers_mm": [1000 * m for m in f.get("marker_residuals", [])],
+                                      "matched": f["matching"]["ran"], "sigma_basis": f.get("sigma_basis"),
+                                      "num_groups": f.get("num_groups"), "effective_groups": f.get("effective_groups"),
+                                      "grouped_normal_sigma_deg": f.get("grouped_normal_sigma_deg"),
+                                      "pose_normal_sigma_deg": f.get("pose_normal_sigma_deg"),
+                                      "scatter_normal_sigma_deg": f.get("scatter_normal_sigma_deg")}
     for sensor in ("wide", "narrow", "all"):
         if sensor == "all":
             e = {**_posed(est, "wide"), **_posed(est, "narrow")}; g = {**_posed(gt, "wide"), **_posed(gt, "narrow")}
@@ -85,6 +93,20 @@ def measure(root):
                                            "residual_rms_mm": float(1000 * np.sqrt(np.mean(res**2)))}
     return out
 
+def table_row(r):
+    """The sparse floors' table (benchmarks/README.md, 2026-11-28): run, floor points (sparse / matched / markers),
+    pairs (effective), the pairs' and the poses' sigmas, the reported one, the normal's error and z, the heights."""
+    p, n = r["floor_points"], r["narrow"]
+    z = lambda s: f"{s:.4f} ({r['all']['normal_err_aligned_deg'] / s:.2f})" if s else "-"  # noqa: E731
+    return (f"| {r['run']} | {p['sparse']} / {p['matched']} / {p['markers']} | {r['num_groups']} "
+            f"({r['effective_groups']:.1f}) | {r['all']['normal_err_aligned_deg']:.4f} | "
+            f"{z(r['grouped_normal_sigma_deg'])} | {z(r['pose_normal_sigma_deg'])} | {z(r['normal_sigma_deg'])} | "
+            f"{n['height_err_mm']['min']:+.0f} .. {n['height_err_mm']['max']:+.0f} | "
+            f"{round(n.get('frac_within_95_reported', float('nan')) * n['n'])}/{n['n']} "
+            f"({n.get('z_height_reported_max', float('nan')):.2f}) |")
+
+
 if __name__ == "__main__":
-    rows = [measure(r) for r in sys.argv[1:]]
-    print(json.dumps(rows, indent=1))
+    table = "--table" in sys.argv[1:]
+    rows = [measure(r) for r in sys.argv[1:] if r != "--table"]
+    print("\n".join(map(table_row, rows)) if table else json.dumps(rows, indent=1))

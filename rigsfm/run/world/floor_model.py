@@ -80,6 +80,9 @@ class FloorFit:
     # carried through the floor points (floor_poses.pose_tilt_covariance; NaN where not propagated)
     grouped_normal_sigma_deg: float = float("inf")
     pose_normal_sigma_deg: float = float("nan")
+    # image name -> its height's 1 sigma from the poses' covariance, the camera and the floor moved together by the same
+    # poses (floor_poses.pose_floor_covariance; empty where not propagated)
+    pose_camera_height_sigmas: dict[str, float] = field(default_factory=dict)
 
     def height(self, points: np.ndarray) -> np.ndarray:
         """Signed height above the floor of model-frame points (Nx3)."""

@@ -84,23 +84,39 @@ def floor_views(reconstruction: pycolmap.Reconstruction, matches: FloorMatches |
 def pose_tilt_covariance(reconstruction: pycolmap.Reconstruction, matches: FloorMatches | None, normal: np.ndarray,
                          offset: float, threshold: float, covariance: JointCovariance,
                          sparse_ids: Sequence[int] | np.ndarray = ()) -> np.ndarray | None:
-    """2x2 covariance (radians^2) of the floor's tilt relative to the cameras' mean orientation (the error of the
-    normal seen from the cameras, in-plane axes) from the poses' covariance alone: each floor point (a floor match's
-    two pixels; a sparse floor point's (``sparse_ids``) observations in wide images) triangulated again with every
-    frame pose moved along each tangent direction, the plane's least-squares heights fitted again on the same inliers
-    (``threshold`` about ``normal @ x + offset = 0``); the cameras' mean rotation subtracted (what the floor frame's z
-    is compared with). A sparse point's pixels stand still as a floor match's do: the adjustment moved the point with
-    the poses, so the poses' error is the points' shared error here too. None without the points' frames in
-    ``covariance``, or without three inliers. Wide images are their rig's reference sensor: their pose is the
-    frame's."""
+    """2x2 covariance (radians^2) of the floor's tilt relative to the cameras' mean orientation
+    (:func:`pose_floor_covariance`'s tilt)."""
+    found = pose_floor_covariance(reconstruction, matches, normal, offset, threshold, covariance, sparse_ids)
+    return None if found is None else found[0]
+
+
+def pose_floor_covariance(reconstruction: pycolmap.Reconstruction, matches: FloorMatches | None, normal: np.ndarray,
+                          offset: float, threshold: float, covariance: JointCovariance,
+                          sparse_ids: Sequence[int] | np.ndarray = ()) -> tuple[np.ndarray, dict[str, float]] | None:
+    """From the poses' covariance alone: the 2x2 covariance (radians^2) of the floor's tilt relative to the cameras'
+    mean orientation (the error of the normal seen from the cameras, in-plane axes), and each posed image's height
+    above the floor's 1 sigma (model units), the camera and the floor moved together by the same poses. Each floor
+    point (a floor match's two pixels; a sparse floor point's (``sparse_ids``) observations in wide images)
+    triangulated again with every frame pose moved along each tangent direction, the plane's least-squares heights
+    fitted again on the same inliers (``threshold`` about ``normal @ x + offset = 0``); the tilt with the cameras'
+    mean rotation subtracted (what the floor frame's z is compared with); a height is a rigid motion's invariant. A
+    sparse point's pixels stand still as a floor match's do: the adjustment moved the point with the poses, so the
+    poses' error is the points' shared error here too. None without the points' frames in ``covariance``, or without
+    three inliers. Wide images are their rig's reference sensor: their pose is the frame's; another sensor (narrow)
+    keeps its place in the rig (its calibration's own uncertainty is not in these heights)."""
     frames = sorted(f for f in reconstruction.reg_frame_ids() if ("frame", f) in covariance.offsets)
     groups = floor_views(reconstruction, matches, sparse_ids, frames)
     if not groups or not frames:
         return None
+    index = {f: k for k, f in enumerate(frames)}
     nominal_poses = np.stack([reconstruction.frame(f).rig_from_world.matrix() for f in frames])  # type: ignore[union-attr]
+    cameras = [image for image in reconstruction.images.values() if image.has_pose and image.frame_id in index]
+    in_rig = np.array([nominal_poses[index[image.frame_id]] @ np.r_[image.projection_center(), 1.0] for image in cameras])
+    camera_frames = np.array([index[image.frame_id] for image in cameras], dtype=np.int64)
     a_axis = np.cross(normal, [1.0, 0.0, 0.0] if abs(normal[0]) < 0.9 else [0.0, 1.0, 0.0])
     a_axis /= np.linalg.norm(a_axis)
     b_axis = np.cross(normal, a_axis)
+    axes = np.stack([normal, a_axis, b_axis])
 
     def points(poses: np.ndarray) -> np.ndarray:
         return np.vstack([_triangulate(poses, views, rays) for views, rays in groups])
@@ -113,11 +129,16 @@ def pose_tilt_covariance(reconstruction: pycolmap.Reconstruction, matches: Floor
     design = np.c_[np.ones(int(inliers.sum())), (nominal[inliers] - centroid) @ np.stack([a_axis, b_axis]).T]
     solve = np.linalg.pinv(design)  # heights -> (offset, slope along a, slope along b)
 
-    def tilt(poses: np.ndarray) -> np.ndarray:
-        return (solve @ ((points(poses)[inliers] - centroid) @ normal))[1:]
+    def measures(poses: np.ndarray) -> np.ndarray:
+        """The plane's slopes along a and b, then each camera's height above the plane."""
+        plane = solve @ ((points(poses)[inliers] - centroid) @ normal)
+        rotations, translations = poses[camera_frames, :, :3], poses[camera_frames, :, 3]
+        centres = np.einsum("kji,kj->ki", rotations, in_rig - translations)  # R^T (x_rig - t)
+        local = (centres - centroid) @ axes.T  # height along the normal, in-plane a and b
+        return np.r_[plane[1:], local[:, 0] - (plane[0] + plane[1] * local[:, 1] + plane[2] * local[:, 2])]
 
     size = covariance.covariance.shape[0]
-    jacobian = np.zeros((2, size))
+    jacobian = np.zeros((2 + len(cameras), size))
     in_plane = np.stack([a_axis, b_axis])
     for k_frame, f in enumerate(frames):
         rotation, translation = nominal_poses[k_frame][:, :3], nominal_poses[k_frame][:, 3]
@@ -127,14 +148,16 @@ def pose_tilt_covariance(reconstruction: pycolmap.Reconstruction, matches: Floor
             step[k] = STEP
             moved = nominal_poses.copy()
             moved[k_frame] = _pose(rotation, translation, step[:3], step[3:])
-            up = tilt(moved)
+            up = measures(moved)
             moved[k_frame] = _pose(rotation, translation, -step[:3], -step[3:])
-            down = tilt(moved)
-            # a slope s along a tilts the normal by -s a; the cameras' mean rotation turns what they see by -theta
-            d_normal = -(up - down) / (2 * STEP)
-            jacobian[:, columns.start + k] += d_normal
-        # the frame's world-frame rotation -R^T w, averaged over the frames: the normal seen from the cameras moves
-        # by -(mean theta) x normal
+            down = measures(moved)
+            jacobian[:, columns.start + k] = (up - down) / (2 * STEP)
+        # a slope s along a tilts the normal by -s a; the cameras' mean rotation turns what they see by -theta: the
+        # frame's world-frame rotation -R^T w, averaged over the frames, moves the normal seen from the cameras by
+        # -(mean theta) x normal
+        jacobian[:2, columns.start:columns.start + 6] *= -1.0
         d_theta = -rotation.T / len(frames)  # 3x3 on w
-        jacobian[:, columns.start:columns.start + 3] -= in_plane @ (-skew(normal)) @ d_theta
-    return jacobian @ covariance.covariance @ jacobian.T
+        jacobian[:2, columns.start:columns.start + 3] -= in_plane @ (-skew(normal)) @ d_theta
+    moved_together = jacobian @ covariance.covariance @ jacobian.T
+    heights = np.sqrt(np.maximum(np.diag(moved_together)[2:], 0.0))
+    return moved_together[:2, :2], {image.name: float(h) for image, h in zip(cameras, heights)}

@@ -1,7 +1,7 @@
-"""The floor's tilt error from the poses' own covariance: the adjustment's joint covariance of the rig poses carried
-through the floor points' triangulation (floor matches and sparse points) into the plane (the floor points of one image pair share that pair's pose
-error, and neighbouring pairs share cameras: a network's errors are correlated, which the points' residuals cannot
-show, benchmarks/README.md)."""
+"""The floor's tilt error, and the cameras' heights above it, from the poses' own covariance: the adjustment's joint
+covariance of the rig poses carried through the floor points' triangulation (floor matches and sparse points) into the
+plane (the floor points of one image pair share that pair's pose error, and neighbouring pairs share cameras: a
+network's errors are correlated, which the points' residuals cannot show, benchmarks/README.md)."""
 
 from __future__ import annotations
 
@@ -47,8 +47,8 @@ def _reference_sensor(reconstruction: pycolmap.Reconstruction, image: pycolmap.I
                           reconstruction.frame(image.frame_id).rig_from_world.matrix())  # type: ignore[union-attr]  # registered
 
 
-def floor_views(reconstruction: pycolmap.Reconstruction, matches: FloorMatches | None, sparse_ids: Sequence[int] | np.ndarray,
-                frames: Sequence[int]) -> list[tuple[np.ndarray, np.ndarray]]:
+def floor_views(reconstruction: pycolmap.Reconstruction, matches: FloorMatches | None,
+                sparse_ids: Sequence[int] | np.ndarray, frames: Sequence[int]) -> list[tuple[np.ndarray, np.ndarray]]:
     """The floor points' observations in reference-sensor images of ``frames``, grouped by how many each has:
     per group (frame indices into ``frames``, P x n; normalised rays, P x n x 2). Floor matches: their two pixels;
     sparse points (``sparse_ids``): every observation of their track in such an image, where two or more."""

@@ -2,7 +2,10 @@
 """The floor's reported sigma against the render's truth (benchmarks/README.md, 2026-11-28): gauge-free floor normal
 (per camera, and the cameras' rotation-only mean) and camera heights, z-scores against summary.json's floor sigmas.
 
-    PYTHONPATH=. python benchmarks/floor_sigma_measure.py RUN_ROOT...   (RUN_ROOT holding scene/ and run/)
+    PYTHONPATH=. python benchmarks/floor_sigma_measure.py [--table] RUN_ROOT...   (RUN_ROOT holding scene/ and run/)
+
+``--table``: one markdown row per run (the sparse floors' table: where the floor's points came from, its sigmas and
+their basis, the normal's error and z, the narrow heights within 1.96 of their reported sigma) instead of the JSON.
 """
 import json
 import sys
@@ -25,7 +28,12 @@ def measure(root):
     s = json.load(open(root / "run/summary.json")); f = s["world"]["floor"]
     ns, hs = f["normal_sigma_deg"], f["camera_height_sigma"]
     z = np.array([0, 0, 1.0]); out = {"run": root.name, "normal_sigma_deg": ns, "height_sigma_mm": 1000 * hs,
-                                      "floor_points": f["points_by_source"], "markers_mm": [1000 * m for m in f.get("marker_residuals", [])]}
+                                      "floor_points": f["points_by_source"], "markers_mm": [1000 * m for m in f.get("marker_residuals", [])],
+                                      "matched": f["matching"]["ran"], "sigma_basis": f.get("sigma_basis"),
+                                      "num_groups": f.get("num_groups"), "effective_groups": f.get("effective_groups"),
+                                      "grouped_normal_sigma_deg": f.get("grouped_normal_sigma_deg"),
+                                      "pose_normal_sigma_deg": f.get("pose_normal_sigma_deg"),
+                                      "scatter_normal_sigma_deg": f.get("scatter_normal_sigma_deg")}
     for sensor in ("wide", "narrow", "all"):
         if sensor == "all":
             e = {**_posed(est, "wide"), **_posed(est, "narrow")}; g = {**_posed(gt, "wide"), **_posed(gt, "narrow")}
@@ -60,6 +68,11 @@ def measure(root):
                     reported = np.array([1000 * f["narrow_camera_heights"][n]["sigma_m"] for n in names])
                     out[sensor]["z_height_reported_max"] = float(np.max(np.abs(d) / reported))
                     out[sensor]["frac_within_95_reported"] = float(np.mean(np.abs(d) <= 1.96 * reported))
+                    # the floor's part and the camera's own in quadrature alone (before the poses' height: pose_sigma_m)
+                    entries = [f["narrow_camera_heights"][n] for n in names]
+                    parts = np.array([1000 * np.hypot(e["floor_sigma_m"], e["own_sigma_m"]) for e in entries])
+                    out[sensor]["z_height_floor_own_max"] = float(np.max(np.abs(d) / parts))
+                    out[sensor]["frac_within_95_floor_own"] = float(np.mean(np.abs(d) <= 1.96 * parts))
             out[sensor].update({"height_err_mm": {"min": float(d.min()), "median": float(np.median(d)), "max": float(d.max()),
                                 "max_abs": float(np.abs(d).max())}, "z_height_max": float(np.abs(d).max() / (1000 * hs)),
                                 "frac_within_95": float(np.mean(np.abs(d) <= 1.96 * 1000 * hs))})
@@ -85,6 +98,23 @@ def measure(root):
                                            "residual_rms_mm": float(1000 * np.sqrt(np.mean(res**2)))}
     return out
 
+def table_row(r):
+    """The sparse floors' table (benchmarks/README.md, 2026-11-28): run, floor points (sparse / matched / markers),
+    pairs (effective), the normal's error, the pairs' and the poses' sigmas and the reported one (z), the narrow
+    heights' errors, within 1.96 of sqrt(floor's part^2 + own^2) and of the reported ``sigma_m`` (max z)."""
+    p, n = r["floor_points"], r["narrow"]
+    z = lambda s: f"{s:.4f} ({r['all']['normal_err_aligned_deg'] / s:.2f})" if s else "-"  # noqa: E731
+    return (f"| {r['run']} | {p['sparse']} / {p['matched']} / {p['markers']} | {r['num_groups']} "
+            f"({r['effective_groups']:.1f}) | {r['all']['normal_err_aligned_deg']:.4f} | "
+            f"{z(r['grouped_normal_sigma_deg'])} | {z(r['pose_normal_sigma_deg'])} | {z(r['normal_sigma_deg'])} | "
+            f"{n['height_err_mm']['min']:+.0f} .. {n['height_err_mm']['max']:+.0f} | "
+            f"{round(n.get('frac_within_95_floor_own', float('nan')) * n['n'])}/{n['n']} "
+            f"({n.get('z_height_floor_own_max', float('nan')):.2f}) | "
+            f"{round(n.get('frac_within_95_reported', float('nan')) * n['n'])}/{n['n']} "
+            f"({n.get('z_height_reported_max', float('nan')):.2f}) |")
+
+
 if __name__ == "__main__":
-    rows = [measure(r) for r in sys.argv[1:]]
-    print(json.dumps(rows, indent=1))
+    table = "--table" in sys.argv[1:]
+    rows = [measure(r) for r in sys.argv[1:] if r != "--table"]
+    print("\n".join(map(table_row, rows)) if table else json.dumps(rows, indent=1))

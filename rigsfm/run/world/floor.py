@@ -287,23 +287,30 @@ def refit_floor(estimate: FloorEstimate, reconstruction: pycolmap.Reconstruction
 def with_pose_uncertainty(estimate: FloorEstimate, reconstruction: pycolmap.Reconstruction,
                           covariance: JointCovariance | None) -> FloorEstimate:
     """``estimate`` with its normal's sigma widened to the poses' share where that is larger than the pairs'
-    residuals show: the poses' covariance carried through the floor matches
-    (:func:`rigsfm.run.world.floor_poses.pose_tilt_covariance`) and the points' scatter, in quadrature. A network's
-    pose errors are correlated from pair to pair, so the plane can be off with every pair agreeing
-    (benchmarks/README.md). Unchanged without floor matches or a covariance. ``reconstruction``: the model the fit
-    is in (before the floor frame is applied)."""
-    if not estimate.fit or estimate.matches is None or covariance is None:
+    residuals show: the poses' covariance carried through the floor points' triangulation (the floor matches and
+    the sparse floor points, :func:`rigsfm.run.world.floor_poses.pose_tilt_covariance`) and the points' scatter, in
+    quadrature. A network's pose errors are correlated from pair to pair, so the plane can be off with every pair
+    agreeing (benchmarks/README.md): a floor of sparse points alone as much as a matched one. Each camera's height
+    sigma from the same poses, the camera and the floor moved together, is kept beside it
+    (``pose_camera_height_sigmas``, :meth:`rigsfm.run.world.frame.WorldResult.set_narrow_heights`). Unchanged without
+    floor points (a floor of markers alone) or a covariance. ``reconstruction``: the model the fit is in (before
+    the floor frame is applied)."""
+    if not estimate.fit or covariance is None:
         return estimate
     fit: FloorFit = estimate.fit  # type: ignore[assignment]  # NoFloor is falsy: a FloorFit here
-    from rigsfm.run.world.floor_poses import pose_tilt_covariance  # OpenCV: only where the floor was matched
-
-    tilt = pose_tilt_covariance(reconstruction, estimate.matches, fit.normal, fit.offset, fit.threshold, covariance)
-    if tilt is None:
+    if estimate.matches is None and not len(fit.inlier_ids):
         return estimate
+    from rigsfm.run.world.floor_poses import pose_floor_covariance
+
+    found = pose_floor_covariance(reconstruction, estimate.matches, fit.normal, fit.offset, fit.threshold, covariance,
+                                  sparse_ids=fit.inlier_ids)
+    if found is None:
+        return estimate
+    tilt, heights = found
     pose_sigma = float(np.degrees(np.sqrt(max(float(np.linalg.eigvalsh(tilt).max()), 0.0))))
     from_poses = float(np.hypot(pose_sigma, fit.scatter_normal_sigma_deg))
     normal_sigma = max(fit.normal_sigma_deg, from_poses)
-    basis = fit.sigma_basis + ("; widened to the poses' covariance carried through the floor matches"
+    basis = fit.sigma_basis + ("; widened to the poses' covariance carried through the floor points"
                                if from_poses > fit.normal_sigma_deg else "")
     return replace(estimate, fit=replace(fit, normal_sigma_deg=normal_sigma, pose_normal_sigma_deg=pose_sigma,
-                                         sigma_basis=basis))
+                                         sigma_basis=basis, pose_camera_height_sigmas=heights))

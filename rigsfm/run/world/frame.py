@@ -126,7 +126,7 @@ class WorldResult:
                                     x_towards=self.x_rig)
 
     def add_pose_uncertainty(self, reconstruction: pycolmap.Reconstruction, covariance) -> None:
-        """Widen the floor's normal sigma to the poses' covariance carried through the floor matches where larger
+        """Widen the floor's normal sigma to the poses' covariance carried through the floor points where larger
         (:func:`rigsfm.run.world.floor.with_pose_uncertainty`); ``reconstruction`` before :meth:`apply`."""
         if self.frame == WorldFrame.FLOOR:
             self.estimate = with_pose_uncertainty(self.estimate, reconstruction, covariance)  # type: ignore[arg-type]  # FLOOR: estimated
@@ -135,7 +135,10 @@ class WorldResult:
         """Every registered narrow camera's height above the floor and its 1 sigma: the floor's part (the plane's
         covariance at that camera) and the camera's own vertical centre uncertainty relative to the network
         (``own``: the uncertainty stage's ``narrow``, covariances in the camera's axes), independent, so added in
-        quadrature. ``reconstruction`` in the floor frame (after :meth:`apply`)."""
+        quadrature; or, where larger, the poses' covariance carried into the camera's height above the floor with both
+        moved by the same poses (``pose_sigma_m``: the floor's tilt by the poses is levered to the camera, which the
+        pairs' residuals miss, benchmarks/README.md) and the points' scatter in quadrature. ``reconstruction`` in the
+        floor frame (after :meth:`apply`)."""
         if self.frame != WorldFrame.FLOOR:
             return
         fit = self.estimate.fit  # type: ignore[union-attr]  # FLOOR: estimated
@@ -153,6 +156,12 @@ class WorldResult:
                 entry["own_sigma_m"] = own_sigma
                 if np.isfinite(floor_part):
                     entry["sigma_m"] = float(np.hypot(floor_part, own_sigma))
+            pose_part = fit.pose_camera_height_sigmas.get(image.name)  # type: ignore[union-attr]
+            if pose_part is not None and np.isfinite(fit.scatter_height_sigma):  # type: ignore[union-attr]
+                pose_sigma = float(np.hypot(pose_part, fit.scatter_height_sigma))  # type: ignore[union-attr]
+                entry["pose_sigma_m"] = pose_sigma
+                if "sigma_m" in entry:
+                    entry["sigma_m"] = max(float(entry["sigma_m"]), pose_sigma)  # type: ignore[arg-type]  # a float, set above
             heights[image.name] = entry
         self.narrow_heights = heights
 

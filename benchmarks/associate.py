@@ -1,10 +1,11 @@
 """Multi-view association of heads on rendered crowds of 3D persons, against the exact visible heads.
 
-    python benchmarks/associate.py DATASET OUT [--fixed OUT_FIXED] [--seeds 3] [--frames 1] [--poses-from FRAME] [--json results.json]
+    python benchmarks/associate.py DATASET OUT [--fixed OUT_FIXED] [--seeds 3] [--frames 1] [--poses-from FRAME]
+        [--noise 1.5] [--pixel-sigma auto|PX] [--json results.json]
 
 DATASET: rendered with persons (rigsfm.synth, persons/heads.csv); OUT: ``rigsfm run`` on it; OUT_FIXED: the same
 with ``--fixed-calibration`` (baseline b). Detections = the true visible heads of each narrow image of the first
-``--frames`` frames + 1.5 px normal noise, 10 % missed, 5 % false (uniform). Time per frame: wall and this process's
+``--frames`` frames + 1.5 px normal noise (``--noise``), 10 % missed, 5 % false (uniform). Time per frame: wall and this process's
 CPU seconds (the CPU time is the fairer one on a shared machine). Reports, per method: pairwise precision / recall /
 F1, person-level F1, the persons' confidence against how often they are right (per bin), the 3D head error (in the
 truth's frame after a rigid alignment of the camera centres) against the reported covariance (share inside the 95 %
@@ -110,11 +111,12 @@ def lend_poses(model, dataset: Path, frames: int, frame: str):
 
 
 def evaluate(dataset: Path, out: Path, seed: int, options: AssociateOptions, frames: int = 1,
-             size_noise: float | None = None, size_spread: float = 0.1) -> dict:
+             size_noise: float | None = None, size_spread: float = 0.1, noise_px: float = 1.5) -> dict:
     """The association of the first ``frames`` frames, each scored against its truth; the shifts the crowd finds
     carry from frame to frame (associate_frames), so the first frame self-calibrates and the rest reuse it.
     ``size_noise``: each detection also has an apparent head radius from the truth (persons' radii spread by
-    ``size_spread``), with this relative noise; None: no radii (the issue's protocol)."""
+    ``size_spread``), with this relative noise; None: no radii (the issue's protocol). ``noise_px``: the detections'
+    noise per coordinate (the issue's 1.5 px)."""
     model = load_run(out)
     if options.poses_from is not None:
         model = lend_poses(model, dataset, frames, options.poses_from)
@@ -123,7 +125,7 @@ def evaluate(dataset: Path, out: Path, seed: int, options: AssociateOptions, fra
     for k in range(frames):
         heads = {n: v for n, v in visible_heads(dataset, f"frame{k:04d}").items() if n in sizes}
         true_r = true_head_radii(dataset, heads, k, spread=size_spread, seed=seed) if size_noise is not None else None
-        truth = make_detections(heads, sizes, sigma_px=1.5, missed=0.1, false=0.05, seed=seed + 1000 * k,
+        truth = make_detections(heads, sizes, sigma_px=noise_px, missed=0.1, false=0.05, seed=seed + 1000 * k,
                                 radii=true_r, size_noise=size_noise or 0.0)
         truths.append(truth)
         points.update(truth.points)
@@ -158,16 +160,19 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("out", type=Path)
     parser.add_argument("--fixed", type=Path, default=None, help="the same run with --fixed-calibration")
     parser.add_argument("--seeds", type=int, default=3)
-    parser.add_argument("--pixel-sigma", type=float, default=1.5)
+    parser.add_argument("--pixel-sigma", default="auto",
+                        help="the noise the association assumes (px), or auto: the crowd's (the default)")
+    parser.add_argument("--noise", type=float, default=1.5, help="the detections' noise per coordinate (px)")
     parser.add_argument("--frames", type=int, default=1, help="frames to associate (the shifts carry between them)")
     parser.add_argument("--poses-from", default=None, metavar="FRAME",
                         help="OUT is a run of fewer frames: its FRAME's poses stand in for the frames it lacks")
     parser.add_argument("--json", type=Path, default=None)
     args = parser.parse_args(argv)
-    options = AssociateOptions(pixel_sigma=args.pixel_sigma, poses_from=args.poses_from)
+    options = AssociateOptions(pixel_sigma=None if args.pixel_sigma == "auto" else float(args.pixel_sigma),
+                               poses_from=args.poses_from)
     rows = []
     for seed in range(args.seeds):
-        ours = evaluate(args.dataset, args.out, seed, options, args.frames)
+        ours = evaluate(args.dataset, args.out, seed, options, args.frames, noise_px=args.noise)
         row = {"seed": seed, "rigsfm": {k: v for k, v in ours.items() if k not in ("truth", "model", "found")}}
         best = None
         for threshold in (2, 4, 8, 16, 32):
@@ -176,7 +181,7 @@ def main(argv: list[str] | None = None) -> int:
                 best = (threshold, s)
         row["fixed_threshold"] = {"threshold_px": best[0], "scores": vars(best[1])}
         if args.fixed is not None:
-            fixed = evaluate(args.dataset, args.fixed, seed, options, args.frames)
+            fixed = evaluate(args.dataset, args.fixed, seed, options, args.frames, noise_px=args.noise)
             row["fixed_calibration"] = {k: v for k, v in fixed.items() if k not in ("truth", "model", "found")}
         rows.append(row)
         print(json.dumps(row), flush=True)

@@ -58,7 +58,7 @@ def main(argv=None) -> dict:
     detections.write_text(truth.csv_text())
 
     # 4. The same person in every narrow view, then joined back to the CSV's rows.
-    persons_dir = associate(args.out / "run", detections, AssociateOptions(pixel_sigma=1.5))
+    persons_dir = associate(args.out / "run", detections, AssociateOptions())  # the detector's noise: the crowd's
     persons = json.loads((persons_dir / "frame0000" / "persons.json").read_text())["persons"]
     with open(detections, newline="") as file:
         rows = list(csv.DictReader(file))  # persons.json's "row" counts the header as line 1

@@ -52,7 +52,9 @@ class _Frame:
         self.options = options
         self.appearance = appearance if views and all(v.descriptor is not None for v in views) else None
         self.descriptors = np.concatenate([v.descriptor for v in views]) if self.appearance is not None else None  # type: ignore[misc]
-        self.noise = np.array([math.sqrt(v.sigma_pose_px ** 2 + options.pixel_sigma ** 2) for v in views])
+        pixel = options.pixel_sigma
+        assert pixel is not None  # associate_views resolves it
+        self.noise = np.array([math.sqrt(v.sigma_pose_px ** 2 + pixel ** 2) for v in views])
         counts = [len(v.xy) for v in views]
         self.offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
         self.view_of = np.repeat(np.arange(len(views)), counts)

@@ -12,7 +12,9 @@ from rigsfm.associate.rates import Occlusion
 @dataclass(frozen=True, kw_only=True)
 class AssociateOptions:
     heights: tuple[float, float] = (1.0, 2.1)  # metres above the floor where the points (heads) may lie
-    pixel_sigma: float = 2.0  # the detector's noise per coordinate (px), added to each view's band
+    # The detector's noise per coordinate (px), added to each view's band; None: the crowd's (a first frame
+    # associated again with the noise its confident persons show, rigsfm.associate.solve.associate_views).
+    pixel_sigma: float | None = None
     # A person's point is detected in a view that sees it (occlusion included); None: estimated from the frame's
     # persons (rigsfm.associate.rates), starting from 0.7.
     detection_probability: float | None = None
@@ -77,7 +79,7 @@ class AssociateOptions:
         lo, hi = self.heights
         if not (lo < hi):
             raise ValueError(f"heights must be two increasing numbers (m), got {lo}, {hi}")
-        if not self.pixel_sigma > 0:
+        if self.pixel_sigma is not None and not (self.pixel_sigma > 0 and math.isfinite(self.pixel_sigma)):
             raise ValueError(f"pixel sigma must be > 0 px, got {self.pixel_sigma}")
         if self.detection_probability is not None and not 0 < self.detection_probability < 1:
             raise ValueError(f"detection probability must be in (0, 1), got {self.detection_probability}")

@@ -125,6 +125,8 @@ def persons_json(frame, frame_offsets: dict | None = None) -> dict:
             # that lacked their narrow images
             "lent_views": list(frame.lent_views),
             "sigma_pose_px": {v.name: round(v.sigma_pose_px, 4) for v in views},
+            # the detector's noise per coordinate (px) the persons were found with: --pixel-sigma, or the crowd's
+            "pixel_sigma_px": result.pixel_sigma,
             # The crowd's correction of each view (undistorted px, subtracted from its detections) and the band's
             # sigma before it, as this frame's persons were found with them; a zero shift: the view kept the run's pose.
             "shift_px": {name: [round(float(c), 4) for c in shift] for name, shift in result.shift_px.items()},

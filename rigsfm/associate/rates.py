@@ -44,6 +44,26 @@ def truncated_binomial_p(members: np.ndarray, seen: np.ndarray, at_least: int = 
     return float(GRID[int(np.argmax(total))])
 
 
+def detection_noise(squared_px: np.ndarray) -> float | None:
+    """The detector's noise per coordinate (px) from groups' members' squared reprojection residuals (G x V px^2,
+    NaN where a view holds no member), robustly: a group of m members' summed squares is ``sigma^2`` times a
+    chi-square of 2m - 3 degrees of freedom (its point took 3 of the 2m coordinates), so each group's sum over that
+    chi-square's median (Wilson-Hilferty) has the median ``sigma^2``. None under ``MIN_NOISE_MEMBERS`` members. The
+    groups an association keeps hold the detections that agree best, so on a crowd this runs below the detector's
+    noise (benchmarks/README.md)."""
+    present = np.isfinite(squared_px)
+    size = present.sum(axis=1)
+    ok = size >= 2
+    if int(size[ok].sum()) < MIN_NOISE_MEMBERS:
+        return None
+    dof = 2.0 * size[ok] - 3.0
+    median = dof * (1.0 - 2.0 / (9.0 * dof)) ** 3
+    return float(np.sqrt(np.median(np.nansum(squared_px[ok], axis=1) / median)))
+
+
+MIN_NOISE_MEMBERS = 30
+
+
 # Metres back from a point towards the camera, along the floor, where the persons in front of it are counted.
 STEPS = np.arange(0.3, 16.0, 0.1)
 Q_GRID = np.linspace(0.5, 0.99, 50)

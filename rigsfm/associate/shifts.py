@@ -40,6 +40,7 @@ def estimate_view_shifts(frame: _Frame, groups: np.ndarray, options: AssociateOp
     views = frame.views
     nv = len(views)
     pixel = options.pixel_sigma
+    assert pixel is not None  # associate_views resolves it
     base = np.array([v.shift_px for v in views], dtype=np.float64)
     prior = np.array([max(v.band_sigma_px if v.band_sigma_px is not None else v.sigma_pose_px, 1e-3)
                       for v in views])
@@ -227,6 +228,7 @@ def pairwise_view_shifts(frame: _Frame, options: AssociateOptions, starts: int |
     histogram, _ = np.histogram(np.clip(height, edges[0], edges[-1]), bins=edges, density=True)
     chance = uniform * np.maximum(histogram[np.clip(np.searchsorted(edges, height) - 1, 0, len(histogram) - 1)],
                                   1e-3 / (hi - lo))
+    assert options.pixel_sigma is not None  # associate_views resolves it
     pixel_var = 2.0 * options.pixel_sigma ** 2
     precision = np.repeat(1.0 / prior ** 2, 2)
     least_spread = HEIGHT_BIN_M
@@ -332,6 +334,8 @@ def pairwise_view_shifts(frame: _Frame, options: AssociateOptions, starts: int |
 def _apply_correction(views: list[View], correction: ViewCorrection, options: AssociateOptions) -> None:
     """Shift each view's detections and tighten its band to what the shift leaves: the shift's own uncertainty plus
     whatever scatter the groups show beyond the detector's noise, never wider than the run's band."""
+    pixel = options.pixel_sigma
+    assert pixel is not None  # associate_views resolves it
     for v, view in enumerate(views):
         if view.band_sigma_px is None:
             view.band_sigma_px = view.sigma_pose_px
@@ -339,7 +343,7 @@ def _apply_correction(views: list[View], correction: ViewCorrection, options: As
         scatter = correction.scatter_px[v]
         if correction.members[v] < options.self_calibration_min_members or not math.isfinite(scatter):
             continue  # too few groups see this view to say anything: it keeps the run's pose and band
-        excess = max(scatter ** 2 - options.pixel_sigma ** 2, 0.0)
+        excess = max(scatter ** 2 - pixel ** 2, 0.0)
         view.shift_px = correction.shift_px[v].copy()
         view.shift_sigma_px = float(correction.shift_sigma_px[v])
         view.sigma_pose_px = float(min(band, math.sqrt(correction.shift_sigma_px[v] ** 2 + excess)))

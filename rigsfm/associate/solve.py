@@ -42,7 +42,7 @@ from rigsfm.associate.appearance import AppearanceModel, describe, estimate, hea
 from rigsfm.associate.frame import _Frame
 from rigsfm.associate.options import AssociateOptions
 from rigsfm.associate.packing import _pack
-from rigsfm.associate.rates import Occlusion, fit_occlusion, truncated_binomial_p
+from rigsfm.associate.rates import Occlusion, detection_noise, fit_occlusion, truncated_binomial_p
 from rigsfm.associate.shifts import (
     ViewCorrection,
     _apply_correction,
@@ -77,6 +77,7 @@ class FrameResult:
     shift_px: dict[str, np.ndarray] = field(default_factory=dict)
     band_sigma_px: dict[str, float] = field(default_factory=dict)
     occlusion: Occlusion | None = None  # each view's detection probability from the crowd's occlusion, where fitted (not carried)
+    pixel_sigma: float | None = None  # the detector's noise (px) the persons were found with
 
     @property
     def confidence(self) -> np.ndarray:
@@ -162,7 +163,36 @@ def associate_views(views: list[View], options: AssociateOptions, carried: bool 
 
     ``options.seed_min_score`` holds for carried frames only: a first frame grows every pair seed (its first
     associations run at the run's wide bands, without the crowd's heights, where a seed's own score says less, and
-    its self-calibration turns small changes of its groups into other shifts)."""
+    its self-calibration turns small changes of its groups into other shifts).
+
+    ``options.pixel_sigma`` None: the detector's noise is the crowd's. A first frame starts from ``earlier``'s or
+    ``START_PIXEL_SIGMA``, and is associated again from the start (its self-calibration's path depends on the
+    noise) with the noise its confident persons show, while that is more than ``NOISE_TOLERANCE`` off, at most
+    ``MAX_NOISE_RESTARTS`` times; a carried frame takes ``earlier``'s."""
+    sigma = options.pixel_sigma or (earlier.pixel_sigma if earlier is not None else None) or START_PIXEL_SIGMA
+    if carried or options.pixel_sigma is not None:
+        result, _ = _associate_views(views, dataclasses.replace(options, pixel_sigma=sigma), carried, earlier,
+                                     check_noise=False)
+        assert result is not None  # without the noise's check, every association gives its result
+        return result
+    initial = list(views)
+    for restart in range(MAX_NOISE_RESTARTS + 1):
+        views[:] = initial
+        result, noise = _associate_views(views, dataclasses.replace(options, pixel_sigma=sigma), carried, earlier,
+                                         check_noise=restart < MAX_NOISE_RESTARTS)
+        if result is not None:
+            return result
+        assert noise is not None  # no result: the noise it found
+        logger.info("the detections' noise: %.2f px per coordinate, not the %.2f px assumed: associated again",
+                    noise, sigma)
+        sigma = round(noise, 2)
+    raise AssertionError("the last association checks no noise: it returns its result")
+
+
+def _associate_views(views: list[View], options: AssociateOptions, carried: bool, earlier: FrameResult | None,
+                     check_noise: bool) -> tuple[FrameResult | None, float | None]:
+    """:func:`associate_views` with ``options.pixel_sigma`` given; ``check_noise``: returns (None, the noise) as soon
+    as its self-calibrated persons show a noise more than ``NOISE_TOLERANCE`` off it."""
     names = [v.name for v in views]
     if not carried:
         options = dataclasses.replace(options, seed_min_score=None)
@@ -223,6 +253,11 @@ def associate_views(views: list[View], options: AssociateOptions, carried: bool 
         state, count, grew = tried, tried_count, tried_count > count
         if not grew:
             break  # converged: the crowd holds no more confident groups to learn from
+    if check_noise and count >= MIN_RATE_GROUPS:
+        noise = _detection_noise(state, options)
+        assert options.pixel_sigma is not None  # associate_views gives it
+        if noise is not None and abs(noise / options.pixel_sigma - 1.0) > NOISE_TOLERANCE:
+            return None, noise
     if not carried:
         _warn_beyond_band(views)
         # The crowd's own detection probability and heights, once, from the persons of the corrected views:
@@ -251,11 +286,24 @@ def associate_views(views: list[View], options: AssociateOptions, carried: bool 
     return FrameResult(names, points[order], covariance[order], scores[order], local[order],
                        options.detection_probability, options.height_prior, model,
                        options.head_radius_m if state[0].log_radius is not None else None, used, bands,
-                       options.occlusion if options.visibility else None)
+                       options.occlusion if options.visibility else None, options.pixel_sigma), None
 
 
 START_DETECTION = 0.7  # the detection probability assumed until the frame's persons say otherwise
+START_PIXEL_SIGMA = 1.0  # the detector's noise (px) a first frame starts from (assumed low: benchmarks/README.md)
+NOISE_TOLERANCE = 0.1  # a first frame is associated again from the start where its persons' noise is this far off
+MAX_NOISE_RESTARTS = 3
 MIN_RATE_GROUPS = 20  # persons needed to estimate the detection probability or the heights from
+
+
+def _detection_noise(state: tuple, options: AssociateOptions) -> float | None:
+    """The detector's noise per coordinate (px) from the association ``state``'s confident persons (three views or
+    more scoring above ``self_calibration_min_score``): their members' residuals about their points."""
+    frame, members, points, _covariance, scores, _ = state
+    confident = (np.sum(members >= 0, axis=1) >= 3) & (scores > options.self_calibration_min_score)
+    if confident.sum() < MIN_RATE_GROUPS:
+        return None
+    return detection_noise(frame.residuals(members[confident], points[confident]) * frame.noise[None] ** 2)
 
 
 def _crowd_rates(state: tuple, options: AssociateOptions, given: AssociateOptions) -> AssociateOptions:

@@ -282,6 +282,9 @@ def check_frame_offsets(model, detections: Detections, chain: list, options: Ass
         check.skipped = "no frame with every narrow view in the frames around it"
         return check
     check.frames, check.search = [frames[i] for i in tested], search
+    if options.pixel_sigma is None:  # the detector's noise the chain found: its self-correcting counts start there
+        options = dataclasses.replace(options, pixel_sigma=next(
+            (f.result.pixel_sigma for f in chain if f.result.pixel_sigma is not None), None))
     windows = []
     for i in tested:
         window = [names[(c, frames[j])] for c in cameras for j in range(i - search, i + search + 1)]

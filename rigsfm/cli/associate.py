@@ -24,8 +24,10 @@ def associate_command(
                                                  show_default=False)] = None,
     heights: Annotated[str, typer.Option("--heights", metavar="LOW-HIGH",
                                          help="the points' heights above the floor (m)")] = "1.0-2.1",
-    pixel_sigma: Annotated[float, typer.Option("--pixel-sigma", min=0.01, metavar="PX", help="detection noise per coordinate (px)")]
-    = 2.0,
+    pixel_sigma: Annotated[float | None, typer.Option(
+        "--pixel-sigma", min=0.01, metavar="PX",
+        help="the detector's noise per coordinate (px) [default: estimated from the persons of the first frame]",
+        show_default=False)] = None,
     detection_probability: Annotated[float | None, typer.Option(
         "--detection-probability", min=0.01, max=0.99, metavar="P", help="a person is detected in a view that sees it (occlusion "
                                                             "included) [default: estimated from each frame's persons]",

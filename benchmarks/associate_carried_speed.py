@@ -47,26 +47,15 @@ class _Renamed(pickle.Unpickler):
 
 
 def capture(dataset: Path, out: Path, folder: Path, seeds: int, carried: int) -> None:
-    from rigsfm.associate import AssociateOptions, from_arrays, load_run
-    from rigsfm.associate.evaluate import make_detections, visible_heads
-    from rigsfm.associate.pipeline import frame_views
+    from benchmarks.associate_speed import static_frames
+    from rigsfm.associate import AssociateOptions
     from rigsfm.associate.solve import associate_views
 
     folder.mkdir(parents=True, exist_ok=True)
     options = AssociateOptions()
-    model = load_run(out)
-    sizes = {n: (im.camera.width, im.camera.height) for n, im in model.images.items()}
-    heads = {n: v for n, v in visible_heads(dataset, "frame0000").items() if n in sizes}
     for seed in range(seeds):
-        views, earlier = None, None
-        for k in range(carried + 1):
-            truth = make_detections(heads, sizes, sigma_px=1.5, missed=0.1, false=0.05, seed=seed + 1000 * k)
-            detections = from_arrays(truth.points)
-            new = frame_views(model, detections, "frame0000", sorted(detections.images))
-            if views is not None:  # as associate_frames carries a camera's view to its next frame
-                for view, before in zip(new, views):
-                    view.carry(before)
-            views = new
+        earlier = None
+        for k, _, views, detections in static_frames(dataset, out, seed, carried):
             if k > 0:
                 (folder / f"seed{seed}_frame{k}.pkl").write_bytes(pickle.dumps((views, options, earlier, detections)))
             cpu = time.process_time()

@@ -27,19 +27,28 @@ from rigsfm.associate.pipeline import frame_views
 from rigsfm.associate.solve import associate_views
 
 
-def run_seed(dataset: Path, out: Path, seed: int, carried: int, options: AssociateOptions) -> tuple[list, dict]:
+def static_frames(dataset: Path, out: Path, seed: int, carried: int):
+    """Frame 0's visible heads as ``carried`` + 1 frames of a static crowd, each with its own noise, misses and
+    false detections: per frame (k, its truth, its views, each carrying the frame before's camera view as
+    associate_frames does, its detections). The views are associated by the caller before the next is made."""
     model = load_run(out)
     sizes = {n: (im.camera.width, im.camera.height) for n, im in model.images.items()}
     heads = {n: v for n, v in visible_heads(dataset, "frame0000").items() if n in sizes}
-    rows, arrays, views, earlier = [], {}, None, None
+    views = None
     for k in range(carried + 1):
         truth = make_detections(heads, sizes, sigma_px=1.5, missed=0.1, false=0.05, seed=seed + 1000 * k)
         detections = from_arrays(truth.points)
         new = frame_views(model, detections, "frame0000", sorted(detections.images))
-        if views is not None:  # as associate_frames carries a camera's view to its next frame
+        if views is not None:
             for view, before in zip(new, views):
                 view.carry(before)
         views = new
+        yield k, truth, views, detections
+
+
+def run_seed(dataset: Path, out: Path, seed: int, carried: int, options: AssociateOptions) -> tuple[list, dict]:
+    rows, arrays, earlier = [], {}, None
+    for k, truth, views, _ in static_frames(dataset, out, seed, carried):
         wall, cpu = time.perf_counter(), time.process_time()
         result = associate_views(views, options, carried=k > 0, earlier=earlier)
         wall, cpu = time.perf_counter() - wall, time.process_time() - cpu

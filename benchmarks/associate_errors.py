@@ -69,7 +69,7 @@ def score_terms(frame: _Frame, members: np.ndarray, points: np.ndarray, covarian
     the options' occlusion, ``detect`` is each member's view's own detection probability and ``misses`` each view
     without a member's ``log(1 - p_v)``."""
     o = frame.options
-    occlusion = o.occlusion if o.visibility else None
+    occlusion = o.view_occlusion
     p_d = occlusion.q if occlusion is not None else o.detection_probability
     assert p_d is not None
     n = len(points)

@@ -423,7 +423,7 @@ class _Frame:
         ``d2``: the groups' ``residuals`` at ``points``, where the caller has them."""
         p_d = self.options.detection_probability
         assert p_d is not None  # associate_views resolves it
-        occlusion = self.options.occlusion if self.options.visibility else None
+        occlusion = self.options.view_occlusion
         if occlusion is not None:
             p_d = occlusion.q
         lo, hi = self.options.heights
@@ -502,7 +502,7 @@ class _Frame:
         """Add, in place, the cost of every view that sees a point inside its image and holds no member (``misses``)
         and, with the options' occlusion, each member's view's own detection probability against the ``q`` the
         score counted it at."""
-        occlusion = self.options.occlusion if self.options.visibility else None
+        occlusion = self.options.view_occlusion
         if occlusion is None:
             p_d = self.options.detection_probability
             assert p_d is not None  # associate_views resolves it

@@ -75,6 +75,11 @@ class AssociateOptions:
     out: Path | None = None  # DIR; None: OUT/associate
     overwrite: bool = False
 
+    @property
+    def view_occlusion(self) -> Occlusion | None:
+        """The occlusion model the score uses: ``occlusion`` where ``visibility`` is on, else None."""
+        return self.occlusion if self.visibility else None
+
     def __post_init__(self) -> None:
         lo, hi = self.heights
         if not (lo < hi):

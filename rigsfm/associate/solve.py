@@ -286,7 +286,7 @@ def _associate_views(views: list[View], options: AssociateOptions, carried: bool
     return FrameResult(names, points[order], covariance[order], scores[order], local[order],
                        options.detection_probability, options.height_prior, model,
                        options.head_radius_m if state[0].log_radius is not None else None, used, bands,
-                       options.occlusion if options.visibility else None, options.pixel_sigma), None
+                       options.view_occlusion, options.pixel_sigma), None
 
 
 START_DETECTION = 0.7  # the detection probability assumed until the frame's persons say otherwise

@@ -104,6 +104,23 @@ def planar_fraction(
     return best / len(xy1)
 
 
+def triangulate_views(cams_from_world: np.ndarray, views: np.ndarray, rays: np.ndarray) -> np.ndarray:
+    """World points (P x 3; NaN where none) of points seen n times each, all at once: COLMAP's linear triangulation
+    (``pycolmap.triangulate_point``'s DLT null vector for two views, its rows in that order for n).
+    ``cams_from_world``: the poses (F x 3 x 4); ``views``: which pose took each observation (P x n); ``rays``: the
+    observations' normalised rays (P x n x 2)."""
+    pose = np.asarray(cams_from_world)[np.asarray(views)]  # P x n x 3 x 4
+    rows = np.stack([rays[..., :1] * pose[..., 2, :] - pose[..., 0, :],
+                     rays[..., 1:] * pose[..., 2, :] - pose[..., 1, :]], axis=2).reshape(len(rays), -1, 4)
+    points = np.full((len(rows), 3), np.nan)
+    ok = np.isfinite(rows).all(axis=(1, 2))
+    if ok.any():
+        null = np.linalg.svd(rows[ok])[2][:, 3]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            points[ok] = null[:, :3] / null[:, 3:]
+    return points
+
+
 def skew(v: np.ndarray) -> np.ndarray:
     """The cross-product matrix: ``skew(v) @ w == np.cross(v, w)``."""
     return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])

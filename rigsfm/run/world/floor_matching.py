@@ -29,7 +29,7 @@ from scipy.spatial import cKDTree
 
 from rigsfm.core.conventions import colmap_from_opencv_pixels, opencv_from_colmap_pixels
 from rigsfm.core.errors import InputError
-from rigsfm.core.geometry import project_world
+from rigsfm.core.geometry import project_world, triangulate_views
 from rigsfm.core.image_files import read_image
 from rigsfm.core.matching import candidate_matches
 from rigsfm.core.names import name_of
@@ -193,29 +193,13 @@ def _sample(map_: np.ndarray, xy: np.ndarray) -> np.ndarray:
 
 def triangulate_pairs(image_i: pycolmap.Image, image_j: pycolmap.Image, xy_i: np.ndarray,
                       xy_j: np.ndarray) -> np.ndarray:
-    """World points (N x 3; NaN where none) of matched COLMAP pixels of two posed images (:func:`triangulate_rays`)."""
+    """World points (N x 3; NaN where none) of matched COLMAP pixels of two posed images
+    (:func:`rigsfm.core.geometry.triangulate_views`)."""
     # a model's images have their cameras
     rays = [np.asarray(image.camera.cam_from_img(np.asarray(xy, np.float64).reshape(-1, 2)), np.float64)  # type: ignore[union-attr]
             for image, xy in ((image_i, xy_i), (image_j, xy_j))]
-    return triangulate_rays(image_i.cam_from_world().matrix(), image_j.cam_from_world().matrix(), *rays)
-
-
-def triangulate_rays(cam_i_from_world: np.ndarray, cam_j_from_world: np.ndarray, rays_i: np.ndarray,
-                     rays_j: np.ndarray) -> np.ndarray:
-    """World points (N x 3; NaN where none) of normalised rays (N x 2) of two cameras (3 x 4 poses): COLMAP's linear
-    two-view triangulation (``pycolmap.triangulate_point``: the 4 x 4 DLT system's null vector), for all rays at
-    once."""
-    rows = []
-    for pose, rays in ((cam_i_from_world, rays_i), (cam_j_from_world, rays_j)):
-        rows += [rays[:, :1] * pose[2] - pose[0], rays[:, 1:] * pose[2] - pose[1]]
-    systems = np.stack(rows, axis=1)  # N x 4 x 4
-    points = np.full((len(systems), 3), np.nan)
-    ok = np.isfinite(systems).all(axis=(1, 2))
-    if ok.any():
-        null = np.linalg.svd(systems[ok])[2][:, 3]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            points[ok] = null[:, :3] / null[:, 3:]
-    return points
+    poses = np.stack([image_i.cam_from_world().matrix(), image_j.cam_from_world().matrix()])
+    return triangulate_views(poses, np.tile([0, 1], (len(rays[0]), 1)), np.stack(rays, axis=1))
 
 
 def _triangulate(image_i: pycolmap.Image, image_j: pycolmap.Image, xy_i: np.ndarray, xy_j: np.ndarray,

@@ -11,7 +11,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 import pycolmap
 
-from rigsfm.core.geometry import skew
+from rigsfm.core.geometry import skew, triangulate_views
 from rigsfm.run.adjustment.result import JointCovariance
 
 if TYPE_CHECKING:  # floor matching imports OpenCV: a floor of sparse points has no matches
@@ -22,16 +22,6 @@ STEP = 1e-6  # central differences: radians for the rotation, model units for th
 
 def _rays(camera: pycolmap.Camera, xy: np.ndarray) -> np.ndarray:
     return np.asarray(camera.cam_from_img(np.asarray(xy, np.float64).reshape(-1, 2)), np.float64)
-
-
-def _triangulate(poses: np.ndarray, views: np.ndarray, rays: np.ndarray) -> np.ndarray:
-    """Linear triangulation (floor_matching.triangulate_pairs's, for two views) of points seen ``n`` times each:
-    ``views`` (P x n) index ``poses`` (F x 3 x 4), ``rays`` (P x n x 2) their normalised rays."""
-    pose = poses[views]  # P x n x 3 x 4
-    rows = np.concatenate([rays[..., :1] * pose[..., 2, :] - pose[..., 0, :],
-                           rays[..., 1:] * pose[..., 2, :] - pose[..., 1, :]], axis=1)
-    null = np.linalg.svd(rows)[2][:, 3]
-    return null[:, :3] / null[:, 3:]
 
 
 def _pose(rotation: np.ndarray, translation: np.ndarray, w: np.ndarray, dt: np.ndarray) -> np.ndarray:
@@ -119,7 +109,7 @@ def pose_floor_covariance(reconstruction: pycolmap.Reconstruction, matches: Floo
     axes = np.stack([normal, a_axis, b_axis])
 
     def points(poses: np.ndarray) -> np.ndarray:
-        return np.vstack([_triangulate(poses, views, rays) for views, rays in groups])
+        return np.vstack([triangulate_views(poses, views, rays) for views, rays in groups])
 
     nominal = points(nominal_poses)
     inliers = np.isfinite(nominal).all(axis=1) & (np.abs(nominal @ normal + offset) < threshold)

@@ -11,6 +11,7 @@ from rigsfm.associate import output
 from rigsfm.associate.detections import from_arrays
 from rigsfm.associate.output import density_grid, grid_cells, persons_json, persons_rows
 from rigsfm.associate.solve import FrameResult
+from rigsfm.associate.trajectories import Links
 
 
 def _frame(seed: int = 0) -> SimpleNamespace:
@@ -27,8 +28,11 @@ def _frame(seed: int = 0) -> SimpleNamespace:
                          rng.normal(size=40) * 8, members, shift_px={n: rng.normal(size=2) for n in names},
                          band_sigma_px=dict.fromkeys(names, 1.5))
     views = [SimpleNamespace(name=n, sigma_pose_px=1.0, radius_px=None) for n in names]
+    # a later frame of a recording: tracks numbered apart from the persons, some persons linked to the frame before's
+    earlier = np.where(rng.random(40) < 0.7, rng.permutation(60)[:40], -1)
+    links = Links(earlier=earlier, walk_m=0.1, confidence=np.where(earlier >= 0, rng.random(40), np.nan))
     return SimpleNamespace(frame="f0.png", result=result, detections=detections, views=views, poses_from=None,
-                           lent_views=())
+                           lent_views=(), track=100 + rng.permutation(40), links=links)
 
 
 def _rows_one_by_one(frame) -> list[list]:
@@ -42,7 +46,7 @@ def _rows_one_by_one(frame) -> list[list]:
         members = [(v, int(i)) for v, i in enumerate(result.members[p]) if i >= 0]
         for v, i in members:
             d = det.images[views[v].name]
-            rows.append([p, f"{x:.4f}", f"{y:.4f}", f"{z:.4f}", f"{sx:.4f}", f"{sy:.4f}", f"{sz:.4f}",
+            rows.append([p, int(frame.track[p]), f"{x:.4f}", f"{y:.4f}", f"{z:.4f}", f"{sx:.4f}", f"{sy:.4f}", f"{sz:.4f}",
                          f"{conf:.4f}", len(members), d.image, d.text[i][0], d.text[i][1], int(d.rows[i])])
     return rows
 
@@ -59,10 +63,15 @@ def test_persons_rows_and_json_are_the_person_by_person_text():
             assert person["covariance_m2"] == np.round(result.covariances[p], 9).tolist()
             assert person["score"] == round(float(result.scores[p]), 4)
             assert person["confidence"] == round(float(result.confidence[p]), 5)  # this person's, not another's
+            assert person["track"] == frame.track[p]
+            linked = frame.links.earlier[p] >= 0
+            assert person["after"] == (int(frame.links.earlier[p]) if linked else None)
+            assert person["after_confidence"] == (round(float(frame.links.confidence[p]), 4) if linked else None)
             held = [(v, int(i)) for v, i in enumerate(result.members[p]) if i >= 0]
             assert [(d["image"], d["x"], d["row"]) for d in person["detections"]] == [
                 (frame.views[v].name, float(det.images[frame.views[v].name].xy[i, 0]),
                  int(det.images[frame.views[v].name].rows[i])) for v, i in held]
+        assert data["walk_m"] == 0.1
         used = {(v, int(i)) for p in range(len(result)) for v, i in enumerate(result.members[p]) if i >= 0}
         assert data["unassigned"] == [{"image": view.name, "row": int(det.images[view.name].rows[i])}
                                       for v, view in enumerate(frame.views)

@@ -81,6 +81,7 @@ def persons_rows(frame) -> list[list]:
     rows = []
     # every person's numbers as Python floats at once (the same values; a frame has hundreds of persons)
     conf, points = result.confidence.tolist(), result.points.tolist()
+    tracks = _tracks(frame)
     sigmas = np.sqrt(np.diagonal(result.covariances, axis1=1, axis2=2)).tolist()
     found = [det.images[view.name] for view in views]
     numbers = [d.rows.tolist() for d in found]
@@ -90,14 +91,31 @@ def persons_rows(frame) -> list[list]:
         members = [(v, i) for v, i in enumerate(held) if i >= 0]
         for v, i in members:
             d = found[v]
-            rows.append([p, f"{x:.4f}", f"{y:.4f}", f"{z:.4f}", f"{sx:.4f}", f"{sy:.4f}", f"{sz:.4f}",
+            rows.append([p, tracks[p], f"{x:.4f}", f"{y:.4f}", f"{z:.4f}", f"{sx:.4f}", f"{sy:.4f}", f"{sz:.4f}",
                          f"{conf[p]:.4f}", len(members), d.image, d.text[i][0], d.text[i][1], numbers[v][i]])
     return rows
+
+
+def _tracks(frame) -> list[int]:
+    """Each person's track number (its own number where the frame was associated without its recording's)."""
+    return frame.track.tolist() if frame.track is not None else list(range(len(frame.result.points)))
+
+
+def _links(frame) -> tuple[list, list]:
+    """Each person's person of the frame before and its link's confidence (None: not linked, or the first frame)."""
+    links = frame.links
+    if links is None:
+        return [None] * len(frame.result.points), [None] * len(frame.result.points)
+    earlier = [e if e >= 0 else None for e in links.earlier.tolist()]
+    confidence = [round(c, 4) if c == c else None for c in links.confidence.tolist()]  # NaN: not linked
+    return earlier, confidence
 
 
 def persons_json(frame, frame_offsets: dict | None = None) -> dict:
     result, views, det = frame.result, frame.views, frame.detections
     persons = []
+    tracks = _tracks(frame)
+    earlier, linked = _links(frame)
     used = set()
     found = [det.images[view.name] for view in views]
     # every person's numbers as Python floats at once (the same values and roundings as element by element)
@@ -112,7 +130,8 @@ def persons_json(frame, frame_offsets: dict | None = None) -> dict:
                 dets.append({"image": d.image, "x": xys[v][i][0], "y": xys[v][i][1],
                              "x_text": d.text[i][0], "y_text": d.text[i][1], "row": numbers[v][i]})
                 used.add((v, i))
-        persons.append({"person": p, "position_m": [round(c, 5) for c in points[p]],
+        persons.append({"person": p, "track": tracks[p], "after": earlier[p], "after_confidence": linked[p],
+                        "position_m": [round(c, 5) for c in points[p]],
                         "covariance_m2": covariances[p], "score": round(scores[p], 4),
                         "confidence": round(confidence[p], 5), "detections": dets})
     unassigned = [{"image": views[v].name, "row": numbers[v][i]}
@@ -138,6 +157,10 @@ def persons_json(frame, frame_offsets: dict | None = None) -> dict:
             # whether the rigs took their frames together (rigsfm.associate.sync; the same in every frame): the
             # offsets named and those the frames were paired by; null: not checked (--frame-offsets off)
             "frame_offsets": frame_offsets,
+            # The walk (m per floor axis) between the frame before's persons and this frame's, as they say it; each
+            # person's "after" is the frame before's person it was linked to, "track" goes on where that link is
+            # likelier right than wrong (rigsfm.associate.trajectories). null: the first frame, or too few persons.
+            "walk_m": None if frame.links is None or frame.links.walk_m is None else round(frame.links.walk_m, 4),
             "persons": persons, "unassigned": unassigned}
 
 
@@ -345,7 +368,7 @@ def write_results(dest: Path, model, frames: list, options, previous: Previous |
             placed = [model.images[view.name] for view in frame.views]
             bounds, seen, prints = grid_cells(placed, frame.result.points, options.cell_m, height, known)
             (folder / "persons.csv").write_text(_csv(
-                ["person", "x_m", "y_m", "z_m", "sigma_x_m", "sigma_y_m", "sigma_z_m", "confidence", "views",
+                ["person", "track", "x_m", "y_m", "z_m", "sigma_x_m", "sigma_y_m", "sigma_z_m", "confidence", "views",
                  "image", "x", "y", "row"], persons_rows(frame)))
             (folder / "persons.json").write_text(_json_text(persons_json(frame, frame_offsets)))
             counts, rows = density_grid(frame.result.points, bounds, options.cell_m, seen)

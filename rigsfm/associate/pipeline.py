@@ -21,6 +21,7 @@ from rigsfm.associate.detections import Detections, read_detections
 from rigsfm.associate.options import AssociateOptions
 from rigsfm.associate.shifts import _confident
 from rigsfm.associate.solve import FrameResult, associate_views
+from rigsfm.associate.trajectories import Links, tracks
 from rigsfm.associate.views import View, view_pose_sigmas
 from rigsfm.core.errors import InputError
 from rigsfm.core.io import file_sha256
@@ -200,6 +201,8 @@ class FramePersons:
     poses_from: str | None = None  # the run's frame whose poses its views took (a frame the run was not given)
     # the views that took them: all of a frame the run was not given, some of one whose narrow images it lacked
     lent_views: tuple[str, ...] = ()
+    track: np.ndarray | None = None  # per person, its track through the recording (rigsfm.associate.trajectories)
+    links: Links | None = None  # its persons linked to the frame before's; None: the first frame
 
 
 NO_BANDS = ("the run holds no epipolar band for any pair of {its} narrow images (its uncertainty was not computed), so "
@@ -263,6 +266,9 @@ def associate_frames(model: RunModel, detections: Detections, options: Associate
     if options.revisit:
         _revisit(model, detections, options, carried, out, notes)
     notes.say()
+    ids, links = tracks([(f.result.points, f.result.covariances) for f in out])
+    for found, track, link in zip(out, ids, links):
+        found.track, found.links = track, link
     return out
 
 

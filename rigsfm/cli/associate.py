@@ -87,6 +87,9 @@ def associate_command(
     offsets = offsets_line(dest)
     if offsets:
         console.print(offsets)
+    tracked = tracks_line(dest)
+    if tracked:
+        console.print(tracked)
     console.print(f"persons: {dest} (persons.csv / persons.json, floor.png, density per frame)")
     if Path(dest).resolve() == Workspace(out).associate.resolve():
         console.print(f"`rigsfm report {out}` adds them to its report.html")
@@ -137,6 +140,32 @@ def frame_lines(frames: list[tuple[str, int, int, int, str | None, list[str]]], 
         rest = sorted(c[1] for c in frames[shown:])
         lines.append(f"... {len(rest)} more frames: {rest[len(rest) // 2]} persons (median), {rest[0]}-{rest[-1]}")
     return lines
+
+
+def tracks_line(dest: Path) -> str | None:
+    """How the persons of a recording's frames link to the frame before's (persons.json's ``track`` and ``after``);
+    None for one frame."""
+    import json
+
+    from rigsfm.associate.trajectories import TRACK_CONFIDENCE
+
+    walks, persons, going_on = [], 0, 0
+    for path in sorted(Path(dest).glob("*/persons.json")):
+        data = json.loads(path.read_text(encoding="utf-8"))
+        if data.get("walk_m") is None:
+            continue  # a recording's first frame, or one with too few persons to link
+        walks.append(data["walk_m"])
+        persons += len(data["persons"])
+        going_on += sum((p.get("after_confidence") or 0.0) > TRACK_CONFIDENCE for p in data["persons"])
+    if not walks:
+        return None
+    share = going_on / max(persons, 1)
+    line = (f"tracks: {share:.0%} of the later frames' persons go on from the frame before (walk "
+            f"{sorted(walks)[len(walks) // 2]:.2f} m a frame per floor axis; persons.json `track`, `after`)")
+    if share < 0.3:
+        line += ("; the crowd walks too far between frames to tell who is who, so most tracks break: a higher "
+                 "frame rate links them")
+    return line
 
 
 def offsets_line(dest: Path) -> str | None:

@@ -151,7 +151,7 @@ def evaluate(dataset: Path, out: Path, seed: int, options: AssociateOptions, fra
             "coverage_95": float(np.mean(inside)) if inside else None, "correct_persons": len(errors),
             "reliability": reliability(groups, result.confidence, truth)})
     return {**per_frame[0], "frames": per_frame, "total_seconds": wall, "total_cpu_seconds": cpu,
-            "truth": truths[0], "model": model, "found": found}
+            "truth": truths[0], "truths": truths, "model": model, "found": found}
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -87,15 +87,20 @@ def test_the_terminal_says_how_many_persons_go_on_and_when_the_tracks_break(tmp_
 
     from rigsfm.cli.associate import tracks_line
 
-    def frame(name: str, walk, confidences) -> None:
+    def frame(name: str, walk, persons) -> None:  # persons: (position, after, after_confidence)
         (tmp_path / name).mkdir()
-        persons = [{"person": p, "after_confidence": c} for p, c in enumerate(confidences)]
-        (tmp_path / name / "persons.json").write_text(json.dumps({"walk_m": walk, "persons": persons}))
+        rows = [{"person": p, "position_m": list(at), "after": after, "after_confidence": c}
+                for p, (at, after, c) in enumerate(persons)]
+        (tmp_path / name / "persons.json").write_text(json.dumps({"walk_m": walk, "persons": rows}))
 
-    frame("f0", None, [None, None, None])
+    frame("f0", None, [((0.0, 0.0, 1.7), None, None), ((3.0, 0.0, 1.7), None, None), ((6.0, 0.0, 1.6), None, None)])
     assert tracks_line(tmp_path) is None  # one frame: nothing linked
-    frame("f1", 0.09, [0.95, 0.9, None, 0.4])
-    assert tracks_line(tmp_path).startswith("tracks: 50% of the later frames' persons go on")
-    frame("f2", 0.45, [0.3, 0.2, None, None, None, None])
+    frame("f1", 0.05, [((0.1, 0.0, 1.7), 0, 0.95), ((3.0, 0.3, 1.7), 1, 0.9), ((9.0, 0.0, 1.7), None, None),
+                       ((6.0, 0.2, 1.6), 2, 0.4)])
     line = tracks_line(tmp_path)
-    assert "20% of" in line and "walk 0.45 m" in line and "most tracks break" in line
+    # two of four go on, by 0.1 and 0.3 m (the third's link is too unsure to carry its track)
+    assert line.startswith("tracks: 50% of the later frames' persons go on") and "median step of 0.20 m" in line
+    assert "most tracks break" not in line
+    frame("f2", 0.45, [((0.5, 0.5, 1.7), 0, 0.3), ((3.0, 3.0, 1.7), 1, 0.2)] + [((9.0, 9.0, 1.7), None, None)] * 4)
+    line = tracks_line(tmp_path)
+    assert "20% of" in line and "most tracks break" in line

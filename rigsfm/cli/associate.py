@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+import statistics
 from pathlib import Path
 from typing import Annotated
 
@@ -143,25 +145,31 @@ def frame_lines(frames: list[tuple[str, int, int, int, str | None, list[str]]], 
 
 
 def tracks_line(dest: Path) -> str | None:
-    """How the persons of a recording's frames link to the frame before's (persons.json's ``track`` and ``after``);
-    None for one frame."""
+    """How the persons of a recording's frames go on from the frame before's (persons.json's ``track`` and
+    ``after``): their share and median step on the floor; None for one frame."""
     import json
 
     from rigsfm.associate.trajectories import TRACK_CONFIDENCE
 
-    walks, persons, going_on = [], 0, 0
-    for path in sorted(Path(dest).glob("*/persons.json")):
+    steps, persons, going_on = [], 0, 0
+    before = None
+    for path in sorted(Path(dest).glob("*/persons.json")):  # the frames in the order they were linked
         data = json.loads(path.read_text(encoding="utf-8"))
-        if data.get("walk_m") is None:
-            continue  # a recording's first frame, or one with too few persons to link
-        walks.append(data["walk_m"])
-        persons += len(data["persons"])
-        going_on += sum((p.get("after_confidence") or 0.0) > TRACK_CONFIDENCE for p in data["persons"])
-    if not walks:
+        if data.get("walk_m") is not None and before is not None:
+            persons += len(data["persons"])
+            for person in data["persons"]:
+                if (person.get("after_confidence") or 0.0) > TRACK_CONFIDENCE:
+                    going_on += 1
+                    was = before[person["after"]]["position_m"]
+                    steps.append(math.dist(person["position_m"][:2], was[:2]))
+        before = data["persons"]
+    if not persons:
         return None
-    share = going_on / max(persons, 1)
-    line = (f"tracks: {share:.0%} of the later frames' persons go on from the frame before (walk "
-            f"{sorted(walks)[len(walks) // 2]:.2f} m a frame per floor axis; persons.json `track`, `after`)")
+    share = going_on / persons
+    line = f"tracks: {share:.0%} of the later frames' persons go on from the frame before"
+    if steps:
+        line += f" (a median step of {statistics.median(steps):.2f} m a frame)"
+    line += "; persons.json `track`, `after`"
     if share < 0.3:
         line += ("; the crowd walks too far between frames to tell who is who, so most tracks break: a higher "
                  "frame rate links them")

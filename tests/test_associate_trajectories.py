@@ -91,7 +91,8 @@ def test_the_terminal_says_how_many_persons_go_on_and_when_the_tracks_break(tmp_
         (tmp_path / name).mkdir()
         rows = [{"person": p, "position_m": list(at), "after": after, "after_confidence": c}
                 for p, (at, after, c) in enumerate(persons)]
-        (tmp_path / name / "persons.json").write_text(json.dumps({"walk_m": walk, "persons": rows}))
+        (tmp_path / name / "persons.json").write_text(json.dumps({"frame": f"{name}.png", "walk_m": walk,
+                                                                  "persons": rows}))
 
     frame("f0", None, [((0.0, 0.0, 1.7), None, None), ((3.0, 0.0, 1.7), None, None), ((6.0, 0.0, 1.6), None, None)])
     assert tracks_line(tmp_path) is None  # one frame: nothing linked

@@ -153,8 +153,8 @@ def tracks_line(dest: Path) -> str | None:
 
     steps, persons, going_on = [], 0, 0
     before = None
-    for path in sorted(Path(dest).glob("*/persons.json")):  # the frames in the order they were linked
-        data = json.loads(path.read_text(encoding="utf-8"))
+    frames = [json.loads(path.read_text(encoding="utf-8")) for path in Path(dest).glob("*/persons.json")]
+    for data in sorted(frames, key=lambda d: str(d.get("frame"))):  # the order they were linked in (by frame name)
         if data.get("walk_m") is not None and before is not None:
             persons += len(data["persons"])
             for person in data["persons"]:

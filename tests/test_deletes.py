@@ -645,3 +645,19 @@ def test_a_replaced_result_in_another_world_is_compared_after_aligning(out):
                                          "(summary.json: replaced)")
     same = changes_from(floor, floor)  # both in the floor frame: compared as they are
     assert same["compared"] == "floor"
+
+
+def test_a_demo_stopped_before_its_accuracy_resumes_with_the_same_command(tmp_path):
+    """A demo interrupted (or failed) after its render left a scene of its own files: the same command renders it
+    again (same bytes) and finishes, instead of refusing the scene folder as 'not empty'."""
+    from rigsfm.synth.dataset import render_dataset
+    from rigsfm.synth.scene import SceneOptions
+
+    scene = tmp_path / "demo" / "scene"
+    render_dataset(scene, SceneOptions(**SMALL))  # as the stopped demo left it: no run, no accuracy.json
+    own = tree(scene)
+    result = invoke("demo", tmp_path / "demo", "--num-rigs", 2, "--arc-deg", 60, "--image-scale", 0.25,
+                    "--exact-calibration", "--seed", 3)
+    assert result.exit_code == 0, result.output
+    assert (tmp_path / "demo" / "accuracy.json").is_file()
+    assert tree(scene) == own

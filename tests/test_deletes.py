@@ -661,3 +661,18 @@ def test_a_demo_stopped_before_its_accuracy_resumes_with_the_same_command(tmp_pa
     assert result.exit_code == 0, result.output
     assert (tmp_path / "demo" / "accuracy.json").is_file()
     assert tree(scene) == own
+
+
+def test_an_export_into_the_runs_image_folder_is_refused(tmp_path):
+    """An export written among the run's images became a folder the next `rigsfm run` on them refused ('folder(s)
+    'export' have no rig', 'unexpected 'exp''): refused before anything is written, as run's --out there is."""
+    out = workspace(tmp_path)
+    summary = Summary()
+    summary.inputs.images = str(tmp_path / "images")
+    (out / "summary.json").write_text(json.dumps(summary.to_json()))
+    for dest in (tmp_path / "images" / "export", tmp_path / "images" / "rig01" / "exp"):
+        result = invoke("export", out, "--format", "json", "--dest", dest)
+        assert result.exit_code == 1, result.output
+        assert f"--dest '{dest}' lies inside the run's image folder" in one_error_line(result)
+        assert not dest.exists()
+    assert sorted(p.name for p in (tmp_path / "images").iterdir()) == ["rig01", "rig02"]

@@ -183,3 +183,16 @@ def test_a_board_found_in_too_few_images_is_counted_in_words():
         with pytest.raises(InputError, match=words.replace("(", r"\(")):
             calibrate_camera("wide", {f"f{k}.png": corners for k in range(found)} | {"f9.png": None},
                              np.zeros((12, 3)), (640, 480), where="rig01 wide")
+
+
+def test_a_report_folder_inside_the_board_folder_is_refused_before_it_is_written(tmp_path):
+    """rigs.yaml written into BOARD puts its report folder there, which the next calibrate of BOARD took for a rig
+    ('rig folder BOARD/rigs.calibration has no 'wide' subfolder'): refused up front, as `run` refuses its --out
+    inside the image folder."""
+    board_dir = real_board(tmp_path, FRAMES, FRAMES)
+    board = tmp_path / "board.yaml"
+    board.write_text(yaml.safe_dump(CHESS))
+    with pytest.raises(InputError, match=r"the report folder .*rigs\.calibration lies inside the board image folder "
+                                         r".*BOARD, whose every folder must be a rig"):
+        calibrate(board_dir, board_dir / "rigs.yaml", CalibrateOptions(board=board))
+    assert sorted(p.name for p in board_dir.iterdir()) == ["rig01"]

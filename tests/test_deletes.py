@@ -645,3 +645,34 @@ def test_a_replaced_result_in_another_world_is_compared_after_aligning(out):
                                          "(summary.json: replaced)")
     same = changes_from(floor, floor)  # both in the floor frame: compared as they are
     assert same["compared"] == "floor"
+
+
+def test_a_demo_stopped_before_its_accuracy_resumes_with_the_same_command(tmp_path):
+    """A demo interrupted (or failed) after its render left a scene of its own files: the same command renders it
+    again (same bytes) and finishes, instead of refusing the scene folder as 'not empty'."""
+    from rigsfm.synth.dataset import render_dataset
+    from rigsfm.synth.scene import SceneOptions
+
+    scene = tmp_path / "demo" / "scene"
+    render_dataset(scene, SceneOptions(**SMALL))  # as the stopped demo left it: no run, no accuracy.json
+    own = tree(scene)
+    result = invoke("demo", tmp_path / "demo", "--num-rigs", 2, "--arc-deg", 60, "--image-scale", 0.25,
+                    "--exact-calibration", "--seed", 3)
+    assert result.exit_code == 0, result.output
+    assert (tmp_path / "demo" / "accuracy.json").is_file()
+    assert tree(scene) == own
+
+
+def test_an_export_into_the_runs_image_folder_is_refused(tmp_path):
+    """An export written among the run's images became a folder the next `rigsfm run` on them refused ('folder(s)
+    'export' have no rig', 'unexpected 'exp''): refused before anything is written, as run's --out there is."""
+    out = workspace(tmp_path)
+    summary = Summary()
+    summary.inputs.images = str(tmp_path / "images")
+    (out / "summary.json").write_text(json.dumps(summary.to_json()))
+    for dest in (tmp_path / "images" / "export", tmp_path / "images" / "rig01" / "exp"):
+        result = invoke("export", out, "--format", "json", "--dest", dest)
+        assert result.exit_code == 1, result.output
+        assert f"--dest '{dest}' lies inside the run's image folder" in one_error_line(result)
+        assert not dest.exists()
+    assert sorted(p.name for p in (tmp_path / "images").iterdir()) == ["rig01", "rig02"]

@@ -143,6 +143,21 @@ def write_calibration(result: CalibrationResult, out: Path, *, merge: bool = Fal
     return write_outputs(result, Path(out), merge=merge, overwrite=overwrite, report_dir=report_dir)
 
 
+def check_report_dir_outside_board(report_dir: Path, board_images: Path) -> None:
+    """Refuse a report folder inside a board folder of rig folders: the next calibrate of it would take the
+    report's folder for a rig (one rig's wide/ and narrow/ directly in BOARD ignore other folders)."""
+    if (board_images / "wide").is_dir() or (board_images / "narrow").is_dir():
+        return
+    try:
+        report_real, board_real = Path(report_dir).resolve(), board_images.resolve()
+    except (OSError, RuntimeError):  # a link loop: the folders' own checks name it
+        return
+    if board_real == report_real or board_real in report_real.parents:
+        raise InputError(f"the report folder {report_dir} lies inside the board image folder {board_images}, whose "
+                         "every folder must be a rig (the next calibrate of it would take the report for one): "
+                         "write rigs.yaml (--out) outside it, or give --report-dir a folder outside it")
+
+
 def calibrate(board_images: Path, out: Path, options: CalibrateOptions) -> tuple[CalibrationResult, Path, Path]:
     """``rigsfm calibrate``: calibrate every rig under ``board_images`` and write rigs.yaml to ``out`` (checked
     before the slow part) and its report; returns the result, the rigs.yaml and the report folder."""
@@ -150,7 +165,9 @@ def calibrate(board_images: Path, out: Path, options: CalibrateOptions) -> tuple
     check_baseline_option(options.baseline)
     names = [r.name for r in discover_rigs(board_images, "board images")]
     check_output(out, names, merge=options.merge, overwrite=options.overwrite)
-    check_report_dir(options.report_dir if options.report_dir is not None else default_report_dir(Path(out)), names)
+    report_dir = options.report_dir if options.report_dir is not None else default_report_dir(Path(out))
+    check_report_dir_outside_board(report_dir, Path(board_images))
+    check_report_dir(report_dir, names)
     result = calibrate_rigs(board_images, spec, distortion=options.distortion, scene_dir=options.scene_dir,
                             baseline=options.baseline)
     rigs_path, report = write_calibration(result, out, merge=options.merge, overwrite=options.overwrite,

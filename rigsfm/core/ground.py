@@ -255,15 +255,22 @@ class Coverage:
         return result
 
 
+MAX_COVERAGE_CELLS = 2e7  # 40 MB of counts: 5 cm cells over 220 x 220 m
+
+
 def coverage(prints: Mapping[str, Footprint | np.ndarray], cell: float = 0.05) -> Coverage:
     """Rasterise every footprint (or polygon; ``cv2.fillPoly``, 1/256-cell vertex precision) and count per
-    cell."""
+    cell (``cell`` metres, larger where the footprints' span needs more than :data:`MAX_COVERAGE_CELLS`)."""
     polygons = [np.asarray(fp.polygon if isinstance(fp, Footprint) else fp, dtype=np.float64).reshape(-1, 2)
                 for fp in prints.values()]
     polygons = [p for p in polygons if len(p) >= 3]
     if not polygons:
         return Coverage(np.zeros((0, 0), np.uint16), np.zeros(2), cell)
     allpts = np.vstack(polygons)
+    # footprints kilometres apart (or a wrong scale) would need terabytes at the floor's cells: coarser cells keep
+    # the raster at about MAX_COVERAGE_CELLS (a cell or two more per side)
+    span = allpts.max(axis=0) - allpts.min(axis=0) + 2 * cell
+    cell = max(cell, float(np.sqrt(span[0] * span[1] / MAX_COVERAGE_CELLS)))
     origin = np.floor(allpts.min(axis=0) / cell) * cell
     size = np.ceil((allpts.max(axis=0) - origin) / cell).astype(int) + 1
     counts = np.zeros((size[1], size[0]), np.uint16)

@@ -66,7 +66,9 @@ def run_demo(out: Path, scene: SceneOptions | None = None, options: RunOptions |
         raise WorkspaceError(f"{out / 'accuracy.json'} already exists: pass --overwrite to replace the demo in {out}")
     if progress:
         progress("render", 0, 1)
-    dataset = render_dataset(out / "scene", scene, overwrite=options.overwrite)
+    # without accuracy.json the demo never finished: its scene is rendered again, as the same command resumes (the
+    # render replaces only the files its manifest lists and refuses a folder holding any other)
+    dataset = render_dataset(out / "scene", scene, overwrite=True)
     if progress:
         progress("render", 1, 1)
     result = run(dataset.images, dataset.rigs, out / "run", dataset.scale, options, progress)

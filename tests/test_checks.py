@@ -144,3 +144,18 @@ def test_a_distance_in_other_units_is_named_before_the_adjustment(tmp_path):
     # Two that disagree by less than a unit mistake: the model may be the wrong one (a pair registered from weak
     # matches), so the adjustment reports it instead of a refusal blaming the units.
     check_scale_agreement(rec, _distances(rec, pairs[:2], (1.0, 2.5)), net.rigs)
+
+
+def test_a_network_of_implausible_size_is_flagged(tmp_path):
+    """A length given in centimetres for metres (or millimetres) scales the network to hundreds of kilometres (or
+    millimetres): the run says so instead of delivering it silently."""
+    rec = make_network(tmp_path, num_rigs=3, seed=2).ground_truth
+    centres = np.array([im.projection_center() for im in rec.images.values()])
+    span = float(np.max(np.linalg.norm(centres[:, None] - centres[None], axis=2)))
+    scale = ScaleEstimate(1.0, 0.001, (Measurement("camera_distance", "a - b", 30.0, 30.0, 0.01),))
+    for factor, expected in ((20.0 / span, None), (6e5 / span, "600 km"), (0.005 / span, "5 mm")):
+        scaled = pycolmap.Reconstruction(rec)
+        scaled.transform(pycolmap.Sim3d(factor, pycolmap.Rotation3d(), np.zeros(3)))
+        flagged = [w for w in check_reconstruction(scaled, scale) if w.startswith("IMPLAUSIBLE SCALE")]
+        assert (flagged == []) if expected is None else (len(flagged) == 1 and expected in flagged[0]), flagged
+    assert not [w for w in check_reconstruction(rec, None) if w.startswith("IMPLAUSIBLE")]  # not metric: not judged

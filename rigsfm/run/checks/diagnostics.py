@@ -28,6 +28,9 @@ from rigsfm.run.inputs.database import open_database
 from rigsfm.run.mapping.ties import loosely_tied_rigs, rig_groups, rig_of
 
 MAX_NORMALISED_RESIDUAL = 5.0
+# The extent of a metric network beyond which a length in scale.yaml was surely given in another unit: rigs that
+# overlap on one scene stand metres to kilometres apart, never millimetres or tens of kilometres.
+PLAUSIBLE_SPAN_M = (0.2, 20_000.0)
 
 
 WEAK = {**dict.fromkeys(PLANAR, "on one plane"),
@@ -100,6 +103,21 @@ def contradicted_pairs(database_path: Path, reconstruction: pycolmap.Reconstruct
     return sorted(rows)
 
 
+def implausible_span(reconstruction: pycolmap.Reconstruction) -> str | None:
+    """A warning where the registered cameras of a metrically scaled model span less or more than any network of
+    rigs does (:data:`PLAUSIBLE_SPAN_M`); None otherwise."""
+    centres = np.array([image.projection_center() for image in reconstruction.images.values() if image.has_pose])
+    if len(centres) < 2:
+        return None
+    span = float(np.max(np.linalg.norm(centres[:, None] - centres[None], axis=2)))
+    low, high = PLAUSIBLE_SPAN_M
+    if low <= span <= high:
+        return None
+    shown = f"{span / 1000:.3g} km" if span > high else f"{span * 1000:.3g} mm"
+    return (f"IMPLAUSIBLE SCALE: the registered cameras span {shown}, where a network of rigs spans {low:g} m to "
+            f"{high / 1000:g} km: is a length in scale.yaml in another unit (centimetres or millimetres for metres)?")
+
+
 def check_reconstruction(reconstruction: pycolmap.Reconstruction, scale: ScaleEstimate | None,
                          database_path: Path | None = None) -> list[str]:
     """Warnings (empty when the checks pass); the checks of image pairs need the workspace's database."""
@@ -128,6 +146,9 @@ def check_reconstruction(reconstruction: pycolmap.Reconstruction, scale: ScaleEs
             "to the rest are not fixed by the images and may be wrong; add rigs in between or wider views, "
             "and check against scale.yaml measurements"
         )
+    implausible = implausible_span(reconstruction) if scale is not None else None
+    if implausible:
+        warnings.append(implausible)
     for unused in scale.unused if scale is not None else ():
         warnings.append(f"SCALE MEASUREMENT UNUSED: {unused}; the scale rests on the other measurements")
     if scale is not None and len(scale.measurements) > 1:

@@ -220,7 +220,7 @@ def forged_manifest(out: Path) -> None:
 def users_scene(root: Path) -> list:
     (root / "demo" / "scene" / "images").mkdir(parents=True)
     (root / "demo" / "scene" / "images" / "holiday.jpg").write_bytes(b"a photo")
-    return ["demo", "demo", "--overwrite", "--num-rigs", "2", "--image-scale", "0.1"]
+    return ["demo", "demo", "--overwrite", "--num-rigs", "2", "--arc-deg", "60", "--image-scale", "0.1"]
 
 
 def report_dir_in_use(root: Path) -> list:

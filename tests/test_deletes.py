@@ -241,7 +241,7 @@ def test_demo_overwrite_keeps_the_users_files_in_the_scene_folder(tmp_path):
     (scene / "images" / "rig01" / "wide" / "mine.png").write_bytes(b"the user's image")
     (scene / "ground_truth" / "notes.txt").write_text("the user's notes")
     before = tree(scene)
-    result = invoke("demo", tmp_path / "demo", "--overwrite", "--num-rigs", 2, "--image-scale", 0.25)
+    result = invoke("demo", tmp_path / "demo", "--overwrite", "--num-rigs", 2, "--arc-deg", 60, "--image-scale", 0.25)
     assert result.exit_code == 1
     line = one_error_line(result)
     assert (f"'{scene}' holds files rigsfm did not write there, or changed since (ground_truth/notes.txt, "
@@ -476,7 +476,7 @@ def test_a_csv_broken_while_the_picker_runs_is_left_as_it_is(picker):
 
 def test_demo_never_replaces_an_accuracy_json_without_overwrite(tmp_path):
     (tmp_path / "accuracy.json").write_text('{"mine": true}')
-    result = invoke("demo", tmp_path, "--num-rigs", 2, "--image-scale", 0.1)
+    result = invoke("demo", tmp_path, "--num-rigs", 2, "--arc-deg", 60, "--image-scale", 0.1)
     assert result.exit_code == 1
     assert f"{tmp_path / 'accuracy.json'} already exists: pass --overwrite" in one_error_line(result)
     assert (tmp_path / "accuracy.json").read_text() == '{"mine": true}' and not (tmp_path / "scene").exists()

@@ -473,7 +473,7 @@ def test_every_verb_stops_with_one_line(tmp_path, verb):
     (tmp_path / "board.yaml").write_text("type: chessboard\ninner_corners: [9, 6]\nsquare: 0.025\n")
     args = {"calibrate": ["images", "--board", "board.yaml", "--out", "r.yaml"], "report": ["out"],
             "view": ["out", "--screenshot", "v.png"], "export": ["out", "--format", "json", "--overwrite"], "explore": ["out"], "associate": ["out", "detections.csv"],
-            "track": ["out", "images"], "demo": ["demo", "--num-rigs", "2", "--image-scale", "0.1"]}[verb]
+            "track": ["out", "images"], "demo": ["demo", "--num-rigs", "2", "--arc-deg", "60", "--image-scale", "0.1"]}[verb]
     for signum, delay in ((signal.SIGINT, 0.0), (signal.SIGTERM, 0.0), (signal.SIGINT, 0.3), (signal.SIGTERM, 0.3)):
         code, lines, _ = _stop([verb, *args], tmp_path, signum, delay)
         if code in (0, 1) and (not lines or lines[-1].startswith("error: ")):

@@ -796,6 +796,20 @@ def test_demo_refuses_an_image_scale_it_cannot_register_before_rendering(tmp_pat
     assert not (tmp_path / "demo").exists()
 
 
+def test_demo_refuses_rigs_too_far_apart_to_register_and_warns_where_not_all_may(tmp_path):
+    from rigsfm.synth.demo import check_arrangement, run_demo
+    from rigsfm.synth.scene import SceneOptions
+
+    with pytest.raises(InputError, match=r"2 rigs round the full circle stand 180 deg apart, where the demo's wide "
+                                         r"images share too little to register .*: give --num-rigs 4 or more on the "
+                                         r"full circle, or --arc-deg 90 or less"):
+        run_demo(tmp_path / "demo", SceneOptions(num_rigs=2, image_scale=0.25))
+    assert not (tmp_path / "demo").exists()
+    assert check_arrangement(3, 360.0).startswith("DEMO RIGS FAR APART: 3 rigs round the full circle stand 120 deg")
+    assert "give --num-rigs 4 or more, or --arc-deg 180 or less" in check_arrangement(3, 270.0)  # 135 deg apart
+    assert check_arrangement(4, 360.0) is None and check_arrangement(2, 60.0) is None and check_arrangement(8, 360.0) is None
+
+
 def test_a_failed_atomic_write_names_the_users_file_not_the_temporary_one(tmp_path):
     from rigsfm.core.io import write_text_atomic
 

@@ -8,6 +8,7 @@ reference, not a limit: the run refines the calibration file's errors, the oracl
 from __future__ import annotations
 
 import logging
+import math
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -55,6 +56,35 @@ def check_image_scale(image_scale: float) -> None:
                          f"images); give {MIN_IMAGE_SCALE:g} or more")
 
 
+# How far apart neighbouring rigs of the demo's scene register (its wide images share too little beyond): up to 90
+# degrees every rig, at 120 not all, beyond 150 none (benchmarks/README.md, *The demo's arrangements*).
+REGISTERS_DEG = 90.0
+NEVER_REGISTERS_DEG = 150.0
+
+
+def neighbour_spacing_deg(num_rigs: int, arc_deg: float) -> float:
+    """Degrees between neighbouring rigs on the demo's circle (evenly round it, or spread over the arc)."""
+    return 360.0 / num_rigs if arc_deg >= 360.0 else arc_deg / max(num_rigs - 1, 1)
+
+
+def check_arrangement(num_rigs: int, arc_deg: float) -> str | None:
+    """Refuse rigs too far apart for the demo's scene to register any; a warning where not every rig may register
+    (None where all do)."""
+    spacing = neighbour_spacing_deg(num_rigs, arc_deg)
+    if spacing <= REGISTERS_DEG:
+        return None
+    fix = (f"give --num-rigs {math.ceil(360.0 / REGISTERS_DEG)} or more on the full circle, or --arc-deg "
+           f"{REGISTERS_DEG * (num_rigs - 1):g} or less" if arc_deg >= 360.0 else
+           f"give --num-rigs {math.ceil(arc_deg / REGISTERS_DEG) + 1} or more, or --arc-deg "
+           f"{REGISTERS_DEG * (num_rigs - 1):g} or less")
+    where = f"{num_rigs} rigs {'round the full circle' if arc_deg >= 360.0 else f'over {arc_deg:g} deg'}"
+    if spacing > NEVER_REGISTERS_DEG:
+        raise InputError(f"{where} stand {spacing:.0f} deg apart, where the demo's wide images share too little to "
+                         f"register (up to {REGISTERS_DEG:g} deg apart they do): {fix}")
+    return (f"DEMO RIGS FAR APART: {where} stand {spacing:.0f} deg apart; the demo's scene registers every rig up "
+            f"to {REGISTERS_DEG:g} deg apart, beyond it not all: {fix}")
+
+
 def run_demo(out: Path, scene: SceneOptions | None = None, options: RunOptions | None = None,
              progress: Progress | None = None) -> DemoResult:
     """Render into ``out/scene``, reconstruct into ``out/run``, write ``out/accuracy.json``."""
@@ -62,6 +92,9 @@ def run_demo(out: Path, scene: SceneOptions | None = None, options: RunOptions |
     options = options or RunOptions()
     scene = scene or SceneOptions()
     check_image_scale(scene.image_scale)
+    far_apart = check_arrangement(scene.num_rigs, scene.arc_deg)
+    if far_apart:
+        logger.warning("%s", far_apart)
     if (out / "accuracy.json").exists() and not options.overwrite:
         raise WorkspaceError(f"{out / 'accuracy.json'} already exists: pass --overwrite to replace the demo in {out}")
     if progress:

@@ -69,3 +69,37 @@ def test_the_density_image_has_metre_axes_and_a_scale():
     full = frame.px([BOUNDS[0] + 2.5 * cell, BOUNDS[1] + 1.5 * cell])[0].round().astype(int)
     assert np.abs(image[(y0 + y1) // 2, x0].astype(int) - image[empty[1], empty[0]]).max() <= 3
     assert np.abs(image[(y0 + y1) // 2, x1 - 1].astype(int) - image[full[1], full[0]]).max() <= 3
+
+
+def test_the_floor_map_draws_each_track_s_trail_through_the_recording():
+    """A recording's floor.png shows where each person who goes on stood in the frames before: a line through its
+    track's last points, none for a track that starts in this frame."""
+    from rigsfm.associate.output import TRAIL_FRAMES, next_trails
+    from rigsfm.associate.solve import FrameResult
+
+    def frame(points, tracks):
+        points = np.c_[np.asarray(points, dtype=float), np.full(len(points), 1.7)]
+        result = FrameResult(["a", "b"], points, np.tile(np.eye(3) * 1e-4, (len(points), 1, 1)),
+                             np.zeros(len(points)), np.zeros((len(points), 2), dtype=np.int64))
+        return SimpleNamespace(frame="f.png", result=result, track=np.array(tracks), links=object())
+
+    trails: dict = {}
+    for points, tracks in (([[-1.5, 0.0], [3.0, 1.0]], [0, 1]), ([[-0.75, 0.0], [3.0, 2.0]], [0, 2]),
+                           ([[0.0, 0.0], [3.0, 2.5]], [0, 2])):
+        trails = next_trails(trails, frame(points, tracks))
+    np.testing.assert_array_equal(trails[0], [[-1.5, 0.0], [-0.75, 0.0], [0.0, 0.0]])  # three frames of track 0
+    assert sorted(trails) == [0, 2] and len(trails[2]) == 2  # track 1 ended, track 2 started a frame ago
+    last = frame([[0.0, 0.0], [3.0, 2.5]], [0, 2])
+    view = charts.MapFrame.fit(BOUNDS, 900)
+    with_trails = floor_map(last, [], BOUNDS, 1.55, trails=[trails[0], trails[2]])
+    alone = floor_map(last, [], BOUNDS, 1.55)
+    changed = np.argwhere(np.any(with_trails != alone, axis=2))
+    changed = changed[changed[:, 0] > 30]  # below the title, which says so
+    u0, v0 = view.px([-1.5, 0.0])[0]
+    u1, _ = view.px([0.0, 0.0])[0]
+    on_track0 = changed[np.abs(changed[:, 0] - v0) <= 2]
+    assert on_track0[:, 1].min() <= u0 + 2 and on_track0[:, 1].max() >= u1 - 8  # from (-1.5, 0) to (0, 0)
+    for _ in range(TRAIL_FRAMES + 5):  # a long track keeps its last frames only
+        trails = next_trails(trails, frame([[0.0, 0.0]], [0]))
+    assert len(trails[0]) == TRAIL_FRAMES
+    assert next_trails(trails, SimpleNamespace(track=None)) == {}  # a frame without tracks

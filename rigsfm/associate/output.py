@@ -287,10 +287,11 @@ def _floor_background(view: charts.MapFrame, bounds, prints: list[np.ndarray]) -
 
 
 def floor_map(frame, prints: list[np.ndarray], bounds, plane_m: float, size: int = 900,
-              known: dict | None = None) -> np.ndarray:
+              known: dict | None = None, trails: list[np.ndarray] | None = None) -> np.ndarray:
     """Top view over ``bounds`` in the run's world (metres on both axes, a scale bar): the narrow footprints
     ``prints`` on the plane ``plane_m`` above the floor and every person's 95 % ellipse. ``known``: the maps
-    drawn before without their persons, kept there (a recording's frames of the same cameras share one)."""
+    drawn before without their persons, kept there (a recording's frames of the same cameras share one).
+    ``trails``: per person, where its track stood in the last frames up to this one (K x 2 each), drawn as a line."""
     view = charts.MapFrame.fit(bounds, size)
     scale, px = view.scale, view.px
     drawn = ("floor", tuple(float(b) for b in bounds), size, tuple(p.tobytes() for p in prints))
@@ -306,13 +307,33 @@ def floor_map(frame, prints: list[np.ndarray], bounds, plane_m: float, size: int
         axes = np.maximum(1, np.round(np.sqrt(np.maximum(values, 0) * CHI2_2D_95) * scale)).astype(int)
         angles = -np.degrees(np.arctan2(vectors[:, 1, 1], vectors[:, 0, 1]))
         centres = np.round(px(result.points[:, :2])).astype(int)
+        if trails is not None:
+            lines = [np.round(px(trail)).astype(np.int32) for trail in trails if len(trail) > 1]
+            cv2.polylines(image, lines, False, charts.bgr("link"), 1, cv2.LINE_AA)
         for (cx, cy), (minor, major), angle in zip(centres.tolist(), axes.tolist(), angles.tolist()):
             cv2.ellipse(image, (cx, cy), (major, minor), angle, 0, 360, charts.bgr("wide"), 1, cv2.LINE_AA)
             cv2.circle(image, (cx, cy), 1, charts.bgr("ink"), -1)
     view.draw_axes(image)
+    steps = "" if trails is None else f"tracks over up to {TRAIL_FRAMES} frames (green), "
     charts.text(image, f"{frame.frame}: {len(result)} persons; narrow footprints at {plane_m:.2f} m (orange), "
-                       "95 % ellipses (blue), 1 m grid; world metres", (10, 18))
+                       f"95 % ellipses (blue), {steps}1 m grid; world metres", (10, 18))
     return image
+
+
+TRAIL_FRAMES = 10  # the frames a track's trail on floor.png reaches back over: a second of walking at 10 frames/s
+
+
+def next_trails(trails: dict[int, np.ndarray], frame) -> dict[int, np.ndarray]:
+    """Each track of ``frame`` with its last positions on the floor (``trails``: the frame before's, by track;
+    a track that goes on extends its trail, a new one starts one); empty where the frame has no tracks."""
+    if getattr(frame, "track", None) is None:
+        return {}
+    points = frame.result.points[:, :2]
+    out = {}
+    for p, track in enumerate(frame.track.tolist()):
+        earlier = trails.get(track)
+        out[track] = points[p:p + 1] if earlier is None else np.vstack([earlier[1 - TRAIL_FRAMES:], points[p:p + 1]])
+    return out
 
 
 COLOUR_BAR = (16, 26, 216, 36)  # density.png's colour bar (x0, y0, x1, y1 px): 0 to the frame's largest density
@@ -361,6 +382,7 @@ def write_results(dest: Path, model, frames: list, options, previous: Previous |
     dest.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{dest.name}.", suffix=".tmp", dir=dest.parent))
     known: dict = {}  # grid_cells' footprints and cells' views, for the frames after the first
+    trails: dict[int, np.ndarray] = {}  # per track, its last positions, which floor.png draws
     try:
         for frame in frames:
             folder = tmp / _stem(frame.frame)
@@ -376,7 +398,10 @@ def write_results(dest: Path, model, frames: list, options, previous: Previous |
             (folder / "density.csv").write_text(_csv(["x_min_m", "y_min_m", "x_max_m", "y_max_m", "persons", "per_m2",
                                                       "views"], rows))
             _png(folder / "density.png", density_image(counts, options.cell_m, seen, bounds))
-            _png(folder / "floor.png", floor_map(frame, prints, bounds, height, known=known))
+            trails = next_trails(trails, frame)
+            _png(folder / "floor.png", floor_map(frame, prints, bounds, height, known=known,
+                                                 trails=[trails[t] for t in frame.track.tolist()]
+                                                 if trails and frame.links is not None else None))
         previous = check_destination(dest, True) if previous is None else previous
         commit(dest, tmp, previous, MANIFEST, {"written_by": "rigsfm associate", "model": fingerprint,
                                                 "frame_offsets": frame_offsets},

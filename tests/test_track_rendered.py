@@ -227,3 +227,20 @@ def test_a_run_with_narrow_observations_is_tracked_from_its_database_keypoints(t
         assert after.rigs[name].narrow_observes_map == rig.narrow_observes_map
         np.testing.assert_array_equal(after.rigs[name].baseline_wide_from_world.matrix(),
                                       rig.baseline_wide_from_world.matrix())
+
+
+def test_a_corrupt_image_is_said_as_run_says_it(tracked, tmp_path):
+    """A corrupt image 'cannot be decoded as an image; the wide camera of rig01 is calibrated for 812x617': the
+    size beside the point, no fix named; now run's words."""
+    import shutil
+
+    from rigsfm.core.errors import InputError
+
+    root, _, _, _ = tracked
+    shutil.copytree(root / "out", tmp_path / "out")
+    bad = tmp_path / "images" / "rig01" / "wide" / "x.png"
+    bad.parent.mkdir(parents=True)
+    bad.write_bytes(b"not an image")
+    with pytest.raises(InputError, match=r"rig01/wide/x.png: cannot be read as an image \(corrupt or unsupported\); "
+                                         r"replace it$"):
+        track(tmp_path / "out", tmp_path / "images", TrackOptions(workers=1))

@@ -241,6 +241,11 @@ def rigs_missing_frames(images: Sequence[ImageEntry], rigs: Sequence[RigCalibrat
             "a rig adds no view at a frame it lacks; check for a file misnamed or not copied")
 
 
+def unreadable_image(path: Path | str) -> str:
+    """What `run` and `track` say of an image file that does not decode."""
+    return f"{path}: cannot be read as an image (corrupt or unsupported); replace it"
+
+
 def check_image(entry: ImageEntry, camera) -> None:
     """The image decodes and matches its camera's calibrated size."""
     try:
@@ -250,7 +255,7 @@ def check_image(entry: ImageEntry, camera) -> None:
         raise InputError(f"'{entry.path}' {access_problem(entry.path, error)}") from None
     image = read_image(entry.path, cv2.IMREAD_UNCHANGED)
     if image is None:
-        raise InputError(f"{entry.path}: cannot be read as an image (corrupt or unsupported); replace it")
+        raise InputError(unreadable_image(entry.path))
     height, width = image.shape[:2]
     if (width, height) != (camera.width, camera.height):
         raise InputError(

@@ -196,3 +196,21 @@ def test_a_report_folder_inside_the_board_folder_is_refused_before_it_is_written
                                          r".*BOARD, whose every folder must be a rig"):
         calibrate(board_dir, board_dir / "rigs.yaml", CalibrateOptions(board=board))
     assert sorted(p.name for p in board_dir.iterdir()) == ["rig01"]
+
+
+def test_fewer_board_poses_than_the_docs_ask_for_are_warned(tmp_path):
+    """Three poses calibrated with '0 warnings' though the docs ask for 8 or more (the focal sigma grew from 0.8 to
+    6.2 px); below three, the error's advice said 'better 10+', not the docs' 8."""
+    from rigsfm.calibrate import calibrate_rigs
+    from rigsfm.calibrate.board import load_board_spec
+
+    board = tmp_path / "board.yaml"
+    board.write_text(yaml.safe_dump(CHESS))
+    three = ["01", "02", "03"]
+    result = calibrate_rigs(real_board(tmp_path, three, three), load_board_spec(board))
+    assert [w for w in result.rigs[0].warnings if "board poses" in w] == [
+        f"rig rig01 {sensor}: only 3 board poses used, 8 or more are needed for well-determined intrinsics; "
+        "photograph the board in more poses (tilted up to ~45°, together covering the whole image)"
+        for sensor in ("wide", "narrow")]
+    with pytest.raises(InputError, match=r"need at least 3, better 8 or more\)"):
+        run(tmp_path / "two", real_board(tmp_path / "two", three[:2], three[:2]), CHESS)

@@ -442,6 +442,31 @@ def test_calibrate_never_replaces_the_users_summary_txt_in_the_report_folder(tmp
     assert mine.read_text() == "the user's summary of last week's survey" and not (tmp_path / "new_rigs.yaml").exists()
 
 
+def test_calibrate_replaces_only_its_own_report_of_the_same_rigs_file(tmp_path):
+    """`--out c/rigs.yml` after `--out c/rigs.yaml` silently replaced rigs.yaml's report in c/rigs.calibration/ (the
+    default folder drops the extension), and a file of the user's named as a report's file was replaced (only names
+    were checked). The same command again after a stop (no rigs.yaml yet) still replaces its own report."""
+    data = Path(__file__).parent / "data" / "opencv-stereo"
+    args = ["calibrate", data / "board", "--board", data / "board.yaml", "--out"]
+    assert invoke(*args, tmp_path / "c" / "rigs.yaml").exit_code == 0
+    report = tmp_path / "c" / "rigs.calibration" / "rig01" / "report.txt"
+    before = tree(tmp_path / "c")
+    other = invoke(*args, tmp_path / "c" / "rigs.yml")
+    assert other.exit_code == 1
+    first = (tmp_path / "c" / "rigs.yaml").resolve()
+    assert (f"'{report.parent.parent}' holds the report of another calibration ({first}): pass --overwrite to "
+            "replace it or choose another --report-dir (nothing was written)") in one_error_line(other)
+    assert tree(tmp_path / "c") == before
+    (tmp_path / "c" / "rigs.yaml").unlink()  # as a stop between the report and rigs.yaml leaves it
+    assert invoke(*args, tmp_path / "c" / "rigs.yaml").exit_code == 0
+    report.write_text("the user's notes")
+    mine = invoke(*args, tmp_path / "c" / "rigs.yaml", "--overwrite")
+    assert mine.exit_code == 1
+    assert (f"'{report}' is not a file rigsfm calibrate wrote (or it changed since); move it away or choose another "
+            "--report-dir (nothing was written)") in one_error_line(mine)
+    assert report.read_text() == "the user's notes"
+
+
 def test_a_model_folder_is_replaced_only_while_it_holds_rigsfm_files(out):
     from rigsfm.core.errors import WorkspaceError
     from rigsfm.run.deliver import write_model
@@ -518,6 +543,9 @@ def test_report_and_export_say_the_run_did_not_finish(out, command):
 def test_calibrate_overwrite_removes_the_reports_of_rigs_it_no_longer_has_and_only_its_own(tmp_path):
     """`rigsfm calibrate --overwrite` of a rigs.yaml whose calibration had a rig the new one lacks left that rig's
     report folder beside the new report, as if it were this calibration's."""
+    from rigsfm.calibrate.report import MANIFEST
+    from rigsfm.core.io import sha256_file
+
     data = Path(__file__).parent / "data" / "opencv-stereo"  # real board images of one rig (rig01)
     args = ["calibrate", data / "board", "--board", data / "board.yaml", "--out", tmp_path / "rigs.yaml"]
     assert invoke(*args).exit_code == 0
@@ -533,9 +561,14 @@ def test_calibrate_overwrite_removes_the_reports_of_rigs_it_no_longer_has_and_on
     (reports / "rig04" / "notes.txt").write_text("mine")
     with open(reports / "summary.txt", "a") as summary:
         summary.write(line.replace("rig01", "rig03") + "\n" + line.replace("rig01", "rig04") + "\n")
+    manifest = json.loads((reports / MANIFEST).read_text())  # as that calibration recorded its files
+    manifest["sha256"] |= {f"{rig}/{name}": sha256_file(reports / rig / name) for rig in ("rig03", "rig04")
+                           for name in ("report.txt", "wide_coverage.png")} | {
+        "summary.txt": sha256_file(reports / "summary.txt")}
+    (reports / MANIFEST).write_text(json.dumps(manifest))
     result = invoke(*args, "--overwrite")
     assert result.exit_code == 0, result.output
-    assert sorted(p.name for p in reports.iterdir()) == ["rig01", "rig04", "rig05", "summary.txt"]
+    assert sorted(p.name for p in reports.iterdir()) == [MANIFEST, "rig01", "rig04", "rig05", "summary.txt"]
     assert (reports / "rig04" / "notes.txt").read_text() == "mine" and len(list((reports / "rig05").iterdir())) == 2
     said = [line for line in result.output.splitlines() if "left as they are" in line]
     assert len(said) == 1 and f"'{reports / 'rig04'}', '{reports / 'rig05'}'" in said[0], result.output

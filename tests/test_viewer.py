@@ -114,3 +114,28 @@ def test_engine_lines_go_to_the_log_and_errors_stay_seen(capfd, caplog):
     levels = {r.getMessage(): r.levelno for r in caplog.records}
     assert levels["Open3D: [Open3D ERROR] Vulkan: no device"] == logging.WARNING
     assert levels["Open3D: FEngine (64 bits) created at 0x1 (threading is enabled)"] == logging.DEBUG
+
+
+def test_a_screenshot_over_a_file_or_among_the_runs_images_is_refused(tmp_path):
+    """`view --screenshot mine.png` replaced the user's file silently (view had no --overwrite), and a screenshot
+    written into the run's image folder made the next `rigsfm run` on it refuse the folder."""
+    from rigsfm.core.summary import Summary
+
+    out = tiny_result(tmp_path / "out")
+    summary = Summary()
+    summary.inputs.images = str(tmp_path / "images")
+    (out / "summary.json").write_text(json.dumps(summary.to_json()))
+    mine = tmp_path / "mine.png"
+    mine.write_bytes(b"the user's")
+    refused = CliRunner().invoke(app, ["view", str(out), "--screenshot", str(mine)])
+    assert refused.exit_code == 1, refused.output
+    assert f"--screenshot '{mine}' already exists: pass --overwrite to replace it" in " ".join(refused.output.split())
+    assert mine.read_bytes() == b"the user's"
+    among = tmp_path / "images" / "view.png"
+    refused = CliRunner().invoke(app, ["view", str(out), "--screenshot", str(among)])
+    assert refused.exit_code == 1, refused.output
+    assert f"--screenshot '{among}' lies inside the run's image folder" in " ".join(refused.output.split())
+    assert not among.exists()
+    replaced = CliRunner().invoke(app, ["view", str(out), "--screenshot", str(mine), "--overwrite"])
+    assert replaced.exit_code == 0, replaced.output
+    assert mine.read_bytes()[:4] == b"\x89PNG"

@@ -21,6 +21,7 @@ from rigsfm.core.errors import InputError, RigsfmError
 logger = logging.getLogger(__name__)
 
 MIN_VIEWS = 3
+GOOD_VIEWS = 8  # fewer poses calibrate, but with a focal and distortion poorly determined (docs/inputs.md)
 OUTLIER_FACTOR = 3.0  # a view is an outlier if its RMS > 3 x the median view RMS ...
 OUTLIER_FLOOR_PX = 0.5  # ... and above this (tiny RMS differences are noise, not outliers)
 MAX_VIEW_RMS_PX = 5.0  # any view above this is rejected whatever the median
@@ -132,7 +133,7 @@ def calibrate_camera(sensor: str, detections: dict[str, Detection | None], objec
             views[n].reason = f"only {len(d)} corners (need {MIN_CORNERS})"
     if len(active) < MIN_VIEWS:
         raise InputError(f"{where}: the board was detected in only {len(active)} image{'' if len(active) == 1 else 's'} (need at least "
-                         f"{MIN_VIEWS}, better 10+); capture more views with the whole board or more of it visible")
+                         f"{MIN_VIEWS}, better {GOOD_VIEWS} or more); capture more views with the whole board or more of it visible")
     # active: detected
     pairs = {n: correspondences(detections[n], object_points) for n in active}  # type: ignore[arg-type]
     k3 = distortion == Distortion.FULL_OPENCV
@@ -177,6 +178,10 @@ def calibrate_camera(sensor: str, detections: dict[str, Detection | None], objec
         result.warnings.append(f"{where}: detected corners cover only {100 * cov:.0f} % of the image "
                                f"({COVERAGE_GRID[0]}x{COVERAGE_GRID[1]} grid cells); distortion is poorly "
                                "constrained near the edges: add views with the board near the image borders")
+    if len(active) < GOOD_VIEWS:
+        result.warnings.append(f"{where}: only {len(active)} board poses used, {GOOD_VIEWS} or more are needed for "
+                               "well-determined intrinsics; photograph the board in more poses (tilted up to ~45°, "
+                               "together covering the whole image)")
     rejected = [v for v in result.views if not v.used and v.reason.startswith("outlier")]
     if len(rejected) > len(active) / 2:
         result.warnings.append(f"{where}: {len(rejected)} views rejected as outliers; check the detections")

@@ -62,7 +62,7 @@ def write_outputs(result: CalibrationResult, out: Path, *, merge: bool = False, 
     new = result.rig_calibrations()
     existing = check_output(out, [r.name for r in new], merge=merge, overwrite=overwrite)
     report_dir = Path(report_dir) if report_dir is not None else default_report_dir(Path(out))
-    write_report(result, report_dir, merge=merge)
+    write_report(result, report_dir, merge=merge, rigs_file=Path(out), overwrite=overwrite)
     write_text_atomic(Path(out), rigs_yaml_text(result, existing, Path(out)), overwrite=True)
     logger.info("wrote %s (%d rigs) and the report in %s", out, len(new), report_dir)
     return Path(out), report_dir

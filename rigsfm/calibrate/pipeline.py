@@ -167,7 +167,7 @@ def calibrate(board_images: Path, out: Path, options: CalibrateOptions) -> tuple
     check_output(out, names, merge=options.merge, overwrite=options.overwrite)
     report_dir = options.report_dir if options.report_dir is not None else default_report_dir(Path(out))
     check_report_dir_outside_board(report_dir, Path(board_images))
-    check_report_dir(report_dir, names)
+    check_report_dir(report_dir, names, rigs_file=Path(out), overwrite=options.overwrite)
     result = calibrate_rigs(board_images, spec, distortion=options.distortion, scene_dir=options.scene_dir,
                             baseline=options.baseline)
     rigs_path, report = write_calibration(result, out, merge=options.merge, overwrite=options.overwrite,

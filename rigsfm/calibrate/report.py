@@ -7,7 +7,9 @@ convex hulls, covered grid cells shaded) and ``stereo_view_errors.png``; ``repor
 
 from __future__ import annotations
 
+import json
 import logging
+import os
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -19,7 +21,7 @@ from rigsfm.calibrate.stereo import StereoFit
 from rigsfm.core import charts
 from rigsfm.core.conventions import euler_zyx_degrees
 from rigsfm.core.errors import WorkspaceError
-from rigsfm.core.io import atomic_directory, write_text_atomic
+from rigsfm.core.io import atomic_directory, sha256_file, write_json_atomic, write_text_atomic
 
 if TYPE_CHECKING:
     from rigsfm.calibrate.results import CalibrationResult, RigResult
@@ -165,6 +167,7 @@ REPORT_FILES = frozenset({"report.txt", "stereo_view_errors.png", "wide_view_err
                           "wide_coverage.png", "narrow_coverage.png"})  # a rig's folder: all a new report replaces
 SUMMARY_START = b"Board: "  # summary.txt's first words: a summary.txt that lacks them is not rigsfm's
 RIG_LINE = ": wide RMS "  # after a rig's name, its line of summary.txt: the rigs whose folders it wrote
+MANIFEST = ".rigsfm-calibration.json"  # the rigs file a report is of, and the files written with their SHA-256
 
 
 def _is_our_summary(path: Path) -> bool:
@@ -173,11 +176,41 @@ def _is_our_summary(path: Path) -> bool:
         return handle.read(len(SUMMARY_START)) == SUMMARY_START
 
 
-def check_report_dir(report_dir: Path, rig_names: list[str]) -> None:
-    """Refuse a rig's report folder that holds anything a new report would not write again (it replaces the
-    folder whole), and a summary.txt that is not one :func:`write_report` wrote: the user's files are never removed."""
+def read_manifest(report_dir: Path) -> tuple[str | None, dict[str, str]] | None:
+    """(the rigs file, the SHA-256 of each file written) a report in ``report_dir`` recorded; None for none."""
+    path = Path(report_dir) / MANIFEST
+    try:
+        data = json.loads(path.read_text(encoding="utf-8")) if path.is_file() and not path.is_symlink() else None
+    except (OSError, ValueError):
+        return None
+    if not isinstance(data, dict) or not isinstance(data.get("sha256"), dict):
+        return None
+    return data.get("rigs_file"), {k: v for k, v in data["sha256"].items() if isinstance(v, str)}
+
+
+def _still_written(report_dir: Path, name: str, sums: dict[str, str]) -> bool:
+    """Whether ``report_dir/name`` is a plain file as a report wrote it (its recorded SHA-256)."""
+    path = Path(report_dir) / name
+    return not path.is_symlink() and path.is_file() and sums.get(name) == sha256_file(path)
+
+
+def _rigs_file_key(rigs_file: Path | None) -> str | None:
+    return None if rigs_file is None else str(Path(rigs_file).resolve())
+
+
+def check_report_dir(report_dir: Path, rig_names: list[str], *, rigs_file: Path | None = None,
+                     overwrite: bool = False) -> None:
+    """Refuse a report folder holding the report of another rigs file than ``rigs_file`` (without ``overwrite``),
+    a rig's report folder that holds anything a new report would not write again (it replaces the folder whole),
+    and a file of the report's names that a report did not write (or changed since): the user's files are never
+    removed or replaced."""
+    recorded = read_manifest(report_dir)
+    sums = recorded[1] if recorded is not None else {}
+    if recorded is not None and recorded[0] != _rigs_file_key(rigs_file) and not overwrite:
+        raise WorkspaceError(f"'{report_dir}' holds the report of another calibration ({recorded[0]}): pass "
+                             "--overwrite to replace it or choose another --report-dir (nothing was written)")
     summary = Path(report_dir) / "summary.txt"
-    if summary.is_symlink() or (summary.exists() and not (summary.is_file() and _is_our_summary(summary))):
+    if os.path.lexists(summary) and not _still_written(report_dir, "summary.txt", sums):
         raise WorkspaceError(f"'{summary}' is not a summary rigsfm calibrate wrote; move it away or choose another "
                              "--report-dir (nothing was written)")
     for name in rig_names:
@@ -191,6 +224,11 @@ def check_report_dir(report_dir: Path, rig_names: list[str]) -> None:
             raise WorkspaceError(f"'{folder}' holds files rigsfm did not write ({', '.join(foreign[:3])}"
                                  f"{', ...' if len(foreign) > 3 else ''}); move them away or choose another "
                                  "--report-dir (nothing was written)")
+        changed = sorted(p for p in folder.iterdir() if not _still_written(report_dir, f"{name}/{p.name}", sums)) \
+            if folder.is_dir() else []
+        if changed:
+            raise WorkspaceError(f"'{changed[0]}' is not a file rigsfm calibrate wrote (or it changed since); move "
+                                 "it away or choose another --report-dir (nothing was written)")
 
 
 def _summary_lines(path: Path) -> dict[str, list[str]]:
@@ -218,17 +256,21 @@ def _report_files(folder: Path) -> list[Path] | None:
     return files
 
 
-def remove_rigs_no_longer_calibrated(report_dir: Path, written: set[str], calibrated: set[str]) -> list[Path]:
+def remove_rigs_no_longer_calibrated(report_dir: Path, written: set[str], calibrated: set[str],
+                                     sums: dict[str, str]) -> list[Path]:
     """Remove the report folders of the rigs an earlier report in ``report_dir`` wrote (``written``: its
     summary.txt names them) that this calibration (``calibrated``) no longer has, where they hold only a report's
-    files; a folder that holds other files, or looks like a rig's report but no summary of rigsfm's names it, is
-    left, named in one warning line. Returns the folders removed."""
+    files as written (``sums``: their recorded SHA-256, whose entries go with them); a folder that holds other
+    files, or looks like a rig's report but no summary of rigsfm's names it, is left, named in one warning line.
+    Returns the folders removed."""
     removed, left = [], []
     for folder in sorted(p for p in report_dir.iterdir() if p.name not in calibrated and not p.name.startswith(".")):
         files = _report_files(folder)
-        if folder.name in written and files is not None:
+        ours = files is not None and all(_still_written(report_dir, f"{folder.name}/{p.name}", sums) for p in files)
+        if folder.name in written and files is not None and ours:
             for file in files:  # each a report's file: never the folder whole
                 file.unlink()
+                sums.pop(f"{folder.name}/{file.name}", None)
             folder.rmdir()
             removed.append(folder)
         elif folder.name in written or files is not None:
@@ -243,15 +285,25 @@ def remove_rigs_no_longer_calibrated(report_dir: Path, written: set[str], calibr
     return removed
 
 
-def write_report(result: CalibrationResult, report_dir: Path, *, merge: bool = False) -> Path:
-    """The calibration's report in ``report_dir``: a folder per rig and summary.txt. Without ``merge`` (the rigs
-    replace rigs.yaml's), the folders an earlier report wrote of rigs this one lacks are removed; with it, their
-    lines of the earlier summary.txt are kept (rigs.yaml keeps them)."""
+def write_report(result: CalibrationResult, report_dir: Path, *, merge: bool = False, rigs_file: Path | None = None,
+                 overwrite: bool = False) -> Path:
+    """The calibration's report in ``report_dir``: a folder per rig and summary.txt, and the manifest naming
+    ``rigs_file`` (a report of another is replaced only with ``overwrite``) and the files written. Without ``merge``
+    (the rigs replace rigs.yaml's), the folders an earlier report wrote of rigs this one lacks are removed; with it,
+    their lines of the earlier summary.txt are kept (rigs.yaml keeps them)."""
     report_dir = Path(report_dir)
-    check_report_dir(report_dir, [rig.name for rig in result.rigs])  # every rig first: a refusal changes nothing
+    # every rig first: a refusal changes nothing
+    check_report_dir(report_dir, [rig.name for rig in result.rigs], rigs_file=rigs_file, overwrite=overwrite)
     earlier = _summary_lines(report_dir / "summary.txt")  # before this report replaces it
     written = set(earlier)
     report_dir.mkdir(parents=True, exist_ok=True)
+    sums = dict((read_manifest(report_dir) or (None, {}))[1])
+
+    def record() -> None:  # after each file or folder: a stopped report's re-run knows what it wrote
+        write_json_atomic(report_dir / MANIFEST, {"written_by": "rigsfm calibrate",
+                                                  "rigs_file": _rigs_file_key(rigs_file), "sha256": sums})
+
+    record()
     summary = [f"{SUMMARY_START.decode()}{result.board.describe()}", ""]
     for rig in result.rigs:
         with atomic_directory(report_dir / rig.name, overwrite=True) as tmp:
@@ -260,6 +312,8 @@ def write_report(result: CalibrationResult, report_dir: Path, *, merge: bool = F
                 cv2.imwrite(str(tmp / f"{cam.sensor}_view_errors.png"), view_error_chart(cam, f"{rig.name} {cam.sensor}"))
                 cv2.imwrite(str(tmp / f"{cam.sensor}_coverage.png"), coverage_image(cam, f"{rig.name} {cam.sensor}"))
             cv2.imwrite(str(tmp / "stereo_view_errors.png"), stereo_chart(rig))
+        sums.update({f"{rig.name}/{p.name}": sha256_file(p) for p in (report_dir / rig.name).iterdir()})
+        record()
         f = rig.stereo.final
         summary.append(f"{rig.name}{RIG_LINE}{rig.wide.rms:.3f} px, narrow RMS {rig.narrow.rms:.3f} px, E^sl RMS "
                        f"{f.rms:.3f} px, baseline {np.linalg.norm(rig.T) * 1000:.2f} mm"
@@ -269,6 +323,8 @@ def write_report(result: CalibrationResult, report_dir: Path, *, merge: bool = F
         calibrated = {rig.name for rig in result.rigs}
         summary += [line for rig, lines in earlier.items() if rig not in calibrated for line in lines]
     else:  # before the summary that names them goes: a stop between the two leaves them named
-        remove_rigs_no_longer_calibrated(report_dir, written, {rig.name for rig in result.rigs})
+        remove_rigs_no_longer_calibrated(report_dir, written, {rig.name for rig in result.rigs}, sums)
     write_text_atomic(report_dir / "summary.txt", "\n".join(summary) + "\n")
+    sums["summary.txt"] = sha256_file(report_dir / "summary.txt")
+    record()
     return report_dir

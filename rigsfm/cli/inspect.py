@@ -34,6 +34,7 @@ def view_command(
     screenshot_path: Annotated[Path | None, typer.Option(
         "--screenshot", help="render the view headless into this PNG instead of opening a window (no display "
                              "needed)  [default: open a window; needs a display]", show_default=False)] = None,
+    overwrite: Annotated[bool, flag("--overwrite", help="replace an existing --screenshot file")] = False,
 ) -> None:
     """Show the network in an Open3D window: points, wide (blue) and narrow (orange) frustums, each rig's
     wide-narrow link (green; a point when the baseline is centimetres) and the world axes (red x, green y, blue z).
@@ -41,7 +42,7 @@ def view_command(
     from rigsfm.inspect.viewer import screenshot, show
 
     if screenshot_path is not None:
-        console.print(f"screenshot: {screenshot(out, screenshot_path)}")
+        console.print(f"screenshot: {screenshot(out, screenshot_path, overwrite=overwrite)}")
     else:
         show(out)
 

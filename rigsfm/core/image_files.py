@@ -14,7 +14,7 @@ from __future__ import annotations
 import io
 import shlex
 import struct
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import BinaryIO
 
@@ -113,29 +113,58 @@ def _exif_block(data: bytes) -> int | None:
     return _tiff(io.BytesIO(data))
 
 
-def _jpeg(f: BinaryIO) -> int | None:
-    """The first APP1 Exif segment before the image data, as OpenCV and viewers read it."""
+def _jpeg_segments(f: BinaryIO) -> Iterator[tuple[int, int]]:
+    """(marker, data length) of each JPEG header segment before the image data, ``f`` at the segment's data."""
     f.seek(2)
     while True:
         byte = f.read(1)
         if byte != b"\xff":
-            return None
+            return
         marker = f.read(1)
         while marker == b"\xff":  # fill bytes
             marker = f.read(1)
         if not marker or marker in (b"\xd9", b"\xda"):  # end of image, start of scan: no more headers
-            return None
+            return
         if 0xD0 <= marker[0] <= 0xD7 or marker == b"\x01":  # markers without a length
             continue
         (length,) = struct.unpack(">H", f.read(2))
         if length < 2:
-            return None
-        if marker == b"\xe1":
-            data = f.read(length - 2)
+            return
+        start = f.tell()
+        yield marker[0], length - 2
+        f.seek(start + length - 2)
+
+
+def _jpeg(f: BinaryIO) -> int | None:
+    """The first APP1 Exif segment before the image data, as OpenCV and viewers read it."""
+    for marker, length in _jpeg_segments(f):
+        if marker == 0xE1:
+            data = f.read(length)
             if data[:6] == b"Exif\x00\x00":
                 return _exif_block(data)
-        else:
-            f.seek(length - 2, io.SEEK_CUR)
+    return None
+
+
+JPEG_FRAME_MARKERS = set(range(0xC0, 0xD0)) - {0xC4, 0xC8, 0xCC}  # SOF0-15: not DHT, JPG, DAC
+
+
+def stored_size(path: Path | str) -> tuple[int, int] | None:
+    """(width, height) of a PNG or JPEG file from its header, no pixels decoded; None for other formats or a
+    header that does not say (then the pixels tell)."""
+    try:
+        with open(path, "rb") as f:
+            head = f.read(24)
+            if head[:8] == PNG_SIGNATURE and head[12:16] == b"IHDR":
+                width, height = struct.unpack(">II", head[16:24])
+                return width, height
+            if head[:2] == b"\xff\xd8":
+                for marker, _ in _jpeg_segments(f):
+                    if marker in JPEG_FRAME_MARKERS:
+                        _, height, width = struct.unpack(">BHH", f.read(5))
+                        return width, height
+    except (OSError, struct.error):
+        return None
+    return None
 
 
 def _png(f: BinaryIO) -> int | None:

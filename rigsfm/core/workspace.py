@@ -151,6 +151,19 @@ class Workspace:
         """Whether the workspace is ``folder`` or lies inside it (a destination there would hold its files)."""
         return self.root.resolve().is_relative_to(Path(folder).resolve())
 
+    def refuse_among_images(self, path: Path, named: str, instead: str) -> None:
+        """Refuse to write ``path`` (``named``: the option and path, for the message) inside the image folder of
+        the run (summary.json), whose every folder must be a rig: the next `rigsfm run` on it would refuse it."""
+        from rigsfm.core.summary import Summary
+
+        summary = Summary.read(self.summary)
+        if summary is None or not summary.inputs.images:
+            return
+        images = Path(summary.inputs.images)
+        if Path(path).resolve() == images.resolve() or images.resolve() in Path(path).resolve().parents:
+            raise WorkspaceError(f"{named} lies inside the run's image folder {images}, whose every folder must be "
+                                 f"a rig (the next `rigsfm run` on it would refuse it); {instead}")
+
     @property
     def results(self) -> tuple[Path, ...]:
         """What a finished run leaves; never replaced without ``overwrite``."""

@@ -316,10 +316,8 @@ def _export(workspace: Workspace, fmt: ExportFormat, options: ExportOptions) -> 
                          f"{workspace.summary} is missing (the run stopped before writing it), so the run's image "
                          "folder is unknown: re-run the same `rigsfm run` command to finish it, or export without "
                          "--images")
-    if images_dir is not None and (dest.resolve() == images_dir.resolve() or images_dir.resolve() in dest.resolve().parents):
-        raise WorkspaceError(f"--dest '{dest}' lies inside the run's image folder {images_dir}, whose every folder "
-                             "must be a rig (the next `rigsfm run` on it would refuse the export's); choose a folder "
-                             f"outside it (the default is {workspace.export(fmt)})")
+    workspace.refuse_among_images(dest, f"--dest '{dest}'",
+                                  f"choose a folder outside it (the default is {workspace.export(fmt)})")
     poses = read_narrow_poses(workspace)
     if fmt not in (ExportFormat.COLMAP_BIN, ExportFormat.COLMAP_TXT, ExportFormat.WILDTRACK):  # (COLMAP: no units)
         warn_not_metric(workspace, poses, fmt)

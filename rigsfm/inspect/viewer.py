@@ -224,13 +224,17 @@ def render_raster(scene: Scene, width: int, height: int) -> np.ndarray:
     return canvas
 
 
-def screenshot(out: Path, path: Path, width: int = 1280, height: int = 800) -> Path:
-    """Render the network view headless into ``path`` (PNG); returns it."""
+def screenshot(out: Path, path: Path, width: int = 1280, height: int = 800, *, overwrite: bool = False) -> Path:
+    """Render the network view headless into ``path`` (PNG; an existing file only with ``overwrite``); returns it."""
     path = Path(path)
     if not cv2.haveImageWriter(str(path)):  # checked before the work: OpenCV picks the format by the suffix
         raise InputError(f"--screenshot '{path}': no image format for the name's ending "
                          f"'{path.suffix}'; give a file name ending in .png (or .jpg)")
-    scene = build_scene(load_model(out))
+    if not overwrite and path.is_file():
+        raise WorkspaceError(f"--screenshot '{path}' already exists: pass --overwrite to replace it")
+    model = load_model(out)
+    Workspace(Path(out)).refuse_among_images(path, f"--screenshot '{path}'", "write it outside that folder")
+    scene = build_scene(model)
     path.parent.mkdir(parents=True, exist_ok=True)
     try:
         image = render_offscreen(scene, width, height)

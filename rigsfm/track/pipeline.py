@@ -27,7 +27,13 @@ from rigsfm.core.executors import check_reachable
 from rigsfm.core.io import file_sha256, write_bytes_atomic, write_json_atomic, write_text_atomic
 from rigsfm.core.rig import RigCalibration, nfc
 from rigsfm.core.workspace import TrackPaths, Workspace, colmap_log_to
-from rigsfm.run.inputs.images import check_image_folder, rig_folders, rigs_missing_frames, scan_images
+from rigsfm.run.inputs.images import (
+    check_image_folder,
+    check_stored_size,
+    rig_folders,
+    rigs_missing_frames,
+    scan_images,
+)
 from rigsfm.track.executors import run_frames
 from rigsfm.track.options import TrackOptions
 from rigsfm.track.plot import plot_rig
@@ -58,7 +64,7 @@ def frame_tasks(new_images: Path, reference: ReferenceMap) -> list[FrameTask]:
                          f"{reference.sparse}; move them out or track them against their own reference")
     if not present:
         raise InputError(f"{new_images} has no <rig>/wide/ folders with images")
-    # scan_images checks the layout; pixel sizes are checked by the workers, which read the images anyway.
+    # scan_images checks the layout; the sizes from the files' headers (the pixels are the workers' to read)
     rigs = []
     for name in present:
         rig = reference.rigs[name]
@@ -67,6 +73,9 @@ def frame_tasks(new_images: Path, reference: ReferenceMap) -> list[FrameTask]:
         rigs.append(RigCalibration(name, rig.wide, narrow, narrow_from_wide))
     images: dict[tuple[str, str], dict[str, Path | bytes]] = {}
     entries = scan_images(new_images, rigs, check_pixels=False)
+    cameras = {rig.name: rig for rig in rigs}
+    for entry in entries:
+        check_stored_size(entry, cameras[entry.rig].camera(entry.sensor))
     missing = rigs_missing_frames(entries, rigs)
     if missing is not None:  # as `rigsfm run` warns: a misnamed or lost file otherwise only shortens a rig's series
         logger.warning("MISSING FRAMES: %s", missing)

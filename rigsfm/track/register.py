@@ -20,6 +20,7 @@ import numpy as np
 import pycolmap
 
 from rigsfm.core.image_files import decode_image, read_image
+from rigsfm.run.inputs.images import unreadable_image
 from rigsfm.track.options import RegistrationOptions
 from rigsfm.track.pose import estimate_rig_pose, pose_covariance, reprojection_errors
 from rigsfm.track.reference import ReferenceMap, ReferenceRig
@@ -130,13 +131,16 @@ def register_frame(task: FrameTask, reference: ReferenceMap, options: Registrati
     cameras, sensor_from_rig = rig.cameras()
     correspondences = {}
     for sensor in _sensors_to_use(task, rig, options):
-        image = read_grey(task.images[sensor])
+        source = task.images[sensor]
+        image = read_grey(source)
         camera = cameras[sensor]
-        if image is None or image.shape != (camera.height, camera.width):
-            got = "cannot be decoded as an image" if image is None else f"is {image.shape[1]}x{image.shape[0]}"
+        if image is None:  # a file shipped as bytes is named by its place in NEW_IMAGES
+            return {**record, "status": "bad_input", "reason": unreadable_image(
+                source if isinstance(source, (str, Path)) else f"{task.rig}/{sensor}/{task.frame}")}
+        if image.shape != (camera.height, camera.width):
             return {**record, "status": "bad_input",
-                    "reason": f"{task.rig}/{sensor}/{task.frame} {got}; the {sensor} camera of {task.rig} is "
-                              f"calibrated for {camera.width}x{camera.height}"}
+                    "reason": f"{task.rig}/{sensor}/{task.frame} is {image.shape[1]}x{image.shape[0]}; the {sensor} "
+                              f"camera of {task.rig} is calibrated for {camera.width}x{camera.height}"}
         xy, descriptors = extract_sift(image, options.max_num_features)
         keypoints, xyz = match_to_map(descriptors, reference, rig, options.max_ratio)
         correspondences[sensor] = (xy[keypoints], xyz)

@@ -19,7 +19,7 @@ from pathlib import Path
 import cv2
 
 from rigsfm.core.errors import InputError
-from rigsfm.core.image_files import read_image, refuse_turned_images
+from rigsfm.core.image_files import read_image, refuse_turned_images, stored_size
 from rigsfm.core.io import access_problem, file_kind, stat_input
 from rigsfm.core.names import SENSORS, ImageName, Sensor, quoted
 from rigsfm.core.rig import RigCalibration, nfc
@@ -241,6 +241,11 @@ def rigs_missing_frames(images: Sequence[ImageEntry], rigs: Sequence[RigCalibrat
             "a rig adds no view at a frame it lacks; check for a file misnamed or not copied")
 
 
+def unreadable_image(path: Path | str) -> str:
+    """What `run` and `track` say of an image file that does not decode."""
+    return f"{path}: cannot be read as an image (corrupt or unsupported); replace it"
+
+
 def check_image(entry: ImageEntry, camera) -> None:
     """The image decodes and matches its camera's calibrated size."""
     try:
@@ -250,8 +255,21 @@ def check_image(entry: ImageEntry, camera) -> None:
         raise InputError(f"'{entry.path}' {access_problem(entry.path, error)}") from None
     image = read_image(entry.path, cv2.IMREAD_UNCHANGED)
     if image is None:
-        raise InputError(f"{entry.path}: cannot be read as an image (corrupt or unsupported); replace it")
-    height, width = image.shape[:2]
+        raise InputError(unreadable_image(entry.path))
+    _check_size(entry, camera, image.shape[1], image.shape[0])
+
+
+def check_stored_size(entry: ImageEntry, camera) -> None:
+    """:func:`check_image` from the file's header where it gives the size (PNG, JPEG: no pixels decoded, so
+    cheap enough before any heavy work over a whole recording); the pixels are read where it does not."""
+    size = stored_size(entry.path)
+    if size is None:
+        check_image(entry, camera)
+    else:
+        _check_size(entry, camera, *size)
+
+
+def _check_size(entry: ImageEntry, camera, width: int, height: int) -> None:
     if (width, height) != (camera.width, camera.height):
         raise InputError(
             f"'{entry.path}' is {width}x{height} but the {entry.sensor} camera of rig '{entry.rig}' is calibrated for "

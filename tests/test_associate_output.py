@@ -71,7 +71,6 @@ def test_persons_rows_and_json_are_the_person_by_person_text():
             assert [(d["image"], d["x"], d["row"]) for d in person["detections"]] == [
                 (frame.views[v].name, float(det.images[frame.views[v].name].xy[i, 0]),
                  int(det.images[frame.views[v].name].rows[i])) for v, i in held]
-        assert data["walk_m"] == 0.1
         used = {(v, int(i)) for p in range(len(result)) for v, i in enumerate(result.members[p]) if i >= 0}
         assert data["unassigned"] == [{"image": view.name, "row": int(det.images[view.name].rows[i])}
                                       for v, view in enumerate(frame.views)

@@ -157,11 +157,8 @@ def persons_json(frame, frame_offsets: dict | None = None) -> dict:
             # whether the rigs took their frames together (rigsfm.associate.sync; the same in every frame): the
             # offsets named and those the frames were paired by; null: not checked (--frame-offsets off)
             "frame_offsets": frame_offsets,
-            # Each person's "after" is the frame before's person it was linked to, "track" goes on where that link
-            # is likelier right than wrong (rigsfm.associate.trajectories); "walk_m": the links' model of the walk
-            # per floor axis beyond both points' covariances (below the persons' true steps where those are
-            # cautious). null: the first frame, or too few persons.
-            "walk_m": None if frame.links is None or frame.links.walk_m is None else round(frame.links.walk_m, 4),
+            # each person's "after" is the frame before's person it was linked to (null: none, or the first frame),
+            # its "track" goes on where that link is likelier right than wrong (rigsfm.associate.trajectories)
             "persons": persons, "unassigned": unassigned}
 
 

@@ -155,7 +155,7 @@ def tracks_line(dest: Path) -> str | None:
     before = None
     frames = [json.loads(path.read_text(encoding="utf-8")) for path in Path(dest).glob("*/persons.json")]
     for data in sorted(frames, key=lambda d: str(d.get("frame"))):  # the order they were linked in (by frame name)
-        if data.get("walk_m") is not None and before is not None:
+        if before is not None:
             persons += len(data["persons"])
             for person in data["persons"]:
                 if (person.get("after_confidence") or 0.0) > TRACK_CONFIDENCE:

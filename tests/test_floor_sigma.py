@@ -18,7 +18,7 @@ from rigsfm.run.world.floor import FloorEstimate, with_pose_uncertainty
 from rigsfm.run.world.floor_fit import fit_floor, grouped_plane_precision, plane_precision
 from rigsfm.run.world.floor_matching import FloorMatches, PairMatches
 from rigsfm.run.world.floor_model import fit_plane
-from rigsfm.run.world.floor_poses import pose_tilt_covariance
+from rigsfm.run.world.floor_poses import pose_floor_covariance
 from rigsfm.run.world.frame import locate_world
 
 # A crowd run's floor: 12 image pairs' patches round the arena, three of them holding most points (benchmarks/README.md)
@@ -208,11 +208,11 @@ def test_the_poses_covariance_tilts_the_floor_but_not_a_rotation_of_the_whole_ne
     frames = sorted(rec.reg_frame_ids())
     one = np.zeros(6 * len(frames))
     one[6:9] = 1e-4  # the second frame's rotation
-    tilt = pose_tilt_covariance(rec, matches, fit.normal, fit.offset, fit.threshold, frames_covariance(rec, one))
+    tilt, _ = pose_floor_covariance(rec, matches, fit.normal, fit.offset, fit.threshold, frames_covariance(rec, one))
     assert np.sqrt(np.linalg.eigvalsh(tilt).max()) > 1e-6
     theta = np.array([3e-4, -2e-4, 1e-4])  # the same world rotation of every frame: w = -R theta, dt = 0
     whole = np.concatenate([np.r_[-rec.frame(f).rig_from_world.rotation.matrix() @ theta, np.zeros(3)] for f in frames])
-    tilt = pose_tilt_covariance(rec, matches, fit.normal, fit.offset, fit.threshold, frames_covariance(rec, whole))
+    tilt, _ = pose_floor_covariance(rec, matches, fit.normal, fit.offset, fit.threshold, frames_covariance(rec, whole))
     assert np.sqrt(np.linalg.eigvalsh(tilt).max()) < 1e-8
 
 

@@ -288,7 +288,7 @@ def with_pose_uncertainty(estimate: FloorEstimate, reconstruction: pycolmap.Reco
                           covariance: JointCovariance | None) -> FloorEstimate:
     """``estimate`` with its normal's sigma widened to the poses' share where that is larger than the pairs'
     residuals show: the poses' covariance carried through the floor points' triangulation (the floor matches and
-    the sparse floor points, :func:`rigsfm.run.world.floor_poses.pose_tilt_covariance`) and the points' scatter, in
+    the sparse floor points, :func:`rigsfm.run.world.floor_poses.pose_floor_covariance`) and the points' scatter, in
     quadrature. A network's pose errors are correlated from pair to pair, so the plane can be off with every pair
     agreeing (benchmarks/README.md): a floor of sparse points alone as much as a matched one. Each camera's height
     sigma from the same poses, the camera and the floor moved together, is kept beside it

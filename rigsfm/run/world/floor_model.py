@@ -77,7 +77,7 @@ class FloorFit:
     sigma_basis: str = ""  # what normal_sigma_deg and height_sigma rest on (weakly determined, a lower bound)
     camera_height_sigmas: dict[str, float] = field(default_factory=dict)  # image name -> the floor's part of its sigma
     # The normal's sigma from the pairs' residuals alone (grouped_plane_precision), and from the poses' covariance
-    # carried through the floor points (floor_poses.pose_tilt_covariance; NaN where not propagated)
+    # carried through the floor points (floor_poses.pose_floor_covariance; NaN where not propagated)
     grouped_normal_sigma_deg: float = float("inf")
     pose_normal_sigma_deg: float = float("nan")
     # image name -> its height's 1 sigma from the poses' covariance, the camera and the floor moved together by the same

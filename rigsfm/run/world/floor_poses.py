@@ -71,15 +71,6 @@ def floor_views(reconstruction: pycolmap.Reconstruction, matches: FloorMatches |
     return [(np.vstack(views), np.vstack(rays)) for views, rays in by_count.values()]
 
 
-def pose_tilt_covariance(reconstruction: pycolmap.Reconstruction, matches: FloorMatches | None, normal: np.ndarray,
-                         offset: float, threshold: float, covariance: JointCovariance,
-                         sparse_ids: Sequence[int] | np.ndarray = ()) -> np.ndarray | None:
-    """2x2 covariance (radians^2) of the floor's tilt relative to the cameras' mean orientation
-    (:func:`pose_floor_covariance`'s tilt)."""
-    found = pose_floor_covariance(reconstruction, matches, normal, offset, threshold, covariance, sparse_ids)
-    return None if found is None else found[0]
-
-
 def pose_floor_covariance(reconstruction: pycolmap.Reconstruction, matches: FloorMatches | None, normal: np.ndarray,
                           offset: float, threshold: float, covariance: JointCovariance,
                           sparse_ids: Sequence[int] | np.ndarray = ()) -> tuple[np.ndarray, dict[str, float]] | None:

@@ -137,7 +137,9 @@ class FrameOffsetsSummary:
 def floor_from_markers_alone(points_by_source: dict | None, num_points: int | None) -> bool:
     """Whether a floor fit rests on the known-length markers alone (rigsfm.run.world.floor_fit.marker_floor: a crowd
     hid the floor from the points), from its record's ``points_by_source`` and ``num_points``."""
-    return bool(points_by_source) and points_by_source is not None and points_by_source.get("markers") == num_points
+    if not points_by_source:
+        return False
+    return points_by_source.get("markers") == num_points
 
 
 @dataclass(kw_only=True)

@@ -104,12 +104,13 @@ def contradicted_pairs(database_path: Path, reconstruction: pycolmap.Reconstruct
 
 
 def implausible_span(reconstruction: pycolmap.Reconstruction) -> str | None:
-    """A warning where the registered cameras of a metrically scaled model span less or more than any network of
-    rigs does (:data:`PLAUSIBLE_SPAN_M`); None otherwise."""
+    """A warning where the registered cameras of a metrically scaled model span (the diagonal of the box round their
+    centres: linear in the images, and at most sqrt(3) times their farthest pair, enough for an order of magnitude's
+    test) less or more than any network of rigs does (:data:`PLAUSIBLE_SPAN_M`); None otherwise."""
     centres = np.array([image.projection_center() for image in reconstruction.images.values() if image.has_pose])
     if len(centres) < 2:
         return None
-    span = float(np.max(np.linalg.norm(centres[:, None] - centres[None], axis=2)))
+    span = float(np.linalg.norm(centres.max(axis=0) - centres.min(axis=0)))
     low, high = PLAUSIBLE_SPAN_M
     if low <= span <= high:
         return None

@@ -154,6 +154,9 @@ def evaluate(dataset: Path, out: Path, seed: int, options: AssociateOptions, fra
             "truth": truths[0], "truths": truths, "model": model, "found": found}
 
 
+OBJECTS = ("truth", "truths", "model", "found")  # evaluate's entries for other scripts to use, not for the JSON rows
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("dataset", type=Path)
@@ -173,7 +176,7 @@ def main(argv: list[str] | None = None) -> int:
     rows = []
     for seed in range(args.seeds):
         ours = evaluate(args.dataset, args.out, seed, options, args.frames, noise_px=args.noise)
-        row = {"seed": seed, "rigsfm": {k: v for k, v in ours.items() if k not in ("truth", "model", "found")}}
+        row = {"seed": seed, "rigsfm": {k: v for k, v in ours.items() if k not in OBJECTS}}
         best = None
         for threshold in (2, 4, 8, 16, 32):
             s = score_groups(fixed_threshold(ours["model"], ours["truth"].points, threshold), ours["truth"])
@@ -182,7 +185,7 @@ def main(argv: list[str] | None = None) -> int:
         row["fixed_threshold"] = {"threshold_px": best[0], "scores": vars(best[1])}
         if args.fixed is not None:
             fixed = evaluate(args.dataset, args.fixed, seed, options, args.frames, noise_px=args.noise)
-            row["fixed_calibration"] = {k: v for k, v in fixed.items() if k not in ("truth", "model", "found")}
+            row["fixed_calibration"] = {k: v for k, v in fixed.items() if k not in OBJECTS}
         rows.append(row)
         print(json.dumps(row), flush=True)
     if args.json:
